@@ -1,0 +1,401 @@
+"""Multi-light captures on disk (contract §3): ``capture.json`` plus one RGB EXR per light.
+
+A capture photographs the flat sample ``[-1, 1] x [-1, 1]`` at ``z = 0`` (+z up) under one
+point light per image. :func:`load_capture` reads and validates a capture folder,
+:func:`write_capture` writes one, and :func:`pixel_points` gives the world point each pixel
+sees. Every error names the file (and the JSON entry) that is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchbrdf.io import atomic_path, read_exr, write_exr
+
+__all__ = ["CAPTURE_JSON", "Capture", "load_capture", "pixel_points", "write_capture"]
+
+#: Name of the description file inside a capture folder.
+CAPTURE_JSON = "capture.json"
+
+_LIGHT_TYPES = ("point",)
+
+
+@dataclass(frozen=True)
+class Capture:
+    """A loaded multi-light capture.
+
+    Attributes:
+        images: linear HDR radiance ``(L, 3, H, W)``, one image per light.
+        light_positions: point-light positions ``(L, 3)`` in world space.
+        light_intensities: RGB radiant intensities ``(L, 3)``, non-negative.
+        camera_position: ``(3,)`` world position used for the per-pixel view vectors.
+        width: image width W in pixels.
+        height: image height H in pixels.
+        files: image file names as listed in ``capture.json`` (relative to the folder).
+    """
+
+    images: Tensor
+    light_positions: Tensor
+    light_intensities: Tensor
+    camera_position: Tensor
+    width: int
+    height: int
+    files: tuple[str, ...]
+
+    def __len__(self) -> int:
+        """Number of lights (= images)."""
+        return self.images.shape[0]
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Capture:
+        """Copy with every tensor moved/cast (``None`` keeps the current device/dtype)."""
+
+        def move(t: Tensor) -> Tensor:
+            return t.to(device=device if device is not None else t.device, dtype=dtype or t.dtype)
+
+        return Capture(
+            images=move(self.images),
+            light_positions=move(self.light_positions),
+            light_intensities=move(self.light_intensities),
+            camera_position=move(self.camera_position),
+            width=self.width,
+            height=self.height,
+            files=self.files,
+        )
+
+    def points(self) -> Tensor:
+        """World point of every pixel ``(H, W, 3)`` (see :func:`pixel_points`)."""
+        return pixel_points(self.width, self.height, device=self.images.device, dtype=self.images.dtype)
+
+
+def pixel_points(
+    width: int,
+    height: int,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """World point seen by each pixel of a capture (contract §3).
+
+    Pixel (row i, column j) sees ``p = (-1 + (j + 0.5) 2 / W, 1 - (i + 0.5) 2 / H, 0)``:
+    row 0 is the +y edge, column 0 the -x edge.
+
+    Args:
+        width: W, pixels per row.
+        height: H, number of rows.
+        device: device of the result.
+        dtype: floating dtype of the result.
+
+    Returns:
+        ``(H, W, 3)`` points (channel-last vectors, like every direction in torchbrdf).
+
+    Example:
+        >>> pixel_points(2, 2)[0, 0]
+        tensor([-0.5000,  0.5000,  0.0000])
+    """
+    if width <= 0 or height <= 0:
+        raise ValueError(f"pixel_points: width and height must be positive, got {width} x {height}")
+    j = torch.arange(width, device=device, dtype=dtype)
+    i = torch.arange(height, device=device, dtype=dtype)
+    px = -1.0 + (j + 0.5) * (2.0 / width)
+    py = 1.0 - (i + 0.5) * (2.0 / height)
+    gy, gx = torch.meshgrid(py, px, indexing="ij")
+    return torch.stack((gx, gy, torch.zeros_like(gx)), dim=-1)
+
+
+# --------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------
+
+
+def _require(obj: Mapping, key: str, where: str, json_path: Path):
+    if key not in obj:
+        raise ValueError(f"{json_path}: {where} is missing the key '{key}'")
+    return obj[key]
+
+
+def _positive_int(value, where: str, json_path: Path) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{json_path}: {where} must be a positive integer, got {value!r}")
+    return value
+
+
+def _vec3(value, where: str, json_path: Path, nonnegative: bool = False) -> list[float]:
+    ok = (
+        isinstance(value, (list, tuple))
+        and len(value) == 3
+        and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in value)
+    )
+    if not ok:
+        raise ValueError(f"{json_path}: {where} must be a list of 3 numbers, got {value!r}")
+    if not all(math.isfinite(c) for c in value):
+        raise ValueError(f"{json_path}: {where} must be finite, got {value!r}")
+    if nonnegative and any(c < 0 for c in value):
+        raise ValueError(f"{json_path}: {where} must be non-negative, got {value!r}")
+    return [float(c) for c in value]
+
+
+def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path: Path) -> None:
+    c, h, w = image.shape
+    if (w, h) != (width, height):
+        raise ValueError(
+            f"{file}: image is {w}x{h} (width x height) but {json_path.name} says {width}x{height}"
+        )
+    bad = ~torch.isfinite(image)
+    if bad.any():
+        ch, i, j = (int(k) for k in bad.nonzero()[0])
+        raise ValueError(
+            f"{file}: {int(bad.sum())} non-finite pixel value(s) (NaN or inf), "
+            f"first at row {i}, column {j}, channel {'RGB'[ch]}"
+        )
+
+
+def load_capture(
+    folder: str | os.PathLike,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Capture:
+    """Load and validate a capture folder (contract §3).
+
+    Args:
+        folder: folder holding ``capture.json`` and the images it lists (paths relative to it).
+        device: device of the returned tensors (default CPU).
+        dtype: floating dtype of the returned tensors.
+
+    Returns:
+        A :class:`Capture` with images ``(L, 3, H, W)``, light positions and intensities
+        ``(L, 3)`` and the camera position ``(3,)``.
+
+    Raises:
+        FileNotFoundError: the folder, ``capture.json`` or a listed image does not exist.
+        ValueError: malformed JSON, a missing or ill-typed key, an unsupported light type,
+            a position that is not a finite 3-vector, a negative intensity, an image that is
+            not RGB, whose size differs from width/height or that has non-finite pixels.
+            The message names the offending file and entry.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"capture folder '{folder}' does not exist")
+    json_path = folder / CAPTURE_JSON
+    if not json_path.is_file():
+        raise FileNotFoundError(f"{json_path}: missing; a capture folder needs a {CAPTURE_JSON}")
+    try:
+        meta = json.loads(json_path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{json_path}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from e
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{json_path}: not UTF-8 text ({e})") from e
+    if not isinstance(meta, dict):
+        raise ValueError(f"{json_path}: the top level must be a JSON object, got {type(meta).__name__}")
+
+    width = _positive_int(_require(meta, "width", "the capture", json_path), "width", json_path)
+    height = _positive_int(_require(meta, "height", "the capture", json_path), "height", json_path)
+    camera = _require(meta, "camera", "the capture", json_path)
+    if not isinstance(camera, dict):
+        raise ValueError(f"{json_path}: camera must be an object, got {camera!r}")
+    cam_pos = _vec3(_require(camera, "position", "camera", json_path), "camera.position", json_path)
+    entries = _require(meta, "images", "the capture", json_path)
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{json_path}: images must be a non-empty list")
+
+    files, positions, intensities, images = [], [], [], []
+    for k, entry in enumerate(entries):
+        where = f"images[{k}]"
+        if not isinstance(entry, dict):
+            raise ValueError(f"{json_path}: {where} must be an object, got {entry!r}")
+        name = _require(entry, "file", where, json_path)
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{json_path}: {where}.file must be a non-empty string, got {name!r}")
+        light = _require(entry, "light", where, json_path)
+        if not isinstance(light, dict):
+            raise ValueError(f"{json_path}: {where}.light must be an object, got {light!r}")
+        kind = _require(light, "type", f"{where}.light", json_path)
+        if kind not in _LIGHT_TYPES:
+            raise ValueError(
+                f"{json_path}: {where}.light has unsupported type {kind!r} (supported: {list(_LIGHT_TYPES)})"
+            )
+        pos = _vec3(
+            _require(light, "position", f"{where}.light", json_path), f"{where}.light.position", json_path
+        )
+        inten = _vec3(
+            _require(light, "intensity", f"{where}.light", json_path),
+            f"{where}.light.intensity",
+            json_path,
+            nonnegative=True,
+        )
+        file = folder / name
+        if not file.is_file():
+            raise FileNotFoundError(f"{file}: image listed as {where}.file in {json_path} does not exist")
+        try:
+            image = read_exr(file, channels=("R", "G", "B"))
+        except ValueError as e:
+            raise ValueError(f"{file} ({where} in {json_path}): {e}") from e
+        _check_pixels(image, file, width, height, json_path)
+        files.append(name)
+        positions.append(pos)
+        intensities.append(inten)
+        images.append(image)
+
+    return Capture(
+        images=torch.stack(images).to(device=device, dtype=dtype),
+        light_positions=torch.tensor(positions, dtype=torch.float64).to(device=device, dtype=dtype),
+        light_intensities=torch.tensor(intensities, dtype=torch.float64).to(device=device, dtype=dtype),
+        camera_position=torch.tensor(cam_pos, dtype=torch.float64).to(device=device, dtype=dtype),
+        width=width,
+        height=height,
+        files=tuple(files),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+
+
+def _as_rows(value, what: str, count: int | None = None) -> np.ndarray:
+    """``(L, 3)`` float64 array from a tensor/array/nested list."""
+    arr = value.detach().cpu().double().numpy() if isinstance(value, Tensor) else np.asarray(value, float)
+    if arr.ndim != 2 or arr.shape[1] != 3 or (count is not None and arr.shape[0] != count):
+        want = f"({count}, 3)" if count is not None else "(L, 3)"
+        raise ValueError(f"write_capture: {what} must have shape {want}, got {arr.shape}")
+    return arr
+
+
+def _split_lights(lights) -> tuple[np.ndarray, np.ndarray]:
+    """Light positions and intensities ``(L, 3)`` from any accepted ``lights`` form."""
+    if isinstance(lights, Mapping):
+        positions, intensities = lights["position"], lights["intensity"]
+        return _as_rows(positions, "light positions"), _as_rows(intensities, "light intensities")
+    items = list(lights)
+
+    def is_table(t) -> bool:
+        return isinstance(t, (Tensor, np.ndarray)) and t.ndim == 2
+
+    if len(items) == 2 and is_table(items[0]) and is_table(items[1]):
+        return _as_rows(items[0], "light positions"), _as_rows(items[1], "light intensities")
+    positions, intensities = [], []
+    for k, light in enumerate(items):
+        if isinstance(light, Mapping):
+            kind = light.get("type", "point")
+            if kind not in _LIGHT_TYPES:
+                raise ValueError(f"write_capture: lights[{k}] has unsupported type {kind!r}")
+            pos, inten = light["position"], light["intensity"]
+        elif hasattr(light, "position") and hasattr(light, "intensity"):
+            pos, inten = light.position, light.intensity  # e.g. torchbrdf.PointLight
+        elif isinstance(light, (tuple, list)) and len(light) == 2:
+            pos, inten = light
+        else:
+            raise ValueError(
+                f"write_capture: lights[{k}] must be a (position, intensity) pair, a mapping with "
+                f"'position' and 'intensity', or an object with those attributes; got {type(light).__name__}"
+            )
+        positions.append(_as_rows(torch.as_tensor(pos).reshape(1, -1), f"lights[{k}].position", 1)[0])
+        intensities.append(_as_rows(torch.as_tensor(inten).reshape(1, -1), f"lights[{k}].intensity", 1)[0])
+    if not positions:
+        raise ValueError("write_capture: no lights given")
+    return np.stack(positions), np.stack(intensities)
+
+
+def write_capture(
+    folder: str | os.PathLike,
+    images: Tensor,
+    lights,
+    camera_position,
+    *,
+    files: Sequence[str] | None = None,
+    half: bool = False,
+) -> Path:
+    """Write a capture folder (contract §3): one RGB EXR per light, then ``capture.json``.
+
+    Every file is written atomically, and ``capture.json`` last, so a reader never sees a
+    description that lists images not yet on disk. The folder is created if needed.
+
+    Args:
+        folder: destination folder.
+        images: linear radiance ``(L, 3, H, W)`` (or a sequence of ``(3, H, W)``), finite.
+        lights: L point lights, as any of: a pair ``(positions, intensities)`` of ``(L, 3)``
+            tensors/arrays; a mapping ``{"position": (L, 3), "intensity": (L, 3)}``; a
+            sequence of L ``(position, intensity)`` pairs, of mappings with ``position`` and
+            ``intensity`` keys, or of objects with ``.position`` / ``.intensity`` attributes
+            (such as ``torchbrdf.PointLight``). Intensities are RGB and non-negative.
+        camera_position: ``(3,)`` world position of the camera.
+        files: image file names (default ``img_000.exr``, ``img_001.exr``, ...).
+        half: store the images as half floats.
+
+    Returns:
+        The path of the written ``capture.json``.
+
+    Raises:
+        ValueError: on inconsistent counts or shapes, non-finite values or negative intensities.
+    """
+    if not isinstance(images, Tensor):
+        images = torch.stack([torch.as_tensor(im) for im in images])
+    images = images.detach()
+    if images.dim() != 4 or images.shape[1] != 3:
+        raise ValueError(f"write_capture: images must have shape (L, 3, H, W), got {tuple(images.shape)}")
+    count, _, height, width = images.shape
+    if not torch.isfinite(images).all():
+        bad = int((~torch.isfinite(images)).nonzero()[0, 0])
+        raise ValueError(f"write_capture: image {bad} has non-finite pixels; the loader would reject it")
+    positions, intensities = _split_lights(lights)
+    if positions.shape[0] != count or intensities.shape[0] != count:
+        raise ValueError(
+            f"write_capture: {count} images but {positions.shape[0]} light positions "
+            f"and {intensities.shape[0]} intensities"
+        )
+    if not (np.isfinite(positions).all() and np.isfinite(intensities).all()):
+        raise ValueError("write_capture: light positions and intensities must be finite")
+    if (intensities < 0).any():
+        k = int(np.nonzero((intensities < 0).any(axis=1))[0][0])
+        raise ValueError(f"write_capture: light {k} has a negative intensity {intensities[k].tolist()}")
+    cam = (
+        camera_position.detach().cpu().double().numpy()
+        if isinstance(camera_position, Tensor)
+        else np.asarray(camera_position, float)
+    )
+    if cam.shape != (3,) or not np.isfinite(cam).all():
+        raise ValueError(f"write_capture: camera_position must be a finite 3-vector, got {cam.tolist()}")
+    if files is None:
+        digits = max(3, len(str(count - 1)))
+        files = [f"img_{k:0{digits}d}.exr" for k in range(count)]
+    files = list(files)
+    if len(files) != count or len(set(files)) != count:
+        raise ValueError(f"write_capture: need {count} distinct file names, got {files}")
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for k, name in enumerate(files):
+        write_exr(folder / name, images[k], half=half)
+        entries.append(
+            {
+                "file": name,
+                "light": {
+                    "type": "point",
+                    "position": positions[k].tolist(),
+                    "intensity": intensities[k].tolist(),
+                },
+            }
+        )
+    # One image entry per line: readable and diff-friendly, unlike indent=2 on short vectors.
+    lines = [
+        "{",
+        f'  "width": {int(width)},',
+        f'  "height": {int(height)},',
+        f'  "camera": {json.dumps({"position": cam.tolist()})},',
+        '  "images": [',
+        ",\n".join(f"    {json.dumps(e)}" for e in entries),
+        "  ]",
+        "}",
+    ]
+    json_path = folder / CAPTURE_JSON
+    with atomic_path(json_path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return json_path
