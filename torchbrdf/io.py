@@ -173,9 +173,12 @@ def read_exr(
         raise ValueError(f"'{path}' is not an OpenEXR file (bad magic number or truncated header)")
     try:
         with exr.File(str(path), separate_channels=True) as f:
+            # A truncated or corrupt file loads with no parts (the bindings only print a warning).
+            if not f.parts:
+                raise ValueError("no readable part (truncated or corrupt pixel data)")
             stored = {name: ch.pixels for name, ch in f.channels().items()}
             sampling = {name: (ch.xSampling, ch.ySampling) for name, ch in f.channels().items()}
-    except RuntimeError as e:
+    except (RuntimeError, ValueError, IndexError) as e:
         raise ValueError(f"could not read OpenEXR file '{path}': {e}") from e
     if not stored:
         raise ValueError(f"OpenEXR file '{path}' has no channels")
@@ -204,13 +207,22 @@ def _as_chw(image, path: Path, what: str) -> Tensor:
             raise ValueError(f"cannot write {what} '{path}': a (B, C, H, W) image needs B = 1, got {shape}")
         image = image[0]
     if image.dim() != 3:
-        raise ValueError(f"cannot write {what} '{path}': expected shape (C, H, W) or (1, C, H, W), got {shape}")
+        raise ValueError(f"cannot write {what} '{path}': expected (C, H, W) or (1, C, H, W), got {shape}")
     if image.shape[1] == 0 or image.shape[2] == 0:
         raise ValueError(f"cannot write {what} '{path}': empty image of shape {shape}")
     return image.cpu()
 
 
-_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz", "pxr24")
+# Compression names accepted by write_exr -> attribute of the OpenEXR module.
+_COMPRESSION_ATTRS = {
+    "none": "NO_COMPRESSION",
+    "rle": "RLE_COMPRESSION",
+    "zips": "ZIPS_COMPRESSION",
+    "zip": "ZIP_COMPRESSION",
+    "piz": "PIZ_COMPRESSION",
+    "pxr24": "PXR24_COMPRESSION",
+}
+_COMPRESSIONS = tuple(_COMPRESSION_ATTRS)
 
 
 def write_exr(
@@ -256,7 +268,7 @@ def write_exr(
     else:
         names = [channels] if isinstance(channels, str) else list(channels)
         if len(names) != c:
-            raise ValueError(f"cannot write EXR '{path}': {len(names)} channel names {names} for {c} channel(s)")
+            raise ValueError(f"cannot write EXR '{path}': {len(names)} names {names} for {c} channel(s)")
         if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
             raise ValueError(
                 f"cannot write EXR '{path}': channel names must be unique non-empty strings, got {names}"
@@ -273,7 +285,7 @@ def write_exr(
     arrays = data.numpy()
     pixels = {n: np.ascontiguousarray(arrays[i]) for i, n in enumerate(names)}
     header = {
-        "compression": getattr(exr, f"{compression.upper()}_COMPRESSION"),
+        "compression": getattr(exr, _COMPRESSION_ATTRS[compression]),
         "type": exr.scanlineimage,
     }
     with atomic_path(path) as tmp:
