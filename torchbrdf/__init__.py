@@ -1,0 +1,101 @@
+"""torchbrdf: physically based reflectance for neural and inverse rendering, in PyTorch.
+
+Conventions (fixed by the public contract): direction vectors are channel-last ``(*, 3)``,
+unit length, pointing away from the surface (``l`` to the light, ``v`` to the viewer, ``n``
+the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-last
+(colours ``(*, 3)`` linear RGB, scalars ``(*, 1)``, floats allowed); images and maps are
+``(B, C, H, W)`` linear values. Every function keeps the dtype and device it is given.
+"""
+
+from . import diffuse, distributions, fresnel, masking
+from ._checks import set_validation, validation, validation_enabled
+from .diffuse import diffuse_burley, diffuse_lambert, diffuse_oren_nayar, diffuse_subsurface
+from .distributions import (
+    ndf_abc,
+    ndf_beckmann,
+    ndf_beckmann_aniso,
+    ndf_blinn_phong,
+    ndf_ggx,
+    ndf_ggx_aniso,
+    ndf_gtr,
+    ndf_gtr1,
+    roughness_to_alpha,
+)
+from .frames import frame_from_normal, gram_schmidt
+from .fresnel import (
+    f0_from_ior,
+    f0_from_specular,
+    fresnel_conductor,
+    fresnel_dielectric,
+    fresnel_schlick,
+    ior_from_f0,
+    specular_from_f0,
+)
+from .masking import (
+    g_cook_torrance,
+    g_implicit,
+    g_kelemen,
+    smith_g1_beckmann,
+    smith_g1_beckmann_walter,
+    smith_g1_ggx,
+    smith_g1_ggx_aniso,
+    smith_g2_ggx_correlated,
+    smith_g2_height_correlated,
+    smith_g2_separable,
+    smith_lambda_beckmann,
+    smith_lambda_ggx,
+)
+from .microfacet import MicrofacetBRDF, microfacet
+from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, principled
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "principled",
+    "PrincipledBRDF",
+    "PRINCIPLED_DEFAULTS",
+    "LOBES",
+    "microfacet",
+    "MicrofacetBRDF",
+    "set_validation",
+    "validation",
+    "validation_enabled",
+    "frame_from_normal",
+    "gram_schmidt",
+    "fresnel_schlick",
+    "fresnel_dielectric",
+    "fresnel_conductor",
+    "f0_from_ior",
+    "ior_from_f0",
+    "f0_from_specular",
+    "specular_from_f0",
+    "roughness_to_alpha",
+    "ndf_ggx",
+    "ndf_ggx_aniso",
+    "ndf_gtr",
+    "ndf_gtr1",
+    "ndf_beckmann",
+    "ndf_beckmann_aniso",
+    "ndf_blinn_phong",
+    "ndf_abc",
+    "smith_g1_ggx",
+    "smith_g1_ggx_aniso",
+    "smith_lambda_ggx",
+    "smith_g1_beckmann",
+    "smith_g1_beckmann_walter",
+    "smith_lambda_beckmann",
+    "smith_g2_separable",
+    "smith_g2_height_correlated",
+    "smith_g2_ggx_correlated",
+    "g_cook_torrance",
+    "g_kelemen",
+    "g_implicit",
+    "diffuse_lambert",
+    "diffuse_burley",
+    "diffuse_subsurface",
+    "diffuse_oren_nayar",
+    "diffuse",
+    "distributions",
+    "fresnel",
+    "masking",
+]

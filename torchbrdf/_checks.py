@@ -1,0 +1,130 @@
+"""Argument checks with messages that name the argument, its shape/dtype and what was expected.
+
+Metadata checks (shape, dtype, device) are always on: they cost nothing next to the math.
+Value checks (NaN/inf, negative intensities) read tensor data, which synchronises a GPU, so
+they run only when validation is enabled with :func:`set_validation` or ``validate=True``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import numbers
+
+import torch
+from torch import Tensor
+
+_VALIDATE = False
+
+
+def set_validation(enabled: bool) -> None:
+    """Turn value checks (NaN/inf in inputs, negative intensities) on or off globally."""
+    global _VALIDATE
+    _VALIDATE = bool(enabled)
+
+
+def validation_enabled() -> bool:
+    """Whether value checks are on (see :func:`set_validation`)."""
+    return _VALIDATE
+
+
+@contextlib.contextmanager
+def validation(enabled: bool = True):
+    """Context manager form of :func:`set_validation`."""
+    global _VALIDATE
+    old = _VALIDATE
+    _VALIDATE = bool(enabled)
+    try:
+        yield
+    finally:
+        _VALIDATE = old
+
+
+def _describe(t) -> str:
+    if isinstance(t, Tensor):
+        return f"tensor of shape {tuple(t.shape)}, dtype {t.dtype}, device {t.device}"
+    return f"{type(t).__name__} {t!r}"
+
+
+def check_tensor(name: str, t, last: int | None = None, allow_scalar: bool = False):
+    """Check a tensor argument's type, floating dtype and trailing dimension.
+
+    Args:
+        name: argument name used in messages.
+        t: the value.
+        last: required size of the last axis (``None`` = any). 0-d tensors pass when
+            ``allow_scalar``; so do Python numbers, which are returned unchanged.
+        allow_scalar: accept Python numbers and 0-d tensors.
+
+    Returns:
+        ``t`` unchanged.
+    """
+    if isinstance(t, numbers.Real) and not isinstance(t, bool):
+        if allow_scalar:
+            return t
+        raise TypeError(f"{name}: expected a tensor with last dimension {last}, got {_describe(t)}")
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor or float, got {_describe(t)}")
+    if not t.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {_describe(t)}")
+    if t.dim() == 0:
+        if allow_scalar:
+            return t
+        raise ValueError(f"{name}: expected shape (..., {last}), got a 0-d tensor")
+    if last is not None and t.shape[-1] != last:
+        raise ValueError(f"{name}: expected shape (..., {last}), got {_describe(t)}")
+    return t
+
+
+def check_same_dtype_device(named: dict) -> tuple[torch.dtype, torch.device]:
+    """All tensors in ``named`` must share one floating dtype and one device.
+
+    Returns:
+        The common ``(dtype, device)``.
+    """
+    ref_name, ref = None, None
+    for name, t in named.items():
+        if not isinstance(t, Tensor):
+            continue
+        if ref is None:
+            ref_name, ref = name, t
+            continue
+        if t.dtype != ref.dtype:
+            raise TypeError(
+                f"{name}: dtype {t.dtype} differs from {ref_name}'s {ref.dtype}; "
+                "pass all tensors in one floating dtype"
+            )
+        if t.device != ref.device:
+            raise ValueError(
+                f"{name}: on device {t.device} but {ref_name} is on {ref.device}; "
+                "move all tensors to one device"
+            )
+    if ref is None:
+        raise TypeError("expected at least one tensor argument")
+    return ref.dtype, ref.device
+
+
+def check_broadcast(named: dict) -> torch.Size:
+    """Batch shapes (all but the last axis) must broadcast; returns the broadcast batch shape."""
+    shapes = {k: t.shape[:-1] for k, t in named.items() if isinstance(t, Tensor) and t.dim() > 0}
+    try:
+        return torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        desc = ", ".join(f"{k} {tuple(s)}" for k, s in shapes.items())
+        raise ValueError(f"batch shapes do not broadcast: {desc} (the last axis is the channel axis)") from None
+
+
+def check_finite(named: dict) -> None:
+    """Raise if any tensor holds NaN or inf (reads data: only under validation)."""
+    for name, t in named.items():
+        if isinstance(t, Tensor) and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{name}: contains {bad} non-finite value(s) ({_describe(t)})")
+
+
+def check_nonnegative(name: str, t) -> None:
+    """Raise if ``t`` has a negative entry (reads data)."""
+    if isinstance(t, Tensor):
+        if bool((t < 0).any()):
+            raise ValueError(f"{name}: expected non-negative values, got min {float(t.min())}")
+    elif t < 0:
+        raise ValueError(f"{name}: expected a non-negative value, got {t}")

@@ -1,0 +1,351 @@
+"""The Disney principled BRDF (Burley 2012, with the 2014 addendum).
+
+Exactly the model of the public contract: Burley's diffuse with retro-reflection, the
+Hanrahan–Krueger-like subsurface blend, an anisotropic GGX primary lobe with the
+un-remapped anisotropic Smith G of the 2014 addendum, Schlick Fresnel toward a tinted or
+metallic F0, a Schlick-shaped sheen, and a GTR1 clearcoat with its fixed α = 0.25 Smith G.
+
+Numerics (each pinned by ``tests/test_principled.py`` and ``tests/test_hard_cases.py``):
+
+* ``f = 0`` exactly, with zero gradients, where ``n·l <= 0`` or ``n·v <= 0``: the math runs
+  on cosines clamped to ``COS_EPS`` so the masked lanes stay finite, then is masked.
+* ``1 - (n·h)²`` is computed as ``|n × h|²`` (no cancellation at narrow peaks); the
+  anisotropic GGX form ``(h·x/αx)² + (h·y/αy)² + (h·n)²`` has none to begin with.
+* ``1 - 0.9 anisotropic`` is floored at 0.1 (anisotropic > 1 behaves as 1) and the clearcoat
+  α at 0.001 (clearcoat_gloss > 1 behaves as 1), so pushing parameters past [0, 1] never
+  produces NaN.
+* float16 / bfloat16 inputs are evaluated in float32 and the result saturates at the dtype's
+  largest finite value (a roughness-0 mirror peak reaches ~3e5, beyond float16's 65504).
+* Input vectors are used as given (not renormalised): pass unit vectors.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import torch
+from torch import Tensor, nn
+
+from . import _checks
+from ._math import cast_back, compute_dtype, cross_norm2, dot, lerp, luminance, safe_normalize, safe_sqrt, schlick_weight
+from .diffuse import burley_retro_factor, subsurface_factor
+from .distributions import ALPHA_MIN, ndf_gtr1
+from .frames import frame_from_normal
+
+__all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES"]
+
+INV_PI = 1.0 / math.pi
+# Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine
+# the library promises finite values for (1/(NL+NV) stays below 1e7).
+COS_EPS = 1e-7
+# 1 - 0.9 * anisotropic floor: anisotropic = 1 already gives aspect sqrt(0.1).
+ASPECT2_MIN = 0.1
+
+PRINCIPLED_DEFAULTS = {
+    "metallic": 0.0,
+    "subsurface": 0.0,
+    "specular": 0.5,
+    "roughness": 0.5,
+    "specular_tint": 0.0,
+    "anisotropic": 0.0,
+    "sheen": 0.0,
+    "sheen_tint": 0.5,
+    "clearcoat": 0.0,
+    "clearcoat_gloss": 1.0,
+}
+SCALAR_PARAMS = tuple(PRINCIPLED_DEFAULTS)
+LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
+
+
+def _is_const(p, value: float) -> bool:
+    """True when ``p`` is a Python number equal to ``value`` (a tensor is never assumed constant)."""
+    return isinstance(p, numbers.Real) and float(p) == value
+
+
+def active_lobes(params: dict, lobes=None) -> tuple[str, ...]:
+    """Lobes ``principled`` evaluates for these parameters.
+
+    A lobe is skipped when its weight is a Python number equal to 0 (exactly the same result,
+    since the skipped term would be multiplied by 0) or when ``lobes`` leaves it out.
+    """
+    p = {**PRINCIPLED_DEFAULTS, **params}
+    wanted = LOBES if lobes is None else tuple(lobes)
+    unknown = set(wanted) - set(LOBES)
+    if unknown:
+        raise ValueError(f"lobes: unknown lobe(s) {sorted(unknown)}; expected a subset of {LOBES}")
+    metal = _is_const(p["metallic"], 1.0)
+    skip = {
+        "diffuse": metal or _is_const(p["subsurface"], 1.0),
+        "subsurface": metal or _is_const(p["subsurface"], 0.0),
+        "specular": False,
+        "sheen": metal or _is_const(p["sheen"], 0.0),
+        "clearcoat": _is_const(p["clearcoat"], 0.0),
+    }
+    return tuple(lobe for lobe in LOBES if lobe in wanted and not skip[lobe])
+
+
+def _prepare(l, v, n, x, y, params, base_color):
+    """Check arguments and cast everything to the compute dtype. Returns the cast values."""
+    for name, t in (("l", l), ("v", v), ("n", n)):
+        _checks.check_tensor(name, t, last=3)
+    if x is not None:
+        _checks.check_tensor("x", x, last=3)
+    if y is not None:
+        _checks.check_tensor("y", y, last=3)
+    _checks.check_tensor("base_color", base_color, last=3, allow_scalar=True)
+    if isinstance(base_color, Tensor) and base_color.dim() > 0 and base_color.shape[-1] != 3:
+        raise ValueError(f"base_color: expected shape (..., 3), got {tuple(base_color.shape)}")
+    for k, p in params.items():
+        _checks.check_tensor(k, p, last=1, allow_scalar=True)
+    named = {"l": l, "v": v, "n": n, "x": x, "y": y, "base_color": base_color, **params}
+    dtype, device = _checks.check_same_dtype_device(named)
+    _checks.check_broadcast(named)
+    if _checks.validation_enabled():
+        _checks.check_finite(named)
+    cd = compute_dtype(dtype)
+    cast = {k: (t.to(cd) if isinstance(t, Tensor) else t) for k, t in named.items()}
+    return dtype, cast
+
+
+def principled(
+    l: Tensor,
+    v: Tensor,
+    n: Tensor,
+    x: Tensor | None = None,
+    y: Tensor | None = None,
+    *,
+    base_color,
+    metallic=0.0,
+    subsurface=0.0,
+    specular=0.5,
+    roughness=0.5,
+    specular_tint=0.0,
+    anisotropic=0.0,
+    sheen=0.0,
+    sheen_tint=0.5,
+    clearcoat=0.0,
+    clearcoat_gloss=1.0,
+    lobes=None,
+) -> Tensor:
+    """Evaluate the Disney principled BRDF ``f(l, v)`` (without the ``n·l`` cosine).
+
+    Args:
+        l: unit direction toward the light, ``(*, 3)``.
+        v: unit direction toward the viewer, ``(*, 3)``.
+        n: unit shading normal, ``(*, 3)``.
+        x: unit tangent ``(*, 3)``; needed only when ``anisotropic`` is non-zero. When
+            omitted, a frame is built from ``n`` (Duff et al. 2017) if anisotropy is a tensor.
+        y: unit bitangent ``(*, 3)``; defaults to ``n × x``.
+        base_color: linear RGB ``(*, 3)`` (or a float for grey).
+        metallic, subsurface, specular, roughness, specular_tint, anisotropic, sheen,
+            sheen_tint, clearcoat, clearcoat_gloss: ``(*, 1)`` tensors or floats,
+            nominally in ``[0, 1]``; values beyond are allowed (Burley's principle 4).
+        lobes: optional subset of :data:`LOBES` to evaluate; by default every lobe whose
+            weight is not a Python 0 (skipping those changes nothing).
+
+    Returns:
+        ``(*, 3)`` BRDF values in the inputs' dtype and on their device; exactly 0 (with
+        zero gradient) where ``n·l <= 0`` or ``n·v <= 0``.
+
+    Reference:
+        Burley, "Physically Based Shading at Disney", 2012 (appendix B, eq. 13; 2014
+        addendum for the un-remapped anisotropic Smith G).
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> principled(n, n, n, base_color=torch.tensor([[0.5, 0.5, 0.5]])).shape
+        torch.Size([1, 3])
+    """
+    params = {
+        "metallic": metallic,
+        "subsurface": subsurface,
+        "specular": specular,
+        "roughness": roughness,
+        "specular_tint": specular_tint,
+        "anisotropic": anisotropic,
+        "sheen": sheen,
+        "sheen_tint": sheen_tint,
+        "clearcoat": clearcoat,
+        "clearcoat_gloss": clearcoat_gloss,
+    }
+    if x is None and y is None and isinstance(anisotropic, numbers.Real) and anisotropic != 0:
+        raise ValueError(f"anisotropic={anisotropic} needs a tangent frame: pass x (and optionally y)")
+    dtype, c = _prepare(l, v, n, x, y, params, base_color)
+    active = active_lobes(params, lobes)
+    f = _principled_eager(c, active)
+    return cast_back(f, dtype)
+
+
+def _principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
+    """The principled BRDF on already-checked, compute-dtype inputs ``c`` (see ``_prepare``)."""
+    l, v, n, x, y = c["l"], c["v"], c["n"], c["x"], c["y"]
+    base = c["base_color"]
+    if not isinstance(base, Tensor) or base.dim() == 0:
+        base = torch.as_tensor(base, dtype=l.dtype, device=l.device).expand(3)
+    metallic, roughness = c["metallic"], c["roughness"]
+
+    nl_raw, nv_raw = dot(n, l), dot(n, v)
+    valid = (nl_raw > 0) & (nv_raw > 0)
+    nl = torch.clamp(nl_raw, min=COS_EPS)
+    nv = torch.clamp(nv_raw, min=COS_EPS)
+    hg = half_vector_terms(l, v, n, c["x"], c["y"], need_frame=_needs_frame(c))
+    nh, lh = hg["nh"], hg["lh"]
+    fh = _pow5(hg["one_minus_lh"])
+
+    need_tint = not _is_const(c["specular_tint"], 0.0) or (
+        "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
+    )
+    if need_tint:
+        lum = luminance(base)
+        positive = lum > 0
+        ctint = torch.where(positive, base / torch.where(positive, lum, torch.ones_like(lum)), torch.ones_like(base))
+    else:
+        ctint = 1.0
+
+    f = torch.zeros((), dtype=l.dtype, device=l.device)
+    dielectric = 1.0 - metallic
+
+    # Diffuse and subsurface, blended by `subsurface` (weights kept separate so that a lobe
+    # whose weight is exactly zero can be dropped without changing a bit of the result).
+    if "diffuse" in active or "subsurface" in active:
+        ss_w = c["subsurface"]
+        mix = 0.0
+        if "diffuse" in active:
+            mix = burley_retro_factor(nl, nv, lh, roughness) * (1.0 - ss_w)
+        if "subsurface" in active:
+            mix = mix + subsurface_factor(nl, nv, lh, roughness) * ss_w
+        f = f + (INV_PI * mix) * base * dielectric
+
+    if "sheen" in active:
+        csheen = lerp(1.0, ctint, c["sheen_tint"])
+        f = f + (fh * c["sheen"]) * csheen * dielectric
+
+    if "specular" in active:
+        cspec0 = lerp(0.08 * c["specular"] * lerp(1.0, ctint, c["specular_tint"]), base, metallic)
+        fs = lerp(cspec0, 1.0, fh)
+        f = f + fs * _specular_dg(c, nl, nv, hg, roughness)
+
+    if "clearcoat" in active:
+        alpha_c = lerp(0.1, 0.001, c["clearcoat_gloss"])
+        if isinstance(alpha_c, Tensor):
+            alpha_c = torch.clamp(alpha_c, min=ALPHA_MIN)
+        else:
+            alpha_c = max(alpha_c, ALPHA_MIN)
+        dr = ndf_gtr1(nh, alpha_c, sin2_h=hg["sin2_h"])
+        fr = lerp(0.04, 1.0, fh)
+        gr = _g_over_4nn(nl, 0.0625 * (1.0 - nl * nl)) * _g_over_4nn(nv, 0.0625 * (1.0 - nv * nv))
+        f = f + (0.25 * c["clearcoat"]) * gr * fr * dr
+
+    f = torch.broadcast_to(f, torch.broadcast_shapes(f.shape, valid.shape[:-1] + (3,)))
+    return torch.where(valid, f, torch.zeros_like(f))
+
+
+def _g_over_4nn(n_dot_w: Tensor, tangent_alpha2) -> Tensor:
+    """``G1(w) / (2 n·w) = 1 / (n·w + sqrt((n·w)² + tangent_alpha2))`` (addendum form)."""
+    return 1.0 / (n_dot_w + safe_sqrt(n_dot_w * n_dot_w + tangent_alpha2))
+
+
+def _pow5(m: Tensor) -> Tensor:
+    m2 = m * m
+    return m2 * m2 * m
+
+
+def _needs_frame(c: dict) -> bool:
+    return not (c["x"] is None and c["y"] is None and _is_const(c["anisotropic"], 0.0))
+
+
+def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, need_frame: bool = False) -> dict:
+    """Half-vector cosines ``nh``, ``lh``, ``sin2_h = |n × h|²`` (and ``hx``, ``hy``, ``x``, ``y``).
+
+    For float32 inputs these few projections (and ``1 - l·h``, the Schlick base that cancels
+    near the mirror direction) are computed in float64 and rounded once: at
+    α = 0.001 the peak's shape depends on ``h·x / α``, so float32's ~1e-7 absolute rounding
+    of a dot product would become a ~2e-4 relative error of the BRDF. Everything downstream
+    is a sum of positive terms and keeps float32's relative precision.
+
+    Returns:
+        dict of ``(*, 1)`` tensors in the inputs' dtype (plus the frame when ``need_frame``).
+    """
+    out_dtype = l.dtype
+    hi = torch.float64 if out_dtype == torch.float32 else out_dtype
+    lw, vw, nw = l.to(hi), v.to(hi), n.to(hi)
+    h = safe_normalize(lw + vw)
+    lh = torch.clamp(dot(lw, h), 0.0, 1.0)
+    # 1 - l·h is the Schlick base; near the mirror direction it cancels in float32.
+    terms = {"nh": dot(nw, h), "lh": lh, "one_minus_lh": 1.0 - lh, "sin2_h": cross_norm2(nw, h)}
+    if need_frame:
+        if x is None:
+            x, y = frame_from_normal(n)
+        elif y is None:
+            y = torch.linalg.cross(n, x, dim=-1)
+        terms["hx"], terms["hy"] = dot(h, x.to(hi)), dot(h, y.to(hi))
+    out = {k: t.to(out_dtype) for k, t in terms.items()}
+    if need_frame:
+        out["x"], out["y"] = x, y
+    return out
+
+
+def _specular_dg(c: dict, nl, nv, hg: dict, roughness) -> Tensor:
+    """``Ds · Gs`` of the primary GGX lobe (``Gs`` already holds ``1 / (4 NL NV)``), ``(*, 1)``."""
+    l, v = c["l"], c["v"]
+    aniso = c["anisotropic"]
+    nh = hg["nh"]
+    r2 = roughness * roughness
+    if "hx" not in hg:
+        # Isotropic: no frame needed; (h·x)² + (h·y)² = |n × h|².
+        alpha = torch.clamp(r2, min=ALPHA_MIN) if isinstance(r2, Tensor) else max(r2, ALPHA_MIN)
+        a2 = alpha * alpha
+        den = a2 * nh * nh + hg["sin2_h"]
+        ds = a2 / (math.pi * den * den)
+        gs = _g_over_4nn(nl, a2 * (1.0 - nl * nl)) * _g_over_4nn(nv, a2 * (1.0 - nv * nv))
+        return torch.where(nh > 0, ds * gs, torch.zeros_like(ds))
+    x, y = hg["x"], hg["y"]
+    aspect2 = 1.0 - 0.9 * aniso
+    if isinstance(aspect2, Tensor):
+        aspect = torch.sqrt(torch.clamp(aspect2, min=ASPECT2_MIN))
+        ax = torch.clamp(r2 / aspect, min=ALPHA_MIN)
+        ay = torch.clamp(r2 * aspect, min=ALPHA_MIN)
+    else:
+        aspect = math.sqrt(max(aspect2, ASPECT2_MIN))
+        ax = torch.clamp(r2 / aspect, min=ALPHA_MIN) if isinstance(r2, Tensor) else max(r2 / aspect, ALPHA_MIN)
+        ay = torch.clamp(r2 * aspect, min=ALPHA_MIN) if isinstance(r2, Tensor) else max(r2 * aspect, ALPHA_MIN)
+    hx, hy = hg["hx"] / ax, hg["hy"] / ay
+    den = hx * hx + hy * hy + nh * nh
+    ds = 1.0 / (math.pi * ax * ay * den * den)
+    lx, ly, vx, vy = dot(l, x) * ax, dot(l, y) * ay, dot(v, x) * ax, dot(v, y) * ay
+    gs = _g_over_4nn(nl, lx * lx + ly * ly) * _g_over_4nn(nv, vx * vx + vy * vy)
+    return torch.where(nh > 0, ds * gs, torch.zeros_like(ds))
+
+
+class PrincipledBRDF(nn.Module):
+    """The Disney principled BRDF as a module: ``forward(l, v, n, x=None, y=None, **params)``.
+
+    Args:
+        lobes: optional subset of ``("diffuse", "subsurface", "specular", "sheen",
+            "clearcoat")`` to evaluate; default all (each still skipped when its weight is a
+            Python 0).
+
+    Shape:
+        - l, v, n, x, y: ``(*, 3)``; base_color ``(*, 3)``; scalar parameters ``(*, 1)``.
+        - Output: ``(*, 3)``.
+
+    Example:
+        >>> brdf = PrincipledBRDF(lobes=("diffuse", "specular"))
+        >>> n = torch.tensor([[0.0, 0.0, 1.0]])
+        >>> brdf(n, n, n, base_color=torch.ones(1, 3), roughness=0.3).shape
+        torch.Size([1, 3])
+    """
+
+    def __init__(self, lobes=None):
+        super().__init__()
+        if lobes is not None:
+            active_lobes({}, lobes)  # validates the names
+        self.lobes = None if lobes is None else tuple(lobes)
+
+    def forward(self, l, v, n, x=None, y=None, **params) -> Tensor:
+        """Evaluate the BRDF; see :func:`principled` for arguments and shapes."""
+        return principled(l, v, n, x, y, lobes=self.lobes, **params)
+
+    def extra_repr(self) -> str:
+        return f"lobes={self.lobes}"
