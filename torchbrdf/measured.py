@@ -428,7 +428,8 @@ class MERLBRDF(nn.Module):
         0 (the contract's value there), whatever the callable returns.
 
         Args:
-            brdf: ``brdf(l, v, n, x, y, **params) -> (*, 3)``, e.g. :func:`torchbrdf.principled`.
+            brdf: ``brdf(l, v, n, x, y, **params) -> (*, 3)`` (or ``(*, 1)`` for a grey BRDF),
+                e.g. :func:`torchbrdf.principled`.
             batch_size: samples evaluated per call (the grid has 1,458,000): bounds memory.
             device: device to evaluate on (the table is kept there).
             dtype: dtype of the directions handed to ``brdf``; the table is stored in float64.
@@ -453,6 +454,8 @@ class MERLBRDF(nn.Module):
             m = l.shape[0]
             x, y, n = (frame[i].expand(m, 3) for i in range(3))
             f = brdf(l, v, n, x, y, **params)
+            if tuple(f.shape) == (m, 1):
+                f = f.expand(m, 3)  # a grey BRDF
             if tuple(f.shape) != (m, 3):
                 raise ValueError(
                     f"from_brdf: the BRDF returned shape {tuple(f.shape)} for {m} directions, "
