@@ -150,7 +150,7 @@ def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path:
         )
     bad = ~torch.isfinite(image)
     if bad.any():
-        ch, i, j = (int(k) for k in bad.nonzero()[0])
+        i, j, ch = (int(k) for k in bad.permute(1, 2, 0).nonzero()[0])  # first in reading order
         raise ValueError(
             f"{file}: {int(bad.sum())} non-finite pixel value(s) (NaN or inf), "
             f"first at row {i}, column {j}, channel {'RGB'[ch]}"

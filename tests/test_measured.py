@@ -218,7 +218,8 @@ def test_coordinates_match_numpy_reference():
 def test_coordinates_at_h_equal_n_use_phi_h_zero():
     # l and v mirrored about n: θh = 0, d = l, and φd is l's azimuth in (x, y), folded.
     theta, phi = 0.7, 2.5
-    l = torch.tensor([math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)], dtype=F64)
+    st = math.sin(theta)
+    l = torch.tensor([st * math.cos(phi), st * math.sin(phi), math.cos(theta)], dtype=F64)
     v = l * torch.tensor([-1.0, -1.0, 1.0], dtype=F64)
     n, x, y = torch.eye(3, dtype=F64)[[2, 0, 1]]
     th, td, pd = merl_coordinates(l, v, n, x, y)
@@ -377,8 +378,10 @@ def test_gradients_are_finite_at_singular_configurations(random_brdf):
     ]
     for dtype in (F64, torch.float32):
         for lv in cases:
-            l = torch.nn.functional.normalize(torch.tensor(lv[0], dtype=F64), dim=-1).to(dtype).requires_grad_()
-            v = torch.nn.functional.normalize(torch.tensor(lv[1], dtype=F64), dim=-1).to(dtype).requires_grad_()
+            l, v = (
+                torch.nn.functional.normalize(torch.tensor(w, dtype=F64), dim=-1).to(dtype).requires_grad_()
+                for w in lv
+            )
             n = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, requires_grad=True)
             f = random_brdf(l, v, n)
             f.sum().backward()

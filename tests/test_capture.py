@@ -1,0 +1,265 @@
+"""datasets.capture: contract §3 capture folders — round trip, malformed input, pixel mapping."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from datasets import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
+from torchbrdf.io import write_exr
+
+H, W, L = 6, 8, 3
+
+
+def _images(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(L, 3, H, W, generator=g) * 60.0 - 0.02  # HDR highlights, slight negative noise
+
+
+def _lights():
+    positions = torch.tensor([[0.5, -0.3, 2.0], [-1.0, 0.2, 1.5], [0.0, 0.0, 3.0]])
+    intensities = torch.tensor([[10.0, 10.0, 10.0], [5.0, 6.0, 7.0], [0.0, 1.0, 2.0]])
+    return positions, intensities
+
+
+@pytest.fixture
+def capture_dir(tmp_path):
+    folder = tmp_path / "cap"
+    write_capture(folder, _images(), _lights(), [0.0, 0.0, 3.0])
+    return folder
+
+
+def _edit_json(folder, edit):
+    path = folder / CAPTURE_JSON
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+# --------------------------------------------------------------------------------------
+# Round trip
+# --------------------------------------------------------------------------------------
+
+
+def test_round_trip(capture_dir):
+    cap = load_capture(capture_dir)
+    assert isinstance(cap, Capture) and len(cap) == L
+    assert (cap.width, cap.height) == (W, H)
+    assert cap.files == ("img_000.exr", "img_001.exr", "img_002.exr")
+    assert torch.equal(cap.images, _images())  # float32 EXRs are lossless
+    positions, intensities = _lights()
+    assert torch.equal(cap.light_positions, positions)
+    assert torch.equal(cap.light_intensities, intensities)
+    assert torch.equal(cap.camera_position, torch.tensor([0.0, 0.0, 3.0]))
+    assert sorted(os.listdir(capture_dir)) == sorted([CAPTURE_JSON, *cap.files])  # no temp files
+
+
+def test_json_matches_contract_layout(capture_dir):
+    meta = json.loads((capture_dir / CAPTURE_JSON).read_text())
+    assert meta["width"] == W and meta["height"] == H
+    assert meta["camera"] == {"position": [0.0, 0.0, 3.0]}
+    first = meta["images"][0]
+    assert first["file"] == "img_000.exr"
+    assert first["light"]["type"] == "point"
+    np.testing.assert_allclose(first["light"]["position"], [0.5, -0.3, 2.0], rtol=1e-7)
+    assert first["light"]["intensity"] == [10.0, 10.0, 10.0]
+
+
+def test_load_dtype_device(capture_dir, device):
+    cap = load_capture(capture_dir, device=device, dtype=torch.float64)
+    for t in (cap.images, cap.light_positions, cap.light_intensities, cap.camera_position):
+        assert t.dtype == torch.float64 and t.device.type == device.type
+    assert cap.to(dtype=torch.float32).images.dtype == torch.float32
+    assert cap.points().shape == (H, W, 3)
+
+
+@pytest.mark.parametrize(
+    "lights",
+    [
+        "pairs",
+        "mappings",
+        "objects",
+        "dict_of_tables",
+    ],
+)
+def test_write_accepts_light_forms(tmp_path, lights):
+    positions, intensities = _lights()
+    if lights == "pairs":
+        arg = [(p, i) for p, i in zip(positions, intensities)]
+    elif lights == "mappings":
+        arg = [
+            {"type": "point", "position": p.tolist(), "intensity": i.tolist()}
+            for p, i in zip(positions, intensities)
+        ]
+    elif lights == "objects":
+
+        class Light:  # duck-typed like torchbrdf.PointLight
+            def __init__(self, position, intensity):
+                self.position, self.intensity = position, intensity
+
+        arg = [Light(p, i) for p, i in zip(positions, intensities)]
+    else:
+        arg = {"position": positions.numpy(), "intensity": intensities.numpy()}
+    files = ["a.exr", "b.exr", "c.exr"]
+    write_capture(tmp_path, list(_images()), arg, torch.tensor([0.0, 0.0, 3.0]), files=files)
+    cap = load_capture(tmp_path)
+    assert cap.files == ("a.exr", "b.exr", "c.exr")
+    assert torch.equal(cap.light_positions, positions) and torch.equal(cap.light_intensities, intensities)
+
+
+def test_write_half(tmp_path):
+    write_capture(tmp_path, _images(), _lights(), [0, 0, 3], half=True)
+    cap = load_capture(tmp_path)
+    torch.testing.assert_close(cap.images, _images(), rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"images": torch.zeros(L, 4, H, W)}, r"\(L, 3, H, W\)"),
+        ({"images": torch.full((L, 3, H, W), float("nan"))}, "non-finite"),
+        ({"lights": (torch.zeros(2, 3), torch.zeros(2, 3))}, "3 images but 2"),
+        ({"lights": (torch.zeros(L, 3), -torch.ones(L, 3))}, "negative intensity"),
+        ({"lights": (torch.zeros(L, 2), torch.ones(L, 3))}, "shape"),
+        ({"camera_position": [0, 0]}, "camera_position"),
+        ({"files": ["a.exr", "a.exr", "b.exr"]}, "distinct"),
+    ],
+)
+def test_write_errors(tmp_path, kwargs, match):
+    args = {"images": _images(), "lights": _lights(), "camera_position": [0, 0, 3.0]}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        write_capture(tmp_path / "out", **args)
+    assert not (tmp_path / "out" / CAPTURE_JSON).exists()
+
+
+# --------------------------------------------------------------------------------------
+# Malformed folders: every error names the file
+# --------------------------------------------------------------------------------------
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        load_capture(tmp_path / "nowhere")
+
+
+def test_missing_capture_json(capture_dir):
+    (capture_dir / CAPTURE_JSON).unlink()
+    with pytest.raises(FileNotFoundError, match=r"cap/capture\.json"):
+        load_capture(capture_dir)
+
+
+def test_bad_json(capture_dir):
+    (capture_dir / CAPTURE_JSON).write_text('{"width": 8, "height": 6,,}')
+    with pytest.raises(ValueError, match=r"capture\.json: invalid JSON at line 1, column"):
+        load_capture(capture_dir)
+    (capture_dir / CAPTURE_JSON).write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"capture\.json: the top level must be a JSON object"):
+        load_capture(capture_dir)
+
+
+def _drop(*keys):
+    def edit(meta):
+        obj = meta
+        for k in keys[:-1]:
+            obj = obj[k]
+        del obj[keys[-1]]
+
+    return edit
+
+
+def _set(value, *keys):
+    def edit(meta):
+        obj = meta
+        for k in keys[:-1]:
+            obj = obj[k]
+        obj[keys[-1]] = value
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (_drop("width"), "the capture is missing the key 'width'"),
+        (_drop("camera"), "missing the key 'camera'"),
+        (_drop("camera", "position"), "camera is missing the key 'position'"),
+        (_drop("images"), "missing the key 'images'"),
+        (_drop("images", 1, "file"), r"images\[1\] is missing the key 'file'"),
+        (_drop("images", 2, "light"), r"images\[2\] is missing the key 'light'"),
+        (_drop("images", 0, "light", "type"), r"images\[0\].light is missing the key 'type'"),
+        (_drop("images", 0, "light", "intensity"), r"images\[0\].light is missing the key 'intensity'"),
+        (_set(0, "width"), "width must be a positive integer"),
+        (_set(6.5, "height"), "height must be a positive integer"),
+        (_set([], "images"), "images must be a non-empty list"),
+        (_set("spot", "images", 1, "light", "type"), r"images\[1\].light has unsupported type 'spot'"),
+        (_set([1.0, 2.0], "images", 0, "light", "position"), r"images\[0\].light.position must be a list"),
+        (_set("0 0 1", "images", 0, "light", "position"), r"images\[0\].light.position must be a list of 3"),
+        (_set([0, 0, float("nan")], "images", 0, "light", "position"), "must be finite"),
+        (_set([1.0, -0.5, 1.0], "images", 2, "light", "intensity"), r"images\[2\].light.intensity must be non"),
+        (_set([0, 0], "camera", "position"), "camera.position must be a list of 3"),
+    ],
+)
+def test_malformed_json_entries(capture_dir, edit, match):
+    _edit_json(capture_dir, edit)
+    with pytest.raises(ValueError, match=match) as e:
+        load_capture(capture_dir)
+    assert "capture.json" in str(e.value)
+
+
+def test_missing_image(capture_dir):
+    (capture_dir / "img_001.exr").unlink()
+    with pytest.raises(FileNotFoundError, match=r"img_001\.exr.*images\[1\]"):
+        load_capture(capture_dir)
+
+
+def test_image_size_mismatch(capture_dir):
+    write_exr(capture_dir / "img_002.exr", torch.ones(3, H, W + 1))
+    with pytest.raises(ValueError, match=r"img_002\.exr: image is 9x6 .* says 8x6"):
+        load_capture(capture_dir)
+
+
+def test_non_finite_pixels(capture_dir):
+    img = torch.ones(3, H, W)
+    img[1, 2, 5] = float("inf")
+    img[0, 4, 0] = float("nan")
+    write_exr(capture_dir / "img_000.exr", img)
+    with pytest.raises(ValueError, match=r"img_000\.exr: 2 non-finite .* row 2, column 5, channel G"):
+        load_capture(capture_dir)
+
+
+def test_image_not_rgb_or_not_exr(capture_dir):
+    write_exr(capture_dir / "img_001.exr", torch.ones(1, H, W))
+    with pytest.raises(ValueError, match=r"img_001\.exr.*no channel"):
+        load_capture(capture_dir)
+    (capture_dir / "img_001.exr").write_bytes(b"garbage")
+    with pytest.raises(ValueError, match=r"img_001\.exr.*not an OpenEXR"):
+        load_capture(capture_dir)
+
+
+# --------------------------------------------------------------------------------------
+# Pixel mapping
+# --------------------------------------------------------------------------------------
+
+
+def test_pixel_points_contract_mapping():
+    p = pixel_points(4, 2)
+    assert p.shape == (2, 4, 3)
+    # Row 0 is the +y edge; column 0 the -x edge; z = 0.
+    torch.testing.assert_close(p[0, 0], torch.tensor([-0.75, 0.5, 0.0]))
+    torch.testing.assert_close(p[1, 3], torch.tensor([0.75, -0.5, 0.0]))
+    i, j = 1, 2
+    torch.testing.assert_close(p[i, j], torch.tensor([-1 + (j + 0.5) * 2 / 4, 1 - (i + 0.5) * 2 / 2, 0.0]))
+
+
+def test_pixel_points_symmetry_dtype_device(device):
+    p = pixel_points(W, H, device=device, dtype=torch.float64)
+    assert p.dtype == torch.float64 and p.device.type == device.type
+    assert p[..., :2].abs().max() < 1 and (p[..., 2] == 0).all()
+    torch.testing.assert_close(p[..., 0].mean(), torch.zeros((), dtype=torch.float64, device=device))
+    torch.testing.assert_close(p.flip(0)[..., 1], -p[..., 1])  # rows mirror about y = 0
+    assert (p[:, 1:, 0] > p[:, :-1, 0]).all() and (p[1:, :, 1] < p[:-1, :, 1]).all()
+    with pytest.raises(ValueError, match="positive"):
+        pixel_points(0, 4)
