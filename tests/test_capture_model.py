@@ -1,0 +1,240 @@
+"""Tests of the SVBRDF-capture GGX model (``torchbrdf.capture_model``).
+
+The float64 NumPy reference is written from the published formulas (uncancelled G / (4 n.l
+n.v), textbook GGX denominator); it does not call the library.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchbrdf.capture_model import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
+
+
+def _unit(a):
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+
+def _d(a, b):
+    return np.sum(a * b, axis=-1, keepdims=True)
+
+
+def t64(a):
+    return torch.tensor(np.asarray(a), dtype=torch.float64)
+
+
+def np_capture(l, v, n, rho_d, rho_s, rough):
+    """diffuse (1 - specular) / pi + D G F / (4 n.l n.v); zero unless both cosines > 0."""
+    h = _unit(l + v)
+    nl, nv, nh, vh = _d(n, l), _d(n, v), _d(n, h), _d(v, h)
+    alpha = np.maximum(rough**2, ALPHA_MIN)
+    d = alpha**2 / (np.pi * (nh**2 * (alpha**2 - 1) + 1) ** 2)
+    k = alpha / 2
+    with np.errstate(all="ignore"):
+        g = nl / (nl * (1 - k) + k) * nv / (nv * (1 - k) + k)
+        f = rho_s + (1 - rho_s) * 2.0 ** ((-5.55473 * vh - 6.98316) * vh)
+        out = rho_d * (1 - rho_s) / np.pi + d * g * f / (4 * nl * nv)
+    return np.where((nl > 0) & (nv > 0), out, 0.0)
+
+
+def random_dirs(rng, count, upper=None):
+    d = _unit(rng.normal(size=(count, 3)))
+    if upper:
+        d[:, 2] = np.abs(d[:, 2])
+    return d
+
+
+def random_maps(rng, count):
+    rough = rng.uniform(0, 1, (count, 1))
+    rough[:50] = rng.choice([0.0, 0.01, 1.0], (50, 1))
+    return rng.uniform(0, 1, (count, 3)), rng.uniform(0, 1, (count, 3)), rough
+
+
+def test_matches_numpy_reference():
+    rng = np.random.default_rng(0)
+    count = 4000
+    n = _unit(rng.normal(size=(count, 3)) * [0.3, 0.3, 1.0] + [0, 0, 1.0])
+    l, v = random_dirs(rng, count), random_dirs(rng, count)
+    rho_d, rho_s, rough = random_maps(rng, count)
+    got = svbrdf_ggx(t64(l), t64(v), t64(n), diffuse_albedo=t64(rho_d), specular_albedo=t64(rho_s), roughness=t64(rough))
+    expected = np_capture(l, v, n, rho_d, rho_s, rough)
+    assert torch.isfinite(got).all()
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-8, atol=1e-12)
+    assert ((got.numpy() > 0).all(-1) == ((_d(n, l) > 0) & (_d(n, v) > 0))[:, 0]).all()
+
+
+def test_closed_form_values():
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    rho_d = torch.tensor([0.5, 0.2, 0.1], dtype=torch.float64)
+    rho_s = torch.tensor([0.04, 0.5, 1.0], dtype=torch.float64)
+    sg1 = 2.0 ** (-5.55473 - 6.98316)  # Fresnel factor at v.h = 1
+    for r in (0.2, 0.5, 1.0):
+        a = r * r
+        # l = v = n: D = 1 / (pi a^2), G = 1
+        expected = rho_d * (1 - rho_s) / math.pi + (rho_s + (1 - rho_s) * sg1) / (4 * math.pi * a * a)
+        got = svbrdf_ggx(n, n, n, diffuse_albedo=rho_d, specular_albedo=rho_s, roughness=r)
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=0)
+        # l, v mirrored at 60 deg: h = n, n.l = n.v = v.h = 1/2
+        s, c = math.sin(math.radians(60)), 0.5
+        l = torch.tensor([s, 0.0, c], dtype=torch.float64)
+        v = torch.tensor([-s, 0.0, c], dtype=torch.float64)
+        k = a / 2
+        g1 = c / (c * (1 - k) + k)
+        fr = rho_s + (1 - rho_s) * 2.0 ** ((-5.55473 * c - 6.98316) * c)
+        expected = rho_d * (1 - rho_s) / math.pi + g1 * g1 * fr / (math.pi * a * a * 4 * c * c)
+        got = svbrdf_ggx(l, v, n, diffuse_albedo=rho_d, specular_albedo=rho_s, roughness=r)
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=0)
+
+
+def _hemisphere(n_mu, n_phi):
+    mu, wmu = np.polynomial.legendre.leggauss(n_mu)
+    mu, wmu = 0.5 * (mu + 1), 0.5 * wmu
+    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
+    m, p = np.meshgrid(mu, phi, indexing="ij")
+    s = np.sqrt(1 - m**2)
+    d = np.stack([s * np.cos(p), s * np.sin(p), m], -1).reshape(-1, 3)
+    w = (wmu[:, None] * np.ones(n_phi) * 2 * np.pi / n_phi).reshape(-1)
+    return d, w, m.reshape(-1)
+
+
+def _ggx_h_quadrature(alpha, n_u, n_phi):
+    """h nodes distributed as D(h) (n.h): tan^2 theta = a^2 u / (1 - u), equal weights."""
+    u = (np.arange(n_u) + 0.5) / n_u
+    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
+    cos2 = 1 / (1 + alpha**2 * u / (1 - u))
+    ct, st = np.sqrt(cos2), np.sqrt(1 - cos2)
+    h = np.stack([st[:, None] * np.cos(phi), st[:, None] * np.sin(phi), ct[:, None] * np.ones(n_phi)], -1)
+    return h.reshape(-1, 3)
+
+
+def test_energy():
+    """Diffuse albedo is exactly rho_d (1 - rho_s); the specular albedo with F0 = 1 stays <= 1
+    (Smith-Schlick, k = alpha/2) and equals 1 - ln 2 at alpha = 1, normal incidence."""
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    d, w, mu = _hemisphere(24, 8)
+    rho_d, rho_s = torch.tensor([0.9, 0.5, 0.1], dtype=torch.float64), torch.tensor([0.3, 0.1, 0.0], dtype=torch.float64)
+    for ang in (0.0, 45.0, 80.0):
+        v = t64([math.sin(math.radians(ang)), 0.0, math.cos(math.radians(ang))]).expand(len(d), 3)
+        f = svbrdf_ggx(t64(d), v, z, diffuse_albedo=rho_d, specular_albedo=torch.zeros(3, dtype=torch.float64), roughness=1.0)
+        f_spec = svbrdf_ggx(t64(d), v, z, diffuse_albedo=0.0, specular_albedo=torch.zeros(3, dtype=torch.float64), roughness=1.0)
+        alb = ((f - f_spec).numpy() * (mu * w)[:, None]).sum(0)
+        np.testing.assert_allclose(alb, rho_d.numpy(), rtol=1e-12)
+        f = svbrdf_ggx(t64(d), v, z, diffuse_albedo=rho_d, specular_albedo=rho_s, roughness=1.0)
+        # with rho_s, diffuse part scales by (1 - rho_s)
+        f_s = svbrdf_ggx(t64(d), v, z, diffuse_albedo=0.0, specular_albedo=rho_s, roughness=1.0)
+        alb = ((f - f_s).numpy() * (mu * w)[:, None]).sum(0)
+        np.testing.assert_allclose(alb, (rho_d * (1 - rho_s)).numpy(), rtol=1e-12)
+    albedos = {}
+    for r in (0.1, 0.3, 0.6, 1.0):
+        alpha = max(r * r, ALPHA_MIN)
+        h = _ggx_h_quadrature(alpha, 400, 64)
+        for ang in (0.0, 45.0, 75.0, 88.0):
+            v = np.array([math.sin(math.radians(ang)), 0.0, math.cos(math.radians(ang))])
+            vh = h @ v
+            l = 2 * vh[:, None] * h - v
+            ok = (l[:, 2] > 0) & (vh > 0)
+            vv = np.broadcast_to(v, l.shape)
+            f = svbrdf_ggx(t64(l), t64(vv), z, diffuse_albedo=0.0, specular_albedo=1.0, roughness=r)[:, 0].numpy()
+            nh = h[:, 2]
+            dd = alpha**2 / (np.pi * (nh**2 * (alpha**2 - 1) + 1) ** 2)
+            g = np.where(ok, f * l[:, 2] * 4 * np.abs(vh) / (dd * nh), 0.0)
+            albedos[r, ang] = g.mean()
+    values = np.array(list(albedos.values()))
+    assert values.max() <= 1.0 + 1e-3, albedos
+    assert albedos[0.1, 0.0] > 0.99  # a smooth lobe at normal incidence loses almost nothing
+    # alpha = 1, normal incidence: D = 1/pi, G1(mu) = 2 mu / (mu + 1), so the albedo is
+    # int_0^1 mu / (mu + 1) d mu = 1 - ln 2
+    assert albedos[1.0, 0.0] == pytest.approx(1 - math.log(2), abs=1e-4)
+
+
+def test_reciprocity():
+    rng = np.random.default_rng(1)
+    count = 500
+    l, v = random_dirs(rng, count, True), random_dirs(rng, count, True)
+    rho_d, rho_s, rough = (t64(x) for x in random_maps(rng, count))
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    a = svbrdf_ggx(t64(l), t64(v), n, diffuse_albedo=rho_d, specular_albedo=rho_s, roughness=rough)
+    b = svbrdf_ggx(t64(v), t64(l), n, diffuse_albedo=rho_d, specular_albedo=rho_s, roughness=rough)
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+def test_gradcheck():
+    rng = np.random.default_rng(2)
+    count = 8
+    l, v = random_dirs(rng, count, True), random_dirs(rng, count, True)
+    l[:, 2], v[:, 2] = np.maximum(l[:, 2], 0.2), np.maximum(v[:, 2], 0.2)
+    l, v = _unit(l), _unit(v)
+    n = _unit(np.array([[0.1, 0.05, 1.0]]).repeat(count, 0))
+    inputs = [
+        t64(l),
+        t64(v),
+        t64(n),
+        t64(rng.uniform(0.1, 0.9, (count, 3))),
+        t64(rng.uniform(0.1, 0.9, (count, 3))),
+        t64(rng.uniform(0.2, 0.9, (count, 1))),
+    ]
+    for t in inputs:
+        t.requires_grad_(True)
+
+    def fn(l, v, n, rd, rs, r):
+        return svbrdf_ggx(l, v, n, diffuse_albedo=rd, specular_albedo=rs, roughness=r)
+
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_finite_at_grazing_and_extremes(dtype):
+    z = [0.0, 0.0, 1.0]
+    g = [1.0, 0.0, 0.0]
+    e = math.radians(89.999)
+    near = [math.sin(e), 0.0, math.cos(e)]
+    mirror = [-math.sin(e), 0.0, math.cos(e)]
+    pairs = [(z, z), (g, z), (z, g), (near, mirror), (near, near), (g, [-1.0, 0, 0]), ([0, 0, -1.0], z), (z, [0, 0, -1.0])]
+    l = torch.tensor([p[0] for p in pairs], dtype=dtype, requires_grad=True)
+    v = torch.tensor([p[1] for p in pairs], dtype=dtype, requires_grad=True)
+    for r in (0.0, 1.0):
+        n = torch.tensor(z, dtype=dtype).expand(len(pairs), 3).clone().requires_grad_(True)
+        rd = torch.full((len(pairs), 3), 0.5, dtype=dtype, requires_grad=True)
+        rs = torch.full((len(pairs), 3), 0.04, dtype=dtype, requires_grad=True)
+        rr = torch.full((len(pairs), 1), r, dtype=dtype, requires_grad=True)
+        f = svbrdf_ggx(l, v, n, diffuse_albedo=rd, specular_albedo=rs, roughness=rr)
+        assert torch.isfinite(f).all()
+        f.sum().backward()
+        for t in (l, v, n, rd, rs, rr):
+            assert torch.isfinite(t.grad).all()
+            t.grad = None
+        for i in (1, 2, 5, 6, 7):  # n.l = 0, n.v = 0 or below: exactly 0, zero gradients
+            assert (f[i] == 0).all()
+        f = svbrdf_ggx(l, v, n, diffuse_albedo=rd, specular_albedo=rs, roughness=rr)
+        f[[1, 2, 5, 6, 7]].sum().backward()
+        for t in (l, v, n, rd, rs, rr):
+            assert (t.grad == 0).all()
+            t.grad = None
+
+
+def test_module_equals_functional_shapes_and_dtypes():
+    rng = np.random.default_rng(3)
+    l = torch.as_tensor(random_dirs(rng, 2 * 8 * 8, True), dtype=torch.float32).reshape(2, 8, 8, 3)
+    v = torch.as_tensor(random_dirs(rng, 2 * 8 * 8, True), dtype=torch.float32).reshape(2, 8, 8, 3)
+    n = torch.tensor([0.0, 0.0, 1.0])
+    maps = dict(diffuse_albedo=torch.rand(2, 8, 8, 3), specular_albedo=torch.rand(1, 1, 1, 3), roughness=torch.rand(2, 8, 8, 1))
+    f = svbrdf_ggx(l, v, n, **maps)
+    assert f.shape == (2, 8, 8, 3) and f.dtype == torch.float32
+    torch.testing.assert_close(SVBRDFGGX()(l, v, n, **maps), f, rtol=0, atol=0)
+    assert svbrdf_ggx(l, v, n, diffuse_albedo=0.5, specular_albedo=0.04, roughness=0.5).shape == (2, 8, 8, 3)
+    with pytest.raises(TypeError):
+        svbrdf_ggx(l, v, n, metallic=0.0, **maps)
+    for dtype in (torch.float16, torch.bfloat16):
+        lh, vh, nh = l.to(dtype), v.to(dtype), n.to(dtype)
+        mh = {k: x.to(dtype) for k, x in maps.items()}
+        got = svbrdf_ggx(lh, vh, nh, **mh)
+        assert got.dtype == dtype and torch.isfinite(got).all()
+        ref = svbrdf_ggx(lh.float(), vh.float(), nh.float(), **{k: x.float() for k, x in mh.items()})
+        torch.testing.assert_close(got.float(), ref, rtol=2e-2, atol=1e-3)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float16)
+    peak = svbrdf_ggx(z, z, z, diffuse_albedo=0.5, specular_albedo=1.0, roughness=0.0)
+    assert torch.isfinite(peak).all() and (peak == torch.finfo(torch.float16).max).all()

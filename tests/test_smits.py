@@ -1,0 +1,795 @@
+"""Tests of the Smits Wall-E/Up model (``torchbrdf.smits``).
+
+The float64 NumPy reference below is written from the equations of Smits' notes (and the
+choices documented in the module docstring); it does not call the library.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchbrdf.smits import (
+    MIN_CONE_DEG,
+    SmitsBRDF,
+    SmitsLayeredBRDF,
+    smits,
+    smits_composite,
+    smits_cone_power,
+    smits_distribution,
+    smits_evaluate,
+    smits_highlight_lobe,
+    smits_layered,
+    smits_lobes,
+)
+
+# --------------------------------------------------------------------------- NumPy reference
+
+LOBE_SCALES = (
+    "diffuse_scale",
+    "specular_scale",
+    "reflection_scale",
+    "transmit_diffuse_scale",
+    "transmit_specular_scale",
+    "refraction_scale",
+)
+DEFAULTS = dict(
+    metallic=0.0,
+    roughness=0.5,
+    clear=0.0,
+    back=0.0,
+    fresnel_normal_scale=1.0,
+    fresnel_grazing_scale=1.0,
+    highlight_tint=1.0,
+    transmit_tint=1.0,
+    specular_cone_scale=1.0,
+    reflection_cone_scale=1.0,
+    transmit_specular_cone_scale=1.0,
+    refraction_cone_scale=1.0,
+    **{k: 1.0 for k in LOBE_SCALES},
+)
+
+
+def _unit(a):
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+
+def _d(a, b):
+    return np.sum(a * b, axis=-1, keepdims=True)
+
+
+def np_mix(a, b, t):
+    return a + (b - a) * t
+
+
+def np_frnl(norm, grazing, cos):
+    return np_mix(norm, grazing, (1.0 - np.clip(cos, 0.0, 1.0)) ** 5)
+
+
+def np_power(cone_deg):
+    """-Log[0.1] / Sin[cone]^2, the cone in degrees."""
+    return -np.log(0.1) / np.sin(np.radians(cone_deg)) ** 2
+
+
+def np_dist(sin2, p):
+    return p / (1.0 - np.exp(-p)) * np.exp(-p * sin2) / np.pi
+
+
+def np_cones(p):
+    r = np.clip(p["roughness"], 0, 1)
+
+    def c(deg, scale):
+        return np.clip(deg * scale, MIN_CONE_DEG, 90.0)
+
+    spec_deg, refl_deg = 30.0 * r + 5.0, 10.0 * r
+    return dict(
+        specular=c(spec_deg, p["specular_cone_scale"]),
+        reflection=c(refl_deg, p["reflection_cone_scale"]),
+        transmit_specular=c(spec_deg, p["transmit_specular_cone_scale"]),
+        refraction=c(refl_deg, p["refraction_cone_scale"]),
+    )
+
+
+def np_weights(v, n, p):
+    """The notes' twelve weights (typos fixed as documented), per lobe: (normal, grazing)."""
+    c = p["base_color"]
+    m = np.clip(p["metallic"], 0, 1)
+    r = np.clip(p["roughness"], 0, 1)
+    clear = np.clip(p["clear"], 0, 1)
+    back = np.clip(p["back"], 0, 1)
+    vn = _d(v, n)
+    nrefl = np.clip(np_mix(0.05, 1.0, m) * p["fresnel_normal_scale"], 0, 1)
+    grefl = np.clip(1.0 * p["fresnel_grazing_scale"], 0, 1)
+    dn = np_mix((1 - clear) * (1 - nrefl) * np_frnl(1 - nrefl, 1 - grefl, vn), 1.0, r)
+    dg = np_mix((1 - clear) * (1 - grefl) * np_frnl(1 - nrefl, 1 - grefl, vn), 1.0, r)
+    w = {
+        "diffuse": (c * dn * (1 - back), c * dg * (1 - back)),
+        "transmit_diffuse": (c * dn * back, c * dg * back),
+    }
+    refl_ratio = np.maximum(1 - 2 * r, 0.0) ** 3
+    nrefl = np.clip(np_mix(0.05, c, m) * p["fresnel_normal_scale"], 0, 1)
+    w["specular"] = ((1 - refl_ratio) * nrefl * (1 - r), (1 - refl_ratio) * grefl * (1 - r))
+    w["reflection"] = (refl_ratio * nrefl * (1 - r), refl_ratio * grefl * (1 - r))
+    w["transmit_specular"] = (
+        c * (1 - refl_ratio) * (1 - nrefl) * (1 - r) * clear,
+        c * (1 - refl_ratio) * (1 - grefl) * (1 - r) * clear,
+    )
+    w["refraction"] = (
+        c * refl_ratio * (1 - nrefl) * (1 - r) * clear,
+        c * refl_ratio * (1 - grefl) * (1 - r) * clear,
+    )
+    tint = {
+        "specular": p["highlight_tint"],
+        "reflection": p["highlight_tint"],
+        "transmit_specular": p["transmit_tint"],
+        "refraction": p["transmit_tint"],
+    }
+    out = {}
+    for k, (wn, wg) in w.items():
+        s = p[k + "_scale"] * tint.get(k, 1.0)
+        out[k] = (wn * s, wg * s)
+    return out
+
+
+def np_eta(p):
+    rr = np.clip(0.05 * p["fresnel_normal_scale"], 0, 0.9)
+    return (1 + np.sqrt(rr)) / (1 - np.sqrt(rr))
+
+
+def np_back_view(v, n, eta):
+    """Refract -v by Snell's law (angles), then mirror the result about the normal axis."""
+    cos_i = np.clip(_d(v, n), 0, 1)
+    sin_t = np.sqrt(1 - cos_i**2) / eta
+    cos_t = np.sqrt(1 - sin_t**2)
+    tang = v - cos_i * n
+    tl = np.linalg.norm(tang, axis=-1, keepdims=True)
+    tang = np.where(tl > 1e-300, tang / np.maximum(tl, 1e-300), 0.0)
+    return sin_t * tang - cos_t * n
+
+
+def np_highlight(l, v, n, p):
+    """Distribution-based lobe with the documented denominator 4 (v.h) max(n.l, n.v) / (n.h)."""
+    h = _unit(l + v)
+    nl, nv, nh, vh = _d(n, l), _d(n, v), _d(n, h), _d(v, h)
+    return np_dist(1 - nh**2, p) * nh / (4 * vh * np.maximum(nl, nv))
+
+
+def np_params(shape_n, **kw):
+    p = dict(DEFAULTS)
+    p.update(kw)
+    out = {}
+    for k, x in p.items():
+        x = np.asarray(x, dtype=np.float64)
+        out[k] = x if x.ndim else np.full((shape_n, 1), float(x))
+    return out
+
+
+def np_smits(l, v, n, p):
+    """f(l, v) of the Smits model, (N, 3); p from np_params."""
+    w = np_weights(v, n, p)
+    cones = np_cones(p)
+    nl, nv = _d(n, l), _d(n, v)
+    up = (nl > 0) & (nv > 0)
+    down = (nl < 0) & (nv > 0)
+    with np.errstate(all="ignore"):
+        refl = np_frnl(*w["diffuse"], nl) / np.pi
+        for k in ("specular", "reflection"):
+            refl = refl + np_frnl(*w[k], nv) * np_highlight(l, v, n, np_power(cones[k]))
+        vt = np_back_view(v, n, np_eta(p))
+        tran = np_frnl(*w["transmit_diffuse"], -nl) / np.pi
+        for k in ("transmit_specular", "refraction"):
+            tran = tran + np_frnl(*w[k], nv) * np_highlight(l, vt, -n, np_power(cones[k]))
+    out = np.where(up, refl, np.where(down, tran, 0.0))
+    return np.broadcast_to(out, (l.shape[0], 3))
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def t64(a):
+    return torch.tensor(np.asarray(a), dtype=torch.float64)
+
+
+def torch_params(p):
+    return {k: t64(x) for k, x in p.items()}
+
+
+def random_dirs(rng, count, upper=None):
+    d = _unit(rng.normal(size=(count, 3)))
+    if upper is True:
+        d[:, 2] = np.abs(d[:, 2])
+    elif upper is False:
+        d[:, 2] = -np.abs(d[:, 2])
+    return d
+
+
+def random_params(rng, count, extras=True):
+    p = dict(
+        base_color=rng.uniform(0, 1, (count, 3)),
+        metallic=rng.uniform(0, 1, (count, 1)),
+        roughness=rng.uniform(0, 1, (count, 1)),
+        clear=rng.uniform(0, 1, (count, 1)),
+        back=rng.uniform(0, 1, (count, 1)),
+    )
+    if extras:
+        p.update(
+            fresnel_normal_scale=rng.uniform(0.5, 1.5, (count, 1)),
+            fresnel_grazing_scale=rng.uniform(0.0, 1.2, (count, 1)),
+            highlight_tint=rng.uniform(0, 1, (count, 3)),
+            transmit_tint=rng.uniform(0, 1, (count, 3)),
+            specular_cone_scale=rng.uniform(0.3, 2, (count, 1)),
+            reflection_cone_scale=rng.uniform(0.3, 2, (count, 1)),
+            transmit_specular_cone_scale=rng.uniform(0.3, 2, (count, 1)),
+            refraction_cone_scale=rng.uniform(0.3, 2, (count, 1)),
+            **{k: rng.uniform(0, 1.5, (count, 1)) for k in LOBE_SCALES},
+        )
+    return p
+
+
+def frame(count, rng):
+    """Random orthonormal normals (world space) and a rotation to express local vectors."""
+    n = random_dirs(rng, count)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    x = _unit(np.cross(helper, n))
+    y = np.cross(n, x)
+    return x, y, n
+
+
+# --------------------------------------------------------------------------- reference values
+
+
+@pytest.mark.parametrize("extras", [False, True])
+def test_matches_numpy_reference(extras):
+    rng = np.random.default_rng(1 if extras else 0)
+    count = 4000
+    x, y, n = frame(count, rng)
+    loc_l, loc_v = random_dirs(rng, count), random_dirs(rng, count, upper=True)
+    to_world = lambda d: d[:, :1] * x + d[:, 1:2] * y + d[:, 2:3] * n  # noqa: E731
+    l, v = to_world(loc_l), to_world(loc_v)
+    p = random_params(rng, count, extras)
+    # include the exact end points of every clamp/blend
+    p["roughness"][:200] = rng.choice([0.0, 0.5, 1.0], (200, 1))
+    p["metallic"][200:400] = rng.choice([0.0, 1.0], (200, 1))
+    expected = np_smits(l, v, n, np_params(count, **p))
+    got = smits(t64(l), t64(v), t64(n), **torch_params(p)).numpy()
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
+    assert (np.abs(got[loc_l[:, 2] < 0]) > 0).any() and (np.abs(got[loc_l[:, 2] > 0]) > 0).any()
+
+
+def test_view_below_is_zero():
+    rng = np.random.default_rng(2)
+    l, v = random_dirs(rng, 500), random_dirs(rng, 500, upper=False)
+    n = np.array([0.0, 0, 1])
+    p = torch_params(random_params(rng, 500))
+    f = smits(t64(l), t64(v), t64(n), **p)
+    assert (f == 0).all()
+
+
+def test_notes_diffuse_check_at_normal_incidence():
+    """The notes' check: FrnlBlend[diffN, diffG, Ldir.n] with V = L = n is 0.9025 / 1."""
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    off = dict(specular_scale=0.0, reflection_scale=0.0)
+    white = torch.ones(3, dtype=torch.float64)
+    f0 = smits(n, n, n, base_color=white, roughness=0.0, **off) * math.pi
+    f1 = smits(n, n, n, base_color=white, roughness=1.0, **off) * math.pi
+    torch.testing.assert_close(f0, torch.full_like(f0, 0.9025), rtol=0, atol=1e-12)
+    torch.testing.assert_close(f1, torch.ones_like(f1), rtol=0, atol=1e-12)
+
+
+def _gauss_hemisphere(n_mu, n_phi, lower=False):
+    """Cosine-free quadrature over a hemisphere: directions (k, 3) and weights of d omega."""
+    mu, wmu = np.polynomial.legendre.leggauss(n_mu)
+    mu, wmu = 0.5 * (mu + 1), 0.5 * wmu
+    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
+    mu_g, phi_g = np.meshgrid(mu, phi, indexing="ij")
+    s = np.sqrt(1 - mu_g**2)
+    d = np.stack([s * np.cos(phi_g), s * np.sin(phi_g), -mu_g if lower else mu_g], -1)
+    w = np.repeat(wmu[:, None], n_phi, 1) * 2 * np.pi / n_phi
+    return d.reshape(-1, 3), w.reshape(-1), mu_g.reshape(-1)
+
+
+def test_diffuse_hemispherical_integral_at_normal_incidence():
+    """int FrnlBlend(diffN, diffG, n.l) cos / pi: 0.9025 * (1 - 2 B(2,6)) = 0.9025 * 20/21 at
+    roughness 0 (the notes' 0.9025 is the value at l = v = n), exactly 1 at roughness 1."""
+    d, w, mu = _gauss_hemisphere(16, 4)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    v = n.expand(len(d), 3)
+    got = []
+    for r in (0.0, 1.0):
+        f = smits(t64(d), v, n, base_color=1.0, roughness=r, specular_scale=0.0, reflection_scale=0.0)
+        got.append(float((f[:, 0].numpy() * mu * w).sum()))
+    assert got[0] == pytest.approx(0.9025 * 20 / 21, abs=1e-12)
+    assert got[1] == pytest.approx(1.0, abs=1e-12)
+
+
+def _integrate_distribution(p):
+    """2 pi int_0^{pi/2} D(theta) cos sin d theta, composite Gauss-Legendre refined at the cone."""
+    theta_c = np.arcsin(np.sqrt(np.log(10) / p))
+    edges = np.unique(np.clip(theta_c * 2.0 ** np.arange(-6, 8), 0, np.pi / 2))
+    edges = np.concatenate([[0.0], edges[edges > 0], [np.pi / 2]])
+    x, wx = np.polynomial.legendre.leggauss(24)
+    total = 0.0
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b <= a:
+            continue
+        th = 0.5 * (b - a) * (x + 1) + a
+        s2 = torch.as_tensor(np.sin(th) ** 2)[:, None]
+        d = smits_distribution(s2, torch.full_like(s2, p))[:, 0].numpy()
+        total += 0.5 * (b - a) * np.sum(wx * d * np.cos(th) * np.sin(th))
+    return 2 * np.pi * total
+
+
+def test_distribution_integrates_to_one_for_every_exponent():
+    rough = np.linspace(0, 1, 21)
+    cones = np.concatenate([30 * rough + 5, np.maximum(10 * rough, MIN_CONE_DEG), [60.0, 90.0]])
+    for cone in cones:
+        power = smits_cone_power(torch.tensor([math.radians(cone)], dtype=torch.float64))
+        p = float(power)
+        assert p == pytest.approx(float(np_power(cone)), rel=1e-12)
+        assert _integrate_distribution(p) == pytest.approx(1.0, abs=1e-9), cone
+        # the notes' closed form: a / ((1 - e^-a) pi) * pi (1 - e^-a) / a = 1
+        assert p / ((1 - math.exp(-p)) * math.pi) * math.pi * (1 - math.exp(-p)) / p == pytest.approx(1)
+        # the cone angle is where the distribution falls to 10 % of its peak
+        s2 = torch.tensor([[0.0], [math.sin(math.radians(cone)) ** 2]], dtype=torch.float64)
+        dd = smits_distribution(s2, power.expand(2, 1))
+        assert float(dd[1] / dd[0]) == pytest.approx(0.1, rel=1e-12)
+
+
+# --------------------------------------------------------------------------- energy
+
+
+def _h_quadrature(n_u, n_phi, power):
+    """Nodes/weights for int D(h)(n.h) g(h) d omega_h = mean over (u, phi) of g (n = +z).
+
+    The substitution u = (1 - exp(-p t)) / (1 - exp(-p)), t = sin^2 theta_h, turns the
+    distribution measure into the uniform measure on [0, 1] x [0, 2 pi).
+    """
+    u = (np.arange(n_u) + 0.5) / n_u
+    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
+    power = np.asarray(power, dtype=np.float64).reshape(-1, 1, 1)
+    t = -np.log1p(-u[None, :, None] * -np.expm1(-power)) / power
+    t = np.broadcast_to(t, (power.shape[0], n_u, n_phi))
+    st = np.sqrt(t)
+    h = np.stack([st * np.cos(phi), st * np.sin(phi) * np.ones_like(st), np.sqrt(1 - t)], -1)
+    return h  # (k, n_u, n_phi, 3), equal weights
+
+
+def highlight_albedo(f_of_l, v_loc, power, lower=False, n_u=96, n_phi=48):
+    """Albedo int f |cos| d omega_l of one highlight lobe around +z (or -z), v in local frame.
+
+    f_of_l(l) -> (k, n_u, n_phi, 3) evaluated BRDF values. Uses d omega_l = 4 (v.h) d omega_h
+    and the NumPy distribution as the h-density, so the integrand is bounded.
+    """
+    h = _h_quadrature(n_u, n_phi, power)
+    if lower:
+        h = h * np.array([1.0, 1.0, -1.0])
+    v = v_loc[:, None, None, :]
+    vh = np.sum(v * h, -1, keepdims=True)
+    l = 2 * vh * h - v
+    cos_l = -l[..., 2:3] if lower else l[..., 2:3]
+    valid = (cos_l > 0) & (vh > 0)
+    p = np.asarray(power, dtype=np.float64).reshape(-1, 1, 1, 1)
+    pdf = np_dist(h[..., 0:1] ** 2 + h[..., 1:2] ** 2, p) * np.abs(h[..., 2:3])
+    f = f_of_l(np.where(valid, l, np.array([0.0, 0.0, 1.0])))
+    g = np.where(valid, f * cos_l * 4 * np.abs(vh) / pdf, 0.0)
+    return g.mean(axis=(1, 2))  # (k, 3)
+
+
+def diffuse_albedo(f_of_l, k, lower=False):
+    d, w, mu = _gauss_hemisphere(16, 2, lower)
+    f = f_of_l(np.broadcast_to(d, (k, len(d), 3)))
+    return np.sum(f * (mu * w)[None, :, None], axis=1)
+
+
+def view_dirs(angles_deg):
+    a = np.radians(np.asarray(angles_deg, dtype=np.float64))
+    return np.stack([np.sin(a), np.zeros_like(a), np.cos(a)], -1)
+
+
+def test_highlight_lobe_albedo_at_most_one_for_every_exponent_and_view():
+    """Choice 1 of the module docstring: the lobe's albedo never exceeds 1."""
+    cones = np.array([MIN_CONE_DEG, 1, 3, 5, 10, 20, 35, 60, 90.0])
+    angles = np.array([0, 30, 60, 80, 89, 89.9])
+    cc, aa = np.meshgrid(cones, angles, indexing="ij")
+    powers = np_power(cc.reshape(-1))
+    v = view_dirs(aa.reshape(-1))
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+    def f(l):
+        vv = np.broadcast_to(v[:, None, None, :], l.shape)
+        pp = np.broadcast_to(powers[:, None, None, None], (*l.shape[:-1], 1))
+        return smits_highlight_lobe(t64(l), t64(vv), z, t64(pp)).numpy()
+
+    alb = highlight_albedo(f, v, powers, n_u=192, n_phi=32)[:, 0].reshape(cc.shape)
+    assert (alb <= 1 + 1e-6).all(), alb.max()
+    # normal incidence: n.l = cos(2 theta_h) = 1 - 2t (t = sin^2 theta_h), so the albedo is
+    # E[(1 - 2t) 1{t < 1/2}] under the density p e^{-pt} / (1 - e^{-p}) on [0, 1]:
+    # (1 - 2 (1 - e^{-p/2}) / p) / (1 - e^{-p})
+    p = powers.reshape(cc.shape)[:, 0]
+    closed = (1 - 2 * -np.expm1(-p / 2) / p) / -np.expm1(-p)
+    np.testing.assert_allclose(alb[:, 0], closed, rtol=5e-4)  # horizon cut: O(1/n_u) error
+    assert alb[:, 0].min() > 0.45  # 90 deg cone: 0.451; 35 deg: 0.899; 5 deg: 0.997
+    # the lobe matches the documented formula pointwise
+    rng = np.random.default_rng(3)
+    l, vv = random_dirs(rng, 300, True), random_dirs(rng, 300, True)
+    pw = rng.uniform(2, 1e4, (300, 1))
+    got = smits_highlight_lobe(t64(l), t64(vv), z, t64(pw)).numpy()
+    np.testing.assert_allclose(got, np_highlight(l, vv, np.array([0.0, 0, 1]), pw), rtol=1e-10)
+
+
+def _smits_local(v_loc, params):
+    """f_of_l(l) evaluating the library in the local frame (n = +z) for per-config params."""
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+    def f(l):
+        extra = (1,) * (l.ndim - 2)
+        vv = np.broadcast_to(v_loc.reshape(len(v_loc), *extra, 3), l.shape)
+        p = {k: t64(x.reshape(len(x), *extra, x.shape[-1])) for k, x in params.items()}
+        return smits(t64(l), t64(vv), z, **p).numpy()
+
+    return f
+
+
+def total_albedo(v_loc, params):
+    """Reflection + transmission albedo, summing each lobe isolated by its scale."""
+    k = len(v_loc)
+    full = np_params(k, **params)
+    cones = np_cones(full)
+    eta = np_eta(full)
+    vt = np_back_view(v_loc, np.array([0.0, 0, 1]), eta)
+    total = np.zeros((k, 3))
+    for lobe in ("diffuse", "transmit_diffuse", "specular", "reflection", "transmit_specular", "refraction"):
+        p = dict(params)
+        for s in LOBE_SCALES:
+            p[s] = np.asarray(params.get(s, 1.0)) * (1.0 if s == lobe + "_scale" else 0.0) * np.ones((k, 1))
+        f = _smits_local(v_loc, p)
+        if lobe in ("diffuse", "transmit_diffuse"):
+            total += diffuse_albedo(f, k, lower=lobe == "transmit_diffuse")
+        elif lobe in ("specular", "reflection"):
+            total += highlight_albedo(f, v_loc, np_power(cones[lobe]))
+        else:
+            # lobe about -z seen from the back-side view: integrate in that lobe's own frame
+            alb = highlight_albedo(
+                lambda l: f(l), vt, np_power(cones[lobe]), lower=True
+            )
+            total += alb
+    return total
+
+
+def test_lobes_sum_to_full_model():
+    rng = np.random.default_rng(4)
+    count = 500
+    l, v = random_dirs(rng, count), random_dirs(rng, count, True)
+    p = random_params(rng, count)
+    n = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+    full = smits(t64(l), t64(v), n, **torch_params(p))
+    parts = 0
+    for s in LOBE_SCALES:
+        q = dict(p)
+        for s2 in LOBE_SCALES:
+            q[s2] = p[s2] * (s2 == s)
+        parts = parts + smits(t64(l), t64(v), n, **torch_params(q))
+    torch.testing.assert_close(parts, full, rtol=1e-12, atol=1e-12)
+
+
+def test_directional_albedo_at_most_one_over_parameter_grid():
+    """Reflection + transmission, every lobe, over a grid of all core parameters and views."""
+    grid = np.array(
+        np.meshgrid(
+            [0.0, 0.5, 1.0],  # metallic
+            [0.0, 0.2, 0.5, 0.8, 1.0],  # roughness
+            [0.0, 0.5, 1.0],  # clear
+            [0.0, 1.0],  # back
+            [0.0, 60.0, 85.0],  # view angle
+            indexing="ij",
+        )
+    ).reshape(5, -1).T
+    k = len(grid)
+    params = dict(
+        base_color=np.ones((k, 3)),
+        metallic=grid[:, 0:1],
+        roughness=grid[:, 1:2],
+        clear=grid[:, 2:3],
+        back=grid[:, 3:4],
+    )
+    alb = total_albedo(view_dirs(grid[:, 4]), params)
+    assert alb.max() <= 1 + 2e-3, alb.max()
+    # energy is partitioned, not thrown away, where the notes say so: rough 1 is white diffuse
+    rough1 = grid[:, 1] == 1
+    np.testing.assert_allclose(alb[rough1], 1.0, atol=1e-9)
+
+
+def test_directional_albedo_at_most_one_random_parameters():
+    """All controls (colours, tints, Fresnel scales <= 1, lobe scales <= 1, cone scales)."""
+    rng = np.random.default_rng(5)
+    k = 48
+    p = random_params(rng, k)
+    p["fresnel_normal_scale"] = rng.uniform(0.2, 1.0, (k, 1))
+    p["fresnel_grazing_scale"] = rng.uniform(0.0, 1.0, (k, 1))
+    for s in LOBE_SCALES:
+        p[s] = rng.uniform(0.5, 1.0, (k, 1))
+    p["base_color"][: k // 2] = 1.0
+    p["highlight_tint"][: k // 2] = 1.0
+    p["transmit_tint"][: k // 2] = 1.0
+    v = view_dirs(rng.uniform(0, 88, k))
+    alb = total_albedo(v, p)
+    assert alb.max() <= 1 + 2e-3, alb.max()
+
+
+# --------------------------------------------------------------------------- reciprocity
+
+
+def test_reciprocity():
+    rng = np.random.default_rng(6)
+    count = 400
+    l, v = random_dirs(rng, count, True), random_dirs(rng, count, True)
+    n = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+    p = torch_params(random_params(rng, count, extras=False))
+    # the diffuse lobe is reciprocal for every parameter value
+    off = dict(specular_scale=0.0, reflection_scale=0.0)
+    torch.testing.assert_close(smits(t64(l), t64(v), n, **p, **off), smits(t64(v), t64(l), n, **p, **off))
+    # the whole reflection is reciprocal when normal and grazing reflectance agree
+    q = dict(p, metallic=t64(0.0), fresnel_grazing_scale=t64(0.05))
+    torch.testing.assert_close(smits(t64(l), t64(v), n, **q), smits(t64(v), t64(l), n, **q))
+
+
+# --------------------------------------------------------------------------- gradients
+
+
+@pytest.mark.parametrize("below", [False, True])
+def test_gradcheck(below):
+    rng = np.random.default_rng(7 + below)
+    count = 6
+    l = random_dirs(rng, count, upper=not below)
+    v = random_dirs(rng, count, True)
+    l[:, 2] = np.sign(l[:, 2]) * np.maximum(np.abs(l[:, 2]), 0.2)
+    v[:, 2] = np.maximum(v[:, 2], 0.2)
+    l, v = _unit(l), _unit(v)
+    n = np.array([[0.1, -0.05, 1.0]]).repeat(count, 0)
+    n = _unit(n)
+    inputs = [
+        t64(l),
+        t64(v),
+        t64(n),
+        t64(rng.uniform(0.1, 0.9, (count, 3))),
+        t64(rng.uniform(0.1, 0.9, (count, 1))),
+        t64(rng.uniform(0.3, 0.45, (count, 1))),  # cones: refl 3-4.5 deg, spec 14-18.5 deg
+        t64(rng.uniform(0.1, 0.9, (count, 1))),
+        t64(rng.uniform(0.1, 0.9, (count, 1))),
+        t64(rng.uniform(0.5, 0.9, (count, 1))),
+    ]
+    for t in inputs:
+        t.requires_grad_(True)
+
+    def fn(l, v, n, c, m, r, cl, bk, sg):
+        return smits(l, v, n, base_color=c, metallic=m, roughness=r, clear=cl, back=bk, fresnel_grazing_scale=sg)
+
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+def test_gradcheck_layered():
+    rng = np.random.default_rng(9)
+    count = 4
+    l, v = random_dirs(rng, count, True), random_dirs(rng, count, True)
+    l[:, 2], v[:, 2] = np.maximum(l[:, 2], 0.3), np.maximum(v[:, 2], 0.3)
+    l, v = _unit(l), _unit(v)
+    n = t64(np.array([0.0, 0, 1]))
+    n2 = t64(_unit(np.array([[0.2, 0.1, 1.0]])).repeat(count, 0)).requires_grad_(True)
+    c1 = t64(rng.uniform(0.1, 0.9, (count, 3))).requires_grad_(True)
+    r2 = t64(rng.uniform(0.6, 0.9, (count, 1))).requires_grad_(True)
+    a = t64(rng.uniform(0.2, 0.8, (count, 1))).requires_grad_(True)
+
+    def fn(l, v, n2, c1, r2, a):
+        top = dict(base_color=c1, roughness=0.3)
+        bottom = dict(base_color=torch.ones(3, dtype=torch.float64), roughness=r2, normal=n2)
+        return smits_layered(l, v, n, layers=[top, bottom], layer_weights=[a, 1.0])
+
+    assert torch.autograd.gradcheck(fn, (t64(l), t64(v), n2, c1, r2, a), eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+def test_finite_at_grazing_and_extreme_parameters():
+    z = np.array([0.0, 0, 1])
+    g = math.radians(89.99)
+    dirs = [
+        (z, z),
+        (np.array([1.0, 0, 0]), z),  # light exactly grazing
+        (z, np.array([1.0, 0, 0])),  # view exactly grazing -> 0
+        (view_dirs([89.99])[0], -view_dirs([89.99])[0] * [1, 1, -1]),  # mirror pair at grazing
+        (view_dirs([89.99])[0], view_dirs([89.99])[0]),  # l = v grazing
+        (np.array([1.0, 0, 0]), np.array([-1.0, 0, 0])),  # l = -v: h undefined
+        (np.array([math.sin(g), 0, -math.cos(g)]), z),  # light just below, transmission
+        (-z, z),  # straight through
+        (-z, view_dirs([60.0])[0]),
+        (z, -z),  # view below
+    ]
+    l = np.stack([d[0] for d in dirs])
+    v = np.stack([d[1] for d in dirs])
+    for dtype in (torch.float32, torch.float64):
+        for r in (0.0, 1.0, 0.5):
+            for m in (0.0, 1.0):
+                lt = torch.as_tensor(l, dtype=dtype).requires_grad_(True)
+                vt = torch.as_tensor(v, dtype=dtype).requires_grad_(True)
+                nt = torch.tensor([0.0, 0, 1], dtype=dtype).expand(len(l), 3).clone().requires_grad_(True)
+                c = torch.full((len(l), 3), 0.8, dtype=dtype, requires_grad=True)
+                rr = torch.full((len(l), 1), r, dtype=dtype, requires_grad=True)
+                f = smits(lt, vt, nt, base_color=c, roughness=rr, metallic=m, clear=0.5, back=0.5)
+                assert torch.isfinite(f).all()
+                f.sum().backward()
+                for t in (lt, vt, nt, c, rr):
+                    assert torch.isfinite(t.grad).all()
+                # exactly zero (value and gradients) for grazing/below views and n.l = 0
+                for i in (1, 2, 5, 9):
+                    assert (f[i] == 0).all()
+                    assert (c.grad[i] == 0).all() and (rr.grad[i] == 0).all()
+                for i in (2, 9):
+                    assert (lt.grad[i] == 0).all()
+
+
+# --------------------------------------------------------------------------- API
+
+
+def test_module_equals_functional_and_shapes():
+    rng = np.random.default_rng(10)
+    l = torch.as_tensor(random_dirs(rng, 2 * 4 * 5), dtype=torch.float32).reshape(2, 4, 5, 3)
+    v = torch.as_tensor(random_dirs(rng, 2 * 4 * 5, True), dtype=torch.float32).reshape(2, 4, 5, 3)
+    n = torch.tensor([0.0, 0.0, 1.0])
+    material = dict(
+        base_color=torch.rand(2, 4, 5, 3),
+        roughness=torch.rand(2, 4, 5, 1),
+        metallic=0.3,
+        clear=torch.tensor(0.2),
+        back=torch.rand(1, 1, 1, 1),
+        highlight_tint=torch.rand(3),
+    )
+    f = smits(l, v, n, **material)
+    assert f.shape == (2, 4, 5, 3) and f.dtype == torch.float32
+    torch.testing.assert_close(SmitsBRDF()(l, v, n, None, None, **material), f, rtol=0, atol=0)
+    # scalar base colour still gives RGB
+    assert smits(l, v, n, base_color=0.5).shape == (2, 4, 5, 3)
+    with pytest.raises(TypeError):
+        smits(l, v, n, base_color=0.5, sheen=1.0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision(dtype):
+    rng = np.random.default_rng(11)
+    l = torch.as_tensor(random_dirs(rng, 200), dtype=torch.float32)
+    v = torch.as_tensor(random_dirs(rng, 200, True), dtype=torch.float32)
+    n = torch.tensor([0.0, 0.0, 1.0])
+    c, r = torch.rand(200, 3), torch.rand(200, 1) * 0.9 + 0.1
+    ref = smits(l, v, n, base_color=c, roughness=r, clear=0.5, back=0.3)
+    got = smits(l.to(dtype), v.to(dtype), n.to(dtype), base_color=c.to(dtype), roughness=r.to(dtype), clear=0.5, back=0.3)
+    assert got.dtype == dtype and torch.isfinite(got).all()
+    # inputs were rounded to the half type; compare loosely on the float32 result of those
+    ref_h = smits(l.to(dtype).float(), v.to(dtype).float(), n, base_color=c.to(dtype).float(), roughness=r.to(dtype).float(), clear=0.5, back=0.3)
+    torch.testing.assert_close(got.float(), ref_h, rtol=2e-2, atol=1e-3)
+    assert torch.isfinite(ref).all()
+    # a roughness-0 peak stays finite in float16 (saturated, never inf)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+    assert torch.isfinite(smits(z, z, z, base_color=torch.ones(3, dtype=dtype), roughness=0.0)).all()
+
+
+# --------------------------------------------------------------------------- layering
+
+
+def _lobe_fields(lobes):
+    names = [
+        f"{k}_{s}"
+        for k in ("diffuse", "specular", "reflection", "transmit_diffuse", "transmit_specular", "refraction")
+        for s in "ng"
+    ]
+    return {k: getattr(lobes, k) for k in names}
+
+
+def test_single_layer_equals_smits_and_presence_scales():
+    rng = np.random.default_rng(12)
+    count = 300
+    l, v = t64(random_dirs(rng, count)), t64(random_dirs(rng, count, True))
+    n = t64(np.array([0.0, 0, 1]))
+    p = torch_params(random_params(rng, count))
+    f = smits(l, v, n, **p)
+    torch.testing.assert_close(smits_layered(l, v, n, layers=[p], layer_weights=[1.0]), f)
+    torch.testing.assert_close(SmitsLayeredBRDF()(l, v, n, layers=[p], layer_weights=[0.3]), 0.3 * f)
+    # the same material twice covers 0.4 + 0.6 * 1 = 1 of the pixel: unchanged
+    torch.testing.assert_close(smits_layered(l, v, n, layers=[p, p], layer_weights=[0.4, 1.0]), f)
+    # presence below 1 on both: coverage 0.5 + 0.5 * 0.5 = 0.75
+    torch.testing.assert_close(smits_layered(l, v, n, layers=[p, p], layer_weights=[0.5, 0.5]), 0.75 * f)
+
+
+def test_composite_weights_cones_and_normals():
+    rng = np.random.default_rng(13)
+    count = 200
+    v = random_dirs(rng, count, True)
+    v[:, 2] = np.maximum(v[:, 2], 0.2)
+    v = _unit(v)
+    na = _unit(np.array([[0.2, 0.0, 1.0]])).repeat(count, 0)
+    nb = _unit(np.array([[-0.1, 0.3, 1.0]])).repeat(count, 0)
+    pa, pb = random_params(rng, count, extras=False), random_params(rng, count, extras=False)
+    a, b = rng.uniform(0, 1, (count, 1)), rng.uniform(0, 1, (count, 1))
+    la = smits_lobes(t64(v), t64(na), **torch_params(pa))
+    lb = smits_lobes(t64(v), t64(nb), **torch_params(pb))
+    comp = smits_composite(t64(v), [la, lb], [t64(a), t64(b)])
+    ca, cb = a, (1 - a) * b  # A over B
+    # lobe weights: A-over-B, checked against the NumPy weights
+    wa = np_weights(v, na, np_params(count, **pa))
+    wb = np_weights(v, nb, np_params(count, **pb))
+    for lobe in wa:
+        for i, s in enumerate("ng"):
+            expected = np.broadcast_to(ca * wa[lobe][i] + cb * wb[lobe][i], (count, 3))
+            np.testing.assert_allclose(getattr(comp, f"{lobe}_{s}").numpy(), expected, rtol=1e-10, atol=1e-14)
+
+    def lum(c):
+        return 0.3 * c[:, 0:1] + 0.6 * c[:, 1:2] + 0.1 * c[:, 2:3]
+
+    def energy(w, lobe, n):
+        wn, wg = w[lobe]
+        share = (20 * wn + wg) / 21 if "diffuse" in lobe else np_frnl(wn, wg, _d(v, n))
+        return lum(np.broadcast_to(share, (count, 3))) + 1e-6
+
+    ca_, cb_ = np_cones(np_params(count, **pa)), np_cones(np_params(count, **pb))
+    for lobe in ("specular", "reflection", "transmit_specular", "refraction"):
+        ea, eb = ca * energy(wa, lobe, na), cb * energy(wb, lobe, nb)
+        expected = np.radians((ea * ca_[lobe] + eb * cb_[lobe]) / (ea + eb))
+        np.testing.assert_allclose(getattr(comp, lobe + "_cone").numpy(), expected, rtol=1e-9)
+    ed = [c * (energy(w, "diffuse", nn) + energy(w, "transmit_diffuse", nn)) for c, w, nn in ((ca, wa, na), (cb, wb, nb))]
+    np.testing.assert_allclose(comp.diffuse_normal.numpy(), _unit(ed[0] * na + ed[1] * nb), rtol=1e-9)
+    hs = ("specular", "reflection", "transmit_specular", "refraction")
+    eh = [c * sum(energy(w, k, nn) for k in hs) for c, w, nn in ((ca, wa, na), (cb, wb, nb))]
+    np.testing.assert_allclose(comp.highlight_normal.numpy(), _unit(eh[0] * na + eh[1] * nb), rtol=1e-9)
+    # evaluating the composite is what smits_layered does
+    l = t64(random_dirs(rng, count))
+    n = t64(np.array([0.0, 0, 1]))
+    ref = smits_evaluate(l, t64(v), n, comp)
+    got = smits_layered(
+        l, t64(v), n, layers=[dict(torch_params(pa), normal=t64(na)), dict(torch_params(pb), normal=t64(nb))], layer_weights=[t64(a), t64(b)]
+    )
+    torch.testing.assert_close(got, ref)
+
+
+def test_layered_albedo_at_most_one():
+    """A layered lobe set is a coverage-weighted sum of partitions: still <= 1."""
+    rng = np.random.default_rng(14)
+    k = 16
+    pa, pb = random_params(rng, k, extras=False), random_params(rng, k, extras=False)
+    for p in (pa, pb):
+        p["base_color"][:] = 1.0
+    a = rng.uniform(0, 1, (k, 1))
+    v_loc = view_dirs(rng.uniform(0, 85, k))
+    z = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+
+    def layered_f(scale_name):
+        def f(l):
+            extra = (1,) * (l.ndim - 2)
+            vv = np.broadcast_to(v_loc.reshape(k, *extra, 3), l.shape)
+
+            def tp(p):
+                q = {kk: t64(x.reshape(k, *extra, x.shape[-1])) for kk, x in p.items()}
+                q.update({s: float(s == scale_name) for s in LOBE_SCALES})
+                return q
+
+            aa = t64(a.reshape(k, *extra, 1))
+            return smits_layered(t64(l), t64(vv), z, layers=[tp(pa), tp(pb)], layer_weights=[aa, 1.0]).numpy()
+
+        return f
+
+    comp = smits_composite(
+        t64(v_loc),
+        [smits_lobes(t64(v_loc), z, **torch_params(pa)), smits_lobes(t64(v_loc), z, **torch_params(pb))],
+        [t64(a), 1.0],
+    )
+    total = np.zeros((k, 3))
+    total += diffuse_albedo(layered_f("diffuse_scale"), k)
+    total += diffuse_albedo(layered_f("transmit_diffuse_scale"), k, lower=True)
+    for lobe in ("specular", "reflection"):
+        power = smits_cone_power(getattr(comp, lobe + "_cone")).numpy()[:, 0]
+        total += highlight_albedo(layered_f(lobe + "_scale"), v_loc, power, n_u=64, n_phi=32)
+    vt = np_back_view(v_loc, np.array([0.0, 0, 1]), comp.eta.numpy())
+    for lobe in ("transmit_specular", "refraction"):
+        power = smits_cone_power(getattr(comp, lobe + "_cone")).numpy()[:, 0]
+        total += highlight_albedo(layered_f(lobe + "_scale"), vt, power, lower=True, n_u=64, n_phi=32)
+    assert total.max() <= 1 + 2e-3, total.max()
+    assert total.min() > 0.3
