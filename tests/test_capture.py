@@ -198,7 +198,7 @@ def _set(value, *keys):
         (_set([1.0, 2.0], "images", 0, "light", "position"), r"images\[0\].light.position must be a list"),
         (_set("0 0 1", "images", 0, "light", "position"), r"images\[0\].light.position must be a list of 3"),
         (_set([0, 0, float("nan")], "images", 0, "light", "position"), "must be finite"),
-        (_set([1.0, -0.5, 1.0], "images", 2, "light", "intensity"), r"images\[2\].light.intensity must be no"),
+        (_set([1.0, -0.5, 1.0], "images", 2, "light", "intensity"), r"images\[2\].light.intensity must be"),
         (_set([0, 0], "camera", "position"), "camera.position must be a list of 3"),
     ],
 )
