@@ -1,0 +1,682 @@
+"""Differentiable screen-space shading of g-buffers: :func:`shade`, :func:`plan`, :class:`Shader`.
+
+``shade(gbuf, lights)`` turns a :class:`~torchbrdf.GBuffer` into linear radiance
+``(B, 3, H, W)`` under any mix of point, directional and environment lights, with the
+contract's formulas (§5). It evaluates any BRDF callable with the principled signature
+``brdf(l, v, n, x, y, **material)`` (default :func:`torchbrdf.principled`).
+
+How it works, in order:
+
+1. **Inspect once** (:func:`plan` shows the result). Pixels that are masked out or face away
+   from the camera (``n·v <= 0``, where every BRDF of the library is 0) are dropped. Each
+   material map that does not require grad is reduced: all zeros -> the Python float
+   ``0.0`` (the BRDF then skips the lobe it weights), uniform single-channel map -> a float.
+   Tangent frames are built only when ``anisotropic`` is not a Python 0; environment
+   integration runs only when an :class:`~torchbrdf.EnvironmentLight` is present. The result
+   equals full evaluation (``prune=False``) to float rounding.
+2. **Convert once** from ``(B, C, H, W)`` to flat channel-last ``(P, C)`` over the shaded
+   pixels, call the BRDF on those, and scatter back.
+3. **Accumulate per light** (per environment-sample pass, per pixel chunk), each pass
+   wrapped in ``torch.utils.checkpoint`` (non-reentrant): its intermediates are dropped after
+   the forward pass and recomputed during backward, so forward+backward peak memory is that of
+   one pass, whatever the number of lights (measured in ``docs/shading.md``).
+
+Gradients reach every tensor input: material maps, normals, positions, camera position,
+tangents, light positions/directions/intensities and environment maps. Masked and
+back-facing pixels are exactly 0 with zero (finite) gradients.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
+
+from ._math import cast_back, compute_dtype, dot, safe_normalize
+from .envmap import (
+    PREFILTER_ROUGHNESS,
+    SplitSumEnvironment,
+    _as_bhwc,
+    _MCSetup,
+    _mc_pass,
+    brdf_kind,
+    integrate_environment_split_sum,
+    sampling_lobes_for,
+)
+from .frames import frame_from_normal, gram_schmidt
+from .gbuffer import GBuffer
+from .lights import DirectionalLight, EnvironmentLight, Light, PointLight
+
+__all__ = ["shade", "plan", "Shader", "ShadingPlan", "ENV_STRATEGIES", "DEFAULT_ENV_SAMPLES"]
+
+ENV_STRATEGIES = ("mc", "split_sum")
+DEFAULT_ENV_SAMPLES = 64
+# Environment samples are evaluated in passes of about this many (pixel, sample) pairs, so an
+# environment pass costs about as much memory as one point light over 2^18 pixels.
+ENV_ELEMENTS_PER_PASS = 1 << 18
+# Squared distance floor for point lights (a light exactly on the surface): keeps 1/d² finite.
+DIST2_EPS = 1e-12
+
+_LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
+_DEFAULTS = {
+    "metallic": 0.0,
+    "subsurface": 0.0,
+    "specular": 0.5,
+    "roughness": 0.5,
+    "specular_tint": 0.0,
+    "anisotropic": 0.0,
+    "sheen": 0.0,
+    "sheen_tint": 0.5,
+    "clearcoat": 0.0,
+    "clearcoat_gloss": 1.0,
+}
+# Rough relative cost of one BRDF evaluation per lobe (diffuse = 1), for plan()'s estimate.
+_LOBE_COST = {"diffuse": 1.0, "subsurface": 0.6, "specular": 2.0, "sheen": 0.4, "clearcoat": 1.2}
+# Bytes of live intermediates per (pixel, sample) element and per unit of lobe cost during
+# the backward of one pass, float32 (measured on the principled BRDF; see docs/shading.md).
+_BYTES_PER_ELEMENT_COST = 160
+
+
+# --------------------------------------------------------------------------------------
+# The plan
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class ShadingPlan:
+    """What :func:`shade` will compute for a scene, and roughly what it costs.
+
+    ``str(plan)`` prints a readable summary. Fields are plain Python values.
+    """
+
+    brdf: str
+    brdf_kind: str
+    image: tuple[int, int, int]
+    dtype: str
+    pixels_total: int
+    pixels_shaded: int
+    pixels_masked: int
+    pixels_backfacing: int
+    lobes: tuple[str, ...] | None
+    pruned_lobes: tuple[str, ...]
+    material: dict[str, str]
+    frames: str
+    lights: list[str]
+    environment: str | None
+    passes: int
+    brdf_evaluations: int
+    relative_cost: float
+    estimated_peak_bytes: int
+    pruning: bool = True
+    notes: list[str] = field(default_factory=list)
+
+    def __str__(self) -> str:
+        b, h, w = self.image
+        lines = [f"ShadingPlan: {self.brdf} ({self.brdf_kind}) on {b}x{h}x{w} {self.dtype}"]
+        lines.append(
+            f"  pixels   : {self.pixels_shaded} shaded of {self.pixels_total}"
+            f" ({self.pixels_masked} masked, {self.pixels_backfacing} back-facing skipped)"
+        )
+        if self.lobes is None:
+            lines.append("  lobes    : decided by the BRDF (custom callable)")
+        else:
+            lines.append(f"  lobes    : {', '.join(self.lobes) or 'none'}")
+            if self.pruned_lobes:
+                lines.append(f"  pruned   : {', '.join(self.pruned_lobes)}")
+        lines.append(f"  frames   : {self.frames}")
+        lines.append("  material :")
+        for k, d in self.material.items():
+            lines.append(f"    {k:16s} {d}")
+        lines.append("  lights   :" + ("" if self.lights else " none"))
+        for d in self.lights:
+            lines.append(f"    {d}")
+        if self.environment:
+            lines.append(f"  env      : {self.environment}")
+        lines.append(
+            f"  cost     : {self.brdf_evaluations:,} BRDF evaluations in {self.passes} recomputed pass(es),"
+            f" ~{self.relative_cost:.3g} diffuse-lobe units;"
+            f" est. peak working set ~{self.estimated_peak_bytes / 2**20:.0f} MiB (forward+backward)"
+        )
+        for note in self.notes:
+            lines.append(f"  note     : {note}")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------
+# Preparation
+# --------------------------------------------------------------------------------------
+
+
+def _default_brdf():
+    from .principled import principled
+
+    return principled
+
+
+def _brdf_name(brdf) -> str:
+    if isinstance(brdf, nn.Module):
+        return type(brdf).__name__
+    return getattr(brdf, "__name__", type(brdf).__name__)
+
+
+def _as_light_list(lights) -> list[Light]:
+    if lights is None:
+        return []
+    if isinstance(lights, Light):
+        return [lights]
+    if isinstance(lights, (list, tuple)):
+        out = list(lights)
+    else:
+        raise TypeError(f"shade: `lights` must be a light or a list of lights, got {type(lights).__name__}")
+    for i, light in enumerate(out):
+        if not isinstance(light, (PointLight, DirectionalLight, EnvironmentLight)):
+            raise TypeError(
+                f"shade: lights[{i}] must be a PointLight, DirectionalLight or EnvironmentLight, got {type(light).__name__}"
+            )
+    return out
+
+
+def _is_zero(p) -> bool:
+    return isinstance(p, numbers.Real) and float(p) == 0.0
+
+
+class _Pixels:
+    """The shaded pixel set: gathers ``(B, C, H, W)`` maps to ``(P, C)`` and scatters back."""
+
+    def __init__(self, select: Tensor):
+        self.b, self.h, self.w = select.shape
+        self.select = select
+        self.all = bool(select.all())
+        if self.all:
+            self.count = self.b * self.h * self.w
+            self.flat = None
+            self.batch_index = torch.arange(self.b, device=select.device).repeat_interleave(self.h * self.w)
+        else:
+            self.flat = select.reshape(-1).nonzero().squeeze(1)
+            self.count = int(self.flat.numel())
+            self.batch_index = torch.div(self.flat, self.h * self.w, rounding_mode="floor")
+
+    def gather(self, t: Tensor) -> Tensor:
+        c = t.shape[1]
+        t = t.expand(self.b, c, self.h, self.w).permute(0, 2, 3, 1)
+        if self.all:
+            return t.reshape(-1, c)
+        return t[self.select]
+
+    def gather_cl(self, t: Tensor) -> Tensor:
+        """Gather a channel-last ``(B*H*W, C)`` tensor."""
+        return t if self.all else t[self.flat]
+
+    def scatter(self, vals: Tensor) -> Tensor:
+        """``(P, 3)`` -> ``(B, 3, H, W)`` with zeros outside the set."""
+        if self.all:
+            full = vals
+        else:
+            full = vals.new_zeros(self.b * self.h * self.w, vals.shape[-1]).index_copy(0, self.flat, vals)
+        return full.reshape(self.b, self.h, self.w, -1).permute(0, 3, 1, 2)
+
+
+@dataclass
+class _Prepared:
+    plan: ShadingPlan
+    run: object
+
+
+def _describe_value(v) -> str:
+    if isinstance(v, Tensor):
+        grad = ", requires grad" if v.requires_grad else ""
+        return f"map {list(v.shape)}{grad}" if v.dim() else f"0-d tensor{grad}"
+    return f"constant {v:g}"
+
+
+def _inspect_material(material: dict, prune: bool, cd: torch.dtype):
+    """Decide, per material entry, how it reaches the BRDF. Returns (values, descriptions).
+
+    ``values[name]`` is a Python float, a 0-d tensor (compute dtype) or a ``(B, C, H, W)``
+    map still to be gathered.
+    """
+    values, desc = {}, {}
+    for name, v in material.items():
+        if isinstance(v, numbers.Real):
+            values[name] = float(v)
+            desc[name] = f"constant {float(v):g}"
+            continue
+        if prune and not v.requires_grad:
+            vd = v.detach()
+            if not bool(vd.any()):
+                values[name] = 0.0
+                desc[name] = f"all zeros, no grad -> 0.0 ({'0-d' if v.dim() == 0 else list(v.shape)}), lobe pruned"
+                continue
+            if v.dim() == 0:
+                values[name] = float(vd)
+                desc[name] = f"0-d tensor, no grad -> constant {float(vd):g}"
+                continue
+            if v.shape[1] == 1 and bool(vd.amin() == vd.amax()):
+                values[name] = float(vd.reshape(-1)[0])
+                desc[name] = f"uniform map {list(v.shape)}, no grad -> constant {values[name]:g}"
+                continue
+        values[name] = v.to(cd)
+        desc[name] = _describe_value(v)
+    return values, desc
+
+
+def _lobes_for(brdf, kind: str, values: dict):
+    if kind == "lambert":
+        return ("diffuse",), ()
+    if kind == "principled":
+        from .principled import active_lobes
+
+        wanted = getattr(brdf, "lobes", None)
+        act = active_lobes(values, wanted)
+        return act, tuple(lobe for lobe in _LOBES if lobe not in act)
+    return None, ()
+
+
+def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) -> _Prepared:
+    if not isinstance(gbuf, GBuffer):
+        raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
+    lights = _as_light_list(lights)
+    if env_strategy not in ENV_STRATEGIES:
+        raise ValueError(f"shade: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
+    if isinstance(env_samples, bool) or not isinstance(env_samples, numbers.Integral) or env_samples < 1:
+        raise ValueError(f"shade: `env_samples` must be a positive int, got {env_samples!r}")
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, numbers.Integral) or chunk < 1):
+        raise ValueError(f"shade: `chunk` must be None or a positive int (pixels per pass), got {chunk!r}")
+    brdf = _default_brdf() if brdf is None else brdf
+    if not callable(brdf):
+        raise TypeError(f"shade: `brdf` must be callable with the principled signature, got {type(brdf).__name__}")
+    b, h, w = gbuf.shape
+    for i, light in enumerate(lights):
+        lb = light.batch_size
+        if lb is not None and lb not in (1, b):
+            raise ValueError(
+                f"shade: lights[{i}] ({type(light).__name__}) has per-batch parameters for {lb} images, but the g-buffer holds {b}"
+            )
+    dt = gbuf.dtype
+    cd = compute_dtype(dt)
+    dev = gbuf.device
+    kind = brdf_kind(brdf)
+    if env_strategy == "split_sum" and kind == "custom" and any(isinstance(x, EnvironmentLight) for x in lights):
+        raise ValueError(
+            f"shade: env_strategy='split_sum' supports the principled and Lambert BRDFs, not {_brdf_name(brdf)}; use 'mc'"
+        )
+
+    # ---- which pixels
+    pos_img = gbuf.position.to(cd)
+    cam = gbuf.camera_position.to(device=dev, dtype=cd)
+    with torch.no_grad():
+        c4 = cam.reshape(-1, 3, 1, 1)
+        facing = (gbuf.normal.detach().to(cd) * (c4 - pos_img.detach())).sum(1) > 0  # (B, H, W)
+        covered = torch.ones_like(facing) if gbuf.mask is None else (gbuf.mask[:, 0] > 0).expand(b, h, w)
+        active = facing & covered
+        n_total = b * h * w
+        n_masked = int((~covered).sum())
+        n_back = int((covered & ~facing).sum())
+    select = active if prune else torch.ones_like(active)
+    pixels = _Pixels(select)
+    p_count = pixels.count
+
+    # ---- material, lobes, frames
+    values, mdesc = _inspect_material(gbuf.material, prune, cd)
+    lobes, pruned = _lobes_for(brdf, kind, values)
+    aniso = values.get("anisotropic", 0.0)
+    need_frame = not _is_zero(aniso)
+    if not need_frame:
+        frames = "none (isotropic: anisotropic is a Python 0)"
+    elif gbuf.tangent is not None:
+        frames = "Gram–Schmidt from the tangent map"
+    else:
+        frames = "built from the normal (Duff et al. 2017)"
+    for k, d in _DEFAULTS.items():
+        if k not in mdesc and (kind == "principled"):
+            mdesc[k] = f"default {d:g}"
+
+    # ---- lights
+    points = [x for x in lights if isinstance(x, PointLight)]
+    dirs = [x for x in lights if isinstance(x, DirectionalLight)]
+    envs = [x for x in lights if isinstance(x, EnvironmentLight)]
+    light_desc = []
+    for i, light in enumerate(lights):
+        batched = "per-batch" if light.batch_size not in (None, 1) else "shared"
+        if isinstance(light, PointLight):
+            light_desc.append(f"[{i}] point light ({batched}): f·I·max(n·l,0)/|q-P|², 1 BRDF evaluation per pixel")
+        elif isinstance(light, DirectionalLight):
+            light_desc.append(f"[{i}] directional light ({batched}): f·E·max(n·l,0), 1 BRDF evaluation per pixel")
+        else:
+            light_desc.append(f"[{i}] environment {list(light.radiance.shape)} ({batched}): {env_strategy}")
+    chunk_px = p_count if chunk is None else min(int(chunk), max(p_count, 1))
+    n_slices = 0 if p_count == 0 else math.ceil(p_count / max(chunk_px, 1))
+
+    # ---- environment budgets
+    env_desc = None
+    env_evals = 0
+    env_passes = 0
+    mc_setups = []
+    if envs and env_strategy == "mc":
+        g = torch.Generator(device=dev)
+        g.manual_seed(int(seed) if seed is not None else int(torch.randint(0, 2**62, (1,)).item()))
+        slobes = sampling_lobes_for(brdf, values)
+        samp_names = [k for k in ("diffuse", "specular", "clearcoat") if k in slobes]
+        names = {"diffuse": "cosine", "specular": "GGX visible normals", "clearcoat": "GTR1"}
+        parts = []
+        for light in envs:
+            shifts = torch.rand((2, n_total, 2), generator=g, dtype=cd, device=dev)
+            setup = _MCSetup(light.radiance, int(env_samples), pixels.gather_cl(shifts[0]), pixels.gather_cl(shifts[1]))
+            mc_setups.append(setup)
+            per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(chunk_px, 1))
+            for total in (setup.n_brdf, setup.n_map):
+                if total:
+                    env_passes += n_slices * math.ceil(total / min(per_pass, total))
+            env_evals += p_count * int(env_samples)
+            parts.append(
+                f"{setup.n_brdf} BRDF-sampled ({' + '.join(names[k] for k in samp_names)})"
+                + (f" + {setup.n_map} map-sampled, power-heuristic MIS" if setup.n_map else " (constant map: no map sampling)")
+            )
+        env_desc = "Monte Carlo, stratified (rotated Hammersley), seed %s: %s per pixel" % (seed, "; ".join(parts))
+    elif envs:
+        env_desc = (
+            f"split sum: irradiance map + {len(PREFILTER_ROUGHNESS)} GGX-prefiltered levels + (n·v, roughness) table;"
+            " no BRDF evaluations"
+        )
+        env_passes = n_slices * len(envs)
+
+    brdf_evals = p_count * (len(points) + len(dirs)) + env_evals
+    lobe_cost = sum(_LOBE_COST[x] for x in lobes) if lobes is not None else 4.0
+    passes = n_slices * (len(points) + len(dirs)) + env_passes
+    elements_per_pass = chunk_px if not (envs and env_strategy == "mc") else max(chunk_px, min(ENV_ELEMENTS_PER_PASS, chunk_px * int(env_samples)))
+    itemsize = torch.finfo(cd).bits // 8
+    est = int(elements_per_pass * lobe_cost * _BYTES_PER_ELEMENT_COST * itemsize / 4)
+    est += int(p_count * itemsize * 3 * (6 + 2 * len([v for v in values.values() if isinstance(v, Tensor)])))
+    notes = []
+    if not prune:
+        notes.append("pruning disabled (prune=False): every pixel and every material map is evaluated")
+    the_plan = ShadingPlan(
+        brdf=_brdf_name(brdf),
+        brdf_kind=kind,
+        image=(b, h, w),
+        dtype=str(dt).replace("torch.", ""),
+        pixels_total=n_total,
+        pixels_shaded=p_count,
+        pixels_masked=n_masked,
+        pixels_backfacing=n_back,
+        lobes=lobes,
+        pruned_lobes=pruned,
+        material=mdesc,
+        frames=frames,
+        lights=light_desc,
+        environment=env_desc,
+        passes=passes,
+        brdf_evaluations=brdf_evals,
+        relative_cost=brdf_evals * lobe_cost,
+        estimated_peak_bytes=est,
+        pruning=prune,
+        notes=notes,
+    )
+
+    def run() -> Tensor:
+        out_dtype = dt
+        if p_count == 0:
+            zero = pos_img.new_zeros(b, 3, h, w)
+            # Keep the graph connected so backward() works and yields zero gradients.
+            return cast_back(zero + 0.0 * pos_img.sum(), out_dtype)
+        # Boundary conversion: (B, C, H, W) -> (P, C), once.
+        pos = pixels.gather(pos_img)
+        n = safe_normalize(pixels.gather(gbuf.normal.to(cd)))
+        bidx = pixels.batch_index
+        cam_p = cam[bidx] if cam.dim() == 2 and cam.shape[0] > 1 else cam.reshape(1, 3)
+        v = safe_normalize(cam_p - pos)
+        x = y = None
+        if need_frame:
+            if gbuf.tangent is not None:
+                x, y = gram_schmidt(n, pixels.gather(gbuf.tangent.to(cd)))
+            else:
+                x, y = frame_from_normal(n)
+        mat = {k: (pixels.gather(val) if isinstance(val, Tensor) and val.dim() == 4 else val) for k, val in values.items()}
+        light_params = []
+        for light in points:
+            light_params.append(("point", light.position.to(device=dev, dtype=cd), light.intensity.to(device=dev, dtype=cd)))
+        for light in dirs:
+            light_params.append(("dir", light.direction.to(device=dev, dtype=cd), light.irradiance.to(device=dev, dtype=cd)))
+        env_inputs = []
+        for i, light in enumerate(envs):
+            rad = light.radiance.to(device=dev, dtype=cd)
+            env_b = rad.shape[0] if rad.dim() == 4 else 1
+            if env_strategy == "mc":
+                env_inputs.append(("mc", _as_bhwc(rad).contiguous(), env_b, mc_setups[i]))
+            else:
+                env_inputs.append(("split_sum", _split_sum_env(light, rad, cd), env_b, None))
+
+        pieces = []
+        for s in range(0, p_count, chunk_px):
+            e = min(s + chunk_px, p_count)
+
+            def sl(t, s=s, e=e):
+                return t[s:e] if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == p_count and p_count > 1 else t
+
+            pos_s, n_s, v_s, bidx_s = sl(pos), sl(n), sl(v), sl(bidx)
+            x_s, y_s = (sl(x), sl(y)) if need_frame else (None, None)
+            mat_s = {k: (sl(val) if isinstance(val, Tensor) and val.dim() == 2 else val) for k, val in mat.items()}
+            acc = None
+            for kind_l, p1, p2 in light_params:
+                fn = _point_term if kind_l == "point" else _directional_term
+                term = _pass(fn, brdf, pos_s, n_s, v_s, x_s, y_s, mat_s, p1, p2, bidx_s)
+                acc = term if acc is None else acc + term
+            for kind_e, env_data, env_b, setup in env_inputs:
+                eb = bidx_s if env_b > 1 else None
+                if kind_e == "mc":
+                    per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(e - s, 1))
+                    slobes = sampling_lobes_for(brdf, mat_s)
+                    for technique, total, shift in (
+                        ("brdf", setup.n_brdf, setup.shifts_b),
+                        ("map", setup.n_map, setup.shifts_m),
+                    ):
+                        k = min(per_pass, max(total, 1))
+                        for start in range(0, total, k):
+                            term = _pass(
+                                _mc_pass, brdf, slobes, n_s, v_s, x_s, y_s, mat_s, env_data, eb, setup,
+                                technique, start, min(k, total - start), sl(shift),
+                            )
+                            acc = term if acc is None else acc + term
+                else:
+                    term = _pass(integrate_environment_split_sum, brdf, n_s, v_s, env_data, mat_s, batch_index=eb)
+                    acc = term if acc is None else acc + term
+            if acc is None:
+                acc = pos_s.new_zeros(e - s, 3) + 0.0 * pos_s
+            pieces.append(acc)
+        out = pieces[0] if len(pieces) == 1 else torch.cat(pieces, dim=0)
+        img = pixels.scatter(out)
+        if not prune:
+            img = torch.where(active.unsqueeze(1), img, torch.zeros_like(img))
+        if gbuf.mask is not None and gbuf.mask.is_floating_point():
+            img = img * gbuf.mask.to(cd)
+        return cast_back(img.contiguous(), out_dtype)
+
+    return _Prepared(plan=the_plan, run=run)
+
+
+def _split_sum_env(light: EnvironmentLight, rad: Tensor, cd) -> SplitSumEnvironment:
+    """Prefilter a map for the split sum; cached on the light while the map has no grad."""
+    src = light.radiance
+    if src.requires_grad or rad.requires_grad:
+        return SplitSumEnvironment(rad, cd)
+    key = (src.data_ptr(), src._version, tuple(src.shape), cd, str(rad.device))
+    cached = light._split_sum_cache
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    env = SplitSumEnvironment(rad, cd)
+    light._split_sum_cache = (key, env)
+    return env
+
+
+def _pass(fn, *args, **kwargs):
+    """Run one accumulation pass; under autograd, recompute it in backward instead of storing."""
+    if torch.is_grad_enabled():
+        return checkpoint(fn, *args, use_reentrant=False, **kwargs)
+    return fn(*args, **kwargs)
+
+
+def _per_pixel(t: Tensor, bidx: Tensor) -> Tensor:
+    """A ``(3,)`` / ``(1, 3)`` / ``(B, 3)`` light parameter broadcast to the shaded pixels."""
+    if t.dim() == 2 and t.shape[0] > 1:
+        return t[bidx]
+    return t.reshape(1, 3)
+
+
+def _point_term(brdf, pos, n, v, x, y, mat, q, intensity, bidx) -> Tensor:
+    """``f(l, v) I max(n·l, 0) / |q - P|²`` at ``(P, 3)`` points."""
+    d = _per_pixel(q, bidx) - pos
+    dist2 = torch.clamp(dot(d, d), min=DIST2_EPS)
+    l = d * torch.rsqrt(dist2)
+    f = brdf(l, v, n, x, y, **mat)
+    cos = torch.clamp(dot(n, l), min=0.0)
+    return f * _per_pixel(intensity, bidx) * (cos / dist2)
+
+
+def _directional_term(brdf, pos, n, v, x, y, mat, direction, irradiance, bidx) -> Tensor:
+    """``f(d, v) E max(n·d, 0)`` at ``(P, 3)`` points."""
+    l = safe_normalize(_per_pixel(direction, bidx)).expand_as(n)
+    f = brdf(l, v, n, x, y, **mat)
+    cos = torch.clamp(dot(n, l), min=0.0)
+    return f * _per_pixel(irradiance, bidx) * cos
+
+
+# --------------------------------------------------------------------------------------
+# Public API
+# --------------------------------------------------------------------------------------
+
+
+def shade(
+    gbuf: GBuffer,
+    lights,
+    brdf=None,
+    *,
+    env_strategy: str = "mc",
+    env_samples: int = DEFAULT_ENV_SAMPLES,
+    seed: int | None = 0,
+    chunk: int | None = None,
+    prune: bool = True,
+) -> Tensor:
+    """Shade a g-buffer: outgoing linear radiance toward the camera at every pixel.
+
+    Args:
+        gbuf: the :class:`~torchbrdf.GBuffer` (``B`` images of ``H × W``).
+        lights: a light or a list of :class:`~torchbrdf.PointLight`,
+            :class:`~torchbrdf.DirectionalLight` and :class:`~torchbrdf.EnvironmentLight`
+            (any number of each; their contributions add).
+        brdf: callable ``brdf(l, v, n, x, y, **material) -> (*, 3)`` with the principled
+            signature; default :func:`torchbrdf.principled`. :func:`torchbrdf.lambert`
+            ships beside it.
+        env_strategy: ``"mc"`` (unbiased Monte Carlo with MIS) or ``"split_sum"``
+            (prefiltered approximation; principled and Lambert only). See
+            :mod:`torchbrdf.envmap` for their error behaviour.
+        env_samples: Monte Carlo samples per pixel and environment light.
+        seed: seed of the Monte Carlo sample pattern (``None``: draw one from torch's RNG).
+            The same seed gives the same image.
+        chunk: maximum number of pixels per pass (bounds memory further on huge images);
+            default all shaded pixels in one pass.
+        prune: skip masked / back-facing pixels, zero lobes and frames that are not needed
+            (default). ``False`` evaluates everything; the result is the same to float
+            rounding.
+
+    Returns:
+        ``(B, 3, H, W)`` linear radiance in the g-buffer's dtype and on its device; 0 at
+        masked-out and back-facing pixels.
+
+    Raises:
+        TypeError / ValueError: with the offending argument named.
+
+    Note:
+        float16 / bfloat16 g-buffers are shaded in float32 and the result is cast back
+        (saturating). Gradients are exact for point and directional lights and for the
+        split sum; for Monte Carlo they are unbiased estimates (sample directions and
+        densities are held constant).
+
+    Example:
+        >>> from torchbrdf.geometry import sphere_gbuffer
+        >>> from torchbrdf.lambert import lambert
+        >>> g = sphere_gbuffer(8, 8)
+        >>> shade(g, PointLight([0.0, 0.0, 4.0], 16.0), lambert).shape
+        torch.Size([1, 3, 8, 8])
+    """
+    return _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune).run()
+
+
+def plan(
+    gbuf: GBuffer,
+    lights,
+    brdf=None,
+    *,
+    env_strategy: str = "mc",
+    env_samples: int = DEFAULT_ENV_SAMPLES,
+    seed: int | None = 0,
+    chunk: int | None = None,
+    prune: bool = True,
+) -> ShadingPlan:
+    """What :func:`shade` would evaluate for these arguments, without shading.
+
+    Returns:
+        A :class:`ShadingPlan`; ``print(plan(...))`` lists the active and pruned lobes, how
+        each material entry reaches the BRDF, the frames, the light paths, the environment
+        strategy and sample budget, and the estimated cost (BRDF evaluations, passes, peak
+        working set).
+
+    Example:
+        >>> from torchbrdf.geometry import sphere_gbuffer
+        >>> p = plan(sphere_gbuffer(8, 8), [PointLight([0.0, 0.0, 4.0], 16.0)])
+        >>> p.lobes
+        ('diffuse', 'specular')
+    """
+    return _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune).plan
+
+
+class Shader(nn.Module):
+    """:func:`shade` as a module holding the BRDF and the options.
+
+    Args:
+        brdf: BRDF callable (an ``nn.Module`` BRDF is registered as a submodule, so its
+            parameters train with the shader); default :func:`torchbrdf.principled`.
+        env_strategy: see :func:`shade`.
+        env_samples: see :func:`shade`.
+        seed: see :func:`shade`.
+        chunk: see :func:`shade`.
+        prune: see :func:`shade`.
+
+    Shape:
+        - Input: a :class:`~torchbrdf.GBuffer` of ``(B, ·, H, W)`` maps and lights.
+        - Output: ``(B, 3, H, W)``.
+
+    Example:
+        >>> from torchbrdf.geometry import sphere_gbuffer
+        >>> Shader()(sphere_gbuffer(8, 8), DirectionalLight([0.0, 0.0, 1.0], 1.0)).shape
+        torch.Size([1, 3, 8, 8])
+    """
+
+    def __init__(self, brdf=None, *, env_strategy="mc", env_samples=DEFAULT_ENV_SAMPLES, seed=0, chunk=None, prune=True):
+        super().__init__()
+        if env_strategy not in ENV_STRATEGIES:
+            raise ValueError(f"Shader: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
+        self.brdf = brdf
+        self.env_strategy = env_strategy
+        self.env_samples = env_samples
+        self.seed = seed
+        self.chunk = chunk
+        self.prune = prune
+
+    def _kwargs(self):
+        return dict(env_strategy=self.env_strategy, env_samples=self.env_samples, seed=self.seed, chunk=self.chunk, prune=self.prune)
+
+    def forward(self, gbuf: GBuffer, lights) -> Tensor:
+        """Shade ``gbuf`` under ``lights``; see :func:`shade`."""
+        return shade(gbuf, lights, self.brdf, **self._kwargs())
+
+    def plan(self, gbuf: GBuffer, lights) -> ShadingPlan:
+        """See :func:`plan`."""
+        return plan(gbuf, lights, self.brdf, **self._kwargs())
+
+    def extra_repr(self) -> str:
+        name = "principled" if self.brdf is None else _brdf_name(self.brdf)
+        return f"brdf={name}, env_strategy={self.env_strategy!r}, env_samples={self.env_samples}, chunk={self.chunk}"
