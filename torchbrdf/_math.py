@@ -88,3 +88,53 @@ def cast_back(x: Tensor, dtype: torch.dtype) -> Tensor:
         return x
     big = torch.finfo(dtype).max
     return torch.clamp(x, -big, big).to(dtype)
+
+
+class _SaturatingCast(torch.autograd.Function):
+    """Cast to a wider dtype whose backward saturates the gradient at the narrow dtype's range."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, dtype: torch.dtype) -> Tensor:
+        ctx.in_dtype = x.dtype
+        return x.to(dtype)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        big = torch.finfo(ctx.in_dtype).max
+        return torch.clamp(grad, -big, big).to(ctx.in_dtype), None
+
+
+def cast_in(x, dtype: torch.dtype):
+    """Cast an input to the compute ``dtype``; for half inputs the gradient coming back
+    saturates at the half type's largest finite value instead of overflowing to inf (at
+    n·l = n·v = 1e-7 the true gradient is ~1e13)."""
+    if not isinstance(x, Tensor) or x.dtype == dtype:
+        return x
+    if x.dtype in (torch.float16, torch.bfloat16) and x.requires_grad:
+        return _SaturatingCast.apply(x, dtype)
+    return x.to(dtype)
+
+
+_HALF = (torch.float16, torch.bfloat16)
+
+
+def half_safe(fn):
+    """Decorator: evaluate ``fn`` in float32 when any tensor argument is float16/bfloat16.
+
+    Inputs are promoted with :func:`cast_in` (gradients saturate on the way back) and tensor
+    results are cast back with :func:`cast_back` (values saturate instead of becoming inf).
+    """
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        half = next((a.dtype for a in (*args, *kwargs.values()) if isinstance(a, Tensor) and a.dtype in _HALF), None)
+        if half is None:
+            return fn(*args, **kwargs)
+        up = lambda a: cast_in(a, torch.float32) if isinstance(a, Tensor) and a.is_floating_point() else a  # noqa: E731
+        out = fn(*[up(a) for a in args], **{k: up(a) for k, a in kwargs.items()})
+        if isinstance(out, tuple):
+            return tuple(cast_back(o, half) if isinstance(o, Tensor) else o for o in out)
+        return cast_back(out, half)
+
+    return wrapper

@@ -10,18 +10,20 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import lerp, schlick_weight
+from ._math import half_safe, lerp, schlick_weight
 
 __all__ = ["diffuse_lambert", "diffuse_burley", "diffuse_subsurface", "diffuse_oren_nayar"]
 
 INV_PI = 1.0 / math.pi
 
 
+@half_safe
 def diffuse_lambert(base_color) -> Tensor:
     """Lambert: ``base_color / π``."""
     return base_color * INV_PI
 
 
+@half_safe
 def burley_retro_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughness) -> Tensor:
     """Burley's diffuse Fresnel factor ``lerp(1, Fd90, FL) · lerp(1, Fd90, FV)``, ``(*, 1)``.
 
@@ -32,6 +34,7 @@ def burley_retro_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, rough
     return lerp(1.0, fd90, schlick_weight(n_dot_l)) * lerp(1.0, fd90, schlick_weight(n_dot_v))
 
 
+@half_safe
 def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughness) -> Tensor:
     """Burley's Hanrahan–Krueger-like subsurface factor ``1.25 (Fss (1/(NL+NV) - 0.5) + 0.5)``.
 
@@ -44,16 +47,19 @@ def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughne
     return 1.25 * (fss * (inv - 0.5) + 0.5)
 
 
+@half_safe
 def diffuse_burley(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color, roughness) -> Tensor:
     """Burley's retro-reflective diffuse: ``base_color / π · Fd`` (see :func:`burley_retro_factor`)."""
     return base_color * INV_PI * burley_retro_factor(n_dot_l, n_dot_v, l_dot_h, roughness)
 
 
+@half_safe
 def diffuse_subsurface(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color, roughness) -> Tensor:
     """The principled model's subsurface approximation: ``base_color / π · ss``."""
     return base_color * INV_PI * subsurface_factor(n_dot_l, n_dot_v, l_dot_h, roughness)
 
 
+@half_safe
 def diffuse_oren_nayar(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_v: Tensor, base_color, sigma) -> Tensor:
     """Oren–Nayar in PBRT's form, ``R/π (A + B max(0, cos Δφ) sin α tan β)``.
 

@@ -17,6 +17,8 @@ import math
 import torch
 from torch import Tensor
 
+from ._math import half_safe
+
 __all__ = [
     "ALPHA_MIN",
     "roughness_to_alpha",
@@ -36,6 +38,8 @@ ALPHA_MIN = 1e-3
 # |x| below which the removable-singularity helpers switch to their Taylor series
 # (error ~x^4/720, far below float64 rounding for 1e-4).
 _SERIES_EPS = 1e-4
+# Floor under NDF denominators (α² cos² + sin²): only a zero half vector reaches it.
+_DEN_EPS = 1e-18
 
 
 def roughness_to_alpha(roughness, alpha_min: float = ALPHA_MIN):
@@ -87,6 +91,7 @@ def _expm1_over_x(u: Tensor) -> Tensor:
     return torch.where(small, series, exact)
 
 
+@half_safe
 def ndf_ggx(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
     """GGX / Trowbridge–Reitz (GTR with γ = 2): ``α² / (π (α² cos²θh + sin²θh)²)``.
 
@@ -99,10 +104,13 @@ def ndf_ggx(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
         ``(*, 1)`` density; 0 for ``n_dot_h <= 0``.
     """
     a2 = alpha * alpha
-    d = a2 * n_dot_h * n_dot_h + _sin2(n_dot_h, sin2_h)
+    # Floor: the smallest legitimate value is α² >= 1e-6 (at the peak); 1e-18 only guards a
+    # zero half vector, and its square still fits float32.
+    d = torch.clamp(a2 * n_dot_h * n_dot_h + _sin2(n_dot_h, sin2_h), min=_DEN_EPS)
     return torch.where(n_dot_h > 0, a2 / (math.pi * d * d), torch.zeros_like(d))
 
 
+@half_safe
 def ndf_ggx_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x, alpha_y) -> Tensor:
     """Anisotropic GGX (Burley eq. 13): ``1 / (π αx αy ((h·x/αx)² + (h·y/αy)² + (h·n)²)²)``.
 
@@ -114,6 +122,7 @@ def ndf_ggx_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x, al
     return torch.where(n_dot_h > 0, 1.0 / (math.pi * alpha_x * alpha_y * d * d), torch.zeros_like(d))
 
 
+@half_safe
 def gtr_normalization(alpha, gamma) -> Tensor:
     """GTR normalisation ``(γ-1)(α²-1) / (π (1 - (α²)^(1-γ)))`` (Burley eq. 1).
 
@@ -129,6 +138,7 @@ def gtr_normalization(alpha, gamma) -> Tensor:
     return _x_over_log1p(a2 - 1.0, log_a2) * _x_over_expm1(u) / math.pi
 
 
+@half_safe
 def ndf_gtr(n_dot_h: Tensor, alpha, gamma, sin2_h=None) -> Tensor:
     """Generalised Trowbridge–Reitz (Burley eq. 1) for any ``γ > 0``.
 
@@ -151,15 +161,17 @@ def ndf_gtr(n_dot_h: Tensor, alpha, gamma, sin2_h=None) -> Tensor:
     return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
 
 
+@half_safe
 def ndf_gtr1(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
     """GTR with γ = 1 (Burley eq. 4, the clearcoat lobe): ``(α²-1) / (π ln α² (α² cos² + sin²))``."""
     alpha_t = torch.as_tensor(alpha, dtype=n_dot_h.dtype, device=n_dot_h.device)
     a2 = alpha_t * alpha_t
     base = a2 * n_dot_h * n_dot_h + _sin2(n_dot_h, sin2_h)
-    d = _x_over_log1p(a2 - 1.0, _log_a2(a2)) / (math.pi * base)
+    d = _x_over_log1p(a2 - 1.0, _log_a2(a2)) / (math.pi * torch.clamp(base, min=_DEN_EPS))
     return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
 
 
+@half_safe
 def ndf_beckmann(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
     """Beckmann (Hoffman eq. 17): ``exp(-tan²θh / α²) / (π α² cos⁴θh)``.
 
@@ -178,6 +190,7 @@ def ndf_beckmann(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
     return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
 
 
+@half_safe
 def ndf_beckmann_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x, alpha_y) -> Tensor:
     """Anisotropic Beckmann: ``exp(-((h·x/αx)² + (h·y/αy)²) / (h·n)²) / (π αx αy (h·n)⁴)``."""
     c = torch.clamp(n_dot_h, min=1e-6)
@@ -188,6 +201,7 @@ def ndf_beckmann_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_
     return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
 
 
+@half_safe
 def ndf_blinn_phong(n_dot_h: Tensor, exponent) -> Tensor:
     """Normalised Blinn–Phong (Hoffman eq. 16): ``(p + 2) / (2π) (n·h)^p``.
 
@@ -205,6 +219,7 @@ def alpha_to_phong_exponent(alpha):
     return 2.0 / (alpha * alpha) - 2.0
 
 
+@half_safe
 def abc_normalization(a, gamma) -> Tensor:
     """Normalisation ``k_abc`` of the ABC NDF (Hoffman eq. 20–22).
 
@@ -222,6 +237,7 @@ def abc_normalization(a, gamma) -> Tensor:
     return 1.0 / integral
 
 
+@half_safe
 def ndf_abc(n_dot_h: Tensor, a, gamma) -> Tensor:
     """ABC distribution (Hoffman eq. 19): ``k_abc / (1 + a (1 - n·h))^γ``.
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._math import safe_sqrt, schlick_weight
+from ._math import half_safe, safe_sqrt, schlick_weight
 
 __all__ = [
     "fresnel_schlick",
@@ -26,6 +26,7 @@ __all__ = [
 SPECULAR_TO_F0 = 0.08
 
 
+@half_safe
 def fresnel_schlick(cos_theta: Tensor, f0, f90=1.0) -> Tensor:
     """Schlick's approximation ``F0 + (F90 - F0) (1 - cos)^5``.
 
@@ -41,6 +42,7 @@ def fresnel_schlick(cos_theta: Tensor, f0, f90=1.0) -> Tensor:
     return f0 + (f90 - f0) * schlick_weight(cos_theta)
 
 
+@half_safe
 def fresnel_dielectric(cos_theta_i: Tensor, eta) -> Tensor:
     """Exact unpolarised Fresnel reflectance of a dielectric interface.
 
@@ -66,6 +68,7 @@ def fresnel_dielectric(cos_theta_i: Tensor, eta) -> Tensor:
     return torch.where(tir, torch.ones_like(f), f)
 
 
+@half_safe
 def fresnel_conductor(cos_theta_i: Tensor, eta, k) -> Tensor:
     """Exact unpolarised Fresnel reflectance of a conductor with complex IOR ``eta + i k``.
 

@@ -15,7 +15,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import safe_sqrt
+from ._math import half_safe, safe_sqrt
 
 __all__ = [
     "smith_g1_ggx",
@@ -38,6 +38,7 @@ def _tangent_alpha2(n_dot_w: Tensor, alpha) -> Tensor:
     return alpha * alpha * torch.clamp(1.0 - n_dot_w * n_dot_w, min=0.0)
 
 
+@half_safe
 def smith_g1_ggx_aniso(n_dot_w: Tensor, tangent_alpha2: Tensor) -> Tensor:
     """Heitz's anisotropic Smith G1 for GGX: ``2 cosθ / (cosθ + sqrt(cos²θ + (w·x αx)² + (w·y αy)²))``.
 
@@ -49,17 +50,20 @@ def smith_g1_ggx_aniso(n_dot_w: Tensor, tangent_alpha2: Tensor) -> Tensor:
     return 2.0 * c / (c + safe_sqrt(c * c + tangent_alpha2))
 
 
+@half_safe
 def smith_g1_ggx(n_dot_w: Tensor, alpha) -> Tensor:
     """Isotropic Smith G1 for GGX (Walter et al. 2007), ``(*, 1)``."""
     return smith_g1_ggx_aniso(n_dot_w, _tangent_alpha2(n_dot_w, alpha))
 
 
+@half_safe
 def smith_lambda_ggx(n_dot_w: Tensor, alpha) -> Tensor:
     """Smith Λ for GGX, ``(sqrt(1 + α² tan²θ) - 1) / 2``; large but finite at grazing."""
     c = torch.clamp(n_dot_w, min=1e-7)  # Λ → ∞ at the horizon; G built from it → 0
     return 0.5 * (safe_sqrt(c * c + _tangent_alpha2(c, alpha)) / c - 1.0)
 
 
+@half_safe
 def smith_lambda_beckmann(n_dot_w: Tensor, alpha) -> Tensor:
     """Exact Smith Λ for Beckmann: ``(erf(a) - 1)/2 + exp(-a²)/(2a√π)``, ``a = cot θ / α``."""
     c = torch.clamp(n_dot_w, min=1e-7)
@@ -68,12 +72,14 @@ def smith_lambda_beckmann(n_dot_w: Tensor, alpha) -> Tensor:
     return 0.5 * (torch.exp(-a * a) / (a * math.sqrt(math.pi)) - torch.erfc(a))
 
 
+@half_safe
 def smith_g1_beckmann(n_dot_w: Tensor, alpha) -> Tensor:
     """Exact Smith G1 for Beckmann, ``1 / (1 + Λ)``; 0 for ``n_dot_w <= 0``."""
     g = 1.0 / (1.0 + smith_lambda_beckmann(n_dot_w, alpha))
     return torch.where(n_dot_w > 0, g, torch.zeros_like(g))
 
 
+@half_safe
 def smith_g1_beckmann_walter(n_dot_w: Tensor, alpha) -> Tensor:
     """Walter et al.'s rational approximation of the Beckmann Smith G1 (error < 0.35 %)."""
     c = torch.clamp(n_dot_w, min=1e-7)
@@ -83,16 +89,19 @@ def smith_g1_beckmann_walter(n_dot_w: Tensor, alpha) -> Tensor:
     return torch.where(n_dot_w > 0, g, torch.zeros_like(g))
 
 
+@half_safe
 def smith_g2_separable(g1_l: Tensor, g1_v: Tensor) -> Tensor:
     """Separable masking–shadowing ``G1(l) G1(v)``."""
     return g1_l * g1_v
 
 
+@half_safe
 def smith_g2_height_correlated(lambda_l: Tensor, lambda_v: Tensor) -> Tensor:
     """Height-correlated masking–shadowing ``1 / (1 + Λ(l) + Λ(v))`` (Heitz 2014)."""
     return 1.0 / (1.0 + lambda_l + lambda_v)
 
 
+@half_safe
 def smith_g2_ggx_correlated(n_dot_l: Tensor, n_dot_v: Tensor, tan_a2_l: Tensor, tan_a2_v: Tensor) -> Tensor:
     """Height-correlated GGX G2 without Λ's division: ``2 NL NV / (NV s_l + NL s_v)``.
 
@@ -105,6 +114,7 @@ def smith_g2_ggx_correlated(n_dot_l: Tensor, n_dot_v: Tensor, tan_a2_l: Tensor, 
     return 2.0 * nl * nv / torch.clamp(nv * s_l + nl * s_v, min=1e-30)
 
 
+@half_safe
 def g_cook_torrance(n_dot_l: Tensor, n_dot_v: Tensor, n_dot_h: Tensor, v_dot_h: Tensor) -> Tensor:
     """Cook–Torrance (Blinn–Torrance–Sparrow) G, Hoffman eq. 30: ``min(1, 2 NH NV / VH, 2 NH NL / VH)``."""
     vh = torch.clamp(v_dot_h, min=1e-7)
@@ -113,12 +123,14 @@ def g_cook_torrance(n_dot_l: Tensor, n_dot_v: Tensor, n_dot_h: Tensor, v_dot_h: 
     return torch.clamp(g, min=0.0)
 
 
+@half_safe
 def g_kelemen(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor) -> Tensor:
     """Kelemen's approximation, Hoffman eq. 31: ``G = NL NV / (l·h)²``."""
     lh = torch.clamp(l_dot_h, min=1e-4)  # l·h >= cos(90°/2) ≈ 0.707 whenever NL, NV > 0
     return torch.clamp(n_dot_l, min=0.0) * torch.clamp(n_dot_v, min=0.0) / (lh * lh)
 
 
+@half_safe
 def g_implicit(n_dot_l: Tensor, n_dot_v: Tensor) -> Tensor:
     """Implicit geometry term, Hoffman eq. 29: ``G = NL NV`` (visibility term 1)."""
     return torch.clamp(n_dot_l, min=0.0) * torch.clamp(n_dot_v, min=0.0)

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from . import _checks
-from ._math import cast_back, compute_dtype, cross_norm2, dot, lerp, luminance, safe_normalize, safe_sqrt, schlick_weight
+from ._math import cast_back, cast_in, compute_dtype, cross_norm2, dot, lerp, luminance, safe_normalize, safe_sqrt, schlick_weight
 from .diffuse import burley_retro_factor, subsurface_factor
 from .distributions import ALPHA_MIN, ndf_gtr1
 from .frames import frame_from_normal
@@ -104,7 +104,7 @@ def _prepare(l, v, n, x, y, params, base_color):
     if _checks.validation_enabled():
         _checks.check_finite(named)
     cd = compute_dtype(dtype)
-    cast = {k: (t.to(cd) if isinstance(t, Tensor) else t) for k, t in named.items()}
+    cast = {k: cast_in(t, cd) for k, t in named.items()}
     return dtype, cast
 
 
@@ -270,7 +270,11 @@ def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, need_fram
     out_dtype = l.dtype
     hi = torch.float64 if out_dtype == torch.float32 else out_dtype
     lw, vw, nw = l.to(hi), v.to(hi), n.to(hi)
-    h = safe_normalize(lw + vw)
+    lv = lw + vw
+    # l = -v has no half vector; such lanes are masked (n·l or n·v <= 0) but must stay finite,
+    # so they borrow h = n.
+    degenerate = dot(lv, lv) < 1e-20
+    h = torch.where(degenerate, torch.broadcast_to(nw, lv.shape), safe_normalize(lv))
     lh = torch.clamp(dot(lw, h), 0.0, 1.0)
     # 1 - l·h is the Schlick base; near the mirror direction it cancels in float32.
     terms = {"nh": dot(nw, h), "lh": lh, "one_minus_lh": 1.0 - lh, "sin2_h": cross_norm2(nw, h)}
