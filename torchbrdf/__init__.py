@@ -7,7 +7,7 @@ the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-
 ``(B, C, H, W)`` linear values. Every function keeps the dtype and device it is given.
 """
 
-from . import diffuse, distributions, fresnel, masking
+from . import diffuse, distributions, fresnel, io, masking, measured
 from ._checks import set_validation, validation, validation_enabled
 from .diffuse import diffuse_burley, diffuse_lambert, diffuse_oren_nayar, diffuse_subsurface
 from .distributions import (
@@ -45,6 +45,8 @@ from .masking import (
     smith_lambda_beckmann,
     smith_lambda_ggx,
 )
+from .io import read_exr, to_display, write_exr, write_png
+from .measured import MERLBRDF, merl_coordinates, read_merl, write_merl
 from .microfacet import MicrofacetBRDF, microfacet
 from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, principled
 
@@ -94,6 +96,16 @@ __all__ = [
     "diffuse_burley",
     "diffuse_subsurface",
     "diffuse_oren_nayar",
+    "read_exr",
+    "write_exr",
+    "write_png",
+    "to_display",
+    "MERLBRDF",
+    "read_merl",
+    "write_merl",
+    "merl_coordinates",
+    "io",
+    "measured",
     "diffuse",
     "distributions",
     "fresnel",
