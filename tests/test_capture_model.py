@@ -28,7 +28,7 @@ def t64(a):
 
 
 def np_capture(l, v, n, rho_d, rho_s, rough):
-    """diffuse (1 - specular) / pi + D G F / (4 n.l n.v); zero unless both cosines > 0."""
+    """Diffuse (1 - specular) / pi + D G F / (4 n.l n.v); zero unless both cosines > 0."""
     h = _unit(l + v)
     nl, nv, nh, vh = _d(n, l), _d(n, v), _d(n, h), _d(v, h)
     alpha = np.maximum(rough**2, ALPHA_MIN)
@@ -60,7 +60,9 @@ def test_matches_numpy_reference():
     n = _unit(rng.normal(size=(count, 3)) * [0.3, 0.3, 1.0] + [0, 0, 1.0])
     l, v = random_dirs(rng, count), random_dirs(rng, count)
     rho_d, rho_s, rough = random_maps(rng, count)
-    got = svbrdf_ggx(t64(l), t64(v), t64(n), diffuse_albedo=t64(rho_d), specular_albedo=t64(rho_s), roughness=t64(rough))
+    got = svbrdf_ggx(
+        t64(l), t64(v), t64(n), diffuse_albedo=t64(rho_d), specular_albedo=t64(rho_s), roughness=t64(rough)
+    )
     expected = np_capture(l, v, n, rho_d, rho_s, rough)
     assert torch.isfinite(got).all()
     np.testing.assert_allclose(got.numpy(), expected, rtol=1e-8, atol=1e-12)
@@ -102,7 +104,7 @@ def _hemisphere(n_mu, n_phi):
 
 
 def _ggx_h_quadrature(alpha, n_u, n_phi):
-    """h nodes distributed as D(h) (n.h): tan^2 theta = a^2 u / (1 - u), equal weights."""
+    """H nodes distributed as D(h) (n.h): tan^2 theta = a^2 u / (1 - u), equal weights."""
     u = (np.arange(n_u) + 0.5) / n_u
     phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
     cos2 = 1 / (1 + alpha**2 * u / (1 - u))
@@ -112,15 +114,34 @@ def _ggx_h_quadrature(alpha, n_u, n_phi):
 
 
 def test_energy():
-    """Diffuse albedo is exactly rho_d (1 - rho_s); the specular albedo with F0 = 1 stays <= 1
-    (Smith-Schlick, k = alpha/2) and equals 1 - ln 2 at alpha = 1, normal incidence."""
+    """Albedos: diffuse exactly rho_d (1 - rho_s); specular with F0 = 1 at most 1.
+
+    The specular one (Smith-Schlick, k = alpha/2) equals 1 - ln 2 at alpha = 1, normal incidence.
+    """
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     d, w, mu = _hemisphere(24, 8)
-    rho_d, rho_s = torch.tensor([0.9, 0.5, 0.1], dtype=torch.float64), torch.tensor([0.3, 0.1, 0.0], dtype=torch.float64)
+    rho_d, rho_s = (
+        torch.tensor([0.9, 0.5, 0.1], dtype=torch.float64),
+        torch.tensor([0.3, 0.1, 0.0], dtype=torch.float64),
+    )
     for ang in (0.0, 45.0, 80.0):
         v = t64([math.sin(math.radians(ang)), 0.0, math.cos(math.radians(ang))]).expand(len(d), 3)
-        f = svbrdf_ggx(t64(d), v, z, diffuse_albedo=rho_d, specular_albedo=torch.zeros(3, dtype=torch.float64), roughness=1.0)
-        f_spec = svbrdf_ggx(t64(d), v, z, diffuse_albedo=0.0, specular_albedo=torch.zeros(3, dtype=torch.float64), roughness=1.0)
+        f = svbrdf_ggx(
+            t64(d),
+            v,
+            z,
+            diffuse_albedo=rho_d,
+            specular_albedo=torch.zeros(3, dtype=torch.float64),
+            roughness=1.0,
+        )
+        f_spec = svbrdf_ggx(
+            t64(d),
+            v,
+            z,
+            diffuse_albedo=0.0,
+            specular_albedo=torch.zeros(3, dtype=torch.float64),
+            roughness=1.0,
+        )
         alb = ((f - f_spec).numpy() * (mu * w)[:, None]).sum(0)
         np.testing.assert_allclose(alb, rho_d.numpy(), rtol=1e-12)
         f = svbrdf_ggx(t64(d), v, z, diffuse_albedo=rho_d, specular_albedo=rho_s, roughness=1.0)
@@ -138,7 +159,9 @@ def test_energy():
             l = 2 * vh[:, None] * h - v
             ok = (l[:, 2] > 0) & (vh > 0)
             vv = np.broadcast_to(v, l.shape)
-            f = svbrdf_ggx(t64(l), t64(vv), z, diffuse_albedo=0.0, specular_albedo=1.0, roughness=r)[:, 0].numpy()
+            f = svbrdf_ggx(t64(l), t64(vv), z, diffuse_albedo=0.0, specular_albedo=1.0, roughness=r)[
+                :, 0
+            ].numpy()
             nh = h[:, 2]
             dd = alpha**2 / (np.pi * (nh**2 * (alpha**2 - 1) + 1) ** 2)
             g = np.where(ok, f * l[:, 2] * 4 * np.abs(vh) / (dd * nh), 0.0)
@@ -193,7 +216,16 @@ def test_finite_at_grazing_and_extremes(dtype):
     e = math.radians(89.999)
     near = [math.sin(e), 0.0, math.cos(e)]
     mirror = [-math.sin(e), 0.0, math.cos(e)]
-    pairs = [(z, z), (g, z), (z, g), (near, mirror), (near, near), (g, [-1.0, 0, 0]), ([0, 0, -1.0], z), (z, [0, 0, -1.0])]
+    pairs = [
+        (z, z),
+        (g, z),
+        (z, g),
+        (near, mirror),
+        (near, near),
+        (g, [-1.0, 0, 0]),
+        ([0, 0, -1.0], z),
+        (z, [0, 0, -1.0]),
+    ]
     l = torch.tensor([p[0] for p in pairs], dtype=dtype, requires_grad=True)
     v = torch.tensor([p[1] for p in pairs], dtype=dtype, requires_grad=True)
     for r in (0.0, 1.0):
@@ -221,13 +253,21 @@ def test_module_equals_functional_shapes_and_dtypes():
     l = torch.as_tensor(random_dirs(rng, 2 * 8 * 8, True), dtype=torch.float32).reshape(2, 8, 8, 3)
     v = torch.as_tensor(random_dirs(rng, 2 * 8 * 8, True), dtype=torch.float32).reshape(2, 8, 8, 3)
     n = torch.tensor([0.0, 0.0, 1.0])
-    maps = dict(diffuse_albedo=torch.rand(2, 8, 8, 3), specular_albedo=torch.rand(1, 1, 1, 3), roughness=torch.rand(2, 8, 8, 1))
+    maps = dict(
+        diffuse_albedo=torch.rand(2, 8, 8, 3),
+        specular_albedo=torch.rand(1, 1, 1, 3),
+        roughness=torch.rand(2, 8, 8, 1),
+    )
     f = svbrdf_ggx(l, v, n, **maps)
     assert f.shape == (2, 8, 8, 3) and f.dtype == torch.float32
     torch.testing.assert_close(SVBRDFGGX()(l, v, n, **maps), f, rtol=0, atol=0)
     assert svbrdf_ggx(l, v, n, diffuse_albedo=0.5, specular_albedo=0.04, roughness=0.5).shape == (2, 8, 8, 3)
     with pytest.raises(TypeError):
         svbrdf_ggx(l, v, n, metallic=0.0, **maps)
+    with pytest.raises(ValueError, match="roughness"):
+        svbrdf_ggx(l, v, n, **dict(maps, roughness=torch.rand(2, 8, 8, 3)))
+    with pytest.raises(TypeError, match="dtype"):
+        svbrdf_ggx(l.double(), v, n, **maps)
     for dtype in (torch.float16, torch.bfloat16):
         lh, vh, nh = l.to(dtype), v.to(dtype), n.to(dtype)
         mh = {k: x.to(dtype) for k, x in maps.items()}

@@ -293,8 +293,11 @@ def _gauss_hemisphere(n_mu, n_phi, lower=False):
 
 
 def test_diffuse_hemispherical_integral_at_normal_incidence():
-    """int FrnlBlend(diffN, diffG, n.l) cos / pi: 0.9025 * (1 - 2 B(2,6)) = 0.9025 * 20/21 at
-    roughness 0 (the notes' 0.9025 is the value at l = v = n), exactly 1 at roughness 1."""
+    """Diffuse hemispherical integral at normal incidence: 0.9025 * 20/21 at roughness 0, 1 at 1.
+
+    int FrnlBlend(diffN, diffG, n.l) cos / pi = 0.9025 (1 - 2 B(2, 6)) = 0.9025 * 20/21 at
+    roughness 0 (the notes' 0.9025 is the value at l = v = n), exactly 1 at roughness 1.
+    """
     d, w, mu = _gauss_hemisphere(16, 4)
     n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     v = n.expand(len(d), 3)
@@ -337,6 +340,47 @@ def test_distribution_integrates_to_one_for_every_exponent():
         s2 = torch.tensor([[0.0], [math.sin(math.radians(cone)) ** 2]], dtype=torch.float64)
         dd = smits_distribution(s2, power.expand(2, 1))
         assert float(dd[1] / dd[0]) == pytest.approx(0.1, rel=1e-12)
+
+
+def _rot_y(d, deg):
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([c * d[0] + s * d[2], d[1], -s * d[0] + c * d[2]])
+
+
+def _rot_x(d, deg):
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([d[0], c * d[1] - s * d[2], s * d[1] + c * d[2]])
+
+
+@pytest.mark.parametrize("lobe", ["reflection", "refraction", "specular", "transmit_specular"])
+def test_highlights_peak_at_mirror_and_snell_directions(lobe):
+    """Front lobes peak at the mirror direction; back lobes at the refracted direction.
+
+    Snell with eta = (1 + sqrt 0.05) / (1 - sqrt 0.05) = 1.576, for several view angles.
+    """
+    eta = (1 + math.sqrt(0.05)) / (1 - math.sqrt(0.05))
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    # broad lobes have off-specular peaks toward grazing (as microfacet lobes do): test them
+    # up to 40 deg only
+    views = (0.0, 40.0, 75.0) if lobe in ("reflection", "refraction") else (0.0, 40.0)
+    for view_deg in views:
+        a = math.radians(view_deg)
+        v = np.array([math.sin(a), 0.0, math.cos(a)])
+        if lobe in ("reflection", "specular"):
+            peak = np.array([-v[0], 0.0, v[2]])
+        else:
+            st = math.sin(a) / eta
+            peak = np.array([-st, 0.0, -math.sqrt(1 - st * st)])
+        offsets = [0.3, -0.3] if lobe in ("reflection", "refraction") else [3.0, -3.0]
+        probes = [peak] + [_rot_y(peak, d) for d in offsets] + [_rot_x(peak, d) for d in offsets]
+        l = t64(np.stack(probes))
+        scales = {s: float(s == lobe + "_scale") for s in LOBE_SCALES}
+        f = smits(l, t64(v).expand(len(probes), 3), z, base_color=1.0, roughness=0.1, clear=1.0, **scales)[
+            :, 0
+        ]
+        assert f[0] > 0 and (f[0] > f[1:]).all(), (view_deg, f)
 
 
 # --------------------------------------------------------------------------- energy
@@ -421,20 +465,25 @@ def test_highlight_lobe_albedo_at_most_one_for_every_exponent_and_view():
     np.testing.assert_allclose(got, np_highlight(l, vv, np.array([0.0, 0, 1]), pw), rtol=1e-10)
 
 
-def _smits_local(v_loc, params):
-    """f_of_l(l) evaluating the library in the local frame (n = +z) for per-config params."""
+def _smits_local(v_loc, params, only):
+    """f_of_l(l) evaluating one lobe of the library in the local frame (n = +z).
+
+    The other lobes get a Python 0 scale (skipped; ``test_lobes_sum_to_full_model`` checks
+    that the lobes add up to the full model with tensor scales).
+    """
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
     def f(l):
         extra = (1,) * (l.ndim - 2)
         vv = np.broadcast_to(v_loc.reshape(len(v_loc), *extra, 3), l.shape)
         p = {k: t64(x.reshape(len(x), *extra, x.shape[-1])) for k, x in params.items()}
+        p.update({s: 0.0 for s in LOBE_SCALES if s != only + "_scale"})
         return smits(t64(l), t64(vv), z, **p).numpy()
 
     return f
 
 
-def total_albedo(v_loc, params):
+def total_albedo(v_loc, params, n_u=96, n_phi=48):
     """Reflection + transmission albedo, summing each lobe isolated by its scale."""
     k = len(v_loc)
     full = np_params(k, **params)
@@ -445,18 +494,15 @@ def total_albedo(v_loc, params):
     for lobe in ("diffuse", "transmit_diffuse", "specular", "reflection", "transmit_specular", "refraction"):
         p = dict(params)
         for s in LOBE_SCALES:
-            p[s] = np.asarray(params.get(s, 1.0)) * (1.0 if s == lobe + "_scale" else 0.0) * np.ones((k, 1))
-        f = _smits_local(v_loc, p)
+            p[s] = np.asarray(params.get(s, 1.0)) * np.ones((k, 1))
+        f = _smits_local(v_loc, p, only=lobe)
         if lobe in ("diffuse", "transmit_diffuse"):
             total += diffuse_albedo(f, k, lower=lobe == "transmit_diffuse")
         elif lobe in ("specular", "reflection"):
-            total += highlight_albedo(f, v_loc, np_power(cones[lobe]))
+            total += highlight_albedo(f, v_loc, np_power(cones[lobe]), n_u=n_u, n_phi=n_phi)
         else:
             # lobe about -z seen from the back-side view: integrate in that lobe's own frame
-            alb = highlight_albedo(
-                lambda l: f(l), vt, np_power(cones[lobe]), lower=True
-            )
-            total += alb
+            total += highlight_albedo(f, vt, np_power(cones[lobe]), lower=True, n_u=n_u, n_phi=n_phi)
     return total
 
 
@@ -478,16 +524,20 @@ def test_lobes_sum_to_full_model():
 
 def test_directional_albedo_at_most_one_over_parameter_grid():
     """Reflection + transmission, every lobe, over a grid of all core parameters and views."""
-    grid = np.array(
-        np.meshgrid(
-            [0.0, 0.5, 1.0],  # metallic
-            [0.0, 0.2, 0.5, 0.8, 1.0],  # roughness
-            [0.0, 0.5, 1.0],  # clear
-            [0.0, 1.0],  # back
-            [0.0, 60.0, 85.0],  # view angle
-            indexing="ij",
+    grid = (
+        np.array(
+            np.meshgrid(
+                [0.0, 1.0],  # metallic (0.5 is covered by the random-parameter test)
+                [0.0, 0.2, 0.5, 0.8, 1.0],  # roughness
+                [0.0, 0.5, 1.0],  # clear
+                [0.0, 1.0],  # back
+                [0.0, 60.0, 85.0],  # view angle
+                indexing="ij",
+            )
         )
-    ).reshape(5, -1).T
+        .reshape(5, -1)
+        .T
+    )
     k = len(grid)
     params = dict(
         base_color=np.ones((k, 3)),
@@ -496,7 +546,7 @@ def test_directional_albedo_at_most_one_over_parameter_grid():
         clear=grid[:, 2:3],
         back=grid[:, 3:4],
     )
-    alb = total_albedo(view_dirs(grid[:, 4]), params)
+    alb = total_albedo(view_dirs(grid[:, 4]), params, n_u=64, n_phi=32)
     assert alb.max() <= 1 + 2e-3, alb.max()
     # energy is partitioned, not thrown away, where the notes say so: rough 1 is white diffuse
     rough1 = grid[:, 1] == 1
@@ -506,7 +556,7 @@ def test_directional_albedo_at_most_one_over_parameter_grid():
 def test_directional_albedo_at_most_one_random_parameters():
     """All controls (colours, tints, Fresnel scales <= 1, lobe scales <= 1, cone scales)."""
     rng = np.random.default_rng(5)
-    k = 48
+    k = 32
     p = random_params(rng, k)
     p["fresnel_normal_scale"] = rng.uniform(0.2, 1.0, (k, 1))
     p["fresnel_grazing_scale"] = rng.uniform(0.0, 1.0, (k, 1))
@@ -516,7 +566,7 @@ def test_directional_albedo_at_most_one_random_parameters():
     p["highlight_tint"][: k // 2] = 1.0
     p["transmit_tint"][: k // 2] = 1.0
     v = view_dirs(rng.uniform(0, 88, k))
-    alb = total_albedo(v, p)
+    alb = total_albedo(v, p, n_u=64, n_phi=32)
     assert alb.max() <= 1 + 2e-3, alb.max()
 
 
@@ -566,7 +616,9 @@ def test_gradcheck(below):
         t.requires_grad_(True)
 
     def fn(l, v, n, c, m, r, cl, bk, sg):
-        return smits(l, v, n, base_color=c, metallic=m, roughness=r, clear=cl, back=bk, fresnel_grazing_scale=sg)
+        return smits(
+            l, v, n, base_color=c, metallic=m, roughness=r, clear=cl, back=bk, fresnel_grazing_scale=sg
+        )
 
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-5, rtol=1e-4)
 
@@ -654,6 +706,53 @@ def test_module_equals_functional_and_shapes():
         smits(l, v, n, base_color=0.5, sheen=1.0)
 
 
+def test_defaults_agree():
+    """One set of defaults: smits, smits_lobes and the NumPy reference's DEFAULTS."""
+    import inspect
+
+    def defaults(fn):
+        return {
+            k: q.default
+            for k, q in inspect.signature(fn).parameters.items()
+            if q.kind == q.KEYWORD_ONLY and q.default is not q.empty and k != "lobes"
+        }
+
+    assert defaults(smits) == defaults(smits_lobes) == DEFAULTS
+    assert list(inspect.signature(smits).parameters)[:5] == ["l", "v", "n", "x", "y"]
+
+
+def test_lobe_selection_pruning_and_argument_checks():
+    rng = np.random.default_rng(15)
+    count = 300
+    l, v = t64(random_dirs(rng, count)), t64(random_dirs(rng, count, True))
+    n = t64(np.array([0.0, 0, 1]))
+    p = torch_params(random_params(rng, count))
+    keep = ("diffuse", "refraction")
+    only = dict(p, **{s: p[s] * float(s[: -len("_scale")] in keep) for s in LOBE_SCALES})
+    expected = smits(l, v, n, **only)
+    torch.testing.assert_close(smits(l, v, n, **p, lobes=keep), expected, rtol=0, atol=0)
+    torch.testing.assert_close(SmitsBRDF(lobes=keep)(l, v, n, **p), expected, rtol=0, atol=0)
+    # Python zeros are skipped, with the same result as zero tensors
+    q = dict(p, clear=0.0, back=0.0, roughness=0.7, specular_scale=0.0)
+    q_t = dict(q, clear=t64(0.0), back=t64(0.0), roughness=t64(0.7), specular_scale=t64(0.0))
+    torch.testing.assert_close(smits(l, v, n, **q), smits(l, v, n, **q_t), rtol=0, atol=0)
+    assert smits_lobes(v, n, **q).pruned == {
+        "specular",
+        "transmit_diffuse",
+        "transmit_specular",
+        "reflection",
+        "refraction",
+    }
+    with pytest.raises(ValueError, match="unknown lobe"):
+        SmitsBRDF(lobes=("sheen",))
+    with pytest.raises(ValueError, match="base_color"):
+        smits(l, v, n, base_color=torch.ones(count, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="roughness"):
+        smits(l, v, n, base_color=1.0, roughness=torch.ones(count, 3, dtype=torch.float64))
+    with pytest.raises(TypeError, match="dtype"):
+        smits(l.float(), v, n, base_color=1.0)
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_precision(dtype):
     rng = np.random.default_rng(11)
@@ -662,10 +761,26 @@ def test_half_precision(dtype):
     n = torch.tensor([0.0, 0.0, 1.0])
     c, r = torch.rand(200, 3), torch.rand(200, 1) * 0.9 + 0.1
     ref = smits(l, v, n, base_color=c, roughness=r, clear=0.5, back=0.3)
-    got = smits(l.to(dtype), v.to(dtype), n.to(dtype), base_color=c.to(dtype), roughness=r.to(dtype), clear=0.5, back=0.3)
+    got = smits(
+        l.to(dtype),
+        v.to(dtype),
+        n.to(dtype),
+        base_color=c.to(dtype),
+        roughness=r.to(dtype),
+        clear=0.5,
+        back=0.3,
+    )
     assert got.dtype == dtype and torch.isfinite(got).all()
     # inputs were rounded to the half type; compare loosely on the float32 result of those
-    ref_h = smits(l.to(dtype).float(), v.to(dtype).float(), n, base_color=c.to(dtype).float(), roughness=r.to(dtype).float(), clear=0.5, back=0.3)
+    ref_h = smits(
+        l.to(dtype).float(),
+        v.to(dtype).float(),
+        n,
+        base_color=c.to(dtype).float(),
+        roughness=r.to(dtype).float(),
+        clear=0.5,
+        back=0.3,
+    )
     torch.testing.assert_close(got.float(), ref_h, rtol=2e-2, atol=1e-3)
     assert torch.isfinite(ref).all()
     # a roughness-0 peak stays finite in float16 (saturated, never inf)
@@ -735,7 +850,10 @@ def test_composite_weights_cones_and_normals():
         ea, eb = ca * energy(wa, lobe, na), cb * energy(wb, lobe, nb)
         expected = np.radians((ea * ca_[lobe] + eb * cb_[lobe]) / (ea + eb))
         np.testing.assert_allclose(getattr(comp, lobe + "_cone").numpy(), expected, rtol=1e-9)
-    ed = [c * (energy(w, "diffuse", nn) + energy(w, "transmit_diffuse", nn)) for c, w, nn in ((ca, wa, na), (cb, wb, nb))]
+    ed = [
+        c * (energy(w, "diffuse", nn) + energy(w, "transmit_diffuse", nn))
+        for c, w, nn in ((ca, wa, na), (cb, wb, nb))
+    ]
     np.testing.assert_allclose(comp.diffuse_normal.numpy(), _unit(ed[0] * na + ed[1] * nb), rtol=1e-9)
     hs = ("specular", "reflection", "transmit_specular", "refraction")
     eh = [c * sum(energy(w, k, nn) for k in hs) for c, w, nn in ((ca, wa, na), (cb, wb, nb))]
@@ -745,7 +863,11 @@ def test_composite_weights_cones_and_normals():
     n = t64(np.array([0.0, 0, 1]))
     ref = smits_evaluate(l, t64(v), n, comp)
     got = smits_layered(
-        l, t64(v), n, layers=[dict(torch_params(pa), normal=t64(na)), dict(torch_params(pb), normal=t64(nb))], layer_weights=[t64(a), t64(b)]
+        l,
+        t64(v),
+        n,
+        layers=[dict(torch_params(pa), normal=t64(na)), dict(torch_params(pb), normal=t64(nb))],
+        layer_weights=[t64(a), t64(b)],
     )
     torch.testing.assert_close(got, ref)
 

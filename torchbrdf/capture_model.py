@@ -44,6 +44,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from . import _checks
 from ._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
 
 __all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN"]
@@ -79,8 +80,9 @@ def svbrdf_ggx(
         n: unit shading normals ``(*, 3)``.
         x: tangents ``(*, 3)``; unused (isotropic), accepted for the common signature.
         y: bitangents ``(*, 3)``; unused.
-        diffuse_albedo: ``(*, 3)`` linear RGB in [0, 1] (or ``(*, 1)``/float).
-        specular_albedo: ``(*, 3)`` linear RGB normal-incidence reflectance F0 in [0, 1].
+        diffuse_albedo: ``(*, 3)`` linear RGB in [0, 1] (or a float for grey).
+        specular_albedo: ``(*, 3)`` linear RGB normal-incidence reflectance F0 in [0, 1]
+            (or a float).
         roughness: ``(*, 1)`` in [0, 1]; ``alpha = roughness^2``.
 
     Returns:
@@ -101,6 +103,25 @@ def svbrdf_ggx(
         >>> torch.allclose(f, torch.full((3,), 1 / math.pi + 1 / (4 * math.pi) * 2 ** (-5.55473 - 6.98316)))
         True
     """
+    named = {
+        "l": l,
+        "v": v,
+        "n": n,
+        "x": x,
+        "y": y,
+        "diffuse_albedo": diffuse_albedo,
+        "specular_albedo": specular_albedo,
+        "roughness": roughness,
+    }
+    for name, t in named.items():
+        if t is not None:
+            last = 1 if name == "roughness" else 3
+            _checks.check_tensor(name, t, last=last, allow_scalar=name not in ("l", "v", "n", "x", "y"))
+    named = {k: t for k, t in named.items() if t is not None}
+    _checks.check_same_dtype_device(named)
+    _checks.check_broadcast(named)
+    if _checks.validation_enabled():
+        _checks.check_finite(named)
     out_dtype = l.dtype
     cdt = compute_dtype(l.dtype)
     l, v, n = l.to(cdt), v.to(cdt), n.to(cdt)
