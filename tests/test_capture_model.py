@@ -159,9 +159,8 @@ def test_energy():
             l = 2 * vh[:, None] * h - v
             ok = (l[:, 2] > 0) & (vh > 0)
             vv = np.broadcast_to(v, l.shape)
-            f = svbrdf_ggx(t64(l), t64(vv), z, diffuse_albedo=0.0, specular_albedo=1.0, roughness=r)[
-                :, 0
-            ].numpy()
+            f = svbrdf_ggx(t64(l), t64(vv), z, diffuse_albedo=0.0, specular_albedo=1.0, roughness=r)
+            f = f[:, 0].numpy()
             nh = h[:, 2]
             dd = alpha**2 / (np.pi * (nh**2 * (alpha**2 - 1) + 1) ** 2)
             g = np.where(ok, f * l[:, 2] * 4 * np.abs(vh) / (dd * nh), 0.0)

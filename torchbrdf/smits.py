@@ -122,6 +122,16 @@ lobes of lower layers, their 3x3 interaction table) is not implemented.
 
 Zero is returned, with zero gradients, where ``n.v <= 0`` or ``n.l = 0``. Half-precision
 inputs are evaluated in float32 and cast back.
+
+Use
+---
+``smits(l, v, n, x, y, **material)`` has the library's common BRDF signature, so any
+renderer that takes a BRDF callable takes it, e.g. ``shade(gbuf, lights, brdf=SmitsBRDF())``
+with the Smits parameter names as material keys. Lobes whose weight is a Python 0 are skipped
+(``clear = 0``/``back = 0`` skip the transmission lobes, ``roughness >= 0.5`` the reflection
+lobe, a 0 lobe scale its lobe); ``SmitsBRDF(lobes=...)`` selects lobes explicitly. Note that
+the transmission lobes are only seen by a renderer that weights light from below the surface
+by ``|n.l|``; one that clamps ``n.l`` at 0 renders the reflection side only.
 """
 
 from __future__ import annotations
@@ -322,14 +332,23 @@ def smits_highlight_lobe(l: Tensor, v: Tensor, n: Tensor, power: Tensor) -> Tens
     Returns:
         Lobe value ``(*, 1)`` (without the ``n.l`` cosine).
     """
-    h = safe_normalize(l + v)
+    sin2_theta_h, geometry = _highlight_geometry(l, v, n)
+    return smits_distribution(sin2_theta_h, power) * geometry
+
+
+def _highlight_geometry(l: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
+    """Exponent-independent parts of the highlight lobe, shared by lobes on the same side.
+
+    Returns:
+        ``(sin^2 theta_h, (n.h) / (4 (v.h) max(n.l, n.v)))``, each ``(*, 1)``.
+    """
+    h = safe_normalize(l + v)  # l = -v: h = 0, and the lobe is 0 with finite gradients
     n_dot_l = torch.clamp(dot(n, l), min=0.0)
     n_dot_v = torch.clamp(dot(n, v), min=0.0)
     n_dot_h = torch.clamp(dot(n, h), min=0.0)
     v_dot_h = torch.clamp(dot(v, h), min=0.0)
     # |n x h|^2 instead of 1 - (n.h)^2: no cancellation under the narrow reflection peak.
-    d = smits_distribution(cross_norm2(n, h), power)
-    return safe_div(d * n_dot_h, 4.0 * v_dot_h * torch.maximum(n_dot_l, n_dot_v))
+    return cross_norm2(n, h), safe_div(n_dot_h, 4.0 * v_dot_h * torch.maximum(n_dot_l, n_dot_v))
 
 
 def _transmit_view(v: Tensor, n: Tensor, eta: Tensor) -> Tensor:
@@ -517,12 +536,14 @@ def smits_evaluate(l: Tensor, v: Tensor, n: Tensor, lobes: SmitsLobes) -> Tensor
     front = zero
     if "diffuse" not in pruned:
         front = _frnl_blend(lobes.diffuse_n, lobes.diffuse_g, torch.clamp(cos_dl, 0.0, 1.0)) / math.pi
-    for name in ("specular", "reflection"):
-        if name in pruned:
-            continue
-        w = _frnl_blend(getattr(lobes, name + "_n"), getattr(lobes, name + "_g"), cos_hv)
-        power = smits_cone_power(getattr(lobes, name + "_cone"))
-        front = front + w * smits_highlight_lobe(l, v, nh, power)
+    if not {"specular", "reflection"} <= pruned:
+        sin2, geometry = _highlight_geometry(l, v, nh)
+        for name in ("specular", "reflection"):
+            if name in pruned:
+                continue
+            w = _frnl_blend(getattr(lobes, name + "_n"), getattr(lobes, name + "_g"), cos_hv)
+            power = smits_cone_power(getattr(lobes, name + "_cone"))
+            front = front + w * smits_distribution(sin2, power) * geometry
 
     rear = zero
     if "transmit_diffuse" not in pruned:
@@ -533,12 +554,13 @@ def smits_evaluate(l: Tensor, v: Tensor, n: Tensor, lobes: SmitsLobes) -> Tensor
         )
     if not {"transmit_specular", "refraction"} <= pruned:
         v_t = _transmit_view(v, nh, lobes.eta)
+        sin2, geometry = _highlight_geometry(l, v_t, -nh)
         for name in ("transmit_specular", "refraction"):
             if name in pruned:
                 continue
             w = _frnl_blend(getattr(lobes, name + "_n"), getattr(lobes, name + "_g"), cos_hv)
             power = smits_cone_power(getattr(lobes, name + "_cone"))
-            rear = rear + w * smits_highlight_lobe(l, v_t, -nh, power)
+            rear = rear + w * smits_distribution(sin2, power) * geometry
 
     out = torch.where(above, front, torch.where(below, rear, zero))
     batch = torch.broadcast_shapes(out.shape[:-1], lobes.eta.shape[:-1], n_dot_l.shape[:-1])
