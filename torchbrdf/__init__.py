@@ -48,7 +48,9 @@ from .masking import (
 from .io import read_exr, to_display, write_exr, write_png
 from .measured import MERLBRDF, merl_coordinates, read_merl, write_merl
 from .microfacet import MicrofacetBRDF, microfacet
+from .capture_model import SVBRDFGGX, svbrdf_ggx
 from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, principled
+from .smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
 
 __version__ = "0.1.0"
 
@@ -59,6 +61,15 @@ __all__ = [
     "LOBES",
     "microfacet",
     "MicrofacetBRDF",
+    "smits",
+    "SmitsBRDF",
+    "SMITS_LOBES",
+    "smits_lobes",
+    "smits_composite",
+    "smits_layered",
+    "SmitsLayeredBRDF",
+    "svbrdf_ggx",
+    "SVBRDFGGX",
     "set_validation",
     "validation",
     "validation_enabled",
