@@ -1,0 +1,215 @@
+"""torchbrdf.analysis: albedo estimators, furnace tests, reciprocity, views; the explore report."""
+
+import math
+
+import pytest
+import torch
+
+from torchbrdf import analysis as A
+from torchbrdf import slices
+from torchbrdf.lambert import lambert
+from torchbrdf.microfacet import microfacet
+from torchbrdf.principled import principled
+
+F64 = torch.float64
+RGB = torch.tensor([0.8, 0.3, 0.1], dtype=F64)
+ANGLES = torch.deg2rad(torch.tensor([0.0, 35.0, 70.0, 87.0], dtype=F64))
+
+
+# --------------------------------------------------------------------------------------
+# Directional albedo
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["quadrature", "mc"])
+def test_lambert_albedo_is_its_colour(method):
+    colour = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    est = A.directional_albedo(lambert, ANGLES, method, base_color=colour)
+    assert est.value.shape == est.error.shape == (4, 3)
+    err = (est.value - colour).abs()
+    if method == "quadrature":
+        # The only error is the kink where reflect(v, h) crosses the horizon; the estimate
+        # (difference from the half-resolution rule) must bound it.
+        assert (err <= est.error + 1e-9).all(), (err, est.error)
+        assert err.max() < 5e-4
+    else:
+        # Default sampler here is the cosine/GGX mixture (roughness defaults to 0.5).
+        assert (err <= 4 * est.error).all(), (err, est.error)
+        # Pure cosine sampling: f cos / pdf = colour for every sample, zero variance.
+        cos = A.directional_albedo(lambert, ANGLES, method, sampler="cosine", base_color=colour)
+        assert torch.allclose(cos.value, colour.expand(4, 3), atol=1e-12)
+        assert (cos.error < 1e-12).all()
+
+
+def test_scalar_theta_gives_rgb():
+    est = A.directional_albedo(lambert, 0.3, base_color=0.5)
+    assert est.value.shape == (3,)
+    assert torch.allclose(est.value, torch.full((3,), 0.5, dtype=F64), atol=1e-3)
+
+
+CASES = [
+    ("principled r=0.3", principled, dict(base_color=RGB, roughness=0.3)),
+    ("principled r=0.1 metal", principled, dict(base_color=RGB, roughness=0.1, metallic=1.0)),
+    ("principled clearcoat", principled, dict(base_color=RGB, roughness=0.5, clearcoat=1.0, clearcoat_gloss=0.5)),
+    ("ggx dielectric", microfacet, dict(alpha=0.09, fresnel="dielectric")),
+    ("beckmann schlick", microfacet, dict(alpha=0.2, distribution="beckmann", f0=0.04)),
+]
+
+
+@pytest.mark.parametrize("name,brdf,params", CASES, ids=[c[0] for c in CASES])
+def test_quadrature_agrees_with_mc(name, brdf, params):
+    q = A.directional_albedo(brdf, ANGLES, "quadrature", **params)
+    mc = A.directional_albedo(brdf, ANGLES, "mc", samples=8192, seed=3, **params)
+    # 4 standard errors of the MC estimate (a 1-in-16000 two-sided miss per value for a
+    # Gaussian) plus the quadrature's own error estimate.
+    tol = 4 * mc.error + q.error + 1e-9
+    assert ((q.value - mc.value).abs() <= tol).all(), (q.value, mc.value, tol)
+    # The deterministic rule is far tighter than MC at this cost.
+    assert (q.error < mc.error + 1e-6).all()
+
+
+def test_mc_samplers_agree():
+    params = dict(alpha=0.2, fresnel="schlick", f0=0.5)
+    th = torch.tensor([0.2, 1.2], dtype=F64)
+    ref = A.directional_albedo(microfacet, th, **params)
+    for sampler in ("cosine", "ggx", "mix"):
+        mc = A.directional_albedo(microfacet, th, "mc", samples=16384, sampler=sampler, **params)
+        assert ((mc.value - ref.value).abs() <= 4 * mc.error + ref.error).all(), sampler
+    # GGX visible-normal sampling of a GGX lobe has far less variance than cosine sampling.
+    cos = A.directional_albedo(microfacet, th, "mc", samples=4096, sampler="cosine", **params)
+    ggx = A.directional_albedo(microfacet, th, "mc", samples=4096, sampler="ggx", **params)
+    assert (ggx.error < 0.5 * cos.error).all()
+
+
+def test_bad_method_and_sampler():
+    with pytest.raises(ValueError, match="method"):
+        A.directional_albedo(lambert, 0.1, "simpson", base_color=0.5)
+    with pytest.raises(ValueError, match="alpha_hint"):
+        A.directional_albedo(lambda l, v, n, x=None, y=None: l[..., :1], 0.1, "mc", sampler="ggx")
+
+
+# --------------------------------------------------------------------------------------
+# Furnace tests and reciprocity
+# --------------------------------------------------------------------------------------
+
+
+def test_white_furnace():
+    res = A.white_furnace(lambert, base_color=1.0)
+    assert res.passed and abs(res.max_albedo - 1.0) < 1e-3
+    # Microfacet with F = 1 and height-correlated Smith G loses energy (no multiple scattering).
+    res = A.white_furnace(microfacet, alpha=0.5, fresnel="none")
+    assert res.passed and res.max_albedo < 1.0
+    # A BRDF reflecting 1.5x what it receives fails.
+    res = A.white_furnace(lambert, base_color=1.5)
+    assert not res.passed and res.max_albedo > 1.4
+
+
+@pytest.mark.parametrize("dist", ["ggx", "beckmann"])
+@pytest.mark.parametrize("alpha", [0.05, 0.3, 1.0])
+def test_weak_white_furnace_holds(dist, alpha):
+    est = A.weak_white_furnace(dist, alpha=alpha)
+    assert est.value.shape == (6,)
+    assert ((est.value - 1).abs() < 1e-3).all(), est.value
+
+
+def test_weak_white_furnace_fails_for_mismatched_pair():
+    # GGX's D with Beckmann's G1: the visible-normal projection no longer matches.
+    est = A.weak_white_furnace("ggx", "beckmann", alpha=0.5)
+    assert (est.value - 1).abs().max() > 0.05
+    est = A.weak_white_furnace("beckmann", "ggx", alpha=0.5)
+    assert (est.value - 1).abs().max() > 0.05
+
+
+def test_reciprocity():
+    res = A.reciprocity_error(
+        principled,
+        1024,
+        base_color=RGB,
+        roughness=0.3,
+        metallic=0.3,
+        subsurface=0.5,
+        sheen=0.7,
+        clearcoat=1.0,
+        specular_tint=0.4,
+    )
+    assert res.max_rel < 1e-10
+    # Anisotropic principled with the frame supplied by the analysis.
+    assert A.reciprocity_error(principled, 512, base_color=RGB, roughness=0.4, anisotropic=0.8).max_rel < 1e-10
+
+    def lopsided(l, v, n, x=None, y=None):
+        return (1 + l[..., 2:3]).expand(*l.shape[:-1], 3) / math.pi
+
+    assert A.reciprocity_error(lopsided, 256).max_rel > 0.1
+
+
+# --------------------------------------------------------------------------------------
+# Views
+# --------------------------------------------------------------------------------------
+
+
+def test_image_slice_and_curves():
+    params = dict(base_color=RGB, roughness=0.4)
+    img = A.image_slice(principled, 16, **params)
+    assert img.shape == (3, 16, 16) and img.dtype == F64
+    ref = slices.image_slice(principled, 16, **params)
+    assert torch.equal(img, ref)
+    # Grey BRDFs come out RGB.
+    assert A.image_slice(microfacet, 8, alpha=0.3, fresnel="none").shape == (3, 8, 8)
+
+    th, f = A.retro_reflection_curve(principled, **params)
+    assert f.shape == (th.numel(), 3)
+    # θd = 0: l = v = h at angle θh from the normal.
+    k = 40
+    d = torch.stack((torch.sin(th[k]), torch.zeros(()), torch.cos(th[k]))).to(F64)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    assert torch.allclose(f[k], principled(d, d, n, **params), rtol=1e-10)
+
+    th, f = A.specular_peak_curve(principled, **params)
+    assert f[0, 0] > f[-1, 0]  # peak at θh = 0
+
+
+def test_polar_lobe_peaks_at_mirror():
+    ti = math.radians(40.0)
+    to, val = A.polar_lobe(microfacet, ti, alpha=0.05, fresnel="schlick")
+    assert val.shape == (to.numel(), 3)
+    assert abs(math.degrees(float(to[val[:, 0].argmax()])) - 40.0) < 1.0
+    assert (val[to < 0] < val.max() * 1e-2).all()
+
+
+def test_render_sphere_lambert():
+    img, mask = A.render_sphere(lambert, 33, base_color=0.8, return_mask=True)
+    assert img.shape == (3, 33, 33) and mask.shape == (33, 33)
+    assert (img[:, ~mask] == 0).all()
+    # Centre pixel: normal toward the camera, radiance = (0.8 / π) · π · n·l.
+    ld = torch.nn.functional.normalize(torch.tensor(A.DEFAULT_SPHERE_LIGHT, dtype=F64), dim=0)
+    assert abs(float(img[0, 16, 16]) - 0.8 * float(ld[2])) < 0.02
+    # String parameters reach the BRDF (bound), numbers go through the g-buffer.
+    spec = A.render_sphere(microfacet, 17, alpha=0.2, fresnel="dielectric")
+    assert spec.shape == (3, 17, 17) and spec.max() > 0
+
+
+# --------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------
+
+
+def test_explore_writes_report(tmp_path):
+    from torchbrdf import explore
+
+    spec = explore.parse_spec("microfacet:alpha=0.09,fresnel=dielectric,diffuse=0.5/0.5/0.5,label=ggx")
+    assert spec.label == "ggx" and spec.params["fresnel"] == "dielectric"
+    assert torch.equal(spec.params["diffuse"], torch.tensor([0.5, 0.5, 0.5], dtype=F64))
+    with pytest.raises(ValueError, match="unknown model"):
+        explore.parse_spec("phong:n=10")
+
+    out = tmp_path / "report"
+    rc = explore.main(
+        ["--out", str(out), "--quick", "--brdf", "principled:roughness=0.3,base_color=0.8/0.2/0.1",
+         "--brdf", "microfacet:alpha=0.09,fresnel=dielectric"]
+    )
+    assert rc == 0
+    page = (out / "index.html").read_text()
+    for name in ("slices.png", "spheres.png", "albedo.png", "retro.png", "peak.png", "polar.png"):
+        assert f'src="{name}"' in page
+        assert (out / name).stat().st_size > 1000
+    assert "principled roughness=0.3" in page

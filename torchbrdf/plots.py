@@ -1,0 +1,219 @@
+"""Matplotlib figures for the views of :mod:`torchbrdf.analysis`, several BRDFs side by side.
+
+Every function takes ``entries``: a sequence of ``(label, brdf)`` pairs where ``brdf`` is a
+parameter-free callable ``brdf(l, v, n, x=None, y=None) -> (*, 3)`` — make one with
+:func:`torchbrdf.analysis.bind_brdf` (``bind_brdf(principled, base_color=..., roughness=0.3)``)
+or pass a :class:`~torchbrdf.measured.MERLBRDF` directly. Each returns a
+:class:`matplotlib.figure.Figure` (created without pyplot, so nothing is shown and no
+display is needed); save it with ``fig.savefig(path)``.
+
+Colours of curves are per BRDF; curves plot the luminance (Rec. 709 weights) of the RGB
+value. Images (slices, spheres) are shown like BRDF Explorer's: linear values times an
+exposure ``2^EV``, clipped, sRGB-encoded; slices show ``π f`` so a white Lambert surface is
+white.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import analysis as A
+from .io import to_display
+
+__all__ = [
+    "display_image",
+    "luminance",
+    "plot_image_slices",
+    "plot_spheres",
+    "plot_albedo_curves",
+    "plot_retro_reflection",
+    "plot_specular_peaks",
+    "plot_polar_lobes",
+    "plot_slice_comparison",
+]
+
+Entries = Sequence[tuple[str, Callable[..., Tensor]]]
+_LUMA = (0.2126, 0.7152, 0.0722)
+
+
+def _figure(width: float, height: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), dpi=100, layout="constrained")
+
+
+def luminance(rgb: Tensor) -> np.ndarray:
+    """Rec. 709 luminance of ``(*, 3)`` values, as a numpy array ``(*)``."""
+    w = torch.tensor(_LUMA, dtype=rgb.dtype, device=rgb.device)
+    return (rgb * w).sum(-1).detach().cpu().numpy()
+
+
+def display_image(img: Tensor, exposure: float = 0.0) -> np.ndarray:
+    """Linear ``(3, H, W)`` image to an ``(H, W, 3)`` sRGB array in [0, 1] (exposure, clip, sRGB)."""
+    return to_display(img.detach().to("cpu", torch.float32), exposure=exposure).permute(1, 2, 0).numpy()
+
+
+def plot_image_slices(entries: Entries, resolution: int = 128, phi_d: float = math.pi / 2, exposure: float = 0.0):
+    """Burley's image slices (Figure 3) of each BRDF at ``φd``, θd drawn upward as in the notes.
+
+    The left edge is the specular peak, the bottom edge retro-reflection (``l = v``), the top
+    edge the Fresnel peak; black where ``l`` or ``v`` is below the horizon (``φd < 90°``).
+    """
+    k = len(entries)
+    fig = _figure(2.6 * k + 0.4, 2.9)
+    axes = fig.subplots(1, k, squeeze=False)[0]
+    for ax, (label, f) in zip(axes, entries):
+        img = A.image_slice(f, resolution, phi_d) * math.pi
+        ax.imshow(display_image(img, exposure), origin="lower", extent=(0, 90, 0, 90))
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("θh (deg)")
+        ax.set_xticks([0, 30, 60, 90])
+        ax.set_yticks([0, 30, 60, 90])
+    axes[0].set_ylabel("θd (deg)")
+    fig.suptitle(f"Image slices, φd = {math.degrees(phi_d):.0f}° (π·f, EV {exposure:+g})", fontsize=10)
+    return fig
+
+
+def plot_spheres(entries: Entries, resolution: int = 160, exposure: float = 0.0, light_direction=A.DEFAULT_SPHERE_LIGHT):
+    """Lit spheres (one directional light of irradiance π, upper left) through the shader."""
+    k = len(entries)
+    fig = _figure(2.4 * k + 0.2, 2.7)
+    axes = fig.subplots(1, k, squeeze=False)[0]
+    for ax, (label, f) in zip(axes, entries):
+        img, mask = A.render_sphere(f, resolution, light_direction, return_mask=True)
+        shown = display_image(img, exposure)
+        shown[~mask.cpu().numpy()] = 0.25  # grey backdrop so the shadowed silhouette reads
+        ax.imshow(shown)
+        ax.set_title(label, fontsize=9)
+        ax.set_axis_off()
+    fig.suptitle(f"Lit spheres (directional light, EV {exposure:+g})", fontsize=10)
+    return fig
+
+
+def plot_albedo_curves(entries: Entries, theta_v=None, method: str = "quadrature", samples=None):
+    """Albedo (directional–hemispherical reflectance) against the view angle (Figures 11, 12).
+
+    Solid: luminance; thin dotted lines: the R, G, B channels; shaded band: ± error estimate.
+    """
+    fig = _figure(6.0, 3.6)
+    ax = fig.subplots()
+    for i, (label, f) in enumerate(entries):
+        th, est = A.albedo_curve(f, theta_v, method, samples)
+        deg = np.degrees(th.numpy())
+        y, e = luminance(est.value), luminance(est.error)
+        (line,) = ax.plot(deg, y, label=label, lw=1.8, color=f"C{i}")
+        ax.fill_between(deg, y - e, y + e, color=line.get_color(), alpha=0.25, lw=0)
+        for c in range(3):
+            ax.plot(deg, est.value[:, c].numpy(), ":", lw=0.8, color=line.get_color())
+    ax.set_xlabel("θv (deg)")
+    ax.set_ylabel("albedo ρ(θv)")
+    ax.set_xlim(0, 90)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"Directional albedo ({method})", fontsize=10)
+    return fig
+
+
+def _log_curves(entries: Entries, fn, xlabel: str, title: str):
+    fig = _figure(6.0, 3.6)
+    ax = fig.subplots()
+    for i, (label, f) in enumerate(entries):
+        th, val = fn(f)
+        y = np.maximum(luminance(val), 1e-6)
+        ax.semilogy(np.degrees(th.numpy()), y, label=label, lw=1.6, color=f"C{i}")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("f (luminance, 1/sr)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=10)
+    return fig
+
+
+def plot_retro_reflection(entries: Entries):
+    """Retro-reflective response ``f(θh, θd = 0)`` on a log axis (Figure 6)."""
+    return _log_curves(entries, A.retro_reflection_curve, "θh = θl = θv (deg)", "Retro-reflection (θd = 0)")
+
+
+def plot_specular_peaks(entries: Entries, theta_d: float = math.radians(10.0)):
+    """Specular peak ``f(θh)`` at fixed ``θd``, ``φd = 90°`` on a log axis (Figure 9)."""
+    return _log_curves(
+        entries,
+        lambda f: A.specular_peak_curve(f, theta_d=theta_d),
+        "θh (deg)",
+        f"Specular peak (θd = {math.degrees(theta_d):.0f}°, φd = 90°)",
+    )
+
+
+def plot_polar_lobes(entries: Entries, thetas_i=(math.radians(30.0), math.radians(60.0)), cosine: bool = True):
+    """Polar plots of ``f·cos θl`` in the plane of incidence, one column per incidence angle.
+
+    The light arrives from the left at ``θi`` (grey ray); the mirror direction is at ``+θi``.
+    Top row: linear radius (the shape of the peaks); bottom row: log radius over four decades
+    below the largest value (diffuse and specular on one plot).
+    """
+    k = len(thetas_i)
+    fig = _figure(3.3 * k, 6.2)
+    axes = fig.subplots(2, k, subplot_kw={"projection": "polar"}, squeeze=False)
+    for col, ti in enumerate(thetas_i):
+        curves = []
+        for i, (label, f) in enumerate(entries):
+            to, val = A.polar_lobe(f, ti, cosine=cosine)
+            curves.append((label, to.numpy(), luminance(val)))
+        top = max(float(c[2].max()) for c in curves)
+        top = top if top > 0 else 1.0
+        decades = 4.0
+        for row, ax in enumerate(axes[:, col]):
+            for i, (label, to, y) in enumerate(curves):
+                r = y if row == 0 else np.clip(np.log10(np.maximum(y, 1e-30) / top) + decades, 0.0, None)
+                ax.plot(to, r, label=label, lw=1.4, color=f"C{i}")
+            rmax = top if row == 0 else decades
+            ax.plot([-ti, -ti], [0, rmax], color="0.5", lw=1.0)
+            ax.set_theta_zero_location("N")
+            ax.set_theta_direction(-1)
+            ax.set_thetamin(-90)
+            ax.set_thetamax(90)
+            ax.set_rmax(rmax)
+            ax.tick_params(labelsize=7)
+            if row == 1:
+                ticks = np.arange(0, decades + 1)
+                ax.set_rticks(ticks)
+                ax.set_yticklabels([f"{top * 10 ** (t - decades):.1g}" for t in ticks])
+            ax.set_title(f"θi = {math.degrees(ti):.0f}°, {'linear' if row == 0 else 'log'} radius", fontsize=9)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(entries), 3), fontsize=7)
+    what = "f · cos θl" if cosine else "f"
+    fig.suptitle(f"Lobes in the plane of incidence ({what}, luminance)", fontsize=10)
+    return fig
+
+
+def plot_slice_comparison(reference, model, labels=("measured", "fitted"), resolution: int = 128, exposure: float = 0.0):
+    """Slices of a reference and a model BRDF and their log2 ratio (blue: model too dark).
+
+    Args:
+        reference, model: parameter-free BRDF callables (e.g. a :class:`MERLBRDF` and a
+            bound fitted principled model).
+    """
+    a = A.image_slice(reference, resolution) * math.pi
+    b = A.image_slice(model, resolution) * math.pi
+    lum = torch.tensor(_LUMA, dtype=a.dtype)[:, None, None]
+    la, lb = (a * lum).sum(0), (b * lum).sum(0)
+    valid = (la > 0) | (lb > 0)
+    ratio = torch.where(valid, torch.log2((lb + 1e-4) / (la + 1e-4)), torch.full_like(la, float("nan")))
+    fig = _figure(9.0, 3.1)
+    axes = fig.subplots(1, 3)
+    for ax, img, name in ((axes[0], a, labels[0]), (axes[1], b, labels[1])):
+        ax.imshow(display_image(img, exposure), origin="lower", extent=(0, 90, 0, 90))
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("θh (deg)")
+    axes[0].set_ylabel("θd (deg)")
+    im = axes[2].imshow(ratio.numpy(), origin="lower", extent=(0, 90, 0, 90), cmap="RdBu_r", vmin=-1, vmax=1)
+    axes[2].set_title(f"log2({labels[1]} / {labels[0]})", fontsize=9)
+    axes[2].set_xlabel("θh (deg)")
+    fig.colorbar(im, ax=axes[2], shrink=0.85)
+    fig.suptitle("Image slices, φd = 90° (π·f)", fontsize=10)
+    return fig
