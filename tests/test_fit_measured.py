@@ -97,6 +97,17 @@ def test_fit_recovers_known_parameters(merl_file, tmp_path):
     assert (out / "slices.png").stat().st_size > 1000
     assert (out / "spheres.png").stat().st_size > 1000
 
+    # The report command puts the fitted model beside the measured data.
+    from torchbrdf import explore
+
+    report_dir = tmp_path / "report"
+    assert explore.main(["--out", str(report_dir), "--quick", "--brdf", f"merl:{merl_file}", "--brdf", f"fit:{out / 'params.json'}"]) == 0
+    page = (report_dir / "index.html").read_text()
+    assert "known" in page and "fit fit" in page
+    summary = json.loads((report_dir / "summary.json").read_text())
+    measured, fitted = (s["albedo_luminance_0_60_85"] for s in summary)
+    assert all(abs(a - b) < 0.01 for a, b in zip(measured[:2], fitted[:2]))
+
 
 def test_two_lobe_model_and_loss():
     # The second lobe starts (nearly) off and adds to the principled value.

@@ -14,8 +14,10 @@ plots and a table of numbers (albedo, white-furnace and reciprocity checks).
 
 BRDF specs: ``MODEL[:key=value,key=value,...]``
 
-* ``MODEL`` is ``principled``, ``lambert``, ``microfacet`` or ``merl`` (whose argument is the
-  path of a MERL ``.binary`` file: ``merl:PATH``, optionally ``merl:PATH,label=NAME``);
+* ``MODEL`` is ``principled``, ``lambert``, ``microfacet``, ``merl`` (whose argument is the
+  path of a MERL ``.binary`` file: ``merl:PATH``, optionally ``merl:PATH,label=NAME``) or
+  ``fit`` (the ``params.json`` written by ``python -m training.fit_measured``: ``fit:PATH``),
+  so a fitted model can sit beside the measured data it was fitted to;
 * values are numbers, RGB triples written ``r/g/b`` (linear), or words (``fresnel=dielectric``);
 * ``label=NAME`` names the column; for ``microfacet``, ``diffuse=r/g/b`` adds a Lambert term.
 """
@@ -43,7 +45,7 @@ DEFAULT_SPECS = (
     "principled:roughness=0.6,base_color=0.8/0.25/0.1,label=principled r=0.6",
     "microfacet:alpha=0.04,fresnel=dielectric,ior=1.5,diffuse=0.8/0.25/0.1,label=GGX a=0.04 + exact Fresnel + Lambert",
 )
-MODELS = ("principled", "lambert", "microfacet", "merl")
+MODELS = ("principled", "lambert", "microfacet", "merl", "fit")
 
 
 @dataclass
@@ -88,9 +90,36 @@ class BRDFSpec:
 
             with_diffuse.params = spec.params  # type: ignore[attr-defined]
             return with_diffuse
+        if self.model == "fit":
+            return _fitted_brdf(self.path)
         from .measured import MERLBRDF
 
         return MERLBRDF.from_file(self.path)
+
+
+def _fitted_brdf(path: str):
+    """The BRDF described by a ``training.fit_measured`` ``params.json``."""
+    from .microfacet import microfacet
+    from .principled import principled
+
+    fitted = json.loads(Path(path).read_text())["params"]
+    lobe2 = {k: fitted.pop(k) for k in ("roughness2", "spec2_f0", "spec2_f90") if k in fitted}
+    params = {k: (torch.tensor(v, dtype=torch.float64) if isinstance(v, list) else float(v)) for k, v in fitted.items()}
+    base = A.bind_brdf(principled, **params)
+    if not lobe2:
+        return base
+    second = A.bind_brdf(
+        microfacet,
+        alpha=float(lobe2["roughness2"]) ** 2,
+        f0=torch.tensor(lobe2["spec2_f0"], dtype=torch.float64),
+        f90=float(lobe2["spec2_f90"]),
+    )
+
+    def two_lobes(l, v, n, x=None, y=None):
+        return base(l, v, n, x, y) + second(l, v, n, x, y)
+
+    two_lobes.params = params  # type: ignore[attr-defined]
+    return two_lobes
 
 
 def _value(text: str):
@@ -120,9 +149,9 @@ def parse_spec(spec: str) -> BRDFSpec:
         raise ValueError(f"--brdf {spec!r}: unknown model {model!r}; expected one of {MODELS}")
     out = BRDFSpec(model)
     items = [p for p in rest.split(",") if p.strip()] if rest else []
-    if model == "merl":
+    if model in ("merl", "fit"):
         if not items or "=" in items[0]:
-            raise ValueError(f"--brdf {spec!r}: merl needs a file, e.g. merl:path/to/file.binary")
+            raise ValueError(f"--brdf {spec!r}: {model} needs a file, e.g. {model}:path/to/file")
         out.path = items[0].strip()
         items = items[1:]
     for item in items:
@@ -139,6 +168,8 @@ def parse_spec(spec: str) -> BRDFSpec:
     if not out.label:
         if model == "merl":
             out.label = Path(out.path).stem
+        elif model == "fit":
+            out.label = f"fit {Path(out.path).parent.name}"
         else:
             shown = " ".join(f"{k}={v}" for k, v in _readable(out.params).items())
             out.label = f"{model} {shown}".strip()
@@ -153,7 +184,7 @@ def _readable(params: dict) -> dict:
 
 def _white(spec: BRDFSpec) -> dict | None:
     """Parameters of the same model with white colours (for the furnace), or None for data."""
-    if spec.model == "merl":
+    if spec.model in ("merl", "fit"):
         return None
     p = dict(spec.params)
     if spec.model in ("principled", "lambert"):
