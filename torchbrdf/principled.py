@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 
 import torch
 from torch import Tensor, nn
@@ -33,7 +34,8 @@ from .diffuse import burley_retro_factor, subsurface_factor
 from .distributions import ALPHA_MIN, ndf_gtr1
 from .frames import frame_from_normal
 
-__all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES"]
+__all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES", "set_fast_path", "fast_path_enabled",
+           "FAST_PATH_MIN_LANES"]
 
 INV_PI = 1.0 / math.pi
 # Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine
@@ -173,8 +175,89 @@ def principled(
         raise ValueError(f"anisotropic={anisotropic} needs a tangent frame: pass x (and optionally y)")
     dtype, c = _prepare(l, v, n, x, y, params, base_color)
     active = active_lobes(params, lobes)
-    f = _principled_eager(c, active)
+    f = _principled_fast_or_none(c, active) if _fast_path_wanted(c) else None
+    if f is None:
+        f = _principled_eager(c, active)
     return cast_back(f, dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# Dispatch between the eager reference path and the fused kernels (torchbrdf/_fast.py).
+# ---------------------------------------------------------------------------------------------
+
+#: Lanes (broadcast batch size) from which ``principled`` uses the fused kernels by default.
+#: Below it the eager path is kept: a call is then cheap anyway and the first use of a new
+#: kernel family costs a one-off compile (~1-3 s, cached on disk afterwards).
+FAST_PATH_MIN_LANES = 8192
+
+_fast_mode: dict = {"enabled": None}
+
+
+def set_fast_path(enabled: bool | None) -> None:
+    """Choose how :func:`principled` evaluates.
+
+    Args:
+        enabled: ``True`` uses the fused CPU kernels for every batch size where they apply;
+            ``False`` always uses the eager reference path; ``None`` (default) decides
+            automatically (fused from :data:`FAST_PATH_MIN_LANES` lanes, CPU float32/float64,
+            a C compiler present, ``TORCHBRDF_EAGER`` not set to ``1``).
+    """
+    if enabled not in (True, False, None):
+        raise ValueError(f"enabled: expected True, False or None, got {enabled!r}")
+    _fast_mode["enabled"] = enabled
+
+
+def fast_path_enabled() -> bool | None:
+    """The current :func:`set_fast_path` setting (``None`` = automatic)."""
+    return _fast_mode["enabled"]
+
+
+def _fast_path_wanted(c: dict) -> bool:
+    mode = _fast_mode["enabled"]
+    if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
+        return False
+    tensors = [t for t in c.values() if isinstance(t, Tensor)]
+    t0 = c["l"]
+    if t0.device.type != "cpu" or t0.dtype not in (torch.float32, torch.float64):
+        return False
+    for t in tensors:
+        # tensor subclasses, functorch (vmap/grad) wrappers: leave them to eager ATen ops
+        if type(t) not in (Tensor, nn.Parameter) or torch._C._functorch.is_functorch_wrapped_tensor(t):
+            return False
+    if torch.compiler.is_compiling() or torch.jit.is_tracing() or torch.jit.is_scripting():
+        return False
+    if torch._C._is_fwd_grad_enabled():
+        from torch.autograd import forward_ad
+
+        if any(forward_ad.unpack_dual(t).tangent is not None for t in tensors):
+            return False
+    if mode is None:
+        shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
+        try:
+            lanes = math.prod(torch.broadcast_shapes(*shapes))
+        except RuntimeError:
+            return False
+        if lanes < FAST_PATH_MIN_LANES:
+            return False
+    from . import _fast
+
+    return _fast.available()
+
+
+def _principled_fast_or_none(c: dict, active: tuple[str, ...]):
+    from . import _fast
+
+    frame = _needs_frame(c)
+    if frame:
+        c = dict(c)
+        if c["x"] is None:
+            c["x"], c["y"] = frame_from_normal(c["n"])
+        elif c["y"] is None:
+            c["y"] = torch.linalg.cross(c["n"], c["x"], dim=-1)
+    need_tint = not _is_const(c["specular_tint"], 0.0) or (
+        "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
+    )
+    return _fast.principled_fast(c, active, need_tint, frame)
 
 
 def _principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:

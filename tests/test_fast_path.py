@@ -1,0 +1,258 @@
+"""The fused CPU kernels of ``principled`` (torchbrdf/_fast.py) against the eager reference path.
+
+Kept cheap for CI: small batches, and the tests reuse a handful of kernel families (each new
+family costs one ~1-3 s gcc build, cached on disk afterwards).
+"""
+
+import importlib
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchbrdf
+from torchbrdf import _fast
+
+from .reference import principled_ref
+from .test_principled import SCALARS, random_case, to_t
+
+P = importlib.import_module("torchbrdf.principled")
+
+pytestmark = pytest.mark.skipif(not _fast.available(), reason="no C compiler: the fused path is unavailable")
+
+
+@pytest.fixture
+def fast():
+    """Force the fused path for every batch size during the test."""
+    old = P.fast_path_enabled()
+    P.set_fast_path(True)
+    yield
+    P.set_fast_path(old)
+
+
+def _eval(fast_path: bool, inputs: dict, grad_out=None, **extra):
+    """Forward (+ backward with ``grad_out``) on clones of ``inputs``; returns (out, grads)."""
+    old = P.fast_path_enabled()
+    P.set_fast_path(fast_path)
+    try:
+        ins = {k: (t.detach().clone().requires_grad_(grad_out is not None) if isinstance(t, torch.Tensor) else t)
+               for k, t in inputs.items()}
+        out = torchbrdf.principled(**ins, **extra)
+        grads = {}
+        if grad_out is not None:
+            out.backward(grad_out)
+            grads = {k: t.grad for k, t in ins.items() if isinstance(t, torch.Tensor)}
+        return out.detach(), grads, out
+    finally:
+        P.set_fast_path(old)
+
+
+def _case(seed, count, dtype, min_cos=0.0):
+    vec, base, params = random_case(seed, count=count, min_cos=min_cos)
+    return {**to_t(vec, dtype), "base_color": torch.as_tensor(base, dtype=dtype), **to_t(params, dtype)}
+
+
+def _rel(a, b):
+    return ((a - b).abs() / b.abs().clamp_min(1e-30)).max().item()
+
+
+def _grad_close(gf, ge, rtol):
+    for k in ge:
+        assert (gf[k] is None) == (ge[k] is None), (k, gf[k] is None)
+        if ge[k] is None:
+            continue
+        scale = ge[k].abs().max().clamp_min(1e-30)
+        err = ((gf[k] - ge[k]).abs() / scale).max().item()
+        assert err <= rtol, (k, err)
+
+
+@pytest.mark.parametrize("dtype, vtol, gtol", [(torch.float32, 1e-6, 2e-6), (torch.float64, 1e-12, 1e-12)])
+def test_fast_equals_eager_values_and_gradients(dtype, vtol, gtol):
+    inputs = _case(0, 4096, dtype)
+    go = torch.randn(4096, 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    of, gf, graph = _eval(True, inputs, go)
+    assert "PrincipledFunction" in graph.grad_fn.name()  # really the fused path
+    oe, ge, _ = _eval(False, inputs, go)
+    assert _rel(of, oe) <= vtol
+    _grad_close(gf, ge, gtol)
+
+
+def test_float32_accuracy_at_the_narrowest_peak():
+    # α = 0.001 (roughness ≈ 0.0316) near the mirror direction: the float64 half-vector
+    # projections keep float32 within 1e-4 of a float64 reference (judged on rounded inputs).
+    rng = np.random.default_rng(5)
+    count = 2048
+    n = np.tile([0.0, 0.0, 1.0], (count, 1))
+    x = np.tile([1.0, 0.0, 0.0], (count, 1))
+    y = np.tile([0.0, 1.0, 0.0], (count, 1))
+    th = rng.uniform(0.1, 1.2, count)
+    ph = rng.uniform(0, 2 * np.pi, count)
+    v = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    jitter = rng.normal(scale=1e-3, size=(count, 3))
+    l = np.stack([-v[:, 0], -v[:, 1], v[:, 2]], -1) + jitter
+    l /= np.linalg.norm(l, axis=-1, keepdims=True)
+    vec = {k: torch.as_tensor(a, dtype=torch.float32) for k, a in dict(l=l, v=v, n=n, x=x, y=y).items()}
+    rough = torch.full((count, 1), math.sqrt(0.001), dtype=torch.float32)
+    base = torch.full((count, 3), 0.5, dtype=torch.float32)
+    P.set_fast_path(True)
+    try:
+        out = torchbrdf.principled(**vec, base_color=base, roughness=rough, anisotropic=0.0)
+    finally:
+        P.set_fast_path(None)
+    up = {k: t.double().numpy() for k, t in vec.items()}
+    ref = principled_ref(up["l"], up["v"], up["n"], up["x"], up["y"], base.double().numpy(),
+                         roughness=rough.double().numpy())
+    err = np.abs(out.double().numpy() - ref) / np.abs(ref)
+    assert err.max() <= 1e-4
+
+
+def test_gradcheck_float64_on_the_fast_path(fast):
+    vec, base, params = random_case(12, count=5, min_cos=0.1)
+    t = {k: a.requires_grad_() for k, a in to_t(vec, torch.float64).items()}
+    p = {k: (a * 0.8 + 0.1).requires_grad_() for k, a in to_t(params, torch.float64).items()}
+    b = torch.as_tensor(base).requires_grad_()
+    names = list(p)
+
+    def fn(l, v, n, x, y, b, *ps):
+        return torchbrdf.principled(l, v, n, x, y, base_color=b, **dict(zip(names, ps)))
+
+    assert "PrincipledFunction" in fn(t["l"], t["v"], t["n"], t["x"], t["y"], b, *p.values()).grad_fn.name()
+    assert torch.autograd.gradcheck(fn, (t["l"], t["v"], t["n"], t["x"], t["y"], b, *p.values()))
+
+
+def test_gradcheck_float64_pruned_and_broadcast(fast):
+    # Python-float parameters (lobes pruned / constants in the kernel), a shared normal (3,),
+    # a 0-d roughness and a (3,) colour: gradients are reduced over the lanes.
+    vec, _, _ = random_case(13, count=4, min_cos=0.1)
+    l, v = (torch.as_tensor(vec[k]).requires_grad_() for k in ("l", "v"))
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, requires_grad=True)
+    l = torch.nn.functional.normalize(l.detach().abs(), dim=-1).requires_grad_()
+    v = torch.nn.functional.normalize(v.detach().abs(), dim=-1).requires_grad_()
+    rough = torch.tensor(0.4, dtype=torch.float64, requires_grad=True)
+    base = torch.tensor([0.7, 0.4, 0.2], dtype=torch.float64, requires_grad=True)
+    sheen = torch.full((4, 1), 0.6, dtype=torch.float64, requires_grad=True)
+
+    def fn(l, v, n, rough, base, sheen):
+        return torchbrdf.principled(l, v, n, base_color=base, roughness=rough, sheen=sheen, clearcoat=0.0,
+                                    metallic=0.25, specular_tint=0.5)
+
+    assert "PrincipledFunction" in fn(l, v, n, rough, base, sheen).grad_fn.name()
+    assert torch.autograd.gradcheck(fn, (l, v, n, rough, base, sheen))
+
+
+@pytest.mark.parametrize("params", [
+    dict(clearcoat=0.0, sheen=0.0, subsurface=0.0),           # diffuse + specular only
+    dict(metallic=1.0, clearcoat=0.0),                          # pure metal
+    dict(roughness=0.3, anisotropic=0.0, sheen_tint=0.0),       # constants in the kernel
+])
+def test_pruned_variants_match_eager(params):
+    inputs = {k: t for k, t in _case(2, 1024, torch.float32).items() if k not in params}
+    go = torch.ones(1024, 3)
+    of, gf, _ = _eval(True, inputs, go, **params)
+    oe, ge, _ = _eval(False, inputs, go, **params)
+    assert _rel(of, oe) <= 1e-6
+    _grad_close(gf, ge, 2e-6)
+
+
+def test_float_parameter_values_share_one_kernel(fast):
+    inputs = {k: t for k, t in _case(2, 256, torch.float32).items() if k != "roughness"}
+    torchbrdf.principled(**inputs, roughness=0.3)
+    before = _fast.compiled_kernels()
+    out = torchbrdf.principled(**inputs, roughness=0.7)
+    assert _fast.compiled_kernels() == before
+    P.set_fast_path(False)
+    assert _rel(out, torchbrdf.principled(**inputs, roughness=0.7)) <= 1e-6
+
+
+def test_broadcast_shapes_match_eager():
+    g = torch.Generator().manual_seed(3)
+    l = torch.nn.functional.normalize(torch.rand(4, 5, 3, generator=g) + 0.2, dim=-1)
+    inputs = dict(
+        l=l,
+        v=torch.nn.functional.normalize(torch.tensor([0.1, 0.2, 1.0]), dim=-1).expand(1, 1, 3),
+        n=torch.tensor([0.0, 0.0, 1.0]),
+        base_color=torch.tensor([0.5, 0.4, 0.3]),
+        roughness=torch.rand(4, 1, 1, generator=g),
+        metallic=torch.tensor(0.3),
+        clearcoat=torch.rand(5, 1, generator=g),
+    )
+    go = torch.rand(4, 5, 3, generator=g)
+    of, gf, graph = _eval(True, inputs, go)
+    assert "PrincipledFunction" in graph.grad_fn.name()
+    oe, ge, _ = _eval(False, inputs, go)
+    assert of.shape == (4, 5, 3)
+    assert _rel(of, oe) <= 1e-6
+    for k in ge:
+        assert gf[k].shape == inputs[k].shape, k
+    _grad_close(gf, ge, 2e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_types_round_trip(dtype):
+    inputs = _case(4, 512, dtype, min_cos=0.05)
+    go = torch.ones(512, 3, dtype=dtype)
+    of, gf, _ = _eval(True, inputs, go)
+    oe, ge, _ = _eval(False, inputs, go)
+    assert of.dtype == dtype and all(t.dtype == dtype for t in gf.values())
+    torch.testing.assert_close(of, oe, rtol=0, atol=0)  # same float32 math, same rounding
+    for k in ge:
+        torch.testing.assert_close(gf[k], ge[k], rtol=1e-2, atol=1e-2 * float(ge[k].abs().max()))
+
+
+def test_below_horizon_zero_with_finite_gradients(fast):
+    inputs = _case(8, 256, torch.float32)
+    inputs["l"][:128] *= -1.0
+    below = (inputs["n"] * inputs["l"]).sum(-1) <= 0
+    of, gf, _ = _eval(True, inputs, torch.ones(256, 3))
+    assert (of[below] == 0).all()
+    for k, g in gf.items():
+        assert torch.isfinite(g).all(), k
+    assert (gf["base_color"][below] == 0).all() and (gf["roughness"][below] == 0).all()
+
+
+def test_double_backward_falls_back_to_a_differentiable_graph(fast):
+    vec, base, params = random_case(14, count=3, min_cos=0.1)
+    rough = torch.full((3, 1), 0.5, dtype=torch.float64, requires_grad=True)
+    t = to_t(vec, torch.float64)
+
+    def f(r):
+        return torchbrdf.principled(**t, base_color=torch.as_tensor(base), roughness=r).sum()
+
+    (g,) = torch.autograd.grad(f(rough), rough, create_graph=True)
+    (h,) = torch.autograd.grad(g.sum(), rough)
+    P.set_fast_path(False)
+    (ge,) = torch.autograd.grad(f(rough), rough, create_graph=True)
+    (he,) = torch.autograd.grad(ge.sum(), rough)
+    torch.testing.assert_close(g, ge, rtol=1e-10, atol=0)
+    torch.testing.assert_close(h, he, rtol=1e-10, atol=0)
+
+
+def test_dispatch_switches(monkeypatch):
+    inputs = _case(6, 64, torch.float32)
+    P.set_fast_path(None)
+    assert "PrincipledFunction" not in torchbrdf.principled(**{k: t.requires_grad_() for k, t in inputs.items()}).grad_fn.name()
+    big = _case(6, P.FAST_PATH_MIN_LANES, torch.float32)
+    big = {k: t.requires_grad_() for k, t in big.items()}
+    assert "PrincipledFunction" in torchbrdf.principled(**big).grad_fn.name()
+    monkeypatch.setenv("TORCHBRDF_EAGER", "1")
+    assert "PrincipledFunction" not in torchbrdf.principled(**big).grad_fn.name()
+    monkeypatch.delenv("TORCHBRDF_EAGER")
+    P.set_fast_path(False)
+    try:
+        assert "PrincipledFunction" not in torchbrdf.principled(**big).grad_fn.name()
+    finally:
+        P.set_fast_path(None)
+    with pytest.raises(ValueError, match="enabled"):
+        P.set_fast_path("yes")
+
+
+def test_no_grad_and_scalar_inputs(fast):
+    inputs = _case(7, 128, torch.float32)
+    with torch.no_grad():
+        out = torchbrdf.principled(**inputs)
+    assert out.grad_fn is None and out.shape == (128, 3)
+    grey = torchbrdf.principled(inputs["l"], inputs["v"], inputs["n"], base_color=0.5)
+    P.set_fast_path(False)
+    assert _rel(grey, torchbrdf.principled(inputs["l"], inputs["v"], inputs["n"], base_color=0.5)) <= 1e-6
+    assert SCALARS  # the shared parameter list is the one the reference tests use
