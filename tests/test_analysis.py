@@ -81,9 +81,23 @@ def test_mc_samplers_agree():
     assert (ggx.error < 0.5 * cos.error).all()
 
 
+def test_mc_with_clearcoat_sampling():
+    # Burley's appendix B GTR1 sampler joins the mixture when a clearcoat is present.
+    params = dict(base_color=RGB, roughness=0.5, clearcoat=1.0, clearcoat_gloss=0.9)
+    th = torch.tensor([0.3, 1.3], dtype=F64)
+    ref = A.directional_albedo(principled, th, **params)
+    for sampler in ("mix", ("cosine", "gtr1")):
+        mc = A.directional_albedo(principled, th, "mc", samples=8192, sampler=sampler, seed=5, **params)
+        assert ((mc.value - ref.value).abs() <= 4 * mc.error + ref.error).all(), sampler
+    with pytest.raises(ValueError, match="clearcoat"):
+        A.directional_albedo(principled, 0.3, "mc", sampler="gtr1", base_color=RGB)
+
+
 def test_bad_method_and_sampler():
     with pytest.raises(ValueError, match="method"):
         A.directional_albedo(lambert, 0.1, "simpson", base_color=0.5)
+    with pytest.raises(ValueError, match="unknown density"):
+        A.directional_albedo(lambert, 0.1, "mc", sampler="phong", base_color=0.5)
     with pytest.raises(ValueError, match="alpha_hint"):
         A.directional_albedo(lambda l, v, n, x=None, y=None: l[..., :1], 0.1, "mc", sampler="ggx")
 

@@ -28,8 +28,9 @@ Directional albedo (directional–hemispherical reflectance)
       difference from the same rule with half the nodes per panel and half the φ nodes,
       which bounds the error of the finer rule when the rule converges.
     * ``"mc"``: Monte Carlo with independent uniform numbers and importance sampling from
-      the cosine density, GGX visible normals (Heitz 2018) or an equal mixture of both
-      (balance-heuristic density); the error is the standard error ``σ / √N``.
+      the cosine density, GGX visible normals (Heitz 2018), the GTR1 clearcoat lobe
+      (Burley 2012, appendix B) or an equal mixture (balance-heuristic density); the error
+      is the standard error ``σ / √N``.
 
 Lobe width hint
     Both estimators need to know how narrow the peak is. ``alpha_hint`` may be given; by
@@ -61,6 +62,7 @@ __all__ = [
     "bind_brdf",
     "view_direction",
     "lobe_alpha_hint",
+    "clearcoat_alpha",
     "directional_albedo",
     "albedo_curve",
     "white_furnace",
@@ -209,10 +211,8 @@ def lobe_alpha_hint(params: dict) -> float | None:
         aniso = params.get("anisotropic", 0.0)
         if (isinstance(aniso, Tensor) and bool((aniso != 0).any())) or (not isinstance(aniso, Tensor) and aniso != 0):
             alpha *= math.sqrt(0.1)  # the narrow axis of the most anisotropic lobe
-    cc = params.get("clearcoat", 0.0)
-    if (isinstance(cc, Tensor) and bool((cc != 0).any())) or (not isinstance(cc, Tensor) and cc != 0):
-        gloss = smallest(params.get("clearcoat_gloss", 1.0))
-        ac = 0.1 + (0.001 - 0.1) * min(max(gloss, 0.0), 1.0)
+    ac = clearcoat_alpha(params)
+    if ac is not None:
         alpha = ac if alpha is None else min(alpha, ac)
     return None if alpha is None else max(alpha, ALPHA_FLOOR)
 
@@ -324,34 +324,69 @@ def _ggx_reflection_sampler():
         return sample, pdf
 
 
-def _albedo_mc(f, v: Tensor, samples: int, sampler: str, alpha: float | None, seed: int) -> Estimate:
+def _gtr1_reflection_sampler():
+    """``(sample, pdf)`` for GTR1 (clearcoat) half vectors, Burley 2012 appendix B; needs :mod:`torchbrdf.sampling`."""
+    from .sampling import pdf_gtr1, pdf_half_to_reflection, reflect, sample_gtr1
+
+    def sample(v, a, u):
+        return reflect(v, sample_gtr1(a, u))
+
+    def pdf(v, l, a):
+        h = torch.nn.functional.normalize(v + l, dim=-1)
+        return pdf_half_to_reflection(pdf_gtr1(h, a), (l * h).sum(-1, keepdim=True))
+
+    return sample, pdf
+
+
+def _strategies(names, alpha: float | None, alpha_clearcoat: float | None):
+    """``[(sample(v, u) -> l, pdf(v, l) -> (*, 1))]`` for the named densities."""
+    out = []
+    for name in names:
+        if name == "cosine":
+            out.append((lambda v, u: _sample_cosine(u)[0], lambda v, l: torch.clamp(l[..., 2:3], min=0.0) / math.pi))
+        elif name == "ggx":
+            if alpha is None:
+                raise ValueError("sampler 'ggx' needs a lobe width: pass alpha_hint")
+            smp, pdf = _ggx_reflection_sampler()
+            out.append((lambda v, u, s=smp: s(v, alpha, u), lambda v, l, p=pdf: p(v, l, alpha)))
+        elif name == "gtr1":
+            if alpha_clearcoat is None:
+                raise ValueError("sampler 'gtr1' needs the clearcoat width: pass clearcoat/clearcoat_gloss")
+            smp, pdf = _gtr1_reflection_sampler()
+            out.append((lambda v, u, s=smp: s(v, alpha_clearcoat, u), lambda v, l, p=pdf: p(v, l, alpha_clearcoat)))
+        else:
+            raise ValueError(f"sampler: unknown density {name!r}; expected 'cosine', 'ggx', 'gtr1', 'mix' or 'auto'")
+    return out
+
+
+def _albedo_mc(f, v: Tensor, samples: int, strategies, seed: int) -> Estimate:
+    """One-sample-per-strategy-block MC: equal blocks from each density, balance-heuristic pdf."""
     gen = torch.Generator(device=v.device).manual_seed(seed)
+    k = len(strategies)
+    bounds = [round(i * samples / k) for i in range(k + 1)]
     vals, errs = [], []
-    g_sample, g_pdf = _ggx_reflection_sampler()
     for vi in v:
         u = torch.rand((samples, 2), generator=gen, dtype=v.dtype, device=v.device)
         vv = vi.expand(samples, 3)
-        if sampler == "cosine":
-            l, _ = _sample_cosine(u)
-        elif sampler == "ggx":
-            l = g_sample(vv, alpha, u)
-        else:  # mixture: first half cosine, second half GGX, density is the average
-            m = samples // 2
-            l = torch.cat((_sample_cosine(u[:m])[0], g_sample(vv[m:], alpha, u[m:])), 0)
+        l = torch.cat([smp(vv[a:b], u[a:b]) for (smp, _), a, b in zip(strategies, bounds[:-1], bounds[1:])], 0)
+        pdf = sum(p(vv, l) for _, p in strategies) / k
         lz = l[:, 2:3]
-        p_cos = torch.clamp(lz, min=0.0) / math.pi
-        if sampler == "cosine":
-            pdf = p_cos
-        elif sampler == "ggx":
-            pdf = g_pdf(vv, l, alpha)
-        else:
-            pdf = 0.5 * (p_cos + g_pdf(vv, l, alpha))
         ok = (lz > 0) & (pdf > 0)
         fv = _eval(f, torch.where(ok, l, vv), vv)
         est = torch.where(ok, fv * lz / torch.where(ok, pdf, torch.ones_like(pdf)), torch.zeros_like(fv))
         vals.append(est.mean(0))
         errs.append(est.std(0) / math.sqrt(samples))
     return Estimate(torch.stack(vals), torch.stack(errs))
+
+
+def clearcoat_alpha(params: dict) -> float | None:
+    """The principled clearcoat's GTR1 width ``lerp(0.1, 0.001, clearcoat_gloss)``, or ``None`` without a clearcoat."""
+    cc = params.get("clearcoat", 0.0)
+    if not ((isinstance(cc, Tensor) and bool((cc != 0).any())) or (not isinstance(cc, Tensor) and cc != 0)):
+        return None
+    g = params.get("clearcoat_gloss", 1.0)
+    g = float(torch.as_tensor(g).max()) if isinstance(g, Tensor) else float(g)
+    return max(0.1 + (0.001 - 0.1) * min(max(g, 0.0), 1.0), ALPHA_FLOOR)
 
 
 # --------------------------------------------------------------------------------------
@@ -381,9 +416,11 @@ def directional_albedo(
             docstring) or ``"mc"`` (importance-sampled Monte Carlo).
         samples: quadrature: ``(nodes per θ panel, φ nodes)`` or an int for the first
             (default ``(16, 96)``); MC: samples per view (default 4096).
-        sampler: MC density: ``"cosine"``, ``"ggx"`` (visible normals of width
-            ``alpha_hint``), ``"mix"`` (half of each, balance-heuristic density) or
-            ``"auto"`` (``"mix"`` when a lobe width is known, else ``"cosine"``).
+        sampler: MC density: ``"cosine"``, ``"ggx"`` (visible normals of the primary lobe's
+            width), ``"gtr1"`` (the principled clearcoat lobe, Burley 2012 appendix B), a
+            tuple of these (equal shares, balance-heuristic density), ``"mix"`` (cosine +
+            GGX, + GTR1 when a clearcoat is present) or ``"auto"`` (``"mix"`` when a lobe
+            width is known, else ``"cosine"``).
         alpha_hint: lobe width placing the quadrature panels / the GGX sampler; default from
             the parameters (:func:`lobe_alpha_hint`), including those bound by
             :func:`bind_brdf`.
@@ -421,13 +458,22 @@ def directional_albedo(
         est = Estimate(fine, (fine - coarse).abs())
     elif method == "mc":
         n = 4096 if samples is None else int(samples if isinstance(samples, numbers.Integral) else samples[0])
+        all_params = {**getattr(brdf, "params", {}), **params}
+        a_cc = clearcoat_alpha(all_params)
+        ggx_alpha = hint
+        if "roughness" in all_params or "base_color" in all_params:
+            r = all_params.get("roughness", 0.5)
+            r = float(torch.as_tensor(r).min()) if isinstance(r, Tensor) else float(r)
+            ggx_alpha = max(r * r, ALPHA_FLOOR)  # the primary lobe, not the clearcoat
         if sampler == "auto":
             sampler = "mix" if hint is not None else "cosine"
-        if sampler not in ("cosine", "ggx", "mix"):
-            raise ValueError(f"sampler: expected 'cosine', 'ggx', 'mix' or 'auto', got {sampler!r}")
-        if sampler != "cosine" and hint is None:
-            raise ValueError(f"sampler={sampler!r} needs a lobe width: pass alpha_hint")
-        est = _albedo_mc(f, v, n, sampler, hint, seed)
+        if sampler == "mix":
+            names = ("cosine", "ggx") + (("gtr1",) if a_cc is not None else ())
+        elif isinstance(sampler, str):
+            names = (sampler,)
+        else:
+            names = tuple(sampler)
+        est = _albedo_mc(f, v, n, _strategies(names, ggx_alpha, a_cc), seed)
     else:
         raise ValueError(f"method: expected 'quadrature' or 'mc', got {method!r}")
     if scalar:
