@@ -197,6 +197,9 @@ def test_render_sphere_lambert():
     # Centre pixel: normal toward the camera, radiance = (0.8 / π) · π · n·l.
     ld = torch.nn.functional.normalize(torch.tensor(A.DEFAULT_SPHERE_LIGHT, dtype=F64), dim=0)
     assert abs(float(img[0, 16, 16]) - 0.8 * float(ld[2])) < 0.02
+    # The local fallback (used only without the shader modules) agrees at the centre.
+    fb, fb_mask = A._render_sphere_fallback(A.bind_brdf(lambert, base_color=0.8), 33, ld, math.pi)
+    assert fb_mask[16, 16] and abs(float(fb[0, 16, 16]) - 0.8 * float(ld[2])) < 0.02
     # String parameters reach the BRDF (bound), numbers go through the g-buffer.
     spec = A.render_sphere(microfacet, 17, alpha=0.2, fresnel="dielectric")
     assert spec.shape == (3, 17, 17) and spec.max() > 0

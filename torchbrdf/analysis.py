@@ -838,13 +838,12 @@ def render_sphere(
     material, bound = _split_material(params)
     material = {k: (t.to(dtype=dtype, device=device) if isinstance(t, Tensor) else t) for k, t in material.items()}
     g = sphere_gbuffer(resolution, resolution, material=material, dtype=dtype, device=device)
-    inner = bind_brdf(brdf, **bound)
 
     def f(l, v, n, x=None, y=None, **mat):
         out = brdf(l, v, n, x, y, **bound, **mat)
         return out.expand(*out.shape[:-1], 3) if out.shape[-1] == 1 else out
 
-    f.__name__ = getattr(inner.brdf, "__name__", "brdf")
+    f.__name__ = getattr(brdf, "__name__", type(brdf).__name__)
     light = DirectionalLight(ld, torch.full((3,), float(irradiance), dtype=dtype, device=device))
     img = shade(g, light, f)[0]
     return (img, g.mask[0, 0].bool()) if return_mask else img
