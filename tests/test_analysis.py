@@ -218,6 +218,9 @@ def test_explore_writes_report(tmp_path):
     assert torch.equal(spec.params["diffuse"], torch.tensor([0.5, 0.5, 0.5], dtype=F64))
     with pytest.raises(ValueError, match="unknown model"):
         explore.parse_spec("phong:n=10")
+    for texts in explore.PRESETS.values():  # every preset parses and builds
+        for text in texts:
+            assert callable(explore.parse_spec(text).brdf())
 
     out = tmp_path / "report"
     rc = explore.main(

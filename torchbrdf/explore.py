@@ -8,7 +8,9 @@ Usage::
         --brdf merl:path/to/red-plastic.binary
 
 With no ``--brdf`` it compares the principled model at two roughnesses with GGX + exact
-dielectric Fresnel over a Lambert base. The report (``index.html`` with PNGs beside it) has
+dielectric Fresnel over a Lambert base. ``--preset roughness`` shows the principled model
+across roughness (Burley's Figure 17), ``--preset g-models`` the albedo of several masking
+terms under one GGX D and Schlick F (Figure 12). The report (``index.html`` with PNGs beside it) has
 image slices, lit spheres, albedo curves, retro-reflection and specular-peak curves, polar
 plots and a table of numbers (albedo, white-furnace and reciprocity checks).
 
@@ -45,6 +47,20 @@ DEFAULT_SPECS = (
     "principled:roughness=0.6,base_color=0.8/0.25/0.1,label=principled r=0.6",
     "microfacet:alpha=0.04,fresnel=dielectric,ior=1.5,diffuse=0.8/0.25/0.1,label=GGX a=0.04 + exact Fresnel + Lambert",
 )
+#: Named comparisons for ``--preset``.
+PRESETS = {
+    "default": DEFAULT_SPECS,
+    # The principled model across roughness (Burley 2012, Figure 17).
+    "roughness": tuple(
+        f"principled:roughness={r},base_color=0.8/0.25/0.1,label=principled r={r}" for r in (0.1, 0.3, 0.6, 0.9)
+    ),
+    # Albedo of several G models with the same GGX D and Schlick F (Burley 2012, Figure 12);
+    # "implicit" (G = n·l n·v) is the notes' "no G" model. Use with alpha=0.02 or 0.5.
+    "g-models": tuple(
+        f"microfacet:alpha=0.5,f0=0.04,masking={m},label={m}"
+        for m in ("smith_correlated", "smith_separable", "cook_torrance", "kelemen", "implicit")
+    ),
+}
 MODELS = ("principled", "lambert", "microfacet", "merl", "fit")
 
 
@@ -306,10 +322,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m torchbrdf.explore", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="explore_report", help="output folder (default: explore_report)")
     ap.add_argument("--brdf", action="append", default=[], metavar="SPEC", help="MODEL[:key=value,...]; repeat to compare")
+    ap.add_argument("--preset", choices=sorted(PRESETS), help="a named comparison (added before any --brdf)")
     ap.add_argument("--quick", action="store_true", help="small images and grids (fast preview)")
     args = ap.parse_args(argv)
+    texts = list(PRESETS[args.preset]) if args.preset else []
+    texts += args.brdf
     try:
-        specs = [parse_spec(s) for s in (args.brdf or DEFAULT_SPECS)]
+        specs = [parse_spec(s) for s in (texts or DEFAULT_SPECS)]
     except ValueError as e:
         ap.error(str(e))
     t0 = time.perf_counter()
