@@ -110,13 +110,18 @@ class MeasuredSamples:
         return self.l.shape[0]
 
 
-def sample_merl(merl: MERLBRDF, n_samples: int | None = 100_000, seed: int = 0) -> MeasuredSamples:
+def sample_merl(
+    merl: MERLBRDF, n_samples: int | None = 100_000, seed: int = 0, max_theta_deg: float | None = None
+) -> MeasuredSamples:
     """Pick ``n_samples`` valid MERL nodes at random (all valid nodes when ``None``).
 
     Args:
         merl: the measured BRDF.
         n_samples: how many nodes to keep.
         seed: selection seed.
+        max_theta_deg: drop nodes whose ``θl`` or ``θv`` exceeds this (MERL extrapolates
+            beyond ~75°, Burley 2012 §4.7); default keep all and let the loss's cosine
+            weight fade them.
 
     Returns:
         :class:`MeasuredSamples` in float64.
@@ -128,7 +133,8 @@ def sample_merl(merl: MERLBRDF, n_samples: int | None = 100_000, seed: int = 0) 
     ih, idd, ip = ih.reshape(-1), idd.reshape(-1), ip.reshape(-1)
     l, v = merl_directions(th[ih], td[idd], tp[ip])
     table = merl.table.detach().to("cpu", F64).reshape(3, -1).t()
-    ok = (l[:, 2] > 1e-3) & (v[:, 2] > 1e-3) & (table >= 0).all(-1)
+    min_cos = 1e-3 if max_theta_deg is None else max(math.cos(math.radians(max_theta_deg)), 1e-3)
+    ok = (l[:, 2] > min_cos) & (v[:, 2] > min_cos) & (table >= 0).all(-1)
     idx = torch.nonzero(ok).squeeze(-1)
     if n_samples is not None and n_samples < idx.numel():
         gen = torch.Generator().manual_seed(seed)
@@ -354,13 +360,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iters", type=int, default=200, help="Adam iterations after the restarts")
     ap.add_argument("--lbfgs", type=int, default=100, help="L-BFGS iterations at the end (0: none)")
     ap.add_argument("--eps", type=float, default=1e-3, help="ε of the log loss")
+    ap.add_argument("--max-theta", type=float, default=None, help="ignore data with θl or θv above this (degrees)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-figures", action="store_true", help="write params.json only")
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
     merl = MERLBRDF.from_file(args.merl)
-    samples = sample_merl(merl, args.samples, args.seed)
+    samples = sample_merl(merl, args.samples, args.seed, args.max_theta)
     names = list(DEFAULT_PARAMS) + [n.strip() for n in args.extra.split(",") if n.strip()]
     print(f"fit_measured: {merl.name}, {len(samples)} samples, fitting {names}{' + second lobe' if args.two_lobes else ''}")
     model = fit(samples, names=names, two_lobes=args.two_lobes, iters=args.iters, lbfgs_iters=args.lbfgs, eps=args.eps)
@@ -375,6 +382,7 @@ def main(argv: list[str] | None = None) -> int:
         "loss": errors["loss"],
         "samples": len(samples),
         "eps": args.eps,
+        "max_theta_deg": args.max_theta,
         "seconds": seconds,
     }
     write_outputs(Path(args.out), merl, model, report, figures=not args.no_figures)
