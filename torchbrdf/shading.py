@@ -78,7 +78,7 @@ _DEFAULTS = {
 _LOBE_COST = {"diffuse": 1.0, "subsurface": 0.6, "specular": 2.0, "sheen": 0.4, "clearcoat": 1.2}
 # Bytes of live intermediates per (pixel, sample) element and per unit of lobe cost during
 # the backward of one pass, float32 (measured on the principled BRDF; see docs/shading.md).
-_BYTES_PER_ELEMENT_COST = 160
+_BYTES_PER_ELEMENT_COST = 40
 
 
 # --------------------------------------------------------------------------------------
@@ -364,8 +364,9 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
         names = {"diffuse": "cosine", "specular": "GGX visible normals", "clearcoat": "GTR1"}
         parts = []
         for light in envs:
-            shifts = torch.rand((2, n_total, 2), generator=g, dtype=cd, device=dev)
-            setup = _MCSetup(light.radiance, int(env_samples), pixels.gather_cl(shifts[0]), pixels.gather_cl(shifts[1]))
+            # Pixel-major, so a pixel's pattern depends only on its index (not on B or masks).
+            shifts = torch.rand((n_total, 2, 2), generator=g, dtype=cd, device=dev)
+            setup = _MCSetup(light.radiance, int(env_samples), pixels.gather_cl(shifts[:, 0]), pixels.gather_cl(shifts[:, 1]))
             mc_setups.append(setup)
             per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(chunk_px, 1))
             for total in (setup.n_brdf, setup.n_map):
@@ -390,7 +391,7 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
     elements_per_pass = chunk_px if not (envs and env_strategy == "mc") else max(chunk_px, min(ENV_ELEMENTS_PER_PASS, chunk_px * int(env_samples)))
     itemsize = torch.finfo(cd).bits // 8
     est = int(elements_per_pass * lobe_cost * _BYTES_PER_ELEMENT_COST * itemsize / 4)
-    est += int(p_count * itemsize * 3 * (6 + 2 * len([v for v in values.values() if isinstance(v, Tensor)])))
+    est += int(p_count * itemsize * 3 * (4 + len([v for v in values.values() if isinstance(v, Tensor)])))
     notes = []
     if not prune:
         notes.append("pruning disabled (prune=False): every pixel and every material map is evaluated")
@@ -460,11 +461,13 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
             pos_s, n_s, v_s, bidx_s = sl(pos), sl(n), sl(v), sl(bidx)
             x_s, y_s = (sl(x), sl(y)) if need_frame else (None, None)
             mat_s = {k: (sl(val) if isinstance(val, Tensor) and val.dim() == 2 else val) for k, val in mat.items()}
-            acc = None
+            # One accumulator per chunk, updated in place: a fresh sum per light would land on
+            # top of the heap each time and fragment it (freed pages stay resident).
+            acc = pos_s.new_zeros(e - s, 3)
             for kind_l, p1, p2 in light_params:
                 fn = _point_term if kind_l == "point" else _directional_term
-                term = _pass(fn, brdf, pos_s, n_s, v_s, x_s, y_s, mat_s, p1, p2, bidx_s)
-                acc = term if acc is None else acc + term
+                term = _pass(e - s, fn, brdf, pos_s, n_s, v_s, x_s, y_s, mat_s, p1, p2, bidx_s)
+                acc.add_(term)
             for kind_e, env_data, env_b, setup in env_inputs:
                 eb = bidx_s if env_b > 1 else None
                 if kind_e == "mc":
@@ -476,16 +479,17 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
                     ):
                         k = min(per_pass, max(total, 1))
                         for start in range(0, total, k):
+                            count = min(k, total - start)
                             term = _pass(
-                                _mc_pass, brdf, slobes, n_s, v_s, x_s, y_s, mat_s, env_data, eb, setup,
-                                technique, start, min(k, total - start), sl(shift),
+                                (e - s) * count, _mc_pass, brdf, slobes, n_s, v_s, x_s, y_s, mat_s, env_data, eb, setup,
+                                technique, start, count, sl(shift),
                             )
-                            acc = term if acc is None else acc + term
+                            acc.add_(term)
                 else:
-                    term = _pass(integrate_environment_split_sum, brdf, n_s, v_s, env_data, mat_s, batch_index=eb)
-                    acc = term if acc is None else acc + term
-            if acc is None:
-                acc = pos_s.new_zeros(e - s, 3) + 0.0 * pos_s
+                    term = _pass(e - s, integrate_environment_split_sum, brdf, n_s, v_s, env_data, mat_s, batch_index=eb)
+                    acc.add_(term)
+            if not acc.requires_grad and pos_s.requires_grad:
+                acc = acc + 0.0 * pos_s  # no lights: keep the graph connected (zero gradients)
             pieces.append(acc)
         out = pieces[0] if len(pieces) == 1 else torch.cat(pieces, dim=0)
         img = pixels.scatter(out)
@@ -512,11 +516,61 @@ def _split_sum_env(light: EnvironmentLight, rad: Tensor, cd) -> SplitSumEnvironm
     return env
 
 
-def _pass(fn, *args, **kwargs):
-    """Run one accumulation pass; under autograd, recompute it in backward instead of storing."""
-    if torch.is_grad_enabled():
-        return checkpoint(fn, *args, use_reentrant=False, **kwargs)
-    return fn(*args, **kwargs)
+def _load_malloc_trim():
+    """glibc's ``malloc_trim`` through ctypes, or ``None`` where it does not exist."""
+    try:
+        import ctypes
+        import ctypes.util
+
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        fn = libc.malloc_trim
+        fn.argtypes = [ctypes.c_size_t]
+        fn.restype = ctypes.c_int
+        return fn
+    except (OSError, AttributeError, TypeError):  # not glibc (macOS, Windows, musl)
+        return None
+
+
+_MALLOC_TRIM = _load_malloc_trim()
+# Passes at least this large (elements) release freed heap pages before their backward.
+TRIM_MIN_ELEMENTS = 1 << 16
+
+
+class _ReleaseFreedMemory(torch.autograd.Function):
+    """Identity whose backward first returns freed heap pages to the OS (glibc, CPU).
+
+    glibc serves tensors below its (self-raising) mmap threshold from the heap, and the small
+    long-lived autograd records of each pass land among the freed intermediates of the pass
+    before, so freed pages stay resident and the next pass's large tensors go on top: the
+    resident set would creep up pass after pass even though live memory does not (measured
+    in docs/shading.md). ``malloc_trim`` returns those free pages.
+    """
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        _MALLOC_TRIM(0)
+        return grad
+
+
+def _pass(elements: int, fn, *args, **kwargs):
+    """Run one accumulation pass of ``elements`` BRDF evaluations.
+
+    Under autograd the pass is checkpointed (non-reentrant): nothing inside it is stored, and
+    it is recomputed during backward.
+    """
+    if not torch.is_grad_enabled():
+        return fn(*args, **kwargs)
+    out = checkpoint(fn, *args, use_reentrant=False, **kwargs)
+    if _MALLOC_TRIM is not None and out.requires_grad and out.device.type == "cpu" and elements >= TRIM_MIN_ELEMENTS:
+        # The small autograd records of this pass were allocated among the freed
+        # intermediates; give the freed pages back now and again before its backward.
+        _MALLOC_TRIM(0)
+        out = _ReleaseFreedMemory.apply(out)
+    return out
 
 
 def _per_pixel(t: Tensor, bidx: Tensor) -> Tensor:
