@@ -7,7 +7,20 @@ the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-
 ``(B, C, H, W)`` linear values. Every function keeps the dtype and device it is given.
 """
 
-from . import diffuse, distributions, fresnel, io, masking, measured
+from . import analysis, diffuse, distributions, fresnel, io, masking, measured, plots
+from .analysis import (
+    Estimate,
+    albedo_curve,
+    bind_brdf,
+    directional_albedo,
+    polar_lobe,
+    reciprocity_error,
+    render_sphere,
+    retro_reflection_curve,
+    specular_peak_curve,
+    weak_white_furnace,
+    white_furnace,
+)
 from ._checks import set_validation, validation, validation_enabled
 from .diffuse import diffuse_burley, diffuse_lambert, diffuse_oren_nayar, diffuse_subsurface
 from .distributions import (
@@ -117,6 +130,19 @@ __all__ = [
     "merl_coordinates",
     "io",
     "measured",
+    "analysis",
+    "plots",
+    "Estimate",
+    "albedo_curve",
+    "bind_brdf",
+    "directional_albedo",
+    "polar_lobe",
+    "reciprocity_error",
+    "render_sphere",
+    "retro_reflection_curve",
+    "specular_peak_curve",
+    "weak_white_furnace",
+    "white_furnace",
     "diffuse",
     "distributions",
     "fresnel",
