@@ -1,7 +1,5 @@
 """Environment lighting: Monte Carlo converges to quadrature, split sum, furnace, gradients."""
 
-import math
-
 import pytest
 import torch
 
@@ -111,10 +109,15 @@ def test_mc_converges_to_quadrature(aniso):
     ref = integrate_environment_quadrature(principled, n, v, env, mat, x=x, y=y, subdivisions=6)
     errs = {}
     for s in (16, 64, 256):
-        errs[s] = sum(
-            rel_l2(integrate_environment_mc(principled, n, v, env, mat, x=x, y=y, samples=s, seed=seed), ref)
-            for seed in (0, 1)
-        ) / 2
+        errs[s] = (
+            sum(
+                rel_l2(
+                    integrate_environment_mc(principled, n, v, env, mat, x=x, y=y, samples=s, seed=seed), ref
+                )
+                for seed in (0, 1)
+            )
+            / 2
+        )
     assert errs[64] < errs[16] and errs[256] < errs[64]
     assert errs[256] < errs[16] / 2.5
     assert errs[256] < 0.06, errs
@@ -124,15 +127,24 @@ def test_mc_is_unbiased_on_average():
     n, v, x, y, mat = sphere_points(size=3)
     env = random_env()
     ref = integrate_environment_quadrature(principled, n, v, env, mat, subdivisions=6)
-    mean = sum(integrate_environment_mc(principled, n, v, env, mat, samples=32, seed=s) for s in range(24)) / 24
+    mean = (
+        sum(integrate_environment_mc(principled, n, v, env, mat, samples=32, seed=s) for s in range(24)) / 24
+    )
     single = rel_l2(integrate_environment_mc(principled, n, v, env, mat, samples=32, seed=99), ref)
     # Averaging 24 independent estimates shrinks the error ~5x if (and only if) the bias is nil.
     assert rel_l2(mean, ref) < single / 2.5
 
 
 def test_mc_through_shade_matches_quadrature_and_is_seeded():
-    g = sphere_gbuffer(5, 5, dtype=D, material={
-        "base_color": torch.full((1, 3, 5, 5), 0.6, dtype=D), "roughness": torch.full((1, 1, 5, 5), 0.5, dtype=D)})
+    g = sphere_gbuffer(
+        5,
+        5,
+        dtype=D,
+        material={
+            "base_color": torch.full((1, 3, 5, 5), 0.6, dtype=D),
+            "roughness": torch.full((1, 1, 5, 5), 0.5, dtype=D),
+        },
+    )
     env_map = random_env()
     env = EnvironmentLight(env_map)
     a = shade(g, env, env_samples=256, seed=3)
@@ -140,8 +152,13 @@ def test_mc_through_shade_matches_quadrature_and_is_seeded():
     c = shade(g, env, env_samples=256, seed=4)
     assert torch.equal(a, b) and not torch.equal(a, c)
     m = g.mask[0, 0]
-    n, v = g.normal[0].permute(1, 2, 0)[m], safe_normalize(g.camera_position - g.position[0].permute(1, 2, 0)[m])
-    ref = integrate_environment_quadrature(principled, n, v, env_map, {"base_color": 0.6, "roughness": 0.5}, subdivisions=6)
+    n, v = (
+        g.normal[0].permute(1, 2, 0)[m],
+        safe_normalize(g.camera_position - g.position[0].permute(1, 2, 0)[m]),
+    )
+    ref = integrate_environment_quadrature(
+        principled, n, v, env_map, {"base_color": 0.6, "roughness": 0.5}, subdivisions=6
+    )
     assert rel_l2(a[0].permute(1, 2, 0)[m], ref) < 0.06
 
 
@@ -168,7 +185,13 @@ def test_batched_environment_maps():
     for strategy in ("mc", "split_sum"):
         both = shade(g, EnvironmentLight(maps), env_samples=64, seed=0, env_strategy=strategy)
         for b in range(2):
-            single = shade(sphere_gbuffer(5, 5, dtype=D), EnvironmentLight(maps[b]), env_samples=64, seed=0, env_strategy=strategy)
+            single = shade(
+                sphere_gbuffer(5, 5, dtype=D),
+                EnvironmentLight(maps[b]),
+                env_samples=64,
+                seed=0,
+                env_strategy=strategy,
+            )
             if strategy == "split_sum" or b == 0:
                 # Batch slot 0 also draws the same per-pixel sample pattern as a single image.
                 assert torch.allclose(both[b], single[0], atol=1e-12)

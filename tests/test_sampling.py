@@ -34,7 +34,14 @@ def sphere_grid(n_theta: int, n_phi: int, sub: int = 1):
     ct = 1.0 - (torch.arange(n_theta * sub, dtype=D) + 0.5) * (2.0 / (n_theta * sub))
     phi = (torch.arange(n_phi * sub, dtype=D) + 0.5) * (2.0 * math.pi / (n_phi * sub))
     st = torch.sqrt(1.0 - ct * ct)
-    d = torch.stack((st[:, None] * torch.cos(phi)[None], st[:, None] * torch.sin(phi)[None], ct[:, None].expand(-1, n_phi * sub)), -1)
+    d = torch.stack(
+        (
+            st[:, None] * torch.cos(phi)[None],
+            st[:, None] * torch.sin(phi)[None],
+            ct[:, None].expand(-1, n_phi * sub),
+        ),
+        -1,
+    )
     return d, 4.0 * math.pi / (n_theta * sub * n_phi * sub)
 
 
@@ -43,8 +50,14 @@ def integrate_sphere(pdf_fn, n=300):
     theta = (torch.arange(n, dtype=D) + 0.5) * (math.pi / n)
     phi = (torch.arange(2 * n, dtype=D) + 0.5) * (math.pi / n)
     st = torch.sin(theta)
-    d = torch.stack((st[:, None] * torch.cos(phi)[None], st[:, None] * torch.sin(phi)[None],
-                     torch.cos(theta)[:, None].expand(-1, 2 * n)), -1)
+    d = torch.stack(
+        (
+            st[:, None] * torch.cos(phi)[None],
+            st[:, None] * torch.sin(phi)[None],
+            torch.cos(theta)[:, None].expand(-1, 2 * n),
+        ),
+        -1,
+    )
     p = pdf_fn(d.reshape(-1, 3)).reshape(n, 2 * n)
     return float((p * st[:, None]).sum() * (math.pi / n) ** 2)
 
@@ -61,7 +74,9 @@ def chi2_against_pdf(samples: torch.Tensor, pdf_fn, n_theta=12, n_phi=16, sub=24
     phi = torch.remainder(torch.atan2(samples[:, 1], samples[:, 0]), 2 * math.pi)
     it = torch.clamp(((1.0 - ct) / 2.0 * n_theta).long(), 0, n_theta - 1)
     ip = torch.clamp((phi / (2 * math.pi) * n_phi).long(), 0, n_phi - 1)
-    counts = torch.zeros(n_theta * n_phi, dtype=D).index_add_(0, it * n_phi + ip, torch.ones(len(samples), dtype=D))
+    counts = torch.zeros(n_theta * n_phi, dtype=D).index_add_(
+        0, it * n_phi + ip, torch.ones(len(samples), dtype=D)
+    )
     expected = p.reshape(-1) * len(samples)
     big = expected >= 5
     obs = torch.cat((counts[big], counts[~big].sum()[None]))
@@ -92,7 +107,9 @@ def test_hammersley_is_stratified_and_rotation_stays_in_unit_square():
     for row in u:
         assert sorted((row[:, 0] * 64).floor().long().tolist()) == list(range(64))
     # Chunked generation equals generation in one go.
-    assert torch.equal(torch.cat((rotated_hammersley(shift, 0, 40, 64), rotated_hammersley(shift, 40, 24, 64)), 1), u)
+    assert torch.equal(
+        torch.cat((rotated_hammersley(shift, 0, 40, 64), rotated_hammersley(shift, 40, 24, 64)), 1), u
+    )
 
 
 def test_stratified_samples_seeded():
@@ -156,8 +173,14 @@ def test_latlong_convention():
     assert d[0, 0, 2] > 0.9 and d[0, 0, 0] < 0
     theta = (torch.arange(4, dtype=D) + 0.5) * math.pi / 4
     phi = -math.pi + (torch.arange(8, dtype=D) + 0.5) * 2 * math.pi / 8
-    expect = torch.stack((torch.sin(theta)[:, None] * torch.cos(phi), torch.sin(theta)[:, None] * torch.sin(phi),
-                          torch.cos(theta)[:, None].expand(4, 8)), -1)
+    expect = torch.stack(
+        (
+            torch.sin(theta)[:, None] * torch.cos(phi),
+            torch.sin(theta)[:, None] * torch.sin(phi),
+            torch.cos(theta)[:, None].expand(4, 8),
+        ),
+        -1,
+    )
     assert torch.allclose(d, expect)
     row, col = latlong_texel_index(d, 4, 8)
     assert torch.equal(row, torch.arange(4)[:, None].expand(4, 8))
@@ -213,7 +236,11 @@ def test_samplers_dtype_and_device_generic(device):
         u = torch.rand(16, 2, dtype=dt, device=device)
         v = torch.tensor([0.3, 0.0, 0.95], dtype=dt, device=device)
         v = v / v.norm()
-        for w in (sample_cosine_hemisphere(u), sample_ggx_vndf(v.expand(16, 3), 0.3, 0.2, u), sample_gtr1(0.2, u)):
+        for w in (
+            sample_cosine_hemisphere(u),
+            sample_ggx_vndf(v.expand(16, 3), 0.3, 0.2, u),
+            sample_gtr1(0.2, u),
+        ):
             assert w.dtype == dt and w.device == u.device and bool(torch.isfinite(w).all())
         d, p = LatLongSampler(torch.rand(3, 4, 8, dtype=dt, device=device)).sample(u)
         assert d.dtype == dt and p.dtype == dt and d.device == u.device

@@ -5,6 +5,7 @@ Usage::
     python -m torchbrdf.bench_shading --size 1024 --lights 1 16
     python -m torchbrdf.bench_shading --size 1024 --lights 1 16 --mmap-threshold 65536
     python -m torchbrdf.bench_shading --size 1024 --lights 1 4 --no-recompute   # for comparison
+    python -m torchbrdf.bench_shading --env-errors   # error tables of the environment strategies
 
 Each configuration runs in a fresh subprocess so peak resident memory (``VmHWM`` from
 ``/proc/self/status``, Linux) belongs to that configuration alone. The scene is the flat
@@ -13,6 +14,9 @@ Each configuration runs in a fresh subprocess so peak resident memory (``VmHWM``
 intensities require grad; the loss is the image sum. Reported per configuration: resident
 memory before shading, peak during forward+backward, their difference and wall time.
 ``--no-recompute`` disables the per-light checkpointing to show what it saves.
+
+``--env-errors`` prints the error of both environment strategies against brute-force
+quadrature on a small sphere (float64), the numbers quoted in ``docs/shading.md``.
 """
 
 from __future__ import annotations
@@ -99,6 +103,82 @@ def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str
     }
 
 
+def env_errors() -> str:
+    """Markdown tables: Monte Carlo and split-sum error against quadrature on a sphere."""
+    import torch
+
+    from ._math import safe_normalize
+    from .envmap import (
+        SplitSumEnvironment,
+        integrate_environment_mc,
+        integrate_environment_quadrature,
+        integrate_environment_split_sum,
+    )
+    from .geometry import sphere_gbuffer
+    from .principled import principled
+    from .sampling import latlong_directions
+
+    d64 = torch.float64
+    gen = torch.Generator().manual_seed(0)
+    gb = sphere_gbuffer(9, 9, dtype=d64)
+    m = gb.mask[0, 0]
+    n = gb.normal[0].permute(1, 2, 0)[m]
+    v = safe_normalize(gb.camera_position - gb.position[0].permute(1, 2, 0)[m])
+    k = len(n)
+    glossy = {
+        "base_color": 0.1 + 0.8 * torch.rand(k, 3, generator=gen, dtype=d64),
+        "roughness": 0.35 + 0.45 * torch.rand(k, 1, generator=gen, dtype=d64),
+        "metallic": torch.rand(k, 1, generator=gen, dtype=d64),
+        "clearcoat": 0.5,
+        "clearcoat_gloss": 0.4,
+    }
+    noisy = torch.rand(3, 8, 16, generator=torch.Generator().manual_seed(1), dtype=d64) ** 2 * 2.0
+    dirs = latlong_directions(16, 32, dtype=d64)
+    smooth = (
+        (1.0 + 0.6 * dirs[..., 2:3] + 0.3 * dirs[..., 0:1]).expand(16, 32, 3).permute(2, 0, 1).contiguous()
+    )
+    maps = {"noisy 8x16": noisy, "smooth 16x32": smooth}
+
+    def rel_rms(a, b):
+        return float((a - b).norm() / b.norm())
+
+    lines = [
+        f"Monte Carlo, principled glossy material (roughness 0.35-0.8, clearcoat), {k} sphere pixels;",
+        "relative RMS error against quadrature, mean of 4 seeds:",
+        "",
+        "| map | 16 spp | 64 spp | 256 spp | 1024 spp |",
+        "|---|---|---|---|---|",
+    ]
+    for name, env in maps.items():
+        ref = integrate_environment_quadrature(principled, n, v, env, glossy, subdivisions=6)
+        row = []
+        for spp in (16, 64, 256, 1024):
+            errs = [
+                rel_rms(integrate_environment_mc(principled, n, v, env, glossy, samples=spp, seed=s), ref)
+                for s in range(4)
+            ]
+            row.append(f"{100 * sum(errs) / 4:.1f} %")
+        lines.append(f"| {name} | " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "Split sum, metal (base colour 1), per-pixel relative error against quadrature, median / max:",
+        "",
+        "| map | roughness 0.3 | 0.5 | 0.7 | 0.9 | glossy material above |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, env in maps.items():
+        prepared = SplitSumEnvironment(env)
+        row = []
+        for mat in [{"base_color": 1.0, "metallic": 1.0, "roughness": r} for r in (0.3, 0.5, 0.7, 0.9)] + [
+            glossy
+        ]:
+            ref = integrate_environment_quadrature(principled, n, v, env, mat, subdivisions=6)
+            rel = ((integrate_environment_split_sum(principled, n, v, prepared, mat) - ref) / ref).abs()
+            row.append(f"{100 * float(rel.median()):.1f} / {100 * float(rel.max()):.0f} %")
+        lines.append(f"| {name} | " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     """Command-line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -106,19 +186,43 @@ def main(argv=None) -> int:
     ap.add_argument("--lights", type=int, nargs="+", default=[1, 16], help="light counts to measure")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--brdf", choices=("principled", "lambert"), default="principled")
-    ap.add_argument("--no-recompute", action="store_true", help="disable per-light checkpointing (comparison)")
-    ap.add_argument("--mmap-threshold", type=int, default=None, metavar="BYTES",
-                    help="set MALLOC_MMAP_THRESHOLD_ in the children (glibc: return freed large blocks to the OS, "
-                    "so RSS reflects live tensors instead of heap fragmentation)")
+    ap.add_argument(
+        "--no-recompute", action="store_true", help="disable per-light checkpointing (comparison)"
+    )
+    ap.add_argument(
+        "--mmap-threshold",
+        type=int,
+        default=None,
+        metavar="BYTES",
+        help="set MALLOC_MMAP_THRESHOLD_ in the children (glibc: return freed large blocks to the OS, "
+        "so RSS reflects live tensors instead of heap fragmentation)",
+    )
+    ap.add_argument(
+        "--env-errors", action="store_true", help="print the environment strategies' error tables"
+    )
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.env_errors:
+        print(env_errors())
+        return 0
     if args.child is not None:
         print(json.dumps(_child(args.size, args.child, args.threads, not args.no_recompute, args.brdf)))
         return 0
     rows = []
     for n in args.lights:
-        cmd = [sys.executable, "-m", "torchbrdf.bench_shading", "--size", str(args.size), "--threads", str(args.threads),
-               "--brdf", args.brdf, "--child", str(n)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "torchbrdf.bench_shading",
+            "--size",
+            str(args.size),
+            "--threads",
+            str(args.threads),
+            "--brdf",
+            args.brdf,
+            "--child",
+            str(n),
+        ]
         if args.no_recompute:
             cmd.append("--no-recompute")
         env = dict(os.environ)
@@ -134,8 +238,11 @@ def main(argv=None) -> int:
     if len(rows) > 1:
         base = rows[0]["peak_minus_before_mib"]
         for r in rows[1:]:
-            print(f"{r['lights']} lights / {rows[0]['lights']} light(s): peak increase ratio "
-                  f"{r['peak_minus_before_mib'] / base:.2f}, absolute peak ratio {r['peak_mib'] / rows[0]['peak_mib']:.2f}")
+            print(
+                f"{r['lights']} lights / {rows[0]['lights']} light(s): peak increase ratio "
+                f"{r['peak_minus_before_mib'] / base:.2f}, "
+                f"absolute peak ratio {r['peak_mib'] / rows[0]['peak_mib']:.2f}"
+            )
     return 0
 
 

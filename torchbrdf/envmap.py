@@ -52,6 +52,7 @@ from .frames import frame_from_normal, to_local, to_world
 from .sampling import (
     ALPHA_MIN,
     LatLongSampler,
+    hammersley,
     latlong_row_solid_angles,
     latlong_texel_index,
     pdf_cosine_hemisphere,
@@ -62,7 +63,6 @@ from .sampling import (
     sample_cosine_hemisphere,
     sample_ggx_vndf,
     sample_gtr1,
-    hammersley,
 )
 
 __all__ = [
@@ -302,7 +302,11 @@ class _BRDFMixture:
             cdf = torch.cumsum(self.weights, dim=-1)
             u1 = u[..., 0:1]
             idx = torch.clamp((u1 >= cdf).sum(-1, keepdim=True), max=len(self.names) - 1)  # (P, k, 1)
-            lo = torch.where(idx > 0, torch.gather(cdf.expand(*u.shape[:-1], -1), -1, torch.clamp(idx - 1, min=0)), torch.zeros_like(u1))
+            lo = torch.where(
+                idx > 0,
+                torch.gather(cdf.expand(*u.shape[:-1], -1), -1, torch.clamp(idx - 1, min=0)),
+                torch.zeros_like(u1),
+            )
             wsel = torch.gather(self.weights.expand(*u.shape[:-1], -1), -1, idx)
             u1r = torch.clamp((u1 - lo) / torch.clamp(wsel, min=1e-30), 0.0, 1.0 - 1e-7)
             ur = torch.cat((u1r, u[..., 1:2]), dim=-1)
@@ -370,7 +374,9 @@ def sampling_lobes_for(brdf, material: dict) -> dict:
     if declared is not None:
         return {name: True for name in declared}
     wanted = getattr(brdf, "lobes", None) or ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
-    metal_one = isinstance(_param(material, "metallic"), numbers.Real) and float(_param(material, "metallic")) == 1.0
+    metal_one = (
+        isinstance(_param(material, "metallic"), numbers.Real) and float(_param(material, "metallic")) == 1.0
+    )
     out = {}
     dif = ("diffuse" in wanted or "subsurface" in wanted) and not metal_one
     sheen = "sheen" in wanted and not metal_one and not _is_zero(_param(material, "sheen"))
@@ -396,7 +402,8 @@ def _sampling_frame(n: Tensor, x, y, material: dict):
     """Frame for the proposal: the BRDF's own frame when anisotropy is actually present."""
     aniso = _param(material, "anisotropic")
     use_given = x is not None and (
-        (isinstance(aniso, Tensor) and bool((aniso.detach() != 0).any())) or (not isinstance(aniso, Tensor) and not _is_zero(aniso))
+        (isinstance(aniso, Tensor) and bool((aniso.detach() != 0).any()))
+        or (not isinstance(aniso, Tensor) and not _is_zero(aniso))
     )
     if use_given:
         xs = x.detach()
@@ -417,7 +424,22 @@ class _MCSetup:
         self.shifts_m = shifts_m
 
 
-def _mc_pass(brdf, lobes, n, v, x, y, material, env_cl, bidx, setup: _MCSetup, technique: str, start: int, count: int, shift: Tensor) -> Tensor:
+def _mc_pass(
+    brdf,
+    lobes,
+    n,
+    v,
+    x,
+    y,
+    material,
+    env_cl,
+    bidx,
+    setup: _MCSetup,
+    technique: str,
+    start: int,
+    count: int,
+    shift: Tensor,
+) -> Tensor:
     """Contribution ``(P, 3)`` of samples ``start .. start + count`` of one technique."""
     xs, ys = _sampling_frame(n, x, y, material)
     mix = _BRDFMixture(lobes, material, n, v, xs, ys)
@@ -486,9 +508,27 @@ def integrate_environment_mc(
     lobes = sampling_lobes_for(brdf, material)
     k = samples_per_pass or samples
     out = torch.zeros_like(n)
-    for technique, total, shift in (("brdf", setup.n_brdf, setup.shifts_b), ("map", setup.n_map, setup.shifts_m)):
+    for technique, total, shift in (
+        ("brdf", setup.n_brdf, setup.shifts_b),
+        ("map", setup.n_map, setup.shifts_m),
+    ):
         for start in range(0, total, k):
-            out = out + _mc_pass(brdf, lobes, n, v, x, y, material, env_cl, batch_index, setup, technique, start, min(k, total - start), shift)
+            out = out + _mc_pass(
+                brdf,
+                lobes,
+                n,
+                v,
+                x,
+                y,
+                material,
+                env_cl,
+                batch_index,
+                setup,
+                technique,
+                start,
+                min(k, total - start),
+                shift,
+            )
     return out
 
 
@@ -536,7 +576,12 @@ def integrate_environment_quadrature(
     phi = -math.pi + (torch.arange(w * s, dtype=torch.float64, device=dev) + 0.5) * (2.0 * math.pi / (w * s))
     sin_t = torch.sqrt(torch.clamp(1.0 - cos_t * cos_t, min=0.0))
     d = torch.stack(
-        (sin_t[:, None] * torch.cos(phi)[None], sin_t[:, None] * torch.sin(phi)[None], cos_t[:, None].expand(-1, w * s)), dim=-1
+        (
+            sin_t[:, None] * torch.cos(phi)[None],
+            sin_t[:, None] * torch.sin(phi)[None],
+            cos_t[:, None].expand(-1, w * s),
+        ),
+        dim=-1,
     ).reshape(-1, 3)
     omega = (latlong_row_solid_angles(h, w, dtype=torch.float64, device=dev) / (s * s)).repeat_interleave(s)
     omega = omega[:, None].expand(-1, w * s).reshape(-1, 1)
@@ -586,7 +631,8 @@ def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_
     st, ct = torch.sin(theta), torch.cos(theta)
     r = torch.stack((st, torch.zeros_like(st), ct), dim=-1)[:, None, None, :]  # (h, 1, 1, 3)
     l = torch.stack(
-        (st[:, None] * torch.cos(dphi)[None], st[:, None] * torch.sin(dphi)[None], ct[:, None].expand(h, w)), dim=-1
+        (st[:, None] * torch.cos(dphi)[None], st[:, None] * torch.sin(dphi)[None], ct[:, None].expand(h, w)),
+        dim=-1,
     )[None]  # (1, h, w, 3)
     rl = (r * l).sum(-1)  # cos of the angle between r and l, (h, h, w)
     k = torch.clamp(rl, min=0.0)
@@ -674,7 +720,9 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         nv = torch.clamp(nodes[i0 : i0 + rows], min=1e-4)  # grazing floor: n·v = 0 is degenerate
         m = nv.shape[0]
         shape = (m, res, samples)
-        v = torch.stack((torch.sqrt(1.0 - nv * nv), torch.zeros_like(nv), nv), dim=-1)[:, None, None, :].expand(*shape, 3)
+        v = torch.stack((torch.sqrt(1.0 - nv * nv), torch.zeros_like(nv), nv), dim=-1)[
+            :, None, None, :
+        ].expand(*shape, 3)
         n = torch.tensor([0.0, 0.0, 1.0], dtype=dt).expand(*shape, 3)
         col = nodes[None, :, None, None].expand(*shape, 1)  # roughness (or gloss) per column
         uu = u.expand(*shape, 2)
@@ -692,7 +740,11 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         l = reflect(v, sample_ggx_vndf(v, alpha, alpha, uu))
         pdf = pdf_ggx_reflection(v, l, alpha, alpha)
         ok = pdf > 0
-        wgt = torch.where(ok, torch.clamp(l[..., 2:3], min=0.0) / torch.where(ok, pdf, torch.ones_like(pdf)), torch.zeros_like(pdf))
+        wgt = torch.where(
+            ok,
+            torch.clamp(l[..., 2:3], min=0.0) / torch.where(ok, pdf, torch.ones_like(pdf)),
+            torch.zeros_like(pdf),
+        )
         f_bias = f(l, roughness=col)
         f_full = f(l, roughness=col, base_color=1.0, metallic=1.0)
         table[0, i0 : i0 + m] = mean((f_full - f_bias) * wgt)
@@ -710,13 +762,23 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         lh = dot(l, h)
         pdf = torch.where(lh > 0, pdf_gtr1(h, ac) / (4.0 * torch.clamp(lh, min=1e-30)), torch.zeros_like(lh))
         ok = pdf > 0
-        wgt = torch.where(ok, torch.clamp(l[..., 2:3], min=0.0) / torch.where(ok, pdf, torch.ones_like(pdf)), torch.zeros_like(pdf))
+        wgt = torch.where(
+            ok,
+            torch.clamp(l[..., 2:3], min=0.0) / torch.where(ok, pdf, torch.ones_like(pdf)),
+            torch.zeros_like(pdf),
+        )
         fc = f(l, roughness=0.5, clearcoat=1.0, clearcoat_gloss=col) - f(l, roughness=0.5)
         table[5, i0 : i0 + m] = mean(fc * wgt)
     return table
 
 
-def split_sum_table(*, dtype=torch.float32, device=None, resolution: int = SPLIT_SUM_RESOLUTION, samples: int = SPLIT_SUM_SAMPLES) -> Tensor:
+def split_sum_table(
+    *,
+    dtype=torch.float32,
+    device=None,
+    resolution: int = SPLIT_SUM_RESOLUTION,
+    samples: int = SPLIT_SUM_SAMPLES,
+) -> Tensor:
     """Pre-integrated directional albedos of the principled lobes, computed once and cached.
 
     Channels (:data:`SPLIT_SUM_TABLE_CHANNELS`), each over a ``resolution²`` grid of
@@ -748,7 +810,7 @@ def split_sum_table(*, dtype=torch.float32, device=None, resolution: int = SPLIT
 
 
 def _table_lookup(table: Tensor, nv: Tensor, r: Tensor) -> Tensor:
-    """Bilinear lookup of ``(C, N, N)`` at ``nv``, ``r`` (each ``(P, 1)``, clamped to [0, 1]) -> ``(P, C)``."""
+    """Bilinear lookup of ``(C, N, N)`` at ``nv``, ``r`` (each ``(P, 1)``, clamped) -> ``(P, C)``."""
     c, res, _ = table.shape
     fy = torch.clamp(nv, 0.0, 1.0) * (res - 1)
     fx = torch.clamp(r, 0.0, 1.0) * (res - 1)
@@ -867,7 +929,8 @@ def integrate_environment_split_sum(
         return env.diffuse(n, batch_index) * base
     if kind != "principled":
         raise ValueError(
-            f"env_strategy='split_sum' supports the principled and Lambert BRDFs, not {brdf!r}; use env_strategy='mc'"
+            f"env_strategy='split_sum' supports the principled and Lambert BRDFs, not {brdf!r}; "
+            "use env_strategy='mc'"
         )
     from .principled import active_lobes
 
@@ -880,7 +943,9 @@ def integrate_environment_split_sum(
     tab = _table_lookup(table, nv, r_t)
     lum = luminance(base)
     positive = lum > 0
-    ctint = torch.where(positive, base / torch.where(positive, lum, torch.ones_like(lum)), torch.ones_like(base))
+    ctint = torch.where(
+        positive, base / torch.where(positive, lum, torch.ones_like(lum)), torch.ones_like(base)
+    )
     out = torch.zeros_like(n)
     dielectric = 1.0 - metal
     if "diffuse" in lobes or "subsurface" in lobes:

@@ -81,7 +81,9 @@ class GBuffer:
     def __post_init__(self):
         pos = self.position
         if not isinstance(pos, Tensor):
-            raise TypeError(f"GBuffer: `position` must be a torch.Tensor of shape [B, 3, H, W], got {type(pos).__name__}")
+            raise TypeError(
+                f"GBuffer: `position` must be a torch.Tensor of shape [B, 3, H, W], got {type(pos).__name__}"
+            )
         if not pos.is_floating_point():
             raise TypeError(f"GBuffer: `position` must be floating point, got dtype {pos.dtype}")
         if pos.dim() != 4 or pos.shape[1] != 3:
@@ -93,9 +95,14 @@ class GBuffer:
         if self.mask is not None:
             m = self.mask
             if not isinstance(m, Tensor):
-                raise TypeError(f"GBuffer: `mask` must be a tensor of shape [B, 1, H, W], got {type(m).__name__}")
+                raise TypeError(
+                    f"GBuffer: `mask` must be a tensor of shape [B, 1, H, W], got {type(m).__name__}"
+                )
             if m.dim() != 4 or m.shape[1] != 1 or m.shape[0] not in (1, b) or tuple(m.shape[2:]) != (h, w):
-                raise ValueError(f"GBuffer: `mask` must have shape [{b}, 1, {h}, {w}] (batch 1 broadcasts), got {_shape(m)}")
+                raise ValueError(
+                    f"GBuffer: `mask` must have shape [{b}, 1, {h}, {w}] (batch 1 broadcasts), "
+                    f"got {_shape(m)}"
+                )
             if m.device != pos.device:
                 raise ValueError(f"GBuffer: `mask` is on {m.device} but `position` is on {pos.device}")
         cam = self.camera_position
@@ -104,15 +111,23 @@ class GBuffer:
                 cam = torch.as_tensor(cam, dtype=pos.dtype, device=pos.device)
                 object.__setattr__(self, "camera_position", cam)
             else:
-                raise TypeError(f"GBuffer: `camera_position` must be a tensor of shape [3] or [B, 3], got {type(cam).__name__}")
+                raise TypeError(
+                    "GBuffer: `camera_position` must be a tensor of shape [3] or [B, 3], "
+                    f"got {type(cam).__name__}"
+                )
         if not cam.is_floating_point():
             raise TypeError(f"GBuffer: `camera_position` must be floating point, got dtype {cam.dtype}")
         if not (cam.shape == (3,) or (cam.dim() == 2 and cam.shape[1] == 3 and cam.shape[0] in (1, b))):
             raise ValueError(f"GBuffer: `camera_position` must have shape [3] or [{b}, 3], got {_shape(cam)}")
         if cam.device != pos.device:
-            raise ValueError(f"GBuffer: `camera_position` is on {cam.device} but `position` is on {pos.device}")
+            raise ValueError(
+                f"GBuffer: `camera_position` is on {cam.device} but `position` is on {pos.device}"
+            )
         if not isinstance(self.material, Mapping):
-            raise TypeError(f"GBuffer: `material` must be a dict of name -> map or float, got {type(self.material).__name__}")
+            raise TypeError(
+                "GBuffer: `material` must be a dict of name -> map or float, "
+                f"got {type(self.material).__name__}"
+            )
         mat = {}
         for name, value in self.material.items():
             mat[name] = self._check_material(name, value)
@@ -123,14 +138,21 @@ class GBuffer:
         pos = self.position
         b, _, h, w = pos.shape
         if not isinstance(t, Tensor):
-            raise TypeError(f"GBuffer: `{name}` must be a torch.Tensor of shape [B, {channels}, H, W], got {type(t).__name__}")
+            raise TypeError(
+                f"GBuffer: `{name}` must be a torch.Tensor of shape [B, {channels}, H, W], "
+                f"got {type(t).__name__}"
+            )
         if not t.is_floating_point():
             raise TypeError(f"GBuffer: `{name}` must be floating point, got dtype {t.dtype}")
-        if t.dim() != 4 or t.shape[1] != channels or tuple(t.shape[2:]) != (h, w) or (
-            t.shape[0] != b if exact_batch else t.shape[0] not in (1, b)
+        if (
+            t.dim() != 4
+            or t.shape[1] != channels
+            or tuple(t.shape[2:]) != (h, w)
+            or (t.shape[0] != b if exact_batch else t.shape[0] not in (1, b))
         ):
             raise ValueError(
-                f"GBuffer: `{name}` must have shape [{b}, {channels}, {h}, {w}] to match `position` {_shape(pos)}, got {_shape(t)}"
+                f"GBuffer: `{name}` must have shape [{b}, {channels}, {h}, {w}] to match `position` "
+                f"{_shape(pos)}, got {_shape(t)}"
             )
         if t.device != pos.device:
             raise ValueError(f"GBuffer: `{name}` is on {t.device} but `position` is on {pos.device}")
@@ -138,7 +160,9 @@ class GBuffer:
     def _check_material(self, name: str, value):
         where = f"GBuffer: material[{name!r}]"
         if isinstance(value, bool) or not isinstance(value, (numbers.Real, Tensor)):
-            raise TypeError(f"{where} must be a [B, C, H, W] tensor, a 0-d tensor or a float, got {type(value).__name__}")
+            raise TypeError(
+                f"{where} must be a [B, C, H, W] tensor, a 0-d tensor or a float, got {type(value).__name__}"
+            )
         if isinstance(value, numbers.Real):
             return float(value)
         if not value.is_floating_point():
@@ -163,7 +187,10 @@ class GBuffer:
         )
         if not ok:
             c = "/".join(str(a) for a in allowed)
-            raise ValueError(f"{where} must have shape [{b}, {c}, {h}, {w}] (batch and H, W of 1 broadcast), got {_shape(value)}")
+            raise ValueError(
+                f"{where} must have shape [{b}, {c}, {h}, {w}] (batch and H, W of 1 broadcast), "
+                f"got {_shape(value)}"
+            )
         return value
 
     # ------------------------------------------------------------------ properties

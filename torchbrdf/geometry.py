@@ -114,7 +114,10 @@ def sphere_gbuffer(
     ctr = _vec(center, dtype, device)
     dist = float(torch.linalg.norm(c - ctr))
     if dist <= radius:
-        raise ValueError(f"sphere_gbuffer: `camera_position` must be outside the sphere (distance {dist:g} <= radius {radius:g})")
+        raise ValueError(
+            "sphere_gbuffer: `camera_position` must be outside the sphere "
+            f"(distance {dist:g} <= radius {radius:g})"
+        )
     if fov_degrees is None:
         fov_degrees = 2.0 * math.degrees(math.asin(radius / dist)) * 1.1
     d = pinhole_rays(height, width, c, ctr, up, fov_degrees, dtype=dtype, device=device)  # (H, W, 3)
@@ -184,9 +187,16 @@ def plane_gbuffer(
         tensor([0., 0., 1.])
     """
     if normal_map is not None:
-        if not isinstance(normal_map, Tensor) or normal_map.dim() != 4 or normal_map.shape[1] != 3 or tuple(normal_map.shape[2:]) != (height, width):
+        if (
+            not isinstance(normal_map, Tensor)
+            or normal_map.dim() != 4
+            or normal_map.shape[1] != 3
+            or tuple(normal_map.shape[2:]) != (height, width)
+        ):
             shape = list(normal_map.shape) if isinstance(normal_map, Tensor) else type(normal_map).__name__
-            raise ValueError(f"plane_gbuffer: `normal_map` must have shape [B, 3, {height}, {width}], got {shape}")
+            raise ValueError(
+                f"plane_gbuffer: `normal_map` must have shape [B, 3, {height}, {width}], got {shape}"
+            )
         dtype = dtype or normal_map.dtype
         device = device if device is not None else normal_map.device
         batch_size = batch_size or normal_map.shape[0]
@@ -194,7 +204,13 @@ def plane_gbuffer(
     b = batch_size or 1
     xs = -1.0 + (torch.arange(width, dtype=dtype, device=device) + 0.5) * (2.0 / width)
     ys = 1.0 - (torch.arange(height, dtype=dtype, device=device) + 0.5) * (2.0 / height)
-    pos = torch.stack((xs[None, :].expand(height, width), ys[:, None].expand(height, width), torch.zeros(height, width, dtype=dtype, device=device)))
+    pos = torch.stack(
+        (
+            xs[None, :].expand(height, width),
+            ys[:, None].expand(height, width),
+            torch.zeros(height, width, dtype=dtype, device=device),
+        )
+    )
     pos = pos.unsqueeze(0).expand(b, 3, height, width).contiguous()
     if normal_map is None:
         normal = torch.zeros(b, 3, height, width, dtype=dtype, device=device)

@@ -20,7 +20,16 @@ __all__ = ["lambert", "LambertBRDF"]
 INV_PI = 1.0 / math.pi
 
 
-def lambert(l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None, *, base_color, **ignored) -> Tensor:
+def lambert(
+    l: Tensor,
+    v: Tensor,
+    n: Tensor,
+    x: Tensor | None = None,
+    y: Tensor | None = None,
+    *,
+    base_color,
+    **ignored,
+) -> Tensor:
     """Lambertian BRDF value ``base_color / π`` (without the ``n·l`` cosine).
 
     Args:

@@ -36,7 +36,9 @@ def _to_tensor(name: str, owner: str, value) -> Tensor:
     try:
         return torch.as_tensor(value, dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError):
-        raise TypeError(f"{owner}: `{name}` must be a tensor or a sequence of numbers, got {type(value).__name__}") from None
+        raise TypeError(
+            f"{owner}: `{name}` must be a tensor or a sequence of numbers, got {type(value).__name__}"
+        ) from None
 
 
 class Light(nn.Module):
@@ -88,8 +90,15 @@ class PointLight(Light):
         super().__init__()
         pos = self._vec3("position", position)
         inten = self._vec3("intensity", intensity, allow_scalar=True)
-        if pos.dim() == 2 and inten.dim() == 2 and pos.shape[0] != inten.shape[0] and 1 not in (pos.shape[0], inten.shape[0]):
-            raise ValueError(f"PointLight: `position` batch {pos.shape[0]} and `intensity` batch {inten.shape[0]} differ")
+        if (
+            pos.dim() == 2
+            and inten.dim() == 2
+            and pos.shape[0] != inten.shape[0]
+            and 1 not in (pos.shape[0], inten.shape[0])
+        ):
+            raise ValueError(
+                f"PointLight: `position` batch {pos.shape[0]} and `intensity` batch {inten.shape[0]} differ"
+            )
         self._store("position", pos)
         self._store("intensity", inten)
 
@@ -97,6 +106,7 @@ class PointLight(Light):
         return [self.position, self.intensity]
 
     def extra_repr(self) -> str:
+        """Parameter shapes, for ``repr``."""
         return f"position={list(self.position.shape)}, intensity={list(self.intensity.shape)}"
 
 
@@ -119,7 +129,9 @@ class DirectionalLight(Light):
         d = self._vec3("direction", direction)
         e = self._vec3("irradiance", irradiance, allow_scalar=True)
         if d.dim() == 2 and e.dim() == 2 and d.shape[0] != e.shape[0] and 1 not in (d.shape[0], e.shape[0]):
-            raise ValueError(f"DirectionalLight: `direction` batch {d.shape[0]} and `irradiance` batch {e.shape[0]} differ")
+            raise ValueError(
+                f"DirectionalLight: `direction` batch {d.shape[0]} and `irradiance` batch {e.shape[0]} differ"
+            )
         self._store("direction", d)
         self._store("irradiance", e)
 
@@ -127,6 +139,7 @@ class DirectionalLight(Light):
         return [self.direction, self.irradiance]
 
     def extra_repr(self) -> str:
+        """Parameter shapes, for ``repr``."""
         return f"direction={list(self.direction.shape)}, irradiance={list(self.irradiance.shape)}"
 
 
@@ -149,7 +162,10 @@ class EnvironmentLight(Light):
         super().__init__()
         r = _to_tensor("radiance", "EnvironmentLight", radiance)
         if not (r.dim() in (3, 4) and r.shape[-3] == 3 and r.shape[-1] >= 1 and r.shape[-2] >= 1):
-            raise ValueError(f"EnvironmentLight: `radiance` must have shape [3, He, We] or [B, 3, He, We], got {list(r.shape)}")
+            raise ValueError(
+                "EnvironmentLight: `radiance` must have shape [3, He, We] or [B, 3, He, We], "
+                f"got {list(r.shape)}"
+            )
         self._store("radiance", r)
         # Split-sum preparation of a map that does not require grad, keyed by its version.
         self._split_sum_cache: tuple | None = None
@@ -171,4 +187,5 @@ class EnvironmentLight(Light):
         return self.radiance.shape[-1]
 
     def extra_repr(self) -> str:
+        """Parameter shapes, for ``repr``."""
         return f"radiance={list(self.radiance.shape)}"

@@ -268,7 +268,9 @@ def sample_ggx_vndf(v_local: Tensor, alpha_x, alpha_y, u: Tensor) -> Tensor:
     p2 = (1.0 - s) * torch.sqrt(torch.clamp(1.0 - p1 * p1, min=0.0)) + s * p2
     nh = p1 * t1 + p2 * t2 + torch.sqrt(torch.clamp(1.0 - p1 * p1 - p2 * p2, min=0.0)) * vh
     return safe_normalize(
-        torch.cat((alpha_x * nh[..., 0:1], alpha_y * nh[..., 1:2], torch.clamp(nh[..., 2:3], min=0.0)), dim=-1)
+        torch.cat(
+            (alpha_x * nh[..., 0:1], alpha_y * nh[..., 1:2], torch.clamp(nh[..., 2:3], min=0.0)), dim=-1
+        )
     )
 
 
@@ -386,7 +388,7 @@ def latlong_directions(height: int, width: int, *, dtype=None, device=None) -> T
 
 
 def latlong_row_solid_angles(height: int, width: int, *, dtype=None, device=None) -> Tensor:
-    """Exact solid angle of one texel in each row: ``(2π / width)(cos θ_top - cos θ_bottom)``, ``(height,)``."""
+    """Exact solid angle of one texel per row, ``(2π / width)(cos θ_top - cos θ_bottom)``: ``(height,)``."""
     dtype = dtype or torch.get_default_dtype()
     edges = torch.arange(height + 1, dtype=torch.float64, device=device) * (math.pi / height)
     c = torch.cos(edges)
@@ -433,7 +435,9 @@ class LatLongSampler:
         if r.dim() == 3:
             r = r.unsqueeze(0)
         if r.dim() != 4 or r.shape[1] != 3:
-            raise ValueError(f"radiance: expected shape [B, 3, H, W] or [3, H, W], got {list(radiance.shape)}")
+            raise ValueError(
+                f"radiance: expected shape [B, 3, H, W] or [3, H, W], got {list(radiance.shape)}"
+            )
         b, _, h, w = r.shape
         self.batch, self.height, self.width = b, h, w
         dtype = r.dtype

@@ -41,8 +41,8 @@ from .envmap import (
     PREFILTER_ROUGHNESS,
     SplitSumEnvironment,
     _as_bhwc,
-    _MCSetup,
     _mc_pass,
+    _MCSetup,
     brdf_kind,
     integrate_environment_split_sum,
     sampling_lobes_for,
@@ -175,7 +175,8 @@ def _as_light_list(lights) -> list[Light]:
     for i, light in enumerate(out):
         if not isinstance(light, (PointLight, DirectionalLight, EnvironmentLight)):
             raise TypeError(
-                f"shade: lights[{i}] must be a PointLight, DirectionalLight or EnvironmentLight, got {type(light).__name__}"
+                f"shade: lights[{i}] must be a PointLight, DirectionalLight or EnvironmentLight, "
+                f"got {type(light).__name__}"
             )
     return out
 
@@ -249,7 +250,7 @@ def _inspect_material(material: dict, prune: bool, cd: torch.dtype):
             vd = v.detach()
             if not bool(vd.any()):
                 values[name] = 0.0
-                desc[name] = f"all zeros, no grad -> 0.0 ({'0-d' if v.dim() == 0 else list(v.shape)}), lobe pruned"
+                desc[name] = f"all zeros, no grad -> Python 0.0 ({'0-d' if v.dim() == 0 else list(v.shape)})"
                 continue
             if v.dim() == 0:
                 values[name] = float(vd)
@@ -284,25 +285,35 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
         raise ValueError(f"shade: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
     if isinstance(env_samples, bool) or not isinstance(env_samples, numbers.Integral) or env_samples < 1:
         raise ValueError(f"shade: `env_samples` must be a positive int, got {env_samples!r}")
-    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, numbers.Integral) or chunk < 1):
+    if chunk is not None and (
+        isinstance(chunk, bool) or not isinstance(chunk, numbers.Integral) or chunk < 1
+    ):
         raise ValueError(f"shade: `chunk` must be None or a positive int (pixels per pass), got {chunk!r}")
     brdf = _default_brdf() if brdf is None else brdf
     if not callable(brdf):
-        raise TypeError(f"shade: `brdf` must be callable with the principled signature, got {type(brdf).__name__}")
+        raise TypeError(
+            f"shade: `brdf` must be callable with the principled signature, got {type(brdf).__name__}"
+        )
     b, h, w = gbuf.shape
     for i, light in enumerate(lights):
         lb = light.batch_size
         if lb is not None and lb not in (1, b):
             raise ValueError(
-                f"shade: lights[{i}] ({type(light).__name__}) has per-batch parameters for {lb} images, but the g-buffer holds {b}"
+                f"shade: lights[{i}] ({type(light).__name__}) has per-batch parameters for {lb} images, "
+                f"but the g-buffer holds {b}"
             )
     dt = gbuf.dtype
     cd = compute_dtype(dt)
     dev = gbuf.device
     kind = brdf_kind(brdf)
-    if env_strategy == "split_sum" and kind == "custom" and any(isinstance(x, EnvironmentLight) for x in lights):
+    if (
+        env_strategy == "split_sum"
+        and kind == "custom"
+        and any(isinstance(x, EnvironmentLight) for x in lights)
+    ):
         raise ValueError(
-            f"shade: env_strategy='split_sum' supports the principled and Lambert BRDFs, not {_brdf_name(brdf)}; use 'mc'"
+            "shade: env_strategy='split_sum' supports the principled and Lambert BRDFs, "
+            f"not {_brdf_name(brdf)}; use 'mc'"
         )
 
     # ---- which pixels
@@ -343,9 +354,13 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
     for i, light in enumerate(lights):
         batched = "per-batch" if light.batch_size not in (None, 1) else "shared"
         if isinstance(light, PointLight):
-            light_desc.append(f"[{i}] point light ({batched}): f·I·max(n·l,0)/|q-P|², 1 BRDF evaluation per pixel")
+            light_desc.append(
+                f"[{i}] point light ({batched}): f·I·max(n·l,0)/|q-P|², 1 BRDF evaluation per pixel"
+            )
         elif isinstance(light, DirectionalLight):
-            light_desc.append(f"[{i}] directional light ({batched}): f·E·max(n·l,0), 1 BRDF evaluation per pixel")
+            light_desc.append(
+                f"[{i}] directional light ({batched}): f·E·max(n·l,0), 1 BRDF evaluation per pixel"
+            )
         else:
             light_desc.append(f"[{i}] environment {list(light.radiance.shape)} ({batched}): {env_strategy}")
     chunk_px = p_count if chunk is None else min(int(chunk), max(p_count, 1))
@@ -366,7 +381,12 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
         for light in envs:
             # Pixel-major, so a pixel's pattern depends only on its index (not on B or masks).
             shifts = torch.rand((n_total, 2, 2), generator=g, dtype=cd, device=dev)
-            setup = _MCSetup(light.radiance, int(env_samples), pixels.gather_cl(shifts[:, 0]), pixels.gather_cl(shifts[:, 1]))
+            setup = _MCSetup(
+                light.radiance.to(device=dev),
+                int(env_samples),
+                pixels.gather_cl(shifts[:, 0]),
+                pixels.gather_cl(shifts[:, 1]),
+            )
             mc_setups.append(setup)
             per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(chunk_px, 1))
             for total in (setup.n_brdf, setup.n_map):
@@ -375,12 +395,20 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
             env_evals += p_count * int(env_samples)
             parts.append(
                 f"{setup.n_brdf} BRDF-sampled ({' + '.join(names[k] for k in samp_names)})"
-                + (f" + {setup.n_map} map-sampled, power-heuristic MIS" if setup.n_map else " (constant map: no map sampling)")
+                + (
+                    f" + {setup.n_map} map-sampled, power-heuristic MIS"
+                    if setup.n_map
+                    else " (constant map: no map sampling)"
+                )
             )
-        env_desc = "Monte Carlo, stratified (rotated Hammersley), seed %s: %s per pixel" % (seed, "; ".join(parts))
+        env_desc = "Monte Carlo, stratified (rotated Hammersley), seed %s: %s per pixel" % (
+            seed,
+            "; ".join(parts),
+        )
     elif envs:
         env_desc = (
-            f"split sum: irradiance map + {len(PREFILTER_ROUGHNESS)} GGX-prefiltered levels + (n·v, roughness) table;"
+            f"split sum: irradiance map + {len(PREFILTER_ROUGHNESS)} GGX-prefiltered levels"
+            " + (n·v, roughness) table;"
             " no BRDF evaluations"
         )
         env_passes = n_slices * len(envs)
@@ -388,7 +416,11 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
     brdf_evals = p_count * (len(points) + len(dirs)) + env_evals
     lobe_cost = sum(_LOBE_COST[x] for x in lobes) if lobes is not None else 4.0
     passes = n_slices * (len(points) + len(dirs)) + env_passes
-    elements_per_pass = chunk_px if not (envs and env_strategy == "mc") else max(chunk_px, min(ENV_ELEMENTS_PER_PASS, chunk_px * int(env_samples)))
+    elements_per_pass = (
+        chunk_px
+        if not (envs and env_strategy == "mc")
+        else max(chunk_px, min(ENV_ELEMENTS_PER_PASS, chunk_px * int(env_samples)))
+    )
     itemsize = torch.finfo(cd).bits // 8
     est = int(elements_per_pass * lobe_cost * _BYTES_PER_ELEMENT_COST * itemsize / 4)
     est += int(p_count * itemsize * 3 * (4 + len([v for v in values.values() if isinstance(v, Tensor)])))
@@ -436,12 +468,19 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
                 x, y = gram_schmidt(n, pixels.gather(gbuf.tangent.to(cd)))
             else:
                 x, y = frame_from_normal(n)
-        mat = {k: (pixels.gather(val) if isinstance(val, Tensor) and val.dim() == 4 else val) for k, val in values.items()}
+        mat = {
+            k: (pixels.gather(val) if isinstance(val, Tensor) and val.dim() == 4 else val)
+            for k, val in values.items()
+        }
         light_params = []
         for light in points:
-            light_params.append(("point", light.position.to(device=dev, dtype=cd), light.intensity.to(device=dev, dtype=cd)))
+            light_params.append(
+                ("point", light.position.to(device=dev, dtype=cd), light.intensity.to(device=dev, dtype=cd))
+            )
         for light in dirs:
-            light_params.append(("dir", light.direction.to(device=dev, dtype=cd), light.irradiance.to(device=dev, dtype=cd)))
+            light_params.append(
+                ("dir", light.direction.to(device=dev, dtype=cd), light.irradiance.to(device=dev, dtype=cd))
+            )
         env_inputs = []
         for i, light in enumerate(envs):
             rad = light.radiance.to(device=dev, dtype=cd)
@@ -456,11 +495,17 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
             e = min(s + chunk_px, p_count)
 
             def sl(t, s=s, e=e):
-                return t[s:e] if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == p_count and p_count > 1 else t
+                return (
+                    t[s:e]
+                    if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == p_count and p_count > 1
+                    else t
+                )
 
             pos_s, n_s, v_s, bidx_s = sl(pos), sl(n), sl(v), sl(bidx)
             x_s, y_s = (sl(x), sl(y)) if need_frame else (None, None)
-            mat_s = {k: (sl(val) if isinstance(val, Tensor) and val.dim() == 2 else val) for k, val in mat.items()}
+            mat_s = {
+                k: (sl(val) if isinstance(val, Tensor) and val.dim() == 2 else val) for k, val in mat.items()
+            }
             # One accumulator per chunk, updated in place: a fresh sum per light would land on
             # top of the heap each time and fragment it (freed pages stay resident).
             acc = pos_s.new_zeros(e - s, 3)
@@ -481,12 +526,35 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
                         for start in range(0, total, k):
                             count = min(k, total - start)
                             term = _pass(
-                                (e - s) * count, _mc_pass, brdf, slobes, n_s, v_s, x_s, y_s, mat_s, env_data, eb, setup,
-                                technique, start, count, sl(shift),
+                                (e - s) * count,
+                                _mc_pass,
+                                brdf,
+                                slobes,
+                                n_s,
+                                v_s,
+                                x_s,
+                                y_s,
+                                mat_s,
+                                env_data,
+                                eb,
+                                setup,
+                                technique,
+                                start,
+                                count,
+                                sl(shift),
                             )
                             acc.add_(term)
                 else:
-                    term = _pass(e - s, integrate_environment_split_sum, brdf, n_s, v_s, env_data, mat_s, batch_index=eb)
+                    term = _pass(
+                        e - s,
+                        integrate_environment_split_sum,
+                        brdf,
+                        n_s,
+                        v_s,
+                        env_data,
+                        mat_s,
+                        batch_index=eb,
+                    )
                     acc.add_(term)
             if not acc.requires_grad and pos_s.requires_grad:
                 acc = acc + 0.0 * pos_s  # no lights: keep the graph connected (zero gradients)
@@ -517,7 +585,7 @@ def _split_sum_env(light: EnvironmentLight, rad: Tensor, cd) -> SplitSumEnvironm
 
 
 def _load_malloc_trim():
-    """glibc's ``malloc_trim`` through ctypes, or ``None`` where it does not exist."""
+    """Glibc's ``malloc_trim`` through ctypes, or ``None`` where it does not exist."""
     try:
         import ctypes
         import ctypes.util
@@ -565,7 +633,12 @@ def _pass(elements: int, fn, *args, **kwargs):
     if not torch.is_grad_enabled():
         return fn(*args, **kwargs)
     out = checkpoint(fn, *args, use_reentrant=False, **kwargs)
-    if _MALLOC_TRIM is not None and out.requires_grad and out.device.type == "cpu" and elements >= TRIM_MIN_ELEMENTS:
+    if (
+        _MALLOC_TRIM is not None
+        and out.requires_grad
+        and out.device.type == "cpu"
+        and elements >= TRIM_MIN_ELEMENTS
+    ):
         # The small autograd records of this pass were allocated among the freed
         # intermediates; give the freed pages back now and again before its backward.
         _MALLOC_TRIM(0)
@@ -709,7 +782,9 @@ class Shader(nn.Module):
         torch.Size([1, 3, 8, 8])
     """
 
-    def __init__(self, brdf=None, *, env_strategy="mc", env_samples=DEFAULT_ENV_SAMPLES, seed=0, chunk=None, prune=True):
+    def __init__(
+        self, brdf=None, *, env_strategy="mc", env_samples=DEFAULT_ENV_SAMPLES, seed=0, chunk=None, prune=True
+    ):
         super().__init__()
         if env_strategy not in ENV_STRATEGIES:
             raise ValueError(f"Shader: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
@@ -721,7 +796,13 @@ class Shader(nn.Module):
         self.prune = prune
 
     def _kwargs(self):
-        return dict(env_strategy=self.env_strategy, env_samples=self.env_samples, seed=self.seed, chunk=self.chunk, prune=self.prune)
+        return dict(
+            env_strategy=self.env_strategy,
+            env_samples=self.env_samples,
+            seed=self.seed,
+            chunk=self.chunk,
+            prune=self.prune,
+        )
 
     def forward(self, gbuf: GBuffer, lights) -> Tensor:
         """Shade ``gbuf`` under ``lights``; see :func:`shade`."""
@@ -732,5 +813,9 @@ class Shader(nn.Module):
         return plan(gbuf, lights, self.brdf, **self._kwargs())
 
     def extra_repr(self) -> str:
+        """Options, for ``repr``."""
         name = "principled" if self.brdf is None else _brdf_name(self.brdf)
-        return f"brdf={name}, env_strategy={self.env_strategy!r}, env_samples={self.env_samples}, chunk={self.chunk}"
+        return (
+            f"brdf={name}, env_strategy={self.env_strategy!r}, env_samples={self.env_samples}, "
+            f"chunk={self.chunk}"
+        )
