@@ -7,7 +7,7 @@ the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-
 ``(B, C, H, W)`` linear values. Every function keeps the dtype and device it is given.
 """
 
-from . import analysis, diffuse, distributions, fresnel, io, masking, measured, plots
+from . import analysis, diffuse, distributions, envmap, fresnel, io, masking, measured, plots, sampling
 from .analysis import (
     Estimate,
     albedo_curve,
@@ -62,6 +62,11 @@ from .io import read_exr, to_display, write_exr, write_png
 from .measured import MERLBRDF, merl_coordinates, read_merl, write_merl
 from .microfacet import MicrofacetBRDF, microfacet
 from .capture_model import SVBRDFGGX, svbrdf_ggx
+from .gbuffer import GBuffer
+from .geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
+from .lambert import LambertBRDF, lambert
+from .lights import DirectionalLight, EnvironmentLight, PointLight
+from .shading import Shader, ShadingPlan, plan, shade
 from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, principled
 from .smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
 
@@ -70,6 +75,21 @@ __version__ = "0.1.0"
 __all__ = [
     "principled",
     "PrincipledBRDF",
+    "GBuffer",
+    "shade",
+    "plan",
+    "Shader",
+    "ShadingPlan",
+    "PointLight",
+    "DirectionalLight",
+    "EnvironmentLight",
+    "lambert",
+    "LambertBRDF",
+    "sphere_gbuffer",
+    "plane_gbuffer",
+    "pinhole_rays",
+    "sampling",
+    "envmap",
     "PRINCIPLED_DEFAULTS",
     "LOBES",
     "microfacet",
