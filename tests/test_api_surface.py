@@ -19,3 +19,33 @@ def test_contract_names_and_signature():
 def test_all_names_exist():
     for name in torchbrdf.__all__:
         assert hasattr(torchbrdf, name), name
+
+
+def test_contract_shading_names():
+    import inspect
+
+    for name in ["GBuffer", "shade", "PointLight", "DirectionalLight", "EnvironmentLight"]:
+        assert name in torchbrdf.__all__, name
+    ps = list(inspect.signature(torchbrdf.GBuffer).parameters)
+    assert ps[:6] == ["position", "normal", "camera_position", "material", "tangent", "mask"]
+    assert list(inspect.signature(torchbrdf.shade).parameters)[:2] == ["gbuf", "lights"]
+
+
+def test_contract_point_light_matches_formula():
+    # Contract §5: radiance = f(l, v) I max(n·l, 0) / |q - P|², v = normalize(C - P).
+    import torch
+
+    P = torch.tensor([0.1, -0.2, 0.0], dtype=torch.float64).view(1, 3, 1, 1)
+    N = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1)
+    C = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+    q = torch.tensor([0.5, 0.3, 2.0], dtype=torch.float64)
+    I = torch.tensor([10.0, 8.0, 6.0], dtype=torch.float64)
+    mat = {"base_color": torch.tensor([0.6, 0.4, 0.2], dtype=torch.float64).view(1, 3, 1, 1), "roughness": 0.4}
+    img = torchbrdf.shade(torchbrdf.GBuffer(position=P, normal=N, camera_position=C, material=mat),
+                          [torchbrdf.PointLight(q, I)])
+    p, n = P.view(3), N.view(3)
+    d = q - p
+    l, v = d / d.norm(), (C - p) / (C - p).norm()
+    f = torchbrdf.principled(l, v, n, base_color=mat["base_color"].view(3), roughness=0.4)
+    expect = f * I * torch.clamp(l @ n, min=0) / (d @ d)
+    torch.testing.assert_close(img.view(3), expect, rtol=1e-10, atol=0)
