@@ -80,7 +80,7 @@ class _Node:
 
     def __init__(self, op, args, kind, attr=None):
         self.op, self.args, self.kind, self.attr = op, tuple(args), kind, attr
-        self.grad = op == "in" or any(isinstance(a, _Node) and a.grad for a in self.args)
+        self.grad = op == "in" or (op != "stopgrad" and any(isinstance(a, _Node) and a.grad for a in self.args))
         self.id = len(_G.nodes)
         _G.nodes.append(self)
 
@@ -273,7 +273,8 @@ def _build_principled(inp: dict, active: tuple, need_tint: bool, frame: bool, hi
     down = tor if hi_double else (lambda t: t)
     lw, vw, nw = [up(c) for c in l], [up(c) for c in v], [up(c) for c in n]
     s = [a + b for a, b in zip(lw, vw)]
-    r = rsqrt(clamp_min(_dot(s, s), NORM_EPS))
+    ssq = clamp_min(_dot(s, s), NORM_EPS)
+    r = rsqrt(ssq)
     h = [c * r for c in s]
     lh_w = clamp(_dot(lw, h), 0.0, 1.0)
     terms = {"nh": _dot(nw, h), "lh": lh_w, "one_minus_lh": 1.0 - lh_w, "sin2_h": _cross_norm2(nw, h)}
@@ -336,12 +337,16 @@ def _build_principled(inp: dict, active: tuple, need_tint: bool, frame: bool, hi
         alpha_t = as_tensor(alpha_c)
         a2 = alpha_t * alpha_t
         base_d = a2 * nh * nh + hg["sin2_h"]
-        near_one = (a2 > 0.5) & (a2 < 2.0)
-        log_a2 = where(near_one, log1p(a2 - 1.0), log(a2))
+        # Eager: log_a2 = where(0.5 < a2 < 2, log1p(a2 - 1), log(a2)); log_t = where(small,
+        # log1p(ts), log_a2). Here one log per lane gives the same selected values: for
+        # 0.5 < a2 < 2, a2 - 1 and 1 + (a2 - 1) are exact, so log1p(a2 - 1) (Goldberg's form,
+        # as tb_log1p computes it) *is* log(a2); and where `small`, the exact branch is
+        # discarded, so its denominator only needs to stay finite and non-zero.
+        log_a2 = log(a2)
         t = a2 - 1.0
         small = absv(t) < _SERIES_EPS
         ts = where(small, 1.0, t)
-        log_t = where(small, log1p(ts), log_a2)
+        log_t = where(small, 1.0, log_a2)
         exact = ts / log_t
         series = 1.0 + t * (0.5 + t * (-1.0 / 12.0 + t / 24.0))
         d = where(small, series, exact) / (math.pi * base_d)
@@ -501,6 +506,8 @@ class _Emitter:
             return f"({a[0]} < {a[1]})"
         if op == "and":
             return "(and-masks are expanded by sel)"
+        if op == "stopgrad":
+            return a[0]
         if op == "tod":
             return f"(double){a[0]}"
         if op == "tor":
@@ -631,7 +638,8 @@ def _generate(spec: "_KernelSpec", backward: bool) -> str:
     body = []
     for j, nd in enumerate(logs):
         names[nd.id] = f"v{nd.id}"
-    emit([nd for nd in order if nd.op not in ("log", "log1p")], body)
+    cut = {nd.id for nd in logs}
+    emit([nd for nd in order if nd.id not in cut], body)
     body = [f"const {em.t(nd.kind)} v{nd.id} = lg{j}[i - b0];" for j, nd in enumerate(logs)] + body
 
     ntens = len(spec.tensors)
@@ -680,7 +688,7 @@ def _generate(spec: "_KernelSpec", backward: bool) -> str:
         "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
         sig + " {",
         *("  " + d for d in decl),
-        "  #pragma omp parallel for schedule(static) num_threads(nthreads)",
+        "  #pragma omp parallel for schedule(dynamic, 8) num_threads(nthreads)",
         f"  for (long b0 = 0; b0 < n; b0 += {_BLOCK}) {{",
         f"    const long b1 = b0 + {_BLOCK} < n ? b0 + {_BLOCK} : n;",
         *(f"    {'float' if nd.kind == 'r' and spec.ctype == 'float' else 'double'} lg{j}[{_BLOCK}];"
