@@ -395,6 +395,9 @@ _PRELUDE = r"""
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 /* Natural log for positive normal doubles, branch-free so the lane loop vectorises
    (a libm call would not): log(m 2^e) = e ln2 + 2 atanh((m-1)/(m+1)), m in [sqrt(1/2), sqrt(2)),
    series to z^10 (|z| <= 0.0295): error a few ulp of double. */
@@ -646,7 +649,7 @@ def _generate(spec: "_KernelSpec", backward: bool) -> str:
     decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(ntens)]
     if not backward:
         for c, o in enumerate(outs):
-            body.append(f"out[i * 3 + {c}] = {v(o)};")
+            body.append(f"ob{c}[i - b0] = {v(o)};")
         sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
     else:
         gsl, gsc = spec.go_strides
@@ -695,14 +698,56 @@ def _generate(spec: "_KernelSpec", backward: bool) -> str:
           for j, nd in enumerate(logs)),
         *(["    #pragma GCC ivdep", "    for (long i = b0; i < b1; ++i) {", *("      " + b for b in pre), "    }"]
           if logs else []),
+        *([f"    R ob0[{_BLOCK}], ob1[{_BLOCK}], ob2[{_BLOCK}];"] if not backward else []),
         "    #pragma GCC ivdep",
         "    for (long i = b0; i < b1; ++i) {",
         *("      " + b for b in body),
         "    }",
+        *(_store_block(spec.ctype) if not backward else []),
         "  }",
         "}",
     ]
     return "\n".join(src) + "\n"
+
+
+def _interleave_indices(k: int) -> tuple[list, list]:
+    """permutex2var indices building the k-th 16-float vector of an RGB-interleaved block."""
+    first, second = [], []
+    for e in range(16):
+        j, ch = divmod(16 * k + e, 3)
+        first.append(j if ch == 0 else (16 + j if ch == 1 else 0))
+        second.append(16 + j if ch == 2 else e)
+    return first, second
+
+
+def _store_block(ctype: str) -> list:
+    """Write a block's three planar output channels interleaved into ``out``.
+
+    float32 with AVX-512: the interleave is done with two permutes per vector and written with
+    streaming stores (the output is not read back; skipping the read-for-ownership saves ~10 %
+    of the forward's memory traffic). Otherwise a plain loop.
+    """
+    plain = ["    for (long i = b0; i < b1; ++i) {",
+             "      out[i * 3 + 0] = ob0[i - b0]; out[i * 3 + 1] = ob1[i - b0]; out[i * 3 + 2] = ob2[i - b0];",
+             "    }"]
+    if ctype != "float":
+        return plain
+    lines = ["#if defined(__AVX512F__)",
+             f"    if (b1 - b0 == {_BLOCK} && (((uintptr_t)(out + 3 * b0)) & 63) == 0) {{"]
+    for k in range(3):
+        a, b = _interleave_indices(k)
+        lines.append(f"      const __m512i I{k} = _mm512_set_epi32({', '.join(str(x) for x in reversed(a))});")
+        lines.append(f"      const __m512i J{k} = _mm512_set_epi32({', '.join(str(x) for x in reversed(b))});")
+    lines += [f"      for (long j = 0; j < {_BLOCK}; j += 16) {{",
+              "        const __m512 a = _mm512_loadu_ps(ob0 + j), b = _mm512_loadu_ps(ob1 + j), c = _mm512_loadu_ps(ob2 + j);",
+              *(f"        _mm512_stream_ps(out + 3 * (b0 + j) + {16 * k}, "
+                f"_mm512_permutex2var_ps(_mm512_permutex2var_ps(a, I{k}, b), J{k}, c));" for k in range(3)),
+              "      }",
+              "      _mm_sfence();",
+              "    } else",
+              "#endif",
+              "    {", *("  " + x for x in plain), "    }"]
+    return lines
 
 
 # ---------------------------------------------------------------------------------------------

@@ -471,9 +471,10 @@ def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
             b()
         # Interleaved repeats; a short pause before each timed call lets the other runtime's
         # worker threads (OpenMP, Dr.Jit) go idle, so neither measurement pays for the other.
-        for _ in range(repeats):
+        for rep in range(repeats):
+            order = list(fns.items()) if rep % 2 == 0 else list(fns.items())[::-1]  # cancel order effects
             for j in (0, 1):
-                for k, fb in fns.items():
+                for k, fb in order:
                     time.sleep(0.05)
                     t0 = time.perf_counter()
                     fb[j]()
@@ -529,6 +530,7 @@ def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256)) -> dict | N
         def err(est):
             return float(((est - ref).abs() / ref.abs().clamp_min(1e-6)).mean())
 
+        mc(torchbrdf.principled, n, v, radiance, material, samples=sample_counts[0], seed=3)  # warm-up
         for s in sample_counts:
             t0 = time.perf_counter()
             est = mc(torchbrdf.principled, n, v, radiance, material, samples=s, seed=11)
@@ -795,7 +797,7 @@ def main(argv=None) -> int:
     log(f"machine: {res['machine']}")
     log(f"fused path available: {importlib.import_module('torchbrdf._fast').available()}; Mitsuba: {mver or 'not installed'}")
     log("head-to-head (default dispatch vs Mitsuba, interleaved):")
-    res["head_to_head"] = head_to_head(head_N, 3 if args.quick else 7, log, mver is not None)
+    res["head_to_head"] = head_to_head(head_N, 4 if args.quick else 10, log, mver is not None)
     if not args.no_memory:
         log("peak memory of forward+backward (fresh subprocesses):")
         whats = ["fast"] + (["eager"] if not args.quick else []) + (["mitsuba"] if mver else [])
