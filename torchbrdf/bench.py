@@ -469,16 +469,18 @@ def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
             b()
             f()
             b()
-        # Interleaved repeats; a short pause before each timed call lets the other runtime's
-        # worker threads (OpenMP, Dr.Jit) go idle, so neither measurement pays for the other.
+        # Alternating blocks: each implementation runs one untimed call (so the other runtime's
+        # worker threads, still spinning after their last job, are not billed to it) and then
+        # a few timed calls back to back, as in an application loop; the order alternates.
         for rep in range(repeats):
-            order = list(fns.items()) if rep % 2 == 0 else list(fns.items())[::-1]  # cancel order effects
+            order = list(fns.items()) if rep % 2 == 0 else list(fns.items())[::-1]
             for j in (0, 1):
                 for k, fb in order:
-                    time.sleep(0.05)
-                    t0 = time.perf_counter()
                     fb[j]()
-                    times[k][j].append(time.perf_counter() - t0)
+                    for _ in range(2):
+                        t0 = time.perf_counter()
+                        fb[j]()
+                        times[k][j].append(time.perf_counter() - t0)
     finally:
         _P.set_fast_path(old)
     res = {k: dict(fwd_rate=N / statistics.median(v[0]), fwdbwd_rate=N / statistics.median(v[1]),
@@ -490,6 +492,41 @@ def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
             res["ratio_fwd" + key] = res["torchbrdf"]["fwd_rate"] / res[name]["fwd_rate"]
             res["ratio_fwdbwd" + key] = res["torchbrdf"]["fwdbwd_rate"] / res[name]["fwdbwd_rate"]
             log(f"  ratio torchbrdf/{name}: fwd x{res['ratio_fwd' + key]:.2f}, fwd+bwd x{res['ratio_fwdbwd' + key]:.2f}")
+    return res
+
+
+def torch_compile_baseline(N: int, repeats: int, log) -> dict:
+    """``torch.compile`` (inductor) of the eager reference path: the alternative to the fused
+    kernels, measured for comparison (its compile time is reported too)."""
+    x = make_inputs(N, torch.float32, seed=8)
+    xg = {k: t.clone().requires_grad_() for k, t in x.items()}
+
+    def f(**kw):
+        return _P._principled_eager(dict(kw), torchbrdf.LOBES)
+
+    cf = torch.compile(f)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        cf(**x)
+    c_fwd = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cf(**xg).sum().backward()
+    c_bwd = time.perf_counter() - t0
+
+    def fwd():
+        with torch.no_grad():
+            cf(**x)
+
+    def fb():
+        for t in xg.values():
+            t.grad = None
+        cf(**xg).sum().backward()
+
+    tf, _ = _median_time(fwd, repeats, 60.0)
+    tb, _ = _median_time(fb, repeats, 60.0)
+    res = dict(N=N, fwd_rate=N / tf, fwdbwd_rate=N / tb, compile_fwd_s=c_fwd, compile_fwdbwd_s=c_bwd)
+    log(f"  torch.compile N=2^{int(math.log2(N))} fwd {N / tf:.3e}/s  fwd+bwd {N / tb:.3e}/s "
+        f"(compile {c_fwd:.0f} s + {c_bwd:.0f} s)")
     return res
 
 
@@ -607,6 +644,10 @@ def write_report(res: dict, out_dir: str, argv) -> None:
             if k in h:
                 L.append(f"| {name} | {h[k]['fwd_rate']:.3e} | {h[k]['fwdbwd_rate']:.3e} |")
         eager = [r for r in res.get("throughput", []) if r["path"] == "eager" and r["dtype"] == "float32"]
+        tc = res.get("torch_compile")
+        if tc:
+            L.append(f"| `torch.compile` of the eager path (inductor; compile {tc['compile_fwd_s']:.0f} s + "
+                     f"{tc['compile_fwdbwd_s']:.0f} s) | {tc['fwd_rate']:.3e} | {tc['fwdbwd_rate']:.3e} |")
         if eager:
             r = max(eager, key=lambda r: r["N"])
             L.append(f"| torchbrdf eager reference path (N = 2^{int(math.log2(r['N']))}) | {r['fwd_rate']:.3e} | {r['fwdbwd_rate']:.3e} |")
@@ -778,6 +819,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-mitsuba", action="store_true")
     ap.add_argument("--no-memory", action="store_true")
     ap.add_argument("--no-env", action="store_true")
+    ap.add_argument("--torch-compile", action="store_true",
+                    help="also measure torch.compile of the eager path at the headline N (~1 min of compiling)")
     ap.add_argument("--out", default="docs")
     args = ap.parse_args(argv)
     sizes = [1 << s for s in (args.sizes or ([12, 14, 16, 18] if args.quick else [12, 14, 16, 18, 20, 22]))]
@@ -798,6 +841,9 @@ def main(argv=None) -> int:
     log(f"fused path available: {importlib.import_module('torchbrdf._fast').available()}; Mitsuba: {mver or 'not installed'}")
     log("head-to-head (default dispatch vs Mitsuba, interleaved):")
     res["head_to_head"] = head_to_head(head_N, 4 if args.quick else 10, log, mver is not None)
+    if args.torch_compile:
+        log("torch.compile baseline:")
+        res["torch_compile"] = torch_compile_baseline(head_N, 3, log)
     if not args.no_memory:
         log("peak memory of forward+backward (fresh subprocesses):")
         whats = ["fast"] + (["eager"] if not args.quick else []) + (["mitsuba"] if mver else [])
