@@ -560,6 +560,7 @@ class _Emitter:
 
 
 _BLOCK = 512  # lanes per block of the kernels' loops (stack buffers of the pre-loop)
+_CHUNK_BLOCKS = 8  # blocks per OpenMP work item (dynamic schedule: a core slowed by other load takes fewer)
 
 
 def _generate(spec: "_KernelSpec", backward: bool) -> str:
@@ -691,7 +692,7 @@ def _generate(spec: "_KernelSpec", backward: bool) -> str:
         "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
         sig + " {",
         *("  " + d for d in decl),
-        "  #pragma omp parallel for schedule(dynamic, 8) num_threads(nthreads)",
+        f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)",
         f"  for (long b0 = 0; b0 < n; b0 += {_BLOCK}) {{",
         f"    const long b1 = b0 + {_BLOCK} < n ? b0 + {_BLOCK} : n;",
         *(f"    {'float' if nd.kind == 'r' and spec.ctype == 'float' else 'double'} lg{j}[{_BLOCK}];"
