@@ -1,0 +1,683 @@
+"""Synthetic multi-light captures with known ground truth (contract §3 and §4).
+
+Three pieces:
+
+* **Procedural materials** (:func:`make_material`): several named recipes built from fractal
+  value noise, tiles, scratches, metal inlays and height fields. Each returns ground-truth
+  maps ``base_color (3, H, W)``, ``roughness``, ``metallic``, ``specular (1, H, W)`` and a
+  tangent-space ``normal (3, H, W)`` (unit, z > 0), all float32 in the capture's pixel layout
+  (row 0 is the +y edge). Deterministic in ``(recipe, seed, size)``.
+* **Light layouts** (:func:`light_layout`, :func:`random_lights`): a ring of point lights
+  plus one beside the camera (a flash), and random lights for held-out evaluation.
+* **The renderer** (:func:`render_capture`): the contract §3 image formation,
+  ``radiance(p) = f(l, v) · I · max(n·l, 0) / |q − p|²`` with ``f`` the principled BRDF evaluated
+  in the normal-mapped frame (tangent by Gram–Schmidt from +X). ``backend="principled"``
+  calls :func:`torchbrdf.principled`; ``backend="compact"`` is a specialised, differentiable
+  diffuse + GGX evaluation of the same formula for the parameters the recovery fits (the
+  other principled parameters at their contract defaults), equal to ``principled`` to float
+  rounding (pinned by ``tests/test_synthetic.py``) and several times faster.
+
+:func:`generate_capture` ties them together and writes a capture folder plus ``gt/`` maps
+named as in contract §4.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchbrdf import principled
+from torchbrdf.io import write_exr, write_png
+
+from .capture import pixel_points, write_capture
+
+__all__ = [
+    "RECIPES",
+    "MAP_NAMES",
+    "DEFAULT_CAMERA",
+    "make_material",
+    "normals_from_height",
+    "light_layout",
+    "random_lights",
+    "render_capture",
+    "compact_principled",
+    "add_noise",
+    "generate_capture",
+    "write_maps",
+    "default_capture",
+]
+
+#: Recipes understood by :func:`make_material`.
+RECIPES = ("tiles", "metal_inlay", "scratched_metal", "painted", "stone", "circuit")
+#: Map names and channel counts of contract §4.
+MAP_NAMES = {"base_color": 3, "roughness": 1, "metallic": 1, "specular": 1, "normal": 3}
+#: Default camera of the generated captures.
+DEFAULT_CAMERA = (0.0, 0.0, 3.0)
+
+# Contract defaults of the principled parameters the recovery does not fit.
+_FIXED_DEFAULTS = {"subsurface": 0.0, "specular_tint": 0.0, "anisotropic": 0.0, "sheen": 0.0, "clearcoat": 0.0}
+_ALPHA_MIN = 1e-3  # torchbrdf.distributions.ALPHA_MIN: floor of alpha = roughness²
+_COS_EPS = 1e-7  # torchbrdf.principled.COS_EPS
+
+
+# --------------------------------------------------------------------------------------
+# Procedural building blocks
+# --------------------------------------------------------------------------------------
+
+
+def _noise(gen: torch.Generator, size: int, cells: int, octaves: int = 4, persistence: float = 0.5) -> Tensor:
+    """Fractal value noise in about [-1, 1], ``(size, size)``; ``cells`` = coarsest grid size."""
+    out = torch.zeros(size, size)
+    amp, total = 1.0, 0.0
+    c = cells
+    for _ in range(octaves):
+        grid = torch.rand(1, 1, c + 1, c + 1, generator=gen) * 2 - 1
+        up = F.interpolate(grid, size=(size, size), mode="bicubic", align_corners=True)[0, 0]
+        out += amp * up
+        total += amp
+        amp *= persistence
+        c *= 2
+        if c > size:
+            break
+    return out / total
+
+
+def _coords(size: int) -> tuple[Tensor, Tensor]:
+    """World x (columns) and y (rows, +y at row 0) of every pixel, each ``(size, size)``."""
+    p = pixel_points(size, size)
+    return p[..., 0], p[..., 1]
+
+
+def _smoothstep(e0: float, e1: float, x: Tensor) -> Tensor:
+    t = torch.clamp((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3 - 2 * t)
+
+
+def _segments_distance(x: Tensor, y: Tensor, seg: Tensor) -> Tensor:
+    """Distance from each pixel to the nearest of ``seg (N, 4)`` segments, ``(H, W)``."""
+    a = seg[:, None, None, 0:2]
+    b = seg[:, None, None, 2:4]
+    p = torch.stack((x, y), dim=-1)[None]
+    ab = b - a
+    t = ((p - a) * ab).sum(-1, keepdim=True) / (ab * ab).sum(-1, keepdim=True).clamp(min=1e-12)
+    q = a + t.clamp(0, 1) * ab
+    return (p - q).norm(dim=-1).min(dim=0).values
+
+
+def _scratches(gen, x, y, count: int, length: tuple[float, float], angle: float | None = None) -> Tensor:
+    """Groove mask in [0, 1] (1 on a scratch), about 1.5 px wide at 256²."""
+    start = torch.rand(count, 2, generator=gen) * 2 - 1
+    if angle is None:
+        ang = torch.rand(count, generator=gen) * math.pi
+    else:
+        ang = angle + (torch.rand(count, generator=gen) - 0.5) * 0.3
+    ln = length[0] + torch.rand(count, generator=gen) * (length[1] - length[0])
+    end = start + torch.stack((ang.cos(), ang.sin()), -1) * ln[:, None]
+    d = _segments_distance(x, y, torch.cat((start, end), -1))
+    width = 0.012
+    return torch.exp(-((d / width) ** 2))
+
+
+def normals_from_height(height: Tensor) -> Tensor:
+    """Tangent-space unit normals ``(3, H, W)`` of a height field ``(H, W)`` over [-1, 1]².
+
+    Heights are in world units; +x runs along columns and +y up the image (toward row 0), so
+    ``n ∝ (-∂h/∂x, -∂h/∂y, 1)`` with central differences (one-sided at the borders).
+    """
+    h, w = height.shape
+    hp = F.pad(height[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    dx = (hp[1:-1, 2:] - hp[1:-1, :-2]) / (2 * 2.0 / w)
+    dy = -(hp[2:, 1:-1] - hp[:-2, 1:-1]) / (2 * 2.0 / h)
+    n = torch.stack((-dx, -dy, torch.ones_like(dx)), 0)
+    return n / n.norm(dim=0, keepdim=True)
+
+
+def _hsv(h: float, s: float, v: float) -> Tensor:
+    """Linear RGB from HSV-like parameters (colour picking only)."""
+    k = torch.tensor([5.0, 3.0, 1.0])
+    c = v - v * s * torch.clamp(torch.minimum((k + h * 6) % 6, 4 - (k + h * 6) % 6), 0, 1)
+    return c
+
+
+def _pick(gen, lo: float, hi: float) -> float:
+    return lo + (hi - lo) * float(torch.rand((), generator=gen))
+
+
+def _rand_color(gen, sat=(0.2, 0.8), val=(0.15, 0.8)) -> Tensor:
+    return _hsv(_pick(gen, 0, 1), _pick(gen, *sat), _pick(gen, *val))
+
+
+_METALS = {  # linear F0 of common metals (approximate)
+    "gold": (1.0, 0.77, 0.34),
+    "copper": (0.95, 0.64, 0.54),
+    "silver": (0.95, 0.93, 0.88),
+    "aluminium": (0.91, 0.92, 0.92),
+    "iron": (0.56, 0.57, 0.58),
+    "brass": (0.91, 0.78, 0.42),
+}
+
+
+def _metal_color(gen) -> Tensor:
+    names = list(_METALS)
+    k = int(torch.randint(len(names), (1,), generator=gen))
+    return torch.tensor(_METALS[names[k]])
+
+
+# --------------------------------------------------------------------------------------
+# Recipes: each returns (base (3,H,W), rough (H,W), metal (H,W), spec (H,W), height (H,W))
+# --------------------------------------------------------------------------------------
+
+
+def _recipe_tiles(gen, size):
+    x, y = _coords(size)
+    n_tiles = int(torch.randint(3, 7, (1,), generator=gen))
+    gx, gy = (x + 1) * n_tiles / 2, (1 - y) * n_tiles / 2
+    fx, fy = gx - gx.floor(), gy - gy.floor()
+    tid = (gy.floor() * n_tiles + gx.floor()).long().clamp(0, n_tiles * n_tiles - 1)
+    edge = torch.minimum(torch.minimum(fx, 1 - fx), torch.minimum(fy, 1 - fy))
+    grout_w = _pick(gen, 0.04, 0.08)
+    tile = _smoothstep(grout_w, grout_w + 0.06, edge)  # 0 in grout, 1 on tile top
+    cols = torch.stack([_rand_color(gen, (0.1, 0.7), (0.2, 0.75)) for _ in range(n_tiles * n_tiles)])
+    rough_t = torch.tensor([_pick(gen, 0.15, 0.45) for _ in range(n_tiles * n_tiles)])
+    spec_t = torch.tensor([_pick(gen, 0.3, 0.7) for _ in range(n_tiles * n_tiles)])
+    grout_col = _rand_color(gen, (0.0, 0.2), (0.15, 0.35))
+    nz = _noise(gen, size, 8)
+    base = cols[tid].permute(2, 0, 1) * (1 + 0.1 * nz) * tile + grout_col[:, None, None] * (1 - tile)
+    rough = (rough_t[tid] + 0.08 * _noise(gen, size, 6)) * tile + 0.85 * (1 - tile)
+    spec = spec_t[tid] * tile + 0.4 * (1 - tile)
+    height = 0.02 * tile + 0.002 * _noise(gen, size, 16, 3)
+    metal = torch.zeros(size, size)
+    return base, rough, metal, spec, height
+
+
+def _recipe_metal_inlay(gen, size):
+    x, y = _coords(size)
+    # Wood-like dielectric: stretched noise stripes.
+    stripes = torch.sin(18 * (y + 0.15 * _noise(gen, size, 4)) + 3 * _noise(gen, size, 8))
+    c0, c1 = _rand_color(gen, (0.4, 0.7), (0.25, 0.5)), _rand_color(gen, (0.4, 0.8), (0.1, 0.3))
+    t = (stripes * 0.5 + 0.5)[None]
+    base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
+    rough = 0.55 + 0.12 * _noise(gen, size, 6)
+    spec = torch.full((size, size), _pick(gen, 0.35, 0.6))
+    # Inlays: discs and bars.
+    mask = torch.zeros(size, size)
+    for _ in range(int(torch.randint(3, 6, (1,), generator=gen))):
+        cx, cy, r = _pick(gen, -0.7, 0.7), _pick(gen, -0.7, 0.7), _pick(gen, 0.12, 0.3)
+        if float(torch.rand((), generator=gen)) < 0.5:
+            d = ((x - cx) ** 2 + (y - cy) ** 2).sqrt() - r
+        else:
+            d = torch.maximum((x - cx).abs() - r * 1.6, (y - cy).abs() - r * 0.35)
+        mask = torch.maximum(mask, (d < 0).float())
+    mcol = _metal_color(gen)
+    mrough = _pick(gen, 0.2, 0.4) + 0.06 * _noise(gen, size, 8)
+    scratch = _scratches(gen, x, y, 25, (0.1, 0.5))
+    base = base * (1 - mask) + mcol[:, None, None] * mask
+    rough = rough * (1 - mask) + (mrough + 0.15 * scratch) * mask
+    height = 0.01 * _smoothstep(-0.5, 0.5, F.avg_pool2d(mask[None, None], 5, 1, 2)[0, 0] * 2 - 1)
+    height = height - 0.004 * scratch * mask + 0.003 * _noise(gen, size, 8, 3)
+    return base, rough, mask, spec, height
+
+
+def _recipe_scratched_metal(gen, size):
+    x, y = _coords(size)
+    mcol = _metal_color(gen)
+    base = mcol[:, None, None] * (1 + 0.05 * _noise(gen, size, 6))[None]
+    rough = _pick(gen, 0.25, 0.45) + 0.1 * _noise(gen, size, 5)
+    ang = _pick(gen, 0, math.pi)
+    scratch = torch.maximum(_scratches(gen, x, y, 40, (0.2, 0.9), angle=ang), _scratches(gen, x, y, 15, (0.1, 0.4)))
+    rough = rough + 0.2 * scratch
+    # Paint chips: dielectric patches where noise is high.
+    paint = (_noise(gen, size, 4) > 0.35).float()
+    pcol = _rand_color(gen, (0.5, 0.9), (0.3, 0.7))
+    base = base * (1 - paint) + pcol[:, None, None] * paint
+    rough = rough * (1 - paint) + 0.6 * paint
+    metal = 1 - paint
+    spec = torch.full((size, size), 0.5)
+    height = 0.006 * paint - 0.004 * scratch + 0.004 * _noise(gen, size, 6, 3)
+    return base, rough, metal, spec, height
+
+
+def _recipe_painted(gen, size):
+    n1, n2 = _noise(gen, size, 3), _noise(gen, size, 5)
+    c = [_rand_color(gen, (0.4, 0.9), (0.2, 0.8)) for _ in range(3)]
+    w1 = _smoothstep(-0.05, 0.05, n1)[None]
+    w2 = _smoothstep(-0.05, 0.05, n2)[None]
+    base = (c[0][:, None, None] * w1 + c[1][:, None, None] * (1 - w1)) * (1 - 0.5 * w2) + c[2][:, None, None] * 0.5 * w2
+    rough = (0.5 + 0.35 * _noise(gen, size, 4)).clamp(0.08, 0.95)
+    spec = (0.5 + 0.25 * _noise(gen, size, 3)).clamp(0, 1)
+    height = 0.006 * _noise(gen, size, 10, 3) + 0.004 * w1[0]
+    return base, rough, torch.zeros(size, size), spec, height
+
+
+def _recipe_stone(gen, size):
+    c0, c1 = _rand_color(gen, (0.0, 0.3), (0.3, 0.7)), _rand_color(gen, (0.0, 0.4), (0.1, 0.4))
+    t = (0.5 + 0.5 * _noise(gen, size, 6, 5))[None]
+    base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
+    rough = (0.75 + 0.15 * _noise(gen, size, 6)).clamp(0, 1)
+    spec = torch.full((size, size), 0.4)
+    height = 0.012 * _noise(gen, size, 12, 4, 0.6)
+    return base, rough, torch.zeros(size, size), spec, height
+
+
+def _recipe_circuit(gen, size):
+    x, y = _coords(size)
+    board = _rand_color(gen, (0.5, 0.9), (0.05, 0.25))
+    base = board[:, None, None] * (1 + 0.1 * _noise(gen, size, 8))[None]
+    rough = torch.full((size, size), _pick(gen, 0.3, 0.5)) + 0.05 * _noise(gen, size, 8)
+    # Traces: axis-aligned bars; pads: squares.
+    mask = torch.zeros(size, size)
+    for _ in range(int(torch.randint(6, 12, (1,), generator=gen))):
+        cx, cy, ln = _pick(gen, -0.8, 0.8), _pick(gen, -0.8, 0.8), _pick(gen, 0.2, 0.9)
+        wd = _pick(gen, 0.03, 0.06)
+        if float(torch.rand((), generator=gen)) < 0.5:
+            m = ((x - cx).abs() < ln / 2) & ((y - cy).abs() < wd)
+        else:
+            m = ((y - cy).abs() < ln / 2) & ((x - cx).abs() < wd)
+        mask = torch.maximum(mask, m.float())
+    mcol = torch.tensor(_METALS["gold" if float(torch.rand((), generator=gen)) < 0.5 else "copper"])
+    base = base * (1 - mask) + mcol[:, None, None] * mask
+    rough = rough * (1 - mask) + (0.3 + 0.05 * _noise(gen, size, 8)) * mask
+    spec = torch.full((size, size), 0.5)
+    height = 0.008 * F.avg_pool2d(mask[None, None], 5, 1, 2)[0, 0] + 0.002 * _noise(gen, size, 16, 2)
+    return base, rough, mask, spec, height
+
+
+_RECIPE_FUNCS = {
+    "tiles": _recipe_tiles,
+    "metal_inlay": _recipe_metal_inlay,
+    "scratched_metal": _recipe_scratched_metal,
+    "painted": _recipe_painted,
+    "stone": _recipe_stone,
+    "circuit": _recipe_circuit,
+}
+
+
+def make_material(recipe: str | None = None, seed: int = 0, size: int = 256) -> dict[str, Tensor]:
+    """Procedural ground-truth SVBRDF maps.
+
+    Args:
+        recipe: one of :data:`RECIPES`, or ``None`` to pick one from ``seed``.
+        seed: random seed; the maps are a deterministic function of ``(recipe, seed, size)``.
+        size: output resolution (square).
+
+    Returns:
+        dict with ``base_color (3, H, W)``, ``roughness``, ``metallic``, ``specular``
+        ``(1, H, W)`` and ``normal (3, H, W)`` (tangent-space unit vectors, z > 0), float32.
+        Dielectric base colours stay above 0.03 and metals are binary with bright F0, so the
+        metal/dielectric question has one answer (a black dielectric and a dark metal render
+        identically under this model).
+
+    Example:
+        >>> m = make_material("tiles", seed=1, size=32)
+        >>> sorted(m), tuple(m["base_color"].shape)
+        (['base_color', 'metallic', 'normal', 'roughness', 'specular'], (3, 32, 32))
+    """
+    if recipe is None:
+        recipe = RECIPES[seed % len(RECIPES)]
+    if recipe not in _RECIPE_FUNCS:
+        raise ValueError(f"make_material: unknown recipe {recipe!r}; choose one of {RECIPES}")
+    if size < 4:
+        raise ValueError(f"make_material: size must be >= 4, got {size}")
+    gen = torch.Generator().manual_seed(int(seed) * 7919 + RECIPES.index(recipe))
+    base, rough, metal, spec, height = _RECIPE_FUNCS[recipe](gen, size)
+    metal = metal.clamp(0, 1)
+    base = base.clamp(0.03, 1.0)
+    return {
+        "base_color": base.float().contiguous(),
+        "roughness": rough.clamp(0.05, 1.0)[None].float().contiguous(),
+        "metallic": metal[None].float().contiguous(),
+        "specular": spec.clamp(0, 1)[None].float().contiguous(),
+        "normal": normals_from_height(height.float()).contiguous(),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Lights
+# --------------------------------------------------------------------------------------
+
+
+def light_layout(
+    count: int = 16,
+    near_camera: bool = True,
+    radius: float = 1.5,
+    height: float = 2.0,
+    intensity: float = 30.0,
+    camera_position=DEFAULT_CAMERA,
+) -> tuple[Tensor, Tensor]:
+    """A ring of ``count`` point lights, plus one beside the camera (a flash).
+
+    The ring lights sit at ``radius`` around the z axis at ``height`` (their mirror
+    highlights, seen from the default camera, form a ring of radius ~0.9 on the sample);
+    the flash sits 0.1 to the side of the camera and has ``intensity * 0.5``.
+
+    Returns:
+        ``(positions (L, 3), intensities (L, 3))`` float32, ring first, flash last.
+    """
+    if count < 0:
+        raise ValueError(f"light_layout: count must be >= 0, got {count}")
+    ang = (torch.arange(count, dtype=torch.float64) + 0.25) * (2 * math.pi / max(count, 1))
+    pos = torch.stack((radius * ang.cos(), radius * ang.sin(), torch.full_like(ang, height)), -1)
+    inten = torch.full((count, 3), float(intensity), dtype=torch.float64)
+    if near_camera:
+        cam = torch.as_tensor(camera_position, dtype=torch.float64)
+        pos = torch.cat((pos, (cam + torch.tensor([0.1, 0.05, 0.0], dtype=torch.float64))[None]))
+        inten = torch.cat((inten, torch.full((1, 3), 0.5 * intensity, dtype=torch.float64)))
+    if pos.shape[0] == 0:
+        raise ValueError("light_layout: no lights (count=0 and near_camera=False)")
+    return pos.float(), inten.float()
+
+
+def random_lights(
+    count: int, seed: int = 0, distance=(2.0, 3.0), elevation_deg=(25.0, 80.0), intensity: float = 30.0
+) -> tuple[Tensor, Tensor]:
+    """Random point lights over the sample (for held-out evaluation), deterministic in ``seed``.
+
+    Positions are uniform in azimuth, in ``elevation_deg`` above the plane and in
+    ``distance`` from the origin; intensities white, scaled by ``(distance / 2.5)²`` so the
+    sample stays similarly lit.
+    """
+    gen = torch.Generator().manual_seed(int(seed) + 1_000_003)
+    az = torch.rand(count, generator=gen, dtype=torch.float64) * 2 * math.pi
+    el = torch.deg2rad(
+        elevation_deg[0] + torch.rand(count, generator=gen, dtype=torch.float64) * (elevation_deg[1] - elevation_deg[0])
+    )
+    r = distance[0] + torch.rand(count, generator=gen, dtype=torch.float64) * (distance[1] - distance[0])
+    pos = torch.stack((r * el.cos() * az.cos(), r * el.cos() * az.sin(), r * el.sin()), -1)
+    inten = (intensity * (r / 2.5) ** 2)[:, None].expand(count, 3)
+    return pos.float(), inten.float().contiguous()
+
+
+# --------------------------------------------------------------------------------------
+# Rendering
+# --------------------------------------------------------------------------------------
+
+
+def _map_hwc(value, channels: int, h: int, w: int, dtype, device) -> Tensor | float:
+    """A map given as ``(C, H, W)``/``(1, C, H, W)`` tensor or float → ``(H, W, C)`` or float."""
+    if isinstance(value, (int, float)):
+        return float(value)
+    t = torch.as_tensor(value)
+    if t.dim() == 4:
+        if t.shape[0] != 1:
+            raise ValueError(f"render_capture: maps must be (C, H, W) or (1, C, H, W), got {tuple(t.shape)}")
+        t = t[0]
+    if t.dim() == 0:
+        return float(t)
+    if t.dim() != 3 or t.shape[0] != channels or tuple(t.shape[1:]) != (h, w):
+        raise ValueError(f"render_capture: expected a ({channels}, {h}, {w}) map, got {tuple(t.shape)}")
+    return t.to(device=device, dtype=dtype).permute(1, 2, 0)
+
+
+def _split_lights(lights) -> tuple[Tensor, Tensor]:
+    if isinstance(lights, Mapping):
+        return torch.as_tensor(lights["position"]), torch.as_tensor(lights["intensity"])
+    if hasattr(lights, "light_positions"):  # a datasets.Capture
+        return lights.light_positions, lights.light_intensities
+    pos, inten = lights
+    return torch.as_tensor(pos), torch.as_tensor(inten)
+
+
+def frame_from_normal_map(n: Tensor) -> tuple[Tensor, Tensor]:
+    """Tangent frame of contract §3: ``x = normalize(X − (X·n) n)``, ``y = n × x``; ``(*, 3)``."""
+    ex = torch.zeros_like(n)
+    ex[..., 0] = 1.0
+    x = ex - n[..., 0:1] * n
+    x = x * torch.rsqrt(torch.clamp((x * x).sum(-1, keepdim=True), min=1e-12))
+    y = torch.linalg.cross(n, x, dim=-1)
+    return x, y
+
+
+def compact_principled(nl, nv, nh, lh, sin2_h, base_color, metallic, specular, roughness) -> Tensor:
+    """The principled BRDF for the recovery's parameters only (isotropic, defaults elsewhere).
+
+    Exactly :func:`torchbrdf.principled` with ``subsurface = specular_tint = anisotropic =
+    sheen = clearcoat = 0``: Burley diffuse ``(1 − m) base/π · Fd`` plus the GGX lobe with
+    Schlick Fresnel toward ``lerp(0.08 specular, base, m)`` and the un-remapped Smith G.
+    Inputs are channel-last cosines ``(*, 1)`` (``nl``/``nv`` already clamped to be
+    positive), ``sin2_h = |n × h|²``, colours ``(*, 3)`` and scalars ``(*, 1)``.
+
+    Returns:
+        ``(*, 3)`` BRDF values (without the ``n·l`` cosine).
+    """
+    fl = torch.clamp(1.0 - nl, 0.0, 1.0)
+    fl = fl * fl * fl * fl * fl
+    fv = torch.clamp(1.0 - nv, 0.0, 1.0)
+    fv = fv * fv * fv * fv * fv
+    fd90m1 = 2.0 * roughness * lh * lh - 0.5
+    fd = (1.0 + fd90m1 * fl) * (1.0 + fd90m1 * fv)
+    diffuse = base_color * ((1.0 - metallic) * (fd / math.pi))
+    fh = torch.clamp(1.0 - lh, 0.0, 1.0)
+    fh = fh * fh * fh * fh * fh
+    cspec0 = 0.08 * specular * (1.0 - metallic) + base_color * metallic
+    fs = cspec0 + (1.0 - cspec0) * fh
+    alpha = torch.clamp(roughness * roughness, min=_ALPHA_MIN)
+    a2 = alpha * alpha
+    den = a2 * nh * nh + sin2_h
+    ds = a2 / (math.pi * den * den)
+    gl = 1.0 / (nl + torch.sqrt(nl * nl + a2 * (1.0 - nl * nl)))
+    gv = 1.0 / (nv + torch.sqrt(nv * nv + a2 * (1.0 - nv * nv)))
+    spec = torch.where(nh > 0, ds * gl * gv, torch.zeros_like(ds))
+    return diffuse + fs * spec
+
+
+def shading_geometry(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor):
+    """Per-pixel, per-light geometry for the compact renderer.
+
+    Args:
+        normal: unit normals ``(P, 3)``; points ``(P, 3)``; camera ``(3,)``;
+            light_pos ``(L, 3)``.
+
+    Returns:
+        dict of ``(L, P, 1)`` tensors ``nl`` (raw), ``nv`` (raw, ``(1, P, 1)``), ``nh``, ``lh``,
+        ``sin2_h`` and ``inv_d2`` (1 / squared light distance).
+    """
+    v = camera - points
+    v = v * torch.rsqrt((v * v).sum(-1, keepdim=True))
+    dl = light_pos[:, None, :] - points[None]
+    d2 = (dl * dl).sum(-1, keepdim=True)
+    l = dl * torch.rsqrt(d2)
+    h = l + v[None]
+    h = h * torch.rsqrt(torch.clamp((h * h).sum(-1, keepdim=True), min=1e-12))
+    n = normal[None]
+    nh = (n * h).sum(-1, keepdim=True)
+    lh = torch.clamp((l * h).sum(-1, keepdim=True), 0.0, 1.0)
+    sin2_h = torch.linalg.cross(n.expand_as(h), h, dim=-1).square().sum(-1, keepdim=True)
+    return {
+        "nl": (n * l).sum(-1, keepdim=True),
+        "nv": (normal * v).sum(-1, keepdim=True)[None],
+        "nh": nh,
+        "lh": lh,
+        "sin2_h": sin2_h,
+        "inv_d2": 1.0 / d2,
+    }
+
+
+def render_compact_points(
+    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: dict
+) -> Tensor:
+    """Compact contract §3 radiance for flat lists of pixels: ``(L, P, 3)``.
+
+    ``params`` holds ``base_color (P, 3)`` and ``metallic``, ``specular``, ``roughness``
+    ``(P, 1)`` (tensors or floats). Differentiable w.r.t. every input.
+    """
+    g = shading_geometry(normal, points, camera, light_pos)
+    nl_raw, nv_raw = g["nl"], g["nv"]
+    nl = torch.clamp(nl_raw, min=_COS_EPS)
+    nv = torch.clamp(nv_raw, min=_COS_EPS)
+    f = compact_principled(
+        nl, nv, g["nh"], g["lh"], g["sin2_h"],
+        params["base_color"], params.get("metallic", 0.0), params.get("specular", 0.5), params.get("roughness", 0.5),
+    )
+    valid = (nl_raw > 0) & (nv_raw > 0)
+    f = torch.where(valid, f, torch.zeros_like(f))
+    return f * (light_int[:, None, :] * nl * g["inv_d2"])
+
+
+def render_capture(
+    maps: Mapping,
+    lights,
+    camera_position=DEFAULT_CAMERA,
+    *,
+    backend: str = "principled",
+    noise: float = 0.0,
+    seed: int = 0,
+) -> Tensor:
+    """Render the contract §3 capture of a flat sample with SVBRDF ``maps``.
+
+    Args:
+        maps: principled parameter maps ``(C, H, W)`` (or floats): ``base_color`` (3 channels,
+            required), ``normal`` (3, tangent space; default +z) and any scalar principled
+            parameters (``roughness``, ``metallic``, ``specular``, ``sheen``, ...; 1 channel).
+        lights: ``(positions (L, 3), intensities (L, 3))``, a mapping with ``position``
+            and ``intensity``, or a :class:`datasets.Capture`.
+        camera_position: ``(3,)`` camera position (only the view vectors depend on it).
+        backend: ``"principled"`` (reference: :func:`torchbrdf.principled`, any parameter)
+            or ``"compact"`` (fast, for base_color/metallic/specular/roughness/normal only).
+        noise: relative sensor noise level (0.01 = 1 %); see :func:`add_noise`.
+        seed: noise seed.
+
+    Returns:
+        ``(L, 3, H, W)`` linear radiance, float32 (or the maps' dtype), differentiable.
+    """
+    if "base_color" not in maps:
+        raise ValueError("render_capture: maps needs at least 'base_color'")
+    bc = torch.as_tensor(maps["base_color"])
+    h, w = bc.shape[-2:]
+    dtype = bc.dtype if bc.is_floating_point() else torch.float32
+    device = bc.device
+    pos, inten = _split_lights(lights)
+    pos, inten = pos.to(device=device, dtype=dtype), inten.to(device=device, dtype=dtype)
+    cam = torch.as_tensor(camera_position, dtype=dtype, device=device)
+    if "normal" in maps:
+        n = _map_hwc(maps["normal"], 3, h, w, dtype, device)
+        n = n * torch.rsqrt(torch.clamp((n * n).sum(-1, keepdim=True), min=1e-12))
+    else:
+        n = torch.zeros(h, w, 3, dtype=dtype, device=device)
+        n[..., 2] = 1.0
+    params = {}
+    for name, value in maps.items():
+        if name == "normal":
+            continue
+        params[name] = _map_hwc(value, 3 if name == "base_color" else 1, h, w, dtype, device)
+    p = pixel_points(w, h, device=device, dtype=dtype)
+    if backend == "compact":
+        extra = set(params) - {"base_color", "metallic", "specular", "roughness"}
+        extra = [k for k in extra if not (isinstance(params[k], float) and params[k] == _FIXED_DEFAULTS.get(k))]
+        if extra:
+            raise ValueError(f"render_capture: backend='compact' supports no {sorted(extra)}; use 'principled'")
+        flat = {k: (v.reshape(-1, v.shape[-1]) if isinstance(v, Tensor) else v) for k, v in params.items()}
+        img = render_compact_points(n.reshape(-1, 3), p.reshape(-1, 3), cam, pos, inten, flat)
+        img = img.reshape(-1, h, w, 3).permute(0, 3, 1, 2)
+    elif backend == "principled":
+        x, y = frame_from_normal_map(n)
+        v = cam - p
+        v = v / v.norm(dim=-1, keepdim=True)
+        out = []
+        for k in range(pos.shape[0]):
+            dl = pos[k] - p
+            d2 = (dl * dl).sum(-1, keepdim=True)
+            l = dl / d2.sqrt()
+            f = principled(l, v, n, x, y, **params)
+            nl = torch.clamp((n * l).sum(-1, keepdim=True), min=0.0)
+            out.append((f * inten[k] * nl / d2).permute(2, 0, 1))
+        img = torch.stack(out)
+    else:
+        raise ValueError(f"render_capture: unknown backend {backend!r} (use 'principled' or 'compact')")
+    if noise:
+        img = add_noise(img, noise, seed)
+    return img
+
+
+def add_noise(images: Tensor, level: float = 0.01, seed: int = 0) -> Tensor:
+    """Sensor noise: Gaussian with σ = ``level`` · (|value| + 1 % of the image mean).
+
+    The relative part models photon noise of a well-exposed sensor; the small floor lets a
+    few dark values fall slightly below 0, as real captures do. Deterministic in ``seed``.
+    """
+    gen = torch.Generator().manual_seed(int(seed) + 17)
+    z = torch.randn(images.shape, generator=gen, dtype=torch.float32).to(images)
+    floor = 0.01 * images.detach().abs().mean(dim=(-3, -2, -1), keepdim=True)
+    return images + level * (images.detach().abs() + floor) * z
+
+
+# --------------------------------------------------------------------------------------
+# Folders
+# --------------------------------------------------------------------------------------
+
+
+def write_maps(folder: str | os.PathLike, maps: Mapping, previews: bool = True) -> None:
+    """Write SVBRDF maps as contract §4 EXRs (float32) and optional PNG previews."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, c in MAP_NAMES.items():
+        if name not in maps:
+            continue
+        t = torch.as_tensor(maps[name]).detach().float().cpu()
+        if t.dim() == 4:
+            t = t[0]
+        if not torch.isfinite(t).all():
+            raise ValueError(f"write_maps: {name} has non-finite values; refusing to write it")
+        write_exr(folder / f"{name}.exr", t)
+        if previews:
+            if name == "normal":
+                write_png(folder / f"{name}.png", t * 0.5 + 0.5, srgb=False)
+            else:
+                write_png(folder / f"{name}.png", t, srgb=(name == "base_color"))
+
+
+def generate_capture(
+    folder: str | os.PathLike,
+    recipe: str | None = None,
+    seed: int = 0,
+    size: int = 256,
+    lights: int = 16,
+    near_camera: bool = True,
+    noise: float = 0.01,
+    camera_position=DEFAULT_CAMERA,
+    backend: str = "principled",
+) -> Path:
+    """Generate a synthetic capture folder: images + ``capture.json`` + ``gt/`` maps.
+
+    Args:
+        folder: destination (created).
+        recipe, seed, size: see :func:`make_material`.
+        lights: number of ring lights (plus the flash when ``near_camera``).
+        noise: relative sensor noise (0.01 = 1 %).
+        backend: renderer for the images (``"principled"`` is the reference).
+
+    Returns:
+        The path of ``capture.json``.
+    """
+    maps = make_material(recipe, seed, size)
+    pos, inten = light_layout(lights, near_camera=near_camera, camera_position=camera_position)
+    with torch.no_grad():
+        img = render_capture(maps, (pos, inten), camera_position, backend=backend, noise=noise, seed=seed)
+    folder = Path(folder)
+    write_maps(folder / "gt", maps, previews=False)
+    return write_capture(folder, img, (pos, inten), camera_position)
+
+
+def default_capture(folder: str | os.PathLike | None = None, size: int = 128) -> Path:
+    """The demo capture: generated deterministically on first use (no network).
+
+    Args:
+        folder: where to put it; default ``~/.cache/torchbrdf/default_capture_<size>``
+            (``$TORCHBRDF_CACHE`` overrides the cache root).
+        size: resolution.
+
+    Returns:
+        The capture folder (holding ``capture.json`` and ``gt/``).
+    """
+    if folder is None:
+        root = Path(os.environ.get("TORCHBRDF_CACHE", Path.home() / ".cache" / "torchbrdf"))
+        folder = root / f"default_capture_{size}"
+    folder = Path(folder)
+    if not (folder / "capture.json").is_file():
+        generate_capture(folder, recipe="metal_inlay", seed=0, size=size, lights=16, noise=0.01)
+    return folder

@@ -1,0 +1,94 @@
+"""SVBRDF recovery: accuracy on a tiny capture, CLI outputs, demo, resume, NaN recovery."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from datasets.synthetic import generate_capture
+from torchbrdf.io import read_exr
+from training.recover_svbrdf import CHECKPOINT, RecoveryConfig, main, recover
+
+CONTRACT_FILES = ["base_color.exr", "roughness.exr", "metallic.exr", "specular.exr", "normal.exr", "report.json"]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cap")
+    generate_capture(folder, recipe="metal_inlay", seed=2, size=32, lights=8, noise=0.01)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def tiny_result(tiny):
+    return recover(tiny, None, RecoveryConfig(seed=0, threads=2), gt=tiny / "gt", progress=False)
+
+
+def test_tiny_capture_recovers_known_maps(tiny_result):
+    e = tiny_result["errors"]
+    assert e["base_color_rmse"] < 0.05
+    assert e["roughness_rmse"] < 0.08
+    assert e["metallic_rmse"] < 0.2
+    assert e["normal_mean_deg"] < 1.5
+    assert tiny_result["held_out_light"]["psnr"] > 35
+    assert min(tiny_result["per_image_psnr"].values()) > 35
+
+
+def test_cli_writes_every_contract_file(tiny, tmp_path, capsys):
+    out = tmp_path / "out"
+    rc = main(["--capture", str(tiny), "--out", str(out), "--iters", "8", "--gt", str(tiny / "gt"), "--quiet"])
+    assert rc == 0
+    for f in CONTRACT_FILES + ["comparison.png", "loss.png", "base_color.png", "normal.png", "roughness.png"]:
+        assert (out / f).is_file(), f
+    rep = json.loads((out / "report.json").read_text())
+    assert isinstance(rep["iterations"], int) and rep["iterations"] > 0
+    assert rep["seconds"] > 0 and math.isfinite(rep["final_loss"])
+    assert len(rep["per_image_psnr"]) == 9 and "errors" in rep
+    for name, ch in [("base_color", 3), ("roughness", 1), ("metallic", 1), ("specular", 1), ("normal", 3)]:
+        m, names = read_exr(out / f"{name}.exr", return_names=True)
+        assert m.shape == (ch, 32, 32) and torch.isfinite(m).all()
+        assert names == (["R", "G", "B"] if ch == 3 else ["Y"])
+    n = read_exr(out / "normal.exr")
+    assert (n[2] > 0).all() and torch.allclose(n.norm(dim=0), torch.ones(32, 32), atol=1e-4)
+
+
+def test_cli_bad_capture_is_a_clear_error(tmp_path, capsys):
+    rc = main(["--capture", str(tmp_path / "missing"), "--out", str(tmp_path / "o"), "--quiet"])
+    assert rc == 2
+    assert "missing" in capsys.readouterr().err
+
+
+def test_demo_runs(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHBRDF_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "demo"
+    assert main(["--demo", "--demo-size", "24", "--iters", "6", "--out", str(out), "--quiet"]) == 0
+    for f in CONTRACT_FILES:
+        assert (out / f).is_file()
+    assert "errors" in json.loads((out / "report.json").read_text())
+
+
+def test_resume_equals_uninterrupted(tiny, tmp_path):
+    cfg = dict(seed=1, iters=12, checkpoint_every=3, threads=2)
+    full = recover(tiny, tmp_path / "full", RecoveryConfig(**cfg), progress=False)
+    part = recover(tiny, tmp_path / "part", RecoveryConfig(**cfg, signal_at=7), progress=False)
+    assert not part["completed"] and part["iterations"] == 7
+    assert (tmp_path / "part" / CHECKPOINT).is_file()
+    for f in CONTRACT_FILES:  # partial outputs are valid files
+        assert (tmp_path / "part" / f).is_file()
+    assert torch.isfinite(read_exr(tmp_path / "part" / "roughness.exr")).all()
+    resumed = recover(tiny, tmp_path / "part", RecoveryConfig(**cfg), resume=True, progress=False)
+    assert resumed["completed"] and resumed["iterations"] == full["iterations"]
+    for k in full["maps"]:
+        torch.testing.assert_close(resumed["maps"][k], full["maps"][k], rtol=1e-5, atol=1e-6)
+    assert abs(resumed["final_loss"] - full["final_loss"]) <= 1e-6 * max(1.0, abs(full["final_loss"]))
+
+
+def test_nan_is_detected_recovered_and_never_written(tiny, tmp_path):
+    rep = recover(tiny, tmp_path / "nan", RecoveryConfig(seed=0, iters=10, fault_at=3, threads=2), progress=False)
+    assert rep["completed"]
+    assert any(e["event"].startswith("non-finite") for e in rep["events"])
+    for f in ("base_color", "roughness", "metallic", "specular", "normal"):
+        assert torch.isfinite(read_exr(tmp_path / "nan" / f"{f}.exr")).all()
+    assert math.isfinite(rep["final_loss"])
+    assert min(rep["per_image_psnr"].values()) > 25

@@ -1,0 +1,1 @@
+"""Training and fitting scripts built on torchbrdf (SVBRDF recovery)."""
