@@ -844,7 +844,7 @@ def main(argv=None) -> int:
                            quick=args.quick))
     log(f"machine: {res['machine']}")
     log(f"fused path available: {importlib.import_module('torchbrdf._fast').available()}; Mitsuba: {mver or 'not installed'}")
-    log("head-to-head (default dispatch vs Mitsuba, interleaved):")
+    log("head-to-head (default dispatch vs Mitsuba, alternating blocks):")
     res["head_to_head"] = head_to_head(head_N, 4 if args.quick else 10, log, mver is not None)
     if args.torch_compile:
         log("torch.compile baseline:")
