@@ -630,8 +630,8 @@ def write_report(res: dict, out_dir: str, argv) -> None:
          f"Python {m['python']}, {m['gcc']}" + (f", Mitsuba {res['mitsuba_version']}" if res.get("mitsuba_version") else "")
          + f". Load average (1/5/15 min) at start {tuple(round(x, 2) for x in m['load_start'])}, at end "
          f"{tuple(round(x, 2) for x in m['load_end'])} — the machine is shared, so absolute numbers move with the "
-         "load; the side-by-side columns were measured in the same run (the head-to-head interleaves the "
-         "repeats).", "",
+         "load; the side-by-side columns were measured in the same run (the head-to-head alternates blocks "
+         "of calls of each implementation, an untimed call then 2 timed ones, order reversed every round).", "",
          "All throughputs are evaluations per second of the full principled BRDF (all lobes), median of "
          "repeats after a warm-up; `fwd+bwd` includes the backward pass to every input. The first use of a "
          "fused-kernel family compiles it with gcc (~1–3 s, once per machine: cached in "
