@@ -67,7 +67,7 @@ from .geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
 from .lambert import LambertBRDF, lambert
 from .lights import DirectionalLight, EnvironmentLight, PointLight
 from .shading import Shader, ShadingPlan, plan, shade
-from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, principled
+from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, fast_path_enabled, principled, set_fast_path
 from .smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
 
 __version__ = "0.1.0"
@@ -92,6 +92,8 @@ __all__ = [
     "envmap",
     "PRINCIPLED_DEFAULTS",
     "LOBES",
+    "set_fast_path",
+    "fast_path_enabled",
     "microfacet",
     "MicrofacetBRDF",
     "smits",
