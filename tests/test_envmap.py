@@ -5,6 +5,7 @@ import torch
 
 from torchbrdf._math import safe_normalize
 from torchbrdf.envmap import (
+    ENV_SAMPLINGS,
     SplitSumEnvironment,
     integrate_environment_mc,
     integrate_environment_quadrature,
@@ -20,7 +21,7 @@ from torchbrdf.lambert import lambert
 from torchbrdf.lights import EnvironmentLight
 from torchbrdf.principled import principled
 from torchbrdf.sampling import latlong_directions
-from torchbrdf.shading import shade
+from torchbrdf.shading import Shader, plan, shade
 
 D = torch.float64
 
@@ -64,6 +65,14 @@ def smooth_env(h=16, w=32):
 
 def rel_l2(a, b):
     return float((a - b).norm() / b.norm())
+
+
+def sun_env(h=16, w=32):
+    """A dim sky with a small bright sun (6 of 512 texels, ~200x the sky): a peaky map."""
+    d = latlong_directions(h, w, dtype=D)
+    sun = safe_normalize(torch.tensor([0.3, 0.1, 1.0], dtype=D))
+    disc = ((d * sun).sum(-1, keepdim=True) > 0.985).to(D)
+    return (0.2 + 0.1 * d[..., 2:3] + 200.0 * disc).expand(h, w, 3).permute(2, 0, 1).contiguous()
 
 
 # ------------------------------------------------------------------ furnace
@@ -265,3 +274,117 @@ def test_lookup_is_piecewise_constant_and_differentiable():
     assert torch.equal(vals, env.detach().permute(1, 2, 0).reshape(-1, 3))
     vals.sum().backward()
     assert torch.equal(env.grad, torch.ones_like(env))
+
+
+# ------------------------------------------------------------------ sampling switch
+
+
+@pytest.mark.parametrize("sampling", ENV_SAMPLINGS)
+def test_every_sampling_converges_to_quadrature(sampling):
+    """Each proposal is unbiased: its error falls with the sample count, to a few % at 1024 spp."""
+    n, v, x, y, mat = sphere_points()
+    env = random_env()
+    ref = integrate_environment_quadrature(principled, n, v, env, mat, subdivisions=6)
+    errs = {}
+    for s in (16, 64, 256, 1024):
+        errs[s] = (
+            sum(
+                rel_l2(integrate_environment_mc(principled, n, v, env, mat, samples=s, seed=seed, sampling=sampling), ref)
+                for seed in (0, 1)
+            )
+            / 2
+        )
+    assert errs[64] < errs[16] and errs[256] < errs[64] and errs[1024] < errs[256], errs
+    assert errs[1024] < errs[16] / 4, errs
+    assert errs[1024] < 0.04, errs
+
+
+@pytest.mark.parametrize("sampling", ["brdf", "map", "uniform"])
+def test_every_sampling_is_unbiased_on_average(sampling):
+    n, v, x, y, mat = sphere_points(size=3)
+    env = random_env()
+    ref = integrate_environment_quadrature(principled, n, v, env, mat, subdivisions=6)
+
+    def est(seed):
+        return integrate_environment_mc(principled, n, v, env, mat, samples=32, seed=seed, sampling=sampling)
+
+    mean = sum(est(s) for s in range(24)) / 24
+    single = sum(rel_l2(est(100 + s), ref) for s in range(4)) / 4
+    # 24 independent estimates average to ~1/5 of the error of one if (and only if) there is no bias.
+    assert rel_l2(mean, ref) < single / 2.5
+
+
+def test_mis_beats_uniform_on_a_peaky_map():
+    """A small sun and a glossy metal: no importance sampling is far noisier at equal samples."""
+    n, v, *_ = sphere_points()
+    env = sun_env()
+    mat = {"base_color": 0.9, "metallic": 1.0, "roughness": 0.3}
+    ref = integrate_environment_quadrature(principled, n, v, env, mat, subdivisions=6)
+
+    def err(sampling):
+        return (
+            sum(
+                rel_l2(integrate_environment_mc(principled, n, v, env, mat, samples=64, seed=s, sampling=sampling), ref)
+                for s in range(4)
+            )
+            / 4
+        )
+
+    e_mis, e_uni = err("mis"), err("uniform")
+    assert e_uni > 3 * e_mis, (e_mis, e_uni)
+    assert e_mis < 0.1, e_mis
+
+
+def test_default_sampling_is_mis():
+    n, v, x, y, mat = sphere_points(size=3)
+    env = random_env()
+    a = integrate_environment_mc(principled, n, v, env, mat, samples=16, seed=2)
+    b = integrate_environment_mc(principled, n, v, env, mat, samples=16, seed=2, sampling="mis")
+    assert torch.equal(a, b)
+    g = sphere_gbuffer(4, 4, dtype=D)
+    assert torch.equal(
+        shade(g, EnvironmentLight(env), env_samples=8), shade(g, EnvironmentLight(env), env_samples=8, env_sampling="mis")
+    )
+
+
+@pytest.mark.parametrize("sampling", ["brdf", "map", "uniform"])
+def test_sampling_through_shade_is_seeded_and_planned(sampling):
+    g = sphere_gbuffer(
+        5,
+        5,
+        dtype=D,
+        material={
+            "base_color": torch.full((1, 3, 5, 5), 0.6, dtype=D),
+            "roughness": torch.full((1, 1, 5, 5), 0.5, dtype=D),
+        },
+    )
+    env_map = random_env()
+    env = EnvironmentLight(env_map)
+    a = shade(g, env, env_samples=256, seed=3, env_sampling=sampling)
+    assert torch.equal(a, shade(g, env, env_samples=256, seed=3, env_sampling=sampling))
+    assert not torch.equal(a, shade(g, env, env_samples=256, seed=3))  # not silently MIS
+    assert torch.equal(a, Shader(env_samples=256, seed=3, env_sampling=sampling)(g, env))
+    m = g.mask[0, 0]
+    n = g.normal[0].permute(1, 2, 0)[m]
+    v = safe_normalize(g.camera_position - g.position[0].permute(1, 2, 0)[m])
+    ref = integrate_environment_quadrature(
+        principled, n, v, env_map, {"base_color": 0.6, "roughness": 0.5}, subdivisions=6
+    )
+    assert rel_l2(a[0].permute(1, 2, 0)[m], ref) < 0.1
+    desc = plan(g, env, env_sampling=sampling).environment
+    assert f"env_sampling={sampling!r}" in desc
+    assert "env_sampling='mis'" in plan(g, env).environment
+
+
+def test_bad_sampling_raises():
+    n, v, x, y, mat = sphere_points(size=3)
+    with pytest.raises(ValueError, match="`sampling` must be one of"):
+        integrate_environment_mc(principled, n, v, random_env(), mat, samples=4, sampling="importance")
+    g = sphere_gbuffer(4, 4, dtype=D)
+    env = EnvironmentLight(random_env())
+    with pytest.raises(ValueError, match="`env_sampling` must be one of"):
+        shade(g, env, env_sampling="cosine")
+    with pytest.raises(ValueError, match="env_sampling"):
+        plan(g, env, env_sampling=None)
+    with pytest.raises(ValueError, match="env_sampling"):
+        Shader(env_sampling="MIS")

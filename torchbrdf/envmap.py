@@ -22,6 +22,17 @@ position, map). Error: zero mean, standard deviation falling as ``1/sqrt(samples
 ``docs/shading.md``); highly peaked lobes (roughness < 0.1) under a high-frequency map are
 the hardest case.
 
+The ``sampling`` switch (:data:`ENV_SAMPLINGS`) picks the proposal; every choice is unbiased,
+stratified and seeded the same way, only the variance differs:
+
+* ``"mis"`` (default) — the BRDF + map mixture above;
+* ``"brdf"`` — every sample from the BRDF mixture (weight ``1 / pdf``); noisy when a small
+  bright source (a sun) sits inside a rough lobe;
+* ``"map"`` — every sample from the map's luminance (over the whole sphere, so samples below
+  the surface are wasted; a constant map is then sampled uniformly); noisy for glossy lobes;
+* ``"uniform"`` — uniform over the hemisphere about ``n`` (``pdf = 1 / 2π``), no importance
+  sampling at all: the baseline the others are measured against.
+
 **Split sum** (:func:`integrate_environment_split_sum`, fast, biased). Karis 2013: the
 specular integral is split into a prefiltered map (the map convolved with the GGX lobe under
 the ``n = v = r`` assumption, at ``len(PREFILTER_ROUGHNESS)`` roughness levels, interpolated
@@ -77,6 +88,7 @@ __all__ = [
     "SplitSumEnvironment",
     "PREFILTER_ROUGHNESS",
     "SPLIT_SUM_TABLE_CHANNELS",
+    "ENV_SAMPLINGS",
 ]
 
 #: Roughness of each prefiltered level (level 0 is the map itself).
@@ -91,6 +103,9 @@ SPLIT_SUM_SAMPLES = 256
 SPLIT_SUM_TABLE_CHANNELS = ("specular_scale", "specular_bias", "diffuse", "subsurface", "sheen", "clearcoat")
 #: Lobe names understood by the MC mixture.
 SAMPLING_LOBES = ("diffuse", "specular", "clearcoat")
+#: Proposals of the Monte Carlo integrator (``sampling=`` / ``shade(env_sampling=)``):
+#: BRDF + map with the power heuristic, BRDF only, map only, uniform hemisphere.
+ENV_SAMPLINGS = ("mis", "brdf", "map", "uniform")
 # Minimum share of the BRDF samples any lobe with non-zero weight receives (robustness
 # against a poor albedo guess).
 _MIN_LOBE_SHARE = 0.05
@@ -412,16 +427,61 @@ def _sampling_frame(n: Tensor, x, y, material: dict):
     return frame_from_normal(n.detach())
 
 
-class _MCSetup:
-    """Sample budget and random shifts for one environment light."""
+def check_env_sampling(sampling, who: str, name: str = "sampling") -> str:
+    """Validate a Monte Carlo proposal name (:data:`ENV_SAMPLINGS`); ``ValueError`` naming ``name``."""
+    if not isinstance(sampling, str) or sampling not in ENV_SAMPLINGS:
+        raise ValueError(f"{who}: `{name}` must be one of {ENV_SAMPLINGS}, got {sampling!r}")
+    return sampling
 
-    def __init__(self, radiance: Tensor, samples: int, shifts_b: Tensor, shifts_m: Tensor):
-        constant = _env_is_constant(radiance)
-        self.n_map = 0 if constant or samples < 2 else samples // 2
-        self.n_brdf = samples - self.n_map
+
+class _MCSetup:
+    """Sample budget and random shifts for one environment light.
+
+    ``sampling`` (:data:`ENV_SAMPLINGS`) splits ``samples`` between the techniques:
+    ``"mis"`` half BRDF / half map (all BRDF for a constant map or a single sample),
+    ``"brdf"`` all BRDF, ``"map"`` all map, ``"uniform"`` all uniform-hemisphere.
+    """
+
+    def __init__(self, radiance: Tensor, samples: int, shifts_b: Tensor, shifts_m: Tensor, sampling: str = "mis"):
+        self.sampling = check_env_sampling(sampling, "_MCSetup")
+        self.n_uniform = 0
+        if sampling == "mis":
+            constant = _env_is_constant(radiance)
+            self.n_map = 0 if constant or samples < 2 else samples // 2
+            self.n_brdf = samples - self.n_map
+        elif sampling == "brdf":
+            self.n_map, self.n_brdf = 0, samples
+        elif sampling == "map":
+            self.n_map, self.n_brdf = samples, 0
+        else:
+            self.n_map, self.n_brdf, self.n_uniform = 0, 0, samples
         self.sampler = None if self.n_map == 0 else LatLongSampler(radiance)
         self.shifts_b = shifts_b
         self.shifts_m = shifts_m
+
+    def count(self, technique: str) -> int:
+        """Samples per point drawn by ``technique`` (``"brdf"``, ``"map"`` or ``"uniform"``)."""
+        return {"brdf": self.n_brdf, "map": self.n_map, "uniform": self.n_uniform}[technique]
+
+    def techniques(self) -> list[tuple[str, int, Tensor]]:
+        """``(technique, samples, per-point shifts)`` for every technique with samples, in order.
+
+        BRDF and uniform samples use the first shift, map samples the second.
+        """
+        out = [("brdf", self.n_brdf, self.shifts_b), ("map", self.n_map, self.shifts_m)]
+        out.append(("uniform", self.n_uniform, self.shifts_b))
+        return [t for t in out if t[1] > 0]
+
+
+def _sample_uniform_hemisphere(u: Tensor) -> Tensor:
+    """Local directions uniform in solid angle over ``z > 0`` (density ``1 / 2π``), ``(*, 2) -> (*, 3)``.
+
+    ``cos θ = 1 - u₀`` and ``φ = 2π u₁``: stratification in ``u`` carries over to ``(cos θ, φ)``.
+    """
+    z = 1.0 - u[..., 0]
+    r = torch.sqrt(torch.clamp(1.0 - z * z, min=0.0))
+    phi = (2.0 * math.pi) * u[..., 1]
+    return torch.stack((r * torch.cos(phi), r * torch.sin(phi), z), dim=-1)
 
 
 def _mc_pass(
@@ -440,11 +500,17 @@ def _mc_pass(
     count: int,
     shift: Tensor,
 ) -> Tensor:
-    """Contribution ``(P, 3)`` of samples ``start .. start + count`` of one technique."""
+    """Contribution ``(P, 3)`` of samples ``start .. start + count`` of one technique.
+
+    ``technique`` is ``"brdf"``, ``"map"`` or ``"uniform"``; each sample is weighted by the
+    power heuristic over the techniques ``setup`` uses (``1 / (n pdf)`` when it is the only one).
+    """
     xs, ys = _sampling_frame(n, x, y, material)
-    mix = _BRDFMixture(lobes, material, n, v, xs, ys)
+    # The BRDF mixture is needed whenever BRDF samples exist (to draw them, or for the MIS
+    # weight of map samples); map-only and uniform sampling never build it.
+    mix = _BRDFMixture(lobes, material, n, v, xs, ys) if setup.n_brdf > 0 else None
     with torch.no_grad():
-        total = setup.n_brdf if technique == "brdf" else setup.n_map
+        total = setup.count(technique)
         u = rotated_hammersley(shift.detach(), start, count, total)  # (P, k, 2)
         bk = None if bidx is None else bidx[:, None].expand(u.shape[:-1])
         if technique == "brdf":
@@ -452,10 +518,16 @@ def _mc_pass(
             p_b = mix.pdf(l)
             p_m = setup.sampler.pdf(l, bk) if setup.sampler is not None else 0.0
             w = _mis_power(setup.n_brdf, p_b, setup.n_map, p_m)
-        else:
+        elif technique == "map":
             l, p_m = setup.sampler.sample(u, bk)
-            p_b = mix.pdf(l)
+            p_b = mix.pdf(l) if mix is not None else 0.0
             w = _mis_power(setup.n_map, p_m, setup.n_brdf, p_b)
+        elif technique == "uniform":
+            l_local = _sample_uniform_hemisphere(u)
+            l = to_world(l_local, xs.detach().unsqueeze(1), ys.detach().unsqueeze(1), n.detach().unsqueeze(1))
+            w = torch.full_like(l[..., :1], 2.0 * math.pi / total)
+        else:
+            raise ValueError(f"_mc_pass: unknown technique {technique!r}")
         l = l.to(n.dtype)
         w = w.to(n.dtype)
     n1, v1 = n.unsqueeze(1), v.unsqueeze(1)
@@ -481,6 +553,7 @@ def integrate_environment_mc(
     samples: int = 64,
     seed: int = 0,
     samples_per_pass: int | None = None,
+    sampling: str = "mis",
 ) -> Tensor:
     """Monte Carlo estimate of the environment integral at ``P`` shading points.
 
@@ -493,25 +566,31 @@ def integrate_environment_mc(
         x: optional ``(P, 3)`` tangents (passed to the BRDF and used for anisotropic sampling).
         y: optional ``(P, 3)`` bitangents.
         batch_index: int64 ``(P,)`` map index per point when ``B > 1``.
-        samples: samples per point (half BRDF, half map, unless the map is constant).
+        samples: samples per point (with ``"mis"``: half BRDF, half map, unless the map is
+            constant).
         seed: seed of the per-point random rotations.
         samples_per_pass: samples evaluated together (memory); default all.
+        sampling: the proposal, one of :data:`ENV_SAMPLINGS`: ``"mis"`` (BRDF + map, power
+            heuristic; default), ``"brdf"`` (BRDF mixture only), ``"map"`` (map luminance
+            only) or ``"uniform"`` (uniform hemisphere, no importance sampling). All are
+            unbiased; see the module docstring for when each is noisy.
 
     Returns:
         ``(P, 3)`` outgoing radiance.
+
+    Raises:
+        ValueError: ``sampling`` is not one of :data:`ENV_SAMPLINGS`.
     """
+    check_env_sampling(sampling, "integrate_environment_mc")
     p = n.shape[0]
     g = torch.Generator(device=n.device).manual_seed(int(seed))
     shifts = torch.rand((p, 2, 2), generator=g, dtype=n.dtype, device=n.device)
-    setup = _MCSetup(radiance, samples, shifts[:, 0], shifts[:, 1])
+    setup = _MCSetup(radiance, samples, shifts[:, 0], shifts[:, 1], sampling)
     env_cl = _as_bhwc(radiance.to(n.dtype))
     lobes = sampling_lobes_for(brdf, material)
     k = samples_per_pass or samples
     out = torch.zeros_like(n)
-    for technique, total, shift in (
-        ("brdf", setup.n_brdf, setup.shifts_b),
-        ("map", setup.n_map, setup.shifts_m),
-    ):
+    for technique, total, shift in setup.techniques():
         for start in range(0, total, k):
             out = out + _mc_pass(
                 brdf,

@@ -38,12 +38,14 @@ from torch.utils.checkpoint import checkpoint
 
 from ._math import cast_back, compute_dtype, dot, safe_normalize
 from .envmap import (
+    ENV_SAMPLINGS,
     PREFILTER_ROUGHNESS,
     SplitSumEnvironment,
     _as_bhwc,
     _mc_pass,
     _MCSetup,
     brdf_kind,
+    check_env_sampling,
     integrate_environment_split_sum,
     sampling_lobes_for,
 )
@@ -51,7 +53,7 @@ from .frames import frame_from_normal, gram_schmidt
 from .gbuffer import GBuffer
 from .lights import DirectionalLight, EnvironmentLight, Light, PointLight
 
-__all__ = ["shade", "plan", "Shader", "ShadingPlan", "ENV_STRATEGIES", "DEFAULT_ENV_SAMPLES"]
+__all__ = ["shade", "plan", "Shader", "ShadingPlan", "ENV_STRATEGIES", "ENV_SAMPLINGS", "DEFAULT_ENV_SAMPLES"]
 
 ENV_STRATEGIES = ("mc", "split_sum")
 DEFAULT_ENV_SAMPLES = 64
@@ -277,7 +279,7 @@ def _lobes_for(brdf, kind: str, values: dict):
     return None, ()
 
 
-def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) -> _Prepared:
+def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis") -> _Prepared:
     if not isinstance(gbuf, GBuffer):
         raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
     lights = _as_light_list(lights)
@@ -285,6 +287,7 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
         raise ValueError(f"shade: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
     if isinstance(env_samples, bool) or not isinstance(env_samples, numbers.Integral) or env_samples < 1:
         raise ValueError(f"shade: `env_samples` must be a positive int, got {env_samples!r}")
+    check_env_sampling(env_sampling, "shade", "env_sampling")
     if chunk is not None and (
         isinstance(chunk, bool) or not isinstance(chunk, numbers.Integral) or chunk < 1
     ):
@@ -386,22 +389,31 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
                 int(env_samples),
                 pixels.gather_cl(shifts[:, 0]),
                 pixels.gather_cl(shifts[:, 1]),
+                env_sampling,
             )
             mc_setups.append(setup)
             per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(chunk_px, 1))
-            for total in (setup.n_brdf, setup.n_map):
-                if total:
-                    env_passes += n_slices * math.ceil(total / min(per_pass, total))
+            for _, total, _ in setup.techniques():
+                env_passes += n_slices * math.ceil(total / min(per_pass, total))
             env_evals += p_count * int(env_samples)
-            parts.append(
-                f"{setup.n_brdf} BRDF-sampled ({' + '.join(names[k] for k in samp_names)})"
-                + (
-                    f" + {setup.n_map} map-sampled, power-heuristic MIS"
-                    if setup.n_map
-                    else " (constant map: no map sampling)"
+            proposal = " + ".join(names[k] for k in samp_names)
+            if env_sampling == "mis":
+                parts.append(
+                    f"{setup.n_brdf} BRDF-sampled ({proposal})"
+                    + (
+                        f" + {setup.n_map} map-sampled, power-heuristic MIS"
+                        if setup.n_map
+                        else " (constant map: no map sampling)"
+                    )
                 )
-            )
-        env_desc = "Monte Carlo, stratified (rotated Hammersley), seed %s: %s per pixel" % (
+            elif env_sampling == "brdf":
+                parts.append(f"{setup.n_brdf} BRDF-sampled ({proposal}; no map sampling)")
+            elif env_sampling == "map":
+                parts.append(f"{setup.n_map} map-sampled (luminance × solid angle; no BRDF sampling)")
+            else:
+                parts.append(f"{setup.n_uniform} uniform-hemisphere (no importance sampling)")
+        env_desc = "Monte Carlo, env_sampling=%r, stratified (rotated Hammersley), seed %s: %s per pixel" % (
+            env_sampling,
             seed,
             "; ".join(parts),
         )
@@ -518,10 +530,7 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune) 
                 if kind_e == "mc":
                     per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(e - s, 1))
                     slobes = sampling_lobes_for(brdf, mat_s)
-                    for technique, total, shift in (
-                        ("brdf", setup.n_brdf, setup.shifts_b),
-                        ("map", setup.n_map, setup.shifts_m),
-                    ):
+                    for technique, total, shift in setup.techniques():
                         k = min(per_pass, max(total, 1))
                         for start in range(0, total, k):
                             count = min(k, total - start)
@@ -683,6 +692,7 @@ def shade(
     *,
     env_strategy: str = "mc",
     env_samples: int = DEFAULT_ENV_SAMPLES,
+    env_sampling: str = "mis",
     seed: int | None = 0,
     chunk: int | None = None,
     prune: bool = True,
@@ -701,6 +711,12 @@ def shade(
             (prefiltered approximation; principled and Lambert only). See
             :mod:`torchbrdf.envmap` for their error behaviour.
         env_samples: Monte Carlo samples per pixel and environment light.
+        env_sampling: the Monte Carlo proposal (:data:`ENV_SAMPLINGS`; ignored by the split
+            sum): ``"mis"`` (default: half BRDF-lobe mixture, half map luminance, power
+            heuristic), ``"brdf"`` (BRDF-lobe mixture only), ``"map"`` (map luminance only) or
+            ``"uniform"`` (uniform hemisphere, no importance sampling). All are unbiased and
+            seeded the same way; they differ in variance (``"mis"`` is the robust choice,
+            ``"uniform"`` a baseline; measured in ``docs/shading.md``).
         seed: seed of the Monte Carlo sample pattern (``None``: draw one from torch's RNG).
             The same seed gives the same image.
         chunk: maximum number of pixels per pass (bounds memory further on huge images);
@@ -729,7 +745,7 @@ def shade(
         >>> shade(g, PointLight([0.0, 0.0, 4.0], 16.0), lambert).shape
         torch.Size([1, 3, 8, 8])
     """
-    return _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune).run()
+    return _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling).run()
 
 
 def plan(
@@ -739,6 +755,7 @@ def plan(
     *,
     env_strategy: str = "mc",
     env_samples: int = DEFAULT_ENV_SAMPLES,
+    env_sampling: str = "mis",
     seed: int | None = 0,
     chunk: int | None = None,
     prune: bool = True,
@@ -757,7 +774,7 @@ def plan(
         >>> p.lobes
         ('diffuse', 'specular')
     """
-    return _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune).plan
+    return _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling).plan
 
 
 class Shader(nn.Module):
@@ -768,6 +785,7 @@ class Shader(nn.Module):
             parameters train with the shader); default :func:`torchbrdf.principled`.
         env_strategy: see :func:`shade`.
         env_samples: see :func:`shade`.
+        env_sampling: see :func:`shade`.
         seed: see :func:`shade`.
         chunk: see :func:`shade`.
         prune: see :func:`shade`.
@@ -783,14 +801,24 @@ class Shader(nn.Module):
     """
 
     def __init__(
-        self, brdf=None, *, env_strategy="mc", env_samples=DEFAULT_ENV_SAMPLES, seed=0, chunk=None, prune=True
+        self,
+        brdf=None,
+        *,
+        env_strategy="mc",
+        env_samples=DEFAULT_ENV_SAMPLES,
+        env_sampling="mis",
+        seed=0,
+        chunk=None,
+        prune=True,
     ):
         super().__init__()
         if env_strategy not in ENV_STRATEGIES:
             raise ValueError(f"Shader: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
+        check_env_sampling(env_sampling, "Shader", "env_sampling")
         self.brdf = brdf
         self.env_strategy = env_strategy
         self.env_samples = env_samples
+        self.env_sampling = env_sampling
         self.seed = seed
         self.chunk = chunk
         self.prune = prune
@@ -799,6 +827,7 @@ class Shader(nn.Module):
         return dict(
             env_strategy=self.env_strategy,
             env_samples=self.env_samples,
+            env_sampling=self.env_sampling,
             seed=self.seed,
             chunk=self.chunk,
             prune=self.prune,
@@ -817,5 +846,5 @@ class Shader(nn.Module):
         name = "principled" if self.brdf is None else _brdf_name(self.brdf)
         return (
             f"brdf={name}, env_strategy={self.env_strategy!r}, env_samples={self.env_samples}, "
-            f"chunk={self.chunk}"
+            f"env_sampling={self.env_sampling!r}, chunk={self.chunk}"
         )
