@@ -60,6 +60,7 @@ from torch import Tensor
 
 from ._math import dot, lerp, luminance, safe_normalize, safe_sqrt
 from .frames import frame_from_normal, to_local, to_world
+from .principled import PRINCIPLED_DEFAULTS
 from .sampling import (
     ALPHA_MIN,
     LatLongSampler,
@@ -209,18 +210,7 @@ def latlong_bilinear(img: Tensor, d: Tensor, batch_index: Tensor | None = None) 
 # Material helpers (floats, 0-d tensors and per-pixel (P, C) maps alike)
 # --------------------------------------------------------------------------------------
 
-_PRINCIPLED_DEFAULTS = {
-    "metallic": 0.0,
-    "subsurface": 0.0,
-    "specular": 0.5,
-    "roughness": 0.5,
-    "specular_tint": 0.0,
-    "anisotropic": 0.0,
-    "sheen": 0.0,
-    "sheen_tint": 0.5,
-    "clearcoat": 0.0,
-    "clearcoat_gloss": 1.0,
-}
+_PRINCIPLED_DEFAULTS = PRINCIPLED_DEFAULTS
 
 
 def _param(material: dict, name: str):

@@ -52,6 +52,7 @@ from .envmap import (
 from .frames import frame_from_normal, gram_schmidt
 from .gbuffer import GBuffer
 from .lights import DirectionalLight, EnvironmentLight, Light, PointLight
+from .principled import LOBES, PRINCIPLED_DEFAULTS
 
 __all__ = ["shade", "plan", "Shader", "ShadingPlan", "ENV_STRATEGIES", "ENV_SAMPLINGS", "DEFAULT_ENV_SAMPLES"]
 
@@ -63,19 +64,9 @@ ENV_ELEMENTS_PER_PASS = 1 << 18
 # Squared distance floor for point lights (a light exactly on the surface): keeps 1/d² finite.
 DIST2_EPS = 1e-12
 
-_LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
-_DEFAULTS = {
-    "metallic": 0.0,
-    "subsurface": 0.0,
-    "specular": 0.5,
-    "roughness": 0.5,
-    "specular_tint": 0.0,
-    "anisotropic": 0.0,
-    "sheen": 0.0,
-    "sheen_tint": 0.5,
-    "clearcoat": 0.0,
-    "clearcoat_gloss": 1.0,
-}
+# One source of truth for the principled lobes and defaults.
+_LOBES = LOBES
+_DEFAULTS = PRINCIPLED_DEFAULTS
 # Rough relative cost of one BRDF evaluation per lobe (diffuse = 1), for plan()'s estimate.
 _LOBE_COST = {"diffuse": 1.0, "subsurface": 0.6, "specular": 2.0, "sheen": 0.4, "clearcoat": 1.2}
 # Bytes of live intermediates per (pixel, sample) element and per unit of lobe cost during
