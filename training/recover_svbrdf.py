@@ -322,6 +322,14 @@ def _majority(metal: Tensor, size: int) -> Tensor:
     return (avg > 0.5).to(metal.dtype).reshape(-1, 1)
 
 
+def _despeckle(metal: Tensor, size: int) -> Tensor:
+    img = metal.T.reshape(1, 1, size, size)
+    same_metal = F.avg_pool2d(F.pad(img, (1, 1, 1, 1), mode="replicate"), 3, 1) * 9 - img  # metal neighbours
+    agree = torch.where(img > 0.5, same_metal, 8 - same_metal)
+    out = torch.where(agree <= 1, 1 - img, img)
+    return out.reshape(-1, 1)
+
+
 class Recovery:
     """The resumable optimisation state machine (see the module docstring)."""
 
@@ -435,7 +443,9 @@ class Recovery:
             metal = (scores[1] < self.cfg.metal_margin * scores[0]).to(st["theta"][0].dtype)
             # 3x3 majority vote on the coarse levels only: at full resolution it erodes the
             # one-pixel-wide edges of inlays and scratches (see docs/recovery.md).
-            st["metal"] = _majority(metal, size) if size < self.plan[-1][0] else metal
+            # At full resolution only isolated choices are flipped (a pixel with at most one
+            # of its 8 neighbours agreeing), which keeps one-pixel edges.
+            st["metal"] = _majority(metal, size) if size < self.plan[-1][0] else _despeckle(metal, size)
             st.pop("costs", None)
         nxt = st["stage"] + 1
         if nxt < len(self.plan):
