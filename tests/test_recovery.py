@@ -92,3 +92,33 @@ def test_nan_is_detected_recovered_and_never_written(tiny, tmp_path):
         assert torch.isfinite(read_exr(tmp_path / "nan" / f"{f}.exr")).all()
     assert math.isfinite(rep["final_loss"])
     assert min(rep["per_image_psnr"].values()) > 25
+
+
+def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
+    """Metal pixels the data barely sees take the information-weighted F0 of their metal
+    neighbours; well-observed metal pixels and dielectric pixels keep their own values."""
+    import types
+
+    import training.recover_svbrdf as R
+
+    size = 16
+    p = size * size
+    theta = torch.zeros(p, 7)
+    theta[:, 0:3] = 1.0  # well-observed metal F0 (logit 1)
+    metal = torch.ones(p, 1)
+    metal[: size * 4] = 0.0  # top rows dielectric
+    info = torch.full((p, 7), 10.0)
+    corner = torch.zeros(size, size, dtype=torch.bool)
+    corner[-3:, -3:] = True
+    corner = corner.flatten()
+    theta[corner, 0:3] = -1.0  # the under-determined corner came out dark
+    info[corner, 0:3] = 1e-6
+    theta[: size * 4, 0:3] = -2.0  # a dark dielectric must not leak into the metal average
+    monkeypatch.setattr(R, "marginal_information", lambda *a: info)
+    cfg = RecoveryConfig()
+    w, m, inf = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg)
+    fused = torch.where(w > 0, (inf * theta + w * m) / (inf + w).clamp(min=1e-12), theta)
+    assert torch.allclose(fused[corner, 0:3], torch.ones(int(corner.sum()), 3), atol=0.05)
+    keep = ~corner & (metal[:, 0] > 0.5)
+    assert torch.allclose(fused[keep, 0:3], theta[keep, 0:3], atol=1e-2)
+    assert torch.equal(fused[: size * 4], theta[: size * 4])
