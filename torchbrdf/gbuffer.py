@@ -16,21 +16,12 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from .principled import SCALAR_PARAMS
+
 __all__ = ["GBuffer", "PRINCIPLED_SCALAR_PARAMS", "COLOR_PARAMS"]
 
-#: Material names that must be single-channel maps (C = 1).
-PRINCIPLED_SCALAR_PARAMS = (
-    "metallic",
-    "subsurface",
-    "specular",
-    "roughness",
-    "specular_tint",
-    "anisotropic",
-    "sheen",
-    "sheen_tint",
-    "clearcoat",
-    "clearcoat_gloss",
-)
+#: Material names that must be single-channel maps (C = 1): the principled scalars.
+PRINCIPLED_SCALAR_PARAMS = SCALAR_PARAMS
 #: Material names that must be RGB maps (C = 3).
 COLOR_PARAMS = ("base_color",)
 
