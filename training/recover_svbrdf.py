@@ -26,9 +26,13 @@ Method (each choice measured, see ``docs/recovery.md``):
   hypothesis fitted side by side; each pixel keeps the one with the lower cost on the
   training lights *plus a held-out captured light* (a light the fit never saw), then a 3×3
   majority vote removes isolated choices.
-* **Spatial priors**: roughness and specular are pulled toward their 4-neighbours of the same
+* **Spatial priors**: roughness and specular are tied to their 4-neighbours of the same
   class, weighted by albedo similarity (``exp(-|Δbase|²/σ²)``), which fills in the glossy
-  pixels whose highlight no light hits.
+  pixels whose highlight no light hits. The prior couples pixels, so each LM step solves
+  the whole sparse system (per-pixel 7×7 blocks + the prior's weighted Laplacian) by
+  block-preconditioned conjugate gradients: a weakly observed region moves as a whole
+  instead of being held at its start value by frozen neighbours (a Jacobi prior kept tiles'
+  grout at roughness 0.74 instead of 0.85).
 * **Non-local fusion of a metal's F0** (after the last iteration): each metal pixel's base
   colour is fused with the average of the metal pixels within a large Gaussian window
   (weighted by their shrinkage ``info / (info + κ)``), by precisions — its own marginal
@@ -80,10 +84,11 @@ class RecoveryConfig:
     seed: int = 0
     device: str = "cpu"
     levels: int = 3
-    prior_roughness: float = 0.05
-    prior_specular: float = 0.05
+    prior_roughness: float = 0.002
+    prior_specular: float = 0.002
     prior_sigma: float = 0.1
     prior_metal_base: float = 0.02
+    cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
     prior_nonlocal_base: float = 0.003  # precision of the non-local prior on a metal's base colour
@@ -229,30 +234,110 @@ def _neighbours(x: Tensor, size: int) -> Tensor:
     return nb[:, 0].reshape(4, x.shape[1], -1).permute(0, 2, 1)
 
 
-def _prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig):
-    """Prior weights ``(P, 7)`` (diagonal) and targets for the Jacobi prior on r and s."""
-    base = torch.sigmoid(theta[:, 0:3])
-    nb_base = _neighbours(base, size)
-    nb_theta = _neighbours(theta, size)
-    nb_metal = _neighbours(metal, size)
-    a = torch.exp(-((nb_base - base[None]) ** 2).sum(-1, keepdim=True) / cfg.prior_sigma**2)
-    a = a * (nb_metal == metal[None]).to(a.dtype)  # (4, P, 1)
-    wsum = a.sum(0)
-    target = (a * nb_theta).sum(0) / wsum.clamp(min=1e-6)
-    diag = torch.zeros_like(theta)
-    diag[:, 3:4] = cfg.prior_specular * wsum + 1e-3
-    diag[:, 3:4] += 1.0 * metal  # specular is invisible on metal: tie it to neighbours
-    diag[:, 4:5] = cfg.prior_roughness * wsum
-    # A metal's base colour is its F0, seen only through the specular lobe (like roughness):
-    # pull it toward its metal neighbours (class-only weights — guiding it by itself would
-    # let an outlier cut itself loose).
-    same = (nb_metal == metal[None]).to(a.dtype)
-    msum = same.sum(0)
-    mtarget = (same * nb_theta[..., 0:3]).sum(0) / msum.clamp(min=1e-6)
-    diag[:, 0:3] = cfg.prior_metal_base * msum * metal
-    target = torch.where(wsum > 1e-6, target, theta)
-    target = torch.cat((torch.where(metal > 0.5, mtarget, target[:, 0:3]), target[:, 3:]), -1)
-    return diag, target
+def _edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig) -> tuple[Tensor, Tensor]:
+    """Smoothness-prior weights ``(S, S-1, 7)`` (horizontal edges) and ``(S-1, S, 7)`` (vertical).
+
+    The prior energy is ``½ Σ_edges w_e,c (θ_p,c − θ_q,c)²`` over 4-neighbour edges ``(p, q)``:
+
+    * roughness and specular: ``prior_* · exp(−|Δbase|²/σ²)`` between pixels of the same
+      class (base-colour-guided, so edges between materials are cut);
+    * a metal's base colour (its F0, seen only through the specular lobe, like roughness):
+      ``prior_metal_base`` between two metal pixels (class-only — guiding it by itself
+      would let an outlier cut itself loose);
+    * a metal's specular does not affect the image at all: weight 1 between metal pixels,
+      which keeps it defined.
+    """
+    c = theta.shape[1]
+    img = theta.reshape(size, size, c)
+    base = torch.sigmoid(img[..., 0:3])
+    m = metal.reshape(size, size, 1)
+
+    def weights(b0, b1, m0, m1):
+        same = (m0 == m1).to(theta.dtype)
+        both_metal = m0 * m1
+        a = torch.exp(-((b1 - b0) ** 2).sum(-1, keepdim=True) / cfg.prior_sigma**2) * same
+        w = torch.zeros(*a.shape[:-1], c, dtype=theta.dtype, device=theta.device)
+        w[..., 0:3] = cfg.prior_metal_base * both_metal
+        w[..., 3:4] = cfg.prior_specular * a + 1.0 * both_metal
+        w[..., 4:5] = cfg.prior_roughness * a
+        return w
+
+    wx = weights(base[:, :-1], base[:, 1:], m[:, :-1], m[:, 1:])
+    wy = weights(base[:-1], base[1:], m[:-1], m[1:])
+    return wx, wy
+
+
+def _laplacian(x: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """Weighted graph Laplacian ``L x`` ``(P, C)``: ``(L x)_p = Σ_q w_pq (x_p − x_q)``."""
+    img = x.reshape(size, size, -1)
+    out = torch.zeros_like(img)
+    fx = wx * (img[:, :-1] - img[:, 1:])
+    out[:, :-1] += fx
+    out[:, 1:] -= fx
+    fy = wy * (img[:-1] - img[1:])
+    out[:-1] += fy
+    out[1:] -= fy
+    return out.reshape(x.shape)
+
+
+def _laplacian_diag(wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """Diagonal of the weighted Laplacian, ``(P, C)``."""
+    d = torch.zeros(size, size, wx.shape[-1], dtype=wx.dtype, device=wx.device)
+    d[:, :-1] += wx
+    d[:, 1:] += wx
+    d[:-1] += wy
+    d[1:] += wy
+    return d.reshape(-1, wx.shape[-1])
+
+
+def _prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """Per-pixel share ``(P, 1)`` of the prior energy, on the scale of the ``|r|²`` data cost.
+
+    The objective is ``½|r|² + ½ Σ_edges w Δθ²``; twice it, split half of each edge to each
+    end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total).
+    """
+    img = theta.reshape(size, size, -1)
+    ex = (wx * (img[:, :-1] - img[:, 1:]) ** 2).sum(-1, keepdim=True)
+    ey = (wy * (img[:-1] - img[1:]) ** 2).sum(-1, keepdim=True)
+    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
+    e[:, :-1] += ex
+    e[:, 1:] += ex
+    e[:-1] += ey
+    e[1:] += ey
+    return 0.5 * e.reshape(-1, 1)
+
+
+def _pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int) -> Tensor:
+    """Solve ``(blockdiag(hess) + L) x = rhs`` by preconditioned conjugate gradients.
+
+    ``hess (P, 7, 7)`` is each pixel's damped Gauss–Newton matrix, ``L`` the prior's weighted
+    Laplacian (pixels couple only through it). The preconditioner is the exact inverse of
+    the block diagonal (``hess`` + the Laplacian's diagonal). Unlike a Jacobi prior (the
+    neighbours frozen within an iteration), CG moves a whole region together: a uniform
+    shift costs no prior energy, so a weakly observed region is not held at its start value.
+    """
+    def apply(x):
+        return torch.einsum("pij,pj->pi", hess, x) + _laplacian(x, wx, wy, size)
+
+    pre = torch.linalg.inv(hess + torch.diag_embed(_laplacian_diag(wx, wy, size)))
+    x = torch.einsum("pij,pj->pi", pre, rhs)
+    r = rhs - apply(x)
+    z = torch.einsum("pij,pj->pi", pre, r)
+    d = z
+    rz = (r * z).sum()
+    for _ in range(iters):
+        ad = apply(d)
+        dad = (d * ad).sum()
+        if not bool(torch.isfinite(dad)) or float(dad) <= 0:
+            break
+        alpha = rz / dad
+        x = x + alpha * d
+        r = r - alpha * ad
+        z = torch.einsum("pij,pj->pi", pre, r)
+        rz_new = (r * z).sum()
+        d = z + (rz_new / rz) * d
+        rz = rz_new
+    return x
 
 
 def _blur(x: Tensor, size: int, sigma: float) -> Tensor:
@@ -355,16 +440,13 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
     return w, m, info
 
 
-def _cost(data, theta, metal, idx, diag, target, model):
-    r = data.residual(theta, metal, idx, model)
-    c = (r * r).sum(-1, keepdim=True) + (diag * (theta - target) ** 2).sum(-1, keepdim=True)
-    return torch.where(torch.isfinite(c), c, torch.full_like(c, float("inf")))
-
-
 def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float):
-    """One per-pixel LM iteration. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``."""
-    idx = data.train_idx
-    diag, target = _prior_terms(theta, metal, data.size, cfg)
+    """One Levenberg–Marquardt iteration with the coupled smoothness prior.
+
+    Returns ``(theta, lam, cost (P, 1), n_nonfinite)``.
+    """
+    idx, size = data.train_idx, data.size
+    wx, wy = _edge_weights(theta, metal, size, cfg)
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
     # Forward-mode Jacobian, one tangent per parameter, batched by vmap (1.6x faster
     # than a loop of jvp calls, measured at 128²).
@@ -375,16 +457,17 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     jac = torch.where(torch.isfinite(jac), jac, torch.zeros_like(jac))
     r0s = torch.where(torch.isfinite(r0), r0, torch.zeros_like(r0))
     jtj = torch.einsum("pmi,pmj->pij", jac, jac)
-    g = torch.einsum("pmi,pm->pi", jac, r0s) + diag * (theta - target)
-    h = jtj + torch.diag_embed(diag)
-    hd = torch.diagonal(h, dim1=-2, dim2=-1)
-    damp = lam * (hd + 1e-6)
-    step = torch.linalg.solve(h + torch.diag_embed(damp), -g)
+    g = torch.einsum("pmi,pm->pi", jac, r0s) + _laplacian(theta, wx, wy, size)
+    hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + _laplacian_diag(wx, wy, size)
+    hess = jtj + torch.diag_embed(lam * (hd + 1e-6))  # per-pixel Marquardt damping
+    step = _pcg(hess, wx, wy, -g, size, cfg.cg_iters)
     step = torch.where(torch.isfinite(step), step, torch.zeros_like(step)).clamp(-3, 3)
-    c0 = (r0 * r0).sum(-1, keepdim=True) + (diag * (theta - target) ** 2).sum(-1, keepdim=True)
+    c0 = (r0 * r0).sum(-1, keepdim=True) + _prior_energy(theta, wx, wy, size)
     c0 = torch.where(torch.isfinite(c0), c0, torch.full_like(c0, float("inf")))
     cand = theta + lr * step
-    c1 = _cost(data, cand, metal, idx, diag, target, cfg.model)
+    r1 = fn(cand)
+    c1 = (r1 * r1).sum(-1, keepdim=True) + _prior_energy(cand, wx, wy, size)
+    c1 = torch.where(torch.isfinite(c1), c1, torch.full_like(c1, float("inf")))
     better = c1 < c0
     theta = torch.where(better, cand, theta)
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
@@ -857,8 +940,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--model", choices=("principled", "svbrdf_ggx"), default="principled")
     p.add_argument("--levels", type=int, default=3, help="coarse-to-fine levels")
-    p.add_argument("--prior-roughness", type=float, default=0.05, help="weight of the roughness smoothness prior")
-    p.add_argument("--prior-specular", type=float, default=0.05, help="weight of the specular smoothness prior")
+    p.add_argument("--prior-roughness", type=float, default=RecoveryConfig.prior_roughness, help="weight of the roughness smoothness prior")
+    p.add_argument("--prior-specular", type=float, default=RecoveryConfig.prior_specular, help="weight of the specular smoothness prior")
     p.add_argument("--prior-metal-base", type=float, default=RecoveryConfig.prior_metal_base,
                    help="weight pulling a metal's base colour (F0) toward its metal neighbours")
     p.add_argument("--prior-nonlocal-base", type=float, default=RecoveryConfig.prior_nonlocal_base,
