@@ -88,6 +88,7 @@ class RecoveryConfig:
     prior_specular: float = 0.002
     prior_sigma: float = 0.1
     prior_metal_base: float = 0.02
+    propagate: bool = True  # PatchMatch-style neighbour propagation at the start of each stage
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
@@ -162,11 +163,18 @@ class LevelData:
         self.log_obs = torch.log(torch.clamp(self.obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
 
-    def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled") -> Tensor:
-        """Log residuals ``(P, len(idx) * 3)`` of every pixel on lights ``idx``."""
+    def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
+                 rows: Tensor | None = None) -> Tensor:
+        """Log residuals ``(N, len(idx) * 3)`` on lights ``idx``.
+
+        ``theta (N, 7)`` and ``metal (N, 1)`` are every pixel's (``N = P``), or, with
+        ``rows (N,)`` (pixel indices, repeats allowed), those of the listed pixels.
+        """
         p = decode(theta, metal)
-        pred = _render_points(p, self.points, self.camera, self.pos[idx], self.inten[idx], model)
-        r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - self.log_obs[idx]
+        points = self.points if rows is None else self.points[rows]
+        log_obs = self.log_obs[idx] if rows is None else self.log_obs[idx][:, rows]
+        pred = _render_points(p, points, self.camera, self.pos[idx], self.inten[idx], model)
+        r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs
         return r.permute(1, 0, 2).reshape(theta.shape[0], -1)
 
 
@@ -475,6 +483,93 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
 
 
+def propagate(data: LevelData, theta: Tensor, metal: Tensor, model: str) -> tuple[Tensor, int]:
+    """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
+
+    A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
+    coarse level blends two materials) adopts the parameters of a same-class neighbour when
+    they explain its own observations better (data cost on the training lights). Cheap:
+    8 renders of the level, no Jacobian.
+
+    Returns ``(theta (P, 7), number of pixels changed)``.
+    """
+    size, c = data.size, theta.shape[1]
+    cost = lambda t: (data.residual(t, metal, data.train_idx, model) ** 2).sum(-1, keepdim=True)  # noqa: E731
+    best = theta
+    best_cost = torch.nan_to_num(cost(theta), nan=float("inf"))
+    pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
+    padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
+    for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        cand = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
+        cm = padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T
+        cc = torch.where(cm == metal, torch.nan_to_num(cost(cand), nan=float("inf")), float("inf"))
+        better = cc < best_cost
+        best = torch.where(better, cand, best)
+        best_cost = torch.where(better, cc, best_cost)
+    return best, int((best != theta).any(-1).sum())
+
+
+def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
+    """Normal slopes ``(K, 2)``: the flat normal and a polar grid of tilts (degrees)."""
+    out = [torch.zeros(1, 2, dtype=torch.float64)]
+    for k, t in enumerate(tilts):
+        az = (torch.arange(azimuths, dtype=torch.float64) + 0.5 * (k % 2)) * (2 * math.pi / azimuths)
+        out.append(math.tan(math.radians(t)) * torch.stack((az.cos(), az.sin()), -1))
+    return torch.cat(out).to(dtype=dtype, device=device)
+
+
+def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
+                  max_pixels: int = 4096) -> tuple[Tensor, int]:
+    """Re-seed badly fitted pixels by a discrete search over normals and neighbours' parameters.
+
+    Gauss–Newton only walks downhill: a glossy pixel whose normal starts 30° off (the steep
+    rim of an inlay, where the upsampled coarse level is flat) never finds its highlight.
+    Pixels whose data cost exceeds ``factor`` × the median cost (the noise level) try every
+    combination of {their own, their 8 same-class neighbours'} parameters × a grid of
+    normals (flat, tilts 8–40°, 8 azimuths), and keep the best if it lowers their cost.
+    At most ``max_pixels`` (the worst) are searched per call.
+
+    Returns ``(theta (P, 7), number of pixels changed)``.
+    """
+    size, c = data.size, theta.shape[1]
+    idx = data.train_idx
+    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
+    bad = torch.nonzero(cost > thr).flatten()
+    if bad.numel() == 0:
+        return theta, 0
+    if bad.numel() > max_pixels:
+        bad = bad[torch.topk(cost[bad], max_pixels).indices]
+    # Own parameters and the 8 neighbours' (replicated border), same class only.
+    r, col = bad // size, bad % size
+    bases, valid = [], []
+    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
+        bases.append(theta[q])
+        valid.append(metal[q, 0] == metal[bad, 0])
+    bases = torch.stack(bases, 1)  # (B, 9, 7)
+    valid = torch.stack(valid, 1)  # (B, 9)
+    slopes = _candidate_slopes(theta.dtype, theta.device)  # (K, 2)
+    nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
+    cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
+    cand[:, :, 1:, 5:7] = slopes[None, None]  # index 0 keeps the base's own normal
+    cand = cand.reshape(nb, -1, c)
+    ccost = torch.empty(cand.shape[:2], dtype=theta.dtype, device=theta.device)
+    chunk = max(1, 65536 // cand.shape[1])
+    for s0 in range(0, nb, chunk):
+        sl = slice(s0, s0 + chunk)
+        n = cand[sl].shape[0]
+        rows = bad[sl].repeat_interleave(cand.shape[1])
+        rr = data.residual(cand[sl].reshape(-1, c), metal[rows], idx, model, rows=rows)
+        ccost[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf")).reshape(n, -1)
+    ccost = torch.where(valid[:, :, None].expand(nb, nbase, k + 1).reshape(nb, -1), ccost, float("inf"))
+    best_cost, best = ccost.min(1)
+    better = best_cost < cost[bad]
+    theta = theta.clone()
+    theta[bad[better]] = cand[better, best[better]]
+    return theta, int(better.sum())
+
+
 # --------------------------------------------------------------------------------------
 # Driver with checkpoints
 # --------------------------------------------------------------------------------------
@@ -508,6 +603,27 @@ def _upsample(x: Tensor, s0: int, s1: int, mode="bilinear") -> Tensor:
     kw = {"align_corners": False} if mode == "bilinear" else {}
     up = F.interpolate(img, size=(s1, s1), mode=mode, **kw)
     return up[0].reshape(x.shape[1], -1).T.contiguous()
+
+
+def _choose_class(cost_diel: Tensor, cost_metal: Tensor, margin: float, size: int, sweeps: int = 8) -> Tensor:
+    """Per-pixel metal (1) / dielectric (0) choice ``(P, 1)`` from the two hypotheses' data costs.
+
+    Decisive pixels follow the data: metal when its cost is below ``margin`` × the
+    dielectric's, dielectric when above ``1 / margin`` × it. The pixels in between are ones the
+    data cannot decide — typically a metal far from every highlight, whose tail a black
+    glossy dielectric reproduces as well — and take the majority class of their 8
+    neighbours (a few iterated-conditional-modes sweeps grow the decisive regions into
+    them); with no decisive neighbourhood they stay dielectric, the common case.
+    """
+    ratio = cost_metal / cost_diel.clamp(min=1e-30)
+    sure_metal = ratio < margin
+    ambiguous = ~sure_metal & (ratio <= 1.0 / margin)
+    label = sure_metal.to(cost_diel.dtype)
+    for _ in range(sweeps if bool(ambiguous.any()) else 0):
+        img = label.T.reshape(1, 1, size, size)
+        frac = (F.avg_pool2d(F.pad(img, (1, 1, 1, 1), mode="replicate"), 3, 1) * 9 - img) / 8
+        label = torch.where(ambiguous, (frac.reshape(-1, 1) > 0.5).to(label.dtype), label)
+    return label
 
 
 def _majority(metal: Tensor, size: int) -> Tensor:
@@ -604,6 +720,9 @@ class Recovery:
                 theta = torch.where(bad, torch.nan_to_num(fill, nan=0.0), theta)
                 st["lam"][h] = torch.where(bad, st["lam"][h] * 100, st["lam"][h])
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
+            if st["it"] == 0 and self.cfg.propagate:  # a new stage (new level or new hypothesis set)
+                theta, _ = propagate(data, theta, metal, self.cfg.model)
+                theta, _ = normal_search(data, theta, metal, self.cfg.model)
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"])
             if n_bad:
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite loss", "pixels": n_bad,
@@ -634,7 +753,7 @@ class Recovery:
                 scores.append(torch.nan_to_num(c, nan=float("inf")))
             # Metal only when clearly better: a rough metal's broad GGX lobe can mimic a
             # rough dielectric's diffuse, and dielectrics are the common case.
-            metal = (scores[1] < self.cfg.metal_margin * scores[0]).to(st["theta"][0].dtype)
+            metal = _choose_class(scores[0], scores[1], self.cfg.metal_margin, size)
             # 3x3 majority vote on the coarse levels only: at full resolution it erodes the
             # one-pixel-wide edges of inlays and scratches (see docs/recovery.md).
             # At full resolution only isolated choices are flipped (a pixel with at most one
