@@ -16,16 +16,25 @@ Method (each choice measured, see ``docs/recovery.md``):
   and keeps highlights (radiance > 50) from dominating the dark pixels.
 * **Per-pixel Levenberg–Marquardt** (Gauss–Newton with per-pixel damping; the Jacobian by
   forward-mode AD, ``torch.func.jvp``): pixels are independent except through the priors, so
-  the 7×7 normal equations of every pixel are solved in one batched call (45 iterations in
-  the default schedule). A step that raises a pixel's
+  the normal equations are one 7×7 block per pixel plus the prior's sparse Laplacian, solved
+  by block-preconditioned conjugate gradients (45 iterations in the default schedule).
+  A step that raises a pixel's
   cost — or makes it non-finite — is rejected for that pixel and its damping raised (step
   back, smaller step); a non-finite total loss also halves the global step (``--lr``).
 * **Coarse to fine** (S/4, S/2, S): cheap levels settle the metal/dielectric choice and the
   low frequencies; the full level only refines.
 * **Metal/dielectric: two starts**, a dielectric (metallic 0) and a metal (metallic 1)
-  hypothesis fitted side by side; each pixel keeps the one with the lower cost on the
-  training lights *plus a held-out captured light* (a light the fit never saw), then a 3×3
-  majority vote removes isolated choices.
+  hypothesis fitted side by side; a pixel is metal when its cost on the training lights
+  *plus a held-out captured light* (a light the fit never saw) is below half the
+  dielectric's, dielectric when above twice it; the pixels in between, which the data
+  cannot decide, take their neighbours' class (a few ICM sweeps), then isolated choices are
+  removed.
+* **Propagation and search** (PatchMatch-style, between LM iterations): each pixel tries
+  its 8 neighbours' parameters — same class, or the other class under the same margin
+  rule — and keeps them when they lower its data cost plus prior; pixels still fitting
+  far worse than the noise level try a grid of normals (tilts up to 40°) combined with
+  their own and their neighbours' parameters. Gauss–Newton only walks downhill: this is
+  what finds the highlight of a steep inlay rim whose normal starts 30° off.
 * **Spatial priors**: roughness and specular are tied to their 4-neighbours of the same
   class, weighted by albedo similarity (``exp(-|Δbase|²/σ²)``), which fills in the glossy
   pixels whose highlight no light hits. The prior couples pixels, so each LM step solves
@@ -88,7 +97,9 @@ class RecoveryConfig:
     prior_specular: float = 0.002
     prior_sigma: float = 0.1
     prior_metal_base: float = 0.02
-    propagate: bool = True  # PatchMatch-style neighbour propagation at the start of each stage
+    propagate: bool = True  # PatchMatch-style neighbour propagation (see propagate)
+    propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
+    propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
@@ -483,30 +494,59 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
 
 
-def propagate(data: LevelData, theta: Tensor, metal: Tensor, model: str) -> tuple[Tensor, int]:
+def _local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(P, 1)``: the change
+    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``."""
+    c = theta.shape[1]
+    a, t = cand.reshape(size, size, c), theta.reshape(size, size, c)
+    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
+    e[:, :-1] += (wx * (a[:, :-1] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
+    e[:, 1:] += (wx * (a[:, 1:] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
+    e[:-1] += (wy * (a[:-1] - t[1:]) ** 2).sum(-1, keepdim=True)
+    e[1:] += (wy * (a[1:] - t[:-1]) ** 2).sum(-1, keepdim=True)
+    return e.reshape(-1, 1)
+
+
+def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
+              margin: float | None = None) -> tuple[Tensor, Tensor, int]:
     """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
 
     A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
-    coarse level blends two materials) adopts the parameters of a same-class neighbour when
-    they explain its own observations better (data cost on the training lights). Cheap:
-    8 renders of the level, no Jacobian.
+    coarse level blends two materials) adopts the parameters of a neighbour when they
+    explain its own observations better — data cost on the training lights plus the
+    smoothness prior, so where the data cannot tell two solutions apart (a dielectric whose
+    specular went to 0 leaves roughness free) the one agreeing with its neighbours wins.
+    Cheap: 8 renders of the level, no Jacobian. With ``margin`` (the metal/dielectric decision
+    margin), a neighbour of the other class is a candidate too, judged by the same rule as
+    the dual-hypothesis choice: becoming metal needs a cost below ``margin`` × the pixel's
+    own, becoming dielectric one below ``1 / margin`` × it.
 
-    Returns ``(theta (P, 7), number of pixels changed)``.
+    Returns ``(theta (P, 7), metal (P, 1), number of pixels changed)``.
     """
     size, c = data.size, theta.shape[1]
-    cost = lambda t: (data.residual(t, metal, data.train_idx, model) ** 2).sum(-1, keepdim=True)  # noqa: E731
-    best = theta
-    best_cost = torch.nan_to_num(cost(theta), nan=float("inf"))
+    cost = lambda t, m: torch.nan_to_num(  # noqa: E731
+        (data.residual(t, m, data.train_idx, cfg.model) ** 2).sum(-1, keepdim=True), nan=float("inf"))
+    wx, wy = _edge_weights(theta, metal, size, cfg)
+    best, best_metal = theta, metal
+    best_score = cost(theta, metal) + _local_prior(theta, theta, wx, wy, size)
     pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
     padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
     for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
         cand = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
         cm = padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T
-        cc = torch.where(cm == metal, torch.nan_to_num(cost(cand), nan=float("inf")), float("inf"))
-        better = cc < best_cost
+        same = cm == metal
+        prior = _local_prior(cand, theta, wx, wy, size)
+        if margin is None:
+            score = torch.where(same, cost(cand, metal) + prior, float("inf"))
+        else:  # the prior's weights join pixels of one class: a class change is judged on data
+            data_cost = cost(cand, cm)
+            score = torch.where(same, data_cost + prior,
+                                data_cost * torch.where(cm > 0.5, 1.0 / margin, margin))
+        better = score < best_score
         best = torch.where(better, cand, best)
-        best_cost = torch.where(better, cc, best_cost)
-    return best, int((best != theta).any(-1).sum())
+        best_metal = torch.where(better, cm, best_metal)
+        best_score = torch.where(better, score, best_score)
+    return best, best_metal, int((best != theta).any(-1).sum())
 
 
 def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
@@ -720,8 +760,15 @@ class Recovery:
                 theta = torch.where(bad, torch.nan_to_num(fill, nan=0.0), theta)
                 st["lam"][h] = torch.where(bad, st["lam"][h] * 100, st["lam"][h])
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
-            if st["it"] == 0 and self.cfg.propagate:  # a new stage (new level or new hypothesis set)
-                theta, _ = propagate(data, theta, metal, self.cfg.model)
+            if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
+                cross = None if kind == "dual" else self.cfg.metal_margin
+                for _ in range(self.cfg.propagate_passes if st["it"] == 0 else 1):
+                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross)
+                    if not changed:
+                        break
+                if kind != "dual":
+                    st["metal"] = metal
+            if st["it"] == 0 and self.cfg.propagate:
                 theta, _ = normal_search(data, theta, metal, self.cfg.model)
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"])
             if n_bad:
