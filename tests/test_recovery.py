@@ -122,3 +122,117 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     keep = ~corner & (metal[:, 0] > 0.5)
     assert torch.allclose(fused[keep, 0:3], theta[keep, 0:3], atol=1e-2)
     assert torch.equal(fused[: size * 4], theta[: size * 4])
+
+
+# --------------------------------------------------------------------------------------
+# The coupled prior, propagation, normal search and the class choice
+# --------------------------------------------------------------------------------------
+
+
+def _random_edges(size, c=7, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    wx = torch.rand(size, size - 1, c, generator=gen, dtype=torch.float64)
+    wy = torch.rand(size - 1, size, c, generator=gen, dtype=torch.float64)
+    return wx, wy
+
+
+def test_laplacian_is_the_gradient_of_the_prior_energy():
+    import training.recover_svbrdf as R
+
+    size = 5
+    wx, wy = _random_edges(size)
+    x = torch.randn(size * size, 7, dtype=torch.float64, requires_grad=True)
+    energy = 0.5 * R._prior_energy(x, wx, wy, size).sum()  # per-pixel shares sum to 2 E
+    (grad,) = torch.autograd.grad(energy, x)
+    assert torch.allclose(grad, R._laplacian(x.detach(), wx, wy, size), atol=1e-12)
+    # Diagonal: L applied to a unit vector at pixel p, channel c.
+    e = torch.zeros(size * size, 7, dtype=torch.float64)
+    e[7, 3] = 1.0
+    assert math.isclose(float(R._laplacian(e, wx, wy, size)[7, 3]), float(R._laplacian_diag(wx, wy, size)[7, 3]))
+
+
+def test_pcg_solves_the_coupled_system():
+    import training.recover_svbrdf as R
+
+    size, c = 4, 7
+    p = size * size
+    wx, wy = _random_edges(size, c, seed=1)
+    a = torch.randn(p, c, c, dtype=torch.float64)
+    hess = a @ a.transpose(-1, -2) + 1e-2 * torch.eye(c, dtype=torch.float64)  # SPD blocks
+    rhs = torch.randn(p, c, dtype=torch.float64)
+    x = R._pcg(hess, wx, wy, rhs, size, iters=300)
+    # Dense reference: assemble the (P·C)² matrix column by column.
+    cols = []
+    for k in range(p * c):
+        e = torch.zeros(p * c, dtype=torch.float64)
+        e[k] = 1.0
+        e = e.reshape(p, c)
+        cols.append((torch.einsum("pij,pj->pi", hess, e) + R._laplacian(e, wx, wy, size)).flatten())
+    dense = torch.stack(cols, 1)
+    ref = torch.linalg.solve(dense, rhs.flatten()).reshape(p, c)
+    assert torch.allclose(x, ref, atol=1e-8, rtol=1e-6)
+
+
+def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
+    """A LevelData of a uniform glossy dielectric (or a tilted normal everywhere)."""
+    import training.recover_svbrdf as R
+    from datasets.capture import Capture
+    from datasets.synthetic import light_layout, render_capture
+
+    n = torch.tensor([math.sin(math.radians(normal_tilt_deg)), 0.0, math.cos(math.radians(normal_tilt_deg))])
+    maps = {"base_color": torch.tensor([0.5, 0.3, 0.2])[:, None, None].expand(3, size, size),
+            "roughness": torch.full((1, size, size), 0.3), "metallic": torch.zeros(1, size, size),
+            "specular": torch.full((1, size, size), 0.5), "normal": n[:, None, None].expand(3, size, size)}
+    pos, inten = light_layout(lights)
+    imgs = render_capture(maps, (pos, inten), backend="compact")
+    cap = Capture(images=imgs, light_positions=pos, light_intensities=inten,
+                  camera_position=torch.tensor([0.0, 0.0, 3.0]), width=size, height=size,
+                  files=tuple(f"{k}.exr" for k in range(len(pos))))
+    data = R.LevelData(cap, size, list(range(len(pos))), float(0.01 * imgs.mean()))
+    p = {k: v.reshape(v.shape[0], -1).T.contiguous() for k, v in maps.items()}
+    metal = p.pop("metallic")
+    return R, data, R.encode(p), metal
+
+
+def test_propagation_repairs_a_pixel_from_its_neighbours():
+    R, data, theta, metal = _flat_level()
+    bad = theta.clone()
+    bad[40, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])  # a wrong local optimum
+    fixed, new_metal, changed = R.propagate(data, bad, metal, RecoveryConfig())
+    assert changed >= 1 and torch.allclose(fixed[40], theta[40], atol=1e-5)
+    assert torch.equal(new_metal, metal)
+    # Across classes: a pixel wrongly called metal returns to dielectric by the margin rule.
+    m2 = metal.clone()
+    m2[40] = 1.0
+    fixed, new_metal, _ = R.propagate(data, bad, m2, RecoveryConfig(), margin=0.5)
+    assert float(new_metal[40]) == 0.0 and torch.allclose(fixed[40], theta[40], atol=1e-5)
+
+
+def test_normal_search_finds_a_steep_normal():
+    R, data, theta, metal = _flat_level(normal_tilt_deg=24.0)
+    rows = torch.arange(100, 110)
+    flat = theta.clone()
+    flat[rows, 5:7] = 0.0  # these normals started flat, 24° off: a glossy local optimum
+    flat[rows - 16, 5:7] = 0.0  # ... and so did the rows above and below: only the grid
+    flat[rows + 16, 5:7] = 0.0  # of normals can help the middle ones
+    cost = lambda t: (data.residual(t, metal, data.train_idx) ** 2).sum(-1)  # noqa: E731
+    found, changed = R.normal_search(data, flat, metal, "principled")
+    assert changed >= len(rows)
+    assert bool((cost(found)[rows] < 0.1 * cost(flat)[rows]).all())
+    nz = 1 / torch.sqrt(1 + (found[rows, 5:7] ** 2).sum(-1))
+    # The best candidate is the true normal of a neighbour or a grid normal within 4° of it.
+    assert torch.allclose(torch.rad2deg(torch.acos(nz)), torch.full_like(nz, 24.0), atol=4.0)
+
+
+def test_ambiguous_pixels_take_their_neighbours_class():
+    import training.recover_svbrdf as R
+
+    size = 6
+    diel = torch.ones(size * size, 1)
+    met = torch.full((size * size, 1), 10.0)  # decisively dielectric everywhere ...
+    met.view(size, size)[:, :3] = 0.01  # ... except the left half, decisively metal
+    met.view(size, size)[2, 2] = 1.0  # ambiguous, among metals
+    met.view(size, size)[3, 4] = 1.0  # ambiguous, among dielectrics
+    label = R._choose_class(diel, met, 0.5, size).view(size, size)
+    assert float(label[2, 2]) == 1.0 and float(label[3, 4]) == 0.0
+    assert torch.equal(label[:, :2], torch.ones(size, 2)) and torch.equal(label[:, 4:], torch.zeros(size, 2))
