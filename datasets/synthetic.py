@@ -466,17 +466,10 @@ def compact_principled(nl, nv, nh, lh, sin2_h, base_color, metallic, specular, r
     return diffuse + fs * spec
 
 
-def shading_geometry(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor):
-    """Per-pixel, per-light geometry for the compact renderer.
-
-    Args:
-        normal: unit normals ``(P, 3)``; points ``(P, 3)``; camera ``(3,)``;
-            light_pos ``(L, 3)``.
-
-    Returns:
-        dict of ``(L, P, 1)`` tensors ``nl`` (raw), ``nv`` (raw, ``(1, P, 1)``), ``nh``, ``lh``,
-        ``sin2_h`` and ``inv_d2`` (1 / squared light distance).
-    """
+def light_geometry(points: Tensor, camera: Tensor, light_pos: Tensor) -> dict:
+    """The normal-independent part of :func:`shading_geometry`: ``v (P, 3)``, ``l``/``h``
+    ``(L, P, 3)``, ``lh`` and ``inv_d2`` ``(L, P, 1)`` — fixed for a capture, so a fit can
+    compute it once."""
     v = camera - points
     v = v * torch.rsqrt((v * v).sum(-1, keepdim=True))
     dl = light_pos[:, None, :] - points[None]
@@ -484,29 +477,49 @@ def shading_geometry(normal: Tensor, points: Tensor, camera: Tensor, light_pos: 
     l = dl * torch.rsqrt(d2)
     h = l + v[None]
     h = h * torch.rsqrt(torch.clamp((h * h).sum(-1, keepdim=True), min=1e-12))
+    lh = torch.clamp((l * h).sum(-1, keepdim=True), 0.0, 1.0)
+    return {"v": v, "l": l, "h": h, "lh": lh, "inv_d2": 1.0 / d2}
+
+
+def shading_geometry(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor,
+                     light: dict | None = None):
+    """Per-pixel, per-light geometry for the compact renderer.
+
+    Args:
+        normal: unit normals ``(P, 3)``; points ``(P, 3)``; camera ``(3,)``;
+            light_pos ``(L, 3)``.
+        light: :func:`light_geometry` of the same points, camera and lights, if precomputed.
+
+    Returns:
+        dict of ``(L, P, 1)`` tensors ``nl`` (raw), ``nv`` (raw, ``(1, P, 1)``), ``nh``, ``lh``,
+        ``sin2_h`` and ``inv_d2`` (1 / squared light distance).
+    """
+    lg = light if light is not None else light_geometry(points, camera, light_pos)
+    l, h, v = lg["l"], lg["h"], lg["v"]
     n = normal[None]
     nh = (n * h).sum(-1, keepdim=True)
-    lh = torch.clamp((l * h).sum(-1, keepdim=True), 0.0, 1.0)
     sin2_h = torch.linalg.cross(n.expand_as(h), h, dim=-1).square().sum(-1, keepdim=True)
     return {
         "nl": (n * l).sum(-1, keepdim=True),
         "nv": (normal * v).sum(-1, keepdim=True)[None],
         "nh": nh,
-        "lh": lh,
+        "lh": lg["lh"],
         "sin2_h": sin2_h,
-        "inv_d2": 1.0 / d2,
+        "inv_d2": lg["inv_d2"],
     }
 
 
 def render_compact_points(
-    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: dict
+    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: dict,
+    light: dict | None = None,
 ) -> Tensor:
     """Compact contract §3 radiance for flat lists of pixels: ``(L, P, 3)``.
 
     ``params`` holds ``base_color (P, 3)`` and ``metallic``, ``specular``, ``roughness``
-    ``(P, 1)`` (tensors or floats). Differentiable w.r.t. every input.
+    ``(P, 1)`` (tensors or floats); ``light`` optionally the precomputed
+    :func:`light_geometry`. Differentiable w.r.t. every input.
     """
-    g = shading_geometry(normal, points, camera, light_pos)
+    g = shading_geometry(normal, points, camera, light_pos, light)
     nl_raw, nv_raw = g["nl"], g["nv"]
     nl = torch.clamp(nl_raw, min=_COS_EPS)
     nv = torch.clamp(nv_raw, min=_COS_EPS)

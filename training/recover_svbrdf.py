@@ -73,7 +73,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from datasets.capture import Capture, load_capture, pixel_points
-from datasets.synthetic import frame_from_normal_map, render_capture, render_compact_points, write_maps
+from datasets.synthetic import (frame_from_normal_map, light_geometry, render_capture, render_compact_points,
+                                write_maps)
 from torchbrdf.io import atomic_path, read_exr, write_png
 
 __all__ = ["RecoveryConfig", "recover", "main", "psnr"]
@@ -173,25 +174,32 @@ class LevelData:
         self.eps = eps
         self.log_obs = torch.log(torch.clamp(self.obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
+        self._light = {}  # light-set tuple -> (log targets, light_geometry)
 
     def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
                  rows: Tensor | None = None) -> Tensor:
         """Log residuals ``(N, len(idx) * 3)`` on lights ``idx``.
 
         ``theta (N, 7)`` and ``metal (N, 1)`` are every pixel's (``N = P``), or, with
-        ``rows (N,)`` (pixel indices, repeats allowed), those of the listed pixels.
+        ``rows`` (pixel indices ``(N,)``, repeats allowed, or a slice), those of the listed pixels.
         """
         p = decode(theta, metal)
-        points = self.points if rows is None else self.points[rows]
-        log_obs = self.log_obs[idx] if rows is None else self.log_obs[idx][:, rows]
-        pred = _render_points(p, points, self.camera, self.pos[idx], self.inten[idx], model)
+        key = tuple(idx)
+        if key not in self._light:  # per light set, once: targets and the normal-independent geometry
+            self._light[key] = (self.log_obs[idx], light_geometry(self.points, self.camera, self.pos[idx]))
+        log_obs, light = self._light[key]
+        points = self.points
+        if rows is not None:
+            points, log_obs = points[rows], log_obs[:, rows]
+            light = {"v": light["v"][rows], **{k: light[k][:, rows] for k in ("l", "h", "lh", "inv_d2")}}
+        pred = _render_points(p, points, self.camera, self.pos[idx], self.inten[idx], model, light)
         r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs
         return r.permute(1, 0, 2).reshape(theta.shape[0], -1)
 
 
-def _render_points(p, points, camera, pos, inten, model):
+def _render_points(p, points, camera, pos, inten, model, light):
     if model == "principled":
-        return render_compact_points(p["normal"], points, camera, pos, inten, p)
+        return render_compact_points(p["normal"], points, camera, pos, inten, p, light)
     if model == "svbrdf_ggx":  # the GGX model of torchbrdf.capture_model (not tuned)
         from torchbrdf.capture_model import svbrdf_ggx
 
@@ -388,6 +396,28 @@ def _kmeans(x: Tensor, k: int, iters: int = 8, return_centres: bool = False) -> 
     return c if return_centres else torch.cdist(x, c).argmin(-1)
 
 
+def jacobian(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int], model: str,
+             chunk: int = 16384) -> Tensor:
+    """Jacobian ``(P, M, 7)`` of the log residuals on lights ``idx`` w.r.t. each pixel's 7 unknowns.
+
+    Pixels are independent, so one forward-mode pass per unknown (``torch.func.jvp`` vmapped
+    over the 7 tangents) gives every pixel's Jacobian; it runs over blocks of ``chunk``
+    pixels, which keeps the 7 × lights × pixels intermediates in cache (3× faster than one
+    pass over 256² pixels, measured). Non-finite entries are zeroed.
+    """
+    out = []
+    eye = torch.eye(_N_PARAMS, dtype=theta.dtype, device=theta.device)
+    for s0 in range(0, theta.shape[0], chunk):
+        rows = slice(s0, min(s0 + chunk, theta.shape[0]))
+        t, m = theta[rows], metal[rows]
+        fn = lambda x: data.residual(x, m, idx, model, rows=rows)  # noqa: E731
+        tangents = eye[:, None, :].expand(_N_PARAMS, *t.shape)
+        cols = torch.func.vmap(lambda tg: torch.func.jvp(fn, (t,), (tg,))[1])(tangents)  # (7, n, M)
+        out.append(cols.permute(1, 2, 0))
+    jac = torch.cat(out)
+    return torch.where(torch.isfinite(jac), jac, torch.zeros_like(jac))
+
+
 def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model: str) -> Tensor:
     """Per-parameter marginal information ``1 / diag((JᵀJ)⁻¹)`` ``(P, 7)`` of the data term.
 
@@ -395,10 +425,7 @@ def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model:
     trade off against it (Gauss–Newton posterior precision): small for a glossy pixel's
     roughness when no highlight reaches it, and for a metal's F0 far from every highlight.
     """
-    fn = lambda t: data.residual(t, metal, data.train_idx, model)  # noqa: E731
-    eye = torch.eye(_N_PARAMS, dtype=theta.dtype, device=theta.device)[:, None, :].expand(_N_PARAMS, *theta.shape)
-    cols = torch.func.vmap(lambda tg: torch.func.jvp(fn, (theta,), (tg,))[1])(eye)
-    jac = torch.nan_to_num(cols.permute(1, 2, 0), nan=0.0, posinf=0.0, neginf=0.0)
+    jac = jacobian(data, theta, metal, data.train_idx, model)
     jtj = torch.einsum("pmi,pmj->pij", jac, jac)
     jtj = jtj + 1e-6 * torch.eye(_N_PARAMS, dtype=jtj.dtype, device=jtj.device)
     cov = torch.linalg.inv(jtj.double())
@@ -467,13 +494,8 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     idx, size = data.train_idx, data.size
     wx, wy = _edge_weights(theta, metal, size, cfg)
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
-    # Forward-mode Jacobian, one tangent per parameter, batched by vmap (1.6x faster
-    # than a loop of jvp calls, measured at 128²).
     r0 = fn(theta)
-    eye = torch.eye(_N_PARAMS, dtype=theta.dtype, device=theta.device)[:, None, :].expand(_N_PARAMS, *theta.shape)
-    cols = torch.func.vmap(lambda tg: torch.func.jvp(fn, (theta,), (tg,))[1])(eye)  # (7, P, M)
-    jac = cols.permute(1, 2, 0)  # (P, M, 7)
-    jac = torch.where(torch.isfinite(jac), jac, torch.zeros_like(jac))
+    jac = jacobian(data, theta, metal, idx, cfg.model)  # (P, M, 7)
     r0s = torch.where(torch.isfinite(r0), r0, torch.zeros_like(r0))
     jtj = torch.einsum("pmi,pmj->pij", jac, jac)
     g = torch.einsum("pmi,pm->pi", jac, r0s) + _laplacian(theta, wx, wy, size)
