@@ -137,22 +137,22 @@ def _random_edges(size, c=7, seed=0):
 
 
 def test_laplacian_is_the_gradient_of_the_prior_energy():
-    import training.recover_svbrdf as R
+    import training.smoothness_prior as R
 
     size = 5
     wx, wy = _random_edges(size)
     x = torch.randn(size * size, 7, dtype=torch.float64, requires_grad=True)
-    energy = 0.5 * R._prior_energy(x, wx, wy, size).sum()  # per-pixel shares sum to 2 E
+    energy = 0.5 * R.prior_energy(x, wx, wy, size).sum()  # per-pixel shares sum to 2 E
     (grad,) = torch.autograd.grad(energy, x)
-    assert torch.allclose(grad, R._laplacian(x.detach(), wx, wy, size), atol=1e-12)
+    assert torch.allclose(grad, R.laplacian(x.detach(), wx, wy, size), atol=1e-12)
     # Diagonal: L applied to a unit vector at pixel p, channel c.
     e = torch.zeros(size * size, 7, dtype=torch.float64)
     e[7, 3] = 1.0
-    assert math.isclose(float(R._laplacian(e, wx, wy, size)[7, 3]), float(R._laplacian_diag(wx, wy, size)[7, 3]))
+    assert math.isclose(float(R.laplacian(e, wx, wy, size)[7, 3]), float(R.laplacian_diag(wx, wy, size)[7, 3]))
 
 
 def test_pcg_solves_the_coupled_system():
-    import training.recover_svbrdf as R
+    import training.smoothness_prior as R
 
     size, c = 4, 7
     p = size * size
@@ -160,14 +160,14 @@ def test_pcg_solves_the_coupled_system():
     a = torch.randn(p, c, c, dtype=torch.float64)
     hess = a @ a.transpose(-1, -2) + 1e-2 * torch.eye(c, dtype=torch.float64)  # SPD blocks
     rhs = torch.randn(p, c, dtype=torch.float64)
-    x = R._pcg(hess, wx, wy, rhs, size, iters=300)
+    x = R.pcg(hess, wx, wy, rhs, size, iters=300)
     # Dense reference: assemble the (P·C)² matrix column by column.
     cols = []
     for k in range(p * c):
         e = torch.zeros(p * c, dtype=torch.float64)
         e[k] = 1.0
         e = e.reshape(p, c)
-        cols.append((torch.einsum("pij,pj->pi", hess, e) + R._laplacian(e, wx, wy, size)).flatten())
+        cols.append((torch.einsum("pij,pj->pi", hess, e) + R.laplacian(e, wx, wy, size)).flatten())
     dense = torch.stack(cols, 1)
     ref = torch.linalg.solve(dense, rhs.flatten()).reshape(p, c)
     assert torch.allclose(x, ref, atol=1e-8, rtol=1e-6)

@@ -76,6 +76,7 @@ from datasets.capture import Capture, load_capture, pixel_points
 from datasets.synthetic import (frame_from_normal_map, light_geometry, render_capture, render_compact_points,
                                 write_maps)
 from torchbrdf.io import atomic_path, read_exr, write_png
+from training.smoothness_prior import edge_weights, laplacian, laplacian_diag, local_prior, pcg, prior_energy
 
 __all__ = ["RecoveryConfig", "recover", "main", "psnr"]
 
@@ -261,112 +262,6 @@ def _neighbours(x: Tensor, size: int) -> Tensor:
     return nb[:, 0].reshape(4, x.shape[1], -1).permute(0, 2, 1)
 
 
-def _edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig) -> tuple[Tensor, Tensor]:
-    """Smoothness-prior weights ``(S, S-1, 7)`` (horizontal edges) and ``(S-1, S, 7)`` (vertical).
-
-    The prior energy is ``½ Σ_edges w_e,c (θ_p,c − θ_q,c)²`` over 4-neighbour edges ``(p, q)``:
-
-    * roughness and specular: ``prior_* · exp(−|Δbase|²/σ²)`` between pixels of the same
-      class (base-colour-guided, so edges between materials are cut);
-    * a metal's base colour (its F0, seen only through the specular lobe, like roughness):
-      ``prior_metal_base`` between two metal pixels (class-only — guiding it by itself
-      would let an outlier cut itself loose);
-    * a metal's specular does not affect the image at all: weight 1 between metal pixels,
-      which keeps it defined.
-    """
-    c = theta.shape[1]
-    img = theta.reshape(size, size, c)
-    base = torch.sigmoid(img[..., 0:3])
-    m = metal.reshape(size, size, 1)
-
-    def weights(b0, b1, m0, m1):
-        same = (m0 == m1).to(theta.dtype)
-        both_metal = m0 * m1
-        a = torch.exp(-((b1 - b0) ** 2).sum(-1, keepdim=True) / cfg.prior_sigma**2) * same
-        w = torch.zeros(*a.shape[:-1], c, dtype=theta.dtype, device=theta.device)
-        w[..., 0:3] = cfg.prior_metal_base * both_metal
-        w[..., 3:4] = cfg.prior_specular * a + 1.0 * both_metal
-        w[..., 4:5] = cfg.prior_roughness * a
-        return w
-
-    wx = weights(base[:, :-1], base[:, 1:], m[:, :-1], m[:, 1:])
-    wy = weights(base[:-1], base[1:], m[:-1], m[1:])
-    return wx, wy
-
-
-def _laplacian(x: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
-    """Weighted graph Laplacian ``L x`` ``(P, C)``: ``(L x)_p = Σ_q w_pq (x_p − x_q)``."""
-    img = x.reshape(size, size, -1)
-    out = torch.zeros_like(img)
-    fx = wx * (img[:, :-1] - img[:, 1:])
-    out[:, :-1] += fx
-    out[:, 1:] -= fx
-    fy = wy * (img[:-1] - img[1:])
-    out[:-1] += fy
-    out[1:] -= fy
-    return out.reshape(x.shape)
-
-
-def _laplacian_diag(wx: Tensor, wy: Tensor, size: int) -> Tensor:
-    """Diagonal of the weighted Laplacian, ``(P, C)``."""
-    d = torch.zeros(size, size, wx.shape[-1], dtype=wx.dtype, device=wx.device)
-    d[:, :-1] += wx
-    d[:, 1:] += wx
-    d[:-1] += wy
-    d[1:] += wy
-    return d.reshape(-1, wx.shape[-1])
-
-
-def _prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
-    """Per-pixel share ``(P, 1)`` of the prior energy, on the scale of the ``|r|²`` data cost.
-
-    The objective is ``½|r|² + ½ Σ_edges w Δθ²``; twice it, split half of each edge to each
-    end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total).
-    """
-    img = theta.reshape(size, size, -1)
-    ex = (wx * (img[:, :-1] - img[:, 1:]) ** 2).sum(-1, keepdim=True)
-    ey = (wy * (img[:-1] - img[1:]) ** 2).sum(-1, keepdim=True)
-    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
-    e[:, :-1] += ex
-    e[:, 1:] += ex
-    e[:-1] += ey
-    e[1:] += ey
-    return 0.5 * e.reshape(-1, 1)
-
-
-def _pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int) -> Tensor:
-    """Solve ``(blockdiag(hess) + L) x = rhs`` by preconditioned conjugate gradients.
-
-    ``hess (P, 7, 7)`` is each pixel's damped Gauss–Newton matrix, ``L`` the prior's weighted
-    Laplacian (pixels couple only through it). The preconditioner is the exact inverse of
-    the block diagonal (``hess`` + the Laplacian's diagonal). Unlike a Jacobi prior (the
-    neighbours frozen within an iteration), CG moves a whole region together: a uniform
-    shift costs no prior energy, so a weakly observed region is not held at its start value.
-    """
-    def apply(x):
-        return torch.einsum("pij,pj->pi", hess, x) + _laplacian(x, wx, wy, size)
-
-    pre = torch.linalg.inv(hess + torch.diag_embed(_laplacian_diag(wx, wy, size)))
-    x = torch.einsum("pij,pj->pi", pre, rhs)
-    r = rhs - apply(x)
-    z = torch.einsum("pij,pj->pi", pre, r)
-    d = z
-    rz = (r * z).sum()
-    for _ in range(iters):
-        ad = apply(d)
-        dad = (d * ad).sum()
-        if not bool(torch.isfinite(dad)) or float(dad) <= 0:
-            break
-        alpha = rz / dad
-        x = x + alpha * d
-        r = r - alpha * ad
-        z = torch.einsum("pij,pj->pi", pre, r)
-        rz_new = (r * z).sum()
-        d = z + (rz_new / rz) * d
-        rz = rz_new
-    return x
-
-
 def _blur(x: Tensor, size: int, sigma: float) -> Tensor:
     """Gaussian blur of a ``(P, C)`` map (zero padding: callers divide by a blurred weight)."""
     r = int(min(3 * sigma, size - 1))
@@ -492,41 +387,28 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     Returns ``(theta, lam, cost (P, 1), n_nonfinite)``.
     """
     idx, size = data.train_idx, data.size
-    wx, wy = _edge_weights(theta, metal, size, cfg)
+    wx, wy = edge_weights(theta, metal, size, cfg)
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
     r0 = fn(theta)
     jac = jacobian(data, theta, metal, idx, cfg.model)  # (P, M, 7)
     r0s = torch.where(torch.isfinite(r0), r0, torch.zeros_like(r0))
     jtj = torch.einsum("pmi,pmj->pij", jac, jac)
-    g = torch.einsum("pmi,pm->pi", jac, r0s) + _laplacian(theta, wx, wy, size)
-    hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + _laplacian_diag(wx, wy, size)
+    g = torch.einsum("pmi,pm->pi", jac, r0s) + laplacian(theta, wx, wy, size)
+    hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + laplacian_diag(wx, wy, size)
     hess = jtj + torch.diag_embed(lam * (hd + 1e-6))  # per-pixel Marquardt damping
-    step = _pcg(hess, wx, wy, -g, size, cfg.cg_iters)
+    step = pcg(hess, wx, wy, -g, size, cfg.cg_iters)
     step = torch.where(torch.isfinite(step), step, torch.zeros_like(step)).clamp(-3, 3)
-    c0 = (r0 * r0).sum(-1, keepdim=True) + _prior_energy(theta, wx, wy, size)
+    c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size)
     c0 = torch.where(torch.isfinite(c0), c0, torch.full_like(c0, float("inf")))
     cand = theta + lr * step
     r1 = fn(cand)
-    c1 = (r1 * r1).sum(-1, keepdim=True) + _prior_energy(cand, wx, wy, size)
+    c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size)
     c1 = torch.where(torch.isfinite(c1), c1, torch.full_like(c1, float("inf")))
     better = c1 < c0
     theta = torch.where(better, cand, theta)
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
     cost = torch.where(better, c1, c0)
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
-
-
-def _local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
-    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(P, 1)``: the change
-    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``."""
-    c = theta.shape[1]
-    a, t = cand.reshape(size, size, c), theta.reshape(size, size, c)
-    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
-    e[:, :-1] += (wx * (a[:, :-1] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
-    e[:, 1:] += (wx * (a[:, 1:] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
-    e[:-1] += (wy * (a[:-1] - t[1:]) ** 2).sum(-1, keepdim=True)
-    e[1:] += (wy * (a[1:] - t[:-1]) ** 2).sum(-1, keepdim=True)
-    return e.reshape(-1, 1)
 
 
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
@@ -548,16 +430,16 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
     size, c = data.size, theta.shape[1]
     cost = lambda t, m: torch.nan_to_num(  # noqa: E731
         (data.residual(t, m, data.train_idx, cfg.model) ** 2).sum(-1, keepdim=True), nan=float("inf"))
-    wx, wy = _edge_weights(theta, metal, size, cfg)
+    wx, wy = edge_weights(theta, metal, size, cfg)
     best, best_metal = theta, metal
-    best_score = cost(theta, metal) + _local_prior(theta, theta, wx, wy, size)
+    best_score = cost(theta, metal) + local_prior(theta, theta, wx, wy, size)
     pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
     padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
     for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
         cand = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
         cm = padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T
         same = cm == metal
-        prior = _local_prior(cand, theta, wx, wy, size)
+        prior = local_prior(cand, theta, wx, wy, size)
         if margin is None:
             score = torch.where(same, cost(cand, metal) + prior, float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data

@@ -1,0 +1,135 @@
+"""The recovery's smoothness prior: a quadratic energy on 4-neighbour edges of a square map.
+
+Maps are flat ``(P, C)`` tensors of a ``size × size`` image (row-major, ``P = size²``); edge
+weights are ``wx (size, size-1, C)`` between horizontal neighbours and ``wy (size-1, size, C)``
+between vertical ones. The energy is ``½ Σ_edges w (θ_p − θ_q)²``; its gradient is the
+weighted graph Laplacian ``L θ`` and its Hessian ``L``, which couples pixels — hence
+:func:`pcg`, which solves a per-pixel block system plus ``L`` at once.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg) -> tuple[Tensor, Tensor]:
+    """Smoothness-prior weights ``(S, S-1, 7)`` (horizontal edges) and ``(S-1, S, 7)`` (vertical).
+
+    ``theta (P, 7)`` are the recovery's unknowns (base-colour logits first), ``metal (P, 1)``
+    the class per pixel, ``cfg`` a ``RecoveryConfig`` (``prior_*`` weights, ``prior_sigma``).
+
+    The prior energy is ``½ Σ_edges w_e,c (θ_p,c − θ_q,c)²`` over 4-neighbour edges ``(p, q)``:
+
+    * roughness and specular: ``prior_* · exp(−|Δbase|²/σ²)`` between pixels of the same
+      class (base-colour-guided, so edges between materials are cut);
+    * a metal's base colour (its F0, seen only through the specular lobe, like roughness):
+      ``prior_metal_base`` between two metal pixels (class-only — guiding it by itself
+      would let an outlier cut itself loose);
+    * a metal's specular does not affect the image at all: weight 1 between metal pixels,
+      which keeps it defined.
+    """
+    c = theta.shape[1]
+    img = theta.reshape(size, size, c)
+    base = torch.sigmoid(img[..., 0:3])
+    m = metal.reshape(size, size, 1)
+
+    def weights(b0, b1, m0, m1):
+        same = (m0 == m1).to(theta.dtype)
+        both_metal = m0 * m1
+        a = torch.exp(-((b1 - b0) ** 2).sum(-1, keepdim=True) / cfg.prior_sigma**2) * same
+        w = torch.zeros(*a.shape[:-1], c, dtype=theta.dtype, device=theta.device)
+        w[..., 0:3] = cfg.prior_metal_base * both_metal
+        w[..., 3:4] = cfg.prior_specular * a + 1.0 * both_metal
+        w[..., 4:5] = cfg.prior_roughness * a
+        return w
+
+    wx = weights(base[:, :-1], base[:, 1:], m[:, :-1], m[:, 1:])
+    wy = weights(base[:-1], base[1:], m[:-1], m[1:])
+    return wx, wy
+
+
+def laplacian(x: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """Weighted graph Laplacian ``L x`` ``(P, C)``: ``(L x)_p = Σ_q w_pq (x_p − x_q)``."""
+    img = x.reshape(size, size, -1)
+    out = torch.zeros_like(img)
+    fx = wx * (img[:, :-1] - img[:, 1:])
+    out[:, :-1] += fx
+    out[:, 1:] -= fx
+    fy = wy * (img[:-1] - img[1:])
+    out[:-1] += fy
+    out[1:] -= fy
+    return out.reshape(x.shape)
+
+
+def laplacian_diag(wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """Diagonal of the weighted Laplacian, ``(P, C)``."""
+    d = torch.zeros(size, size, wx.shape[-1], dtype=wx.dtype, device=wx.device)
+    d[:, :-1] += wx
+    d[:, 1:] += wx
+    d[:-1] += wy
+    d[1:] += wy
+    return d.reshape(-1, wx.shape[-1])
+
+
+def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """Per-pixel share ``(P, 1)`` of the prior energy, on the scale of the ``|r|²`` data cost.
+
+    The objective is ``½|r|² + ½ Σ_edges w Δθ²``; twice it, split half of each edge to each
+    end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total).
+    """
+    img = theta.reshape(size, size, -1)
+    ex = (wx * (img[:, :-1] - img[:, 1:]) ** 2).sum(-1, keepdim=True)
+    ey = (wy * (img[:-1] - img[1:]) ** 2).sum(-1, keepdim=True)
+    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
+    e[:, :-1] += ex
+    e[:, 1:] += ex
+    e[:-1] += ey
+    e[1:] += ey
+    return 0.5 * e.reshape(-1, 1)
+
+
+def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int) -> Tensor:
+    """Solve ``(blockdiag(hess) + L) x = rhs`` by preconditioned conjugate gradients.
+
+    ``hess (P, 7, 7)`` is each pixel's damped Gauss–Newton matrix, ``L`` the prior's weighted
+    Laplacian (pixels couple only through it). The preconditioner is the exact inverse of
+    the block diagonal (``hess`` + the Laplacian's diagonal). Unlike a Jacobi prior (the
+    neighbours frozen within an iteration), CG moves a whole region together: a uniform
+    shift costs no prior energy, so a weakly observed region is not held at its start value.
+    """
+    def apply(x):
+        return torch.einsum("pij,pj->pi", hess, x) + laplacian(x, wx, wy, size)
+
+    pre = torch.linalg.inv(hess + torch.diag_embed(laplacian_diag(wx, wy, size)))
+    x = torch.einsum("pij,pj->pi", pre, rhs)
+    r = rhs - apply(x)
+    z = torch.einsum("pij,pj->pi", pre, r)
+    d = z
+    rz = (r * z).sum()
+    for _ in range(iters):
+        ad = apply(d)
+        dad = (d * ad).sum()
+        if not bool(torch.isfinite(dad)) or float(dad) <= 0:
+            break
+        alpha = rz / dad
+        x = x + alpha * d
+        r = r - alpha * ad
+        z = torch.einsum("pij,pj->pi", pre, r)
+        rz_new = (r * z).sum()
+        d = z + (rz_new / rz) * d
+        rz = rz_new
+    return x
+
+
+def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(P, 1)``: the change
+    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``."""
+    c = theta.shape[1]
+    a, t = cand.reshape(size, size, c), theta.reshape(size, size, c)
+    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
+    e[:, :-1] += (wx * (a[:, :-1] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
+    e[:, 1:] += (wx * (a[:, 1:] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
+    e[:-1] += (wy * (a[:-1] - t[1:]) ** 2).sum(-1, keepdim=True)
+    e[1:] += (wy * (a[1:] - t[:-1]) ** 2).sum(-1, keepdim=True)
+    return e.reshape(-1, 1)
