@@ -384,7 +384,8 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
 def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float):
     """One Levenberg–Marquardt iteration with the coupled smoothness prior.
 
-    Returns ``(theta, lam, cost (P, 1), n_nonfinite)``.
+    ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
+    ``lr`` scales the step. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``.
     """
     idx, size = data.train_idx, data.size
     wx, wy = edge_weights(theta, metal, size, cfg)
