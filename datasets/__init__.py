@@ -1,10 +1,4 @@
-"""Datasets for torchbrdf: multi-light captures on disk (contract §3) and their loaders."""
+"""Runnable dataset scripts of the repository (``python -m datasets.generate``).
 
-from .capture import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
-
-from .synthetic import RECIPES, default_capture, generate_capture, light_layout, make_material, random_lights, render_capture
-
-__all__ = [
-    "CAPTURE_JSON", "Capture", "load_capture", "pixel_points", "write_capture",
-    "RECIPES", "default_capture", "generate_capture", "light_layout", "make_material", "random_lights", "render_capture",
-]
+The library code they use lives in :mod:`torchbrdf.capture`; this folder is not installed.
+"""

@@ -5,11 +5,11 @@ import math
 import pytest
 import torch
 
-from torchbrdf import analysis as A
-from torchbrdf import slices
-from torchbrdf.lambert import lambert
-from torchbrdf.microfacet import microfacet
-from torchbrdf.principled import principled
+from torchbrdf.analysis import measures as A
+from torchbrdf.analysis import slices
+from torchbrdf.brdf.lambert import lambert
+from torchbrdf.brdf.microfacet import microfacet
+from torchbrdf.brdf.principled import principled
 
 F64 = torch.float64
 RGB = torch.tensor([0.8, 0.3, 0.1], dtype=F64)
@@ -211,7 +211,7 @@ def test_render_sphere_lambert():
 
 
 def test_explore_writes_report(tmp_path):
-    from torchbrdf import explore
+    from torchbrdf.analysis import explore
 
     spec = explore.parse_spec("microfacet:alpha=0.09,fresnel=dielectric,diffuse=0.5/0.5/0.5,label=ggx")
     assert spec.label == "ggx" and spec.params["fresnel"] == "dielectric"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from datasets import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
+from torchbrdf.capture import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
 from torchbrdf.io import write_exr
 
 H, W, L = 6, 8, 3

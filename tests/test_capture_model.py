@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchbrdf.capture_model import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
+from torchbrdf.brdf.capture_model import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
 
 
 def _unit(a):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchbrdf import diffuse as df
+from torchbrdf.brdf import diffuse as df
 from torchbrdf import microfacet, principled
 
 from .conftest import hemisphere_pairs

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from torchbrdf import distributions as nd
+from torchbrdf.brdf import distributions as nd
 
 # Quadrature over θ with t = tan θ = e^u: 2π ∫ D t² / (1 + t²)² du, trapezoid on a wide u grid
 # (covers θ from 1e-9 rad to within 1e-9 of the horizon), error << 1e-6 for these widths.

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchbrdf._math import safe_normalize
-from torchbrdf.envmap import (
+from torchbrdf.render.envmap import (
     ENV_SAMPLINGS,
     SplitSumEnvironment,
     integrate_environment_mc,
@@ -16,12 +16,12 @@ from torchbrdf.envmap import (
     prefilter_environment,
     split_sum_table,
 )
-from torchbrdf.geometry import sphere_gbuffer
-from torchbrdf.lambert import lambert
-from torchbrdf.lights import EnvironmentLight
-from torchbrdf.principled import principled
-from torchbrdf.sampling import latlong_directions
-from torchbrdf.shading import Shader, plan, shade
+from torchbrdf.render.geometry import sphere_gbuffer
+from torchbrdf.brdf.lambert import lambert
+from torchbrdf.render.lights import EnvironmentLight
+from torchbrdf.brdf.principled import principled
+from torchbrdf.render.sampling import latlong_directions
+from torchbrdf.render.shading import Shader, plan, shade
 
 D = torch.float64
 

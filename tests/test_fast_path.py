@@ -1,4 +1,4 @@
-"""The fused CPU kernels of ``principled`` (torchbrdf/_fast.py) against the eager reference path.
+"""The fused CPU kernels of ``principled`` (torchbrdf/kernels/fused.py) against the eager reference path.
 
 Kept cheap for CI: small batches, and the tests reuse a handful of kernel families (each new
 family costs one ~1-3 s gcc build, cached on disk afterwards).
@@ -12,12 +12,12 @@ import pytest
 import torch
 
 import torchbrdf
-from torchbrdf import _fast
+from torchbrdf.kernels import fused as _fast
 
 from .reference import principled_ref
 from .test_principled import SCALARS, random_case, to_t
 
-P = importlib.import_module("torchbrdf.principled")
+P = importlib.import_module("torchbrdf.brdf.principled")
 
 pytestmark = pytest.mark.skipif(not _fast.available(), reason="no C compiler: the fused path is unavailable")
 

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from torchbrdf import analysis as A
-from torchbrdf.measured import MERLBRDF, read_merl, write_merl
-from torchbrdf.principled import principled
-from training import fit_measured as FM
+from torchbrdf.brdf.measured import MERLBRDF, read_merl, write_merl
+from torchbrdf.brdf.principled import principled
+from torchbrdf.recovery import fit_measured as FM
 
 F64 = torch.float64
 TRUTH = {"base_color": [0.7, 0.35, 0.15], "roughness": 0.3, "metallic": 0.4}
@@ -98,7 +98,7 @@ def test_fit_recovers_known_parameters(merl_file, tmp_path):
     assert (out / "spheres.png").stat().st_size > 1000
 
     # The report command puts the fitted model beside the measured data.
-    from torchbrdf import explore
+    from torchbrdf.analysis import explore
 
     report_dir = tmp_path / "report"
     assert explore.main(["--out", str(report_dir), "--quick", "--brdf", f"merl:{merl_file}", "--brdf", f"fit:{out / 'params.json'}"]) == 0

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from torchbrdf import fresnel as fr
+from torchbrdf.brdf import fresnel as fr
 
 
 def test_schlick_formula_and_endpoints():

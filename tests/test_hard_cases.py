@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchbrdf
-from torchbrdf import distributions as nd
+from torchbrdf.brdf import distributions as nd
 from torchbrdf import principled
 
 from .reference import principled_ref

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from torchbrdf import distributions as nd
-from torchbrdf import masking as mk
+from torchbrdf.brdf import distributions as nd
+from torchbrdf.brdf import masking as mk
 
 
 def weak_furnace(o, ndf, g1, n_theta=3000, n_phi=720):

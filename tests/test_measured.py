@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchbrdf.measured import (
+from torchbrdf.brdf.measured import (
     MERL_RES,
     MERL_SCALE,
     MERLBRDF,

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 import torchbrdf
-from torchbrdf.geometry import sphere_gbuffer
-from torchbrdf.lights import DirectionalLight, PointLight
+from torchbrdf.render.geometry import sphere_gbuffer
+from torchbrdf.render.lights import DirectionalLight, PointLight
 
 from .test_shading import direct_reference, rand
 

@@ -6,9 +6,9 @@ import math
 import pytest
 import torch
 
-from datasets.synthetic import generate_capture
+from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
-from training.recover_svbrdf import CHECKPOINT, RecoveryConfig, main, recover
+from torchbrdf.recovery.svbrdf import CHECKPOINT, RecoveryConfig, main, recover
 
 CONTRACT_FILES = ["base_color.exr", "roughness.exr", "metallic.exr", "specular.exr", "normal.exr", "report.json"]
 
@@ -60,7 +60,7 @@ def test_cli_bad_capture_is_a_clear_error(tmp_path, capsys):
 
 
 def test_demo_runs(tmp_path, monkeypatch):
-    monkeypatch.setenv("TORCHBRDF_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "demo"
     assert main(["--demo", "--demo-size", "24", "--iters", "6", "--out", str(out), "--quiet"]) == 0
     for f in CONTRACT_FILES:
@@ -99,7 +99,7 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     neighbours; well-observed metal pixels and dielectric pixels keep their own values."""
     import types
 
-    import training.recover_svbrdf as R
+    import torchbrdf.recovery.svbrdf as R
 
     size = 16
     p = size * size
@@ -137,7 +137,7 @@ def _random_edges(size, c=7, seed=0):
 
 
 def test_laplacian_is_the_gradient_of_the_prior_energy():
-    import training.smoothness_prior as R
+    import torchbrdf.recovery.smoothness_prior as R
 
     size = 5
     wx, wy = _random_edges(size)
@@ -152,7 +152,7 @@ def test_laplacian_is_the_gradient_of_the_prior_energy():
 
 
 def test_pcg_solves_the_coupled_system():
-    import training.smoothness_prior as R
+    import torchbrdf.recovery.smoothness_prior as R
 
     size, c = 4, 7
     p = size * size
@@ -175,9 +175,9 @@ def test_pcg_solves_the_coupled_system():
 
 def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     """A LevelData of a uniform glossy dielectric (or a tilted normal everywhere)."""
-    import training.recover_svbrdf as R
-    from datasets.capture import Capture
-    from datasets.synthetic import light_layout, render_capture
+    import torchbrdf.recovery.svbrdf as R
+    from torchbrdf.capture.format import Capture
+    from torchbrdf.capture.synthetic import light_layout, render_capture
 
     n = torch.tensor([math.sin(math.radians(normal_tilt_deg)), 0.0, math.cos(math.radians(normal_tilt_deg))])
     maps = {"base_color": torch.tensor([0.5, 0.3, 0.2])[:, None, None].expand(3, size, size),
@@ -225,7 +225,7 @@ def test_normal_search_finds_a_steep_normal():
 
 
 def test_ambiguous_pixels_take_their_neighbours_class():
-    import training.recover_svbrdf as R
+    import torchbrdf.recovery.svbrdf as R
 
     size = 6
     diel = torch.ones(size * size, 1)

@@ -2,8 +2,8 @@
 
 import json
 
-from datasets.synthetic import generate_capture
-from training.recover_svbrdf import main
+from torchbrdf.capture.synthetic import generate_capture
+from torchbrdf.recovery.svbrdf import main
 
 
 def test_recover_with_svbrdf_ggx_model(tmp_path, capsys):

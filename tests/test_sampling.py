@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from torchbrdf.sampling import (
+from torchbrdf.render.sampling import (
     LatLongSampler,
     hammersley,
     latlong_directions,

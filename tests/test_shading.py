@@ -6,12 +6,12 @@ import pytest
 import torch
 
 from torchbrdf._math import safe_normalize
-from torchbrdf.gbuffer import GBuffer
-from torchbrdf.geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
-from torchbrdf.lambert import LambertBRDF, lambert
-from torchbrdf.lights import DirectionalLight, EnvironmentLight, PointLight
-from torchbrdf.principled import PrincipledBRDF, principled
-from torchbrdf.shading import Shader, ShadingPlan, plan, shade
+from torchbrdf.render.gbuffer import GBuffer
+from torchbrdf.render.geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
+from torchbrdf.brdf.lambert import LambertBRDF, lambert
+from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, PointLight
+from torchbrdf.brdf.principled import PrincipledBRDF, principled
+from torchbrdf.render.shading import Shader, ShadingPlan, plan, shade
 
 D = torch.float64
 

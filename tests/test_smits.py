@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchbrdf.smits import (
+from torchbrdf.brdf.smits import (
     MIN_CONE_DEG,
     SmitsBRDF,
     SmitsLayeredBRDF,

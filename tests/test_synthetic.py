@@ -5,8 +5,8 @@ import json
 import pytest
 import torch
 
-from datasets.capture import load_capture
-from datasets.synthetic import (
+from torchbrdf.capture.format import load_capture
+from torchbrdf.capture.synthetic import (
     MAP_NAMES,
     RECIPES,
     generate_capture,

@@ -7,8 +7,20 @@ the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-
 ``(B, C, H, W)`` linear values. Every function keeps the dtype and device it is given.
 """
 
-from . import analysis, diffuse, distributions, envmap, fresnel, io, masking, measured, plots, sampling
-from .analysis import (
+# Architecture (each layer imports only from the ones above it):
+#   _math, _checks, io   plumbing: gradient-safe helpers, argument checks, EXR/PNG
+#   brdf/                the reflectance models and their microfacet pieces
+#   kernels/             fused kernels generated from the brdf formulas (CPU C, Triton)
+#   render/              g-buffers, lights, screen-space shading, environment integration
+#   analysis/            albedo, furnace, reciprocity, slices, plots, the explore report
+#   capture/             the multi-light capture format and the synthetic capture generator
+#   recovery/            SVBRDF recovery and measured-BRDF fitting
+#   bench/               benchmarks (python -m torchbrdf.bench)
+from torchbrdf import analysis, io
+from torchbrdf.analysis import plots
+from torchbrdf.brdf import diffuse, distributions, fresnel, masking, measured
+from torchbrdf.render import envmap, sampling
+from torchbrdf.analysis import (
     Estimate,
     albedo_curve,
     bind_brdf,
@@ -21,9 +33,9 @@ from .analysis import (
     weak_white_furnace,
     white_furnace,
 )
-from ._checks import set_validation, validation, validation_enabled
-from .diffuse import diffuse_burley, diffuse_lambert, diffuse_oren_nayar, diffuse_subsurface
-from .distributions import (
+from torchbrdf._checks import set_validation, validation, validation_enabled
+from torchbrdf.brdf.diffuse import diffuse_burley, diffuse_lambert, diffuse_oren_nayar, diffuse_subsurface
+from torchbrdf.brdf.distributions import (
     ndf_abc,
     ndf_beckmann,
     ndf_beckmann_aniso,
@@ -34,8 +46,8 @@ from .distributions import (
     ndf_gtr1,
     roughness_to_alpha,
 )
-from .frames import frame_from_normal, gram_schmidt
-from .fresnel import (
+from torchbrdf.brdf.frames import frame_from_normal, gram_schmidt
+from torchbrdf.brdf.fresnel import (
     f0_from_ior,
     f0_from_specular,
     fresnel_conductor,
@@ -44,7 +56,7 @@ from .fresnel import (
     ior_from_f0,
     specular_from_f0,
 )
-from .masking import (
+from torchbrdf.brdf.masking import (
     g_cook_torrance,
     g_implicit,
     g_kelemen,
@@ -58,17 +70,17 @@ from .masking import (
     smith_lambda_beckmann,
     smith_lambda_ggx,
 )
-from .io import read_exr, to_display, write_exr, write_png
-from .measured import MERLBRDF, merl_coordinates, read_merl, write_merl
-from .microfacet import MicrofacetBRDF, microfacet
-from .capture_model import SVBRDFGGX, svbrdf_ggx
-from .gbuffer import GBuffer
-from .geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
-from .lambert import LambertBRDF, lambert
-from .lights import DirectionalLight, EnvironmentLight, PointLight
-from .shading import Shader, ShadingPlan, plan, shade
-from .principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, fast_path_enabled, principled, set_fast_path
-from .smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
+from torchbrdf.io import read_exr, to_display, write_exr, write_png
+from torchbrdf.brdf.measured import MERLBRDF, merl_coordinates, read_merl, write_merl
+from torchbrdf.brdf.microfacet import MicrofacetBRDF, microfacet
+from torchbrdf.brdf.capture_model import SVBRDFGGX, svbrdf_ggx
+from torchbrdf.render.gbuffer import GBuffer
+from torchbrdf.render.geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
+from torchbrdf.brdf.lambert import LambertBRDF, lambert
+from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, PointLight
+from torchbrdf.render.shading import Shader, ShadingPlan, plan, shade
+from torchbrdf.brdf.principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, fast_path_enabled, principled, set_fast_path
+from torchbrdf.brdf.smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
 
 __version__ = "0.1.0"
 

@@ -15,7 +15,7 @@ def sphere_grid(resolution: int = 96) -> torch.Tensor:
     Returns:
         ``(3, rows * resolution, cols * resolution)`` linear radiance.
     """
-    from torchbrdf import principled
+    from torchbrdf.brdf import principled
 
     u = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1
     yy, xx = torch.meshgrid(-u, u, indexing="ij")
@@ -48,8 +48,8 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchbrdf import principled
-    from torchbrdf.slices import image_slice
+    from torchbrdf.brdf import principled
+    from torchbrdf.analysis.slices import image_slice
 
     parser = argparse.ArgumentParser(prog="python -m torchbrdf", description=__doc__)
     parser.add_argument("--out", default="out", help="output folder (default: out)")

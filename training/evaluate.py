@@ -27,8 +27,8 @@ from pathlib import Path
 
 import torch
 
-from datasets.synthetic import RECIPES, generate_capture, make_material, random_lights, render_capture
-from training.recover_svbrdf import RecoveryConfig, map_errors, psnr, recover
+from torchbrdf.capture.synthetic import RECIPES, generate_capture, make_material, random_lights, render_capture
+from torchbrdf.recovery.svbrdf import RecoveryConfig, map_errors, psnr, recover
 
 THRESHOLDS = {"base_color_rmse": 0.02, "roughness_rmse": 0.06, "metallic_rmse": 0.05, "normal_mean_deg": 1.0}
 

@@ -36,8 +36,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from ._math import cast_back, compute_dtype, dot, safe_normalize
-from .envmap import (
+from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize
+from torchbrdf.render.envmap import (
     ENV_SAMPLINGS,
     PREFILTER_ROUGHNESS,
     SplitSumEnvironment,
@@ -49,10 +49,10 @@ from .envmap import (
     integrate_environment_split_sum,
     sampling_lobes_for,
 )
-from .frames import frame_from_normal, gram_schmidt
-from .gbuffer import GBuffer
-from .lights import DirectionalLight, EnvironmentLight, Light, PointLight
-from .principled import LOBES, PRINCIPLED_DEFAULTS
+from torchbrdf.brdf.frames import frame_from_normal, gram_schmidt
+from torchbrdf.render.gbuffer import GBuffer
+from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, Light, PointLight
+from torchbrdf.brdf.principled import LOBES, PRINCIPLED_DEFAULTS
 
 __all__ = ["shade", "plan", "Shader", "ShadingPlan", "ENV_STRATEGIES", "ENV_SAMPLINGS", "DEFAULT_ENV_SAMPLES"]
 
@@ -145,7 +145,7 @@ class ShadingPlan:
 
 
 def _default_brdf():
-    from .principled import principled
+    from torchbrdf.brdf.principled import principled
 
     return principled
 
@@ -262,7 +262,7 @@ def _lobes_for(brdf, kind: str, values: dict):
     if kind == "lambert":
         return ("diffuse",), ()
     if kind == "principled":
-        from .principled import active_lobes
+        from torchbrdf.brdf.principled import active_lobes
 
         wanted = getattr(brdf, "lobes", None)
         act = active_lobes(values, wanted)
@@ -700,7 +700,7 @@ def shade(
             ships beside it.
         env_strategy: ``"mc"`` (unbiased Monte Carlo with MIS) or ``"split_sum"``
             (prefiltered approximation; principled and Lambert only). See
-            :mod:`torchbrdf.envmap` for their error behaviour.
+            :mod:`torchbrdf.render.envmap` for their error behaviour.
         env_samples: Monte Carlo samples per pixel and environment light.
         env_sampling: the Monte Carlo proposal (:data:`ENV_SAMPLINGS`; ignored by the split
             sum): ``"mis"`` (default: half BRDF-lobe mixture, half map luminance, power
@@ -730,8 +730,8 @@ def shade(
         densities are held constant).
 
     Example:
-        >>> from torchbrdf.geometry import sphere_gbuffer
-        >>> from torchbrdf.lambert import lambert
+        >>> from torchbrdf.render.geometry import sphere_gbuffer
+        >>> from torchbrdf.brdf.lambert import lambert
         >>> g = sphere_gbuffer(8, 8)
         >>> shade(g, PointLight([0.0, 0.0, 4.0], 16.0), lambert).shape
         torch.Size([1, 3, 8, 8])
@@ -760,7 +760,7 @@ def plan(
         working set).
 
     Example:
-        >>> from torchbrdf.geometry import sphere_gbuffer
+        >>> from torchbrdf.render.geometry import sphere_gbuffer
         >>> p = plan(sphere_gbuffer(8, 8), [PointLight([0.0, 0.0, 4.0], 16.0)])
         >>> p.lobes
         ('diffuse', 'specular')
@@ -786,7 +786,7 @@ class Shader(nn.Module):
         - Output: ``(B, 3, H, W)``.
 
     Example:
-        >>> from torchbrdf.geometry import sphere_gbuffer
+        >>> from torchbrdf.render.geometry import sphere_gbuffer
         >>> Shader()(sphere_gbuffer(8, 8), DirectionalLight([0.0, 0.0, 1.0], 1.0)).shape
         torch.Size([1, 3, 8, 8])
     """

@@ -10,7 +10,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import half_safe, lerp, schlick_weight
+from torchbrdf._math import half_safe, lerp, schlick_weight
 
 __all__ = ["diffuse_lambert", "diffuse_burley", "diffuse_subsurface", "diffuse_oren_nayar"]
 

@@ -1089,7 +1089,7 @@ def _reduce_to(g: Tensor, t: Tensor, batch, C) -> Tensor:
 
 def _eager_backward(plan: _Plan, tensors, grad_out, need):
     """A differentiable backward (``create_graph=True``): rebuild the eager graph."""
-    from .principled import _principled_eager
+    from torchbrdf.brdf.principled import _principled_eager
 
     c = dict(zip(plan.float_names, plan.floats))
     c.update(dict(zip(plan.tensor_names, tensors)))

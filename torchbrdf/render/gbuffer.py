@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .principled import SCALAR_PARAMS
+from torchbrdf.brdf.principled import SCALAR_PARAMS
 
 __all__ = ["GBuffer", "PRINCIPLED_SCALAR_PARAMS", "COLOR_PARAMS"]
 

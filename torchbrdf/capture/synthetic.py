@@ -32,10 +32,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchbrdf import principled
+from torchbrdf.brdf.principled import principled
 from torchbrdf.io import write_exr, write_png
 
-from .capture import pixel_points, write_capture
+from torchbrdf.capture.format import pixel_points, write_capture
 
 __all__ = [
     "RECIPES",
@@ -62,8 +62,8 @@ DEFAULT_CAMERA = (0.0, 0.0, 3.0)
 
 # Contract defaults of the principled parameters the recovery does not fit.
 _FIXED_DEFAULTS = {"subsurface": 0.0, "specular_tint": 0.0, "anisotropic": 0.0, "sheen": 0.0, "clearcoat": 0.0}
-_ALPHA_MIN = 1e-3  # torchbrdf.distributions.ALPHA_MIN: floor of alpha = roughness²
-_COS_EPS = 1e-7  # torchbrdf.principled.COS_EPS
+_ALPHA_MIN = 1e-3  # torchbrdf.brdf.distributions.ALPHA_MIN: floor of alpha = roughness²
+_COS_EPS = 1e-7  # torchbrdf.brdf.principled.COS_EPS
 
 
 # --------------------------------------------------------------------------------------
@@ -681,14 +681,14 @@ def default_capture(folder: str | os.PathLike | None = None, size: int = 128) ->
 
     Args:
         folder: where to put it; default ``~/.cache/torchbrdf/default_capture_<size>``
-            (``$TORCHBRDF_CACHE`` overrides the cache root).
+            (``$TORCHBRDF_CACHE_DIR`` overrides the cache root).
         size: resolution.
 
     Returns:
         The capture folder (holding ``capture.json`` and ``gt/``).
     """
     if folder is None:
-        root = Path(os.environ.get("TORCHBRDF_CACHE", Path.home() / ".cache" / "torchbrdf"))
+        root = Path(os.environ.get("TORCHBRDF_CACHE_DIR") or Path.home() / ".cache" / "torchbrdf")
         folder = root / f"default_capture_{size}"
     folder = Path(folder)
     if not (folder / "capture.json").is_file():

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._math import half_safe, safe_sqrt, schlick_weight
+from torchbrdf._math import half_safe, safe_sqrt, schlick_weight
 
 __all__ = [
     "fresnel_schlick",

@@ -44,8 +44,8 @@ import math
 import torch
 from torch import Tensor, nn
 
-from . import _checks
-from ._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
+from torchbrdf import _checks
+from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
 
 __all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN"]
 

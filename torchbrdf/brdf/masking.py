@@ -15,7 +15,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import half_safe, safe_sqrt
+from torchbrdf._math import half_safe, safe_sqrt
 
 __all__ = [
     "smith_g1_ggx",

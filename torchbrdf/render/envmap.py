@@ -11,7 +11,7 @@ Two strategies, both differentiable:
 the BRDF — a per-pixel mixture of cosine sampling (diffuse, subsurface, sheen), GGX
 visible-normal sampling (Heitz 2018; primary specular, anisotropic when the material is)
 and GTR1 sampling (Burley 2012 appendix B; clearcoat), weighted by rough lobe albedos —
-and half from the map (luminance × solid angle, :class:`~torchbrdf.sampling.LatLongSampler`);
+and half from the map (luminance × solid angle, :class:`~torchbrdf.render.sampling.LatLongSampler`);
 they are combined with the power heuristic (Veach 1995). A constant map is not sampled (all
 samples go to the BRDF), so a white furnace is exact for Lambert. Numbers are a stratified
 Hammersley set rotated per pixel by a seeded offset. The sample directions, densities and
@@ -58,10 +58,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ._math import dot, lerp, luminance, safe_normalize, safe_sqrt
-from .frames import frame_from_normal, to_local, to_world
-from .principled import PRINCIPLED_DEFAULTS
-from .sampling import (
+from torchbrdf._math import dot, lerp, luminance, safe_normalize, safe_sqrt
+from torchbrdf.brdf.frames import frame_from_normal, to_local, to_world
+from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
+from torchbrdf.render.sampling import (
     ALPHA_MIN,
     LatLongSampler,
     hammersley,
@@ -778,7 +778,7 @@ _TABLE_CACHE: dict = {}
 
 def _compute_split_sum_table(res: int, samples: int) -> Tensor:
     """The (n·v, roughness) table in float64 on the CPU, ``(6, res, res)``; see :func:`split_sum_table`."""
-    from .principled import principled
+    from torchbrdf.brdf.principled import principled
 
     dt = torch.float64
     nodes = torch.linspace(0.0, 1.0, res, dtype=dt)
@@ -959,7 +959,7 @@ def brdf_kind(brdf) -> str:
     """``"lambert"``, ``"principled"`` or ``"custom"`` — what the split sum knows how to handle."""
     if getattr(brdf, "sampling_lobes", None) == ("diffuse",):
         return "lambert"
-    from .principled import PrincipledBRDF, principled
+    from torchbrdf.brdf.principled import PrincipledBRDF, principled
 
     if brdf is principled or isinstance(brdf, PrincipledBRDF):
         return "principled"
@@ -1001,7 +1001,7 @@ def integrate_environment_split_sum(
             f"env_strategy='split_sum' supports the principled and Lambert BRDFs, not {brdf!r}; "
             "use env_strategy='mc'"
         )
-    from .principled import active_lobes
+    from torchbrdf.brdf.principled import active_lobes
 
     lobes = active_lobes(material, getattr(brdf, "lobes", None))
     p = {k: material.get(k, d) for k, d in _PRINCIPLED_DEFAULTS.items()}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._math import dot, safe_normalize
+from torchbrdf._math import dot, safe_normalize
 
 
 def frame_from_normal(n: Tensor) -> tuple[Tensor, Tensor]:

@@ -37,9 +37,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ._math import cast_back, compute_dtype, dot, safe_normalize, safe_sqrt
-from .frames import frame_from_normal, to_local
-from .io import atomic_path
+from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize, safe_sqrt
+from torchbrdf.brdf.frames import frame_from_normal, to_local
+from torchbrdf.io import atomic_path
 
 __all__ = [
     "MERL_RES",

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m torchbrdf.explore --out report/ \\
+    python -m torchbrdf.analysis.explore --out report/ \\
         --brdf "principled:roughness=0.3,base_color=0.8/0.2/0.1" \\
         --brdf "microfacet:alpha=0.09,fresnel=dielectric,diffuse=0.8/0.2/0.1" \\
         --brdf merl:path/to/red-plastic.binary
@@ -37,8 +37,8 @@ from pathlib import Path
 
 import torch
 
-from . import analysis as A
-from . import plots as P
+from torchbrdf.analysis import measures as A
+from torchbrdf.analysis import plots as P
 
 __all__ = ["BRDFSpec", "parse_spec", "write_report", "main", "DEFAULT_SPECS"]
 
@@ -83,15 +83,15 @@ class BRDFSpec:
     def brdf(self):
         """The parameter-free callable ``f(l, v, n, x=None, y=None) -> (*, 3)``."""
         if self.model == "principled":
-            from .principled import principled
+            from torchbrdf.brdf.principled import principled
 
             return A.bind_brdf(principled, **self.params)
         if self.model == "lambert":
-            from .lambert import lambert
+            from torchbrdf.brdf.lambert import lambert
 
             return A.bind_brdf(lambert, **{"base_color": 0.8, **self.params})
         if self.model == "microfacet":
-            from .microfacet import microfacet
+            from torchbrdf.brdf.microfacet import microfacet
 
             params = dict(self.params)
             diffuse = params.pop("diffuse", None)
@@ -108,15 +108,15 @@ class BRDFSpec:
             return with_diffuse
         if self.model == "fit":
             return _fitted_brdf(self.path)
-        from .measured import MERLBRDF
+        from torchbrdf.brdf.measured import MERLBRDF
 
         return MERLBRDF.from_file(self.path)
 
 
 def _fitted_brdf(path: str):
     """The BRDF described by a ``training.fit_measured`` ``params.json``."""
-    from .microfacet import microfacet
-    from .principled import principled
+    from torchbrdf.brdf.microfacet import microfacet
+    from torchbrdf.brdf.principled import principled
 
     fitted = json.loads(Path(path).read_text())["params"]
     lobe2 = {k: fitted.pop(k) for k in ("roughness2", "spec2_f0", "spec2_f90") if k in fitted}
@@ -319,7 +319,7 @@ error estimate; dotted: R, G, B).</p>
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
-    ap = argparse.ArgumentParser(prog="python -m torchbrdf.explore", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m torchbrdf.analysis.explore", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="explore_report", help="output folder (default: explore_report)")
     ap.add_argument("--brdf", action="append", default=[], metavar="SPEC", help="MODEL[:key=value,...]; repeat to compare")
     ap.add_argument("--preset", choices=sorted(PRESETS), help="a named comparison (added before any --brdf)")

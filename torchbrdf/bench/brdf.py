@@ -13,7 +13,7 @@ One command, one run, everything on the same machine and inputs:
 * Mitsuba 3's ``principled`` BSDF (LLVM backend, ``llvm_ad_rgb``) on the same directions and
   per-lane parameters, when ``mitsuba``/``drjit`` are importable (``pip install -e ".[mitsuba]"``);
 * environment lighting: error vs time of Monte Carlo at increasing sample counts with each
-  proposal of :data:`torchbrdf.envmap.ENV_SAMPLINGS` (MIS, BRDF only, map only, uniform
+  proposal of :data:`torchbrdf.render.envmap.ENV_SAMPLINGS` (MIS, BRDF only, map only, uniform
   hemisphere = no importance sampling) and of the split sum, against a quadrature reference
   (:func:`environment`; it can be run on its own, see its docstring).
 
@@ -38,7 +38,7 @@ import torch
 
 import torchbrdf
 
-_P = importlib.import_module("torchbrdf.principled")
+_P = importlib.import_module("torchbrdf.brdf.principled")
 
 SCALARS = tuple(torchbrdf.PRINCIPLED_DEFAULTS)
 DTYPES = {"float64": torch.float64, "float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
@@ -533,11 +533,11 @@ def torch_compile_baseline(N: int, repeats: int, log) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
-# Environment lighting (needs torchbrdf.envmap)
+# Environment lighting (needs torchbrdf.render.envmap)
 # ---------------------------------------------------------------------------------------------
 
 #: Monte Carlo proposals measured by :func:`environment` (``sampling=`` of
-#: :func:`torchbrdf.envmap.integrate_environment_mc`), with their labels in the report.
+#: :func:`torchbrdf.render.envmap.integrate_environment_mc`), with their labels in the report.
 ENV_METHODS = (
     ("mis", "MC, MIS (BRDF + map sampling)"),
     ("brdf", "MC, BRDF sampling only"),
@@ -549,20 +549,20 @@ ENV_METHODS = (
 def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256, 1024), repeats: int = 3) -> dict | None:
     """Error vs time of MC (each proposal) at increasing sample counts and of the split sum.
 
-    The reference is the per-texel quadrature (:func:`torchbrdf.envmap.integrate_environment_quadrature`,
+    The reference is the per-texel quadrature (:func:`torchbrdf.render.envmap.integrate_environment_quadrature`,
     4×4 sub-cells per texel); its own convergence is reported as the relative L1 difference
     to 2×2 sub-cells. Times are medians of ``repeats`` calls after a warm-up; each error
     comes from one estimate at a fixed seed.
 
     Runs on its own (e.g. to refresh only this section of ``docs/benchmarks.md``)::
 
-        from torchbrdf import bench
+        from torchbrdf.bench import brdf
         env = bench.environment(256, print)
         lines = bench.environment_section(env)      # the markdown of the section
         bench._plots({"environment": env}, "docs")  # writes only bench_pareto_env.png
     """
     try:
-        envmap = importlib.import_module("torchbrdf.envmap")
+        envmap = importlib.import_module("torchbrdf.render.envmap")
         mc = envmap.integrate_environment_mc
         quad = envmap.integrate_environment_quadrature
         split = envmap.integrate_environment_split_sum
@@ -628,7 +628,7 @@ def environment_section(env: dict | None) -> list:
     """Markdown lines of the report's environment-lighting section (heading included)."""
     L = ["## Environment lighting: error vs time", ""]
     if not env:
-        return L + ["TODO: not measured in this run (`torchbrdf.envmap` unavailable or failed; see the log).", ""]
+        return L + ["TODO: not measured in this run (`torchbrdf.render.envmap` unavailable or failed; see the log).", ""]
     check = env.get("reference_check")
     L += [f"{env['points']} shading points, float64, a {env['env_size'][0]}×{env['env_size'][1]} sky with a sun "
           "(peak 30× the sky), principled material with random base colour, metallic and roughness 0.2–1; "
@@ -913,7 +913,7 @@ def main(argv=None) -> int:
                config=dict(sizes=sizes, dtypes=dtypes, repeats=repeats, eager_max=eager_max, head_N=head_N,
                            quick=args.quick))
     log(f"machine: {res['machine']}")
-    log(f"fused path available: {importlib.import_module('torchbrdf._fast').available()}; Mitsuba: {mver or 'not installed'}")
+    log(f"fused path available: {importlib.import_module('torchbrdf.kernels.fused').available()}; Mitsuba: {mver or 'not installed'}")
     log("head-to-head (default dispatch vs Mitsuba, alternating blocks):")
     res["head_to_head"] = head_to_head(head_N, 4 if args.quick else 10, log, mver is not None)
     if args.torch_compile:

@@ -144,8 +144,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor, nn
 
-from . import _checks
-from ._math import (
+from torchbrdf import _checks
+from torchbrdf._math import (
     cast_back,
     compute_dtype,
     cross_norm2,

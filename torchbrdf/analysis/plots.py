@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import analysis as A
-from .io import to_display
+from torchbrdf.analysis import measures as A
+from torchbrdf.io import to_display
 
 __all__ = [
     "display_image",

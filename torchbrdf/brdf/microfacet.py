@@ -1,6 +1,6 @@
 """A general microfacet specular BRDF ``f = D · F · G / (4 (n·l)(n·v))`` composed from parts.
 
-Every combination of :mod:`~torchbrdf.distributions`, :mod:`~torchbrdf.fresnel` and
+Every combination of :mod:`~torchbrdf.brdf.distributions`, :mod:`~torchbrdf.fresnel` and
 :mod:`~torchbrdf.masking` is available by name, so a model choice (GGX vs GTR, Schlick vs
 exact Fresnel, separable vs height-correlated Smith) is one argument — which is how the
 benchmark measures what each choice costs.
@@ -11,9 +11,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from . import _checks
-from ._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
-from .distributions import (
+from torchbrdf import _checks
+from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
+from torchbrdf.brdf.distributions import (
     alpha_to_phong_exponent,
     ndf_abc,
     ndf_beckmann,
@@ -23,9 +23,9 @@ from .distributions import (
     ndf_ggx_aniso,
     ndf_gtr,
 )
-from .frames import frame_from_normal
-from .fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
-from .masking import (
+from torchbrdf.brdf.frames import frame_from_normal
+from torchbrdf.brdf.fresnel import fresnel_conductor, fresnel_dielectric, fresnel_schlick
+from torchbrdf.brdf.masking import (
     g_cook_torrance,
     g_implicit,
     g_kelemen,

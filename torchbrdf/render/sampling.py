@@ -34,7 +34,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import dot, safe_normalize
+from torchbrdf._math import dot, safe_normalize
 
 __all__ = [
     "hammersley",
@@ -413,12 +413,12 @@ class LatLongSampler:
     """Samples directions from a lat-long map in proportion to luminance × texel solid angle.
 
     The map is treated as piecewise constant over texels (the same convention
-    :func:`torchbrdf.envmap.latlong_lookup` uses). A texel is chosen with probability
+    :func:`torchbrdf.render.envmap.latlong_lookup` uses). A texel is chosen with probability
     ``p_ij ∝ lum_ij Ω_i`` (marginal over rows, then conditional over columns), and the
     direction is uniform in solid angle inside the texel (uniform ``φ``, uniform ``cos θ``), so
     the density is exactly ``p_ij / Ω_i``. A map with zero luminance everywhere falls back to
     uniform sphere sampling. The sampler holds no autograd history (densities are constants
-    for the estimator; see :mod:`torchbrdf.envmap`).
+    for the estimator; see :mod:`torchbrdf.render.envmap`).
 
     Args:
         radiance: ``(B, 3, H, W)`` or ``(3, H, W)`` linear radiance.

@@ -11,8 +11,8 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import dot, safe_normalize
-from .gbuffer import GBuffer
+from torchbrdf._math import dot, safe_normalize
+from torchbrdf.render.gbuffer import GBuffer
 
 __all__ = ["pinhole_rays", "sphere_gbuffer", "plane_gbuffer"]
 

@@ -28,11 +28,11 @@ import os
 import torch
 from torch import Tensor, nn
 
-from . import _checks
-from ._math import cast_back, cast_in, compute_dtype, cross_norm2, dot, lerp, luminance, safe_normalize, safe_sqrt, schlick_weight
-from .diffuse import burley_retro_factor, subsurface_factor
-from .distributions import ALPHA_MIN, ndf_gtr1
-from .frames import frame_from_normal
+from torchbrdf import _checks
+from torchbrdf._math import cast_back, cast_in, compute_dtype, cross_norm2, dot, lerp, luminance, safe_normalize, safe_sqrt, schlick_weight
+from torchbrdf.brdf.diffuse import burley_retro_factor, subsurface_factor
+from torchbrdf.brdf.distributions import ALPHA_MIN, ndf_gtr1
+from torchbrdf.brdf.frames import frame_from_normal
 
 __all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES", "set_fast_path", "fast_path_enabled",
            "FAST_PATH_MIN_LANES"]
@@ -239,13 +239,13 @@ def _fast_path_wanted(c: dict) -> bool:
             return False
         if lanes < FAST_PATH_MIN_LANES:
             return False
-    from . import _fast
+    from torchbrdf.kernels import fused as _fast
 
     return _fast.available()
 
 
 def _principled_fast_or_none(c: dict, active: tuple[str, ...]):
-    from . import _fast
+    from torchbrdf.kernels import fused as _fast
 
     frame = _needs_frame(c)
     if frame:

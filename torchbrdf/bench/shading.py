@@ -2,10 +2,10 @@
 
 Usage::
 
-    python -m torchbrdf.bench_shading --size 1024 --lights 1 16
-    python -m torchbrdf.bench_shading --size 1024 --lights 1 16 --mmap-threshold 65536
-    python -m torchbrdf.bench_shading --size 1024 --lights 1 4 --no-recompute   # for comparison
-    python -m torchbrdf.bench_shading --env-errors   # error tables of the environment strategies
+    python -m torchbrdf.bench.shading --size 1024 --lights 1 16
+    python -m torchbrdf.bench.shading --size 1024 --lights 1 16 --mmap-threshold 65536
+    python -m torchbrdf.bench.shading --size 1024 --lights 1 4 --no-recompute   # for comparison
+    python -m torchbrdf.bench.shading --env-errors   # error tables of the environment strategies
 
 Each configuration runs in a fresh subprocess so peak resident memory (``VmHWM`` from
 ``/proc/self/status``, Linux) belongs to that configuration alone. The scene is the flat
@@ -50,16 +50,16 @@ def _reset_peak() -> bool:
 def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str) -> dict:
     import torch
 
-    from . import shading
-    from .geometry import plane_gbuffer
-    from .lights import PointLight
+    from torchbrdf.render import shading
+    from torchbrdf.render.geometry import plane_gbuffer
+    from torchbrdf.render.lights import PointLight
 
     torch.set_num_threads(threads)
     if not recompute:
         shading._pass = lambda elements, fn, *a, **k: fn(*a, **k)
     brdf = None
     if brdf_name == "lambert":
-        from .lambert import lambert as brdf
+        from torchbrdf.brdf.lambert import lambert as brdf
     g = torch.Generator().manual_seed(0)
     nm = torch.randn(1, 3, size, size, generator=g) * 0.2
     nm[:, 2] = 1.0
@@ -107,16 +107,16 @@ def env_errors() -> str:
     """Markdown tables: Monte Carlo and split-sum error against quadrature on a sphere."""
     import torch
 
-    from ._math import safe_normalize
-    from .envmap import (
+    from torchbrdf._math import safe_normalize
+    from torchbrdf.render.envmap import (
         SplitSumEnvironment,
         integrate_environment_mc,
         integrate_environment_quadrature,
         integrate_environment_split_sum,
     )
-    from .geometry import sphere_gbuffer
-    from .principled import principled
-    from .sampling import latlong_directions
+    from torchbrdf.render.geometry import sphere_gbuffer
+    from torchbrdf.brdf.principled import principled
+    from torchbrdf.render.sampling import latlong_directions
 
     d64 = torch.float64
     gen = torch.Generator().manual_seed(0)
@@ -213,7 +213,7 @@ def main(argv=None) -> int:
         cmd = [
             sys.executable,
             "-m",
-            "torchbrdf.bench_shading",
+            "torchbrdf.bench.shading",
             "--size",
             str(args.size),
             "--threads",

@@ -51,9 +51,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import slices as _slices
-from .distributions import ndf_beckmann, ndf_ggx
-from .masking import smith_g1_beckmann, smith_g1_ggx
+from torchbrdf.analysis import slices as _slices
+from torchbrdf.brdf.distributions import ndf_beckmann, ndf_ggx
+from torchbrdf.brdf.masking import smith_g1_beckmann, smith_g1_ggx
 
 __all__ = [
     "Estimate",
@@ -278,7 +278,7 @@ def _albedo_rule(f, v: Tensor, alpha: float, n_theta: int, n_phi: int) -> Tensor
 def _sample_cosine(u: Tensor) -> tuple[Tensor, Tensor]:
     """Cosine-weighted directions ``(*, 3)`` and their solid-angle density ``(*, 1)``."""
     try:
-        from .sampling import pdf_cosine_hemisphere, sample_cosine_hemisphere
+        from torchbrdf.render.sampling import pdf_cosine_hemisphere, sample_cosine_hemisphere
     except ImportError:  # fallback: Malley's method on a uniformly sampled disk
         r, phi = torch.sqrt(u[..., 0]), 2 * math.pi * u[..., 1]
         z = torch.sqrt(torch.clamp(1 - r * r, min=0.0))
@@ -295,7 +295,7 @@ def _ggx_reflection_sampler():
     back to sampling ``D(h) (n·h)`` (Walter 2007), which is unbiased but noisier at grazing.
     """
     try:
-        from .sampling import pdf_ggx_reflection, reflect, sample_ggx_vndf
+        from torchbrdf.render.sampling import pdf_ggx_reflection, reflect, sample_ggx_vndf
 
         def sample(v, a, u):
             return reflect(v, sample_ggx_vndf(v, a, a, u))
@@ -326,7 +326,7 @@ def _ggx_reflection_sampler():
 
 def _gtr1_reflection_sampler():
     """``(sample, pdf)`` for GTR1 (clearcoat) half vectors, Burley 2012 appendix B; needs :mod:`torchbrdf.sampling`."""
-    from .sampling import pdf_gtr1, pdf_half_to_reflection, reflect, sample_gtr1
+    from torchbrdf.render.sampling import pdf_gtr1, pdf_half_to_reflection, reflect, sample_gtr1
 
     def sample(v, a, u):
         return reflect(v, sample_gtr1(a, u))
@@ -434,7 +434,7 @@ def directional_albedo(
         rule; MC: standard error ``σ / √N``).
 
     Example:
-        >>> from torchbrdf.lambert import lambert
+        >>> from torchbrdf.brdf.lambert import lambert
         >>> a, err = directional_albedo(lambert, 0.5, base_color=0.7)
         >>> round(float(a[0]), 3), bool(abs(a[0] - 0.7) <= err[0])
         (0.7, True)
@@ -531,7 +531,7 @@ def white_furnace(
         :class:`FurnaceResult`.
 
     Example:
-        >>> from torchbrdf.lambert import lambert
+        >>> from torchbrdf.brdf.lambert import lambert
         >>> white_furnace(lambert, base_color=1.0).passed
         True
     """
@@ -808,10 +808,10 @@ def render_sphere(
     device=None,
     **params,
 ) -> Tensor | tuple[Tensor, Tensor]:
-    """A sphere lit by one directional light, rendered through :func:`torchbrdf.shading.shade`.
+    """A sphere lit by one directional light, rendered through :func:`torchbrdf.render.shading.shade`.
 
     The irradiance defaults to π so a white Lambert surface facing the light has radiance 1.
-    When the shader modules (:mod:`torchbrdf.shading`, :mod:`torchbrdf.geometry`) are not
+    When the shader modules (:mod:`torchbrdf.render.shading`, :mod:`torchbrdf.render.geometry`) are not
     available, an orthographic sphere is shaded here with the same formula,
     ``f(l, v) E max(n·l, 0)``.
 
@@ -829,9 +829,9 @@ def render_sphere(
     """
     ld = torch.nn.functional.normalize(torch.as_tensor(light_direction, dtype=dtype, device=device), dim=0)
     try:
-        from .geometry import sphere_gbuffer
-        from .lights import DirectionalLight
-        from .shading import shade
+        from torchbrdf.render.geometry import sphere_gbuffer
+        from torchbrdf.render.lights import DirectionalLight
+        from torchbrdf.render.shading import shade
     except ImportError:
         img, mask = _render_sphere_fallback(bind_brdf(brdf, **params), resolution, ld, irradiance)
         return (img, mask) if return_mask else img
@@ -857,7 +857,7 @@ def _render_sphere_fallback(f, resolution: int, ld: Tensor, irradiance: float) -
     hit = r2 < 1
     n = torch.stack((xx, yy, torch.sqrt(torch.clamp(1 - r2, min=0.0))), -1)
     n = torch.where(hit[..., None], n, torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device))
-    from .frames import frame_from_normal
+    from torchbrdf.brdf.frames import frame_from_normal
 
     x, y = frame_from_normal(n)
     v = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device).expand_as(n)

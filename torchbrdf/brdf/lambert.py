@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ._math import dot
+from torchbrdf._math import dot
 
 __all__ = ["lambert", "LambertBRDF"]
 
@@ -59,7 +59,7 @@ def lambert(
     return torch.where(valid, f, torch.zeros_like(f))
 
 
-# Tells the shader which importance sampler fits this BRDF (see torchbrdf.envmap).
+# Tells the shader which importance sampler fits this BRDF (see torchbrdf.render.envmap).
 lambert.sampling_lobes = ("diffuse",)
 
 

@@ -17,7 +17,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._math import half_safe
+from torchbrdf._math import half_safe
 
 __all__ = [
     "ALPHA_MIN",

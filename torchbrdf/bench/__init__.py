@@ -1,0 +1,8 @@
+"""Benchmarks: what each evaluation choice costs, measured side by side.
+
+``python -m torchbrdf.bench`` (or ``torchbrdf-bench``) runs :mod:`torchbrdf.bench.brdf`;
+``python -m torchbrdf.bench.shading`` measures the shader's memory and the environment
+strategies' error against time.  Results go to ``--out`` (default ``bench_out/``).
+
+May import anything in :mod:`torchbrdf`; nothing in the library imports it.
+"""
