@@ -99,7 +99,7 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     neighbours; well-observed metal pixels and dielectric pixels keep their own values."""
     import types
 
-    import torchbrdf.recovery.svbrdf as R
+    import torchbrdf.recovery.solver as R
 
     size = 16
     p = size * size
@@ -175,7 +175,7 @@ def test_pcg_solves_the_coupled_system():
 
 def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     """A LevelData of a uniform glossy dielectric (or a tilted normal everywhere)."""
-    import torchbrdf.recovery.svbrdf as R
+    import torchbrdf.recovery.solver as R
     from torchbrdf.capture.format import Capture
     from torchbrdf.capture.synthetic import light_layout, render_capture
 
@@ -225,7 +225,7 @@ def test_normal_search_finds_a_steep_normal():
 
 
 def test_ambiguous_pixels_take_their_neighbours_class():
-    import torchbrdf.recovery.svbrdf as R
+    import torchbrdf.recovery.solver as R
 
     size = 6
     diel = torch.ones(size * size, 1)
