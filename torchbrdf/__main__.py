@@ -3,40 +3,47 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 
 import torch
 
 
+BACKGROUND = 0.05  # linear grey behind the spheres: their unlit side stays visible against it
+
+
 def sphere_grid(resolution: int = 96) -> torch.Tensor:
     """A figure of principled spheres, roughness across × metallic down, under a point light.
+
+    A dim fill light from the lower left keeps the shadow side readable; the background is a
+    mid-dark grey (:data:`BACKGROUND`), so each sphere's silhouette shows.
 
     Returns:
         ``(3, rows * resolution, cols * resolution)`` linear radiance.
     """
-    from torchbrdf.brdf import principled
+    from torchbrdf import principled
 
-    u = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1
+    u = ((torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1) * 1.12  # a margin between spheres
     yy, xx = torch.meshgrid(-u, u, indexing="ij")
     r2 = xx * xx + yy * yy
     inside = r2 < 1
     n = torch.stack([xx, yy, torch.sqrt(torch.clamp(1 - r2, min=0))], -1)
     p = n  # unit sphere at the origin
     cam = torch.tensor([0.0, 0.0, 6.0])
-    light = torch.tensor([3.0, 3.0, 5.0])
+    key, fill = torch.tensor([3.0, 3.0, 5.0]), torch.tensor([-4.0, -2.0, 3.0])
     v = torch.nn.functional.normalize(cam - p, dim=-1)
-    to_l = light - p
-    dist2 = (to_l * to_l).sum(-1, keepdim=True)
-    l = to_l / torch.sqrt(dist2)
     rows = []
     for metallic in (0.0, 0.5, 1.0):
         cols = []
         for roughness in (0.05, 0.25, 0.5, 0.75, 1.0):
-            f = principled(l, v, n, base_color=torch.tensor([0.8, 0.3, 0.1]), metallic=metallic, roughness=roughness,
-                           clearcoat=0.0)
-            radiance = f * 40.0 * torch.clamp((n * l).sum(-1, keepdim=True), min=0) / dist2 + 0.02 * f * math.pi
-            cols.append(torch.where(inside[..., None], radiance, torch.zeros_like(radiance)))
+            radiance = torch.zeros_like(n)
+            for light, power in ((key, 40.0), (fill, 4.0)):
+                to_l = light - p
+                dist2 = (to_l * to_l).sum(-1, keepdim=True)
+                l = to_l / torch.sqrt(dist2)
+                f = principled(l, v, n, base_color=torch.tensor([0.8, 0.3, 0.1]), metallic=metallic,
+                               roughness=roughness)
+                radiance = radiance + f * power * torch.clamp((n * l).sum(-1, keepdim=True), min=0) / dist2
+            cols.append(torch.where(inside[..., None], radiance, torch.full_like(radiance, BACKGROUND)))
         rows.append(torch.cat(cols, dim=1))
     return torch.cat(rows, dim=0).permute(2, 0, 1)
 
@@ -48,8 +55,8 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchbrdf.brdf import principled
-    from torchbrdf.analysis.slices import image_slice
+    from torchbrdf import principled
+    from torchbrdf.analysis.plots import plot_image_slices
 
     parser = argparse.ArgumentParser(prog="python -m torchbrdf", description=__doc__)
     parser.add_argument("--out", default="out", help="output folder (default: out)")
@@ -64,18 +71,16 @@ def main(argv=None) -> None:
     ax.set_yticks([48 + 96 * i for i in range(3)], ["0", "0.5", "1"])
     ax.set_xlabel("roughness")
     ax.set_ylabel("metallic")
-    ax.set_title("Disney principled BRDF, point light")
+    ax.set_title("Disney principled BRDF: base colour (0.8, 0.3, 0.1), key + fill point lights")
     fig.savefig(os.path.join(args.out, "spheres.png"), dpi=100, bbox_inches="tight")
     plt.close(fig)
 
-    sl = image_slice(principled, 128, base_color=torch.tensor([0.8, 0.3, 0.1], dtype=torch.float64), roughness=0.3)
-    fig, ax = plt.subplots(figsize=(5, 5))
-    ax.imshow((sl / (1 + sl)).clamp(0, 1).permute(1, 2, 0).numpy() ** (1 / 2.2), extent=(0, 90, 90, 0))
-    ax.set_xlabel("θh (degrees)")
-    ax.set_ylabel("θd (degrees)")
-    ax.set_title("image slice at φd = 90° (roughness 0.3)")
-    fig.savefig(os.path.join(args.out, "slice.png"), dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    def copper(l, v, n, x=None, y=None):
+        return principled(l, v, n, x, y, base_color=torch.tensor([0.8, 0.3, 0.1], dtype=l.dtype), roughness=0.3)
+
+    # The same drawing as the explore report (θd upward), so the two never disagree.
+    fig = plot_image_slices([("principled, roughness 0.3", copper)], resolution=128, exposure=-1.0)
+    fig.savefig(os.path.join(args.out, "slice.png"), dpi=100)
     print(f"wrote {args.out}/spheres.png and {args.out}/slice.png")
 
 

@@ -16,6 +16,7 @@ white.
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -39,6 +40,18 @@ __all__ = [
 
 Entries = Sequence[tuple[str, Callable[..., Tensor]]]
 _LUMA = (0.2126, 0.7152, 0.0722)
+# Each compared BRDF gets a colour AND a line style, so curves that coincide stay visible.
+_LINESTYLES = ("-", "--", (0, (1, 1.2)), "-.", (0, (5, 1, 1, 1, 1, 1)))
+
+
+def _style(i: int) -> dict:
+    """Colour and line style of the ``i``-th compared BRDF."""
+    return {"color": f"C{i}", "linestyle": _LINESTYLES[i % len(_LINESTYLES)]}
+
+
+def _panel_title(label: str, width: int = 26) -> str:
+    """A panel title wrapped onto lines of at most ``width`` characters (never clipped)."""
+    return textwrap.fill(label, width)
 
 
 def _figure(width: float, height: float):
@@ -70,7 +83,7 @@ def plot_image_slices(entries: Entries, resolution: int = 128, phi_d: float = ma
     for ax, (label, f) in zip(axes, entries):
         img = A.image_slice(f, resolution, phi_d) * math.pi
         ax.imshow(display_image(img, exposure), origin="lower", extent=(0, 90, 0, 90))
-        ax.set_title(label, fontsize=9)
+        ax.set_title(_panel_title(label), fontsize=9)
         ax.set_xlabel("θh (deg)")
         ax.set_xticks([0, 30, 60, 90])
         ax.set_yticks([0, 30, 60, 90])
@@ -89,7 +102,7 @@ def plot_spheres(entries: Entries, resolution: int = 160, exposure: float = 0.0,
         shown = display_image(img, exposure)
         shown[~mask.cpu().numpy()] = 0.25  # grey backdrop so the shadowed silhouette reads
         ax.imshow(shown)
-        ax.set_title(label, fontsize=9)
+        ax.set_title(_panel_title(label), fontsize=9)
         ax.set_axis_off()
     fig.suptitle(f"Lit spheres (directional light, EV {exposure:+g})", fontsize=10)
     return fig
@@ -98,7 +111,8 @@ def plot_spheres(entries: Entries, resolution: int = 160, exposure: float = 0.0,
 def plot_albedo_curves(entries: Entries, theta_v=None, method: str = "quadrature", samples=None):
     """Albedo (directional–hemispherical reflectance) against the view angle (Figures 11, 12).
 
-    Solid: luminance; thin dotted lines: the R, G, B channels; shaded band: ± error estimate.
+    Thick lines: luminance; thin lines of the same colour: the R, G, B channels; shaded band:
+    ± error estimate.
     """
     fig = _figure(6.0, 3.6)
     ax = fig.subplots()
@@ -106,15 +120,16 @@ def plot_albedo_curves(entries: Entries, theta_v=None, method: str = "quadrature
         th, est = A.albedo_curve(f, theta_v, method, samples)
         deg = np.degrees(th.numpy())
         y, e = luminance(est.value), luminance(est.error)
-        (line,) = ax.plot(deg, y, label=label, lw=1.8, color=f"C{i}")
+        (line,) = ax.plot(deg, y, label=f"{label} (luminance)", lw=1.8, **_style(i))
         ax.fill_between(deg, y - e, y + e, color=line.get_color(), alpha=0.25, lw=0)
         for c in range(3):
-            ax.plot(deg, est.value[:, c].numpy(), ":", lw=0.8, color=line.get_color())
+            ax.plot(deg, est.value[:, c].numpy(), lw=0.6, alpha=0.7, **_style(i),
+                    label=f"{label} (R, G, B)" if c == 0 else None)
     ax.set_xlabel("θv (deg)")
     ax.set_ylabel("albedo ρ(θv)")
     ax.set_xlim(0, 90)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, ncol=2 if len(entries) > 2 else 1)
     ax.set_title(f"Directional albedo ({method})", fontsize=10)
     return fig
 
@@ -125,7 +140,7 @@ def _log_curves(entries: Entries, fn, xlabel: str, title: str):
     for i, (label, f) in enumerate(entries):
         th, val = fn(f)
         y = np.maximum(luminance(val), 1e-6)
-        ax.semilogy(np.degrees(th.numpy()), y, label=label, lw=1.6, color=f"C{i}")
+        ax.semilogy(np.degrees(th.numpy()), y, label=label, lw=1.6, **_style(i))
     ax.set_xlabel(xlabel)
     ax.set_ylabel("f (luminance, 1/sr)")
     ax.grid(alpha=0.3, which="both")
@@ -170,7 +185,7 @@ def plot_polar_lobes(entries: Entries, thetas_i=(math.radians(30.0), math.radian
         for row, ax in enumerate(axes[:, col]):
             for i, (label, to, y) in enumerate(curves):
                 r = y if row == 0 else np.clip(np.log10(np.maximum(y, 1e-30) / top) + decades, 0.0, None)
-                ax.plot(to, r, label=label, lw=1.4, color=f"C{i}")
+                ax.plot(to, r, label=label, lw=1.4, **_style(i))
             rmax = top if row == 0 else decades
             ax.plot([-ti, -ti], [0, rmax], color="0.5", lw=1.0)
             ax.set_theta_zero_location("N")

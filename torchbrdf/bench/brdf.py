@@ -17,8 +17,9 @@ One command, one run, everything on the same machine and inputs:
   hemisphere = no importance sampling) and of the split sum, against a quadrature reference
   (:func:`environment`; it can be run on its own, see its docstring).
 
-It writes ``docs/benchmarks.md`` (tables, the command, the machine), ``docs/benchmarks.json``
-(raw numbers) and PNG plots into ``docs/``. ``--quick`` runs a reduced sweep (~1-2 min).
+It writes ``benchmarks.md`` (tables, the command, the machine), ``benchmarks.json`` (raw
+numbers) and PNG plots into ``--out`` (default ``bench_out/``; ``--out docs`` refreshes the
+committed report). ``--quick`` runs a reduced sweep (~1-2 min).
 """
 
 from __future__ import annotations
@@ -697,7 +698,7 @@ def write_report(res: dict, out_dir: str, argv) -> None:
     plots = _plots(res, out_dir)
     m = res["machine"]
     L = ["# torchbrdf benchmarks", "",
-         "Regenerate (writes this file, `benchmarks.json` and the PNG plots into `docs/`):", "",
+         "Regenerate (writes this file, `benchmarks.json` and the PNG plots into `--out`):", "",
          "```bash", "python -m torchbrdf.bench " + " ".join(argv), "```", "",
          f"Machine: {m['cpu']}, {m['cores']} cores ({m['torch_threads']} torch threads), torch {m['torch']}, "
          f"Python {m['python']}, {m['gcc']}" + (f", Mitsuba {res['mitsuba_version']}" if res.get("mitsuba_version") else "")
@@ -886,17 +887,18 @@ def main(argv=None) -> int:
         return 0
     ap = argparse.ArgumentParser(prog="python -m torchbrdf.bench", description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="reduced sweep (N up to 2^18 except the headline, 3 repeats)")
+    ap.add_argument("--out", default="bench_out",
+                    help="folder for benchmarks.md/.json and the plots (default bench_out/; 'docs' updates the committed report)")
     ap.add_argument("--sizes", type=int, nargs="*", help="log2 of the batch sizes (default 12 14 16 18 20 22)")
     ap.add_argument("--dtypes", nargs="*", choices=list(DTYPES), help="default: all four")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (best is kept)")
     ap.add_argument("--eager-max", type=int, default=20, help="log2 of the largest N for the eager path (default 20)")
     ap.add_argument("--head", type=int, default=22, help="log2 of N for the headline/peak-memory runs (default 22)")
-    ap.add_argument("--no-mitsuba", action="store_true")
-    ap.add_argument("--no-memory", action="store_true")
-    ap.add_argument("--no-env", action="store_true")
+    ap.add_argument("--no-mitsuba", action="store_true", help="skip the Mitsuba 3 comparison even if installed")
+    ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocess runs")
+    ap.add_argument("--no-env", action="store_true", help="skip the environment-lighting error/time section")
     ap.add_argument("--torch-compile", action="store_true",
                     help="also measure torch.compile of the eager path at the headline N (~1 min of compiling)")
-    ap.add_argument("--out", default="docs")
     args = ap.parse_args(argv)
     sizes = [1 << s for s in (args.sizes or ([12, 14, 16, 18] if args.quick else [12, 14, 16, 18, 20, 22]))]
     dtypes = args.dtypes or list(DTYPES)
