@@ -16,8 +16,17 @@ these floors never underflow.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import Any, ParamSpec, TypeVar, cast, overload
+
 import torch
 from torch import Tensor
+
+from torchbrdf._types import Scalar
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 SQRT_EPS = 1e-12
 NORM_EPS = 1e-12
@@ -55,7 +64,11 @@ def safe_div(a: Tensor, b: Tensor, eps: float = DIV_EPS) -> Tensor:
     return a / (sign * torch.clamp(b.abs(), min=eps))
 
 
-def lerp(a, b, t):
+@overload
+def lerp(a: float, b: float, t: float) -> float: ...  # type: ignore[overload-overlap]  # floats in, float out
+@overload
+def lerp(a: Scalar, b: Scalar, t: Scalar) -> Tensor: ...
+def lerp(a: Scalar, b: Scalar, t: Scalar) -> Scalar:
     """``a + (b - a) t`` with full broadcasting and Python scalars allowed anywhere."""
     return a + (b - a) * t
 
@@ -104,7 +117,11 @@ class _SaturatingCast(torch.autograd.Function):
         return torch.clamp(grad, -big, big).to(ctx.in_dtype), None
 
 
-def cast_in(x, dtype: torch.dtype):
+@overload
+def cast_in(x: Tensor, dtype: torch.dtype) -> Tensor: ...
+@overload
+def cast_in(x: _R, dtype: torch.dtype) -> _R: ...
+def cast_in(x: Any, dtype: torch.dtype) -> Any:
     """Cast an input to the compute ``dtype``; for half inputs the gradient coming back
     saturates at the half type's largest finite value instead of overflowing to inf (at
     n·l = n·v = 1e-7 the true gradient is ~1e13)."""
@@ -118,23 +135,22 @@ def cast_in(x, dtype: torch.dtype):
 _HALF = (torch.float16, torch.bfloat16)
 
 
-def half_safe(fn):
+def half_safe(fn: Callable[_P, _R]) -> Callable[_P, _R]:
     """Decorator: evaluate ``fn`` in float32 when any tensor argument is float16/bfloat16.
 
     Inputs are promoted with :func:`cast_in` (gradients saturate on the way back) and tensor
     results are cast back with :func:`cast_back` (values saturate instead of becoming inf).
     """
-    import functools
 
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
         half = next((a.dtype for a in (*args, *kwargs.values()) if isinstance(a, Tensor) and a.dtype in _HALF), None)
         if half is None:
             return fn(*args, **kwargs)
         up = lambda a: cast_in(a, torch.float32) if isinstance(a, Tensor) and a.is_floating_point() else a  # noqa: E731
-        out = fn(*[up(a) for a in args], **{k: up(a) for k, a in kwargs.items()})
+        out = cast(Callable[..., _R], fn)(*[up(a) for a in args], **{k: up(a) for k, a in kwargs.items()})
         if isinstance(out, tuple):
-            return tuple(cast_back(o, half) if isinstance(o, Tensor) else o for o in out)
-        return cast_back(out, half)
+            return cast(_R, tuple(cast_back(o, half) if isinstance(o, Tensor) else o for o in out))
+        return cast(_R, cast_back(cast(Tensor, out), half))
 
     return wrapper

@@ -6,25 +6,31 @@ Each returns the BRDF value (including ``1/π``, without the ``n·l`` cosine).
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import torch
 from torch import Tensor
 
 from torchbrdf._math import half_safe, lerp, schlick_weight
+from torchbrdf._types import Color, Scalar
 
 __all__ = ["diffuse_lambert", "diffuse_burley", "diffuse_subsurface", "diffuse_oren_nayar"]
 
 INV_PI = 1.0 / math.pi
 
 
+@overload
+def diffuse_lambert(base_color: Tensor) -> Tensor: ...
+@overload
+def diffuse_lambert(base_color: float) -> float: ...
 @half_safe
-def diffuse_lambert(base_color) -> Tensor:
+def diffuse_lambert(base_color: Color) -> Color:
     """Lambert: ``base_color / π``."""
     return base_color * INV_PI
 
 
 @half_safe
-def burley_retro_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughness) -> Tensor:
+def burley_retro_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughness: Scalar) -> Tensor:
     """Burley's diffuse Fresnel factor ``lerp(1, Fd90, FL) · lerp(1, Fd90, FV)``, ``(*, 1)``.
 
     ``Fd90 = 0.5 + 2 roughness (l·h)²``: rough surfaces brighten toward grazing
@@ -35,7 +41,7 @@ def burley_retro_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, rough
 
 
 @half_safe
-def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughness) -> Tensor:
+def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughness: Scalar) -> Tensor:
     """Burley's Hanrahan–Krueger-like subsurface factor ``1.25 (Fss (1/(NL+NV) - 0.5) + 0.5)``.
 
     ``NL + NV`` is floored at 1e-7 (both at 1e-7 is the hardest grazing case the library
@@ -48,19 +54,25 @@ def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughne
 
 
 @half_safe
-def diffuse_burley(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color, roughness) -> Tensor:
+def diffuse_burley(
+    n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color: Color, roughness: Scalar
+) -> Tensor:
     """Burley's retro-reflective diffuse: ``base_color / π · Fd`` (see :func:`burley_retro_factor`)."""
     return base_color * INV_PI * burley_retro_factor(n_dot_l, n_dot_v, l_dot_h, roughness)
 
 
 @half_safe
-def diffuse_subsurface(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color, roughness) -> Tensor:
+def diffuse_subsurface(
+    n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color: Color, roughness: Scalar
+) -> Tensor:
     """The principled model's subsurface approximation: ``base_color / π · ss``."""
     return base_color * INV_PI * subsurface_factor(n_dot_l, n_dot_v, l_dot_h, roughness)
 
 
 @half_safe
-def diffuse_oren_nayar(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_v: Tensor, base_color, sigma) -> Tensor:
+def diffuse_oren_nayar(
+    n_dot_l: Tensor, n_dot_v: Tensor, l_dot_v: Tensor, base_color: Color, sigma: Scalar
+) -> Tensor:
     """Oren–Nayar in PBRT's form, ``R/π (A + B max(0, cos Δφ) sin α tan β)``.
 
     Written without trigonometry: ``max(0, cos Δφ) sin α tan β = max(0, l·v - NL NV) /

@@ -13,11 +13,13 @@ eq. 1, 4, 13), Hoffman 2013 eq. 16–22 (Phong, Beckmann, Trowbridge–Reitz, AB
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import torch
 from torch import Tensor
 
 from torchbrdf._math import half_safe
+from torchbrdf._types import Scalar
 
 __all__ = [
     "ALPHA_MIN",
@@ -42,14 +44,18 @@ _SERIES_EPS = 1e-4
 _DEN_EPS = 1e-18
 
 
-def roughness_to_alpha(roughness, alpha_min: float = ALPHA_MIN):
+@overload
+def roughness_to_alpha(roughness: Tensor, alpha_min: float = ALPHA_MIN) -> Tensor: ...
+@overload
+def roughness_to_alpha(roughness: float, alpha_min: float = ALPHA_MIN) -> float: ...
+def roughness_to_alpha(roughness: Scalar, alpha_min: float = ALPHA_MIN) -> Scalar:
     """Perceptual roughness to NDF width: ``α = max(alpha_min, roughness²)``."""
     if isinstance(roughness, Tensor):
         return torch.clamp(roughness * roughness, min=alpha_min)
     return max(alpha_min, roughness * roughness)
 
 
-def _sin2(n_dot_h: Tensor, sin2_h):
+def _sin2(n_dot_h: Tensor, sin2_h: Tensor | None) -> Tensor:
     return torch.clamp(1.0 - n_dot_h * n_dot_h, min=0.0) if sin2_h is None else sin2_h
 
 
@@ -92,7 +98,7 @@ def _expm1_over_x(u: Tensor) -> Tensor:
 
 
 @half_safe
-def ndf_ggx(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
+def ndf_ggx(n_dot_h: Tensor, alpha: Scalar, sin2_h: Tensor | None = None) -> Tensor:
     """GGX / Trowbridge–Reitz (GTR with γ = 2): ``α² / (π (α² cos²θh + sin²θh)²)``.
 
     Args:
@@ -111,7 +117,9 @@ def ndf_ggx(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
 
 
 @half_safe
-def ndf_ggx_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x, alpha_y) -> Tensor:
+def ndf_ggx_aniso(
+    h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x: Scalar, alpha_y: Scalar
+) -> Tensor:
     """Anisotropic GGX (Burley eq. 13): ``1 / (π αx αy ((h·x/αx)² + (h·y/αy)² + (h·n)²)²)``.
 
     All arguments ``(*, 1)`` (alphas may be floats). Has no cancellation at the peak.
@@ -123,7 +131,7 @@ def ndf_ggx_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x, al
 
 
 @half_safe
-def gtr_normalization(alpha, gamma) -> Tensor:
+def gtr_normalization(alpha: Scalar, gamma: Scalar) -> Tensor:
     """GTR normalisation ``(γ-1)(α²-1) / (π (1 - (α²)^(1-γ)))`` (Burley eq. 1).
 
     Rewritten as ``(1/π) · t/log1p(t) · u/expm1(u)`` with ``t = α² - 1`` and
@@ -139,7 +147,7 @@ def gtr_normalization(alpha, gamma) -> Tensor:
 
 
 @half_safe
-def ndf_gtr(n_dot_h: Tensor, alpha, gamma, sin2_h=None) -> Tensor:
+def ndf_gtr(n_dot_h: Tensor, alpha: Scalar, gamma: Scalar, sin2_h: Tensor | None = None) -> Tensor:
     """Generalised Trowbridge–Reitz (Burley eq. 1) for any ``γ > 0``.
 
     ``D = c(α, γ) / (α² cos²θh + sin²θh)^γ`` with :func:`gtr_normalization`.
@@ -162,7 +170,7 @@ def ndf_gtr(n_dot_h: Tensor, alpha, gamma, sin2_h=None) -> Tensor:
 
 
 @half_safe
-def ndf_gtr1(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
+def ndf_gtr1(n_dot_h: Tensor, alpha: Scalar, sin2_h: Tensor | None = None) -> Tensor:
     """GTR with γ = 1 (Burley eq. 4, the clearcoat lobe): ``(α²-1) / (π ln α² (α² cos² + sin²))``."""
     alpha_t = torch.as_tensor(alpha, dtype=n_dot_h.dtype, device=n_dot_h.device)
     a2 = alpha_t * alpha_t
@@ -172,7 +180,7 @@ def ndf_gtr1(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
 
 
 @half_safe
-def ndf_beckmann(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
+def ndf_beckmann(n_dot_h: Tensor, alpha: Scalar, sin2_h: Tensor | None = None) -> Tensor:
     """Beckmann (Hoffman eq. 17): ``exp(-tan²θh / α²) / (π α² cos⁴θh)``.
 
     Args:
@@ -191,7 +199,9 @@ def ndf_beckmann(n_dot_h: Tensor, alpha, sin2_h=None) -> Tensor:
 
 
 @half_safe
-def ndf_beckmann_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x, alpha_y) -> Tensor:
+def ndf_beckmann_aniso(
+    h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x: Scalar, alpha_y: Scalar
+) -> Tensor:
     """Anisotropic Beckmann: ``exp(-((h·x/αx)² + (h·y/αy)²) / (h·n)²) / (π αx αy (h·n)⁴)``."""
     c = torch.clamp(n_dot_h, min=1e-6)
     c2 = c * c
@@ -202,7 +212,7 @@ def ndf_beckmann_aniso(h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_
 
 
 @half_safe
-def ndf_blinn_phong(n_dot_h: Tensor, exponent) -> Tensor:
+def ndf_blinn_phong(n_dot_h: Tensor, exponent: Scalar) -> Tensor:
     """Normalised Blinn–Phong (Hoffman eq. 16): ``(p + 2) / (2π) (n·h)^p``.
 
     Args:
@@ -214,13 +224,17 @@ def ndf_blinn_phong(n_dot_h: Tensor, exponent) -> Tensor:
     return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
 
 
-def alpha_to_phong_exponent(alpha):
+@overload
+def alpha_to_phong_exponent(alpha: Tensor) -> Tensor: ...
+@overload
+def alpha_to_phong_exponent(alpha: float) -> float: ...
+def alpha_to_phong_exponent(alpha: Scalar) -> Scalar:
     """Walter et al.'s correspondence ``p = 2 / α² - 2`` between Beckmann α and Phong."""
     return 2.0 / (alpha * alpha) - 2.0
 
 
 @half_safe
-def abc_normalization(a, gamma) -> Tensor:
+def abc_normalization(a: Scalar, gamma: Scalar) -> Tensor:
     """Normalisation ``k_abc`` of the ABC NDF (Hoffman eq. 20–22).
 
     Evaluated from the closed-form integral ``2π/a² [b E(1-γ) - E(2-γ)]`` with
@@ -238,7 +252,7 @@ def abc_normalization(a, gamma) -> Tensor:
 
 
 @half_safe
-def ndf_abc(n_dot_h: Tensor, a, gamma) -> Tensor:
+def ndf_abc(n_dot_h: Tensor, a: Scalar, gamma: Scalar) -> Tensor:
     """ABC distribution (Hoffman eq. 19): ``k_abc / (1 + a (1 - n·h))^γ``.
 
     Args:

@@ -9,11 +9,13 @@ reflects radiance exactly 1).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from torchbrdf._math import dot
+from torchbrdf._types import Color
 
 __all__ = ["lambert", "LambertBRDF"]
 
@@ -27,8 +29,8 @@ def lambert(
     x: Tensor | None = None,
     y: Tensor | None = None,
     *,
-    base_color,
-    **ignored,
+    base_color: Color,
+    **ignored: Any,
 ) -> Tensor:
     """Lambertian BRDF value ``base_color / π`` (without the ``n·l`` cosine).
 
@@ -60,7 +62,8 @@ def lambert(
 
 
 # Tells the shader which importance sampler fits this BRDF (see torchbrdf.render.envmap).
-lambert.sampling_lobes = ("diffuse",)
+# (mypy does not model attributes set on functions.)
+lambert.sampling_lobes = ("diffuse",)  # type: ignore[attr-defined]
 
 
 class LambertBRDF(nn.Module):
@@ -78,6 +81,8 @@ class LambertBRDF(nn.Module):
 
     sampling_lobes = ("diffuse",)
 
-    def forward(self, l, v, n, x=None, y=None, **params) -> Tensor:
+    def forward(
+        self, l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None, **params: Any
+    ) -> Tensor:
         """Evaluate :func:`lambert`."""
         return lambert(l, v, n, x, y, **params)

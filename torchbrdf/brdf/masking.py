@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._math import half_safe, safe_sqrt
+from torchbrdf._types import Scalar
 
 __all__ = [
     "smith_g1_ggx",
@@ -33,7 +34,7 @@ __all__ = [
 ]
 
 
-def _tangent_alpha2(n_dot_w: Tensor, alpha) -> Tensor:
+def _tangent_alpha2(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
     """Isotropic ``α² sin²θ = α² (1 - cos²θ)``."""
     return alpha * alpha * torch.clamp(1.0 - n_dot_w * n_dot_w, min=0.0)
 
@@ -51,20 +52,20 @@ def smith_g1_ggx_aniso(n_dot_w: Tensor, tangent_alpha2: Tensor) -> Tensor:
 
 
 @half_safe
-def smith_g1_ggx(n_dot_w: Tensor, alpha) -> Tensor:
+def smith_g1_ggx(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
     """Isotropic Smith G1 for GGX (Walter et al. 2007), ``(*, 1)``."""
     return smith_g1_ggx_aniso(n_dot_w, _tangent_alpha2(n_dot_w, alpha))
 
 
 @half_safe
-def smith_lambda_ggx(n_dot_w: Tensor, alpha) -> Tensor:
+def smith_lambda_ggx(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
     """Smith Λ for GGX, ``(sqrt(1 + α² tan²θ) - 1) / 2``; large but finite at grazing."""
     c = torch.clamp(n_dot_w, min=1e-7)  # Λ → ∞ at the horizon; G built from it → 0
     return 0.5 * (safe_sqrt(c * c + _tangent_alpha2(c, alpha)) / c - 1.0)
 
 
 @half_safe
-def smith_lambda_beckmann(n_dot_w: Tensor, alpha) -> Tensor:
+def smith_lambda_beckmann(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
     """Exact Smith Λ for Beckmann: ``(erf(a) - 1)/2 + exp(-a²)/(2a√π)``, ``a = cot θ / α``."""
     c = torch.clamp(n_dot_w, min=1e-7)
     sin_t = safe_sqrt(1.0 - c * c)
@@ -73,14 +74,14 @@ def smith_lambda_beckmann(n_dot_w: Tensor, alpha) -> Tensor:
 
 
 @half_safe
-def smith_g1_beckmann(n_dot_w: Tensor, alpha) -> Tensor:
+def smith_g1_beckmann(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
     """Exact Smith G1 for Beckmann, ``1 / (1 + Λ)``; 0 for ``n_dot_w <= 0``."""
     g = 1.0 / (1.0 + smith_lambda_beckmann(n_dot_w, alpha))
     return torch.where(n_dot_w > 0, g, torch.zeros_like(g))
 
 
 @half_safe
-def smith_g1_beckmann_walter(n_dot_w: Tensor, alpha) -> Tensor:
+def smith_g1_beckmann_walter(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
     """Walter et al.'s rational approximation of the Beckmann Smith G1 (error < 0.35 %)."""
     c = torch.clamp(n_dot_w, min=1e-7)
     a = c / (alpha * safe_sqrt(1.0 - c * c))

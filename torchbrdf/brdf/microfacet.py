@@ -8,11 +8,15 @@ benchmark measures what each choice costs.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import torch
 from torch import Tensor, nn
 
 from torchbrdf import _checks
 from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
+from torchbrdf._types import Color, Scalar
 from torchbrdf.brdf.distributions import (
     alpha_to_phong_exponent,
     ndf_abc,
@@ -42,7 +46,7 @@ FRESNELS = ("schlick", "dielectric", "conductor", "none")
 MASKINGS = ("smith_separable", "smith_correlated", "cook_torrance", "kelemen", "implicit")
 
 
-def _choice(name: str, value: str, options) -> None:
+def _choice(name: str, value: str, options: Sequence[str]) -> None:
     if value not in options:
         raise ValueError(f"{name}: unknown choice {value!r}; expected one of {options}")
 
@@ -54,18 +58,18 @@ def microfacet(
     x: Tensor | None = None,
     y: Tensor | None = None,
     *,
-    alpha,
-    alpha_y=None,
+    alpha: Scalar,
+    alpha_y: Scalar | None = None,
     distribution: str = "ggx",
     fresnel: str = "schlick",
     masking: str = "smith_correlated",
-    f0=0.04,
-    f90=1.0,
-    ior=1.5,
-    eta=None,
-    k=None,
-    gamma=2.0,
-    abc_a=None,
+    f0: Color = 0.04,
+    f90: Color = 1.0,
+    ior: Scalar = 1.5,
+    eta: Color | None = None,
+    k: Color | None = None,
+    gamma: Scalar = 2.0,
+    abc_a: Scalar | None = None,
 ) -> Tensor:
     """Microfacet reflection ``D F G / (4 NL NV)``.
 
@@ -174,14 +178,18 @@ class MicrofacetBRDF(nn.Module):
         ``forward(l, v, n, x=None, y=None, **params)``: vectors ``(*, 3)`` → ``(*, C)``.
     """
 
-    def __init__(self, distribution: str = "ggx", fresnel: str = "schlick", masking: str = "smith_correlated"):
+    def __init__(
+        self, distribution: str = "ggx", fresnel: str = "schlick", masking: str = "smith_correlated"
+    ) -> None:
         super().__init__()
         _choice("distribution", distribution, DISTRIBUTIONS)
         _choice("fresnel", fresnel, FRESNELS)
         _choice("masking", masking, MASKINGS)
         self.distribution, self.fresnel, self.masking = distribution, fresnel, masking
 
-    def forward(self, l, v, n, x=None, y=None, **params) -> Tensor:
+    def forward(
+        self, l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None, **params: Any
+    ) -> Tensor:
         """Evaluate; see :func:`microfacet`."""
         return microfacet(
             l, v, n, x, y, distribution=self.distribution, fresnel=self.fresnel, masking=self.masking, **params

@@ -138,8 +138,9 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
@@ -157,6 +158,7 @@ from torchbrdf._math import (
     safe_sqrt,
     schlick_weight,
 )
+from torchbrdf._types import Color, Scalar
 
 __all__ = [
     "SMITS_LOBES",
@@ -375,25 +377,25 @@ def smits_lobes(  # noqa: D417 (the material parameters are documented once, in 
     v: Tensor,
     n: Tensor,
     *,
-    base_color,
-    metallic=0.0,
-    roughness=0.5,
-    clear=0.0,
-    back=0.0,
-    fresnel_normal_scale=1.0,
-    fresnel_grazing_scale=1.0,
-    highlight_tint=1.0,
-    transmit_tint=1.0,
-    diffuse_scale=1.0,
-    specular_scale=1.0,
-    reflection_scale=1.0,
-    transmit_diffuse_scale=1.0,
-    transmit_specular_scale=1.0,
-    refraction_scale=1.0,
-    specular_cone_scale=1.0,
-    reflection_cone_scale=1.0,
-    transmit_specular_cone_scale=1.0,
-    refraction_cone_scale=1.0,
+    base_color: Color,
+    metallic: Scalar = 0.0,
+    roughness: Scalar = 0.5,
+    clear: Scalar = 0.0,
+    back: Scalar = 0.0,
+    fresnel_normal_scale: Scalar = 1.0,
+    fresnel_grazing_scale: Scalar = 1.0,
+    highlight_tint: Color = 1.0,
+    transmit_tint: Color = 1.0,
+    diffuse_scale: Scalar = 1.0,
+    specular_scale: Scalar = 1.0,
+    reflection_scale: Scalar = 1.0,
+    transmit_diffuse_scale: Scalar = 1.0,
+    transmit_specular_scale: Scalar = 1.0,
+    refraction_scale: Scalar = 1.0,
+    specular_cone_scale: Scalar = 1.0,
+    reflection_cone_scale: Scalar = 1.0,
+    transmit_specular_cone_scale: Scalar = 1.0,
+    refraction_cone_scale: Scalar = 1.0,
 ) -> SmitsLobes:
     """The twelve lobe weights, four cone angles and refraction index at a fixed view.
 
@@ -574,26 +576,26 @@ def smits(
     x: Tensor | None = None,
     y: Tensor | None = None,
     *,
-    base_color,
-    metallic=0.0,
-    roughness=0.5,
-    clear=0.0,
-    back=0.0,
-    fresnel_normal_scale=1.0,
-    fresnel_grazing_scale=1.0,
-    highlight_tint=1.0,
-    transmit_tint=1.0,
-    diffuse_scale=1.0,
-    specular_scale=1.0,
-    reflection_scale=1.0,
-    transmit_diffuse_scale=1.0,
-    transmit_specular_scale=1.0,
-    refraction_scale=1.0,
-    specular_cone_scale=1.0,
-    reflection_cone_scale=1.0,
-    transmit_specular_cone_scale=1.0,
-    refraction_cone_scale=1.0,
-    lobes=None,
+    base_color: Color,
+    metallic: Scalar = 0.0,
+    roughness: Scalar = 0.5,
+    clear: Scalar = 0.0,
+    back: Scalar = 0.0,
+    fresnel_normal_scale: Scalar = 1.0,
+    fresnel_grazing_scale: Scalar = 1.0,
+    highlight_tint: Color = 1.0,
+    transmit_tint: Color = 1.0,
+    diffuse_scale: Scalar = 1.0,
+    specular_scale: Scalar = 1.0,
+    reflection_scale: Scalar = 1.0,
+    transmit_diffuse_scale: Scalar = 1.0,
+    transmit_specular_scale: Scalar = 1.0,
+    refraction_scale: Scalar = 1.0,
+    specular_cone_scale: Scalar = 1.0,
+    reflection_cone_scale: Scalar = 1.0,
+    transmit_specular_cone_scale: Scalar = 1.0,
+    refraction_cone_scale: Scalar = 1.0,
+    lobes: Iterable[str] | None = None,
 ) -> Tensor:
     """Smits' Wall-E/Up BRDF/BTDF ``f(l, v)`` (without the ``|n.l|`` cosine).
 
@@ -692,7 +694,9 @@ def _lobe_energy(lobes: SmitsLobes, name: str, cos_hv: Tensor) -> Tensor:
     return luminance(share)
 
 
-def smits_composite(v: Tensor, lobe_sets: Sequence[SmitsLobes], layer_weights: Sequence) -> SmitsLobes:
+def smits_composite(
+    v: Tensor, lobe_sets: Sequence[SmitsLobes], layer_weights: Sequence[Scalar]
+) -> SmitsLobes:
     """Combine layers into one lobe set: A-over-B weights, energy-weighted cones and normals.
 
     Args:
@@ -737,8 +741,13 @@ def smits_composite(v: Tensor, lobe_sets: Sequence[SmitsLobes], layer_weights: S
     w_diff = [c * (e["diffuse"] + e["transmit_diffuse"]) for c, e in zip(coverage, energies)]
     w_high = [c * sum(e[k] for k in _HIGHLIGHTS) for c, e in zip(coverage, energies)]
     w_tran = [c * (e["transmit_specular"] + e["refraction"]) for c, e in zip(coverage, energies)]
-    out["diffuse_normal"] = safe_normalize(sum(w * s.diffuse_normal for w, s in zip(w_diff, lobe_sets)))
-    out["highlight_normal"] = safe_normalize(sum(w * s.highlight_normal for w, s in zip(w_high, lobe_sets)))
+    # (cast: `sum` of a non-empty sequence of tensors is a tensor, never its start value 0)
+    out["diffuse_normal"] = safe_normalize(
+        cast(Tensor, sum(w * s.diffuse_normal for w, s in zip(w_diff, lobe_sets)))
+    )
+    out["highlight_normal"] = safe_normalize(
+        cast(Tensor, sum(w * s.highlight_normal for w, s in zip(w_high, lobe_sets)))
+    )
     out["eta"] = blend("eta", w_tran)
     batch = torch.broadcast_shapes(*(x.shape[:-1] for x in out.values()))
     out = {k: torch.broadcast_to(x, (*batch, x.shape[-1])) for k, x in out.items()}
@@ -753,9 +762,9 @@ def smits_layered(
     x: Tensor | None = None,
     y: Tensor | None = None,
     *,
-    layers: Sequence[Mapping],
-    layer_weights: Sequence,
-    lobes=None,
+    layers: Sequence[Mapping[str, Any]],
+    layer_weights: Sequence[Scalar],
+    lobes: Iterable[str] | None = None,
 ) -> Tensor:
     """Layered Smits material: several parameter sets composited by :func:`smits_composite`.
 
@@ -815,12 +824,20 @@ class SmitsBRDF(nn.Module):
         torch.Size([3])
     """
 
-    def __init__(self, lobes=None):
+    def __init__(self, lobes: Iterable[str] | None = None) -> None:
         super().__init__()
         _selected(lobes)  # validates the names
         self.lobes = None if lobes is None else tuple(lobes)
 
-    def forward(self, l: Tensor, v: Tensor, n: Tensor, x=None, y=None, **material) -> Tensor:
+    def forward(
+        self,
+        l: Tensor,
+        v: Tensor,
+        n: Tensor,
+        x: Tensor | None = None,
+        y: Tensor | None = None,
+        **material: Any,
+    ) -> Tensor:
         """Evaluate :func:`smits` with the given material parameters."""
         return smits(l, v, n, x, y, lobes=self.lobes, **material)
 
@@ -841,12 +858,22 @@ class SmitsLayeredBRDF(nn.Module):
         - Output: ``(*, 3)``.
     """
 
-    def __init__(self, lobes=None):
+    def __init__(self, lobes: Iterable[str] | None = None) -> None:
         super().__init__()
         _selected(lobes)
         self.lobes = None if lobes is None else tuple(lobes)
 
-    def forward(self, l: Tensor, v: Tensor, n: Tensor, x=None, y=None, *, layers, layer_weights) -> Tensor:
+    def forward(
+        self,
+        l: Tensor,
+        v: Tensor,
+        n: Tensor,
+        x: Tensor | None = None,
+        y: Tensor | None = None,
+        *,
+        layers: Sequence[Mapping[str, Any]],
+        layer_weights: Sequence[Scalar],
+    ) -> Tensor:
         """Evaluate :func:`smits_layered`."""
         return smits_layered(l, v, n, x, y, layers=layers, layer_weights=layer_weights, lobes=self.lobes)
 
