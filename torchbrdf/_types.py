@@ -9,6 +9,8 @@ objects (not strings), so ``typing.get_type_hints`` resolves annotations that us
 * :data:`Color` — a colour ``(*, C)`` (usually ``C = 3``), or a float / 0-d tensor for grey.
 * :data:`BRDF` — a BRDF callable with the principled signature
   ``f(l, v, n, x=None, y=None, **params) -> (*, C)``.
+* :data:`Angles` — one angle or several, in radians: a float, a sequence of floats or a
+  ``(T,)`` tensor.
 * :data:`PathLike` — a file system path: ``str`` or :class:`os.PathLike`.
 * :data:`Device` — what ``torch`` accepts as a device: a ``torch.device``, a string such as
   ``"cuda:0"``, an index, or ``None`` for the default.
@@ -17,16 +19,17 @@ objects (not strings), so ``typing.get_type_hints`` resolves annotations that us
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TypeAlias
 
 import torch
 from torch import Tensor
 
-__all__ = ["Scalar", "Color", "BRDF", "PathLike", "Device"]
+__all__ = ["Scalar", "Color", "BRDF", "Angles", "PathLike", "Device"]
 
 Scalar: TypeAlias = float | Tensor
 Color: TypeAlias = float | Tensor
 BRDF: TypeAlias = Callable[..., Tensor]
+Angles: TypeAlias = float | Sequence[float] | Tensor
 PathLike: TypeAlias = str | os.PathLike[str]
 Device: TypeAlias = torch.device | str | int | None

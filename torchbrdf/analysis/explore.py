@@ -32,11 +32,14 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, cast
 
 import torch
 
+from torchbrdf._types import BRDF
 from torchbrdf.analysis import measures as A
 from torchbrdf.analysis import plots as P
 
@@ -76,11 +79,11 @@ class BRDFSpec:
     """
 
     model: str
-    params: dict = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)
     label: str = ""
     path: str | None = None
 
-    def brdf(self):
+    def brdf(self) -> BRDF:
         """The parameter-free callable ``f(l, v, n, x=None, y=None) -> (*, 3)``."""
         if self.model == "principled":
             from torchbrdf.brdf.principled import principled
@@ -106,11 +109,12 @@ class BRDFSpec:
 
             with_diffuse.params = spec.params  # type: ignore[attr-defined]
             return with_diffuse
+        path = cast(str, self.path)  # merl and fit specs carry a path (parse_spec requires one)
         if self.model == "fit":
-            return _fitted_brdf(self.path)
+            return _fitted_brdf(path)
         from torchbrdf.brdf.measured import MERLBRDF
 
-        return MERLBRDF.from_file(self.path)
+        return MERLBRDF.from_file(path)
 
 
 def _fitted_brdf(path: str):
@@ -182,10 +186,11 @@ def parse_spec(spec: str) -> BRDFSpec:
     if model == "principled":
         out.params.setdefault("base_color", torch.tensor([0.8, 0.8, 0.8], dtype=torch.float64))
     if not out.label:
+        # (the casts: merl and fit specs always have a path, set above)
         if model == "merl":
-            out.label = Path(out.path).stem
+            out.label = Path(cast(str, out.path)).stem
         elif model == "fit":
-            out.label = f"fit {Path(out.path).parent.name}"
+            out.label = f"fit {Path(cast(str, out.path)).parent.name}"
         else:
             shown = " ".join(f"{k}={v}" for k, v in _readable(out.params).items())
             out.label = f"{model} {shown}".strip()
@@ -210,7 +215,9 @@ def _white(spec: BRDFSpec) -> dict | None:
     return p
 
 
-def write_report(specs: list[BRDFSpec], out: str | Path, *, quick: bool = False, log=print) -> Path:
+def write_report(
+    specs: list[BRDFSpec], out: str | Path, *, quick: bool = False, log: Callable[[str], object] = print
+) -> Path:
     """Compute every view for ``specs`` and write ``out/index.html`` with its PNGs.
 
     Args:

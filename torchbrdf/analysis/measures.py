@@ -44,13 +44,14 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Callable
-from typing import NamedTuple
+from collections.abc import Callable, Sequence
+from typing import Any, Literal, NamedTuple, cast, overload
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from torchbrdf._types import BRDF, Angles, Device
 from torchbrdf.analysis import slices as _slices
 from torchbrdf.brdf.distributions import ndf_beckmann, ndf_ggx
 from torchbrdf.brdf.masking import smith_g1_beckmann, smith_g1_ggx
@@ -123,7 +124,7 @@ class ReciprocityResult(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
-def bind_brdf(brdf: Callable[..., Tensor], **params) -> Callable[..., Tensor]:
+def bind_brdf(brdf: BRDF, **params: Any) -> BRDF:
     """Bind material parameters to a BRDF callable and make its result RGB.
 
     Args:
@@ -175,7 +176,7 @@ def _eval(f: Callable[..., Tensor], l: Tensor, v: Tensor) -> Tensor:
     return out.reshape(*shape, 3)
 
 
-def view_direction(theta_v, dtype: torch.dtype = DEFAULT_DTYPE, device=None) -> Tensor:
+def view_direction(theta_v: Angles, dtype: torch.dtype = DEFAULT_DTYPE, device: Device = None) -> Tensor:
     """View vectors in the x-z plane: ``(sin θv, 0, cos θv)``.
 
     Args:
@@ -188,7 +189,7 @@ def view_direction(theta_v, dtype: torch.dtype = DEFAULT_DTYPE, device=None) -> 
     return torch.stack((torch.sin(t), torch.zeros_like(t), torch.cos(t)), dim=-1)
 
 
-def lobe_alpha_hint(params: dict) -> float | None:
+def lobe_alpha_hint(params: dict[str, Any]) -> float | None:
     """Narrowest lobe width α suggested by a BRDF's parameters (see the module docstring).
 
     Returns:
@@ -340,7 +341,7 @@ def _gtr1_reflection_sampler():
 
 def _strategies(names, alpha: float | None, alpha_clearcoat: float | None):
     """``[(sample(v, u) -> l, pdf(v, l) -> (*, 1))]`` for the named densities."""
-    out = []
+    out: list[tuple[Callable[..., Tensor], Callable[..., Tensor]]] = []
     for name in names:
         if name == "cosine":
             out.append((lambda v, u: _sample_cosine(u)[0], lambda v, l: torch.clamp(l[..., 2:3], min=0.0) / math.pi))
@@ -379,7 +380,7 @@ def _albedo_mc(f, v: Tensor, samples: int, strategies, seed: int) -> Estimate:
     return Estimate(torch.stack(vals), torch.stack(errs))
 
 
-def clearcoat_alpha(params: dict) -> float | None:
+def clearcoat_alpha(params: dict[str, Any]) -> float | None:
     """The principled clearcoat's GTR1 width ``lerp(0.1, 0.001, clearcoat_gloss)``, or ``None`` without a clearcoat."""
     cc = params.get("clearcoat", 0.0)
     if not ((isinstance(cc, Tensor) and bool((cc != 0).any())) or (not isinstance(cc, Tensor) and cc != 0)):
@@ -395,17 +396,17 @@ def clearcoat_alpha(params: dict) -> float | None:
 
 
 def directional_albedo(
-    brdf: Callable[..., Tensor],
-    theta_v,
+    brdf: BRDF,
+    theta_v: Angles,
     method: str = "quadrature",
     samples: int | tuple[int, int] | None = None,
     *,
-    sampler: str = "auto",
+    sampler: str | Sequence[str] = "auto",
     alpha_hint: float | None = None,
     seed: int = 0,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> Estimate:
     """Directional–hemispherical reflectance ``ρ(v) = ∫ f(l, v) (n·l) dω_l`` with an error estimate.
 
@@ -450,14 +451,19 @@ def directional_albedo(
             n_theta, n_phi = 16, 96
         elif isinstance(samples, numbers.Integral):
             n_theta, n_phi = int(samples), 96
-        else:
-            n_theta, n_phi = (int(s) for s in samples)
+        else:  # a pair (the cast: mypy does not narrow by numbers.Integral)
+            n_theta, n_phi = (int(s) for s in cast("tuple[int, int]", samples))
         a = hint if hint is not None else DEFAULT_QUADRATURE_ALPHA
         fine = _albedo_rule(f, v, a, n_theta, n_phi)
         coarse = _albedo_rule(f, v, a, max(n_theta // 2, 1), max(n_phi // 2, 4))
         est = Estimate(fine, (fine - coarse).abs())
     elif method == "mc":
-        n = 4096 if samples is None else int(samples if isinstance(samples, numbers.Integral) else samples[0])
+        if samples is None:
+            n = 4096
+        elif isinstance(samples, numbers.Integral):
+            n = int(samples)
+        else:
+            n = int(cast("tuple[int, int]", samples)[0])
         all_params = {**getattr(brdf, "params", {}), **params}
         a_cc = clearcoat_alpha(all_params)
         ggx_alpha = hint
@@ -482,14 +488,14 @@ def directional_albedo(
 
 
 def albedo_curve(
-    brdf: Callable[..., Tensor],
-    theta_v=None,
+    brdf: BRDF,
+    theta_v: Angles | None = None,
     method: str = "quadrature",
-    samples=None,
+    samples: int | tuple[int, int] | None = None,
     *,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> tuple[Tensor, Estimate]:
     """Albedo against the view angle (Burley 2012, Figures 11 and 12).
 
@@ -507,15 +513,15 @@ def albedo_curve(
 
 
 def white_furnace(
-    brdf: Callable[..., Tensor],
-    theta_v=None,
+    brdf: BRDF,
+    theta_v: Angles | None = None,
     *,
     method: str = "quadrature",
-    samples=None,
+    samples: int | tuple[int, int] | None = None,
     tol: float = 1e-3,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> FurnaceResult:
     """White furnace test: under a uniform white environment the reflected radiance is the albedo.
 
@@ -548,14 +554,14 @@ _G1S = {"ggx": smith_g1_ggx, "beckmann": smith_g1_beckmann}
 
 
 def weak_white_furnace(
-    ndf: str | Callable = "ggx",
-    g1: str | Callable | None = None,
+    ndf: str | Callable[..., Tensor] = "ggx",
+    g1: str | Callable[..., Tensor] | None = None,
     alpha: float = 0.5,
-    theta_o=None,
+    theta_o: Angles | None = None,
     samples: tuple[int, int] = (24, 128),
     *,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
+    device: Device = None,
 ) -> Estimate:
     """Heitz's weak white furnace test: ``∫ D(h) G1(o) / (4 |n·o|) dω_i = 1`` for every ``o``.
 
@@ -614,14 +620,14 @@ def weak_white_furnace(
 
 
 def reciprocity_error(
-    brdf: Callable[..., Tensor],
+    brdf: BRDF,
     samples: int = 4096,
     *,
     seed: int = 0,
     floor: float = 1e-6,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> ReciprocityResult:
     """Largest violation of Helmholtz reciprocity ``f(l, v) = f(v, l)`` over random pairs.
 
@@ -661,13 +667,13 @@ def reciprocity_error(
 
 
 def image_slice(
-    brdf: Callable[..., Tensor],
+    brdf: BRDF,
     resolution: int = 128,
     phi_d: float = math.pi / 2,
     *,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> Tensor:
     """Burley's image slice (Figure 3): ``f`` over ``(θh, θd)`` at fixed ``φd``.
 
@@ -689,12 +695,12 @@ def _half_diff_curve(f, theta_h: Tensor, theta_d, phi_d) -> Tensor:
 
 
 def retro_reflection_curve(
-    brdf: Callable[..., Tensor],
-    theta_h=None,
+    brdf: BRDF,
+    theta_h: Angles | None = None,
     *,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> tuple[Tensor, Tensor]:
     """Retro-reflective response ``f(θh, θd = 0)`` (Burley 2012, Figure 6).
 
@@ -714,14 +720,14 @@ def retro_reflection_curve(
 
 
 def specular_peak_curve(
-    brdf: Callable[..., Tensor],
-    theta_h=None,
+    brdf: BRDF,
+    theta_h: Angles | None = None,
     theta_d: float = math.radians(10.0),
     phi_d: float = math.pi / 2,
     *,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> tuple[Tensor, Tensor]:
     """Specular peak against ``θh`` at fixed ``(θd, φd)`` (Burley 2012, Figure 9; plot on a log axis).
 
@@ -740,14 +746,14 @@ def specular_peak_curve(
 
 
 def polar_lobe(
-    brdf: Callable[..., Tensor],
+    brdf: BRDF,
     theta_i: float,
     n: int = 361,
     *,
     cosine: bool = True,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> tuple[Tensor, Tensor]:
     """The lobe in the plane of incidence, for a polar plot.
 
@@ -784,7 +790,8 @@ DEFAULT_SPHERE_LIGHT = (-1.0, 1.0, 1.2)
 
 def _split_material(params: dict) -> tuple[dict, dict]:
     """Split parameters into g-buffer material entries (numbers, tensors) and bound ones (strings...)."""
-    material, bound = {}, {}
+    material: dict[str, float | Tensor] = {}
+    bound: dict[str, Any] = {}
     for k, p in params.items():
         if isinstance(p, numbers.Real) and not isinstance(p, bool):
             material[k] = float(p)
@@ -797,16 +804,40 @@ def _split_material(params: dict) -> tuple[dict, dict]:
     return material, bound
 
 
+@overload
 def render_sphere(
-    brdf: Callable[..., Tensor],
+    brdf: BRDF,
     resolution: int = 128,
-    light_direction=DEFAULT_SPHERE_LIGHT,
+    light_direction: Sequence[float] | Tensor = DEFAULT_SPHERE_LIGHT,
+    irradiance: float = math.pi,
+    *,
+    return_mask: Literal[False] = False,
+    dtype: torch.dtype = DEFAULT_DTYPE,
+    device: Device = None,
+    **params: Any,
+) -> Tensor: ...
+@overload
+def render_sphere(
+    brdf: BRDF,
+    resolution: int = 128,
+    light_direction: Sequence[float] | Tensor = DEFAULT_SPHERE_LIGHT,
+    irradiance: float = math.pi,
+    *,
+    return_mask: Literal[True],
+    dtype: torch.dtype = DEFAULT_DTYPE,
+    device: Device = None,
+    **params: Any,
+) -> tuple[Tensor, Tensor]: ...
+def render_sphere(
+    brdf: BRDF,
+    resolution: int = 128,
+    light_direction: Sequence[float] | Tensor = DEFAULT_SPHERE_LIGHT,
     irradiance: float = math.pi,
     *,
     return_mask: bool = False,
     dtype: torch.dtype = DEFAULT_DTYPE,
-    device=None,
-    **params,
+    device: Device = None,
+    **params: Any,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """A sphere lit by one directional light, rendered through :func:`torchbrdf.render.shading.shade`.
 
@@ -846,7 +877,8 @@ def render_sphere(
     f.__name__ = getattr(brdf, "__name__", type(brdf).__name__)
     light = DirectionalLight(ld, torch.full((3,), float(irradiance), dtype=dtype, device=device))
     img = shade(g, light, f)[0]
-    return (img, g.mask[0, 0].bool()) if return_mask else img
+    mask = cast(Tensor, g.mask)  # sphere_gbuffer always sets the coverage mask
+    return (img, mask[0, 0].bool()) if return_mask else img
 
 
 def _render_sphere_fallback(f, resolution: int, ld: Tensor, irradiance: float) -> tuple[Tensor, Tensor]:

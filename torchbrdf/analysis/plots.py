@@ -18,13 +18,18 @@ from __future__ import annotations
 import math
 import textwrap
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from torchbrdf._types import BRDF, Angles
 from torchbrdf.analysis import measures as A
 from torchbrdf.io import to_display
+
+if TYPE_CHECKING:  # matplotlib is imported only when a figure is drawn
+    from matplotlib.figure import Figure
 
 __all__ = [
     "display_image",
@@ -38,13 +43,13 @@ __all__ = [
     "plot_slice_comparison",
 ]
 
-Entries = Sequence[tuple[str, Callable[..., Tensor]]]
+Entries = Sequence[tuple[str, BRDF]]
 _LUMA = (0.2126, 0.7152, 0.0722)
 # Each compared BRDF gets a colour AND a line style, so curves that coincide stay visible.
 _LINESTYLES = ("-", "--", (0, (1, 1.2)), "-.", (0, (5, 1, 1, 1, 1, 1)))
 
 
-def _style(i: int) -> dict:
+def _style(i: int) -> dict[str, Any]:
     """Colour and line style of the ``i``-th compared BRDF."""
     return {"color": f"C{i}", "linestyle": _LINESTYLES[i % len(_LINESTYLES)]}
 
@@ -54,7 +59,7 @@ def _panel_title(label: str, width: int = 26) -> str:
     return textwrap.fill(label, width)
 
 
-def _figure(width: float, height: float):
+def _figure(width: float, height: float) -> Figure:
     from matplotlib.figure import Figure
 
     return Figure(figsize=(width, height), dpi=100, layout="constrained")
@@ -71,7 +76,9 @@ def display_image(img: Tensor, exposure: float = 0.0) -> np.ndarray:
     return to_display(img.detach().to("cpu", torch.float32), exposure=exposure).permute(1, 2, 0).numpy()
 
 
-def plot_image_slices(entries: Entries, resolution: int = 128, phi_d: float = math.pi / 2, exposure: float = 0.0):
+def plot_image_slices(
+    entries: Entries, resolution: int = 128, phi_d: float = math.pi / 2, exposure: float = 0.0
+) -> Figure:
     """Burley's image slices (Figure 3) of each BRDF at ``φd``, θd drawn upward as in the notes.
 
     The left edge is the specular peak, the bottom edge retro-reflection (``l = v``), the top
@@ -92,7 +99,12 @@ def plot_image_slices(entries: Entries, resolution: int = 128, phi_d: float = ma
     return fig
 
 
-def plot_spheres(entries: Entries, resolution: int = 160, exposure: float = 0.0, light_direction=A.DEFAULT_SPHERE_LIGHT):
+def plot_spheres(
+    entries: Entries,
+    resolution: int = 160,
+    exposure: float = 0.0,
+    light_direction: Sequence[float] | Tensor = A.DEFAULT_SPHERE_LIGHT,
+) -> Figure:
     """Lit spheres (one directional light of irradiance π, upper left) through the shader."""
     k = len(entries)
     fig = _figure(2.4 * k + 0.2, 2.7)
@@ -108,7 +120,12 @@ def plot_spheres(entries: Entries, resolution: int = 160, exposure: float = 0.0,
     return fig
 
 
-def plot_albedo_curves(entries: Entries, theta_v=None, method: str = "quadrature", samples=None):
+def plot_albedo_curves(
+    entries: Entries,
+    theta_v: Angles | None = None,
+    method: str = "quadrature",
+    samples: int | tuple[int, int] | None = None,
+) -> Figure:
     """Albedo (directional–hemispherical reflectance) against the view angle (Figures 11, 12).
 
     Thick lines: luminance; thin lines of the same colour: the R, G, B channels; shaded band:
@@ -134,7 +151,9 @@ def plot_albedo_curves(entries: Entries, theta_v=None, method: str = "quadrature
     return fig
 
 
-def _log_curves(entries: Entries, fn, xlabel: str, title: str):
+def _log_curves(
+    entries: Entries, fn: Callable[[BRDF], tuple[Tensor, Tensor]], xlabel: str, title: str
+) -> Figure:
     fig = _figure(6.0, 3.6)
     ax = fig.subplots()
     for i, (label, f) in enumerate(entries):
@@ -149,12 +168,12 @@ def _log_curves(entries: Entries, fn, xlabel: str, title: str):
     return fig
 
 
-def plot_retro_reflection(entries: Entries):
+def plot_retro_reflection(entries: Entries) -> Figure:
     """Retro-reflective response ``f(θh, θd = 0)`` on a log axis (Figure 6)."""
     return _log_curves(entries, A.retro_reflection_curve, "θh = θl = θv (deg)", "Retro-reflection (θd = 0)")
 
 
-def plot_specular_peaks(entries: Entries, theta_d: float = math.radians(10.0)):
+def plot_specular_peaks(entries: Entries, theta_d: float = math.radians(10.0)) -> Figure:
     """Specular peak ``f(θh)`` at fixed ``θd``, ``φd = 90°`` on a log axis (Figure 9)."""
     return _log_curves(
         entries,
@@ -164,7 +183,11 @@ def plot_specular_peaks(entries: Entries, theta_d: float = math.radians(10.0)):
     )
 
 
-def plot_polar_lobes(entries: Entries, thetas_i=(math.radians(30.0), math.radians(60.0)), cosine: bool = True):
+def plot_polar_lobes(
+    entries: Entries,
+    thetas_i: Sequence[float] = (math.radians(30.0), math.radians(60.0)),
+    cosine: bool = True,
+) -> Figure:
     """Polar plots of ``f·cos θl`` in the plane of incidence, one column per incidence angle.
 
     The light arrives from the left at ``θi`` (grey ray); the mirror direction is at ``+θi``.
@@ -177,8 +200,8 @@ def plot_polar_lobes(entries: Entries, thetas_i=(math.radians(30.0), math.radian
     for col, ti in enumerate(thetas_i):
         curves = []
         for i, (label, f) in enumerate(entries):
-            to, val = A.polar_lobe(f, ti, cosine=cosine)
-            curves.append((label, to.numpy(), luminance(val)))
+            theta_o, val = A.polar_lobe(f, ti, cosine=cosine)
+            curves.append((label, theta_o.numpy(), luminance(val)))
         top = max(float(c[2].max()) for c in curves)
         top = top if top > 0 else 1.0
         decades = 4.0
@@ -206,7 +229,13 @@ def plot_polar_lobes(entries: Entries, thetas_i=(math.radians(30.0), math.radian
     return fig
 
 
-def plot_slice_comparison(reference, model, labels=("measured", "fitted"), resolution: int = 128, exposure: float = 0.0):
+def plot_slice_comparison(
+    reference: BRDF,
+    model: BRDF,
+    labels: Sequence[str] = ("measured", "fitted"),
+    resolution: int = 128,
+    exposure: float = 0.0,
+) -> Figure:
     """Slices of a reference and a model BRDF and their log2 ratio (blue: model too dark).
 
     Args:

@@ -7,14 +7,19 @@ every feature of the MERL materials): θh runs left to right, θd top to bottom.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from torchbrdf._types import BRDF, Device, Scalar
+
 __all__ = ["half_diff_to_lv", "image_slice"]
 
 
-def half_diff_to_lv(theta_h: Tensor, theta_d: Tensor, phi_d, phi_h=0.0) -> tuple[Tensor, Tensor]:
+def half_diff_to_lv(
+    theta_h: Tensor, theta_d: Tensor, phi_d: Scalar, phi_h: Scalar = 0.0
+) -> tuple[Tensor, Tensor]:
     """Directions ``(l, v)`` in the local frame (normal +z, tangent +x) from half/difference angles.
 
     Args:
@@ -39,7 +44,14 @@ def half_diff_to_lv(theta_h: Tensor, theta_d: Tensor, phi_d, phi_h=0.0) -> tuple
     return l, v
 
 
-def image_slice(brdf, resolution: int = 128, phi_d: float = math.pi / 2, dtype=torch.float64, device=None, **params):
+def image_slice(
+    brdf: BRDF,
+    resolution: int = 128,
+    phi_d: float = math.pi / 2,
+    dtype: torch.dtype = torch.float64,
+    device: Device = None,
+    **params: Any,
+) -> Tensor:
     """Evaluate ``brdf`` on a (θh, θd) image slice at fixed ``phi_d``.
 
     Args:

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._math import dot, safe_normalize
+from torchbrdf._types import Device, Scalar
 
 __all__ = [
     "hammersley",
@@ -81,7 +82,9 @@ def _radical_inverse_base2(i: Tensor) -> Tensor:
     return b.to(torch.float64) / 4294967296.0
 
 
-def hammersley(start: int, count: int, total: int, *, dtype=None, device=None) -> Tensor:
+def hammersley(
+    start: int, count: int, total: int, *, dtype: torch.dtype | None = None, device: Device = None
+) -> Tensor:
     """Points ``start .. start + count - 1`` of the ``total``-point Hammersley set.
 
     Point ``i`` is ``(i / total, radical_inverse_2(i))``: exactly one point per stratum
@@ -137,8 +140,8 @@ def stratified_samples(
     *,
     generator: torch.Generator | None = None,
     seed: int | None = None,
-    dtype=None,
-    device=None,
+    dtype: torch.dtype | None = None,
+    device: Device = None,
 ) -> Tensor:
     """Stratified, seeded uniform numbers: ``num_samples`` per point, each in ``[0, 1)^2``.
 
@@ -206,7 +209,7 @@ def pdf_cosine_hemisphere(w_local: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------
 
 
-def ggx_ndf_local(h: Tensor, alpha_x, alpha_y) -> Tensor:
+def ggx_ndf_local(h: Tensor, alpha_x: Scalar, alpha_y: Scalar) -> Tensor:
     """Anisotropic GGX ``D(h)`` for a local half vector (Burley 2012 eq. 13), ``(*, 3) -> (*, 1)``.
 
     Zero for ``h_z <= 0``. ``alpha_x``/``alpha_y`` are floats or ``(*, 1)`` tensors.
@@ -219,7 +222,7 @@ def ggx_ndf_local(h: Tensor, alpha_x, alpha_y) -> Tensor:
     return torch.where(hz > 0, d, torch.zeros_like(d))
 
 
-def ggx_smith_g1_local(w: Tensor, alpha_x, alpha_y) -> Tensor:
+def ggx_smith_g1_local(w: Tensor, alpha_x: Scalar, alpha_y: Scalar) -> Tensor:
     """Smith masking ``G1(w) = 2 w_z / (w_z + sqrt(αx² wx² + αy² wy² + w_z²))``, ``(*, 3) -> (*, 1)``.
 
     This is the uncorrelated anisotropic form of the principled model (Heitz 2014); zero for
@@ -232,7 +235,7 @@ def ggx_smith_g1_local(w: Tensor, alpha_x, alpha_y) -> Tensor:
     return torch.where(wz > 0, g, torch.zeros_like(g))
 
 
-def sample_ggx_vndf(v_local: Tensor, alpha_x, alpha_y, u: Tensor) -> Tensor:
+def sample_ggx_vndf(v_local: Tensor, alpha_x: Scalar, alpha_y: Scalar, u: Tensor) -> Tensor:
     """Half vectors distributed as the GGX visible normals seen from ``v_local``.
 
     Heitz 2018: stretch the view to the unit-roughness configuration, sample the projected
@@ -274,7 +277,7 @@ def sample_ggx_vndf(v_local: Tensor, alpha_x, alpha_y, u: Tensor) -> Tensor:
     )
 
 
-def pdf_ggx_vndf(v_local: Tensor, h_local: Tensor, alpha_x, alpha_y) -> Tensor:
+def pdf_ggx_vndf(v_local: Tensor, h_local: Tensor, alpha_x: Scalar, alpha_y: Scalar) -> Tensor:
     """Density of :func:`sample_ggx_vndf` over half vectors: ``G1(v) max(v·h, 0) D(h) / v_z``, ``(*, 1)``."""
     vz = v_local[..., 2:3]
     num = ggx_smith_g1_local(v_local, alpha_x, alpha_y) * torch.clamp(dot(v_local, h_local), min=0.0)
@@ -282,7 +285,7 @@ def pdf_ggx_vndf(v_local: Tensor, h_local: Tensor, alpha_x, alpha_y) -> Tensor:
     return torch.where(vz > 0, num / torch.clamp(vz, min=1e-30), torch.zeros_like(num))
 
 
-def pdf_ggx_reflection(v_local: Tensor, l_local: Tensor, alpha_x, alpha_y) -> Tensor:
+def pdf_ggx_reflection(v_local: Tensor, l_local: Tensor, alpha_x: Scalar, alpha_y: Scalar) -> Tensor:
     """Solid-angle density of ``l = reflect(v, h)`` with ``h`` from :func:`sample_ggx_vndf`.
 
     Equal to ``G1(v) D(h) / (4 v_z)`` with ``h = normalize(v + l)`` (the Jacobian
@@ -311,11 +314,11 @@ def pdf_half_to_reflection(pdf_h: Tensor, l_dot_h: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------
 
 
-def _as_tensor(x, like: Tensor) -> Tensor:
+def _as_tensor(x: Scalar, like: Tensor) -> Tensor:
     return x if isinstance(x, Tensor) else torch.as_tensor(float(x), dtype=like.dtype, device=like.device)
 
 
-def gtr1_ndf(cos_h: Tensor, alpha) -> Tensor:
+def gtr1_ndf(cos_h: Tensor, alpha: Scalar) -> Tensor:
     """GTR with γ = 1 (Burley 2012 eq. 4): ``(α² - 1) / (π ln α² (1 + (α² - 1) cos² θ_h))``.
 
     ``α = 1`` is handled by its limit ``1/π``. Zero for ``cos_h <= 0``.
@@ -336,7 +339,7 @@ def gtr1_ndf(cos_h: Tensor, alpha) -> Tensor:
     return torch.where(cos_h > 0, d, torch.zeros_like(d))
 
 
-def sample_gtr1(alpha, u: Tensor) -> Tensor:
+def sample_gtr1(alpha: Scalar, u: Tensor) -> Tensor:
     """Local half vectors with density ``D_GTR1(θ_h) cos θ_h`` (Burley 2012 eq. 2 and 5).
 
     Args:
@@ -359,7 +362,7 @@ def sample_gtr1(alpha, u: Tensor) -> Tensor:
     return torch.cat((sin_t * torch.cos(phi), sin_t * torch.sin(phi), cos_t), dim=-1)
 
 
-def pdf_gtr1(h_local: Tensor, alpha) -> Tensor:
+def pdf_gtr1(h_local: Tensor, alpha: Scalar) -> Tensor:
     """Half-vector density of :func:`sample_gtr1`: ``D_GTR1(h) h_z``, ``(*, 3) -> (*, 1)``."""
     cz = h_local[..., 2:3]
     return gtr1_ndf(cz, alpha) * torch.clamp(cz, min=0.0)
@@ -370,7 +373,9 @@ def pdf_gtr1(h_local: Tensor, alpha) -> Tensor:
 # --------------------------------------------------------------------------------------
 
 
-def latlong_directions(height: int, width: int, *, dtype=None, device=None) -> Tensor:
+def latlong_directions(
+    height: int, width: int, *, dtype: torch.dtype | None = None, device: Device = None
+) -> Tensor:
     """Texel-centre directions of a lat-long map, the contract's convention (z up).
 
     Row ``i`` has polar angle ``θ = (i + 0.5) π / height`` from +z, column ``j`` azimuth
@@ -387,7 +392,9 @@ def latlong_directions(height: int, width: int, *, dtype=None, device=None) -> T
     return d.to(dtype)
 
 
-def latlong_row_solid_angles(height: int, width: int, *, dtype=None, device=None) -> Tensor:
+def latlong_row_solid_angles(
+    height: int, width: int, *, dtype: torch.dtype | None = None, device: Device = None
+) -> Tensor:
     """Exact solid angle of one texel per row, ``(2π / width)(cos θ_top - cos θ_bottom)``: ``(height,)``."""
     dtype = dtype or torch.get_default_dtype()
     edges = torch.arange(height + 1, dtype=torch.float64, device=device) * (math.pi / height)
@@ -430,7 +437,7 @@ class LatLongSampler:
         (torch.Size([5, 3]), torch.Size([5, 1]))
     """
 
-    def __init__(self, radiance: Tensor):
+    def __init__(self, radiance: Tensor) -> None:
         r = radiance.detach()
         if r.dim() == 3:
             r = r.unsqueeze(0)
