@@ -48,7 +48,7 @@ def sphere_grid(resolution: int = 96) -> torch.Tensor:
     return torch.cat(rows, dim=0).permute(2, 0, 1)
 
 
-def main(argv=None) -> None:
+def main(argv: list[str] | None = None) -> None:
     """Write ``spheres.png`` and ``slice.png`` into ``--out``."""
     import matplotlib
 

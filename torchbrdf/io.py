@@ -21,10 +21,13 @@ import os
 import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Literal, overload
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchbrdf._types import Device, PathLike
 
 __all__ = [
     "TONEMAPS",
@@ -61,7 +64,7 @@ _FILE_MODE = _default_file_mode()
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: PathLike) -> Iterator[Path]:
     """Context manager yielding a temporary path that replaces ``path`` on success.
 
     The temporary file lives in the destination folder (so ``os.replace`` is atomic on
@@ -125,13 +128,31 @@ def _ordered_names(names: Sequence[str]) -> list[str]:
     return known + sorted(c for c in names if c not in _CANONICAL_ORDER)
 
 
+@overload
 def read_exr(
-    path: str | os.PathLike,
+    path: PathLike,
+    channels: Sequence[str] | None = None,
+    *,
+    return_names: Literal[False] = False,
+    dtype: torch.dtype = torch.float32,
+    device: Device = None,
+) -> Tensor: ...
+@overload
+def read_exr(
+    path: PathLike,
+    channels: Sequence[str] | None = None,
+    *,
+    return_names: Literal[True],
+    dtype: torch.dtype = torch.float32,
+    device: Device = None,
+) -> tuple[Tensor, list[str]]: ...
+def read_exr(
+    path: PathLike,
     channels: Sequence[str] | None = None,
     *,
     return_names: bool = False,
     dtype: torch.dtype = torch.float32,
-    device: torch.device | str | None = None,
+    device: Device = None,
 ) -> Tensor | tuple[Tensor, list[str]]:
     """Read a single-part OpenEXR image as a channel-first tensor.
 
@@ -226,7 +247,7 @@ _COMPRESSIONS = tuple(_COMPRESSION_ATTRS)
 
 
 def write_exr(
-    path: str | os.PathLike,
+    path: PathLike,
     image: Tensor,
     channels: Sequence[str] | None = None,
     half: bool = False,
@@ -361,7 +382,7 @@ def to_display(image: Tensor, exposure: float = 0.0, tonemap: str | None = None,
 
 
 def write_png(
-    path: str | os.PathLike,
+    path: PathLike,
     image: Tensor,
     exposure: float = 0.0,
     tonemap: str | None = None,
