@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from . import _checks
 from ._math import cast_back, compute_dtype, dot, safe_normalize, safe_sqrt
 from .frames import frame_from_normal, to_local
 from .io import atomic_path
@@ -189,6 +190,9 @@ def merl_grid(
 
 def _corners(u: Tensor, size: int, wrap: bool) -> tuple[Tensor, Tensor, Tensor]:
     """Lower/upper sample index and fractional weight for continuous index ``u``."""
+    # A non-finite direction (validation off) must not become an out-of-range index; its
+    # lane reads sample 0 and is zeroed by the caller's n.l > 0 and n.v > 0 test.
+    u = torch.nan_to_num(u, nan=0.0, posinf=0.0, neginf=0.0)
     if wrap:
         i0 = torch.floor(u).clamp(0, size - 1)
         t = u - i0
@@ -482,6 +486,8 @@ class MERLBRDF(nn.Module):
         ``x``/``y`` only matter at ``h = n`` (MERL data are isotropic); when omitted the
         frame is built from ``n``.
         """
+        if _checks.validation_enabled():
+            _checks.check_finite({"l": l, "v": v, "n": n, "x": x, "y": y})
         dtype = l.dtype
         work = compute_dtype(dtype)
         l, v, n = (t.to(work) for t in torch.broadcast_tensors(l, v, n))
