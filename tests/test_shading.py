@@ -592,3 +592,24 @@ def test_plane_gbuffer_normal_map_and_errors():
     assert torch.equal(g.tangent[:, 0], torch.ones(2, 4, 4))
     with pytest.raises(ValueError, match="normal_map"):
         plane_gbuffer(4, 4, normal_map=torch.zeros(1, 3, 5, 4))
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: sphere_gbuffer(0, 0), "sphere_gbuffer: `height` must be a positive integer, got 0"),
+        (lambda: sphere_gbuffer(4, 0), "sphere_gbuffer: `width` must be a positive integer, got 0"),
+        (lambda: sphere_gbuffer(4, -2), "`width` must be a positive integer, got -2"),
+        (lambda: sphere_gbuffer(4.5, 4), "`height` must be a positive integer, got 4.5"),
+        (lambda: sphere_gbuffer(4, 4, batch_size=0), "`batch_size` must be a positive integer"),
+        (lambda: sphere_gbuffer(4, 4, radius=0.0), "`radius` must be a positive finite number"),
+        (lambda: plane_gbuffer(0, 0), "plane_gbuffer: `height` must be a positive integer, got 0"),
+        (lambda: plane_gbuffer(3, 0), "plane_gbuffer: `width` must be a positive integer, got 0"),
+        (lambda: plane_gbuffer(3, 3, batch_size=0), "`batch_size` must be a positive integer"),
+        (lambda: pinhole_rays(0, 4, (0.0, 0.0, 3.0)), "pinhole_rays: `height` must be a positive integer"),
+    ],
+)
+def test_gbuffer_sizes_must_be_positive_integers(make, match):
+    """Zero sizes used to raise ZeroDivisionError; now a ValueError names the argument."""
+    with pytest.raises(ValueError, match=match):
+        make()
