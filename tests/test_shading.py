@@ -613,3 +613,27 @@ def test_gbuffer_sizes_must_be_positive_integers(make, match):
     """Zero sizes used to raise ZeroDivisionError; now a ValueError names the argument."""
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_non_finite_gbuffer_or_light_under_validation():
+    """A NaN position gave a silent 0 even under validation; now it raises, naming the map.
+    Masked-out pixels are not shaded, so they may hold NaN."""
+    import torchbrdf
+
+    light = PointLight(torch.tensor([0.0, 0.0, 5.0], dtype=D), torch.tensor([1.0, 1.0, 1.0], dtype=D))
+    g = sphere_gbuffer(4, 4, dtype=D)
+    g.position[0, 0, 1, 1] = float("nan")
+    assert torch.isfinite(shade(g, light)).all()  # validation off: no data read
+    with torchbrdf.validation(True), pytest.raises(ValueError, match=r"^gbuf\.position: contains 1 non-finite"):
+        shade(g, light)
+    g = sphere_gbuffer(4, 4, dtype=D)
+    g.position[0, :, 0, 0] = float("nan")  # a corner pixel: outside the sphere's mask
+    assert not bool(g.mask[0, 0, 0, 0])
+    with torchbrdf.validation(True):
+        assert torch.isfinite(shade(g, light)).all()
+        bad = PointLight(torch.tensor([0.0, float("inf"), 5.0], dtype=D), torch.ones(3, dtype=D))
+        with pytest.raises(ValueError, match=r"^lights\[1\]\.position: contains 1 non-finite"):
+            shade(g, [light, bad])
+        g.material["roughness"] = float("nan")
+        with pytest.raises(ValueError, match=r"^gbuf\.material\['roughness'\]: expected a finite number"):
+            shade(g, light)
