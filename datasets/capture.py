@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._checks import excerpt
-from torchbrdf.io import atomic_path, check_readable_file, read_exr, write_exr
+from torchbrdf.io import atomic_path, read_exr, write_exr
 
 __all__ = ["CAPTURE_JSON", "Capture", "image_path", "load_capture", "pixel_points", "write_capture"]
 
@@ -314,10 +314,11 @@ def load_capture(
 
     for k, file in enumerate(paths):
         where = f"images[{k}]"
-        try:
-            check_readable_file(file, "image")
-        except (FileNotFoundError, IsADirectoryError, ValueError) as e:
-            raise type(e)(f"{file}: image listed as {where}.file in {json_path}: {e}") from e
+        listed = f"{file}: image listed as {where}.file in {json_path}"
+        if file.is_dir():
+            raise IsADirectoryError(f"{listed} is a directory, not a file")
+        if not file.is_file():
+            raise FileNotFoundError(f"{listed} not found (no such file)")
         try:
             image = read_exr(file, channels=("R", "G", "B"))
         except ValueError as e:

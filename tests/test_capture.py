@@ -211,7 +211,7 @@ def test_malformed_json_entries(capture_dir, edit, match):
 
 def test_missing_image(capture_dir):
     (capture_dir / "img_001.exr").unlink()
-    with pytest.raises(FileNotFoundError, match=r"img_001\.exr.*images\[1\]"):
+    with pytest.raises(FileNotFoundError, match=r"img_001\.exr.*images\[1\].*not found"):
         load_capture(capture_dir)
 
 
