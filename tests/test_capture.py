@@ -211,7 +211,7 @@ def test_malformed_json_entries(capture_dir, edit, match):
 
 def test_missing_image(capture_dir):
     (capture_dir / "img_001.exr").unlink()
-    with pytest.raises(FileNotFoundError, match=r"img_001\.exr.*images\[1\]"):
+    with pytest.raises(FileNotFoundError, match=r"img_001\.exr.*images\[1\].*not found"):
         load_capture(capture_dir)
 
 
@@ -236,6 +236,148 @@ def test_image_not_rgb_or_not_exr(capture_dir):
         load_capture(capture_dir)
     (capture_dir / "img_001.exr").write_bytes(b"garbage")
     with pytest.raises(ValueError, match=r"img_001\.exr.*not an OpenEXR"):
+        load_capture(capture_dir)
+
+
+# --------------------------------------------------------------------------------------
+# Image names stay inside the capture folder
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def outside_exr(tmp_path):
+    """A valid RGB EXR beside (outside) the capture folder."""
+    path = tmp_path / "outside.exr"
+    write_exr(path, torch.ones(3, H, W))
+    return path
+
+
+@pytest.mark.parametrize(
+    "name, match",
+    [
+        ("ABSOLUTE", "is an absolute path"),
+        ("/etc/passwd", "is an absolute path"),
+        ("../outside.exr", "contains '..'"),
+        ("sub/../../outside.exr", "contains '..'"),
+        ("..\\outside.exr", "contains '..'"),
+        ("C:\\Windows\\x.exr", "is an absolute path"),
+        ("C:x.exr", "is an absolute path"),
+    ],
+)
+def test_image_names_must_stay_inside(capture_dir, outside_exr, name, match):
+    """Absolute paths and '..' were loaded (an outside EXR even successfully); now refused."""
+    name = str(outside_exr) if name == "ABSOLUTE" else name
+    _edit_json(capture_dir, _set(name, "images", 1, "file"))
+    with pytest.raises(ValueError, match=match) as e:
+        load_capture(capture_dir)
+    msg = str(e.value)
+    assert r"capture.json: images[1].file" in msg and repr(name) in msg
+
+
+def test_image_symlink_leading_out_is_refused(capture_dir, outside_exr):
+    (capture_dir / "link.exr").symlink_to(outside_exr)
+    _edit_json(capture_dir, _set("link.exr", "images", 0, "file"))
+    with pytest.raises(ValueError, match=r"images\[0\]\.file: image name 'link.exr' resolves to .*outside"):
+        load_capture(capture_dir)
+    (capture_dir / "sub").symlink_to(outside_exr.parent, target_is_directory=True)
+    _edit_json(capture_dir, _set("sub/outside.exr", "images", 0, "file"))
+    with pytest.raises(ValueError, match=r"'sub/outside.exr' resolves to .*outside the capture folder"):
+        load_capture(capture_dir)
+
+
+def test_image_symlink_inside_and_subfolders_are_fine(capture_dir):
+    (capture_dir / "alias.exr").symlink_to(capture_dir / "img_000.exr")
+    (capture_dir / "raw").mkdir()
+    (capture_dir / "img_002.exr").rename(capture_dir / "raw" / "img_002.exr")
+    _edit_json(capture_dir, _set("alias.exr", "images", 0, "file"))
+    _edit_json(capture_dir, _set("./raw/img_002.exr", "images", 2, "file"))
+    cap = load_capture(capture_dir)
+    assert torch.equal(cap.images, _images())
+
+
+@pytest.mark.parametrize("name", ["../x.exr", "/tmp/x.exr", "a/../../x.exr"])
+def test_write_refuses_names_outside(tmp_path, name):
+    """write_capture(files=['../x.exr']) wrote outside its folder; now refused before anything is written."""
+    with pytest.raises(ValueError, match=r"write_capture: files\[1\]: image name .* (absolute|'\.\.')"):
+        write_capture(tmp_path / "out", _images(), _lights(), [0, 0, 3.0], files=["a.exr", name, "c.exr"])
+    assert not (tmp_path / "out").exists()
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_write_refuses_symlink_out(tmp_path):
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    (out / "sub").symlink_to(elsewhere, target_is_directory=True)
+    with pytest.raises(ValueError, match=r"files\[0\]: image name 'sub/a.exr' resolves to .*outside"):
+        write_capture(out, _images(), _lights(), [0, 0, 3.0], files=["sub/a.exr", "b.exr", "c.exr"])
+    assert os.listdir(elsewhere) == [] and sorted(os.listdir(out)) == ["sub"]
+
+
+# --------------------------------------------------------------------------------------
+# Impossible captures are refused up front
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (
+            lambda m: [e["light"].__setitem__("position", [0.5, 0.5, -1.0]) for e in m["images"]],
+            r"capture\.json: no light is above the sample plane",
+        ),
+        (
+            lambda m: [e["light"].__setitem__("position", [1.0, 0.0, 0.0]) for e in m["images"]],
+            "no light is above the sample plane",
+        ),
+        (_set([0.0, 0.0, 0.0], "images", 1, "light", "intensity"), r"images\[1\]\.light\.intensity is zero"),
+        (
+            lambda m: [e["light"].__setitem__("intensity", [0, 0, 0]) for e in m["images"]],
+            r"images\[0\]\.light\.intensity is zero",
+        ),
+        (_set([1.0, float("inf"), 1.0], "images", 2, "light", "intensity"), r"images\[2\]\.light\.intensity must be finite"),
+        (_set([1.0, float("nan"), 1.0], "images", 0, "light", "intensity"), r"images\[0\]\.light\.intensity must be finite"),
+        (_set([float("-inf"), 0.0, 1.0], "images", 0, "light", "position"), r"images\[0\]\.light\.position must be finite"),
+    ],
+)
+def test_impossible_lights_refused(capture_dir, edit, match):
+    _edit_json(capture_dir, edit)
+    (capture_dir / "img_002.exr").unlink()  # refused from capture.json alone, before any image is read
+    with pytest.raises(ValueError, match=match):
+        load_capture(capture_dir)
+
+
+def test_all_zero_image_refused(capture_dir):
+    write_exr(capture_dir / "img_001.exr", torch.zeros(3, H, W))
+    with pytest.raises(ValueError, match=r"img_001\.exr: every pixel is 0"):
+        load_capture(capture_dir)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"lights": (torch.tensor([[0.0, 0.0, -1.0]] * L), torch.ones(L, 3))}, "no light is above the sample plane"),
+        ({"lights": (torch.ones(L, 3), torch.zeros(L, 3))}, "the intensity of light 0 is zero"),
+        ({"images": torch.cat((_images()[:2], torch.zeros(1, 3, H, W)))}, "image 2 is all 0"),
+    ],
+)
+def test_write_refuses_what_load_refuses(tmp_path, kwargs, match):
+    args = {"images": _images(), "lights": _lights(), "camera_position": [0, 0, 3.0], **kwargs}
+    with pytest.raises(ValueError, match=match):
+        write_capture(tmp_path / "out", **args)
+    assert not (tmp_path / "out" / CAPTURE_JSON).exists()
+
+
+def test_capture_folder_that_is_a_file(tmp_path):
+    (tmp_path / "cap").write_text("not a folder")
+    with pytest.raises(NotADirectoryError, match="is a file, not a folder"):
+        load_capture(tmp_path / "cap")
+
+
+def test_image_that_is_a_folder(capture_dir):
+    (capture_dir / "img_001.exr").unlink()
+    (capture_dir / "img_001.exr").mkdir()
+    with pytest.raises(IsADirectoryError, match=r"img_001\.exr.*images\[1\].*is a directory"):
         load_capture(capture_dir)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchbrdf.brdf import capture_model
 from torchbrdf.brdf.capture_model import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
 
 
@@ -27,11 +28,14 @@ def t64(a):
     return torch.tensor(np.asarray(a), dtype=torch.float64)
 
 
-def np_capture(l, v, n, rho_d, rho_s, rough):
-    """Diffuse (1 - specular) / pi + D G F / (4 n.l n.v); zero unless both cosines > 0."""
+def np_capture(l, v, n, rho_d, rho_s, rough, alpha=None):
+    """Diffuse (1 - specular) / pi + D G F / (4 n.l n.v); zero unless both cosines > 0.
+
+    ``alpha`` overrides the default floor convention ``max(rough^2, ALPHA_MIN)``.
+    """
     h = _unit(l + v)
     nl, nv, nh, vh = _d(n, l), _d(n, v), _d(n, h), _d(v, h)
-    alpha = np.maximum(rough**2, ALPHA_MIN)
+    alpha = np.maximum(rough**2, ALPHA_MIN) if alpha is None else alpha
     d = alpha**2 / (np.pi * (nh**2 * (alpha**2 - 1) + 1) ** 2)
     k = alpha / 2
     with np.errstate(all="ignore"):
@@ -277,3 +281,87 @@ def test_module_equals_functional_shapes_and_dtypes():
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float16)
     peak = svbrdf_ggx(z, z, z, diffuse_albedo=0.5, specular_albedo=1.0, roughness=0.0)
     assert torch.isfinite(peak).all() and (peak == torch.finfo(torch.float16).max).all()
+
+
+# --------------------------------------------------------------------------------------
+# Roughness floor conventions (issue 15)
+# --------------------------------------------------------------------------------------
+
+CODES = np.arange(0, 12)  # 8-bit roughness codes; 1..8 give alpha = 1.5e-5 .. 9.8e-4
+
+
+def _floor_case(rng, count=400):
+    n = _unit(rng.normal(size=(count, 3)) * [0.2, 0.2, 1.0] + [0, 0, 1.0])
+    l, v = random_dirs(rng, count, upper=True), random_dirs(rng, count, upper=True)
+    rough = rng.choice(CODES, (count, 1)) / 255.0
+    rho_d, rho_s = rng.uniform(0, 1, (count, 3)), rng.uniform(0, 1, (count, 3))
+    return l, v, n, rho_d, rho_s, rough
+
+
+@pytest.mark.parametrize(
+    "floors, alpha_of",
+    [
+        ({}, lambda r: np.maximum(r**2, 1e-3)),  # default: unchanged behaviour
+        ({"alpha_floor": ALPHA_MIN}, lambda r: np.maximum(r**2, 1e-3)),
+        ({"alpha_floor": 1e-6}, lambda r: np.maximum(r**2, 1e-6)),
+        ({"roughness_floor": 1e-3}, lambda r: np.maximum(r, 1e-3) ** 2),  # Deschaintre's
+    ],
+)
+def test_floor_conventions_match_reference(floors, alpha_of):
+    l, v, n, rho_d, rho_s, rough = _floor_case(np.random.default_rng(7))
+    got = svbrdf_ggx(
+        t64(l), t64(v), t64(n), diffuse_albedo=t64(rho_d), specular_albedo=t64(rho_s), roughness=t64(rough),
+        **floors,
+    )
+    expected = np_capture(l, v, n, rho_d, rho_s, rough, alpha=alpha_of(rough))
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-8, atol=1e-12)
+    module = SVBRDFGGX(**floors)(
+        t64(l), t64(v), t64(n), diffuse_albedo=t64(rho_d), specular_albedo=t64(rho_s), roughness=t64(rough)
+    )
+    assert torch.equal(module, got)
+
+
+def test_roughness_floor_keeps_every_8bit_code_distinct():
+    """With the default alpha floor, codes 1..8 all render like alpha = 1e-3; with Deschaintre's
+    roughness floor each code keeps its lobe, and at code 1 the peak is ~4e3 times higher."""
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    r = torch.tensor(CODES / 255.0, dtype=torch.float64)[:, None]
+
+    def peak(**floors):
+        return svbrdf_ggx(n, n, n, diffuse_albedo=0.0, specular_albedo=1.0, roughness=r, **floors)[:, 0]
+
+    assert capture_model.ROUGHNESS_FLOOR_DESCHAINTRE == 1e-3  # roughness = tf.maximum(roughness, 0.001)
+    default, literature = peak(), peak(roughness_floor=capture_model.ROUGHNESS_FLOOR_DESCHAINTRE)
+    assert torch.all(default[:9] == default[0])  # codes 0..8: one and the same lobe
+    assert torch.all(literature[1:9] < literature[:8])  # strictly narrower per code down to 0
+    assert float(literature[1] / default[1]) == pytest.approx((1e-3 / (1 / 255) ** 2) ** 2, rel=1e-6)
+    torch.testing.assert_close(literature[9:], default[9:])  # alpha > 1e-3: the floors agree
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.float16, torch.bfloat16])
+def test_roughness_floor_finite_at_zero_roughness(dtype):
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=dtype)
+    l = torch.nn.functional.normalize(torch.tensor([[0.0, 1e-4, 1.0]], dtype=torch.float64), dim=-1).to(dtype)
+    rough = torch.zeros(1, 1, dtype=dtype, requires_grad=True)
+    for ll in (n, l):
+        f = svbrdf_ggx(ll, n, n, diffuse_albedo=0.5, specular_albedo=0.04, roughness=rough, roughness_floor=1e-3)
+        f.sum().backward()
+        assert torch.isfinite(f).all() and torch.isfinite(rough.grad).all()
+
+
+@pytest.mark.parametrize(
+    "floors, match",
+    [
+        ({"alpha_floor": 1e-3, "roughness_floor": 1e-3}, "give at most one floor"),
+        ({"alpha_floor": 0.0}, r"alpha_floor: expected a number in \(0, 1\]"),
+        ({"roughness_floor": -1e-3}, "roughness_floor: expected a number"),
+        ({"roughness_floor": float("nan")}, "roughness_floor: expected a number"),
+        ({"alpha_floor": [1e-3] * 1000}, r"alpha_floor: expected a number in \(0, 1\], got \[0\.001, .*\.\.\.\]$"),
+    ],
+)
+def test_bad_floors(floors, match):
+    n = torch.tensor([0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match=match):
+        svbrdf_ggx(n, n, n, diffuse_albedo=0.5, specular_albedo=0.04, roughness=0.5, **floors)
+    with pytest.raises(ValueError, match=match):
+        SVBRDFGGX(**floors)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 import torchbrdf
 from torchbrdf.brdf import distributions as nd
-from torchbrdf import principled
+from torchbrdf.brdf import principled
 
 from .reference import principled_ref
 
@@ -232,3 +232,106 @@ def test_error_on_mismatched_devices():
     n = torch.tensor([[0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="device"):
         principled(n, n.to("meta"), n, base_color=torch.ones(1, 3))
+
+
+# --------------------------------------------------------------------------------------
+# Non-finite input (docs/numerics.md, "Non-finite inputs")
+# --------------------------------------------------------------------------------------
+
+NONFINITE = [float("nan"), float("inf"), float("-inf")]
+
+
+def _brdfs():
+    """name -> f(l, v, n, x, y, **params) for every BRDF with the common signature."""
+    from torchbrdf.brdf.lambert import lambert
+    from torchbrdf.brdf.microfacet import microfacet
+    from torchbrdf.brdf.smits import smits
+
+    merl = torchbrdf.MERLBRDF.from_table(torch.full((3, 90, 90, 180), 0.2))
+    return {
+        "principled": lambda *a, **p: principled(*a, **{"base_color": 0.5, **p}),
+        "svbrdf_ggx": lambda *a, **p: torchbrdf.svbrdf_ggx(
+            *a, **{"diffuse_albedo": 0.5, "specular_albedo": 0.04, "roughness": 0.5, **p}
+        ),
+        "smits": lambda *a, **p: smits(*a, **{"base_color": 0.5, **p}),
+        "microfacet": lambda *a, **p: microfacet(*a, **{"alpha": 0.3, **p}),
+        "lambert": lambda *a, **p: lambert(*a, **{"base_color": 0.5, **p}),
+        "merl": lambda *a, **p: merl(*a, **p),
+    }
+
+
+# The parameter each BRDF gets as a non-finite Python float (MERL has none).
+_FLOAT_PARAM = {
+    "principled": "roughness",
+    "svbrdf_ggx": "roughness",
+    "smits": "roughness",
+    "microfacet": "alpha",
+    "lambert": "base_color",
+}
+
+
+def _bad_inputs(which: str, value: float, dtype=torch.float64):
+    """(l, v, n, x, y) with ``value`` in the first component of the one named ``which``."""
+    vecs = {"l": unit(0.3, 0.1, 1.0), "v": unit(-0.2, 0.4, 1.0), "n": N, "x": X, "y": Y}
+    vecs = {k: t.to(dtype).reshape(1, 3).clone() for k, t in vecs.items()}
+    vecs[which][0, 2 if which == "n" else 0] = value
+    return [vecs[k] for k in ("l", "v", "n", "x", "y")]
+
+
+@pytest.mark.parametrize("name", ["principled", "svbrdf_ggx", "smits", "microfacet", "lambert", "merl"])
+@pytest.mark.parametrize("which", ["l", "v", "n", "x", "y"])
+@pytest.mark.parametrize("value", NONFINITE)
+def test_non_finite_input_validation_on(name, which, value):
+    f = _brdfs()[name]
+    with torchbrdf.validation(True), pytest.raises(ValueError, match=rf"^{which}: contains 1 non-finite"):
+        f(*_bad_inputs(which, value))
+
+
+@pytest.mark.parametrize("name", sorted(_FLOAT_PARAM))
+@pytest.mark.parametrize("value", NONFINITE)
+def test_non_finite_python_float_parameter_validation_on(name, value):
+    param = _FLOAT_PARAM[name]
+    l, v, n, x, y = _bad_inputs("l", 0.3)
+    with torchbrdf.validation(True), pytest.raises(ValueError, match=rf"^{param}: expected a finite number"):
+        _brdfs()[name](l, v, n, x, y, **{param: value})
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("name", ["principled", "svbrdf_ggx"])
+def test_non_finite_input_validation_off(name, dtype):
+    """The documented behaviour without validation: a NaN/inf direction gives 0, a NaN parameter NaN."""
+    f = _brdfs()[name]
+    assert not torchbrdf.validation_enabled()
+    for which in ("l", "v", "n"):
+        for value in NONFINITE:
+            out = f(*_bad_inputs(which, value, dtype))
+            if which == "n" and value == float("inf"):
+                assert out.shape == (1, 3)  # undefined: NaN or a meaningless finite value
+            else:
+                assert (out == 0).all(), (which, value, out)
+    l, v, n, x, y = _bad_inputs("l", 0.3, dtype)
+    assert torch.isnan(f(l, v, n, x, y, roughness=float("nan"))).all()
+    # The hidden NaN shows in the gradient (hence: validate while debugging NaN gradients).
+    l = _bad_inputs("l", float("nan"), dtype)[0].requires_grad_(True)
+    f(l, v, n).sum().backward()
+    assert torch.isnan(l.grad).all()
+
+
+def test_merl_non_finite_direction_without_validation_is_zero_not_index_error():
+    l, v, n, x, y = _bad_inputs("l", float("nan"))
+    out = _brdfs()["merl"](l, v, n)
+    assert (out == 0).all()
+
+
+def test_error_messages_excerpt_long_values():
+    """A long list or array as an argument gives a short message, with an excerpt of the value."""
+    n = torch.tensor([[0.0, 0.0, 1.0]])
+    for bad in ([0.123456] * 4096, np.full(4096, 0.5), tuple(range(4096)), "x" * 5000):
+        with pytest.raises(TypeError, match="roughness: expected a torch.Tensor or float") as e:
+            principled(n, n, n, base_color=0.5, roughness=bad)
+        assert len(str(e.value)) < 200, str(e.value)
+    with pytest.raises(TypeError, match=r"list of length 4096 \[0\.123456, 0\.123456, .*\.\.\.\]"):
+        principled(n, n, n, base_color=0.5, roughness=[0.123456] * 4096)
+    with pytest.raises(TypeError) as e:
+        torchbrdf.svbrdf_ggx(n, n, n, diffuse_albedo=[[1.0] * 3] * 4096, specular_albedo=0.04, roughness=0.5)
+    assert len(str(e.value)) < 200, str(e.value)

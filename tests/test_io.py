@@ -226,3 +226,16 @@ def test_write_png_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="missing"):
         write_png(tmp_path / "missing" / "a.png", torch.zeros(3, 4, 4))
     assert os.listdir(tmp_path) == []
+
+
+def test_read_exr_on_a_directory_or_missing_path_says_which(tmp_path):
+    folder = tmp_path / "maps.exr"
+    folder.mkdir()
+    with pytest.raises(IsADirectoryError, match=r"maps\.exr' is a directory, not a file"):
+        read_exr(folder)
+    with pytest.raises(FileNotFoundError, match=r"missing\.exr' not found"):
+        read_exr(tmp_path / "missing.exr")
+    dangling = tmp_path / "dangling.exr"
+    dangling.symlink_to(tmp_path / "gone.exr")
+    with pytest.raises(FileNotFoundError, match=r"dangling\.exr' not found"):
+        read_exr(dangling)

@@ -425,3 +425,35 @@ def test_gradient_matches_finite_differences(ggx_brdf):
 def test_scale_constants():
     assert MERL_RES == (90, 90, 180)
     assert MERL_SCALE == (1 / 1500, 1.15 / 1500, 1.66 / 1500)
+
+
+def test_directory_and_missing_file_messages(tmp_path):
+    folder = tmp_path / "gold.binary"
+    folder.mkdir()
+    for load in (read_merl, MERLBRDF.from_file):
+        with pytest.raises(IsADirectoryError, match=r"gold\.binary' is a directory, not a file"):
+            load(folder)
+        with pytest.raises(FileNotFoundError, match=r"nothing\.binary' not found"):
+            load(tmp_path / "nothing.binary")
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_non_finite_samples_refused_unless_allowed(tmp_path, lambert_brdf, bad):
+    p = tmp_path / "nan.binary"
+    write_merl(p, lambert_brdf)
+    data = bytearray(p.read_bytes())
+    # Sample (channel G, θh 2, θd 3, φd 4) of the stored float64 table, after the 12-byte header.
+    index = ((1 * 90 + 2) * 90 + 3) * 180 + 4
+    data[12 + 8 * index : 12 + 8 * index + 8] = np.float64(bad).tobytes()
+    p.write_bytes(bytes(data))
+    match = r"nan\.binary': 1 non-finite sample.*channel G at \(θh, θd, φd\) index \(2, 3, 4\).*allow_nonfinite=True"
+    with pytest.raises(ValueError, match=match):
+        read_merl(p)
+    with pytest.raises(ValueError, match=match):
+        MERLBRDF.from_file(p)
+    table = read_merl(p, allow_nonfinite=True)
+    assert int((~torch.isfinite(table)).sum()) == 1
+    brdf = MERLBRDF.from_file(p, allow_nonfinite=True)
+    assert int((~torch.isfinite(brdf.stored)).sum()) == 1
+    with pytest.raises(ValueError, match="non-finite"):  # and it is not written back
+        write_merl(tmp_path / "again.binary", brdf)

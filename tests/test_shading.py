@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from torchbrdf._math import safe_normalize
+from torchbrdf.brdf.lambert import LambertBRDF, lambert
+from torchbrdf.brdf.principled import PrincipledBRDF, principled
 from torchbrdf.render.gbuffer import GBuffer
 from torchbrdf.render.geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
-from torchbrdf.brdf.lambert import LambertBRDF, lambert
 from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, PointLight
-from torchbrdf.brdf.principled import PrincipledBRDF, principled
 from torchbrdf.render.shading import Shader, ShadingPlan, plan, shade
 
 D = torch.float64
@@ -592,3 +592,48 @@ def test_plane_gbuffer_normal_map_and_errors():
     assert torch.equal(g.tangent[:, 0], torch.ones(2, 4, 4))
     with pytest.raises(ValueError, match="normal_map"):
         plane_gbuffer(4, 4, normal_map=torch.zeros(1, 3, 5, 4))
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: sphere_gbuffer(0, 0), "sphere_gbuffer: `height` must be a positive integer, got 0"),
+        (lambda: sphere_gbuffer(4, 0), "sphere_gbuffer: `width` must be a positive integer, got 0"),
+        (lambda: sphere_gbuffer(4, -2), "`width` must be a positive integer, got -2"),
+        (lambda: sphere_gbuffer(4.5, 4), "`height` must be a positive integer, got 4.5"),
+        (lambda: sphere_gbuffer(4, 4, batch_size=0), "`batch_size` must be a positive integer"),
+        (lambda: sphere_gbuffer(4, 4, radius=0.0), "`radius` must be a positive finite number"),
+        (lambda: plane_gbuffer(0, 0), "plane_gbuffer: `height` must be a positive integer, got 0"),
+        (lambda: plane_gbuffer(3, 0), "plane_gbuffer: `width` must be a positive integer, got 0"),
+        (lambda: plane_gbuffer(3, 3, batch_size=0), "`batch_size` must be a positive integer"),
+        (lambda: pinhole_rays(0, 4, (0.0, 0.0, 3.0)), "pinhole_rays: `height` must be a positive integer"),
+    ],
+)
+def test_gbuffer_sizes_must_be_positive_integers(make, match):
+    """Zero sizes used to raise ZeroDivisionError; now a ValueError names the argument."""
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_non_finite_gbuffer_or_light_under_validation():
+    """A NaN position gave a silent 0 even under validation; now it raises, naming the map.
+    Masked-out pixels are not shaded, so they may hold NaN."""
+    import torchbrdf
+
+    light = PointLight(torch.tensor([0.0, 0.0, 5.0], dtype=D), torch.tensor([1.0, 1.0, 1.0], dtype=D))
+    g = sphere_gbuffer(4, 4, dtype=D)
+    g.position[0, 0, 1, 1] = float("nan")
+    assert torch.isfinite(shade(g, light)).all()  # validation off: no data read
+    with torchbrdf.validation(True), pytest.raises(ValueError, match=r"^gbuf\.position: contains 1 non-finite"):
+        shade(g, light)
+    g = sphere_gbuffer(4, 4, dtype=D)
+    g.position[0, :, 0, 0] = float("nan")  # a corner pixel: outside the sphere's mask
+    assert not bool(g.mask[0, 0, 0, 0])
+    with torchbrdf.validation(True):
+        assert torch.isfinite(shade(g, light)).all()
+        bad = PointLight(torch.tensor([0.0, float("inf"), 5.0], dtype=D), torch.ones(3, dtype=D))
+        with pytest.raises(ValueError, match=r"^lights\[1\]\.position: contains 1 non-finite"):
+            shade(g, [light, bad])
+        g.material["roughness"] = float("nan")
+        with pytest.raises(ValueError, match=r"^gbuf\.material\['roughness'\]: expected a finite number"):
+            shade(g, light)

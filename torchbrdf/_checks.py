@@ -3,12 +3,18 @@
 Metadata checks (shape, dtype, device) are always on: they cost nothing next to the math.
 Value checks (NaN/inf, negative intensities) read tensor data, which synchronises a GPU, so
 they run only when validation is enabled with :func:`set_validation` or ``validate=True``.
+With validation off nothing reads the data: what a non-finite input gives then is described
+in ``docs/numerics.md`` ("Non-finite inputs").
+
+Messages show a short excerpt of a bad value (:func:`excerpt`), never a whole list or array.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import numbers
+import reprlib
 
 import torch
 from torch import Tensor
@@ -39,10 +45,26 @@ def validation(enabled: bool = True):
         _VALIDATE = old
 
 
+# Short reprs for error messages: a 4096-element list must not become a 40 kB message.
+_REPR = reprlib.Repr()
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxset = _REPR.maxfrozenset = _REPR.maxdeque = 6
+_REPR.maxdict = 4
+_REPR.maxlevel = 3
+_REPR.maxstring = 60
+_REPR.maxother = 60  # numpy arrays and other objects: their repr, cut to 60 characters
+
+
+def excerpt(value) -> str:
+    """A repr of ``value`` short enough for an error message (at most a few dozen characters
+    per level; long sequences end in ``...``)."""
+    return _REPR.repr(value)
+
+
 def _describe(t) -> str:
     if isinstance(t, Tensor):
         return f"tensor of shape {tuple(t.shape)}, dtype {t.dtype}, device {t.device}"
-    return f"{type(t).__name__} {t!r}"
+    size = f" of length {len(t)}" if isinstance(t, (list, tuple)) else ""
+    return f"{type(t).__name__}{size} {excerpt(t)}"
 
 
 def check_tensor(name: str, t, last: int | None = None, allow_scalar: bool = False):
@@ -114,11 +136,26 @@ def check_broadcast(named: dict) -> torch.Size:
 
 
 def check_finite(named: dict) -> None:
-    """Raise if any tensor holds NaN or inf (reads data: only under validation)."""
+    """Raise if any tensor holds NaN or inf, or any Python number is NaN or inf.
+
+    Reads tensor data (a GPU sync), so callers run it only under validation. ``None`` and
+    other non-numeric values are skipped. The message names the argument and shows the
+    first bad value and its index.
+    """
     for name, t in named.items():
-        if isinstance(t, Tensor) and not bool(torch.isfinite(t).all()):
-            bad = int((~torch.isfinite(t)).sum())
-            raise ValueError(f"{name}: contains {bad} non-finite value(s) ({_describe(t)})")
+        if isinstance(t, Tensor):
+            finite = torch.isfinite(t)
+            if not bool(finite.all()):
+                bad = ~finite
+                first = tuple(int(i) for i in bad.nonzero()[0]) if t.dim() else ()
+                value = float(t.detach()[first])
+                where = f" at index {first}" if t.dim() else ""
+                raise ValueError(
+                    f"{name}: contains {int(bad.sum())} non-finite value(s), first {value}{where} "
+                    f"({_describe(t)}); pass finite values"
+                )
+        elif isinstance(t, numbers.Real) and not isinstance(t, bool) and not math.isfinite(t):
+            raise ValueError(f"{name}: expected a finite number, got {float(t)}")
 
 
 def check_nonnegative(name: str, t) -> None:
@@ -127,4 +164,4 @@ def check_nonnegative(name: str, t) -> None:
         if bool((t < 0).any()):
             raise ValueError(f"{name}: expected non-negative values, got min {float(t.min())}")
     elif t < 0:
-        raise ValueError(f"{name}: expected a non-negative value, got {t}")
+        raise ValueError(f"{name}: expected a non-negative value, got {excerpt(t)}")

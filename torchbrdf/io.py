@@ -109,6 +109,26 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
         raise
 
 
+def check_readable_file(path: Path, what: str) -> None:
+    """Raise a message that says what is wrong with an input file path.
+
+    Args:
+        path: the file to be read.
+        what: what it should be, for the message (e.g. ``"EXR file"``).
+
+    Raises:
+        IsADirectoryError: ``path`` is a folder.
+        FileNotFoundError: nothing exists at ``path`` (a broken symlink counts as missing).
+        ValueError: ``path`` exists but is not a regular file (a device, a FIFO, ...).
+    """
+    if path.is_dir():
+        raise IsADirectoryError(f"{what} '{path}' is a directory, not a file")
+    if not path.exists():
+        raise FileNotFoundError(f"{what} '{path}' not found (no such file)")
+    if not path.is_file():
+        raise ValueError(f"{what} '{path}' is not a regular file")
+
+
 # --------------------------------------------------------------------------------------
 # OpenEXR
 # --------------------------------------------------------------------------------------
@@ -173,6 +193,7 @@ def read_exr(
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
+        IsADirectoryError: if ``path`` is a folder.
         ValueError: if the file is not a readable OpenEXR image, uses channel subsampling,
             or lacks a requested channel.
 
@@ -185,8 +206,7 @@ def read_exr(
         ((3, 2, 4), ['R', 'G', 'B'])
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"EXR file '{path}' does not exist")
+    check_readable_file(path, "EXR file")
     exr = _import_openexr()
     # The bindings raise a bare RuntimeError ("Unable to open ... for read") on any failure,
     # so check the magic number first to tell the user which problem they have.

@@ -24,9 +24,19 @@ Convention notes:
 * The diffuse term is damped by the *constant* ``1 - rho_s`` (not by a view-dependent
   Fresnel), as in those papers; the model is therefore not energy conserving at grazing
   angles and is reciprocal.
-* ``roughness`` is the perceptual input and is squared into ``alpha``; ``alpha`` is floored
-  at ``ALPHA_MIN = 1e-3`` so that ``D`` stays finite at roughness 0 (a narrower lobe than any
-  8-bit roughness map can express). ``k = alpha / 2`` uses the floored ``alpha``.
+* ``roughness`` is the perceptual input and is squared into ``alpha``. A floor keeps ``D``
+  finite at roughness 0, and the two conventions in use differ:
+
+  - default, ``alpha_floor=ALPHA_MIN`` (1e-3): ``alpha = max(r^2, 1e-3)``, as this library
+    always did -- the GGX peak ``1 / (pi alpha^2)`` stays below 3.2e5. This floor is *not*
+    below what an 8-bit roughness map can express: codes 1..8 give ``alpha = (c / 255)^2``
+    = 1.5e-5 .. 9.8e-4, which all render like ``alpha = 1e-3`` here;
+  - ``roughness_floor=ROUGHNESS_FLOOR_DESCHAINTRE`` (1e-3): ``alpha = max(r, 1e-3)^2``
+    (``alpha >= 1e-6``), the floor of Deschaintre et al.'s renderer
+    (``roughness = tf.maximum(roughness, 0.001)``). Every 8-bit code keeps its own lobe; at
+    code 1 the peak is ~4e3 times the default's.
+
+  ``k = alpha / 2`` uses the floored ``alpha`` in both.
 * ``G / (4 (n.l)(n.v))`` is evaluated in the cancelled form
   ``1 / (4 (n.l (1 - k) + k)(n.v (1 - k) + k))`` -- finite as ``n.l`` or ``n.v`` tend to 0.
 * ``(n.h)^2 (alpha^2 - 1) + 1`` is computed as ``|n x h|^2 + alpha^2 (n.h)^2``: the same
@@ -40,6 +50,7 @@ inputs are evaluated in float32 and cast back (saturating).
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor, nn
@@ -47,10 +58,32 @@ from torch import Tensor, nn
 from torchbrdf import _checks
 from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
 
-__all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN"]
+__all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN", "ROUGHNESS_FLOOR_DESCHAINTRE"]
 
 ALPHA_MIN = 1e-3
-"""Floor on ``alpha = roughness^2``: keeps the GGX peak ``1 / (pi alpha^2)`` finite."""
+"""Default floor on ``alpha = roughness^2``: keeps the GGX peak ``1 / (pi alpha^2)`` below 3.2e5."""
+
+ROUGHNESS_FLOOR_DESCHAINTRE = 1e-3
+"""Floor on ``roughness`` (not ``alpha``) in Deschaintre et al.'s renderer: ``alpha >= 1e-6``."""
+
+
+def _floored_alpha(r: Tensor, alpha_floor, roughness_floor) -> Tensor:
+    """``alpha = r^2`` with the floor convention chosen (see the module docstring)."""
+    if roughness_floor is not None:
+        return torch.square(torch.clamp(r, min=roughness_floor))
+    return torch.clamp(r * r, min=ALPHA_MIN if alpha_floor is None else alpha_floor)
+
+
+def _check_floors(alpha_floor, roughness_floor) -> None:
+    if alpha_floor is not None and roughness_floor is not None:
+        raise ValueError(
+            f"alpha_floor={alpha_floor!r} and roughness_floor={roughness_floor!r}: give at most one floor"
+        )
+    for name, value in (("alpha_floor", alpha_floor), ("roughness_floor", roughness_floor)):
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0 < value <= 1):
+            raise ValueError(f"{name}: expected a number in (0, 1], got {_checks.excerpt(value)}")
 
 _SG_A = -5.55473
 _SG_B = -6.98316
@@ -71,6 +104,8 @@ def svbrdf_ggx(
     diffuse_albedo,
     specular_albedo,
     roughness,
+    alpha_floor: float | None = None,
+    roughness_floor: float | None = None,
 ) -> Tensor:
     """Diffuse + GGX BRDF of the SVBRDF-capture literature (Deschaintre 2018/2019, Gao 2019, MaterialGAN).
 
@@ -83,7 +118,12 @@ def svbrdf_ggx(
         diffuse_albedo: ``(*, 3)`` linear RGB in [0, 1] (or a float for grey).
         specular_albedo: ``(*, 3)`` linear RGB normal-incidence reflectance F0 in [0, 1]
             (or a float).
-        roughness: ``(*, 1)`` in [0, 1]; ``alpha = roughness^2``.
+        roughness: ``(*, 1)`` in [0, 1]; ``alpha = roughness^2``, floored as below.
+        alpha_floor: floor on ``alpha`` (default :data:`ALPHA_MIN` = 1e-3, this library's
+            convention): ``alpha = max(roughness^2, alpha_floor)``.
+        roughness_floor: floor on ``roughness`` instead (Deschaintre et al.'s renderer uses
+            :data:`ROUGHNESS_FLOOR_DESCHAINTRE` = 1e-3): ``alpha = max(roughness,
+            roughness_floor)^2``. Give at most one of the two floors; each must be in (0, 1].
 
     Returns:
         ``f(l, v)`` without the ``n.l`` cosine, ``(*, 3)``, in the dtype of ``l``; exactly 0
@@ -103,6 +143,7 @@ def svbrdf_ggx(
         >>> torch.allclose(f, torch.full((3,), 1 / math.pi + 1 / (4 * math.pi) * 2 ** (-5.55473 - 6.98316)))
         True
     """
+    _check_floors(alpha_floor, roughness_floor)
     named = {
         "l": l,
         "v": v,
@@ -139,7 +180,7 @@ def svbrdf_ggx(
     nh = torch.clamp(dot(n, h), 0.0, 1.0)
     vh = torch.clamp(dot(v, h), 0.0, 1.0)
 
-    alpha = torch.clamp(r * r, min=ALPHA_MIN)
+    alpha = _floored_alpha(r, alpha_floor, roughness_floor)
     a2 = alpha * alpha
     base = cross_norm2(n, h) + a2 * nh * nh  # = (n.h)^2 (a2 - 1) + 1
     # For unit h, base >= min(a2, 1); the floor only acts where h degenerates (l = -v).
@@ -156,7 +197,12 @@ def svbrdf_ggx(
 
 
 class SVBRDFGGX(nn.Module):
-    """Module form of :func:`svbrdf_ggx`; stateless, the maps are passed to ``forward``.
+    """Module form of :func:`svbrdf_ggx`; the maps are passed to ``forward``.
+
+    Args:
+        alpha_floor: floor on ``alpha`` (default :data:`ALPHA_MIN`); see :func:`svbrdf_ggx`.
+        roughness_floor: floor on ``roughness`` instead (e.g.
+            :data:`ROUGHNESS_FLOOR_DESCHAINTRE`); at most one of the two.
 
     Shape:
         - l, v, n (x, y unused): ``(*, 3)``; ``diffuse_albedo``/``specular_albedo`` ``(*, 3)``,
@@ -164,6 +210,18 @@ class SVBRDFGGX(nn.Module):
         - Output: ``(*, 3)``.
     """
 
+    def __init__(self, alpha_floor: float | None = None, roughness_floor: float | None = None) -> None:
+        super().__init__()
+        _check_floors(alpha_floor, roughness_floor)
+        self.alpha_floor = alpha_floor
+        self.roughness_floor = roughness_floor
+
     def forward(self, l: Tensor, v: Tensor, n: Tensor, x=None, y=None, **material) -> Tensor:
-        """Evaluate :func:`svbrdf_ggx` with the given maps."""
-        return svbrdf_ggx(l, v, n, x, y, **material)
+        """Evaluate :func:`svbrdf_ggx` with the given maps and this module's floor."""
+        floors = {"alpha_floor": self.alpha_floor, "roughness_floor": self.roughness_floor}
+        return svbrdf_ggx(l, v, n, x, y, **{**floors, **material})
+
+    def extra_repr(self) -> str:
+        if self.roughness_floor is not None:
+            return f"roughness_floor={self.roughness_floor}"
+        return f"alpha_floor={ALPHA_MIN if self.alpha_floor is None else self.alpha_floor}"

@@ -68,33 +68,63 @@ def fresnel_dielectric(cos_theta_i: Tensor, eta) -> Tensor:
     return torch.where(tir, torch.ones_like(f), f)
 
 
+def _sqrt0(x: Tensor) -> Tensor:
+    """``sqrt(x)`` for ``x >= 0``, exact (no floor), with gradient 0 instead of inf at ``x = 0``."""
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
 @half_safe
 def fresnel_conductor(cos_theta_i: Tensor, eta, k) -> Tensor:
     """Exact unpolarised Fresnel reflectance of a conductor with complex IOR ``eta + i k``.
 
-    Real-arithmetic form (no complex dtypes, so half precision and autograd work alike).
+    Real-arithmetic form (no complex dtypes, so half precision and autograd work alike),
+    agreeing with complex arithmetic (pbrt-v4's ``FrComplex``) to ~1e-10 relative in float64
+    for ``eta`` in [0.05, 5], ``k`` in [0, 10] and every angle -- including a nearly lossless
+    ``eta < 1`` beyond the critical angle, where the textbook form loses ``a`` to cancellation.
+
+    With ``a + i b = sqrt((eta + i k)^2 - sin^2)`` (``a, b >= 0``) and ``c = cos``, ``s2 = sin^2``::
+
+        r_s = ((a - c)^2 + b^2) / ((a + c)^2 + b^2)
+        r_p = r_s ((a c - s2)^2 + b^2 c^2) / ((a c + s2)^2 + b^2 c^2)
+
+    Every numerator and denominator is a sum of squares (no cancellation). ``a^2`` and ``b^2``
+    come from ``t0 = eta^2 - k^2 - s2`` and ``|.| = sqrt(t0^2 + 4 eta^2 k^2)``: the larger of the
+    two is ``(|.| + |t0|) / 2`` and the smaller ``eta^2 k^2`` divided by it (their product),
+    instead of ``(|.| - |t0|) / 2``, which cancels. Square roots are exact, with zero gradient at
+    0 (``k = 0`` under total internal reflection), so gradients stay finite everywhere.
 
     Args:
         cos_theta_i: incident cosine ``(*, 1)``, clamped to ``[0, 1]``.
-        eta: real part of the relative IOR, ``(*, C)`` or float.
-        k: extinction coefficient (imaginary part), ``(*, C)`` or float.
+        eta: real part of the relative IOR, ``(*, C)`` or float, > 0.
+        k: extinction coefficient (imaginary part), ``(*, C)`` or float, >= 0.
 
     Returns:
-        ``(*, C)`` reflectance in ``[0, 1]``.
+        ``(*, C)`` reflectance in ``[0, 1]``; 1 at grazing incidence (``cos = 0``).
     """
-    cos_i = torch.clamp(cos_theta_i, 0.0, 1.0)
-    cos2 = cos_i * cos_i
-    sin2 = 1.0 - cos2
-    t0 = eta * eta - k * k - sin2
-    a2b2 = safe_sqrt(t0 * t0 + 4.0 * eta * eta * k * k)
-    a = safe_sqrt(0.5 * (a2b2 + t0))
-    t1 = a2b2 + cos2
-    t2 = 2.0 * a * cos_i
-    r_s = (t1 - t2) / (t1 + t2)
-    t3 = cos2 * a2b2 + sin2 * sin2
-    t4 = t2 * sin2
-    r_p = r_s * (t3 - t4) / (t3 + t4)
-    return 0.5 * (r_s + r_p)
+    c = torch.clamp(cos_theta_i, 0.0, 1.0)
+    c2 = c * c
+    # (1 - c)(1 + c): 1 - c is exact for c >= 1/2, so sin^2 keeps its relative accuracy where it
+    # is small -- needed at the critical angle of a small eta, where t0 below is ~0.
+    s2 = (1.0 - c) * (1.0 + c)
+    ek2 = (eta * k) ** 2  # (Im of (eta + i k)^2 / 2)^2 = a^2 b^2
+    t0 = eta * eta - k * k - s2  # a^2 - b^2
+    norm = _sqrt0(t0 * t0 + 4.0 * ek2)  # a^2 + b^2
+    big = 0.5 * (norm + t0.abs())
+    small = ek2 / torch.where(big > 0, big, torch.ones_like(big))  # big = 0 only where ek2 = 0
+    a2 = torch.where(t0 >= 0, big, small)
+    b2 = torch.where(t0 >= 0, small, big)
+    a = _sqrt0(a2)
+    b2c2 = b2 * c2
+    num_s, den_s = (a - c) ** 2 + b2, (a + c) ** 2 + b2
+    ac = a * c
+    num_p, den_p = (ac - s2) ** 2 + b2c2, (ac + s2) ** 2 + b2c2
+    # den_s = 0 only at grazing incidence on an index-matched lossless interface (the limit
+    # there is 1, as for every other interface at grazing); den_p = 0 only for eta = k = 0.
+    one = torch.ones_like(den_s)
+    r_s = torch.where(den_s > 0, num_s / torch.where(den_s > 0, den_s, one), one)
+    ratio_p = torch.where(den_p > 0, num_p / torch.where(den_p > 0, den_p, one), one)
+    return 0.5 * r_s * (1.0 + ratio_p)
 
 
 def f0_from_ior(ior):

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchbrdf import _checks
 from torchbrdf._math import dot
 from torchbrdf._types import Color
 
@@ -53,6 +54,8 @@ def lambert(
         >>> lambert(n, n, n, base_color=torch.tensor([[math.pi, 0.0, 1.0]]))
         tensor([[1.0000, 0.0000, 0.3183]])
     """
+    if _checks.validation_enabled():
+        _checks.check_finite({"l": l, "v": v, "n": n, "x": x, "y": y, "base_color": base_color})
     valid = (dot(n, l) > 0) & (dot(n, v) > 0)
     if not isinstance(base_color, Tensor) or base_color.dim() == 0:
         base_color = torch.as_tensor(base_color, dtype=l.dtype, device=l.device).expand(3)

@@ -37,9 +37,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from torchbrdf import _checks
 from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize, safe_sqrt
 from torchbrdf.brdf.frames import frame_from_normal, to_local
-from torchbrdf.io import atomic_path
+from torchbrdf.io import atomic_path, check_readable_file
 
 __all__ = [
     "MERL_RES",
@@ -189,6 +190,9 @@ def merl_grid(
 
 def _corners(u: Tensor, size: int, wrap: bool) -> tuple[Tensor, Tensor, Tensor]:
     """Lower/upper sample index and fractional weight for continuous index ``u``."""
+    # A non-finite direction (validation off) must not become an out-of-range index; its
+    # lane reads sample 0 and is zeroed by the caller's n.l > 0 and n.v > 0 test.
+    u = torch.nan_to_num(u, nan=0.0, posinf=0.0, neginf=0.0)
     if wrap:
         i0 = torch.floor(u).clamp(0, size - 1)
         t = u - i0
@@ -265,10 +269,9 @@ def merl_interpolate(
 # --------------------------------------------------------------------------------------
 
 
-def _read_stored(path: str | os.PathLike) -> np.ndarray:
+def _read_stored(path: str | os.PathLike, allow_nonfinite: bool = False) -> np.ndarray:
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"MERL file '{path}' does not exist")
+    check_readable_file(path, "MERL file")
     data = path.read_bytes()
     if len(data) < _HEADER_BYTES:
         raise ValueError(f"MERL file '{path}' is {len(data)} bytes, too short for the 12-byte header")
@@ -280,16 +283,29 @@ def _read_stored(path: str | os.PathLike) -> np.ndarray:
             f"MERL file '{path}' is {len(data)} bytes, expected {_FILE_BYTES} "
             f"(12-byte header + 3 x {_N_SAMPLES} float64 samples)"
         )
-    return np.frombuffer(data, dtype="<f8", offset=_HEADER_BYTES).reshape(3, *MERL_RES).copy()
+    stored = np.frombuffer(data, dtype="<f8", offset=_HEADER_BYTES).reshape(3, *MERL_RES).copy()
+    if not allow_nonfinite:
+        bad = ~np.isfinite(stored)
+        if bad.any():
+            c, ih, i_d, ip = (int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(
+                f"MERL file '{path}': {int(bad.sum())} non-finite sample(s) (NaN or inf), first in "
+                f"channel {'RGB'[c]} at (θh, θd, φd) index ({ih}, {i_d}, {ip}); a corrupt file? "
+                "Pass allow_nonfinite=True to load it anyway"
+            )
+    return stored
 
 
-def read_merl(path: str | os.PathLike, raw: bool = False) -> Tensor:
+def read_merl(path: str | os.PathLike, raw: bool = False, *, allow_nonfinite: bool = False) -> Tensor:
     """Read a MERL ``.binary`` file.
 
     Args:
         path: the file.
         raw: return the stored numbers as they are in the file (before the per-channel
             scale, with -1 for missing samples) instead of reflectance values.
+        allow_nonfinite: load a file holding NaN or inf samples instead of refusing it. Such
+            samples then give NaN/inf wherever an evaluation interpolates them, and
+            :func:`write_merl` refuses to write the table back.
 
     Returns:
         ``(3, 90, 90, 180)`` float64 CPU tensor indexed ``[channel, θh, θd, φd]``:
@@ -297,9 +313,11 @@ def read_merl(path: str | os.PathLike, raw: bool = False) -> Tensor:
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        ValueError: if the header or the file size is not the MERL layout.
+        IsADirectoryError: if ``path`` is a folder.
+        ValueError: if the header or the file size is not the MERL layout, or (unless
+            ``allow_nonfinite``) a sample is NaN or inf.
     """
-    stored = torch.from_numpy(_read_stored(path))
+    stored = torch.from_numpy(_read_stored(path, allow_nonfinite))
     if raw:
         return stored
     return stored * torch.tensor(MERL_SCALE, dtype=torch.float64)[:, None, None, None]
@@ -399,9 +417,10 @@ class MERLBRDF(nn.Module):
         self.name = name
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike) -> MERLBRDF:
-        """Load a MERL ``.binary`` file (see :func:`read_merl` for the errors raised)."""
-        return cls(torch.from_numpy(_read_stored(path)), name=Path(path).stem)
+    def from_file(cls, path: str | os.PathLike, *, allow_nonfinite: bool = False) -> MERLBRDF:
+        """Load a MERL ``.binary`` file (see :func:`read_merl` for ``allow_nonfinite`` and the
+        errors raised)."""
+        return cls(torch.from_numpy(_read_stored(path, allow_nonfinite)), name=Path(path).stem)
 
     @classmethod
     def from_table(cls, values: Tensor, name: str | None = None) -> MERLBRDF:
@@ -482,6 +501,8 @@ class MERLBRDF(nn.Module):
         ``x``/``y`` only matter at ``h = n`` (MERL data are isotropic); when omitted the
         frame is built from ``n``.
         """
+        if _checks.validation_enabled():
+            _checks.check_finite({"l": l, "v": v, "n": n, "x": x, "y": y})
         dtype = l.dtype
         work = compute_dtype(dtype)
         l, v, n = (t.to(work) for t in torch.broadcast_tensors(l, v, n))

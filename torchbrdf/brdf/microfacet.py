@@ -98,6 +98,11 @@ def microfacet(
     for name, t in named.items():
         _checks.check_tensor(name, t, last=3)
     dtype, _ = _checks.check_same_dtype_device(named)
+    if _checks.validation_enabled():
+        _checks.check_finite(
+            {"l": l, "v": v, "n": n, "x": x, "y": y, "alpha": alpha, "alpha_y": alpha_y, "f0": f0,
+             "f90": f90, "ior": ior, "eta": eta, "k": k, "gamma": gamma, "abc_a": abc_a}
+        )
     cd = compute_dtype(dtype)
     cast = lambda t: t.to(cd) if isinstance(t, Tensor) else t  # noqa: E731
     l, v, n, x, y = map(cast, (l, v, n, x, y))

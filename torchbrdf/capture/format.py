@@ -13,15 +13,16 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from torchbrdf._checks import excerpt
 from torchbrdf.io import atomic_path, read_exr, write_exr
 
-__all__ = ["CAPTURE_JSON", "Capture", "load_capture", "pixel_points", "write_capture"]
+__all__ = ["CAPTURE_JSON", "Capture", "image_path", "load_capture", "pixel_points", "write_capture"]
 
 #: Name of the description file inside a capture folder.
 CAPTURE_JSON = "capture.json"
@@ -142,6 +143,69 @@ def _vec3(value, where: str, json_path: Path, nonnegative: bool = False) -> list
     return [float(c) for c in value]
 
 
+def image_path(folder: str | os.PathLike, name, where: str) -> Path:
+    """The path of image ``name`` inside the capture ``folder``, refusing names that leave it.
+
+    Image names are relative paths inside the folder: an absolute path (POSIX or Windows,
+    drive letters included), a ``..`` component, or a name that resolves outside the folder
+    through a symlink is refused, so a capture cannot make the loader read, or the writer
+    write, files elsewhere.
+
+    Args:
+        folder: the capture folder.
+        name: the image name as listed in ``capture.json`` (or given to :func:`write_capture`).
+        where: what the name is, for the message (e.g. ``"capture.json: images[2].file"``).
+
+    Returns:
+        ``folder / name``.
+
+    Raises:
+        ValueError: naming ``where`` and the offending name.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{where} must be a non-empty string, got {name!r}")
+    if "\0" in name:
+        raise ValueError(f"{where}: image name {name!r} contains a NUL character")
+    if PurePosixPath(name).is_absolute() or PureWindowsPath(name).drive or PureWindowsPath(name).root:
+        raise ValueError(
+            f"{where}: image name {name!r} is an absolute path; image names must be relative "
+            "paths inside the capture folder"
+        )
+    if ".." in name.replace("\\", "/").split("/"):
+        raise ValueError(
+            f"{where}: image name {name!r} contains '..'; image names must stay inside the capture folder"
+        )
+    folder = Path(folder)
+    path = folder / name
+    root = folder.resolve()
+    resolved = path.resolve()
+    if resolved != root and root not in resolved.parents:
+        raise ValueError(
+            f"{where}: image name {name!r} resolves to '{resolved}', outside the capture folder "
+            f"'{root}' (through a symlink); image names must stay inside the capture folder"
+        )
+    return path
+
+
+def _check_lights(positions, intensities, where) -> None:
+    """Refuse lights that cannot light the sample: zero intensity, or none above the plane.
+
+    ``positions`` and ``intensities`` are sequences of finite xyz / RGB triples; ``where(k)``
+    names light ``k``'s intensity in messages, ``where(None)`` the capture as a whole.
+    """
+    for k, inten in enumerate(intensities):
+        if not any(c > 0 for c in inten):
+            raise ValueError(
+                f"{where(k)} is zero ({list(map(float, inten))}): a light that emits "
+                "nothing lights nothing; give its intensity or drop the image"
+            )
+    if not any(p[2] > 0 for p in positions):
+        raise ValueError(
+            f"{where(None)}: no light is above the sample plane (every light position has z <= 0); "
+            "the sample at z = 0 faces +z, so no image can show it lit"
+        )
+
+
 def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path: Path) -> None:
     c, h, w = image.shape
     if (w, h) != (width, height):
@@ -155,6 +219,8 @@ def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path:
             f"{file}: {int(bad.sum())} non-finite pixel value(s) (NaN or inf), "
             f"first at row {i}, column {j}, channel {'RGB'[ch]}"
         )
+    if not bool(image.any()):
+        raise ValueError(f"{file}: every pixel is 0 (a blank or failed exposure?); such an image shows nothing")
 
 
 def load_capture(
@@ -175,13 +241,20 @@ def load_capture(
 
     Raises:
         FileNotFoundError: the folder, ``capture.json`` or a listed image does not exist.
+        NotADirectoryError: ``folder`` is a file.
+        IsADirectoryError: a listed image is a folder.
         ValueError: malformed JSON, a missing or ill-typed key, an unsupported light type,
-            a position that is not a finite 3-vector, a negative intensity, an image that is
-            not RGB, whose size differs from width/height or that has non-finite pixels.
-            The message names the offending file and entry.
+            a position that is not a finite 3-vector, a negative or non-finite intensity;
+            an image name that is absolute, contains ``..`` or resolves (through a symlink)
+            outside the folder; a light whose intensity is zero; no light above the sample
+            plane (z > 0); an image that is not RGB, whose size differs from width/height,
+            that has non-finite pixels or whose pixels are all 0. The message names the
+            offending file and entry. Every ``capture.json`` check runs before any image is read.
     """
     folder = Path(folder)
     if not folder.is_dir():
+        if folder.exists():
+            raise NotADirectoryError(f"capture folder '{folder}' is a file, not a folder")
         raise FileNotFoundError(f"capture folder '{folder}' does not exist")
     json_path = folder / CAPTURE_JSON
     if not json_path.is_file():
@@ -205,14 +278,14 @@ def load_capture(
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{json_path}: images must be a non-empty list")
 
-    files, positions, intensities, images = [], [], [], []
+    # First every entry (cheap, JSON only), then the images: bad descriptions fail up front.
+    files, paths, positions, intensities, images = [], [], [], [], []
     for k, entry in enumerate(entries):
         where = f"images[{k}]"
         if not isinstance(entry, dict):
             raise ValueError(f"{json_path}: {where} must be an object, got {entry!r}")
         name = _require(entry, "file", where, json_path)
-        if not isinstance(name, str) or not name:
-            raise ValueError(f"{json_path}: {where}.file must be a non-empty string, got {name!r}")
+        paths.append(image_path(folder, name, f"{json_path}: {where}.file"))
         light = _require(entry, "light", where, json_path)
         if not isinstance(light, dict):
             raise ValueError(f"{json_path}: {where}.light must be an object, got {light!r}")
@@ -230,17 +303,27 @@ def load_capture(
             json_path,
             nonnegative=True,
         )
-        file = folder / name
+        files.append(name)
+        positions.append(pos)
+        intensities.append(inten)
+    _check_lights(
+        positions,
+        intensities,
+        lambda k: f"{json_path}: images[{k}].light.intensity" if k is not None else f"{json_path}",
+    )
+
+    for k, file in enumerate(paths):
+        where = f"images[{k}]"
+        listed = f"{file}: image listed as {where}.file in {json_path}"
+        if file.is_dir():
+            raise IsADirectoryError(f"{listed} is a directory, not a file")
         if not file.is_file():
-            raise FileNotFoundError(f"{file}: image listed as {where}.file in {json_path} does not exist")
+            raise FileNotFoundError(f"{listed} not found (no such file)")
         try:
             image = read_exr(file, channels=("R", "G", "B"))
         except ValueError as e:
             raise ValueError(f"{file} ({where} in {json_path}): {e}") from e
         _check_pixels(image, file, width, height, json_path)
-        files.append(name)
-        positions.append(pos)
-        intensities.append(inten)
         images.append(image)
 
     return Capture(
@@ -326,14 +409,19 @@ def write_capture(
             ``intensity`` keys, or of objects with ``.position`` / ``.intensity`` attributes
             (such as ``torchbrdf.PointLight``). Intensities are RGB and non-negative.
         camera_position: ``(3,)`` world position of the camera.
-        files: image file names (default ``img_000.exr``, ``img_001.exr``, ...).
+        files: image file names (default ``img_000.exr``, ``img_001.exr``, ...): relative
+            paths inside ``folder``, with no ``..`` and no symlink leading out (see
+            :func:`image_path`).
         half: store the images as half floats.
 
     Returns:
         The path of the written ``capture.json``.
 
     Raises:
-        ValueError: on inconsistent counts or shapes, non-finite values or negative intensities.
+        ValueError: on inconsistent counts or shapes, non-finite values, negative or zero
+            intensities, no light above the sample plane, an all-zero image, or a file name
+            that would leave ``folder`` — whatever :func:`load_capture` would refuse. Nothing
+            is written then.
     """
     if not isinstance(images, Tensor):
         images = torch.stack([torch.as_tensor(im) for im in images])
@@ -355,6 +443,16 @@ def write_capture(
     if (intensities < 0).any():
         k = int(np.nonzero((intensities < 0).any(axis=1))[0][0])
         raise ValueError(f"write_capture: light {k} has a negative intensity {intensities[k].tolist()}")
+    # What the loader refuses is refused here too, so a written capture always loads.
+    _check_lights(
+        positions.tolist(),
+        intensities.tolist(),
+        lambda k: f"write_capture: the intensity of light {k}" if k is not None else "write_capture",
+    )
+    blank = ~images.flatten(1).any(dim=1)
+    if blank.any():
+        k = int(blank.nonzero()[0, 0])
+        raise ValueError(f"write_capture: image {k} is all 0; the loader would reject it")
     cam = (
         camera_position.detach().cpu().double().numpy()
         if isinstance(camera_position, Tensor)
@@ -365,12 +463,16 @@ def write_capture(
     if files is None:
         digits = max(3, len(str(count - 1)))
         files = [f"img_{k:0{digits}d}.exr" for k in range(count)]
-    files = list(files)
+    files = [os.fspath(f) if isinstance(f, os.PathLike) else f for f in files]
     if len(files) != count or len(set(files)) != count:
-        raise ValueError(f"write_capture: need {count} distinct file names, got {files}")
-
+        raise ValueError(f"write_capture: need {count} distinct file names, got {excerpt(files)}")
     folder = Path(folder)
+    for k, name in enumerate(files):  # before anything is created: nothing lands outside
+        image_path(folder, name, f"write_capture: files[{k}]")
+
     folder.mkdir(parents=True, exist_ok=True)
+    for k, name in enumerate(files):  # again now that the folder exists: symlinks inside it
+        image_path(folder, name, f"write_capture: files[{k}]")
     entries = []
     for k, name in enumerate(files):
         write_exr(folder / name, images[k], half=half)

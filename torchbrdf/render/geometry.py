@@ -7,6 +7,7 @@ Both use a pinhole camera. Image convention: pixel ``(i, j)`` has its centre at
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -48,7 +49,11 @@ def pinhole_rays(
 
     Returns:
         ``(H, W, 3)`` unit directions in world space.
+
+    Raises:
+        ValueError: if ``height`` or ``width`` is not a positive integer.
     """
+    _check_size("pinhole_rays", height=height, width=width)
     dtype = dtype or torch.get_default_dtype()
     c = _vec(camera_position, dtype, device)
     fwd = safe_normalize(_vec(look_at, dtype, device) - c)
@@ -59,6 +64,13 @@ def pinhole_rays(
     xs = (2.0 * (torch.arange(width, dtype=dtype, device=device) + 0.5) / width - 1.0) * t * (width / height)
     d = fwd + xs[None, :, None] * right + ys[:, None, None] * true_up
     return safe_normalize(d)
+
+
+def _check_size(who: str, **sizes) -> None:
+    """Image sizes and batch sizes must be positive integers (they divide the pixel grid)."""
+    for name, value in sizes.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value <= 0:
+            raise ValueError(f"{who}: `{name}` must be a positive integer, got {value!r}")
 
 
 def _material_maps(material, b, h, w, dtype, device) -> dict:
@@ -104,11 +116,19 @@ def sphere_gbuffer(
     Returns:
         A :class:`~torchbrdf.GBuffer` with ``(B, ·, H, W)`` maps, a tangent map and a mask.
 
+    Raises:
+        ValueError: if ``height``, ``width`` or ``batch_size`` is not a positive integer,
+            ``radius`` is not positive, or the camera is inside the sphere; the message
+            names the argument.
+
     Example:
         >>> g = sphere_gbuffer(16, 16)
         >>> g.position.shape, int(g.mask.sum()) > 100
         (torch.Size([1, 3, 16, 16]), True)
     """
+    _check_size("sphere_gbuffer", height=height, width=width, batch_size=batch_size)
+    if not radius > 0 or not math.isfinite(radius):
+        raise ValueError(f"sphere_gbuffer: `radius` must be a positive finite number, got {radius!r}")
     dtype = dtype or torch.get_default_dtype()
     c = _vec(camera_position, dtype, device)
     ctr = _vec(center, dtype, device)
@@ -182,10 +202,17 @@ def plane_gbuffer(
     Returns:
         A :class:`~torchbrdf.GBuffer` with a tangent map and no mask.
 
+    Raises:
+        ValueError: if ``height``, ``width`` or ``batch_size`` is not a positive integer, or
+            ``normal_map`` does not have shape ``[B, 3, H, W]``; the message names the argument.
+
     Example:
         >>> plane_gbuffer(4, 4).normal[0, :, 0, 0]
         tensor([0., 0., 1.])
     """
+    _check_size("plane_gbuffer", height=height, width=width)
+    if batch_size is not None:
+        _check_size("plane_gbuffer", batch_size=batch_size)
     if normal_map is not None:
         if (
             not isinstance(normal_map, Tensor)

@@ -38,6 +38,8 @@ from torch.utils.checkpoint import checkpoint
 
 from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize
 from torchbrdf.render.envmap import (
+from torchbrdf._checks import check_finite, validation_enabled
+from torchbrdf.render.envmap import (
     ENV_SAMPLINGS,
     PREFILTER_ROUGHNESS,
     SplitSumEnvironment,
@@ -270,6 +272,33 @@ def _lobes_for(brdf, kind: str, values: dict):
     return None, ()
 
 
+def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
+    """Under validation: NaN/inf in a shaded pixel's g-buffer data or in a light raises,
+    naming it. Pixels outside the mask are not shaded, so they may hold anything."""
+    keep = gbuf.mask
+    if keep is not None and keep.dtype != torch.bool:
+        keep = keep != 0
+
+    def inside(t):
+        if keep is None or not isinstance(t, Tensor) or t.dim() != 4:
+            return t
+        return torch.where(keep, t, torch.zeros((), dtype=t.dtype, device=t.device))
+
+    named = {
+        "gbuf.position": inside(gbuf.position),
+        "gbuf.normal": inside(gbuf.normal),
+        "gbuf.tangent": inside(gbuf.tangent),
+        "gbuf.camera_position": gbuf.camera_position,
+        **{f"gbuf.material[{k!r}]": inside(v) for k, v in gbuf.material.items()},
+    }
+    for i, light in enumerate(lights):
+        for attr in ("position", "intensity", "direction", "irradiance", "radiance"):
+            t = getattr(light, attr, None)
+            if isinstance(t, Tensor):
+                named[f"lights[{i}].{attr}"] = t
+    check_finite(named)
+
+
 def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis") -> _Prepared:
     if not isinstance(gbuf, GBuffer):
         raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
@@ -296,6 +325,8 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
                 f"shade: lights[{i}] ({type(light).__name__}) has per-batch parameters for {lb} images, "
                 f"but the g-buffer holds {b}"
             )
+    if validation_enabled():
+        _check_finite_inputs(gbuf, lights)
     dt = gbuf.dtype
     cd = compute_dtype(dt)
     dev = gbuf.device
@@ -721,7 +752,10 @@ def shade(
         masked-out and back-facing pixels.
 
     Raises:
-        TypeError / ValueError: with the offending argument named.
+        TypeError / ValueError: with the offending argument named. Under
+            :func:`torchbrdf.set_validation` also NaN/inf in a shaded pixel of the g-buffer
+            (masked-out pixels may hold anything) or in a light; without validation such a
+            pixel's value follows ``docs/numerics.md`` ("Non-finite inputs").
 
     Note:
         float16 / bfloat16 g-buffers are shaded in float32 and the result is cast back
