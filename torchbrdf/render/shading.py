@@ -36,9 +36,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
-from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize
-from torchbrdf.render.envmap import (
 from torchbrdf._checks import check_finite, validation_enabled
+from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize
 from torchbrdf.render.envmap import (
     ENV_SAMPLINGS,
     PREFILTER_ROUGHNESS,
