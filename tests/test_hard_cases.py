@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 import torchbrdf
 from torchbrdf.brdf import distributions as nd
-from torchbrdf.brdf import principled
+from torchbrdf import principled
 
 from .reference import principled_ref
 
