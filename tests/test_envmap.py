@@ -20,7 +20,7 @@ from torchbrdf.geometry import sphere_gbuffer
 from torchbrdf.lambert import lambert
 from torchbrdf.lights import EnvironmentLight
 from torchbrdf.principled import principled
-from torchbrdf.sampling import latlong_directions
+from torchbrdf.sampling import latlong_directions, latlong_row_solid_angles
 from torchbrdf.shading import Shader, plan, shade
 
 D = torch.float64
@@ -234,6 +234,39 @@ def test_prefilter_and_irradiance_of_simple_maps():
     n = safe_normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(0), dtype=D))
     got = latlong_bilinear(irr, n)[:, 0]
     assert torch.allclose(got, 1 + (2 / 3) * (n * a).sum(-1), atol=3e-3)
+
+
+def _power(m):
+    """Σ L Ω of ``(B, 3, h, w)`` maps (exact texel solid angles), ``(B, 3)``."""
+    h, w = m.shape[-2:]
+    return (m * latlong_row_solid_angles(h, w, dtype=m.dtype)[:, None]).sum((-1, -2))
+
+
+@pytest.mark.parametrize("height", [48, 64, 100, 256])
+def test_prefiltered_levels_and_irradiance_conserve_power(height):
+    """Every level and the irradiance map carry the map's power, whatever the size ratio."""
+    g = torch.Generator().manual_seed(height)
+    img = torch.rand(1, 3, height, 2 * height, generator=g, dtype=D) ** 4
+    want = _power(img)
+    maps = prefilter_environment(img) + [irradiance_environment(img)]
+    assert any(m.shape[-2] not in (height, 16, 32) or height % m.shape[-2] for m in maps)  # non-integer ratios
+    for m in maps:
+        assert float((_power(m) / want - 1).abs().max()) < 1e-4, m.shape
+
+
+@pytest.mark.parametrize("row", [0, 3, 17, 31, 40, 63])
+def test_single_bright_texel_keeps_its_power(row):
+    img = torch.zeros(1, 3, 64, 128, dtype=D)
+    img[0, :, row, (row * 7) % 128] = 1.0
+    want = _power(img)
+    for m in prefilter_environment(img) + [irradiance_environment(img)]:
+        assert float((_power(m) / want - 1).abs().max()) < 1e-4, m.shape
+
+
+def test_level_resampling_keeps_constants():
+    const = torch.full((1, 3, 100, 200), 0.7, dtype=D)
+    for m in prefilter_environment(const) + [irradiance_environment(const)]:
+        assert torch.allclose(m, torch.full_like(m, 0.7), atol=1e-12, rtol=0)
 
 
 def test_split_sum_exact_for_constant_environment():

@@ -624,6 +624,142 @@ def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256, 1024), repea
                 threads=torch.get_num_threads(), repeats=repeats, rows=rows)
 
 
+#: Lobes measured one by one by :func:`environment_lobes`: label -> (brdf kind, material).
+ENV_LOBES = (
+    ("Lambert", "lambert", {}),
+    ("Burley diffuse, roughness 0.5", "diffuse", {"roughness": 0.5}),
+    ("GGX, roughness 0.2", "specular", {"roughness": 0.2, "metallic": 1.0}),
+    ("GGX, roughness 0.5", "specular", {"roughness": 0.5, "metallic": 1.0}),
+    ("GGX, roughness 0.9", "specular", {"roughness": 0.9, "metallic": 1.0}),
+)
+
+
+def sky_with_sun(height: int = 64, dtype=torch.float64) -> torch.Tensor:
+    """``(3, height, 2·height)`` lat-long sky: a blue gradient, a darker ground and a small sun.
+
+    The sun is a disc of 2.5° radius at 35° elevation, 2000× the zenith sky: it gives about
+    two thirds of the irradiance of an upward-facing surface (an HDR sky).
+    """
+    from .sampling import latlong_directions
+
+    d = latlong_directions(height, 2 * height, dtype=dtype)  # (H, W, 3)
+    z = d[..., 2:3]
+    sky = torch.where(z > 0, torch.tensor([0.35, 0.5, 0.9], dtype=dtype) * (0.6 + 0.4 * z),
+                      torch.tensor([0.25, 0.2, 0.15], dtype=dtype) * (1.0 + z))
+    el = math.radians(35.0)
+    sun = torch.tensor([math.cos(el) * math.cos(0.6), math.cos(el) * math.sin(0.6), math.sin(el)], dtype=dtype)
+    disc = ((d * sun).sum(-1, keepdim=True) > math.cos(math.radians(2.5))).to(dtype)
+    return (sky + 2000.0 * disc * torch.tensor([1.0, 0.95, 0.85], dtype=dtype)).permute(2, 0, 1).contiguous()
+
+
+def sphere_points(side: int, grazing: int, dtype=torch.float64):
+    """Normals and view of an orthographic sphere: ``(n, v, n_graze)``.
+
+    ``n`` ``(P, 3)``: the pixels of a ``side × side`` image of the sphere (so means over it are
+    means over the picture); ``n_graze`` ``(grazing, 3)``: extra normals with ``n·v`` uniform in
+    (0, 0.1), spread around the silhouette (the band the picture holds few pixels of). The view
+    ``v`` ``(3,)`` looks slightly down on the sphere, so it sees sky, sun and ground.
+    """
+    v = torch.nn.functional.normalize(torch.tensor([1.0, 0.0, 0.35], dtype=dtype), dim=0)
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=dtype), v), dim=0)
+    e2 = torch.linalg.cross(v, e1)
+    c = (torch.arange(side, dtype=dtype) + 0.5) / side * 2 - 1
+    a, b = torch.meshgrid(c, c, indexing="xy")
+    inside = a * a + b * b < 1
+    a, b = a[inside], b[inside]
+    nz = torch.sqrt(1 - a * a - b * b)
+    n = a[:, None] * e1 + b[:, None] * e2 + nz[:, None] * v
+    k = torch.arange(grazing, dtype=dtype)
+    nv = (k + 0.5) / grazing * 0.1
+    phi = k * 2.399963  # golden angle: azimuths spread evenly whatever the count
+    st = torch.sqrt(1 - nv * nv)
+    ng = (st * torch.cos(phi))[:, None] * e1 + (st * torch.sin(phi))[:, None] * e2 + nv[:, None] * v
+    return n, v, ng
+
+
+def environment_lobes(log, side: int = 40, grazing: int = 256, sample_counts=(64, 256, 1024, 4096),
+                      ref_samples: int = 16384, height: int = 64, repeats: int = 3) -> dict:
+    """Split sum vs Monte Carlo per lobe on a sphere under :func:`sky_with_sun` (float64).
+
+    For each lobe of :data:`ENV_LOBES` (white base colour): the reference is MIS Monte Carlo
+    at ``ref_samples`` per point (another seed than the measured runs); reported are the
+    relative L1 error (Σ|est − ref| / Σ ref, over the picture and the channels), the bias
+    (Σ(est − ref) / Σ ref) over the picture and over the grazing band n·v < 0.1, and the
+    time of one call (median of ``repeats`` after a warm-up), for the split sum and for MIS
+    at each of ``sample_counts``. Runs on its own::
+
+        from torchbrdf import bench
+        lobes = bench.environment_lobes(print)
+        bench._plots({"environment_lobes": lobes}, "docs")  # writes only bench_pareto_env_lobes.png
+    """
+    from .envmap import SplitSumEnvironment, integrate_environment_mc, integrate_environment_split_sum
+    from .lambert import lambert
+    from .principled import PrincipledBRDF
+
+    radiance = sky_with_sun(height)
+    n, v, ng = sphere_points(side, grazing)
+    npix = n.shape[0]
+    n_all = torch.cat((n, ng))
+    v_all = v.expand_as(n_all).contiguous()
+    t0 = time.perf_counter()
+    env = SplitSumEnvironment(radiance)
+    t_pre = time.perf_counter() - t0
+    out = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height], ref_samples=ref_samples,
+               prefilter_seconds=t_pre, threads=torch.get_num_threads(), repeats=repeats, lobes=[])
+    for label, kind, mat in ENV_LOBES:
+        brdf = lambert if kind == "lambert" else PrincipledBRDF(lobes=(kind,))
+        material = dict(base_color=1.0, **mat)
+
+        def mc(s, seed, pts=n_all):
+            return integrate_environment_mc(brdf, pts, v.expand_as(pts).contiguous(), radiance, material, samples=s,
+                                            seed=seed, samples_per_pass=1024)
+
+        t0 = time.perf_counter()
+        ref = mc(ref_samples, 1234)
+        t_ref = time.perf_counter() - t0
+
+        def metrics(est):
+            e, r = est[:npix], ref[:npix]
+            eg, rg = est[npix:], ref[npix:]
+            return dict(rel_l1=float((e - r).abs().sum() / r.sum()), bias=float((e - r).sum() / r.sum()),
+                        bias_grazing=float((eg - rg).sum() / rg.sum()),
+                        bias_rgb=[float(x) for x in (e - r).sum(0) / r.sum(0)])
+
+        rows = []
+        split = lambda: integrate_environment_split_sum(brdf, n_all, v_all, env, material)  # noqa: E731
+        t, _ = _median_time(split, repeats, 2.0)
+        rows.append(dict(method="split sum", samples=None, seconds=t, **metrics(split())))
+        for s in sample_counts:
+            t, _ = _median_time(lambda s=s: mc(s, 11), repeats, 8.0)
+            rows.append(dict(method="MC (MIS)", samples=s, seconds=t, **metrics(mc(s, 11))))
+        for r in rows:
+            log(f"  {label:32s} {r['method']:9s} {r['samples']!s:5s} {r['seconds'] * 1e3:8.1f} ms  rel L1 "
+                f"{r['rel_l1']:.2e}  bias {r['bias']:+.2e}  bias n·v<0.1 {r['bias_grazing']:+.2e}")
+        out["lobes"].append(dict(label=label, reference_seconds=t_ref, rows=rows))
+    return out
+
+
+def environment_lobes_section(res: dict | None) -> list:
+    """Markdown lines of the per-lobe split-sum section (heading included)."""
+    L = ["## Environment lighting per lobe: split sum vs Monte Carlo", ""]
+    if not res:
+        return L + ["TODO: not measured in this run.", ""]
+    L += [f"An orthographic sphere ({res['pixels']} pixels of a {res['side']}×{res['side']} picture, plus "
+          f"{res['grazing']} normals with n·v < 0.1) under a {res['env_size'][0]}×{res['env_size'][1]} sky with a "
+          "sun (`bench.sky_with_sun`: 2.5° disc, 2000× the zenith sky), white base colour, float64. Reference: MIS "
+          f"Monte Carlo at {res['ref_samples']} samples per point (another seed). Error = relative L1 "
+          "(Σ|est − ref| / Σ ref over the picture); bias = Σ(est − ref) / Σ ref over the picture, and over the "
+          f"n·v < 0.1 band; time = median of {res['repeats']} call(s) after a warm-up, {res['threads']} torch "
+          f"thread(s); the split sum's prefiltering ({res['prefilter_seconds'] * 1e3:.0f} ms, once per map) is not "
+          "in its time.", "",
+          "| lobe | method | samples | time (ms) | rel. L1 error | bias | bias, n·v < 0.1 |", "|---|---|---|---|---|---|---|"]
+    for lobe in res["lobes"]:
+        for r in lobe["rows"]:
+            L.append(f"| {lobe['label']} | {r['method']} | {r['samples'] or '—'} | {r['seconds'] * 1e3:.1f} | "
+                     f"{r['rel_l1'] * 100:.2f} % | {r['bias'] * 100:+.2f} % | {r['bias_grazing'] * 100:+.2f} % |")
+    return L + [""]
+
+
 def environment_section(env: dict | None) -> list:
     """Markdown lines of the report's environment-lighting section (heading included)."""
     L = ["## Environment lighting: error vs time", ""]

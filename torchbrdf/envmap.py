@@ -55,7 +55,6 @@ import numbers
 from functools import lru_cache
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ._math import dot, lerp, luminance, safe_normalize, safe_sqrt
@@ -676,20 +675,49 @@ def integrate_environment_quadrature(
 # --------------------------------------------------------------------------------------
 
 
+@lru_cache(maxsize=64)
+def _overlap_weights(src: int, dst: int, rows: bool) -> Tensor:
+    """Overlap of each destination interval with each source interval, float64 ``(dst, src)``.
+
+    Rows (``rows=True``): the solid-angle measure of the overlap of the θ bands,
+    ``cos θ_lo - cos θ_hi`` (the exact integral of ``sin θ``). Columns: the overlap length
+    in units of the full turn. Every source interval is covered exactly once, so the columns
+    of the matrix sum to the source intervals' measures: resampling with it conserves power.
+    """
+    s = torch.arange(src + 1, dtype=torch.float64) / src
+    d = torch.arange(dst + 1, dtype=torch.float64) / dst
+    lo = torch.maximum(d[:-1, None], s[None, :-1])
+    hi = torch.minimum(d[1:, None], s[None, 1:])
+    if rows:
+        return torch.clamp(torch.cos(lo * math.pi) - torch.cos(hi * math.pi), min=0.0)
+    return torch.clamp(hi - lo, min=0.0)
+
+
 def _downsample(img: Tensor, h: int, w: int) -> Tensor:
-    """Solid-angle-weighted area average of ``(B, 3, H, W)`` to ``(B, 3, h, w)``."""
+    """Power-conserving area resampling of ``(B, 3, H, W)`` to ``(B, 3, h, w)``.
+
+    Each output texel is the solid-angle-weighted mean of the (piecewise-constant) input over
+    its own area, with fractional overlaps of the row bands and columns, so
+    ``Σ L Ω`` (the map's power) is the same before and after for every size ratio. (Pooling
+    with overlapping windows, e.g. ``adaptive_avg_pool2d`` at non-integer ratios, is not.)
+    """
     H, W = img.shape[-2:]
     if (h, w) == (H, W):
         return img
-    omega = latlong_row_solid_angles(H, W, dtype=img.dtype, device=img.device)[None, None, :, None]
-    num = F.adaptive_avg_pool2d(img * omega, (h, w))
-    den = F.adaptive_avg_pool2d(omega.expand(1, 1, H, W), (h, w))
-    return num / den
+    rw = _overlap_weights(H, h, True)
+    cw = _overlap_weights(W, w, False)
+    # Normalise by the weights' own sums (= the output texel's measure) so constants map exactly.
+    rw = (rw / rw.sum(1, keepdim=True)).to(img.dtype).to(img.device)
+    cw = (cw / cw.sum(1, keepdim=True)).to(img.dtype).to(img.device)
+    return torch.einsum("ki,bcij,lj->bckl", rw, img, cw)
 
 
 @lru_cache(maxsize=32)
 def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_str: str) -> Tensor:
     """Conjugated rFFT along φ of the normalised lat-long convolution kernel, ``(h, h, w//2+1)``.
+
+    Row ``i`` (output) against row ``i'`` and column offset ``j`` (input); the convolution
+    along φ is exact (circular, by FFT) and the normalisation conserves power.
 
     ``alpha=None`` gives the cosine kernel ``max(r·l, 0)``; otherwise the GGX kernel
     ``D_α(r·h) max(r·l, 0)`` with ``h = normalize(r + l)`` (Karis' ``n = v = r``).
@@ -710,8 +738,20 @@ def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_
         a2 = alpha * alpha
         den = a2 * 0.5 * (1.0 + rl) + 0.5 * (1.0 - rl)
         k = k * a2 / (math.pi * den * den)
-    k = k * latlong_row_solid_angles(h, w, dtype=torch.float64)[None, :, None]
-    k = k / k.sum(dim=(1, 2), keepdim=True)
+    # Normalise symmetrically, k[i, i', j] = g Ω_i' c_i c_i' (g depends on r·l only, so it is
+    # symmetric in i, i'), with c solving c_i Σ g Ω_i' c_i' = 1 (symmetric Sinkhorn). Then every
+    # row sums to 1 (a constant map is unchanged) AND Σ_i Ω_i k[i, i', ·] = Ω_i' (each input
+    # texel's power is passed on whole). Normalising rows alone does only the former.
+    omega = latlong_row_solid_angles(h, w, dtype=torch.float64)
+    a = k.sum(-1) * omega[None, :]  # (h, h): Σ_j g Ω_i'
+    c = torch.rsqrt(a.sum(1))
+    for _ in range(200):
+        c_new = torch.sqrt(c / (a @ c))
+        done = bool(((c_new - c).abs() <= 1e-15 * c).all())
+        c = c_new
+        if done:
+            break
+    k = k * (omega[None, :] * c[:, None] * c[None, :])[..., None]
     kf = torch.conj(torch.fft.rfft(k, dim=-1))
     cdt = torch.complex64 if dtype in (torch.float32, torch.float16, torch.bfloat16) else torch.complex128
     return kf.to(cdt).to(dev)
