@@ -1,11 +1,14 @@
 """Environment lighting: Monte Carlo converges to quadrature, split sum, furnace, gradients."""
 
+import math
+
 import pytest
 import torch
 
 from torchbrdf._math import safe_normalize
 from torchbrdf.envmap import (
     ENV_SAMPLINGS,
+    SPLIT_SUM_TABLE_CHANNELS,
     SplitSumEnvironment,
     integrate_environment_mc,
     integrate_environment_quadrature,
@@ -19,7 +22,7 @@ from torchbrdf.envmap import (
 from torchbrdf.geometry import sphere_gbuffer
 from torchbrdf.lambert import lambert
 from torchbrdf.lights import EnvironmentLight
-from torchbrdf.principled import principled
+from torchbrdf.principled import PrincipledBRDF, principled
 from torchbrdf.sampling import latlong_directions, latlong_row_solid_angles
 from torchbrdf.shading import Shader, plan, shade
 
@@ -213,13 +216,75 @@ def test_batched_environment_maps():
 
 def test_split_sum_table_properties():
     t = split_sum_table(dtype=D)
-    assert t.shape == (6, 32, 32)
+    assert t.shape == (len(SPLIT_SUM_TABLE_CHANNELS), 32, 32)
     assert split_sum_table(dtype=D) is t  # cached
-    assert bool(torch.isfinite(t).all()) and bool((t >= 0).all())
+    albedos = t[: SPLIT_SUM_TABLE_CHANNELS.index("diffuse_tilt")]  # the tilt is a direction, may be < 0
+    assert bool(torch.isfinite(t).all()) and bool((albedos >= 0).all())
     # Specular albedo with Cspec0 = 1 never exceeds 1 (energy conservation, up to quadrature noise).
     assert float((t[0] + t[1]).max()) < 1.0 + 1e-3
     # Sheen (FH) does not depend on roughness.
     assert torch.allclose(t[4], t[4][:, :1].expand_as(t[4]))
+
+
+def test_split_sum_table_diffuse_tilt():
+    """Burley's lobe is symmetric about n at normal view and leans toward v at grazing view."""
+    t = split_sum_table(dtype=D)[SPLIT_SUM_TABLE_CHANNELS.index("diffuse_tilt")]
+    assert float(t[-1].abs().max()) < 0.02  # n·v = 1: no preferred side (quadrature noise only)
+    assert float(t[0, -1]) > 0.2 and float(t[0, 16]) > 0.1  # n·v -> 0, rough: retro-reflection
+    assert bool((t[0, 8:] > t[-1, 8:]).all())
+
+
+def _sky_with_sun(h=32):
+    """A sky (blue gradient, dark ground) with a 5° sun 300× the sky: an HDR sky, ``(3, h, 2h)``."""
+    d = latlong_directions(h, 2 * h, dtype=D)
+    z = d[..., 2:3]
+    sky = torch.where(z > 0, 0.6 + 0.4 * z, 0.3 * (1 + z)) * torch.tensor([0.4, 0.6, 1.0], dtype=D)
+    sun = safe_normalize(torch.tensor([0.6, 0.5, 0.6], dtype=D))
+    disc = ((d * sun).sum(-1, keepdim=True) > math.cos(math.radians(5))).to(D)
+    return (sky + 300.0 * disc).permute(2, 0, 1).contiguous()
+
+
+def _sphere_and_silhouette(side=14, grazing=64):
+    """Normals of an orthographic sphere picture and of its n·v < 0.1 band, one view: (n, v, P)."""
+    v = safe_normalize(torch.tensor([1.0, 0.0, 0.35], dtype=D))
+    e1 = safe_normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=D), v))
+    e2 = torch.linalg.cross(v, e1)
+    c = (torch.arange(side, dtype=D) + 0.5) / side * 2 - 1
+    a, b = torch.meshgrid(c, c, indexing="xy")
+    m = a * a + b * b < 1
+    a, b = a[m], b[m]
+    disc = a[:, None] * e1 + b[:, None] * e2 + torch.sqrt(1 - a * a - b * b)[:, None] * v
+    i = torch.arange(grazing, dtype=D)
+    nv = 0.1 * (i + 0.5) / grazing
+    phi = i * 2.399963  # golden angle: spread around the silhouette
+    st = torch.sqrt(1 - nv * nv)
+    ring = (st * torch.cos(phi))[:, None] * e1 + (st * torch.sin(phi))[:, None] * e2 + nv[:, None] * v
+    n = torch.cat((disc, ring))
+    return n, v.expand_as(n).contiguous(), len(disc)
+
+
+@pytest.mark.parametrize("roughness", [0.5, 1.0])
+def test_burley_split_sum_keeps_grazing_retro_reflection(roughness):
+    """Irradiance × albedo along n was 15–22 % dark at n·v < 0.1; the lobe's tilt fixes most of it."""
+    env = _sky_with_sun()
+    n, v, p = _sphere_and_silhouette()
+    brdf = PrincipledBRDF(lobes=("diffuse",))
+    mat = {"base_color": 1.0, "roughness": roughness}
+    ss = integrate_environment_split_sum(brdf, n, v, SplitSumEnvironment(env), mat)
+    ref = integrate_environment_quadrature(brdf, n, v, env, mat, subdivisions=3)
+    bias = float((ss[:p] - ref[:p]).sum() / ref[:p].sum())
+    bias_grazing = float((ss[p:] - ref[p:]).sum() / ref[p:].sum())
+    assert abs(bias) < 0.01 and abs(bias_grazing) < 0.04, (bias, bias_grazing)
+
+
+def test_lambert_split_sum_is_unbiased_under_a_sun():
+    """With power-conserving levels the irradiance map is exact up to its bilinear lookup."""
+    env = _sky_with_sun()
+    n, v, p = _sphere_and_silhouette()
+    mat = {"base_color": 1.0}
+    ss = integrate_environment_split_sum(lambert, n, v, SplitSumEnvironment(env), mat)
+    ref = integrate_environment_quadrature(lambert, n, v, env, mat, subdivisions=3)
+    assert abs(float((ss - ref).sum() / ref.sum())) < 0.002
 
 
 def test_prefilter_and_irradiance_of_simple_maps():

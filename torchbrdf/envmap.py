@@ -96,11 +96,19 @@ PREFILTER_ROUGHNESS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 #: Largest prefiltered level height; the kernel costs O(height² · width).
 PREFILTER_MAX_HEIGHT = 128
 #: Height of the irradiance (cosine-convolved) map.
-IRRADIANCE_HEIGHT = 32
+IRRADIANCE_HEIGHT = 64
 #: (n·v, roughness) table: resolution per axis and quasi-random samples per cell.
 SPLIT_SUM_RESOLUTION = 32
 SPLIT_SUM_SAMPLES = 256
-SPLIT_SUM_TABLE_CHANNELS = ("specular_scale", "specular_bias", "diffuse", "subsurface", "sheen", "clearcoat")
+SPLIT_SUM_TABLE_CHANNELS = (
+    "specular_scale",
+    "specular_bias",
+    "diffuse",
+    "subsurface",
+    "sheen",
+    "clearcoat",
+    "diffuse_tilt",
+)
 #: Lobe names understood by the MC mixture.
 SAMPLING_LOBES = ("diffuse", "specular", "clearcoat")
 #: Proposals of the Monte Carlo integrator (``sampling=`` / ``shade(env_sampling=)``):
@@ -767,8 +775,9 @@ def _convolve(img: Tensor, alpha: float | None) -> Tensor:
 
 
 def _level_size(height: int, width: int, alpha: float) -> tuple[int, int]:
-    # Texels well below the lobe's angular width (~2α in l): ~6/α rows, within [16, max].
-    hk = min(height, max(16, min(PREFILTER_MAX_HEIGHT, math.ceil(6.0 / alpha))))
+    # Texels well below the lobe's angular width (~2α in l): ~6/α rows, within [32, max]
+    # (below 32 rows a small bright source smeared over a 6° texel biases even the broad lobes).
+    hk = min(height, max(32, min(PREFILTER_MAX_HEIGHT, math.ceil(6.0 / alpha))))
     wk = max(1, round(width * hk / height))
     return hk, wk
 
@@ -817,13 +826,13 @@ _TABLE_CACHE: dict = {}
 
 
 def _compute_split_sum_table(res: int, samples: int) -> Tensor:
-    """The (n·v, roughness) table in float64 on the CPU, ``(6, res, res)``; see :func:`split_sum_table`."""
+    """The (n·v, roughness) table in float64 on the CPU, ``(7, res, res)``; see :func:`split_sum_table`."""
     from .principled import principled
 
     dt = torch.float64
     nodes = torch.linspace(0.0, 1.0, res, dtype=dt)
     u = hammersley(0, samples, samples, dtype=dt)  # (S, 2)
-    table = torch.zeros(6, res, res, dtype=dt)
+    table = torch.zeros(len(SPLIT_SUM_TABLE_CHANNELS), res, res, dtype=dt)
     rows = 8  # n·v nodes per batched evaluation: (rows, res, samples) points per call
     for i0 in range(0, res, rows):
         nv = torch.clamp(nodes[i0 : i0 + rows], min=1e-4)  # grazing floor: n·v = 0 is degenerate
@@ -861,7 +870,10 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         # Diffuse-like lobes: cosine sampling, weight π.
         l = sample_cosine_hemisphere(uu)
         f0 = f(l, roughness=col)
-        table[2, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, base_color=1.0) - f0))
+        fd = math.pi * (f(l, roughness=col, base_color=1.0) - f0)  # Burley's diffuse × cos / pdf
+        table[2, i0 : i0 + m] = mean(fd)
+        # Its lobe's centroid (x toward v, z along n): Burley's retro-reflection leans toward v.
+        table[6, i0 : i0 + m] = mean(fd * l[..., 0:1]) / mean(fd * l[..., 2:3])
         table[3, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, base_color=1.0, subsurface=1.0) - f0))
         table[4, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, sheen=1.0, sheen_tint=0.0) - f0))
         # Clearcoat over (n·v, gloss): GTR1 sampling.
@@ -899,14 +911,18 @@ def split_sum_table(
     2. ``diffuse``: Burley's diffuse ``Fd / π``;
     3. ``subsurface``: the subsurface term ``ss / π``;
     4. ``sheen``: ``FH``;
-    5. ``clearcoat``: ``0.25 Gr Fr Dr``.
+    5. ``clearcoat``: ``0.25 Gr Fr Dr``;
+    6. ``diffuse_tilt``: not an albedo but the direction of Burley's diffuse lobe,
+       ``∫ Fd (l·t) cos dω / ∫ Fd (l·n) cos dω`` with ``t`` the tangent toward ``v`` (0 for a
+       Lambertian lobe; > 0 where the retro-reflection leans the lobe toward the viewer). The
+       split sum reads the irradiance along ``normalize(n + tilt · t)``, the lobe's centroid.
 
     Computed with :func:`torchbrdf.principled` itself (so the table follows the model
     exactly) using ``samples`` Hammersley samples per cell with the matching importance
     sampler (VNDF, cosine, GTR1) in float64, then cast.
 
     Returns:
-        ``(6, resolution, resolution)`` in ``dtype`` on ``device``.
+        ``(7, resolution, resolution)`` in ``dtype`` on ``device``.
     """
     device = torch.device("cpu") if device is None else torch.device(device)
     key64 = (resolution, samples)
@@ -1057,14 +1073,15 @@ def integrate_environment_split_sum(
     )
     out = torch.zeros_like(n)
     dielectric = 1.0 - metal
-    if "diffuse" in lobes or "subsurface" in lobes:
-        ss = p["subsurface"]
-        mix = 0.0
-        if "diffuse" in lobes:
-            mix = tab[:, 2:3] * (1.0 - ss)
-        if "subsurface" in lobes:
-            mix = mix + tab[:, 3:4] * ss
-        out = out + env.diffuse(n, batch_index) * base * (dielectric * mix)
+    if "diffuse" in lobes:
+        # Irradiance along the centroid of Burley's lobe, which leans toward v at grazing view
+        # (irradiance along n alone misses the retro-reflection there).
+        t_dir = safe_normalize(v - nv * n)
+        d_dir = safe_normalize(n + tab[:, 6:7] * t_dir)
+        w_d = dielectric * (1.0 - p["subsurface"]) * tab[:, 2:3]
+        out = out + env.diffuse(d_dir, batch_index) * base * w_d
+    if "subsurface" in lobes:
+        out = out + env.diffuse(n, batch_index) * base * (dielectric * p["subsurface"] * tab[:, 3:4])
     if "sheen" in lobes:
         csheen = lerp(1.0, ctint, p["sheen_tint"])
         out = out + env.diffuse(n, batch_index) * csheen * (dielectric * p["sheen"] * tab[:, 4:5])
