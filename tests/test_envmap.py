@@ -277,13 +277,14 @@ def test_burley_split_sum_keeps_grazing_retro_reflection(roughness):
     assert abs(bias) < 0.01 and abs(bias_grazing) < 0.04, (bias, bias_grazing)
 
 
-def test_lambert_split_sum_is_unbiased_under_a_sun():
-    """With power-conserving levels the irradiance map is exact up to its bilinear lookup."""
-    env = _sky_with_sun()
+@pytest.mark.parametrize("height", [48, 64])
+def test_lambert_split_sum_is_unbiased_under_a_sun(height):
+    """With a power-conserving irradiance map of enough rows, Lambert is exact to its lookup."""
+    env = _sky_with_sun(height)
     n, v, p = _sphere_and_silhouette()
     mat = {"base_color": 1.0}
     ss = integrate_environment_split_sum(lambert, n, v, SplitSumEnvironment(env), mat)
-    ref = integrate_environment_quadrature(lambert, n, v, env, mat, subdivisions=3)
+    ref = integrate_environment_quadrature(lambert, n, v, env, mat, subdivisions=2)
     assert abs(float((ss - ref).sum() / ref.sum())) < 0.002
 
 
