@@ -637,8 +637,8 @@ ENV_LOBES = (
 def sky_with_sun(height: int = 64, dtype=torch.float64) -> torch.Tensor:
     """``(3, height, 2·height)`` lat-long sky: a blue gradient, a darker ground and a small sun.
 
-    The sun is a disc of 2.5° radius at 35° elevation, 2000× the zenith sky: it gives about
-    two thirds of the irradiance of an upward-facing surface (an HDR sky).
+    The sun is a disc of 2.5° radius at 35° elevation, 2000× the zenith sky (2 texels at 64
+    rows): it gives 60–80 % (blue–red) of the irradiance of an upward-facing surface.
     """
     from .sampling import latlong_directions
 
@@ -677,7 +677,7 @@ def sphere_points(side: int, grazing: int, dtype=torch.float64):
     return n, v, ng
 
 
-def environment_lobes(log, side: int = 40, grazing: int = 256, sample_counts=(64, 256, 1024, 4096),
+def environment_lobes(log, side: int = 32, grazing: int = 128, sample_counts=(64, 256, 1024, 4096),
                       ref_samples: int = 16384, height: int = 64, repeats: int = 3) -> dict:
     """Split sum vs Monte Carlo per lobe on a sphere under :func:`sky_with_sun` (float64).
 
@@ -924,6 +924,7 @@ def write_report(res: dict, out_dir: str, argv) -> None:
         L += ["", "Pruned = `subsurface`, `sheen`, `clearcoat` passed as Python `0.0` (exactly the same values as "
               "tensors of zeros; the lobes are skipped).", ""]
     L += environment_section(res.get("environment"))
+    L += environment_lobes_section(res.get("environment_lobes"))
     if plots:
         L += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     with open(os.path.join(out_dir, "benchmarks.md"), "w") as fh:
@@ -1012,7 +1013,53 @@ def _plots(res: dict, out_dir: str) -> list:
         fig.savefig(os.path.join(out_dir, "bench_pareto_env.png"), dpi=110)
         plt.close(fig)
         files.append("bench_pareto_env.png")
+    lobes = res.get("environment_lobes")
+    if lobes:
+        files.append(_plot_env_lobes(plt, lobes, out_dir))
     return files
+
+
+def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
+    """One panel per lobe: MC error vs time (labels: samples per point) and the split sum."""
+    k = len(res["lobes"])
+    cols = 3
+    rows = (k + cols) // cols  # one spare panel holds the legend
+    fig, grid = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), sharey=True)
+    axes = list(grid.ravel())
+    for ax, lobe in zip(axes, res["lobes"]):
+        mc = [r for r in lobe["rows"] if r["samples"]]
+        ss = [r for r in lobe["rows"] if not r["samples"]][0]
+        ax.plot([r["seconds"] for r in mc], [100 * r["rel_l1"] for r in mc], "-o", color="C0", ms=4,
+                label="MC (MIS): rel. L1 error")
+        for r in mc:
+            ax.annotate(str(r["samples"]), (r["seconds"], 100 * r["rel_l1"]), fontsize=7, color="C0",
+                        xytext=(3, 3), textcoords="offset points")
+        ax.plot([ss["seconds"]], [100 * ss["rel_l1"]], "*", color="C3", ms=13, label="split sum: rel. L1 error")
+        ax.plot([ss["seconds"] + res["prefilter_seconds"]], [100 * ss["rel_l1"]], "*", ms=13, mfc="none",
+                color="C3", label="split sum incl. prefiltering")
+        ax.axhline(100 * max(abs(ss["bias"]), 1e-3), color="C3", ls="--", lw=1, label="split sum: |bias|")
+        ax.axhline(100 * max(abs(ss["bias_grazing"]), 1e-3), color="C2", ls=":", lw=1.5,
+                   label="split sum: |bias| at n·v < 0.1")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(lobe["label"], fontsize=9)
+        ax.set_xlabel("seconds per call (log)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.yaxis.set_tick_params(labelleft=True)
+    for i in range(0, len(axes), cols):
+        axes[i].set_ylabel("error vs reference (%, log)")
+    handles, labels = axes[0].get_legend_handles_labels()
+    for ax in axes[k:]:
+        ax.axis("off")
+    axes[-1].legend(handles, labels, loc="center", fontsize=8,
+                    title="MC labels: samples per point", title_fontsize=8)
+    fig.suptitle(f"environment lighting per lobe: split sum vs Monte Carlo ({res['pixels']}-pixel sphere, "
+                 f"{res['env_size'][0]}×{res['env_size'][1]} sky with a sun)", fontsize=10)
+    fig.tight_layout()
+    name = "bench_pareto_env_lobes.png"
+    fig.savefig(os.path.join(out_dir, name), dpi=110)
+    plt.close(fig)
+    return name
 
 
 def main(argv=None) -> int:
@@ -1071,6 +1118,9 @@ def main(argv=None) -> int:
     if not args.no_env:
         log("environment lighting:")
         res["environment"] = environment(64 if args.quick else 256, log)
+        log("environment lighting per lobe:")
+        res["environment_lobes"] = environment_lobes(log, **(dict(side=16, grazing=64, ref_samples=4096)
+                                                             if args.quick else {}))
     res["machine"]["load_end"] = os.getloadavg()
     write_report(res, args.out, argv)
     log(f"wrote {os.path.join(args.out, 'benchmarks.md')}")

@@ -38,14 +38,19 @@ specular integral is split into a prefiltered map (the map convolved with the GG
 the ``n = v = r`` assumption, at ``len(PREFILTER_ROUGHNESS)`` roughness levels, interpolated
 linearly) times a pre-integrated (n·v, roughness) table of the lobe with Schlick Fresnel
 split into a scale on ``Cspec0`` and a bias. Diffuse, subsurface and sheen use the
-cosine-convolved irradiance times their own tabulated directional albedo; clearcoat uses a
+cosine-convolved irradiance times their own tabulated directional albedo; Burley's diffuse
+reads the irradiance along its lobe's centroid, tabulated beside its albedo (the
+retro-reflection leans the lobe toward ``v`` at grazing view); clearcoat uses a
 (n·v, clearcoat_gloss) table and the prefiltered map at the matching width. The table is
-computed from :func:`torchbrdf.principled` itself at first use and cached. Error: exact for
-a constant map (white furnace) and for the diffuse lobe under a constant map; otherwise a
-bias that grows with roughness × map contrast (the lobe's shape is not rotationally symmetric
-about the mirror direction away from normal incidence) and for anisotropic materials (treated
-as isotropic with the same mean width) — typically a few percent on smooth maps, up to tens
-of percent for rough lobes at grazing view over a high-contrast map.
+computed from :func:`torchbrdf.principled` itself at first use and cached. Every prefiltered
+level and the irradiance map conserve the map's power exactly (area resampling with
+solid-angle overlaps, then a symmetrically normalised convolution), for any map size.
+Error: exact for a constant map (white furnace) and for the diffuse lobe under a constant
+map; Lambert is exact up to the irradiance map's bilinear lookup; otherwise a bias that grows
+with roughness × map contrast (the lobe's shape is not rotationally symmetric about the
+mirror direction away from normal incidence) and for anisotropic materials (treated as
+isotropic with the same mean width) — typically a few percent on smooth maps, up to tens of
+percent for rough lobes at grazing view over a high-contrast map (``docs/shading.md``).
 """
 
 from __future__ import annotations
@@ -787,8 +792,9 @@ def prefilter_environment(radiance: Tensor, roughness_levels=PREFILTER_ROUGHNESS
 
     Level ``k`` is ``∫ L(l) D(h) max(r·l, 0) dω / ∫ D(h) max(r·l, 0) dω`` with
     ``h = normalize(r + l)`` and ``α = max(roughness², 0.001)``, evaluated as an FFT
-    convolution along φ on a map area-averaged to a resolution matched to the lobe width.
-    Roughness 0 returns the map itself.
+    convolution along φ on a map area-averaged to a resolution matched to the lobe width
+    (32–128 rows). Both steps conserve the map's power ``Σ L Ω`` exactly, whatever the size
+    ratio. Roughness 0 returns the map itself.
 
     Args:
         radiance: ``(3, H, W)`` or ``(B, 3, H, W)``.
@@ -813,7 +819,8 @@ def prefilter_environment(radiance: Tensor, roughness_levels=PREFILTER_ROUGHNESS
 def irradiance_environment(radiance: Tensor, height: int = IRRADIANCE_HEIGHT) -> Tensor:
     """Normalised cosine convolution ``∫ L max(n·l, 0) dω / π`` of a map, ``(B, 3, h, 2h)``.
 
-    Normalised by the discrete kernel sum, so a constant map maps to itself exactly.
+    Normalised so that a constant map maps to itself exactly and the power ``Σ L Ω`` is kept
+    (the map is first area-resampled to ``min(H, height)`` rows, which keeps it too).
     """
     img = radiance.unsqueeze(0) if radiance.dim() == 3 else radiance
     H, W = img.shape[-2:]
