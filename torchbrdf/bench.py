@@ -1037,8 +1037,8 @@ def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
         ax.plot([ss["seconds"]], [100 * ss["rel_l1"]], "*", color="C3", ms=13, label="split sum: rel. L1 error")
         ax.plot([ss["seconds"] + res["prefilter_seconds"]], [100 * ss["rel_l1"]], "*", ms=13, mfc="none",
                 color="C3", label="split sum incl. prefiltering")
-        ax.axhline(100 * max(abs(ss["bias"]), 1e-3), color="C3", ls="--", lw=1, label="split sum: |bias|")
-        ax.axhline(100 * max(abs(ss["bias_grazing"]), 1e-3), color="C2", ls=":", lw=1.5,
+        ax.axhline(100 * max(abs(ss["bias"]), 1e-6), color="C3", ls="--", lw=1, label="split sum: |bias|")
+        ax.axhline(100 * max(abs(ss["bias_grazing"]), 1e-6), color="C2", ls=":", lw=1.5,
                    label="split sum: |bias| at n·v < 0.1")
         ax.set_xscale("log")
         ax.set_yscale("log")
