@@ -315,7 +315,7 @@ def test_prefiltered_levels_and_irradiance_conserve_power(height):
     img = torch.rand(1, 3, height, 2 * height, generator=g, dtype=D) ** 4
     want = _power(img)
     maps = prefilter_environment(img) + [irradiance_environment(img)]
-    assert any(m.shape[-2] not in (height, 16, 32) or height % m.shape[-2] for m in maps)  # non-integer ratios
+    assert any(height % m.shape[-2] for m in maps)  # some size ratios are not integers
     for m in maps:
         assert float((_power(m) / want - 1).abs().max()) < 1e-4, m.shape
 

@@ -647,7 +647,8 @@ def sky_with_sun(height: int = 64, dtype=torch.float64) -> torch.Tensor:
     sky = torch.where(z > 0, torch.tensor([0.35, 0.5, 0.9], dtype=dtype) * (0.6 + 0.4 * z),
                       torch.tensor([0.25, 0.2, 0.15], dtype=dtype) * (1.0 + z))
     el = math.radians(35.0)
-    sun = torch.tensor([math.cos(el) * math.cos(0.6), math.cos(el) * math.sin(0.6), math.sin(el)], dtype=dtype)
+    az = 0.6
+    sun = torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=dtype)
     disc = ((d * sun).sum(-1, keepdim=True) > math.cos(math.radians(2.5))).to(dtype)
     return (sky + 2000.0 * disc * torch.tensor([1.0, 0.95, 0.85], dtype=dtype)).permute(2, 0, 1).contiguous()
 
@@ -661,7 +662,8 @@ def sphere_points(side: int, grazing: int, dtype=torch.float64):
     ``v`` ``(3,)`` looks slightly down on the sphere, so it sees sky, sun and ground.
     """
     v = torch.nn.functional.normalize(torch.tensor([1.0, 0.0, 0.35], dtype=dtype), dim=0)
-    e1 = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=dtype), v), dim=0)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(up, v), dim=0)
     e2 = torch.linalg.cross(v, e1)
     c = (torch.arange(side, dtype=dtype) + 0.5) / side * 2 - 1
     a, b = torch.meshgrid(c, c, indexing="xy")
@@ -704,15 +706,16 @@ def environment_lobes(log, side: int = 32, grazing: int = 128, sample_counts=(64
     t0 = time.perf_counter()
     env = SplitSumEnvironment(radiance)
     t_pre = time.perf_counter() - t0
-    out = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height], ref_samples=ref_samples,
-               prefilter_seconds=t_pre, threads=torch.get_num_threads(), repeats=repeats, lobes=[])
+    out = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height],
+               ref_samples=ref_samples, prefilter_seconds=t_pre, threads=torch.get_num_threads(),
+               repeats=repeats, lobes=[])
     for label, kind, mat in ENV_LOBES:
         brdf = lambert if kind == "lambert" else PrincipledBRDF(lobes=(kind,))
         material = dict(base_color=1.0, **mat)
 
         def mc(s, seed, pts=n_all):
-            return integrate_environment_mc(brdf, pts, v.expand_as(pts).contiguous(), radiance, material, samples=s,
-                                            seed=seed, samples_per_pass=1024)
+            return integrate_environment_mc(brdf, pts, v.expand_as(pts).contiguous(), radiance, material,
+                                            samples=s, seed=seed, samples_per_pass=1024)
 
         t0 = time.perf_counter()
         ref = mc(ref_samples, 1234)
@@ -744,19 +747,22 @@ def environment_lobes_section(res: dict | None) -> list:
     L = ["## Environment lighting per lobe: split sum vs Monte Carlo", ""]
     if not res:
         return L + ["TODO: not measured in this run.", ""]
-    L += [f"An orthographic sphere ({res['pixels']} pixels of a {res['side']}×{res['side']} picture, plus "
-          f"{res['grazing']} normals with n·v < 0.1) under a {res['env_size'][0]}×{res['env_size'][1]} sky with a "
-          "sun (`bench.sky_with_sun`: 2.5° disc, 2000× the zenith sky), white base colour, float64. Reference: MIS "
-          f"Monte Carlo at {res['ref_samples']} samples per point (another seed). Error = relative L1 "
-          "(Σ|est − ref| / Σ ref over the picture); bias = Σ(est − ref) / Σ ref over the picture, and over the "
-          f"n·v < 0.1 band; time = median of {res['repeats']} call(s) after a warm-up, {res['threads']} torch "
-          f"thread(s); the split sum's prefiltering ({res['prefilter_seconds'] * 1e3:.0f} ms, once per map) is not "
-          "in its time.", "",
-          "| lobe | method | samples | time (ms) | rel. L1 error | bias | bias, n·v < 0.1 |", "|---|---|---|---|---|---|---|"]
+    h, w = res["env_size"]
+    L += [f"An orthographic sphere ({res['pixels']} pixels of a {res['side']}×{res['side']} picture, "
+          f"plus {res['grazing']} normals with n·v < 0.1) under a {h}×{w} sky with a sun "
+          "(`bench.sky_with_sun`: 2.5° disc, 2000× the zenith sky), white base colour, float64. "
+          f"Reference: MIS Monte Carlo at {res['ref_samples']} samples per point (another seed). "
+          "Error = relative L1 (Σ|est − ref| / Σ ref over the picture); bias = Σ(est − ref) / Σ ref "
+          f"over the picture, and over the n·v < 0.1 band; time = median of {res['repeats']} call(s) "
+          f"after a warm-up, {res['threads']} torch thread(s); the split sum's prefiltering "
+          f"({res['prefilter_seconds'] * 1e3:.0f} ms, once per map) is not in its time.", "",
+          "| lobe | method | samples | time (ms) | rel. L1 error | bias | bias, n·v < 0.1 |",
+          "|---|---|---|---|---|---|---|"]
     for lobe in res["lobes"]:
         for r in lobe["rows"]:
-            L.append(f"| {lobe['label']} | {r['method']} | {r['samples'] or '—'} | {r['seconds'] * 1e3:.1f} | "
-                     f"{r['rel_l1'] * 100:.2f} % | {r['bias'] * 100:+.2f} % | {r['bias_grazing'] * 100:+.2f} % |")
+            L.append(f"| {lobe['label']} | {r['method']} | {r['samples'] or '—'} | "
+                     f"{r['seconds'] * 1e3:.1f} | {r['rel_l1'] * 100:.2f} % | {r['bias'] * 100:+.2f} % | "
+                     f"{r['bias_grazing'] * 100:+.2f} % |")
     return L + [""]
 
 
@@ -1034,7 +1040,8 @@ def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
         for r in mc:
             ax.annotate(str(r["samples"]), (r["seconds"], 100 * r["rel_l1"]), fontsize=7, color="C0",
                         xytext=(3, 3), textcoords="offset points")
-        ax.plot([ss["seconds"]], [100 * ss["rel_l1"]], "*", color="C3", ms=13, label="split sum: rel. L1 error")
+        ax.plot([ss["seconds"]], [100 * ss["rel_l1"]], "*", color="C3", ms=13,
+                label="split sum: rel. L1 error")
         ax.plot([ss["seconds"] + res["prefilter_seconds"]], [100 * ss["rel_l1"]], "*", ms=13, mfc="none",
                 color="C3", label="split sum incl. prefiltering")
         ax.axhline(100 * max(abs(ss["bias"]), 1e-6), color="C3", ls="--", lw=1, label="split sum: |bias|")
