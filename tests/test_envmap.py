@@ -1,11 +1,16 @@
 """Environment lighting: Monte Carlo converges to quadrature, split sum, furnace, gradients."""
 
+import math
+
 import pytest
 import torch
 
 from torchbrdf._math import safe_normalize
+from torchbrdf.brdf.lambert import lambert
+from torchbrdf.brdf.principled import PrincipledBRDF, principled
 from torchbrdf.render.envmap import (
     ENV_SAMPLINGS,
+    SPLIT_SUM_TABLE_CHANNELS,
     SplitSumEnvironment,
     integrate_environment_mc,
     integrate_environment_quadrature,
@@ -17,10 +22,8 @@ from torchbrdf.render.envmap import (
     split_sum_table,
 )
 from torchbrdf.render.geometry import sphere_gbuffer
-from torchbrdf.brdf.lambert import lambert
 from torchbrdf.render.lights import EnvironmentLight
-from torchbrdf.brdf.principled import principled
-from torchbrdf.render.sampling import latlong_directions
+from torchbrdf.render.sampling import latlong_directions, latlong_row_solid_angles
 from torchbrdf.render.shading import Shader, plan, shade
 
 D = torch.float64
@@ -213,13 +216,76 @@ def test_batched_environment_maps():
 
 def test_split_sum_table_properties():
     t = split_sum_table(dtype=D)
-    assert t.shape == (6, 32, 32)
+    assert t.shape == (len(SPLIT_SUM_TABLE_CHANNELS), 32, 32)
     assert split_sum_table(dtype=D) is t  # cached
-    assert bool(torch.isfinite(t).all()) and bool((t >= 0).all())
+    albedos = t[: SPLIT_SUM_TABLE_CHANNELS.index("diffuse_tilt")]  # the tilt is a direction, may be < 0
+    assert bool(torch.isfinite(t).all()) and bool((albedos >= 0).all())
     # Specular albedo with Cspec0 = 1 never exceeds 1 (energy conservation, up to quadrature noise).
     assert float((t[0] + t[1]).max()) < 1.0 + 1e-3
     # Sheen (FH) does not depend on roughness.
     assert torch.allclose(t[4], t[4][:, :1].expand_as(t[4]))
+
+
+def test_split_sum_table_diffuse_tilt():
+    """Burley's lobe is symmetric about n at normal view and leans toward v at grazing view."""
+    t = split_sum_table(dtype=D)[SPLIT_SUM_TABLE_CHANNELS.index("diffuse_tilt")]
+    assert float(t[-1].abs().max()) < 0.02  # n·v = 1: no preferred side (quadrature noise only)
+    assert float(t[0, -1]) > 0.2 and float(t[0, 16]) > 0.1  # n·v -> 0, rough: retro-reflection
+    assert bool((t[0, 8:] > t[-1, 8:]).all())
+
+
+def _sky_with_sun(h=32):
+    """A sky (blue gradient, dark ground) with a 5° sun 300× the sky: an HDR sky, ``(3, h, 2h)``."""
+    d = latlong_directions(h, 2 * h, dtype=D)
+    z = d[..., 2:3]
+    sky = torch.where(z > 0, 0.6 + 0.4 * z, 0.3 * (1 + z)) * torch.tensor([0.4, 0.6, 1.0], dtype=D)
+    sun = safe_normalize(torch.tensor([0.6, 0.5, 0.6], dtype=D))
+    disc = ((d * sun).sum(-1, keepdim=True) > math.cos(math.radians(5))).to(D)
+    return (sky + 300.0 * disc).permute(2, 0, 1).contiguous()
+
+
+def _sphere_and_silhouette(side=14, grazing=64):
+    """Normals of an orthographic sphere picture and of its n·v < 0.1 band, one view: (n, v, P)."""
+    v = safe_normalize(torch.tensor([1.0, 0.0, 0.35], dtype=D))
+    e1 = safe_normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=D), v))
+    e2 = torch.linalg.cross(v, e1)
+    c = (torch.arange(side, dtype=D) + 0.5) / side * 2 - 1
+    a, b = torch.meshgrid(c, c, indexing="xy")
+    m = a * a + b * b < 1
+    a, b = a[m], b[m]
+    disc = a[:, None] * e1 + b[:, None] * e2 + torch.sqrt(1 - a * a - b * b)[:, None] * v
+    i = torch.arange(grazing, dtype=D)
+    nv = 0.1 * (i + 0.5) / grazing
+    phi = i * 2.399963  # golden angle: spread around the silhouette
+    st = torch.sqrt(1 - nv * nv)
+    ring = (st * torch.cos(phi))[:, None] * e1 + (st * torch.sin(phi))[:, None] * e2 + nv[:, None] * v
+    n = torch.cat((disc, ring))
+    return n, v.expand_as(n).contiguous(), len(disc)
+
+
+@pytest.mark.parametrize("roughness", [0.5, 1.0])
+def test_burley_split_sum_keeps_grazing_retro_reflection(roughness):
+    """Irradiance × albedo along n was 15–22 % dark at n·v < 0.1; the lobe's tilt fixes most of it."""
+    env = _sky_with_sun()
+    n, v, p = _sphere_and_silhouette()
+    brdf = PrincipledBRDF(lobes=("diffuse",))
+    mat = {"base_color": 1.0, "roughness": roughness}
+    ss = integrate_environment_split_sum(brdf, n, v, SplitSumEnvironment(env), mat)
+    ref = integrate_environment_quadrature(brdf, n, v, env, mat, subdivisions=3)
+    bias = float((ss[:p] - ref[:p]).sum() / ref[:p].sum())
+    bias_grazing = float((ss[p:] - ref[p:]).sum() / ref[p:].sum())
+    assert abs(bias) < 0.01 and abs(bias_grazing) < 0.04, (bias, bias_grazing)
+
+
+@pytest.mark.parametrize("height", [48, 64])
+def test_lambert_split_sum_is_unbiased_under_a_sun(height):
+    """With a power-conserving irradiance map of enough rows, Lambert is exact to its lookup."""
+    env = _sky_with_sun(height)
+    n, v, p = _sphere_and_silhouette()
+    mat = {"base_color": 1.0}
+    ss = integrate_environment_split_sum(lambert, n, v, SplitSumEnvironment(env), mat)
+    ref = integrate_environment_quadrature(lambert, n, v, env, mat, subdivisions=2)
+    assert abs(float((ss - ref).sum() / ref.sum())) < 0.002
 
 
 def test_prefilter_and_irradiance_of_simple_maps():
@@ -234,6 +300,39 @@ def test_prefilter_and_irradiance_of_simple_maps():
     n = safe_normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(0), dtype=D))
     got = latlong_bilinear(irr, n)[:, 0]
     assert torch.allclose(got, 1 + (2 / 3) * (n * a).sum(-1), atol=3e-3)
+
+
+def _power(m):
+    """Σ L Ω of ``(B, 3, h, w)`` maps (exact texel solid angles), ``(B, 3)``."""
+    h, w = m.shape[-2:]
+    return (m * latlong_row_solid_angles(h, w, dtype=m.dtype)[:, None]).sum((-1, -2))
+
+
+@pytest.mark.parametrize("height", [48, 64, 100, 256])
+def test_prefiltered_levels_and_irradiance_conserve_power(height):
+    """Every level and the irradiance map carry the map's power, whatever the size ratio."""
+    g = torch.Generator().manual_seed(height)
+    img = torch.rand(1, 3, height, 2 * height, generator=g, dtype=D) ** 4
+    want = _power(img)
+    maps = prefilter_environment(img) + [irradiance_environment(img)]
+    assert any(height % m.shape[-2] for m in maps)  # some size ratios are not integers
+    for m in maps:
+        assert float((_power(m) / want - 1).abs().max()) < 1e-4, m.shape
+
+
+@pytest.mark.parametrize("row", [0, 3, 17, 31, 40, 63])
+def test_single_bright_texel_keeps_its_power(row):
+    img = torch.zeros(1, 3, 64, 128, dtype=D)
+    img[0, :, row, (row * 7) % 128] = 1.0
+    want = _power(img)
+    for m in prefilter_environment(img) + [irradiance_environment(img)]:
+        assert float((_power(m) / want - 1).abs().max()) < 1e-4, m.shape
+
+
+def test_level_resampling_keeps_constants():
+    const = torch.full((1, 3, 100, 200), 0.7, dtype=D)
+    for m in prefilter_environment(const) + [irradiance_environment(const)]:
+        assert torch.allclose(m, torch.full_like(m, 0.7), atol=1e-12, rtol=0)
 
 
 def test_split_sum_exact_for_constant_environment():

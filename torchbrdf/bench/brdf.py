@@ -557,7 +557,7 @@ def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256, 1024), repea
 
     Runs on its own (e.g. to refresh only this section of ``docs/benchmarks.md``)::
 
-        from torchbrdf.bench import brdf
+        from torchbrdf.bench.brdf import brdf
         env = bench.environment(256, print)
         lines = bench.environment_section(env)      # the markdown of the section
         bench._plots({"environment": env}, "docs")  # writes only bench_pareto_env.png
@@ -623,6 +623,152 @@ def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256, 1024), repea
     log(f"  reference (quadrature 4x4 per texel, {t_ref:.1f} s) vs 2x2: rel L1 {ref_check:.1e}")
     return dict(points=points, reference_seconds=t_ref, reference_check=ref_check, env_size=[H, W],
                 threads=torch.get_num_threads(), repeats=repeats, rows=rows)
+
+
+#: Lobes measured one by one by :func:`environment_lobes`: label -> (brdf kind, material).
+ENV_LOBES = (
+    ("Lambert", "lambert", {}),
+    ("Burley diffuse, roughness 0.5", "diffuse", {"roughness": 0.5}),
+    ("GGX, roughness 0.2", "specular", {"roughness": 0.2, "metallic": 1.0}),
+    ("GGX, roughness 0.5", "specular", {"roughness": 0.5, "metallic": 1.0}),
+    ("GGX, roughness 0.9", "specular", {"roughness": 0.9, "metallic": 1.0}),
+)
+
+
+def sky_with_sun(height: int = 64, dtype=torch.float64) -> torch.Tensor:
+    """``(3, height, 2·height)`` lat-long sky: a blue gradient, a darker ground and a small sun.
+
+    The sun is a disc of 2.5° radius at 35° elevation, 2000× the zenith sky (2 texels at 64
+    rows): it gives 60–80 % (blue–red) of the irradiance of an upward-facing surface.
+    """
+    from torchbrdf.render.sampling import latlong_directions
+
+    d = latlong_directions(height, 2 * height, dtype=dtype)  # (H, W, 3)
+    z = d[..., 2:3]
+    sky = torch.where(z > 0, torch.tensor([0.35, 0.5, 0.9], dtype=dtype) * (0.6 + 0.4 * z),
+                      torch.tensor([0.25, 0.2, 0.15], dtype=dtype) * (1.0 + z))
+    el = math.radians(35.0)
+    az = 0.6
+    sun = torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=dtype)
+    disc = ((d * sun).sum(-1, keepdim=True) > math.cos(math.radians(2.5))).to(dtype)
+    return (sky + 2000.0 * disc * torch.tensor([1.0, 0.95, 0.85], dtype=dtype)).permute(2, 0, 1).contiguous()
+
+
+def sphere_points(side: int, grazing: int, dtype=torch.float64):
+    """Normals and view of an orthographic sphere: ``(n, v, n_graze)``.
+
+    ``n`` ``(P, 3)``: the pixels of a ``side × side`` image of the sphere (so means over it are
+    means over the picture); ``n_graze`` ``(grazing, 3)``: extra normals with ``n·v`` uniform in
+    (0, 0.1), spread around the silhouette (the band the picture holds few pixels of). The view
+    ``v`` ``(3,)`` looks slightly down on the sphere, so it sees sky, sun and ground.
+    """
+    v = torch.nn.functional.normalize(torch.tensor([1.0, 0.0, 0.35], dtype=dtype), dim=0)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(up, v), dim=0)
+    e2 = torch.linalg.cross(v, e1)
+    c = (torch.arange(side, dtype=dtype) + 0.5) / side * 2 - 1
+    a, b = torch.meshgrid(c, c, indexing="xy")
+    inside = a * a + b * b < 1
+    a, b = a[inside], b[inside]
+    nz = torch.sqrt(1 - a * a - b * b)
+    n = a[:, None] * e1 + b[:, None] * e2 + nz[:, None] * v
+    k = torch.arange(grazing, dtype=dtype)
+    nv = (k + 0.5) / grazing * 0.1
+    phi = k * 2.399963  # golden angle: azimuths spread evenly whatever the count
+    st = torch.sqrt(1 - nv * nv)
+    ng = (st * torch.cos(phi))[:, None] * e1 + (st * torch.sin(phi))[:, None] * e2 + nv[:, None] * v
+    return n, v, ng
+
+
+def environment_lobes(log, side: int = 32, grazing: int = 128, sample_counts=(64, 256, 1024, 4096),
+                      ref_samples: int = 16384, height: int = 64, repeats: int = 3) -> dict:
+    """Split sum vs Monte Carlo per lobe on a sphere under :func:`sky_with_sun` (float64).
+
+    For each lobe of :data:`ENV_LOBES` (white base colour): the reference is MIS Monte Carlo
+    at ``ref_samples`` per point (another seed than the measured runs); reported are the
+    relative L1 error (Σ|est − ref| / Σ ref, over the picture and the channels), the bias
+    (Σ(est − ref) / Σ ref) over the picture and over the grazing band n·v < 0.1, and the
+    time of one call (median of ``repeats`` after a warm-up), for the split sum and for MIS
+    at each of ``sample_counts``. Runs on its own::
+
+        from torchbrdf import bench
+        lobes = bench.environment_lobes(print)
+        bench._plots({"environment_lobes": lobes}, "docs")  # writes only bench_pareto_env_lobes.png
+    """
+    from torchbrdf.brdf.lambert import lambert
+    from torchbrdf.brdf.principled import PrincipledBRDF
+    from torchbrdf.render.envmap import (
+        SplitSumEnvironment,
+        integrate_environment_mc,
+        integrate_environment_split_sum,
+    )
+
+    radiance = sky_with_sun(height)
+    n, v, ng = sphere_points(side, grazing)
+    npix = n.shape[0]
+    n_all = torch.cat((n, ng))
+    v_all = v.expand_as(n_all).contiguous()
+    t0 = time.perf_counter()
+    env = SplitSumEnvironment(radiance)
+    t_pre = time.perf_counter() - t0
+    out = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height],
+               ref_samples=ref_samples, prefilter_seconds=t_pre, threads=torch.get_num_threads(),
+               repeats=repeats, lobes=[])
+    for label, kind, mat in ENV_LOBES:
+        brdf = lambert if kind == "lambert" else PrincipledBRDF(lobes=(kind,))
+        material = dict(base_color=1.0, **mat)
+
+        def mc(s, seed, pts=n_all):
+            return integrate_environment_mc(brdf, pts, v.expand_as(pts).contiguous(), radiance, material,
+                                            samples=s, seed=seed, samples_per_pass=1024)
+
+        t0 = time.perf_counter()
+        ref = mc(ref_samples, 1234)
+        t_ref = time.perf_counter() - t0
+
+        def metrics(est):
+            e, r = est[:npix], ref[:npix]
+            eg, rg = est[npix:], ref[npix:]
+            return dict(rel_l1=float((e - r).abs().sum() / r.sum()), bias=float((e - r).sum() / r.sum()),
+                        bias_grazing=float((eg - rg).sum() / rg.sum()),
+                        bias_rgb=[float(x) for x in (e - r).sum(0) / r.sum(0)])
+
+        rows = []
+        split = lambda: integrate_environment_split_sum(brdf, n_all, v_all, env, material)  # noqa: E731
+        t, _ = _median_time(split, repeats, 2.0)
+        rows.append(dict(method="split sum", samples=None, seconds=t, **metrics(split())))
+        for s in sample_counts:
+            t, _ = _median_time(lambda s=s: mc(s, 11), repeats, 8.0)
+            rows.append(dict(method="MC (MIS)", samples=s, seconds=t, **metrics(mc(s, 11))))
+        for r in rows:
+            log(f"  {label:32s} {r['method']:9s} {r['samples']!s:5s} {r['seconds'] * 1e3:8.1f} ms  rel L1 "
+                f"{r['rel_l1']:.2e}  bias {r['bias']:+.2e}  bias n·v<0.1 {r['bias_grazing']:+.2e}")
+        out["lobes"].append(dict(label=label, reference_seconds=t_ref, rows=rows))
+    return out
+
+
+def environment_lobes_section(res: dict | None) -> list:
+    """Markdown lines of the per-lobe split-sum section (heading included)."""
+    L = ["## Environment lighting per lobe: split sum vs Monte Carlo", ""]
+    if not res:
+        return L + ["TODO: not measured in this run.", ""]
+    h, w = res["env_size"]
+    L += [f"An orthographic sphere ({res['pixels']} pixels of a {res['side']}×{res['side']} picture, "
+          f"plus {res['grazing']} normals with n·v < 0.1) under a {h}×{w} sky with a sun "
+          "(`bench.sky_with_sun`: 2.5° disc, 2000× the zenith sky), white base colour, float64. "
+          f"Reference: MIS Monte Carlo at {res['ref_samples']} samples per point (another seed). "
+          "Error = relative L1 (Σ|est − ref| / Σ ref over the picture); bias = Σ(est − ref) / Σ ref "
+          f"over the picture, and over the n·v < 0.1 band; time = median of {res['repeats']} call(s) "
+          f"after a warm-up, {res['threads']} torch thread(s); the split sum's prefiltering "
+          f"({res['prefilter_seconds'] * 1e3:.0f} ms, once per map) is not in its time.", "",
+          "| lobe | method | samples | time (ms) | rel. L1 error | bias | bias, n·v < 0.1 |",
+          "|---|---|---|---|---|---|---|"]
+    for lobe in res["lobes"]:
+        for r in lobe["rows"]:
+            L.append(f"| {lobe['label']} | {r['method']} | {r['samples'] or '—'} | "
+                     f"{r['seconds'] * 1e3:.1f} | {r['rel_l1'] * 100:.2f} % | {r['bias'] * 100:+.2f} % | "
+                     f"{r['bias_grazing'] * 100:+.2f} % |")
+    return L + [""]
 
 
 def environment_section(env: dict | None) -> list:
@@ -789,6 +935,7 @@ def write_report(res: dict, out_dir: str, argv) -> None:
         L += ["", "Pruned = `subsurface`, `sheen`, `clearcoat` passed as Python `0.0` (exactly the same values as "
               "tensors of zeros; the lobes are skipped).", ""]
     L += environment_section(res.get("environment"))
+    L += environment_lobes_section(res.get("environment_lobes"))
     if plots:
         L += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     with open(os.path.join(out_dir, "benchmarks.md"), "w") as fh:
@@ -877,7 +1024,54 @@ def _plots(res: dict, out_dir: str) -> list:
         fig.savefig(os.path.join(out_dir, "bench_pareto_env.png"), dpi=110)
         plt.close(fig)
         files.append("bench_pareto_env.png")
+    lobes = res.get("environment_lobes")
+    if lobes:
+        files.append(_plot_env_lobes(plt, lobes, out_dir))
     return files
+
+
+def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
+    """One panel per lobe: MC error vs time (labels: samples per point) and the split sum."""
+    k = len(res["lobes"])
+    cols = 3
+    rows = (k + cols) // cols  # one spare panel holds the legend
+    fig, grid = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), sharey=True)
+    axes = list(grid.ravel())
+    for ax, lobe in zip(axes, res["lobes"]):
+        mc = [r for r in lobe["rows"] if r["samples"]]
+        ss = [r for r in lobe["rows"] if not r["samples"]][0]
+        ax.plot([r["seconds"] for r in mc], [100 * r["rel_l1"] for r in mc], "-o", color="C0", ms=4,
+                label="MC (MIS): rel. L1 error")
+        for r in mc:
+            ax.annotate(str(r["samples"]), (r["seconds"], 100 * r["rel_l1"]), fontsize=7, color="C0",
+                        xytext=(3, 3), textcoords="offset points")
+        ax.plot([ss["seconds"]], [100 * ss["rel_l1"]], "*", color="C3", ms=13,
+                label="split sum: rel. L1 error")
+        ax.plot([ss["seconds"] + res["prefilter_seconds"]], [100 * ss["rel_l1"]], "*", ms=13, mfc="none",
+                color="C3", label="split sum incl. prefiltering")
+        ax.axhline(100 * max(abs(ss["bias"]), 1e-6), color="C3", ls="--", lw=1, label="split sum: |bias|")
+        ax.axhline(100 * max(abs(ss["bias_grazing"]), 1e-6), color="C2", ls=":", lw=1.5,
+                   label="split sum: |bias| at n·v < 0.1")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(lobe["label"], fontsize=9)
+        ax.set_xlabel("seconds per call (log)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.yaxis.set_tick_params(labelleft=True)
+    for i in range(0, len(axes), cols):
+        axes[i].set_ylabel("error vs reference (%, log)")
+    handles, labels = axes[0].get_legend_handles_labels()
+    for ax in axes[k:]:
+        ax.axis("off")
+    axes[-1].legend(handles, labels, loc="center", fontsize=8,
+                    title="MC labels: samples per point", title_fontsize=8)
+    fig.suptitle(f"environment lighting per lobe: split sum vs Monte Carlo ({res['pixels']}-pixel sphere, "
+                 f"{res['env_size'][0]}×{res['env_size'][1]} sky with a sun)", fontsize=10)
+    fig.tight_layout()
+    name = "bench_pareto_env_lobes.png"
+    fig.savefig(os.path.join(out_dir, name), dpi=110)
+    plt.close(fig)
+    return name
 
 
 def main(argv=None) -> int:
@@ -937,6 +1131,9 @@ def main(argv=None) -> int:
     if not args.no_env:
         log("environment lighting:")
         res["environment"] = environment(64 if args.quick else 256, log)
+        log("environment lighting per lobe:")
+        res["environment_lobes"] = environment_lobes(log, **(dict(side=16, grazing=64, ref_samples=4096)
+                                                             if args.quick else {}))
     res["machine"]["load_end"] = os.getloadavg()
     write_report(res, args.out, argv)
     log(f"wrote {os.path.join(args.out, 'benchmarks.md')}")

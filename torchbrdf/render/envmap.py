@@ -38,14 +38,19 @@ specular integral is split into a prefiltered map (the map convolved with the GG
 the ``n = v = r`` assumption, at ``len(PREFILTER_ROUGHNESS)`` roughness levels, interpolated
 linearly) times a pre-integrated (n·v, roughness) table of the lobe with Schlick Fresnel
 split into a scale on ``Cspec0`` and a bias. Diffuse, subsurface and sheen use the
-cosine-convolved irradiance times their own tabulated directional albedo; clearcoat uses a
+cosine-convolved irradiance times their own tabulated directional albedo; Burley's diffuse
+reads the irradiance along its lobe's centroid, tabulated beside its albedo (the
+retro-reflection leans the lobe toward ``v`` at grazing view); clearcoat uses a
 (n·v, clearcoat_gloss) table and the prefiltered map at the matching width. The table is
-computed from :func:`torchbrdf.principled` itself at first use and cached. Error: exact for
-a constant map (white furnace) and for the diffuse lobe under a constant map; otherwise a
-bias that grows with roughness × map contrast (the lobe's shape is not rotationally symmetric
-about the mirror direction away from normal incidence) and for anisotropic materials (treated
-as isotropic with the same mean width) — typically a few percent on smooth maps, up to tens
-of percent for rough lobes at grazing view over a high-contrast map.
+computed from :func:`torchbrdf.principled` itself at first use and cached. Every prefiltered
+level and the irradiance map conserve the map's power exactly (area resampling with
+solid-angle overlaps, then a symmetrically normalised convolution), for any map size.
+Error: exact for a constant map (white furnace) and for the diffuse lobe under a constant
+map; Lambert is exact up to the irradiance map's bilinear lookup; otherwise a bias that grows
+with roughness × map contrast (the lobe's shape is not rotationally symmetric about the
+mirror direction away from normal incidence) and for anisotropic materials (treated as
+isotropic with the same mean width) — typically a few percent on smooth maps, up to tens of
+percent for rough lobes at grazing view over a high-contrast map (``docs/shading.md``).
 """
 
 from __future__ import annotations
@@ -55,7 +60,6 @@ import numbers
 from functools import lru_cache
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf._math import dot, lerp, luminance, safe_normalize, safe_sqrt
@@ -97,11 +101,19 @@ PREFILTER_ROUGHNESS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 #: Largest prefiltered level height; the kernel costs O(height² · width).
 PREFILTER_MAX_HEIGHT = 128
 #: Height of the irradiance (cosine-convolved) map.
-IRRADIANCE_HEIGHT = 32
+IRRADIANCE_HEIGHT = 64
 #: (n·v, roughness) table: resolution per axis and quasi-random samples per cell.
 SPLIT_SUM_RESOLUTION = 32
 SPLIT_SUM_SAMPLES = 256
-SPLIT_SUM_TABLE_CHANNELS = ("specular_scale", "specular_bias", "diffuse", "subsurface", "sheen", "clearcoat")
+SPLIT_SUM_TABLE_CHANNELS = (
+    "specular_scale",
+    "specular_bias",
+    "diffuse",
+    "subsurface",
+    "sheen",
+    "clearcoat",
+    "diffuse_tilt",
+)
 #: Lobe names understood by the MC mixture.
 SAMPLING_LOBES = ("diffuse", "specular", "clearcoat")
 #: Proposals of the Monte Carlo integrator (``sampling=`` / ``shade(env_sampling=)``):
@@ -676,20 +688,49 @@ def integrate_environment_quadrature(
 # --------------------------------------------------------------------------------------
 
 
+@lru_cache(maxsize=64)
+def _overlap_weights(src: int, dst: int, rows: bool) -> Tensor:
+    """Overlap of each destination interval with each source interval, float64 ``(dst, src)``.
+
+    Rows (``rows=True``): the solid-angle measure of the overlap of the θ bands,
+    ``cos θ_lo - cos θ_hi`` (the exact integral of ``sin θ``). Columns: the overlap length
+    in units of the full turn. Every source interval is covered exactly once, so the columns
+    of the matrix sum to the source intervals' measures: resampling with it conserves power.
+    """
+    s = torch.arange(src + 1, dtype=torch.float64) / src
+    d = torch.arange(dst + 1, dtype=torch.float64) / dst
+    lo = torch.maximum(d[:-1, None], s[None, :-1])
+    hi = torch.minimum(d[1:, None], s[None, 1:])
+    if rows:
+        return torch.clamp(torch.cos(lo * math.pi) - torch.cos(hi * math.pi), min=0.0)
+    return torch.clamp(hi - lo, min=0.0)
+
+
 def _downsample(img: Tensor, h: int, w: int) -> Tensor:
-    """Solid-angle-weighted area average of ``(B, 3, H, W)`` to ``(B, 3, h, w)``."""
+    """Power-conserving area resampling of ``(B, 3, H, W)`` to ``(B, 3, h, w)``.
+
+    Each output texel is the solid-angle-weighted mean of the (piecewise-constant) input over
+    its own area, with fractional overlaps of the row bands and columns, so
+    ``Σ L Ω`` (the map's power) is the same before and after for every size ratio. (Pooling
+    with overlapping windows, e.g. ``adaptive_avg_pool2d`` at non-integer ratios, is not.)
+    """
     H, W = img.shape[-2:]
     if (h, w) == (H, W):
         return img
-    omega = latlong_row_solid_angles(H, W, dtype=img.dtype, device=img.device)[None, None, :, None]
-    num = F.adaptive_avg_pool2d(img * omega, (h, w))
-    den = F.adaptive_avg_pool2d(omega.expand(1, 1, H, W), (h, w))
-    return num / den
+    rw = _overlap_weights(H, h, True)
+    cw = _overlap_weights(W, w, False)
+    # Normalise by the weights' own sums (= the output texel's measure) so constants map exactly.
+    rw = (rw / rw.sum(1, keepdim=True)).to(img.dtype).to(img.device)
+    cw = (cw / cw.sum(1, keepdim=True)).to(img.dtype).to(img.device)
+    return torch.einsum("ki,bcij,lj->bckl", rw, img, cw)
 
 
 @lru_cache(maxsize=32)
 def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_str: str) -> Tensor:
     """Conjugated rFFT along φ of the normalised lat-long convolution kernel, ``(h, h, w//2+1)``.
+
+    Row ``i`` (output) against row ``i'`` and column offset ``j`` (input); the convolution
+    along φ is exact (circular, by FFT) and the normalisation conserves power.
 
     ``alpha=None`` gives the cosine kernel ``max(r·l, 0)``; otherwise the GGX kernel
     ``D_α(r·h) max(r·l, 0)`` with ``h = normalize(r + l)`` (Karis' ``n = v = r``).
@@ -710,8 +751,20 @@ def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_
         a2 = alpha * alpha
         den = a2 * 0.5 * (1.0 + rl) + 0.5 * (1.0 - rl)
         k = k * a2 / (math.pi * den * den)
-    k = k * latlong_row_solid_angles(h, w, dtype=torch.float64)[None, :, None]
-    k = k / k.sum(dim=(1, 2), keepdim=True)
+    # Normalise symmetrically, k[i, i', j] = g Ω_i' c_i c_i' (g depends on r·l only, so it is
+    # symmetric in i, i'), with c solving c_i Σ g Ω_i' c_i' = 1 (symmetric Sinkhorn). Then every
+    # row sums to 1 (a constant map is unchanged) AND Σ_i Ω_i k[i, i', ·] = Ω_i' (each input
+    # texel's power is passed on whole). Normalising rows alone does only the former.
+    omega = latlong_row_solid_angles(h, w, dtype=torch.float64)
+    a = k.sum(-1) * omega[None, :]  # (h, h): Σ_j g Ω_i'
+    c = torch.rsqrt(a.sum(1))
+    for _ in range(200):
+        c_new = torch.sqrt(c / (a @ c))
+        done = bool(((c_new - c).abs() <= 1e-15 * c).all())
+        c = c_new
+        if done:
+            break
+    k = k * (omega[None, :] * c[:, None] * c[None, :])[..., None]
     kf = torch.conj(torch.fft.rfft(k, dim=-1))
     cdt = torch.complex64 if dtype in (torch.float32, torch.float16, torch.bfloat16) else torch.complex128
     return kf.to(cdt).to(dev)
@@ -727,8 +780,9 @@ def _convolve(img: Tensor, alpha: float | None) -> Tensor:
 
 
 def _level_size(height: int, width: int, alpha: float) -> tuple[int, int]:
-    # Texels well below the lobe's angular width (~2α in l): ~6/α rows, within [16, max].
-    hk = min(height, max(16, min(PREFILTER_MAX_HEIGHT, math.ceil(6.0 / alpha))))
+    # Texels well below the lobe's angular width (~2α in l): ~6/α rows, within [32, max]
+    # (below 32 rows a small bright source smeared over a 6° texel biases even the broad lobes).
+    hk = min(height, max(32, min(PREFILTER_MAX_HEIGHT, math.ceil(6.0 / alpha))))
     wk = max(1, round(width * hk / height))
     return hk, wk
 
@@ -738,8 +792,9 @@ def prefilter_environment(radiance: Tensor, roughness_levels=PREFILTER_ROUGHNESS
 
     Level ``k`` is ``∫ L(l) D(h) max(r·l, 0) dω / ∫ D(h) max(r·l, 0) dω`` with
     ``h = normalize(r + l)`` and ``α = max(roughness², 0.001)``, evaluated as an FFT
-    convolution along φ on a map area-averaged to a resolution matched to the lobe width.
-    Roughness 0 returns the map itself.
+    convolution along φ on a map area-averaged to a resolution matched to the lobe width
+    (32–128 rows). Both steps conserve the map's power ``Σ L Ω`` exactly, whatever the size
+    ratio. Roughness 0 returns the map itself.
 
     Args:
         radiance: ``(3, H, W)`` or ``(B, 3, H, W)``.
@@ -764,7 +819,8 @@ def prefilter_environment(radiance: Tensor, roughness_levels=PREFILTER_ROUGHNESS
 def irradiance_environment(radiance: Tensor, height: int = IRRADIANCE_HEIGHT) -> Tensor:
     """Normalised cosine convolution ``∫ L max(n·l, 0) dω / π`` of a map, ``(B, 3, h, 2h)``.
 
-    Normalised by the discrete kernel sum, so a constant map maps to itself exactly.
+    Normalised so that a constant map maps to itself exactly and the power ``Σ L Ω`` is kept
+    (the map is first area-resampled to ``min(H, height)`` rows, which keeps it too).
     """
     img = radiance.unsqueeze(0) if radiance.dim() == 3 else radiance
     H, W = img.shape[-2:]
@@ -777,13 +833,13 @@ _TABLE_CACHE: dict = {}
 
 
 def _compute_split_sum_table(res: int, samples: int) -> Tensor:
-    """The (n·v, roughness) table in float64 on the CPU, ``(6, res, res)``; see :func:`split_sum_table`."""
+    """The (n·v, roughness) table in float64 on the CPU, ``(7, res, res)``; see :func:`split_sum_table`."""
     from torchbrdf.brdf.principled import principled
 
     dt = torch.float64
     nodes = torch.linspace(0.0, 1.0, res, dtype=dt)
     u = hammersley(0, samples, samples, dtype=dt)  # (S, 2)
-    table = torch.zeros(6, res, res, dtype=dt)
+    table = torch.zeros(len(SPLIT_SUM_TABLE_CHANNELS), res, res, dtype=dt)
     rows = 8  # n·v nodes per batched evaluation: (rows, res, samples) points per call
     for i0 in range(0, res, rows):
         nv = torch.clamp(nodes[i0 : i0 + rows], min=1e-4)  # grazing floor: n·v = 0 is degenerate
@@ -821,7 +877,10 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         # Diffuse-like lobes: cosine sampling, weight π.
         l = sample_cosine_hemisphere(uu)
         f0 = f(l, roughness=col)
-        table[2, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, base_color=1.0) - f0))
+        fd = math.pi * (f(l, roughness=col, base_color=1.0) - f0)  # Burley's diffuse × cos / pdf
+        table[2, i0 : i0 + m] = mean(fd)
+        # Its lobe's centroid (x toward v, z along n): Burley's retro-reflection leans toward v.
+        table[6, i0 : i0 + m] = mean(fd * l[..., 0:1]) / mean(fd * l[..., 2:3])
         table[3, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, base_color=1.0, subsurface=1.0) - f0))
         table[4, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, sheen=1.0, sheen_tint=0.0) - f0))
         # Clearcoat over (n·v, gloss): GTR1 sampling.
@@ -859,14 +918,18 @@ def split_sum_table(
     2. ``diffuse``: Burley's diffuse ``Fd / π``;
     3. ``subsurface``: the subsurface term ``ss / π``;
     4. ``sheen``: ``FH``;
-    5. ``clearcoat``: ``0.25 Gr Fr Dr``.
+    5. ``clearcoat``: ``0.25 Gr Fr Dr``;
+    6. ``diffuse_tilt``: not an albedo but the direction of Burley's diffuse lobe,
+       ``∫ Fd (l·t) cos dω / ∫ Fd (l·n) cos dω`` with ``t`` the tangent toward ``v`` (0 for a
+       Lambertian lobe; > 0 where the retro-reflection leans the lobe toward the viewer). The
+       split sum reads the irradiance along ``normalize(n + tilt · t)``, the lobe's centroid.
 
     Computed with :func:`torchbrdf.principled` itself (so the table follows the model
     exactly) using ``samples`` Hammersley samples per cell with the matching importance
     sampler (VNDF, cosine, GTR1) in float64, then cast.
 
     Returns:
-        ``(6, resolution, resolution)`` in ``dtype`` on ``device``.
+        ``(7, resolution, resolution)`` in ``dtype`` on ``device``.
     """
     device = torch.device("cpu") if device is None else torch.device(device)
     key64 = (resolution, samples)
@@ -1017,14 +1080,15 @@ def integrate_environment_split_sum(
     )
     out = torch.zeros_like(n)
     dielectric = 1.0 - metal
-    if "diffuse" in lobes or "subsurface" in lobes:
-        ss = p["subsurface"]
-        mix = 0.0
-        if "diffuse" in lobes:
-            mix = tab[:, 2:3] * (1.0 - ss)
-        if "subsurface" in lobes:
-            mix = mix + tab[:, 3:4] * ss
-        out = out + env.diffuse(n, batch_index) * base * (dielectric * mix)
+    if "diffuse" in lobes:
+        # Irradiance along the centroid of Burley's lobe, which leans toward v at grazing view
+        # (irradiance along n alone misses the retro-reflection there).
+        t_dir = safe_normalize(v - nv * n)
+        d_dir = safe_normalize(n + tab[:, 6:7] * t_dir)
+        w_d = dielectric * (1.0 - p["subsurface"]) * tab[:, 2:3]
+        out = out + env.diffuse(d_dir, batch_index) * base * w_d
+    if "subsurface" in lobes:
+        out = out + env.diffuse(n, batch_index) * base * (dielectric * p["subsurface"] * tab[:, 3:4])
     if "sheen" in lobes:
         csheen = lerp(1.0, ctint, p["sheen_tint"])
         out = out + env.diffuse(n, batch_index) * csheen * (dielectric * p["sheen"] * tab[:, 4:5])
