@@ -369,6 +369,7 @@ def write_overview(path, rows: list[dict], max_rows: int = 24, thumb: int = 64) 
 
     shown = rows[:max_rows]
     cols = ("base_color", "roughness", "metallic", "normal")
+    titles = ("base colour (sRGB)", "roughness 0-1", "metallic 0-1", "normal (n+1)/2")
     n = max(1, len(shown))
     fig = plt.figure(figsize=(7.0, 1.15 * n + 2.6))
     gs = fig.add_gridspec(n + 1, 5, height_ratios=[1.0] * n + [2.0], width_ratios=[1, 1, 1, 1, 1.5],
@@ -380,7 +381,7 @@ def write_overview(path, rows: list[dict], max_rows: int = 24, thumb: int = 64) 
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
-                ax.set_title(name.replace("_", " "), fontsize=8)
+                ax.set_title(titles[c], fontsize=8)
             f = folder / f"{name}.exr"
             if row["status"] in ("done", "skipped") and f.is_file():
                 m = read_exr(f)
