@@ -33,6 +33,7 @@ def captures(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def good(captures):
+    """The three good capture folders."""
     return [captures / f"cap{i}" for i in range(3)]
 
 
@@ -76,6 +77,7 @@ def _status(rows):
 
 
 def test_ray_batch_matches_single_runs_and_rerun_skips(ray_local, captures, good, single, tmp_path):
+    """Two Ray workers: single-run maps, the broken capture reported, summaries, rerun skips."""
     out = tmp_path / "out"
     rows = run_batch(good + [captures / "broken"], out, RecoveryConfig(**CFG), workers=2, progress=False)
     assert _status(rows) == {"cap0": "done", "cap1": "done", "cap2": "done", "broken": "failed"}
@@ -93,7 +95,8 @@ def test_ray_batch_matches_single_runs_and_rerun_skips(ray_local, captures, good
     with open(out / "summary.csv", newline="") as f:
         table = list(csv.DictReader(f))
     assert [r["status"] for r in table] == ["done", "done", "done", "failed"]
-    assert float(table[0]["base_color_rmse"]) == pytest.approx(listed[0]["errors"]["base_color_rmse"], rel=1e-5)
+    rmse = listed[0]["errors"]["base_color_rmse"]
+    assert float(table[0]["base_color_rmse"]) == pytest.approx(rmse, rel=1e-5)
     assert (out / "overview.png").stat().st_size > 1000
     # Rerun: the completed captures are skipped (outputs untouched), the broken one fails again.
     stamp = {c.name: (out / c.name / "report.json").stat().st_mtime_ns for c in good}
@@ -104,7 +107,7 @@ def test_ray_batch_matches_single_runs_and_rerun_skips(ray_local, captures, good
 
 
 def test_killed_worker_is_retried(ray_local, good, single, tmp_path):
-    # The first task to start removes the armed file and kills its own worker process.
+    """The first task to start removes the armed file and kills its worker; the retry finishes."""
     armed = ray_local
     armed.touch()
     rows = run_batch(good, tmp_path / "out", RecoveryConfig(**CFG), retries=2, progress=False)
@@ -114,6 +117,7 @@ def test_killed_worker_is_retried(ray_local, good, single, tmp_path):
 
 
 def test_worker_death_without_retries_is_reported(ray_local, good, tmp_path):
+    """With --retries 0 a killed worker's capture is failed, with a one-line reason."""
     armed = ray_local
     armed.touch()
     rows = run_batch(good[:1], tmp_path / "out", RecoveryConfig(**CFG), retries=0, progress=False)
@@ -121,6 +125,7 @@ def test_worker_death_without_retries_is_reported(ray_local, good, tmp_path):
 
 
 def test_sequential_fallback_without_ray(good, single, tmp_path, monkeypatch, capsys):
+    """Without Ray the same captures run in-process, to the same maps, and it says why."""
     monkeypatch.setitem(sys.modules, "ray", None)  # "import ray" raises ImportError
     rows = run_batch(good, tmp_path / "out", RecoveryConfig(**CFG), workers=2, progress=False)
     assert _status(rows) == {"cap0": "done", "cap1": "done", "cap2": "done"}
@@ -129,8 +134,7 @@ def test_sequential_fallback_without_ray(good, single, tmp_path, monkeypatch, ca
 
 
 def test_interrupted_capture_is_resumed(good, single, tmp_path):
-    # SIGTERM after iteration 2 of the first capture stands in for Ctrl-C: the batch stops,
-    # the summary says so, and the rerun resumes that capture from its checkpoint.
+    """SIGTERM (as Ctrl-C) stops the batch with a summary; the rerun resumes from the checkpoint."""
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
         run_batch(good, out, RecoveryConfig(**CFG, signal_at=2), use_ray=False, progress=False)
@@ -141,10 +145,12 @@ def test_interrupted_capture_is_resumed(good, single, tmp_path):
     assert _status(rows) == {"cap0": "done", "cap1": "done", "cap2": "done"}
     assert rows[0]["iterations"] == single["cap0"]["iterations"]
     for k in MAPS:  # resumed = uninterrupted, to the tolerance of tests/test_recovery.py
-        torch.testing.assert_close(read_exr(out / "cap0" / f"{k}.exr"), single["cap0"][k], rtol=1e-5, atol=1e-6)
+        got = read_exr(out / "cap0" / f"{k}.exr")
+        torch.testing.assert_close(got, single["cap0"][k], rtol=1e-5, atol=1e-6)
 
 
 def test_cli_options_and_exit_status(captures, tmp_path):
+    """The single CLI's recovery flags pass through; exit status 1 when a capture failed."""
     args = _parser().parse_args(["--captures", "x", "--out", "o", "--iters", "7", "--seed", "4", "--model",
                                  "svbrdf_ggx", "--holdout", "-1", "--size", "12"])
     cfg = config_from_args(args)
@@ -153,8 +159,8 @@ def test_cli_options_and_exit_status(captures, tmp_path):
     with pytest.raises(SystemExit):
         _parser().parse_args(["--captures", "x", "--out", "o", "--threads", "2"])
     # A glob over the good captures plus the broken one by name: exit status 1 (one failed).
-    rc = main(["--captures", str(captures / "cap[01]"), str(captures / "broken"), "--out", str(tmp_path / "o"),
-               "--no-ray", "--quiet", "--iters", "2"])
+    rc = main(["--captures", str(captures / "cap[01]"), str(captures / "broken"),
+               "--out", str(tmp_path / "o"), "--no-ray", "--quiet", "--iters", "2"])
     assert rc == 1
     assert [r["status"] for r in json.loads((tmp_path / "o" / "summary.json").read_text())] == [
         "done", "done", "failed"]
@@ -162,8 +168,10 @@ def test_cli_options_and_exit_status(captures, tmp_path):
 
 
 def test_find_captures(captures, tmp_path):
+    """Folders, parents and globs; duplicates dropped; clashing names and no capture refused."""
     assert [p.name for p in find_captures([captures])] == ["broken", "cap0", "cap1", "cap2"]
-    assert [p.name for p in find_captures([str(captures / "cap*"), captures / "cap0"])] == ["cap0", "cap1", "cap2"]
+    found = find_captures([str(captures / "cap*"), captures / "cap0"])
+    assert [p.name for p in found] == ["cap0", "cap1", "cap2"]
     (tmp_path / "a" / "cap0").mkdir(parents=True)
     (tmp_path / "a" / "cap0" / "capture.json").write_text("{}")
     with pytest.raises(ValueError, match="two captures are named 'cap0'"):

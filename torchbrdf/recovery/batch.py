@@ -41,8 +41,8 @@ __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "writ
            "main"]
 
 REPORT = "report.json"
-SUMMARY_FIELDS = ("name", "status", "seconds", "iterations", "final_loss", "held_out_psnr", "error", "capture",
-                  "out")
+SUMMARY_FIELDS = ("name", "status", "seconds", "iterations", "final_loss", "held_out_psnr", "error",
+                  "capture", "out")
 # Single-recovery flags that are RecoveryConfig fields but mean something else in a batch.
 _NOT_PASSED = {"threads"}  # replaced by --threads-per-task
 
@@ -76,7 +76,8 @@ def find_captures(specs) -> list[Path]:
                 found.extend(sorted(d for d in m.iterdir() if (d / CAPTURE_JSON).is_file()))
     unique = list(dict.fromkeys(p.resolve() for p in found))
     if not unique:
-        raise FileNotFoundError(f"--captures {' '.join(map(str, specs))}: no folder holding {CAPTURE_JSON} found")
+        given = " ".join(map(str, specs))
+        raise FileNotFoundError(f"--captures {given}: no folder holding {CAPTURE_JSON} found")
     names: dict[str, Path] = {}
     for p in unique:
         if p.name in names:
@@ -112,8 +113,10 @@ def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, 
 
 
 def _kill_hook() -> None:
-    """Testing: the first task to find the file ``$TORCHBRDF_BATCH_KILL_ONCE`` removes it and
-    kills its own worker process (as a lost node would), so that Ray's retry is exercised."""
+    """Testing: kill this worker once, as a lost node would, so that Ray's retry is exercised.
+
+    The first task to find the file ``$TORCHBRDF_BATCH_KILL_ONCE`` removes it and exits hard.
+    """
     armed = os.environ.get("TORCHBRDF_BATCH_KILL_ONCE")
     if armed:
         try:
@@ -138,7 +141,8 @@ def _row(name: str, capture: Path, out: Path, status: str, error: str = "") -> d
     held = rep.get("held_out_light") or {}
     row = {"name": name, "status": status, "seconds": _finite(rep.get("seconds")),
            "iterations": rep.get("iterations"), "final_loss": _finite(rep.get("final_loss")),
-           "held_out_psnr": _finite(held.get("psnr")), "error": error, "capture": str(capture), "out": str(out)}
+           "held_out_psnr": _finite(held.get("psnr")), "error": error,
+           "capture": str(capture), "out": str(out)}
     if rep.get("errors"):
         row["errors"] = {k: _finite(v) for k, v in rep["errors"].items()}
     return row
@@ -181,7 +185,7 @@ def recover_capture(capture, out_root, cfg: RecoveryConfig, gt_name: str | None 
             traceback.print_exc(file=sys.stderr)
         return _row(name, capture, out, "failed", _one_line(e))
     if not is_complete(out):  # stopped by a signal: partial maps + checkpoint
-        return _row(name, capture, out, "interrupted", "stopped before the end; a rerun resumes from the checkpoint")
+        return _row(name, capture, out, "interrupted", "stopped early; a rerun resumes from the checkpoint")
     return _row(name, capture, out, "done")
 
 
@@ -198,8 +202,8 @@ def _import_ray():
     return ray, ""
 
 
-def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str | None = None, workers: int = 1,
-              threads_per_task: int = 1, gpus_per_task: float = 0.0, retries: int = 3,
+def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str | None = None,
+              workers: int = 1, threads_per_task: int = 1, gpus_per_task: float = 0.0, retries: int = 3,
               gt_name: str | None = "gt", force: bool = False, use_ray: bool = True, progress: bool = True,
               log=None) -> list[dict]:
     """Recover every capture into ``out/<name>/``; write the summary files and the overview.
@@ -218,6 +222,7 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
         force: recover again even when a completed output exists (no resume).
         use_ray: ``False`` runs sequentially in-process; so does a missing Ray (logged).
         progress: tqdm bar over captures, with ETA.
+        log: where one-line messages go (default: stderr).
 
     Returns:
         The summary rows, in the order of ``captures``. Also written to ``out/summary.json``
@@ -254,8 +259,8 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
         if ray is None:
             _run_sequential(captures, todo, out, cfg, gt_name, threads_per_task, force, rows, bar)
         else:
-            _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads_per_task, gpus_per_task,
-                     retries, force, rows, bar, log)
+            _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads_per_task,
+                     gpus_per_task, retries, force, rows, bar, log)
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -286,8 +291,8 @@ def _run_sequential(captures, todo, out, cfg, gt_name, threads, force, rows, bar
             raise KeyboardInterrupt
 
 
-def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, gpus, retries, force, rows, bar,
-             log):
+def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, gpus, retries, force,
+             rows, bar, log):
     started_here = not ray.is_initialized()
     if started_here:
         if address:
@@ -345,7 +350,8 @@ def write_summary(out, rows: list[dict]) -> None:
             w.writerow(list(SUMMARY_FIELDS) + err_keys)
             for r in rows:
                 errs = r.get("errors") or {}
-                w.writerow([_csv_value(r.get(k)) for k in SUMMARY_FIELDS] + [_csv_value(errs.get(k)) for k in err_keys])
+                w.writerow([_csv_value(r.get(k)) for k in SUMMARY_FIELDS]
+                           + [_csv_value(errs.get(k)) for k in err_keys])
 
 
 def _csv_value(v):
@@ -357,8 +363,11 @@ def _csv_value(v):
 
 
 def write_overview(path, rows: list[dict], max_rows: int = 24, thumb: int = 64) -> None:
-    """A PNG a person reads: per capture a row of base colour, roughness, metallic and normal
-    thumbnails (first ``max_rows`` captures), and a histogram of the held-out PSNR."""
+    """Write the overview PNG: thumbnail rows per capture and a histogram of the held-out PSNR.
+
+    Each of the first ``max_rows`` captures gets a row of base colour, roughness, metallic and
+    normal thumbnails (at most ``thumb`` pixels) with its name, status and PSNR.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -416,7 +425,8 @@ def write_overview(path, rows: list[dict], max_rows: int = 24, thumb: int = 64) 
     if len(rows) > len(shown):
         title += f" (thumbnails: first {len(shown)})"
     ax.set_title(title, fontsize=9)
-    fig.subplots_adjust(left=0.09, right=0.98, top=1 - 0.35 / fig.get_figheight(), bottom=0.5 / fig.get_figheight())
+    h = fig.get_figheight()
+    fig.subplots_adjust(left=0.09, right=0.98, top=1 - 0.35 / h, bottom=0.5 / h)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
@@ -440,9 +450,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 1)),
                    help="task slots of the local Ray instance (default: the CPU count)")
     p.add_argument("--threads-per-task", type=int, default=1, help="torch threads (and Ray CPUs) per capture")
-    p.add_argument("--gpus-per-task", type=float, default=0.0, help="GPUs Ray reserves per capture (--device cuda)")
+    p.add_argument("--gpus-per-task", type=float, default=0.0, help="GPUs per task (--device cuda)")
     p.add_argument("--retries", type=int, default=3, help="retries of a task whose worker or node died")
-    p.add_argument("--gt-name", default="gt", help="sub-folder of each capture with ground-truth maps, if present")
+    p.add_argument("--gt-name", default="gt", help="ground-truth sub-folder, if present")
     p.add_argument("--no-ray", action="store_true", help="run sequentially in this process")
     p.add_argument("--force", action="store_true", help="recover completed captures again, from scratch")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -465,7 +475,11 @@ def config_from_args(args) -> RecoveryConfig:
 
 
 def main(argv=None) -> int:
-    """CLI entry point (contract §6). Exit status: 0 all done/skipped, 1 some failed, 130 Ctrl-C, 2 bad args."""
+    """CLI entry point (contract §6).
+
+    Returns:
+        The exit status: 0 all done or skipped, 1 some failed, 130 Ctrl-C, 2 bad arguments.
+    """
     args = _parser().parse_args(argv)
     try:
         captures = find_captures(args.captures)
@@ -474,14 +488,15 @@ def main(argv=None) -> int:
         return 2
     t0 = time.perf_counter()
     try:
-        rows = run_batch(captures, args.out, config_from_args(args), address=args.address, workers=args.workers,
-                         threads_per_task=args.threads_per_task, gpus_per_task=args.gpus_per_task,
-                         retries=args.retries, gt_name=args.gt_name, force=args.force, use_ray=not args.no_ray,
-                         progress=not args.quiet)
+        rows = run_batch(captures, args.out, config_from_args(args), address=args.address,
+                         workers=args.workers, threads_per_task=args.threads_per_task,
+                         gpus_per_task=args.gpus_per_task, retries=args.retries, gt_name=args.gt_name,
+                         force=args.force, use_ray=not args.no_ray, progress=not args.quiet)
     except KeyboardInterrupt:
-        print("interrupted: finished captures are intact; rerun the same command to continue", file=sys.stderr)
+        print("interrupted: finished captures are intact; rerun the command to continue", file=sys.stderr)
         return 130
-    print(f"{len(rows)} captures in {time.perf_counter() - t0:.1f} s: {args.out / 'summary.csv'}", file=sys.stderr)
+    dt = time.perf_counter() - t0
+    print(f"{len(rows)} captures in {dt:.1f} s: {args.out / 'summary.csv'}", file=sys.stderr)
     return 1 if any(r["status"] == "failed" for r in rows) else 0
 
 
