@@ -35,7 +35,7 @@ import traceback
 from pathlib import Path
 
 from torchbrdf.capture.format import CAPTURE_JSON
-from torchbrdf.recovery.solver import CHECKPOINT, RecoveryConfig
+from torchbrdf.recovery.solver import RecoveryConfig
 
 __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "write_summary", "write_overview",
            "main"]
@@ -175,7 +175,9 @@ def recover_capture(capture, out_root, cfg: RecoveryConfig, gt_name: str | None 
     _kill_hook()
     torch.set_num_threads(max(1, int(threads)))
     cfg = dataclasses.replace(cfg, threads=max(1, int(threads)))
-    resume = not force and (out / CHECKPOINT).is_file()
+    # An existing output folder that is not complete was interrupted: resume from its checkpoint
+    # (recover() starts from scratch, with a log line, when there is none).
+    resume = not force and out.is_dir()
     try:
         _run_single(capture, out, cfg, _gt_folder(capture, gt_name), resume)
     except Exception as e:  # the capture's own failure: record it, keep the batch going
@@ -214,7 +216,7 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
         cfg: recovery options shared by every capture (same seed for each, as the single CLI).
         address: Ray cluster to join (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``);
             ``None`` starts a local Ray instance with ``workers`` task slots.
-        workers: task slots of the local instance (ignored with ``address``).
+        workers: task slots of the local instance (ignored with ``address`` or ``$RAY_ADDRESS``).
         threads_per_task: torch threads of each task, and the CPUs Ray reserves for it.
         gpus_per_task: GPUs Ray reserves per task (with ``cfg.device = "cuda"``).
         retries: how often a task whose worker died is retried.
@@ -294,6 +296,7 @@ def _run_sequential(captures, todo, out, cfg, gt_name, threads, force, rows, bar
 def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, gpus, retries, force,
              rows, bar, log):
     started_here = not ray.is_initialized()
+    address = address or os.environ.get("RAY_ADDRESS")  # as ray.init() itself would
     if started_here:
         if address:
             ray.init(address=address, log_to_driver=True)
@@ -447,8 +450,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output root: OUT/<capture name>/ + summary files")
     p.add_argument("--address", default=None,
                    help="Ray cluster to join (auto, ray://host:10001, host:6379); default: start a local one")
-    p.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 1)),
-                   help="task slots of the local Ray instance (default: the CPU count)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="task slots of the local Ray instance (default: CPU count / threads per task)")
     p.add_argument("--threads-per-task", type=int, default=1, help="torch threads (and Ray CPUs) per capture")
     p.add_argument("--gpus-per-task", type=float, default=0.0, help="GPUs per task (--device cuda)")
     p.add_argument("--retries", type=int, default=3, help="retries of a task whose worker or node died")
@@ -481,6 +484,8 @@ def main(argv=None) -> int:
         The exit status: 0 all done or skipped, 1 some failed, 130 Ctrl-C, 2 bad arguments.
     """
     args = _parser().parse_args(argv)
+    if args.workers is None:
+        args.workers = max(1, (os.cpu_count() or 1) // max(1, args.threads_per_task))
     try:
         captures = find_captures(args.captures)
     except (FileNotFoundError, ValueError) as e:
