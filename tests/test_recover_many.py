@@ -4,9 +4,12 @@ Tiny captures (16 px, 8 lights, 5 iterations) keep this CI-sized; Ray is started
 module (2 CPUs, no dashboard) and the Ray tests are skipped when Ray is not installed.
 """
 
+import _thread
 import csv
 import json
 import sys
+import threading
+import time
 
 import pytest
 import torch
@@ -122,6 +125,27 @@ def test_worker_death_without_retries_is_reported(ray_local, good, tmp_path):
     armed.touch()
     rows = run_batch(good[:1], tmp_path / "out", RecoveryConfig(**CFG), retries=0, progress=False)
     assert rows[0]["status"] == "failed" and "task lost" in rows[0]["error"]
+
+
+def test_ctrl_c_cancels_ray_tasks_and_rerun_finishes(ray_local, good, tmp_path):
+    """Ctrl-C while tasks run: summary with interrupted rows, KeyboardInterrupt; the rerun finishes."""
+    out = tmp_path / "out"
+    cfg = RecoveryConfig(iters=20, seed=3, checkpoint_every=1)
+
+    def press_ctrl_c():  # as soon as a task has written its first checkpoint
+        deadline = time.monotonic() + 120
+        while not list(out.glob("*/checkpoint.pt")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        _thread.interrupt_main()
+
+    threading.Thread(target=press_ctrl_c, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(good, out, cfg, progress=False)
+    rows = json.loads((out / "summary.json").read_text())
+    assert "interrupted" in _status(rows).values()
+    again = run_batch(good, out, cfg, progress=False)
+    assert set(_status(again).values()) <= {"done", "skipped"}
+    assert all((out / c.name / "report.json").is_file() for c in good)
 
 
 def test_sequential_fallback_without_ray(good, single, tmp_path, monkeypatch, capsys):
