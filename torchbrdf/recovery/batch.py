@@ -268,8 +268,9 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
     finally:
         bar.close()
     for i, c in enumerate(captures):
-        if i not in rows:
-            rows[i] = _row(c.name, c, out / c.name, "interrupted", "cancelled (Ctrl-C); a rerun resumes it")
+        if i not in rows:  # after Ctrl-C; a task may have finished while the others were cancelled
+            rows[i] = (_row(c.name, c, out / c.name, "done") if is_complete(out / c.name) else
+                       _row(c.name, c, out / c.name, "interrupted", "cancelled (Ctrl-C); a rerun resumes it"))
     result = [rows[i] for i in range(len(captures))]
     write_summary(out, result)
     try:
@@ -317,6 +318,8 @@ def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, 
                 c = captures[i]
                 try:
                     rows[i] = ray.get(ref)
+                except ray.exceptions.RayTaskError as e:  # raised in the task, past recover_capture's net
+                    rows[i] = _row(c.name, c, out / c.name, "failed", _one_line(e.cause or e))
                 except ray.exceptions.RayError as e:  # the worker or node died more than --retries times
                     rows[i] = _row(c.name, c, out / c.name, "failed",
                                    f"task lost after {retries} retries: {_one_line(e)}")
