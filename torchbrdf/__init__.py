@@ -1,6 +1,6 @@
 """torchbrdf: physically based reflectance for neural and inverse rendering, in PyTorch.
 
-Conventions (fixed by the public contract): direction vectors are channel-last ``(*, 3)``,
+Conventions (fixed, see the README): direction vectors are channel-last ``(*, 3)``,
 unit length, pointing away from the surface (``l`` to the light, ``v`` to the viewer, ``n``
 the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-last
 (colours ``(*, 3)`` linear RGB, scalars ``(*, 1)``, floats allowed); images and maps are

@@ -444,7 +444,7 @@ class MERLBRDF(nn.Module):
         """Tabulate any BRDF callable at the MERL sample positions.
 
         Configurations where the light or the view is at or below the horizon are stored as
-        0 (the contract's value there), whatever the callable returns.
+        0 (the library's value there), whatever the callable returns.
 
         Args:
             brdf: ``brdf(l, v, n, x, y, **params) -> (*, 3)`` (or ``(*, 1)`` for a grey BRDF),

@@ -1,6 +1,6 @@
 """The Disney principled BRDF (Burley 2012, with the 2014 addendum).
 
-Exactly the model of the public contract: Burley's diffuse with retro-reflection, the
+Exactly the published model: Burley's diffuse with retro-reflection, the
 Hanrahan–Krueger-like subsurface blend, an anisotropic GGX primary lobe with the
 un-remapped anisotropic Smith G of the 2014 addendum, Schlick Fresnel toward a tinted or
 metallic F0, a Schlick-shaped sheen, and a GTR1 clearcoat with its fixed α = 0.25 Smith G.

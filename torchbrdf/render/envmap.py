@@ -1,6 +1,6 @@
 """Environment lighting: ``∫ f(l, v) L(l) max(n·l, 0) dω`` over a lat-long map.
 
-The map follows the contract's convention (z up; row ``i`` at ``θ = (i + 0.5) π / H``,
+The map follows the library's lat-long convention (z up; row ``i`` at ``θ = (i + 0.5) π / H``,
 column ``j`` at ``φ = -π + (j + 0.5) 2π / W``) and is read as **piecewise constant over
 texels**: ``L(l)`` is the texel containing ``l`` (:func:`latlong_lookup`). That defines the
 integral exactly; :func:`integrate_environment_quadrature` evaluates it by brute force.

@@ -183,7 +183,7 @@ def plane_gbuffer(
     """G-buffer of the flat sample ``[-1, 1]²`` at ``z = 0`` (+z up), optionally normal-mapped.
 
     Pixel ``(i, j)`` sees ``p = (-1 + (j + 0.5) 2 / W, 1 - (i + 0.5) 2 / H, 0)`` — exactly the
-    capture layout of the contract (§3): the view of a pinhole camera at ``(0, 0, d)`` looking
+    capture layout (docs/capture_format.md): the view of a pinhole camera at ``(0, 0, d)`` looking
     down ``-z`` with vertical field of view ``2 atan(1 / d)``; for other camera positions the
     mapping is kept and the camera only sets each pixel's view vector. The frame is
     ``x = +X, y = +Y, n = +Z``; a tangent-space normal map gives ``n = normalize(normal_map)``

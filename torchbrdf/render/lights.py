@@ -9,7 +9,7 @@ parameter is cast to the g-buffer's dtype and device when shading.
 Per-batch parameters: a leading batch axis ``B`` (matching the g-buffer's) gives each image
 its own light; without it the light is shared by the whole batch.
 
-Radiance contributed at a pixel with BRDF ``f``, normal ``n`` and position ``P`` (contract §5):
+Radiance contributed at a pixel with BRDF ``f``, normal ``n`` and position ``P`` (the screen-space shading formulas):
 
 * :class:`PointLight` (radiant intensity ``I`` at ``q``): ``f(l, v) I max(n·l, 0) / |q - P|²``,
   ``l = normalize(q - P)``;

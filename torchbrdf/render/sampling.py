@@ -376,7 +376,7 @@ def pdf_gtr1(h_local: Tensor, alpha: Scalar) -> Tensor:
 def latlong_directions(
     height: int, width: int, *, dtype: torch.dtype | None = None, device: Device = None
 ) -> Tensor:
-    """Texel-centre directions of a lat-long map, the contract's convention (z up).
+    """Texel-centre directions of a lat-long map, the library's lat-long convention (z up).
 
     Row ``i`` has polar angle ``θ = (i + 0.5) π / height`` from +z, column ``j`` azimuth
     ``φ = -π + (j + 0.5) 2π / width``; ``d = (sin θ cos φ, sin θ sin φ, cos θ)``.

@@ -2,7 +2,7 @@
 
 ``shade(gbuf, lights)`` turns a :class:`~torchbrdf.GBuffer` into linear radiance
 ``(B, 3, H, W)`` under any mix of point, directional and environment lights, with the
-contract's formulas (§5). It evaluates any BRDF callable with the principled signature
+the formulas of :mod:`torchbrdf.render.lights`. It evaluates any BRDF callable with the principled signature
 ``brdf(l, v, n, x, y, **material)`` (default :func:`torchbrdf.principled`).
 
 How it works, in order:
