@@ -1,7 +1,7 @@
 """Differentiable screen-space shading of g-buffers: :func:`shade`, :func:`plan`, :class:`Shader`.
 
 ``shade(gbuf, lights)`` turns a :class:`~torchbrdf.GBuffer` into linear radiance
-``(B, 3, H, W)`` under any mix of point, directional and environment lights, with the
+``(B, 3, H, W)`` under any mix of point, directional and environment lights, with
 the formulas of :mod:`torchbrdf.render.lights`. It evaluates any BRDF callable with the principled signature
 ``brdf(l, v, n, x, y, **material)`` (default :func:`torchbrdf.principled`).
 
