@@ -235,6 +235,7 @@ def _fast_path_wanted(c: dict) -> bool:
     return _kernels_available()
 
 
+@torch.compiler.assume_constant_result  # under torch.compile: evaluated once while tracing
 def _kernels_available() -> bool:
     from torchbrdf.kernels import fused as _fast
 

@@ -362,14 +362,18 @@ def _backward(tensors, floats, cfg, needs, grad_out):
     if not need:
         return [None] * len(tensors)
     plan = _Plan(cfg, tensors, floats)
-    if torch.is_grad_enabled():  # create_graph=True: a differentiable backward, eagerly
+    if torch.is_grad_enabled() and all(tensors[i].requires_grad for i in need):
+        # create_graph=True: a differentiable backward, eagerly (under torch.func transforms the
+        # inputs seen here are not differentiable at this level and the kernels run).
         with torch.enable_grad():
             out = _formula_eager(plan, tensors, floats)
-            gs = torch.autograd.grad(out, [tensors[i] for i in need], grad_out, create_graph=True, allow_unused=True)
-        grads = [None] * len(tensors)
-        for i, g in zip(need, gs):
-            grads[i] = g
-        return grads
+            if out.requires_grad:
+                gs = torch.autograd.grad(out, [tensors[i] for i in need], grad_out, create_graph=True,
+                                         allow_unused=True)
+                grads = [None] * len(tensors)
+                for i, g in zip(need, gs):
+                    grads[i] = g
+                return grads
     ctype = "float" if plan.dtype == torch.float32 else "double"
     modes = tuple((k, "full", C) for k, C in zip(plan.tensor_names, plan.C))
     written = set(_written((ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint, plan.frame,
