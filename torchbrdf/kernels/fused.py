@@ -6,13 +6,18 @@ is one C loop (OpenMP over lanes, auto-vectorised by gcc), the backward recomput
 forward inside the same loop and writes each input's gradient directly, so the evaluation
 holds no intermediate tensors at all: memory = inputs + gradients + output.
 
-How: the formula is written once (:func:`_build_principled`) in a tiny tracing language
-(:class:`_Node`) that mirrors ``_principled_eager`` operation by operation, with the same
-rounding (float32 arithmetic, the half-vector projections and ``1 - l·h`` in float64, Python
-floats folded in double exactly as eager Python does). From the traced graph we emit C for
-the forward and, by reverse-mode differentiation of the graph, for the backward (the
-adjoint rules are those of ATen's autograd formulas: ``clamp`` passes the gradient where
-the input is inside the bounds, ``where`` routes it to the selected branch, ...).
+How (the kernels package):
+
+* :mod:`torchbrdf.brdf.formula` — the principled formula, written once over an ``ops``
+  namespace; on torch tensors it is the eager path;
+* :mod:`torchbrdf.kernels.trace` — runs that formula on graph nodes (the IR) and
+  differentiates the graph (reverse and forward mode as graph transforms);
+* :mod:`torchbrdf.kernels.codegen_c` — prints the graph as one C lane loop (forward,
+  recompute-backward, several-tangent JVP);
+* this module — the kernel spec, build and on-disk cache, and the buffer pool;
+* :mod:`torchbrdf.kernels.ops` — the kernels as ``torch.library`` custom operators with
+  fake implementations, autograd (reverse and forward mode) and vmap rules, so that
+  ``torch.compile`` and ``torch.func`` see them.
 
 Compilation: ``gcc -O3 -march=native -fopenmp -ffp-contract=off`` (no ``-ffast-math``: the
 kernels keep IEEE semantics so values match eager), once per *kernel family* — dtype,
@@ -22,9 +27,8 @@ for the backward, which inputs need gradients. The shared library is cached on d
 (``$TORCHBRDF_CACHE_DIR`` or ``~/.cache/torchbrdf``), so the ~1–3 s build is paid once per
 machine and family; loading a cached kernel takes milliseconds. No compiler → eager.
 
-Limits: CPU float32/float64 only (CUDA and others use eager), first-order gradients (a
-``create_graph=True`` backward re-runs the eager path to build a differentiable graph),
-no forward-mode AD / vmap / torch.compile tracing through it (dispatch sends those to eager).
+Limits: CPU float32/float64 only (CUDA and others use eager), first-order kernels (a
+``create_graph=True`` backward re-runs the eager formula to build a differentiable graph).
 """
 
 from __future__ import annotations
@@ -46,10 +50,7 @@ from torch import Tensor
 
 from torchbrdf.kernels import codegen_c
 
-__all__ = ["available", "principled_fast", "kernel_cache_dir", "compiled_kernels", "empty_cache"]
-
-SCALAR_NAMES = ("metallic", "subsurface", "specular", "roughness", "specular_tint", "anisotropic",
-                "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss")
+__all__ = ["available", "kernel_cache_dir", "compiled_kernels", "empty_cache"]
 
 
 def _generate(spec: "_KernelSpec", backward) -> str:

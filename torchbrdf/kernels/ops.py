@@ -29,12 +29,12 @@ import math
 import torch
 from torch import Tensor
 
+from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels.fused import _KernelSpec, _load, _pool, codegen_c
 
 __all__ = ["principled_fast"]
 
-SCALAR_NAMES = ("metallic", "subsurface", "specular", "roughness", "specular_tint", "anisotropic",
-                "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss")
+SCALAR_NAMES = SCALAR_PARAMS
 
 # Lanes per backward chunk when some input's gradient is summed over all lanes (reduced
 # chunk by chunk, so the buffers stay small: 2^16 lanes × 3 × 8 B = 1.5 MiB).
