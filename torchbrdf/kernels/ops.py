@@ -161,7 +161,7 @@ def _to_shape(g: Tensor, t: Tensor) -> Tensor:
 def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     N, dtype = plan.N, plan.dtype
     if N == 0:
-        return [torch.zeros_like(tensors[i]) for i in need]
+        return [tensors[i].new_zeros(tensors[i].shape) for i in need]
     go = grad_out.expand(*plan.batch, 3).reshape(N, 3)
     if go.dtype != dtype:
         go = go.to(dtype)
@@ -178,7 +178,7 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
             ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
             out = _formula_eager(plan, ts, plan.floats)
             gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
-        return [g if g is not None else torch.zeros_like(tensors[i]) for i, g in zip(need, gs)]
+        return [g.contiguous() if g is not None else tensors[i].new_zeros(tensors[i].shape) for i, g in zip(need, gs)]
     fn = lib[1]
     P = _dparams(plan.floats)
     nt = torch.get_num_threads()
@@ -206,7 +206,7 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     grads = []
     for i in need:
         g = full[i].view(*plan.batch, plan.C[i]) if i in full else red[i]
-        grads.append(_to_shape(g, tensors[i]))
+        grads.append(_to_shape(g, tensors[i]).contiguous())
     return grads
 
 
@@ -265,7 +265,7 @@ def principled_bwd(tensors: list[Tensor], floats: list[float], cfg: str, grad_ou
 
 @principled_bwd.register_fake
 def _(tensors, floats, cfg, grad_out, need):
-    return [torch.empty_like(tensors[i]) for i in need]
+    return [tensors[i].new_empty(tensors[i].shape) for i in need]  # contiguous, like the real ones
 
 
 @torch.library.custom_op("torchbrdf::principled_jvp", mutates_args=())
