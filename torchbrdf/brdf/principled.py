@@ -175,7 +175,7 @@ def principled(
 
 
 # ---------------------------------------------------------------------------------------------
-# Dispatch between the eager reference path and the fused kernels (torchbrdf/_fast.py).
+# Dispatch between the eager path and the fused kernels (torchbrdf/kernels/, same formula).
 # ---------------------------------------------------------------------------------------------
 
 #: Lanes (broadcast batch size) from which ``principled`` uses the fused kernels by default.
