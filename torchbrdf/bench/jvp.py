@@ -72,6 +72,7 @@ def run(log2n: int = 20, threads: int = 1, reps: int = 3) -> dict:
 
 
 def main(argv=None) -> None:
+    """Command line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--log2n", type=int, default=20)
     ap.add_argument("--threads", type=int, default=1)

@@ -71,6 +71,7 @@ class TorchOps:
 
     @staticmethod
     def sqrt(x):
+        """Square root (``math.sqrt`` on Python numbers)."""
         return torch.sqrt(x) if isinstance(x, Tensor) else math.sqrt(x)
 
     rsqrt = staticmethod(torch.rsqrt)
@@ -82,35 +83,44 @@ class TorchOps:
 
     @staticmethod
     def clamp(x, lo, hi):
+        """``x`` clamped to ``[lo, hi]``."""
         return torch.clamp(x, lo, hi)
 
     @staticmethod
     def clamp_min(x, lo):
+        """``max(x, lo)`` (``torch.clamp(x, min=lo)`` on tensors)."""
         return torch.clamp(x, min=lo) if isinstance(x, Tensor) else max(x, lo)
 
     @staticmethod
     def where(c, a, b):
+        """``a`` where ``c``, else ``b``."""
         return torch.where(c, a, b)
 
     @staticmethod
     def channel(x, i):
+        """Channel ``i`` of a colour, ``(*, 1)``."""
         return x[..., i:i + 1]
 
     def as_tensor(self, x):
+        """A number as a compute-dtype value."""
         return x if isinstance(x, Tensor) else torch.as_tensor(x, dtype=self.dtype, device=self.device)
 
     def as_color(self, x):
+        """A colour ``(*, 3)``; a number becomes grey."""
         if isinstance(x, Tensor) and x.dim() > 0:
             return x
         return self.as_tensor(x).expand(3)
 
     def to_hi(self, x):
+        """To float64 when computing in float32."""
         return x.to(self.hi)
 
     def to_compute(self, x):
+        """Back to the compute dtype."""
         return x.to(self.dtype)
 
     def mask(self, valid, f):
+        """``f`` where ``valid``, exactly 0 elsewhere, ``(*, 3)``."""
         if f is None:
             f = torch.zeros((), dtype=self.dtype, device=valid.device)
         f = torch.broadcast_to(f, torch.broadcast_shapes(f.shape, valid.shape[:-1] + (3,)))
@@ -127,6 +137,7 @@ def lerp(a, b, t):
 
 
 def pow5(m):
+    """``m^5`` as repeated products (no ``pow``)."""
     m2 = m * m
     return m2 * m2 * m
 

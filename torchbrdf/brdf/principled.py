@@ -262,15 +262,18 @@ def _fill_frame(c: dict) -> dict:
 
 
 def _principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
-    """The principled BRDF on already-checked, compute-dtype inputs ``c`` (see ``_prepare``):
-    :func:`torchbrdf.brdf.formula.principled` evaluated with torch operations."""
+    """The principled BRDF on already-checked, compute-dtype inputs ``c`` (see ``_prepare``).
+
+    This is :func:`torchbrdf.brdf.formula.principled` evaluated with torch operations.
+    """
     c = _fill_frame(c)
     ops = formula.TorchOps(c["l"].dtype, c["l"].device)
     return formula.principled(ops, c, active, _need_tint(c, active), _needs_frame(c))
 
 
 def _need_tint(c: dict, active) -> bool:
-    return not _is_const(c["specular_tint"], 0.0) or ("sheen" in active and not _is_const(c["sheen_tint"], 0.0))
+    tinted_sheen = "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
+    return not _is_const(c["specular_tint"], 0.0) or tinted_sheen
 
 
 def _needs_frame(c: dict) -> bool:
@@ -278,8 +281,9 @@ def _needs_frame(c: dict) -> bool:
 
 
 def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, need_frame: bool = False) -> dict:
-    """Half-vector cosines ``nh``, ``lh``, ``one_minus_lh``, ``sin2_h = |n × h|²`` (and ``hx``,
-    ``hy``, ``x``, ``y`` when ``need_frame``), each ``(*, 1)`` in the inputs' dtype.
+    """Half-vector cosines ``nh``, ``lh``, ``one_minus_lh``, ``sin2_h = |n × h|²``, each ``(*, 1)``.
+
+    Also ``hx``, ``hy`` and the frame ``x``, ``y`` when ``need_frame``; in the inputs' dtype.
 
     See :func:`torchbrdf.brdf.formula.half_vector_terms` (float64 projections for float32).
     """
@@ -288,7 +292,8 @@ def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, need_fram
             x, y = frame_from_normal(n)
         elif y is None:
             y = torch.linalg.cross(n, x, dim=-1)
-    out = formula.half_vector_terms(formula.TorchOps(l.dtype, l.device), l, v, n, x if need_frame else None, y)
+    ops = formula.TorchOps(l.dtype, l.device)
+    out = formula.half_vector_terms(ops, l, v, n, x if need_frame else None, y)
     if need_frame:
         out["x"], out["y"] = x, y
     return out

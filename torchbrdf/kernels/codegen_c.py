@@ -99,8 +99,10 @@ class _Emitter:
         return "R" if kind == "r" else _CTYPE[kind]
 
     def sel(self, c: Node, x: str, y: str, v) -> str:
-        """``c ? x : y`` with ``and`` masks expanded into nested selects (a ``&&`` becomes a
-        boolean phi that gcc 12 cannot vectorise)."""
+        """``c ? x : y`` with ``and`` masks expanded into nested selects.
+
+        A ``&&`` becomes a boolean phi that gcc 12 cannot vectorise.
+        """
         if c.op == "and":
             return self.sel(c.args[0], self.sel(c.args[1], x, y, v), y, v)
         return f"({v(c)} ? {x} : {y})"
@@ -203,7 +205,8 @@ def generate(spec, kind: str) -> str:
                     continue  # no path to the output: None in autograd, as in eager
                 written.append(k)
                 for c in range(C):
-                    terms = [adj[nd.id] for nd in loads if nd.attr["k"] == k and nd.attr["c"] == c and nd.id in adj]
+                    terms = [adj[nd.id] for nd in loads
+                             if nd.attr["k"] == k and nd.attr["c"] == c and nd.id in adj]
                     val = terms[0] if terms else 0.0
                     for t in terms[1:]:
                         val = val + t
@@ -216,7 +219,8 @@ def generate(spec, kind: str) -> str:
             T = len(spec.tangent_inputs)
             for j in range(spec.ntan):
                 seeds = {}
-                for i, (k, mode) in enumerate(zip(spec.tangent_inputs, spec.tangent_modes[j * T:(j + 1) * T])):
+                slot_modes = spec.tangent_modes[j * T:(j + 1) * T]
+                for i, (k, mode) in enumerate(zip(spec.tangent_inputs, slot_modes)):
                     C = spec.tensors[k][2]
                     for nd in loads:
                         if nd.attr["k"] == k:

@@ -142,9 +142,12 @@ def _run_fwd(plan: _Plan, tensors) -> Tensor:
 
 
 def _grad_mode(t: Tensor, C: int, N: int) -> str:
-    """'red': the input is one value for all lanes, its gradient is the sum over the lanes
-    (reduced chunk by chunk); 'full': a lane-dense gradient, then summed to the input's shape
-    (an input that is an expanded view of one value still needs its per-lane gradient)."""
+    """How an input's gradient is formed: ``'red'`` or ``'full'``.
+
+    ``'red'``: the input is one value for all lanes, its gradient is the sum over the lanes
+    (reduced chunk by chunk); ``'full'``: a lane-dense gradient, then summed to the input's
+    shape (an input that is an expanded view of one value still needs its per-lane gradient).
+    """
     lanes = math.prod(t.shape[:-1]) if t.dim() > 0 else 1
     return "red" if lanes == 1 and N > 1 else "full"
 
@@ -178,7 +181,8 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
             ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
             out = _formula_eager(plan, ts, plan.floats)
             gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
-        return [g.contiguous() if g is not None else tensors[i].new_zeros(tensors[i].shape) for i, g in zip(need, gs)]
+        return [g.contiguous() if g is not None else tensors[i].new_zeros(tensors[i].shape)
+                for i, g in zip(need, gs)]
     fn = lib[1]
     P = _dparams(plan.floats)
     nt = torch.get_num_threads()
@@ -224,7 +228,8 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
             f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
             tflat.append(f)
             tmodes.append(m)
-    lib = _load(plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=K), backward="jvp")
+    spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=K)
+    lib = _load(spec, backward="jvp")
     if lib is None:
         outs = []
         for j in range(K):
@@ -235,8 +240,8 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
             outs.append(o.expand(*plan.batch, 3))
         return torch.stack(outs) if ntan else outs[0].contiguous()
     out = torch.empty((K, N, 3), dtype=dtype)
-    lib[1](N, _ptrs([f.data_ptr() for f in flat]), _dparams(plan.floats), _ptrs([f.data_ptr() for f in tflat]),
-           _ptrs([out[j].data_ptr() for j in range(K)]), torch.get_num_threads())
+    ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
+    lib[1](N, ins, _dparams(plan.floats), tins, _ptrs([out[j].data_ptr() for j in range(K)]), torch.get_num_threads())
     return out.view(shape)
 
 

@@ -51,6 +51,8 @@ class Graph:
 
 
 class Node:
+    """One per-lane scalar value of the graph (see the module docstring); appended to ``Graph.current``."""
+
     __slots__ = ("id", "op", "args", "kind", "attr", "grad")
 
     def __init__(self, op, args, kind, attr=None, grad=None):
@@ -218,32 +220,39 @@ class TraceOps:
 
     @staticmethod
     def sqrt(a):
+        """Square root (``math.sqrt`` on Python numbers)."""
         return math.sqrt(a) if isinstance(a, numbers.Real) else _un("sqrt", a)
 
     @staticmethod
     def rsqrt(a):
+        """``1 / sqrt(x)``."""
         return _un("rsqrt", a)
 
     @staticmethod
     def log(a):
+        """Natural log."""
         return _un("log", a)
 
     @staticmethod
     def log1p(a):
+        """``log(1 + x)``."""
         return _un("log1p", a)
 
     @staticmethod
     def abs(a):
+        """``|x|``."""
         return _un("abs", a)
 
     @staticmethod
     def clamp(a, lo, hi):
+        """``x`` clamped to ``[lo, hi]``."""
         if isinstance(a, Vec3):
             return Vec3(TraceOps.clamp(c, lo, hi) for c in a.c)
         return Node("clamp", (a, _to_kind(lo, a.kind), _to_kind(hi, a.kind)), a.kind)
 
     @staticmethod
     def clamp_min(a, lo):
+        """``max(x, lo)`` (``torch.clamp(x, min=lo)`` on tensors)."""
         if isinstance(a, Vec3):
             return Vec3(TraceOps.clamp_min(c, lo) for c in a.c)
         if _is_tensor(a):
@@ -254,6 +263,7 @@ class TraceOps:
 
     @staticmethod
     def where(c, a, b):
+        """``a`` where ``c``, else ``b``."""
         if isinstance(a, Vec3) or isinstance(b, Vec3):
             ac = a.c if isinstance(a, Vec3) else (a, a, a)
             bc = b.c if isinstance(b, Vec3) else (b, b, b)
@@ -264,11 +274,13 @@ class TraceOps:
 
     @staticmethod
     def dot(a, b):
+        """Dot product over the channels, ``(*, 3) -> (*, 1)``."""
         a, b = a.c, b.c
         return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
 
     @staticmethod
     def cross_norm2(a, b):
+        """``|a × b|²``, ``(*, 1)``."""
         a, b = a.c, b.c
         c0 = a[1] * b[2] - a[2] * b[1]
         c1 = a[2] * b[0] - a[0] * b[2]
@@ -277,19 +289,23 @@ class TraceOps:
 
     @staticmethod
     def channel(x, i):
+        """Channel ``i`` of a colour, ``(*, 1)``."""
         return x.c[i]
 
     @staticmethod
     def as_tensor(a):
+        """A number as a compute-dtype value."""
         return a if _is_tensor(a) else _to_kind(a, "r")
 
     def as_color(self, a):
+        """A colour ``(*, 3)``; a number becomes grey."""
         if isinstance(a, Vec3):
             return a
         b = self.as_tensor(a)
         return Vec3((b, b, b))
 
     def to_hi(self, a):
+        """To float64 when computing in float32."""
         if not self.hi_double:
             return a
         if isinstance(a, Vec3):
@@ -297,6 +313,7 @@ class TraceOps:
         return Node("tod", (a,), "d")
 
     def to_compute(self, a):
+        """Back to the compute dtype."""
         if not self.hi_double:
             return a
         if isinstance(a, Vec3):
@@ -304,6 +321,7 @@ class TraceOps:
         return Node("tor", (a,), "r")
 
     def mask(self, valid, f):
+        """``f`` where ``valid``, exactly 0 elsewhere, ``(*, 3)``."""
         if f is None:
             f = 0.0
         return self.where(valid, f if isinstance(f, Vec3) else Vec3((f, f, f)), 0.0)
@@ -378,7 +396,9 @@ def reverse(graph: Graph, outs: list, seeds: list) -> dict:
     """Reverse mode: adjoint nodes of every differentiable node ``outs`` depend on.
 
     Args:
-        outs: output nodes; ``seeds``: their adjoints (nodes, same length).
+        graph: the graph holding ``outs``; the adjoint nodes are added to it.
+        outs: output nodes.
+        seeds: their adjoints (nodes, same length).
 
     Returns:
         ``{node id: adjoint node}`` (only for nodes that receive a gradient).
