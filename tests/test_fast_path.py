@@ -461,3 +461,19 @@ def test_torch_compile_fullgraph_runs_the_fused_operator():
         assert _rel(out_m, ref) <= 1e-6 and _rel(out_u, 2.0 * ref) <= 1e-6
         torch.testing.assert_close(gb, gbe, rtol=1e-4, atol=1e-6 * float(gbe.abs().max()))
     assert not counters["graph_break"]
+
+
+def test_jacfwd_over_many_parameters_runs_in_passes_of_a_few_tangents(fast, monkeypatch):
+    # jacfwd w.r.t. a per-lane map: K = lanes tangents, split into passes of TANGENTS_PER_PASS.
+    monkeypatch.setattr(_ops, "TANGENTS_PER_PASS", 4)
+    inputs = _case(29, 10, torch.float64, min_cos=0.05)
+    rough = inputs.pop("roughness")
+
+    def f(r):
+        return torchbrdf.principled(**inputs, roughness=r)
+
+    jac = torch.func.jacfwd(f)(rough)  # K = 10: passes of 4, 4 and 2 tangents
+    P.set_fast_path(False)
+    ref = torch.func.jacfwd(f)(rough)
+    assert jac.shape == (10, 3, 10, 1)
+    torch.testing.assert_close(jac, ref, rtol=1e-10, atol=1e-12)

@@ -39,6 +39,9 @@ SCALAR_NAMES = SCALAR_PARAMS
 # Lanes per backward chunk when some input's gradient is summed over all lanes (reduced
 # chunk by chunk, so the buffers stay small: 2^16 lanes × 3 × 8 B = 1.5 MiB).
 BWD_CHUNK = 1 << 16
+# Tangents per pass of the JVP kernel (jacfwd over K parameters runs ceil(K / 8) passes): the
+# generated code grows with the tangents, and 8 already share most of the primal work.
+TANGENTS_PER_PASS = 8
 
 
 # ---------------------------------------------------------------------------------------------
@@ -222,26 +225,28 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
     if N == 0 or not tidx:
         return torch.zeros(shape, dtype=dtype)
     flat, modes = plan.flat(tensors)
-    tflat, tmodes = [], []
-    for j in range(K):
-        for i, t in zip(tidx, tangents):
-            f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
-            tflat.append(f)
-            tmodes.append(m)
-    spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=K)
-    lib = _load(spec, backward="jvp")
-    if lib is None:
-        outs = []
-        for j in range(K):
-            tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
-            primals = tuple(t.detach() for t in tensors)
-            tans = tuple(tj.get(i, torch.zeros_like(t)) for i, t in enumerate(primals))
-            _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
-            outs.append(o.expand(*plan.batch, 3))
-        return torch.stack(outs) if ntan else outs[0].contiguous()
     out = torch.empty((K, N, 3), dtype=dtype)
-    ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
-    lib[1](N, ins, _dparams(plan.floats), tins, _ptrs([out[j].data_ptr() for j in range(K)]), torch.get_num_threads())
+    for j0 in range(0, K, TANGENTS_PER_PASS):
+        js = range(j0, min(K, j0 + TANGENTS_PER_PASS))
+        tflat, tmodes = [], []
+        for j in js:
+            for i, t in zip(tidx, tangents):
+                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
+                tflat.append(f)
+                tmodes.append(m)
+        spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=len(js))
+        lib = _load(spec, backward="jvp")
+        if lib is None:  # no kernel: forward-mode AD of the same formula, eagerly
+            primals = tuple(t.detach() for t in tensors)
+            for j in js:
+                tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
+                tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
+                _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
+                out[j] = o.expand(*plan.batch, 3).reshape(N, 3)
+            continue
+        ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
+        outs = _ptrs([out[j].data_ptr() for j in js])
+        lib[1](N, ins, _dparams(plan.floats), tins, outs, torch.get_num_threads())
     return out.view(shape)
 
 
