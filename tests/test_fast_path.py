@@ -477,3 +477,21 @@ def test_jacfwd_over_many_parameters_runs_in_passes_of_a_few_tangents(fast, monk
     ref = torch.func.jacfwd(f)(rough)
     assert jac.shape == (10, 3, 10, 1)
     torch.testing.assert_close(jac, ref, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
+def test_torch_compile_every_parameter_a_tensor(dtype):
+    # No Python-float parameter at all (an empty float list in the operator's inputs), the
+    # anisotropic frame, and a half type evaluated in float32.
+    inputs = {k: t.requires_grad_() for k, t in _case(30, 300, dtype, min_cos=0.05).items()}
+    fn = torch.compile(lambda **kw: torchbrdf.principled(**kw), fullgraph=True, backend="aot_eager")
+    out = fn(**inputs)
+    grads = torch.autograd.grad(out.sum(), list(inputs.values()))
+    P.set_fast_path(False)
+    ref = torchbrdf.principled(**inputs)
+    refs = torch.autograd.grad(ref.sum(), list(inputs.values()))
+    P.set_fast_path(None)
+    tol = 1e-12 if dtype == torch.float64 else 2e-3
+    assert _rel(out.double(), ref.double().clamp_min(1e-3)) <= tol or torch.allclose(out, ref, rtol=tol, atol=tol)
+    for g, r in zip(grads, refs):
+        assert ((g - r).abs().max() / r.abs().max().clamp_min(1e-30)).item() <= tol

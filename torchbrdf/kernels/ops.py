@@ -407,7 +407,9 @@ def _op_backward(ctx, grad_out):
     needs = ctx.needs_input_grad[0]
     if isinstance(needs, bool):
         needs = [needs] * len(tensors)
-    return _backward(tensors, ctx.floats, ctx.cfg, needs, grad_out), None, None
+    # The same structure as the inputs (tensors, floats, cfg): torch.library flattens a float
+    # list to one leaf, but an empty list to an empty list.
+    return _backward(tensors, ctx.floats, ctx.cfg, needs, grad_out), (None if ctx.floats else []), None
 
 
 principled_fwd.register_autograd(_op_backward, setup_context=_setup_context)
