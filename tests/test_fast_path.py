@@ -495,3 +495,13 @@ def test_torch_compile_every_parameter_a_tensor(dtype):
     assert _rel(out.double(), ref.double().clamp_min(1e-3)) <= tol or torch.allclose(out, ref, rtol=tol, atol=tol)
     for g, r in zip(grads, refs):
         assert ((g - r).abs().max() / r.abs().max().clamp_min(1e-30)).item() <= tol
+
+
+def test_brdf_does_not_import_the_kernels_at_import_time():
+    # brdf <- kernels, never the other way round at import: the kernels import the formula.
+    import subprocess
+    import sys
+
+    code = ("import sys, torchbrdf; "
+            "assert not [m for m in sys.modules if m.startswith('torchbrdf.kernels')], 'kernels imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
