@@ -1,9 +1,8 @@
 """C code generation for the fused kernels: prints a traced graph (see :mod:`.trace`) as C.
 
-:func:`generate` traces :func:`torchbrdf.brdf.formula.principled` for one kernel family
-(:class:`torchbrdf.kernels.fused._KernelSpec`), applies the derivative transform the kernel
-needs — :func:`.trace.reverse` for the backward, :func:`.trace.tangents` for the JVP — and
-prints the resulting nodes as one lane loop. Nothing here knows a derivative rule.
+:func:`generate` takes the kernel graph of one kernel family from :func:`.graphs.build` (the
+formula traced, with the derivative transform the kernel needs) and prints its nodes as one
+lane loop. Nothing here knows the formula or a derivative rule.
 
 Kernels (``R`` is float or double; ``in`` holds one pointer per tensor input, ``P`` the runtime
 Python floats):
@@ -18,9 +17,8 @@ Python floats):
 
 from __future__ import annotations
 
-from torchbrdf.brdf import formula
-from torchbrdf.brdf.principled import SCALAR_PARAMS
-from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse, tangents
+from torchbrdf.kernels.graphs import build
+from torchbrdf.kernels.trace import Graph, Node, live_order
 
 _PRELUDE = r"""
 #include <math.h>
@@ -92,8 +90,9 @@ _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 
 
 class _Emitter:
-    def __init__(self, ctype: str):
-        self.R = ctype
+    def __init__(self, spec):
+        self.R = spec.ctype
+        self.load = lambda attr: _load_expr(attr, spec)
 
     def t(self, kind):
         return "R" if kind == "r" else _CTYPE[kind]
@@ -114,7 +113,7 @@ class _Emitter:
         if op == "const":
             return f"(({T}){_lit(nd.attr)})" if nd.kind == "r" else _lit(nd.attr)
         if op == "in":
-            return nd.attr["load"]
+            return self.load(nd.attr)
         if op == "P":
             return f"P[{nd.attr}]"
         if op in _BINOP:
@@ -161,23 +160,26 @@ def _index(mode: str, C: int, c: int) -> str:
     return f"{c}" if mode == "b1" else "0"
 
 
-def _inputs(spec, ops: TraceOps):
-    """Input nodes of one kernel family: ``(formula inputs, load nodes)``."""
-    inp, loads = {}, []
-    for k, (name, mode, C) in enumerate(spec.tensors):
-        chans = []
-        for c in range(C):
-            nd = Node("in", (), "r", {"load": f"p{k}[{_index(mode, C, c)}]", "k": k, "c": c}, grad=True)
-            loads.append(nd)
-            chans.append(nd)
-        inp[name] = Vec3(chans) if C == 3 else chans[0]
-    for j, name in enumerate(spec.floats):
-        inp[name] = Node("P", (), "p", j)
-    inp.setdefault("x", None)
-    inp.setdefault("y", None)
-    for name in SCALAR_PARAMS:
-        inp.setdefault(name, None)
-    return inp, loads
+def _load_expr(attr: dict, spec) -> str:
+    """The C expression of a load node."""
+    role = attr["role"]
+    if role == "x":
+        return f"p{attr['k']}[{_index(attr['mode'], attr['C'], attr['c'])}]"
+    if role == "go":
+        gsl, gsc = spec.go_strides
+        return f"go[i * {gsl} + {attr['c'] * gsc}]"
+    return f"t{attr['j']}_{attr['i']}[{_index(attr['mode'], attr['C'], attr['c'])}]"
+
+
+def _store_expr(target: tuple, spec) -> str:
+    """The C lvalue of a store target."""
+    if target[0] == "out":
+        return f"ob{target[1]}[i - b0]"
+    if target[0] == "grad":
+        k, c = target[1:]
+        return f"gp{k}[i * {spec.tensors[k][2]} + {c}]"
+    j, c = target[1:]
+    return f"to{j}[i * 3 + {c}]"
 
 
 def generate(spec, kind: str) -> str:
@@ -185,59 +187,27 @@ def generate(spec, kind: str) -> str:
 
     For ``"bwd"`` it sets ``spec.written``: the inputs whose gradient the kernel writes.
     """
-    g = Graph()
-    with g:
-        ops = TraceOps(spec.hi_double)
-        inp, loads = _inputs(spec, ops)
-        outs = list(formula.principled(ops, inp, spec.active, spec.need_tint, spec.frame).c)
-        stores = []  # (pointer expression, node)
-        decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(len(spec.tensors))]
-        if kind == "fwd":
-            stores = [(f"ob{c}[i - b0]", o) for c, o in enumerate(outs)]
-            sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
-        elif kind == "bwd":
-            gsl, gsc = spec.go_strides
-            seeds = [Node("in", (), "r", {"load": f"go[i * {gsl} + {c * gsc}]"}) for c in range(3)]
-            adj = reverse(g, outs, seeds)
-            written = []
-            for k, (name, mode, C) in enumerate(spec.tensors):
-                if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj for nd in loads):
-                    continue  # no path to the output: None in autograd, as in eager
-                written.append(k)
-                for c in range(C):
-                    terms = [adj[nd.id] for nd in loads
-                             if nd.attr["k"] == k and nd.attr["c"] == c and nd.id in adj]
-                    val = terms[0] if terms else 0.0
-                    for t in terms[1:]:
-                        val = val + t
-                    stores.append((f"gp{k}[i * {C} + {c}]", val))
-            spec.written = tuple(written)
-            decl += [f"R* __restrict gp{k} = (R*)gout[{k}];" for k in written]
-            sig = ("void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
-                   "int nthreads)")
-        elif kind == "jvp":
-            T = len(spec.tangent_inputs)
-            for j in range(spec.ntan):
-                seeds = {}
-                slot_modes = spec.tangent_modes[j * T:(j + 1) * T]
-                for i, (k, mode) in enumerate(zip(spec.tangent_inputs, slot_modes)):
-                    C = spec.tensors[k][2]
-                    for nd in loads:
-                        if nd.attr["k"] == k:
-                            c = nd.attr["c"]
-                            seeds[nd.id] = Node("in", (), "r", {"load": f"t{j}_{i}[{_index(mode, C, c)}]"})
-                    decl.append(f"const R* __restrict t{j}_{i} = (const R*)tin[{j * T + i}];")
-                for c, tn in enumerate(tangents(g, outs, seeds)):
-                    stores.append((f"to{j}[i * 3 + {c}]", tn if tn is not None else 0.0))
-                decl.append(f"R* __restrict to{j} = (R*)tout[{j}];")
-            sig = "void tb_jvp(long n, void** in, const double* P, void** tin, void** tout, int nthreads)"
-        else:
-            raise ValueError(kind)
-    return _print(spec, g, stores, decl, sig, kind == "fwd")
+    kg = build(spec, kind)
+    decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(len(spec.tensors))]
+    if kind == "fwd":
+        sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
+    elif kind == "bwd":
+        spec.written = kg.written
+        decl += [f"R* __restrict gp{k} = (R*)gout[{k}];" for k in kg.written]
+        sig = ("void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
+               "int nthreads)")
+    else:
+        T = len(spec.tangent_inputs)
+        for j in range(spec.ntan):
+            decl += [f"const R* __restrict t{j}_{i} = (const R*)tin[{j * T + i}];" for i in range(T)]
+            decl.append(f"R* __restrict to{j} = (R*)tout[{j}];")
+        sig = "void tb_jvp(long n, void** in, const double* P, void** tin, void** tout, int nthreads)"
+    stores = [(_store_expr(t, spec), val) for t, val in kg.stores]
+    return _print(spec, kg.graph, stores, decl, sig, kind == "fwd")
 
 
 def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
-    em = _Emitter(spec.ctype)
+    em = _Emitter(spec)
     names = {}
 
     def v(nd):

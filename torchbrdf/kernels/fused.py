@@ -12,6 +12,8 @@ How (the kernels package):
   namespace; on torch tensors it is the eager path;
 * :mod:`torchbrdf.kernels.trace` — runs that formula on graph nodes (the IR) and
   differentiates the graph (reverse and forward mode as graph transforms);
+* :mod:`torchbrdf.kernels.graphs` — the graph of each kernel (forward, backward, JVP) of a
+  kernel family, with abstract loads and stores, for any emitter;
 * :mod:`torchbrdf.kernels.codegen_c` — prints the graph as one C lane loop (forward,
   recompute-backward, several-tangent JVP);
 * this module — the kernel spec, build and on-disk cache, and the buffer pool;
