@@ -505,3 +505,38 @@ def test_brdf_does_not_import_the_kernels_at_import_time():
     code = ("import sys, torchbrdf; "
             "assert not [m for m in sys.modules if m.startswith('torchbrdf.kernels')], 'kernels imported'")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_torch_func_compositions_match_eager(fast):
+    # Per-sample gradients, jacrev, per-lane Jacobians (vmap of jacfwd / jacrev over lanes),
+    # jvp of a vmap, and forward over reverse (hessian: the backward then runs the same formula
+    # eagerly under forward mode, instead of silently dropping the tangent).
+    inputs = _case(31, 16, torch.float64, min_cos=0.05)
+    r, b = inputs.pop("roughness"), inputs.pop("base_color")
+
+    def f(r):
+        return torchbrdf.principled(**inputs, base_color=b, roughness=r)
+
+    def loss(r):
+        return f(r).square().sum()
+
+    def one(l, v, n, p):
+        return torchbrdf.principled(l, v, n, base_color=p[:3], roughness=p[3:4], metallic=p[4:5])
+
+    batch = torch.rand(4, 16, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    per_lane = torch.rand(16, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    lanes = (inputs["l"], inputs["v"], inputs["n"], per_lane)
+    cases = {
+        "vmap(grad)": lambda: torch.func.vmap(torch.func.grad(loss))(batch),
+        "jacrev": lambda: torch.func.jacrev(f)(r),
+        "vmap(jacfwd)": lambda: torch.func.vmap(torch.func.jacfwd(one, argnums=3))(*lanes),
+        "vmap(jacrev)": lambda: torch.func.vmap(torch.func.jacrev(one, argnums=3))(*lanes),
+        "jvp(vmap)": lambda: torch.func.jvp(torch.func.vmap(f), (batch,), (torch.ones_like(batch),))[1],
+        "hessian": lambda: torch.func.hessian(loss)(r),
+    }
+    for name, fn in cases.items():
+        P.set_fast_path(True)
+        got = fn()
+        P.set_fast_path(False)
+        ref = fn()
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()), msg=name)

@@ -372,6 +372,12 @@ def _backward(tensors, floats, cfg, needs, grad_out):
     if not need:
         return [None] * len(tensors)
     plan = _Plan(cfg, tensors, floats)
+    if _forward_mode_over(tensors, grad_out):
+        # Forward mode over this backward (hessian = jacfwd(jacrev)): the backward kernel has no
+        # forward-mode rule of its own, so the backward of the same formula runs eagerly.
+        _, vjp_fn = torch.func.vjp(lambda *ts: _formula_eager(plan, ts, floats), *tensors)
+        gs = vjp_fn(grad_out.expand(*plan.batch, 3))
+        return [g if i in need else None for i, g in enumerate(gs)]
     if torch.is_grad_enabled() and all(tensors[i].requires_grad for i in need):
         # create_graph=True: a differentiable backward, eagerly (under torch.func transforms the
         # inputs seen here are not differentiable at this level and the kernels run).
@@ -396,6 +402,20 @@ def _backward(tensors, floats, cfg, needs, grad_out):
     return grads
 
 
+def _forward_mode_over(tensors, grad_out) -> bool:
+    """True when forward-mode AD (``torch.func.jvp``/``jacfwd`` or dual tensors) is active around a backward."""
+    from torch._C._functorch import TransformType
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    if any(i.key() == TransformType.Jvp for i in retrieve_all_functorch_interpreters()):
+        return True
+    if torch._C._is_fwd_grad_enabled():
+        from torch.autograd import forward_ad
+
+        return any(forward_ad.unpack_dual(t).tangent is not None for t in (*tensors, grad_out))
+    return False
+
+
 def _setup_context(ctx, inputs, output):
     tensors, floats, cfg = inputs
     ctx.save_for_backward(*tensors)
@@ -415,6 +435,16 @@ def _op_backward(ctx, grad_out):
 principled_fwd.register_autograd(_op_backward, setup_context=_setup_context)
 
 
+class _Floats:
+    """The runtime float parameters as one opaque argument (not a pytree: torch.func's generated
+    vmap rule of a ``jvp`` cannot hold per-element dims for a list of floats)."""
+
+    __slots__ = ("values",)
+
+    def __init__(self, values):
+        self.values = list(values)
+
+
 class _PrincipledFunction(torch.autograd.Function):
     """The fused ops with reverse and forward mode, for eager calls and ``torch.func``."""
 
@@ -422,14 +452,14 @@ class _PrincipledFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(cfg, floats, *tensors):
-        return principled_fwd(list(tensors), list(floats), cfg)
+        return principled_fwd(list(tensors), floats.values, cfg)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
         cfg, floats, *tensors = inputs
         ctx.save_for_backward(*tensors)
         ctx.save_for_forward(*tensors)
-        ctx.floats, ctx.cfg = floats, cfg
+        ctx.floats, ctx.cfg = floats.values, cfg
 
     @staticmethod
     def backward(ctx, grad_out):
@@ -457,4 +487,4 @@ def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
     cfg = make_cfg(tensor_names, float_names, active, need_tint, frame)
     if torch.compiler.is_compiling():
         return principled_fwd(tensors, floats, cfg)
-    return _PrincipledFunction.apply(cfg, floats, *tensors)
+    return _PrincipledFunction.apply(cfg, _Floats(floats), *tensors)
