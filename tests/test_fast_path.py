@@ -509,8 +509,9 @@ def test_brdf_does_not_import_the_kernels_at_import_time():
 
 def test_torch_func_compositions_match_eager(fast):
     # Per-sample gradients, jacrev, per-lane Jacobians (vmap of jacfwd / jacrev over lanes),
-    # jvp of a vmap, and forward over reverse (hessian: the backward then runs the same formula
-    # eagerly under forward mode, instead of silently dropping the tangent).
+    # jvp of a vmap, forward over reverse (hessian: the backward then runs the same formula
+    # eagerly under forward mode, instead of silently dropping the tangent) and reverse over
+    # forward (the vjp of the formula's eager jvp).
     inputs = _case(31, 16, torch.float64, min_cos=0.05)
     r, b = inputs.pop("roughness"), inputs.pop("base_color")
 
@@ -533,6 +534,8 @@ def test_torch_func_compositions_match_eager(fast):
         "vmap(jacrev)": lambda: torch.func.vmap(torch.func.jacrev(one, argnums=3))(*lanes),
         "jvp(vmap)": lambda: torch.func.jvp(torch.func.vmap(f), (batch,), (torch.ones_like(batch),))[1],
         "hessian": lambda: torch.func.hessian(loss)(r),
+        "jacrev(jacfwd)": lambda: torch.func.jacrev(torch.func.jacfwd(loss))(r),
+        "grad(jvp)": lambda: torch.func.grad(lambda r: torch.func.jvp(f, (r,), (torch.ones_like(r),))[1].sum())(r),
     }
     for name, fn in cases.items():
         P.set_fast_path(True)

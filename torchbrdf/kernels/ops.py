@@ -435,6 +435,54 @@ def _op_backward(ctx, grad_out):
 principled_fwd.register_autograd(_op_backward, setup_context=_setup_context)
 
 
+def _jvp_vjp(tensors, tangents, floats, cfg, tidx, ntan, grad):
+    """Reverse mode over the forward-mode kernel (``jacrev(jacfwd(f))``): there is no kernel for
+    this second-order quantity, so it is the vjp of the formula's eager jvp."""
+    plan = _Plan(cfg, tensors, floats)
+
+    def out_tangent(ts, tans):
+        def one(tj):
+            full = [torch.zeros_like(t) for t in ts]
+            for i, t in zip(tidx, tj):
+                full[i] = t
+            _, o = torch.func.jvp(lambda *x: _formula_eager(plan, x, floats), tuple(ts), tuple(full))
+            return o.expand(*plan.batch, 3)
+
+        if ntan:
+            return torch.stack([one([t[j] for t in tans]) for j in range(ntan)])
+        return one(tans)
+
+    _, vjp_fn = torch.func.vjp(out_tangent, list(tensors), list(tangents))
+    return vjp_fn(grad)
+
+
+class _PrincipledJvpFunction(torch.autograd.Function):
+    """The forward-mode kernel with a (formula-eager) reverse mode, for ``grad``/``jacrev`` over ``jvp``."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(cfg, consts, n, *tensors_and_tangents):
+        tensors, tangents = list(tensors_and_tangents[:n]), list(tensors_and_tangents[n:])
+        floats, tidx, ntan = consts.values
+        return principled_jvp(tensors, floats, cfg, tangents, tidx, ntan)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        cfg, consts, n, *rest = inputs
+        ctx.save_for_backward(*rest)
+        ctx.cfg, ctx.consts, ctx.n = cfg, consts.values, n
+
+    @staticmethod
+    def backward(ctx, grad):
+        saved = ctx.saved_tensors
+        floats, tidx, ntan = ctx.consts
+        g_t, g_tan = _jvp_vjp(saved[:ctx.n], saved[ctx.n:], floats, ctx.cfg, tidx, ntan, grad)
+        return (None, None, None, *g_t, *g_tan)
+
+
+
+
 class _Floats:
     """The runtime float parameters as one opaque argument (not a pytree: torch.func's generated
     vmap rule of a ``jvp`` cannot hold per-element dims for a list of floats)."""
@@ -470,7 +518,8 @@ class _PrincipledFunction(torch.autograd.Function):
     def jvp(ctx, _cfg, _floats, *tangents):
         tensors = ctx.saved_tensors
         tidx = [i for i, t in enumerate(tangents) if t is not None]
-        return principled_jvp(list(tensors), list(ctx.floats), ctx.cfg, [tangents[i] for i in tidx], tidx, 0)
+        consts = _Floats((list(ctx.floats), tidx, 0))
+        return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *[tangents[i] for i in tidx])
 
 
 def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
