@@ -256,3 +256,290 @@ def test_no_grad_and_scalar_inputs(fast):
     P.set_fast_path(False)
     assert _rel(grey, torchbrdf.principled(inputs["l"], inputs["v"], inputs["n"], base_color=0.5)) <= 1e-6
     assert SCALARS  # the shared parameter list is the one the reference tests use
+
+
+# ---------------------------------------------------------------------------------------------
+# One definition, the operator, expanded inputs, zero lanes, torch.func, torch.compile
+# ---------------------------------------------------------------------------------------------
+
+from torchbrdf.brdf import formula  # noqa: E402
+from torchbrdf.kernels import ops as _ops  # noqa: E402
+
+BIG = P.FAST_PATH_MIN_LANES  # the default dispatch takes the fused path from here
+
+
+def _one(t):
+    """``t``'s first lane, expanded back over all lanes (an expanded view, stride 0)."""
+    return t[:1].clone()
+
+
+@pytest.mark.parametrize("expanded", ["roughness", "base_color", "all"])
+def test_inputs_expanded_from_one_element_get_correct_gradients(expanded):
+    # The ordinary way to fit one global material: roughness=r.expand(N, 1). The old fused
+    # backward raised "shape '[N, 3]' is invalid for input of size 3" for these.
+    inputs = _case(21, BIG, torch.float32, min_cos=0.05)
+    names = list(inputs) if expanded == "all" else [expanded]
+    names = [k for k in names if k != "l"]  # keep the lanes different from each other
+    leaves = {k: _one(inputs[k]).requires_grad_() for k in names}
+    go = torch.rand(BIG, 3, generator=torch.Generator().manual_seed(2))
+    res = {}
+    for fast in (None, False):
+        P.set_fast_path(fast)
+        try:
+            for t in leaves.values():
+                t.grad = None
+            args = {**inputs, **{k: t.expand(BIG, t.shape[-1]) for k, t in leaves.items()}}
+            out = torchbrdf.principled(**args)
+            assert ("PrincipledFunction" in out.grad_fn.name()) == (fast is None)
+            out.backward(go)
+            res[fast] = (out.detach(), {k: t.grad.clone() for k, t in leaves.items()})
+        finally:
+            P.set_fast_path(None)
+    assert _rel(res[None][0], res[False][0]) <= 1e-6
+    for k in leaves:
+        assert res[None][1][k].shape == leaves[k].shape
+        torch.testing.assert_close(res[None][1][k], res[False][1][k], rtol=1e-4, atol=0)
+
+
+def test_expanded_leaf_keeps_per_lane_gradients(fast):
+    # A leaf that *is* an expanded view (stride 0) still gets one gradient per lane.
+    inputs = _case(22, 64, torch.float64, min_cos=0.05)
+    rough = torch.tensor([[0.4]], dtype=torch.float64).expand(64, 1).requires_grad_()
+    torchbrdf.principled(**{**inputs, "roughness": rough}).sum().backward()
+    P.set_fast_path(False)
+    ref = torch.full((64, 1), 0.4, dtype=torch.float64, requires_grad=True)
+    torchbrdf.principled(**{**inputs, "roughness": ref}).sum().backward()
+    torch.testing.assert_close(rough.grad, ref.grad, rtol=1e-12, atol=0)
+
+
+def test_zero_lanes_forward_and_backward(fast):
+    inputs = {k: t.requires_grad_() for k, t in _case(23, 0, torch.float32).items()}
+    out = torchbrdf.principled(**inputs)
+    assert out.shape == (0, 3) and "PrincipledFunction" in out.grad_fn.name()
+    out.sum().backward()  # the old code: "range() arg 3 must not be zero"
+    for k, t in inputs.items():
+        assert t.grad is not None and t.grad.shape == t.shape and not t.grad.any(), k
+    shared = torch.tensor(0.5, requires_grad=True)  # broadcast over zero lanes: zero gradient
+    torchbrdf.principled(inputs["l"], inputs["v"], inputs["n"], base_color=0.5, roughness=shared).sum().backward()
+    assert shared.grad == 0
+
+
+def test_eager_and_kernels_come_from_one_definition(monkeypatch):
+    # Perturb one constant of the shared formula: the eager path and a freshly generated kernel
+    # family both change by exactly the same factor.
+    inputs = {k: t for k, t in _case(24, 512, torch.float64, min_cos=0.05).items()
+              if k in ("l", "v", "n", "base_color", "roughness")}
+    kw = dict(lobes=("diffuse",), subsurface=0.0, metallic=0.0)
+    before = {fast: _eval(fast, inputs, **kw)[0] for fast in (True, False)}
+    monkeypatch.setattr(_fast, "_libs", {})  # this process's loaded kernels: rebuild from the formula
+    monkeypatch.setattr(formula, "INV_PI", 2.0 * formula.INV_PI)
+    after = {fast: _eval(fast, inputs, **kw)[0] for fast in (True, False)}
+    for fast in (True, False):
+        torch.testing.assert_close(after[fast], 2.0 * before[fast], rtol=1e-14, atol=0)
+    monkeypatch.undo()
+    assert _rel(_eval(True, inputs, **kw)[0], before[True]) == 0
+
+
+def _count_calls(monkeypatch, name):
+    calls = []
+    real = getattr(_ops, name)
+
+    def spy(*a, **k):
+        calls.append(a)
+        return real(*a, **k)
+
+    monkeypatch.setattr(_ops, name, spy)
+    return calls
+
+
+def test_func_jvp_jacfwd_vmap_run_fused_and_match_eager(monkeypatch):
+    inputs = _case(25, BIG, torch.float32, min_cos=0.05)
+    rough = inputs.pop("roughness")
+    tangent = torch.randn(BIG, 1, generator=torch.Generator().manual_seed(3))
+
+    def f(r):
+        return torchbrdf.principled(**inputs, roughness=r)
+
+    calls = _count_calls(monkeypatch, "_run_jvp")
+    out_f, jvp_f = torch.func.jvp(f, (rough,), (tangent,))
+    assert len(calls) == 1
+    P.set_fast_path(False)
+    out_e, jvp_e = torch.func.jvp(f, (rough,), (tangent,))
+    P.set_fast_path(None)
+    assert _rel(out_f, out_e) <= 1e-6
+    torch.testing.assert_close(jvp_f, jvp_e, rtol=1e-4, atol=1e-5 * float(jvp_e.abs().max()))
+
+    # jacfwd w.r.t. one shared material (5 numbers): five tangents in one fused pass.
+    base = {k: t for k, t in inputs.items() if k not in ("base_color", "metallic", "sheen")}
+
+    def g(p):
+        return torchbrdf.principled(**base, roughness=rough, base_color=p[:3], metallic=p[3:4], sheen=p[4:5])
+
+    p = torch.tensor([0.6, 0.4, 0.2, 0.3, 0.5])
+    calls.clear()
+    jac_f = torch.func.jacfwd(g)(p)
+    assert len(calls) == 1 and calls[0][-1] == 5  # ntan = 5
+    P.set_fast_path(False)
+    jac_e = torch.func.jacfwd(g)(p)
+    P.set_fast_path(None)
+    assert jac_f.shape == (BIG, 3, 5)
+    torch.testing.assert_close(jac_f, jac_e, rtol=1e-4, atol=1e-5 * float(jac_e.abs().max()))
+
+    # vmap over a leading batch of light directions (folded into the lanes).
+    ls = torch.stack([inputs["l"], inputs["l"].flip(0)])
+    rest = {k: t for k, t in inputs.items() if k != "l"}
+    calls = _count_calls(monkeypatch, "_run_fwd")
+    vm_f = torch.func.vmap(lambda l: torchbrdf.principled(l, roughness=rough, **rest))(ls)
+    assert len(calls) == 1
+    P.set_fast_path(False)
+    vm_e = torch.func.vmap(lambda l: torchbrdf.principled(l, roughness=rough, **rest))(ls)
+    P.set_fast_path(None)
+    assert _rel(vm_f, vm_e) <= 1e-6
+
+
+def test_forward_ad_dual_tensors_use_the_fused_jvp(fast):
+    import torch.autograd.forward_ad as fwAD
+
+    inputs = _case(26, 256, torch.float64, min_cos=0.05)
+    t = torch.randn(256, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    with fwAD.dual_level():
+        out = torchbrdf.principled(**{**inputs, "base_color": fwAD.make_dual(inputs["base_color"], t)})
+        tan = fwAD.unpack_dual(out).tangent
+    P.set_fast_path(False)
+    _, ref = torch.func.jvp(lambda b: torchbrdf.principled(**{**inputs, "base_color": b}),
+                            (inputs["base_color"],), (t,))
+    torch.testing.assert_close(tan, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_custom_ops_pass_opcheck(fast):
+    inputs = _case(27, 16, torch.float64, min_cos=0.05)
+    names = ["l", "v", "n", "base_color", "roughness", "metallic"]
+    tensors = [inputs[k].requires_grad_() for k in names]
+    floats = [0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 1.0]
+    float_names = ["subsurface", "specular", "specular_tint", "anisotropic", "sheen", "sheen_tint",
+                   "clearcoat", "clearcoat_gloss"]
+    cfg = _ops.make_cfg(names, float_names, ("diffuse", "specular"), False, False)
+    torch.library.opcheck(torch.ops.torchbrdf.principled_fwd, (tensors, floats, cfg))
+    go = torch.ones(16, 3, dtype=torch.float64)
+    torch.library.opcheck(torch.ops.torchbrdf.principled_bwd, ([t.detach() for t in tensors], floats, cfg, go, [0, 4]))
+    tans = [torch.ones_like(tensors[4])]
+    torch.library.opcheck(torch.ops.torchbrdf.principled_jvp, ([t.detach() for t in tensors], floats, cfg, tans, [4], 0))
+
+
+def test_torch_compile_fullgraph_runs_the_fused_operator():
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+    from torch._inductor.compile_fx import compile_fx
+
+    graphs = []
+
+    def backend(gm, example_inputs):
+        graphs.append(gm)
+        return compile_fx(gm, example_inputs)
+
+    def user(l, v, n, base, rough):
+        return torchbrdf.principled(l, v, n, base_color=base, roughness=rough, clearcoat=0.3) * 2.0
+
+    module = torch.compile(torchbrdf.PrincipledBRDF(), fullgraph=True, backend=backend)
+    fn = torch.compile(user, fullgraph=True, backend=backend)
+    counters.clear()
+    for lanes in (100, 65536):
+        inputs = _case(28, lanes, torch.float32, min_cos=0.05)
+        args = (inputs["l"], inputs["v"], inputs["n"])
+        base = inputs["base_color"].requires_grad_()
+        rough = inputs["roughness"].requires_grad_()
+        graphs.clear()
+        out_m = module(*args, base_color=base, roughness=rough, clearcoat=0.3)
+        out_u = fn(*args, base, rough)
+        for gm in graphs:
+            assert any("torchbrdf.principled_fwd" in str(nd.target) for nd in gm.graph.nodes), gm.code
+        (gb,) = torch.autograd.grad(out_u.sum(), base)
+        P.set_fast_path(False)
+        ref = torchbrdf.principled(*args, base_color=base, roughness=rough, clearcoat=0.3)
+        (gbe,) = torch.autograd.grad((ref * 2.0).sum(), base)
+        P.set_fast_path(None)
+        assert _rel(out_m, ref) <= 1e-6 and _rel(out_u, 2.0 * ref) <= 1e-6
+        torch.testing.assert_close(gb, gbe, rtol=1e-4, atol=1e-6 * float(gbe.abs().max()))
+    assert not counters["graph_break"]
+
+
+def test_jacfwd_over_many_parameters_runs_in_passes_of_a_few_tangents(fast, monkeypatch):
+    # jacfwd w.r.t. a per-lane map: K = lanes tangents, split into passes of TANGENTS_PER_PASS.
+    monkeypatch.setattr(_ops, "TANGENTS_PER_PASS", 4)
+    inputs = _case(29, 10, torch.float64, min_cos=0.05)
+    rough = inputs.pop("roughness")
+
+    def f(r):
+        return torchbrdf.principled(**inputs, roughness=r)
+
+    jac = torch.func.jacfwd(f)(rough)  # K = 10: passes of 4, 4 and 2 tangents
+    P.set_fast_path(False)
+    ref = torch.func.jacfwd(f)(rough)
+    assert jac.shape == (10, 3, 10, 1)
+    torch.testing.assert_close(jac, ref, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float16])
+def test_torch_compile_every_parameter_a_tensor(dtype):
+    # No Python-float parameter at all (an empty float list in the operator's inputs), the
+    # anisotropic frame, and a half type evaluated in float32.
+    inputs = {k: t.requires_grad_() for k, t in _case(30, 300, dtype, min_cos=0.05).items()}
+    fn = torch.compile(lambda **kw: torchbrdf.principled(**kw), fullgraph=True, backend="aot_eager")
+    out = fn(**inputs)
+    grads = torch.autograd.grad(out.sum(), list(inputs.values()))
+    P.set_fast_path(False)
+    ref = torchbrdf.principled(**inputs)
+    refs = torch.autograd.grad(ref.sum(), list(inputs.values()))
+    P.set_fast_path(None)
+    tol = 1e-12 if dtype == torch.float64 else 2e-3
+    assert _rel(out.double(), ref.double().clamp_min(1e-3)) <= tol or torch.allclose(out, ref, rtol=tol, atol=tol)
+    for g, r in zip(grads, refs):
+        assert ((g - r).abs().max() / r.abs().max().clamp_min(1e-30)).item() <= tol
+
+
+def test_brdf_does_not_import_the_kernels_at_import_time():
+    # brdf <- kernels, never the other way round at import: the kernels import the formula.
+    import subprocess
+    import sys
+
+    code = ("import sys, torchbrdf; "
+            "assert not [m for m in sys.modules if m.startswith('torchbrdf.kernels')], 'kernels imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_torch_func_compositions_match_eager(fast):
+    # Per-sample gradients, jacrev, per-lane Jacobians (vmap of jacfwd / jacrev over lanes),
+    # jvp of a vmap, forward over reverse (hessian: the backward then runs the same formula
+    # eagerly under forward mode, instead of silently dropping the tangent) and reverse over
+    # forward (the vjp of the formula's eager jvp).
+    inputs = _case(31, 16, torch.float64, min_cos=0.05)
+    r, b = inputs.pop("roughness"), inputs.pop("base_color")
+
+    def f(r):
+        return torchbrdf.principled(**inputs, base_color=b, roughness=r)
+
+    def loss(r):
+        return f(r).square().sum()
+
+    def one(l, v, n, p):
+        return torchbrdf.principled(l, v, n, base_color=p[:3], roughness=p[3:4], metallic=p[4:5])
+
+    batch = torch.rand(4, 16, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    per_lane = torch.rand(16, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    lanes = (inputs["l"], inputs["v"], inputs["n"], per_lane)
+    cases = {
+        "vmap(grad)": lambda: torch.func.vmap(torch.func.grad(loss))(batch),
+        "jacrev": lambda: torch.func.jacrev(f)(r),
+        "vmap(jacfwd)": lambda: torch.func.vmap(torch.func.jacfwd(one, argnums=3))(*lanes),
+        "vmap(jacrev)": lambda: torch.func.vmap(torch.func.jacrev(one, argnums=3))(*lanes),
+        "jvp(vmap)": lambda: torch.func.jvp(torch.func.vmap(f), (batch,), (torch.ones_like(batch),))[1],
+        "hessian": lambda: torch.func.hessian(loss)(r),
+        "jacrev(jacfwd)": lambda: torch.func.jacrev(torch.func.jacfwd(loss))(r),
+        "grad(jvp)": lambda: torch.func.grad(lambda r: torch.func.jvp(f, (r,), (torch.ones_like(r),))[1].sum())(r),
+    }
+    for name, fn in cases.items():
+        P.set_fast_path(True)
+        got = fn()
+        P.set_fast_path(False)
+        ref = fn()
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()), msg=name)

@@ -7,7 +7,6 @@ rendered through the shader and fitted with ``training.fit_measured``.
 """
 
 import json
-import math
 
 import pytest
 import torch

@@ -637,3 +637,42 @@ def test_non_finite_gbuffer_or_light_under_validation():
         g.material["roughness"] = float("nan")
         with pytest.raises(ValueError, match=r"^gbuf\.material\['roughness'\]: expected a finite number"):
             shade(g, light)
+
+
+def test_shade_under_torch_compile_has_no_graph_break_and_no_recompile():
+    # Value-dependent pruning (which pixels, constant maps) is skipped while compiling: each
+    # decision would be a graph break and a guard on the data (a recompile per new input).
+    from torch._dynamo.utils import counters
+
+    import torchbrdf
+
+    b, h, w = 1, 12, 16
+
+    def inputs(seed):
+        mat = {"base_color": rand(b, 3, h, w, seed=seed, dtype=torch.float32).requires_grad_(),
+               "roughness": rand(b, 1, h, w, seed=seed + 1, dtype=torch.float32, lo=0.1).requires_grad_(),
+               "metallic": torch.zeros(b, 1, h, w)}  # all zeros: pruned eagerly, evaluated compiled
+        mask = (rand(b, 1, h, w, seed=seed + 2, dtype=torch.float32) > 0.2).float()
+        pos = torch.stack(torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1, 1, w), indexing="ij")[::-1]
+                          + (torch.zeros(h, w),))[None]
+        nrm = torch.tensor([0.1, -0.1, 1.0]).view(1, 3, 1, 1) + 0.2 * rand(b, 3, h, w, seed=seed + 3,
+                                                                             dtype=torch.float32)
+        nrm = torch.nn.functional.normalize(nrm, dim=1)
+        gb = GBuffer(position=pos, normal=nrm, camera_position=torch.tensor([0.0, 0.0, 3.0]), material=mat,
+                     mask=mask)
+        lights = [PointLight(torch.tensor([0.5, -0.3, 2.0]) + 0.1 * seed, torch.tensor([10.0, 8.0, 6.0])),
+                  DirectionalLight(safe_normalize(torch.tensor([0.2, 0.1, 1.0])), torch.ones(3))]
+        return gb, lights, mat
+
+    counters.clear()
+    fn = torch.compile(torchbrdf.shade, backend="eager")
+    for seed in range(3):
+        gb, lights, mat = inputs(seed)
+        img = fn(gb, lights)
+        (g,) = torch.autograd.grad(img.sum(), mat["roughness"])
+        ref = shade(gb, lights)
+        (ge,) = torch.autograd.grad(ref.sum(), mat["roughness"])
+        torch.testing.assert_close(img, ref, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(g, ge, rtol=1e-4, atol=1e-6)
+    assert not counters["graph_break"], dict(counters["graph_break"])
+    assert counters["stats"]["unique_graphs"] == 1

@@ -11,12 +11,15 @@ from typing import overload
 import torch
 from torch import Tensor
 
-from torchbrdf._math import half_safe, lerp, schlick_weight
+from torchbrdf._math import half_safe
 from torchbrdf._types import Color, Scalar
+from torchbrdf.brdf import formula
 
 __all__ = ["diffuse_lambert", "diffuse_burley", "diffuse_subsurface", "diffuse_oren_nayar"]
 
 INV_PI = 1.0 / math.pi
+# The dtype-independent torch ops of the shared formulas (only the elementwise ones are used here).
+_OPS = formula.TorchOps(torch.float32)
 
 
 @overload
@@ -36,8 +39,7 @@ def burley_retro_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, rough
     ``Fd90 = 0.5 + 2 roughness (l·h)²``: rough surfaces brighten toward grazing
     (retro-reflection), smooth ones darken (Burley 2012 §5.3).
     """
-    fd90 = 0.5 + 2.0 * roughness * l_dot_h * l_dot_h
-    return lerp(1.0, fd90, schlick_weight(n_dot_l)) * lerp(1.0, fd90, schlick_weight(n_dot_v))
+    return formula.burley_retro_factor(_OPS, n_dot_l, n_dot_v, l_dot_h, roughness)
 
 
 @half_safe
@@ -47,10 +49,7 @@ def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughne
     ``NL + NV`` is floored at 1e-7 (both at 1e-7 is the hardest grazing case the library
     supports; the value there is ~1e7 but finite).
     """
-    fss90 = roughness * l_dot_h * l_dot_h
-    fss = lerp(1.0, fss90, schlick_weight(n_dot_l)) * lerp(1.0, fss90, schlick_weight(n_dot_v))
-    inv = 1.0 / torch.clamp(n_dot_l + n_dot_v, min=1e-7)
-    return 1.25 * (fss * (inv - 0.5) + 0.5)
+    return formula.subsurface_factor(_OPS, n_dot_l, n_dot_v, l_dot_h, roughness)
 
 
 @half_safe

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from torchbrdf._math import half_safe
 from torchbrdf._types import Scalar
+from torchbrdf.brdf import formula  # GTR1 is written once there (the principled clearcoat)
 
 __all__ = [
     "ALPHA_MIN",
@@ -172,11 +173,8 @@ def ndf_gtr(n_dot_h: Tensor, alpha: Scalar, gamma: Scalar, sin2_h: Tensor | None
 @half_safe
 def ndf_gtr1(n_dot_h: Tensor, alpha: Scalar, sin2_h: Tensor | None = None) -> Tensor:
     """GTR with γ = 1 (Burley eq. 4, the clearcoat lobe): ``(α²-1) / (π ln α² (α² cos² + sin²))``."""
-    alpha_t = torch.as_tensor(alpha, dtype=n_dot_h.dtype, device=n_dot_h.device)
-    a2 = alpha_t * alpha_t
-    base = a2 * n_dot_h * n_dot_h + _sin2(n_dot_h, sin2_h)
-    d = _x_over_log1p(a2 - 1.0, _log_a2(a2)) / (math.pi * torch.clamp(base, min=_DEN_EPS))
-    return torch.where(n_dot_h > 0, d, torch.zeros_like(d))
+    ops = formula.TorchOps(n_dot_h.dtype, n_dot_h.device)
+    return formula.ndf_gtr1(ops, n_dot_h, alpha, _sin2(n_dot_h, sin2_h))
 
 
 @half_safe

@@ -29,20 +29,13 @@ import torch
 from torch import Tensor, nn
 
 from torchbrdf import _checks
-from torchbrdf._math import cast_back, cast_in, compute_dtype, cross_norm2, dot, lerp, luminance, safe_normalize, safe_sqrt, schlick_weight
-from torchbrdf.brdf.diffuse import burley_retro_factor, subsurface_factor
-from torchbrdf.brdf.distributions import ALPHA_MIN, ndf_gtr1
+from torchbrdf._math import cast_back, cast_in, compute_dtype
+from torchbrdf.brdf import formula
+from torchbrdf.brdf.formula import ASPECT2_MIN, COS_EPS, INV_PI  # noqa: F401  (re-exported constants)
 from torchbrdf.brdf.frames import frame_from_normal
 
 __all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES", "set_fast_path", "fast_path_enabled",
            "FAST_PATH_MIN_LANES"]
-
-INV_PI = 1.0 / math.pi
-# Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine
-# the library promises finite values for (1/(NL+NV) stays below 1e7).
-COS_EPS = 1e-7
-# 1 - 0.9 * anisotropic floor: anisotropic = 1 already gives aspect sqrt(0.1).
-ASPECT2_MIN = 0.1
 
 PRINCIPLED_DEFAULTS = {
     "metallic": 0.0,
@@ -182,7 +175,7 @@ def principled(
 
 
 # ---------------------------------------------------------------------------------------------
-# Dispatch between the eager reference path and the fused kernels (torchbrdf/_fast.py).
+# Dispatch between the eager path and the fused kernels (torchbrdf/kernels/, same formula).
 # ---------------------------------------------------------------------------------------------
 
 #: Lanes (broadcast batch size) from which ``principled`` uses the fused kernels by default.
@@ -216,20 +209,20 @@ def _fast_path_wanted(c: dict) -> bool:
     mode = _fast_mode["enabled"]
     if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
         return False
-    tensors = [t for t in c.values() if isinstance(t, Tensor)]
     t0 = c["l"]
     if t0.device.type != "cpu" or t0.dtype not in (torch.float32, torch.float64):
         return False
-    for t in tensors:
-        # tensor subclasses, functorch (vmap/grad) wrappers: leave them to eager ATen ops
-        if type(t) not in (Tensor, nn.Parameter) or torch._C._functorch.is_functorch_wrapped_tensor(t):
-            return False
-    if torch.compiler.is_compiling() or torch.jit.is_tracing() or torch.jit.is_scripting():
+    tensors = [t for t in c.values() if isinstance(t, Tensor)]
+    if torch.compiler.is_compiling():
+        # torch.compile traces the fused operator (torch.ops.torchbrdf.principled_fwd) at any
+        # size, so the compiled graph never depends on the batch size or recompile history.
+        return _kernels_available()
+    if torch.jit.is_tracing() or torch.jit.is_scripting():
         return False
-    if torch._C._is_fwd_grad_enabled():
-        from torch.autograd import forward_ad
-
-        if any(forward_ad.unpack_dual(t).tangent is not None for t in tensors):
+    for t in tensors:
+        # tensor subclasses (e.g. __torch_function__ wrappers) stay on eager ATen ops; torch.func
+        # transforms (vmap, grad, jvp) and forward-mode AD go through the operator's rules.
+        if type(t) not in (Tensor, nn.Parameter):
             return False
     if mode is None:
         shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
@@ -239,99 +232,48 @@ def _fast_path_wanted(c: dict) -> bool:
             return False
         if lanes < FAST_PATH_MIN_LANES:
             return False
+    return _kernels_available()
+
+
+@torch.compiler.assume_constant_result  # under torch.compile: evaluated once while tracing
+def _kernels_available() -> bool:
     from torchbrdf.kernels import fused as _fast
 
     return _fast.available()
 
 
 def _principled_fast_or_none(c: dict, active: tuple[str, ...]):
-    from torchbrdf.kernels import fused as _fast
+    from torchbrdf.kernels import ops as _ops
 
-    frame = _needs_frame(c)
-    if frame:
-        c = dict(c)
-        if c["x"] is None:
-            c["x"], c["y"] = frame_from_normal(c["n"])
-        elif c["y"] is None:
-            c["y"] = torch.linalg.cross(c["n"], c["x"], dim=-1)
-    need_tint = not _is_const(c["specular_tint"], 0.0) or (
-        "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
-    )
-    return _fast.principled_fast(c, active, need_tint, frame)
+    c = _fill_frame(c)
+    return _ops.principled_fast(c, active, _need_tint(c, active), _needs_frame(c))
+
+
+def _fill_frame(c: dict) -> dict:
+    """``c`` with the tangent frame filled in when the anisotropic form needs one."""
+    if not _needs_frame(c) or (c["x"] is not None and c["y"] is not None):
+        return c
+    c = dict(c)
+    if c["x"] is None:
+        c["x"], c["y"] = frame_from_normal(c["n"])
+    else:
+        c["y"] = torch.linalg.cross(c["n"], c["x"], dim=-1)
+    return c
 
 
 def _principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
-    """The principled BRDF on already-checked, compute-dtype inputs ``c`` (see ``_prepare``)."""
-    l, v, n, x, y = c["l"], c["v"], c["n"], c["x"], c["y"]
-    base = c["base_color"]
-    if not isinstance(base, Tensor) or base.dim() == 0:
-        base = torch.as_tensor(base, dtype=l.dtype, device=l.device).expand(3)
-    metallic, roughness = c["metallic"], c["roughness"]
+    """The principled BRDF on already-checked, compute-dtype inputs ``c`` (see ``_prepare``).
 
-    nl_raw, nv_raw = dot(n, l), dot(n, v)
-    valid = (nl_raw > 0) & (nv_raw > 0)
-    nl = torch.clamp(nl_raw, min=COS_EPS)
-    nv = torch.clamp(nv_raw, min=COS_EPS)
-    hg = half_vector_terms(l, v, n, c["x"], c["y"], need_frame=_needs_frame(c))
-    nh, lh = hg["nh"], hg["lh"]
-    fh = _pow5(hg["one_minus_lh"])
-
-    need_tint = not _is_const(c["specular_tint"], 0.0) or (
-        "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
-    )
-    if need_tint:
-        lum = luminance(base)
-        positive = lum > 0
-        ctint = torch.where(positive, base / torch.where(positive, lum, torch.ones_like(lum)), torch.ones_like(base))
-    else:
-        ctint = 1.0
-
-    f = torch.zeros((), dtype=l.dtype, device=l.device)
-    dielectric = 1.0 - metallic
-
-    # Diffuse and subsurface, blended by `subsurface` (weights kept separate so that a lobe
-    # whose weight is exactly zero can be dropped without changing a bit of the result).
-    if "diffuse" in active or "subsurface" in active:
-        ss_w = c["subsurface"]
-        mix = 0.0
-        if "diffuse" in active:
-            mix = burley_retro_factor(nl, nv, lh, roughness) * (1.0 - ss_w)
-        if "subsurface" in active:
-            mix = mix + subsurface_factor(nl, nv, lh, roughness) * ss_w
-        f = f + (INV_PI * mix) * base * dielectric
-
-    if "sheen" in active:
-        csheen = lerp(1.0, ctint, c["sheen_tint"])
-        f = f + (fh * c["sheen"]) * csheen * dielectric
-
-    if "specular" in active:
-        cspec0 = lerp(0.08 * c["specular"] * lerp(1.0, ctint, c["specular_tint"]), base, metallic)
-        fs = lerp(cspec0, 1.0, fh)
-        f = f + fs * _specular_dg(c, nl, nv, hg, roughness)
-
-    if "clearcoat" in active:
-        alpha_c = lerp(0.1, 0.001, c["clearcoat_gloss"])
-        if isinstance(alpha_c, Tensor):
-            alpha_c = torch.clamp(alpha_c, min=ALPHA_MIN)
-        else:
-            alpha_c = max(alpha_c, ALPHA_MIN)
-        dr = ndf_gtr1(nh, alpha_c, sin2_h=hg["sin2_h"])
-        fr = lerp(0.04, 1.0, fh)
-        gr = _g_over_4nn(nl, 0.0625 * (1.0 - nl * nl)) * _g_over_4nn(nv, 0.0625 * (1.0 - nv * nv))
-        f = f + (0.25 * c["clearcoat"]) * gr * fr * dr
-
-    f = torch.broadcast_to(f, torch.broadcast_shapes(f.shape, valid.shape[:-1] + (3,)))
-    return torch.where(valid, f, torch.zeros_like(f))
+    This is :func:`torchbrdf.brdf.formula.principled` evaluated with torch operations.
+    """
+    c = _fill_frame(c)
+    ops = formula.TorchOps(c["l"].dtype, c["l"].device)
+    return formula.principled(ops, c, active, _need_tint(c, active), _needs_frame(c))
 
 
-def _g_over_4nn(n_dot_w: Tensor, tangent_alpha2) -> Tensor:
-    """``G1(w) / (2 n·w) = 1 / (n·w + sqrt((n·w)² + tangent_alpha2))`` (addendum form)."""
-    return 1.0 / (n_dot_w + safe_sqrt(n_dot_w * n_dot_w + tangent_alpha2))
-
-
-def _pow5(m: Tensor) -> Tensor:
-    m2 = m * m
-    return m2 * m2 * m
+def _need_tint(c: dict, active) -> bool:
+    tinted_sheen = "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
+    return not _is_const(c["specular_tint"], 0.0) or tinted_sheen
 
 
 def _needs_frame(c: dict) -> bool:
@@ -339,70 +281,22 @@ def _needs_frame(c: dict) -> bool:
 
 
 def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, need_frame: bool = False) -> dict:
-    """Half-vector cosines ``nh``, ``lh``, ``sin2_h = |n × h|²`` (and ``hx``, ``hy``, ``x``, ``y``).
+    """Half-vector cosines ``nh``, ``lh``, ``one_minus_lh``, ``sin2_h = |n × h|²``, each ``(*, 1)``.
 
-    For float32 inputs these few projections (and ``1 - l·h``, the Schlick base that cancels
-    near the mirror direction) are computed in float64 and rounded once: at
-    α = 0.001 the peak's shape depends on ``h·x / α``, so float32's ~1e-7 absolute rounding
-    of a dot product would become a ~2e-4 relative error of the BRDF. Everything downstream
-    is a sum of positive terms and keeps float32's relative precision.
+    Also ``hx``, ``hy`` and the frame ``x``, ``y`` when ``need_frame``; in the inputs' dtype.
 
-    Returns:
-        dict of ``(*, 1)`` tensors in the inputs' dtype (plus the frame when ``need_frame``).
+    See :func:`torchbrdf.brdf.formula.half_vector_terms` (float64 projections for float32).
     """
-    out_dtype = l.dtype
-    hi = torch.float64 if out_dtype == torch.float32 else out_dtype
-    lw, vw, nw = l.to(hi), v.to(hi), n.to(hi)
-    lv = lw + vw
-    # l = -v has no half vector; such lanes are masked (n·l or n·v <= 0) but must stay finite,
-    # so they borrow h = n.
-    degenerate = dot(lv, lv) < 1e-20
-    h = torch.where(degenerate, torch.broadcast_to(nw, lv.shape), safe_normalize(lv))
-    lh = torch.clamp(dot(lw, h), 0.0, 1.0)
-    # 1 - l·h is the Schlick base; near the mirror direction it cancels in float32.
-    terms = {"nh": dot(nw, h), "lh": lh, "one_minus_lh": 1.0 - lh, "sin2_h": cross_norm2(nw, h)}
     if need_frame:
         if x is None:
             x, y = frame_from_normal(n)
         elif y is None:
             y = torch.linalg.cross(n, x, dim=-1)
-        terms["hx"], terms["hy"] = dot(h, x.to(hi)), dot(h, y.to(hi))
-    out = {k: t.to(out_dtype) for k, t in terms.items()}
+    ops = formula.TorchOps(l.dtype, l.device)
+    out = formula.half_vector_terms(ops, l, v, n, x if need_frame else None, y)
     if need_frame:
         out["x"], out["y"] = x, y
     return out
-
-
-def _specular_dg(c: dict, nl, nv, hg: dict, roughness) -> Tensor:
-    """``Ds · Gs`` of the primary GGX lobe (``Gs`` already holds ``1 / (4 NL NV)``), ``(*, 1)``."""
-    l, v = c["l"], c["v"]
-    aniso = c["anisotropic"]
-    nh = hg["nh"]
-    r2 = roughness * roughness
-    if "hx" not in hg:
-        # Isotropic: no frame needed; (h·x)² + (h·y)² = |n × h|².
-        alpha = torch.clamp(r2, min=ALPHA_MIN) if isinstance(r2, Tensor) else max(r2, ALPHA_MIN)
-        a2 = alpha * alpha
-        den = a2 * nh * nh + hg["sin2_h"]
-        ds = a2 / (math.pi * den * den)
-        gs = _g_over_4nn(nl, a2 * (1.0 - nl * nl)) * _g_over_4nn(nv, a2 * (1.0 - nv * nv))
-        return torch.where(nh > 0, ds * gs, torch.zeros_like(ds))
-    x, y = hg["x"], hg["y"]
-    aspect2 = 1.0 - 0.9 * aniso
-    if isinstance(aspect2, Tensor):
-        aspect = torch.sqrt(torch.clamp(aspect2, min=ASPECT2_MIN))
-        ax = torch.clamp(r2 / aspect, min=ALPHA_MIN)
-        ay = torch.clamp(r2 * aspect, min=ALPHA_MIN)
-    else:
-        aspect = math.sqrt(max(aspect2, ASPECT2_MIN))
-        ax = torch.clamp(r2 / aspect, min=ALPHA_MIN) if isinstance(r2, Tensor) else max(r2 / aspect, ALPHA_MIN)
-        ay = torch.clamp(r2 * aspect, min=ALPHA_MIN) if isinstance(r2, Tensor) else max(r2 * aspect, ALPHA_MIN)
-    hx, hy = hg["hx"] / ax, hg["hy"] / ay
-    den = hx * hx + hy * hy + nh * nh
-    ds = 1.0 / (math.pi * ax * ay * den * den)
-    lx, ly, vx, vy = dot(l, x) * ax, dot(l, y) * ay, dot(v, x) * ax, dot(v, y) * ay
-    gs = _g_over_4nn(nl, lx * lx + ly * ly) * _g_over_4nn(nv, vx * vx + vy * vy)
-    return torch.where(nh > 0, ds * gs, torch.zeros_like(ds))
 
 
 class PrincipledBRDF(nn.Module):

@@ -182,10 +182,10 @@ def _is_zero(p) -> bool:
 class _Pixels:
     """The shaded pixel set: gathers ``(B, C, H, W)`` maps to ``(P, C)`` and scatters back."""
 
-    def __init__(self, select: Tensor):
+    def __init__(self, select: Tensor, all_selected: bool | None = None):
         self.b, self.h, self.w = select.shape
         self.select = select
-        self.all = bool(select.all())
+        self.all = bool(select.all()) if all_selected is None else all_selected
         if self.all:
             self.count = self.b * self.h * self.w
             self.flat = None
@@ -349,14 +349,19 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
         covered = torch.ones_like(facing) if gbuf.mask is None else (gbuf.mask[:, 0] > 0).expand(b, h, w)
         active = facing & covered
         n_total = b * h * w
-        n_masked = int((~covered).sum())
-        n_back = int((covered & ~facing).sum())
-    select = active if prune else torch.ones_like(active)
-    pixels = _Pixels(select)
+        # Under torch.compile the value-dependent decisions (which pixels, which maps are
+        # constant) would each be a graph break and a guard on the data, i.e. a recompile per
+        # new input: there every pixel and map is evaluated (as with prune=False).
+        compiling = torch.compiler.is_compiling()
+        data_prune = prune and not compiling
+        n_masked = -1 if compiling else int((~covered).sum())  # -1: not counted under torch.compile
+        n_back = -1 if compiling else int((covered & ~facing).sum())
+    select = active if data_prune else torch.ones_like(active)
+    pixels = _Pixels(select, None if data_prune else True)
     p_count = pixels.count
 
     # ---- material, lobes, frames
-    values, mdesc = _inspect_material(gbuf.material, prune, cd)
+    values, mdesc = _inspect_material(gbuf.material, data_prune, cd)
     lobes, pruned = _lobes_for(brdf, kind, values)
     aniso = values.get("anisotropic", 0.0)
     need_frame = not _is_zero(aniso)
@@ -591,7 +596,7 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             pieces.append(acc)
         out = pieces[0] if len(pieces) == 1 else torch.cat(pieces, dim=0)
         img = pixels.scatter(out)
-        if not prune:
+        if not data_prune:
             img = torch.where(active.unsqueeze(1), img, torch.zeros_like(img))
         if gbuf.mask is not None and gbuf.mask.is_floating_point():
             img = img * gbuf.mask.to(cd)

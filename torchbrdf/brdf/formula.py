@@ -1,0 +1,305 @@
+"""The principled BRDF written once, over an ``ops`` namespace.
+
+Every function here takes ``ops`` as its first argument and uses only Python arithmetic
+operators (``+ - * /``, comparisons, ``&`` on masks) and the methods of ``ops``. The same
+source therefore runs
+
+* on torch tensors with :class:`TorchOps` — this *is* the eager path of
+  :func:`torchbrdf.principled` (and of ``burley_retro_factor``, ``subsurface_factor``,
+  ``ndf_gtr1``), and
+* on the tracer's graph nodes with ``torchbrdf.kernels.trace.TraceOps`` — from which the
+  fused kernels (forward, reverse-mode backward, forward-mode JVP) are generated.
+
+A change to a constant or a line here changes the eager path and every kernel alike.
+
+The ``ops`` namespace (shapes for :class:`TorchOps`; vectors ``(*, 3)``, scalars ``(*, 1)``):
+
+==========================  ========================================================
+``sqrt, rsqrt, log, log1p``  elementwise (``sqrt`` of a Python number is ``math.sqrt``)
+``abs(x)``                   ``|x|``
+``clamp(x, lo, hi)``         ``torch.clamp``
+``clamp_min(x, lo)``         ``torch.clamp(x, min=lo)``; ``max(x, lo)`` on numbers
+``where(c, a, b)``           ``torch.where`` (``a``/``b`` may be numbers)
+``dot(a, b)``                ``(*, 3), (*, 3) -> (*, 1)``
+``cross_norm2(a, b)``        ``|a × b|²``, ``(*, 1)``
+``channel(x, i)``            ``x[..., i:i+1]``
+``as_tensor(x)``             a number (or runtime float) as a compute-dtype tensor
+``as_color(x)``              a colour ``(*, 3)`` (a number becomes grey)
+``to_hi(x), to_compute(x)``  to float64 and back for float32 compute (identity for float64):
+                             the rounding choices of the half-vector terms are part of the formula
+``mask(valid, f)``           ``f`` where ``valid``, exactly 0 elsewhere, ``(*, 3)``
+==========================  ========================================================
+
+Parameters reach the formula as tensors or Python numbers; the tracer passes numbers that
+are not known until run time as runtime-float nodes, which fold in double like Python floats.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchbrdf._math import cross_norm2, dot
+
+INV_PI = 1.0 / math.pi
+# Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine
+# the library promises finite values for (1/(NL+NV) stays below 1e7).
+COS_EPS = 1e-7
+# 1 - 0.9 * anisotropic floor: anisotropic = 1 already gives aspect sqrt(0.1).
+ASPECT2_MIN = 0.1
+# The principled model's alpha floor (Burley 2012 code).
+ALPHA_MIN = 1e-3
+SQRT_EPS = 1e-12
+NORM_EPS = 1e-12
+# |x| below which t / log(1 + t) switches to its Taylor series.
+SERIES_EPS = 1e-4
+# Floor under NDF denominators (α² cos² + sin²): only a zero half vector reaches it.
+DEN_EPS = 1e-18
+# |l + v|² below which there is no half vector (l = -v); such lanes borrow h = n.
+HALF_DEGENERATE = 1e-20
+
+
+class TorchOps:
+    """The ``ops`` namespace on torch tensors of compute dtype ``dtype`` on ``device``."""
+
+    def __init__(self, dtype: torch.dtype, device=None):
+        self.dtype = dtype
+        self.device = device
+        self.hi = torch.float64 if dtype == torch.float32 else dtype
+
+    @staticmethod
+    def sqrt(x):
+        """Square root (``math.sqrt`` on Python numbers)."""
+        return torch.sqrt(x) if isinstance(x, Tensor) else math.sqrt(x)
+
+    rsqrt = staticmethod(torch.rsqrt)
+    log = staticmethod(torch.log)
+    log1p = staticmethod(torch.log1p)
+    abs = staticmethod(torch.abs)
+    dot = staticmethod(dot)
+    cross_norm2 = staticmethod(cross_norm2)
+
+    @staticmethod
+    def clamp(x, lo, hi):
+        """``x`` clamped to ``[lo, hi]``."""
+        return torch.clamp(x, lo, hi)
+
+    @staticmethod
+    def clamp_min(x, lo):
+        """``max(x, lo)`` (``torch.clamp(x, min=lo)`` on tensors)."""
+        return torch.clamp(x, min=lo) if isinstance(x, Tensor) else max(x, lo)
+
+    @staticmethod
+    def where(c, a, b):
+        """``a`` where ``c``, else ``b``."""
+        return torch.where(c, a, b)
+
+    @staticmethod
+    def channel(x, i):
+        """Channel ``i`` of a colour, ``(*, 1)``."""
+        return x[..., i:i + 1]
+
+    def as_tensor(self, x):
+        """A number as a compute-dtype value."""
+        return x if isinstance(x, Tensor) else torch.as_tensor(x, dtype=self.dtype, device=self.device)
+
+    def as_color(self, x):
+        """A colour ``(*, 3)``; a number becomes grey."""
+        if isinstance(x, Tensor) and x.dim() > 0:
+            return x
+        return self.as_tensor(x).expand(3)
+
+    def to_hi(self, x):
+        """To float64 when computing in float32."""
+        return x.to(self.hi)
+
+    def to_compute(self, x):
+        """Back to the compute dtype."""
+        return x.to(self.dtype)
+
+    def mask(self, valid, f):
+        """``f`` where ``valid``, exactly 0 elsewhere, ``(*, 3)``."""
+        if f is None:
+            f = torch.zeros((), dtype=self.dtype, device=valid.device)
+        f = torch.broadcast_to(f, torch.broadcast_shapes(f.shape, valid.shape[:-1] + (3,)))
+        return torch.where(valid, f, torch.zeros_like(f))
+
+
+# ---------------------------------------------------------------------------------------------
+# Pieces (each also the eager implementation of the public function named in its docstring)
+# ---------------------------------------------------------------------------------------------
+
+def lerp(a, b, t):
+    """``a + (b - a) t``."""
+    return a + (b - a) * t
+
+
+def pow5(m):
+    """``m^5`` as repeated products (no ``pow``)."""
+    m2 = m * m
+    return m2 * m2 * m
+
+
+def schlick_weight(ops, u):
+    """``(1 - u)^5`` with ``u`` clamped to ``[0, 1]``."""
+    return pow5(ops.clamp(1.0 - u, 0.0, 1.0))
+
+
+def burley_retro_factor(ops, nl, nv, lh, roughness):
+    """Burley's diffuse Fresnel factor (``torchbrdf.brdf.diffuse.burley_retro_factor``)."""
+    fd90 = 0.5 + 2.0 * roughness * lh * lh
+    return lerp(1.0, fd90, schlick_weight(ops, nl)) * lerp(1.0, fd90, schlick_weight(ops, nv))
+
+
+def subsurface_factor(ops, nl, nv, lh, roughness):
+    """Burley's subsurface factor (``torchbrdf.brdf.diffuse.subsurface_factor``)."""
+    fss90 = roughness * lh * lh
+    fss = lerp(1.0, fss90, schlick_weight(ops, nl)) * lerp(1.0, fss90, schlick_weight(ops, nv))
+    inv = 1.0 / ops.clamp_min(nl + nv, 1e-7)
+    return 1.25 * (fss * (inv - 0.5) + 0.5)
+
+
+def ndf_gtr1(ops, nh, alpha, sin2_h):
+    """GTR1, the clearcoat NDF ``(α²-1) / (π ln α² (α² cos² + sin²))`` (``ndf_gtr1``).
+
+    ``ln α²`` is ``log1p(α² - 1)`` near 1 (where ``α² - 1`` is exact) and ``log(α²)``
+    elsewhere; ``t / log(1 + t)`` switches to its series through ``t = 0`` (the unused
+    branch is fed 1 so it stays finite).
+    """
+    alpha_t = ops.as_tensor(alpha)
+    a2 = alpha_t * alpha_t
+    base = a2 * nh * nh + sin2_h
+    log_a2 = ops.where((a2 > 0.5) & (a2 < 2.0), ops.log1p(a2 - 1.0), ops.log(a2))
+    t = a2 - 1.0
+    small = ops.abs(t) < SERIES_EPS
+    exact = ops.where(small, 1.0, t) / ops.where(small, 1.0, log_a2)
+    series = 1.0 + t * (0.5 + t * (-1.0 / 12.0 + t / 24.0))
+    d = ops.where(small, series, exact) / (math.pi * ops.clamp_min(base, DEN_EPS))
+    return ops.where(nh > 0.0, d, 0.0)
+
+
+def g_over_4nn(ops, n_dot_w, tangent_alpha2):
+    """``G1(w) / (2 n·w) = 1 / (n·w + sqrt((n·w)² + tangent_alpha2))`` (addendum form)."""
+    return 1.0 / (n_dot_w + ops.sqrt(ops.clamp_min(n_dot_w * n_dot_w + tangent_alpha2, SQRT_EPS)))
+
+
+def half_vector_terms(ops, l, v, n, x=None, y=None):
+    """Half-vector cosines ``nh``, ``lh``, ``one_minus_lh``, ``sin2_h = |n × h|²`` (+ ``hx``, ``hy``).
+
+    For float32 inputs these few projections (and ``1 - l·h``, the Schlick base that cancels
+    near the mirror direction) are computed in float64 and rounded once: at α = 0.001 the
+    peak's shape depends on ``h·x / α``, so float32's ~1e-7 absolute rounding of a dot product
+    would become a ~2e-4 relative error of the BRDF. Everything downstream is a sum of
+    positive terms and keeps float32's relative precision.
+
+    Returns a dict of ``(*, 1)`` values in the compute dtype.
+    """
+    lw, vw, nw = ops.to_hi(l), ops.to_hi(v), ops.to_hi(n)
+    lv = lw + vw
+    # l = -v has no half vector; such lanes are masked (n·l or n·v <= 0) but must stay finite.
+    ssq = ops.dot(lv, lv)
+    h = ops.where(ssq < HALF_DEGENERATE, nw, lv * ops.rsqrt(ops.clamp_min(ssq, NORM_EPS)))
+    lh = ops.clamp(ops.dot(lw, h), 0.0, 1.0)
+    terms = {"nh": ops.dot(nw, h), "lh": lh, "one_minus_lh": 1.0 - lh, "sin2_h": ops.cross_norm2(nw, h)}
+    if x is not None:
+        terms["hx"], terms["hy"] = ops.dot(h, ops.to_hi(x)), ops.dot(h, ops.to_hi(y))
+    return {k: ops.to_compute(t) for k, t in terms.items()}
+
+
+def specular_dg(ops, l, v, x, y, nl, nv, hg, roughness, anisotropic):
+    """``Ds · Gs`` of the primary GGX lobe (``Gs`` already holds ``1 / (4 NL NV)``), ``(*, 1)``.
+
+    Isotropic (``x`` is None): ``(h·x)² + (h·y)²`` is ``|n × h|²`` and no frame is needed.
+    """
+    nh = hg["nh"]
+    r2 = roughness * roughness
+    if x is None:
+        alpha = ops.clamp_min(r2, ALPHA_MIN)
+        a2 = alpha * alpha
+        den = a2 * nh * nh + hg["sin2_h"]
+        ds = a2 / (math.pi * den * den)
+        gs = g_over_4nn(ops, nl, a2 * (1.0 - nl * nl)) * g_over_4nn(ops, nv, a2 * (1.0 - nv * nv))
+        return ops.where(nh > 0.0, ds * gs, 0.0)
+    aspect = ops.sqrt(ops.clamp_min(1.0 - 0.9 * anisotropic, ASPECT2_MIN))
+    ax = ops.clamp_min(r2 / aspect, ALPHA_MIN)
+    ay = ops.clamp_min(r2 * aspect, ALPHA_MIN)
+    hx, hy = hg["hx"] / ax, hg["hy"] / ay
+    den = hx * hx + hy * hy + nh * nh
+    ds = 1.0 / (math.pi * ax * ay * den * den)
+    lx, ly, vx, vy = ops.dot(l, x) * ax, ops.dot(l, y) * ay, ops.dot(v, x) * ax, ops.dot(v, y) * ay
+    gs = g_over_4nn(ops, nl, lx * lx + ly * ly) * g_over_4nn(ops, nv, vx * vx + vy * vy)
+    return ops.where(nh > 0.0, ds * gs, 0.0)
+
+
+def principled(ops, c: dict, active: tuple, need_tint: bool, frame: bool):
+    """The Disney principled BRDF ``f(l, v)`` (without the ``n·l`` cosine).
+
+    Args:
+        ops: :class:`TorchOps` or the tracer's ops.
+        c: ``l, v, n`` ``(*, 3)``; ``x, y`` ``(*, 3)`` (used when ``frame``; filled in by the
+            caller); ``base_color`` ``(*, 3)`` or a number; the ten scalar parameters
+            ``(*, 1)`` or numbers, all in the compute dtype.
+        active: the lobes to evaluate (see ``principled.active_lobes``).
+        need_tint: whether the tint colour is needed (``specular_tint`` or a tinted sheen).
+        frame: whether the anisotropic form (with the tangent frame) is evaluated.
+
+    Returns:
+        ``(*, 3)``; exactly 0 where ``n·l <= 0`` or ``n·v <= 0``.
+    """
+    l, v, n = c["l"], c["v"], c["n"]
+    x, y = (c["x"], c["y"]) if frame else (None, None)
+    base = ops.as_color(c["base_color"])
+    metallic, roughness = c["metallic"], c["roughness"]
+
+    nl_raw, nv_raw = ops.dot(n, l), ops.dot(n, v)
+    valid = (nl_raw > 0.0) & (nv_raw > 0.0)
+    nl = ops.clamp_min(nl_raw, COS_EPS)
+    nv = ops.clamp_min(nv_raw, COS_EPS)
+    hg = half_vector_terms(ops, l, v, n, x, y)
+    nh, lh = hg["nh"], hg["lh"]
+    fh = pow5(hg["one_minus_lh"])
+
+    if need_tint:
+        lum = 0.3 * ops.channel(base, 0) + 0.6 * ops.channel(base, 1) + 0.1 * ops.channel(base, 2)
+        positive = lum > 0.0
+        ctint = ops.where(positive, base / ops.where(positive, lum, 1.0), 1.0)
+    else:
+        ctint = 1.0
+
+    f = None
+
+    def acc(term):
+        return term if f is None else f + term
+
+    dielectric = 1.0 - metallic
+
+    # Diffuse and subsurface, blended by `subsurface` (weights kept separate so that a lobe
+    # whose weight is exactly zero can be dropped without changing a bit of the result).
+    if "diffuse" in active or "subsurface" in active:
+        ss_w = c["subsurface"]
+        mix = 0.0
+        if "diffuse" in active:
+            mix = burley_retro_factor(ops, nl, nv, lh, roughness) * (1.0 - ss_w)
+        if "subsurface" in active:
+            mix = mix + subsurface_factor(ops, nl, nv, lh, roughness) * ss_w
+        f = acc((INV_PI * mix) * base * dielectric)
+
+    if "sheen" in active:
+        csheen = lerp(1.0, ctint, c["sheen_tint"])
+        f = acc((fh * c["sheen"]) * csheen * dielectric)
+
+    if "specular" in active:
+        cspec0 = lerp(0.08 * c["specular"] * lerp(1.0, ctint, c["specular_tint"]), base, metallic)
+        fs = lerp(cspec0, 1.0, fh)
+        f = acc(fs * specular_dg(ops, l, v, x, y, nl, nv, hg, roughness, c["anisotropic"]))
+
+    if "clearcoat" in active:
+        alpha_c = ops.clamp_min(lerp(0.1, 0.001, c["clearcoat_gloss"]), ALPHA_MIN)
+        dr = ndf_gtr1(ops, nh, alpha_c, hg["sin2_h"])
+        fr = lerp(0.04, 1.0, fh)
+        gr = g_over_4nn(ops, nl, 0.0625 * (1.0 - nl * nl)) * g_over_4nn(ops, nv, 0.0625 * (1.0 - nv * nv))
+        f = acc((0.25 * c["clearcoat"]) * gr * fr * dr)
+
+    return ops.mask(valid, f)

@@ -1,0 +1,539 @@
+"""The fused kernels as PyTorch operators: ``torch.ops.torchbrdf.principled_{fwd,bwd,jvp}``.
+
+Three ``torch.library.custom_op`` s, each with a fake (meta) implementation and a vmap rule:
+
+* ``principled_fwd(tensors, floats, cfg) -> out (*batch, 3)``;
+* ``principled_bwd(tensors, floats, cfg, grad_out, need) -> [grad of tensors[i] for i in need]``
+  (recompute: nothing is saved but the inputs);
+* ``principled_jvp(tensors, floats, cfg, tangents, tidx, ntan) -> out tangent``: the tangents
+  of ``tensors[i] for i in tidx``; with ``ntan = K > 0`` every tangent has a leading ``K``
+  dimension and the K output tangents ``(K, *batch, 3)`` come from one pass.
+
+``cfg`` names the kernel family's structure (tensor and float parameter names, lobes, tint,
+frame). Autograd: ``principled_fwd`` has ``register_autograd`` (what ``torch.compile`` traces);
+eager calls and ``torch.func`` go through :class:`_PrincipledFunction` (same ops, plus a
+forward-mode ``jvp`` and ``generate_vmap_rule``), because Dynamo does not trace an
+``autograd.Function`` with a custom ``jvp``. Under ``vmap`` the batch dimension becomes more
+lanes (a batched tangent over unbatched primals becomes K tangents of one pass).
+
+If a kernel cannot be built, the ops evaluate the shared formula eagerly instead (one warning
+from the build).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import math
+
+import torch
+from torch import Tensor
+
+from torchbrdf.brdf.principled import SCALAR_PARAMS
+from torchbrdf.kernels.fused import _KernelSpec, _load, _pool, codegen_c
+
+__all__ = ["principled_fast"]
+
+SCALAR_NAMES = SCALAR_PARAMS
+
+# Lanes per backward chunk when some input's gradient is summed over all lanes (reduced
+# chunk by chunk, so the buffers stay small: 2^16 lanes × 3 × 8 B = 1.5 MiB).
+BWD_CHUNK = 1 << 16
+# Tangents per pass of the JVP kernel (jacfwd over K parameters runs ceil(K / 8) passes): the
+# generated code grows with the tangents, and 8 already share most of the primal work.
+TANGENTS_PER_PASS = 8
+
+
+# ---------------------------------------------------------------------------------------------
+# Layout of one call
+# ---------------------------------------------------------------------------------------------
+
+def _flatten(t: Tensor, C: int, batch: tuple, N: int):
+    """View ``t`` as ``(N, C)`` lanes: mode 'full' (lane-dense), 'b1'/'b0' (same for all lanes)."""
+    e = t.expand(*batch, C) if t.dim() > 0 else t.reshape(1).expand(*batch, C)
+    try:
+        f = e.view(N, C)
+    except RuntimeError:
+        f = e.reshape(N, C)
+    ls, cs = f.stride()
+    if N > 1 and ls == 0:
+        if C == 1 or cs == 1:
+            return f, "b1"
+        if cs == 0:
+            return f, "b0"
+    if (ls == C or N <= 1) and (cs == 1 or C == 1):
+        return f, "full"
+    return f.contiguous(), "full"
+
+
+def make_cfg(tensor_names, float_names, active, need_tint, frame) -> str:
+    return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
+                     str(int(frame))])
+
+
+class _Plan:
+    """One call's layout, from ``cfg`` and the tensors' shapes."""
+
+    def __init__(self, cfg: str, tensors, floats):
+        tn, fn, act, tint, frame = cfg.split("|")
+        self.cfg = cfg
+        self.tensor_names = tn.split(",") if tn else []
+        self.float_names = fn.split(",") if fn else []
+        self.active = tuple(act.split(",")) if act else ()
+        self.need_tint, self.frame = tint == "1", frame == "1"
+        self.C = [1 if k in SCALAR_NAMES else 3 for k in self.tensor_names]
+        shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
+        self.batch = tuple(torch.broadcast_shapes(*shapes))
+        self.N = math.prod(self.batch)
+        self.dtype = tensors[0].dtype
+        self.floats = [float(x) for x in floats]
+
+    def flat(self, tensors):
+        out = [_flatten(t, C, self.batch, self.N) for t, C in zip(tensors, self.C)]
+        modes = tuple((k, m, C) for k, (_, m), C in zip(self.tensor_names, out, self.C))
+        return [f for f, _ in out], modes
+
+    def spec(self, modes, **kw):
+        ctype = "float" if self.dtype == torch.float32 else "double"
+        return _KernelSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame, **kw)
+
+
+def _ptrs(ptrs):
+    return (ctypes.c_void_p * max(1, len(ptrs)))(*ptrs)
+
+
+def _dparams(vals):
+    return (ctypes.c_double * max(1, len(vals)))(*vals)
+
+
+def _formula_eager(plan: _Plan, tensors, floats):
+    """The shared formula on torch tensors (the eager path), for fallbacks and double backward."""
+    from torchbrdf.brdf import formula
+
+    c = dict(zip(plan.float_names, floats))
+    c.update(zip(plan.tensor_names, tensors))
+    c.setdefault("x", None)
+    c.setdefault("y", None)
+    ops = formula.TorchOps(plan.dtype, tensors[0].device)
+    return formula.principled(ops, c, plan.active, plan.need_tint, plan.frame)
+
+
+@functools.lru_cache(maxsize=None)
+def _written(spec_args: tuple) -> tuple:
+    """Inputs (indices) whose gradient the backward kernel writes (those with a path to the output)."""
+    spec = _KernelSpec(*spec_args)
+    codegen_c.generate(spec, "bwd")
+    return spec.written
+
+
+# ---------------------------------------------------------------------------------------------
+# Kernel calls
+# ---------------------------------------------------------------------------------------------
+
+def _run_fwd(plan: _Plan, tensors) -> Tensor:
+    flat, modes = plan.flat(tensors)
+    lib = _load(plan.spec(modes), backward=False) if plan.N > 0 else None
+    if lib is None:
+        if plan.N > 0:  # no kernel: the same formula, eagerly
+            with torch.no_grad():
+                return _formula_eager(plan, tensors, plan.floats).expand(*plan.batch, 3).contiguous()
+        return torch.empty(*plan.batch, 3, dtype=plan.dtype)
+    out = _pool.empty((plan.N, 3), plan.dtype)
+    lib[1](plan.N, _ptrs([f.data_ptr() for f in flat]), _dparams(plan.floats), out.data_ptr(),
+           torch.get_num_threads())
+    return out.view(*plan.batch, 3)
+
+
+def _grad_mode(t: Tensor, C: int, N: int) -> str:
+    """How an input's gradient is formed: ``'red'`` or ``'full'``.
+
+    ``'red'``: the input is one value for all lanes, its gradient is the sum over the lanes
+    (reduced chunk by chunk); ``'full'``: a lane-dense gradient, then summed to the input's
+    shape (an input that is an expanded view of one value still needs its per-lane gradient).
+    """
+    lanes = math.prod(t.shape[:-1]) if t.dim() > 0 else 1
+    return "red" if lanes == 1 and N > 1 else "full"
+
+
+def _to_shape(g: Tensor, t: Tensor) -> Tensor:
+    """Sum a gradient ``(*batch, C)`` or ``(C,)`` (summed over lanes) down to ``t``'s shape."""
+    if t.dim() == 0:
+        return g.sum().reshape(())
+    if g.dim() == 1:
+        g = g.reshape((1,) * (t.dim() - 1) + (g.shape[0],))
+    return g.sum_to_size(t.shape) if tuple(g.shape) != tuple(t.shape) else g
+
+
+def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
+    N, dtype = plan.N, plan.dtype
+    if N == 0:
+        return [tensors[i].new_zeros(tensors[i].shape) for i in need]
+    go = grad_out.expand(*plan.batch, 3).reshape(N, 3)
+    if go.dtype != dtype:
+        go = go.to(dtype)
+    gls, gcs = go.stride()
+    if N == 1:
+        gls = 3
+    if (gls, gcs) not in ((3, 1), (0, 0), (0, 1)):
+        go = go.contiguous()
+        gls, gcs = 3, 1
+    flat, modes = plan.flat(tensors)
+    lib = _load(plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need)), backward=True)
+    if lib is None:
+        with torch.enable_grad():
+            ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
+            out = _formula_eager(plan, ts, plan.floats)
+            gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
+        return [g.contiguous() if g is not None else tensors[i].new_zeros(tensors[i].shape)
+                for i, g in zip(need, gs)]
+    fn = lib[1]
+    P = _dparams(plan.floats)
+    nt = torch.get_num_threads()
+    gmode = {i: _grad_mode(tensors[i], plan.C[i], N) for i in need}
+    full = {i: _pool.empty((N, plan.C[i]), dtype) for i in need if gmode[i] == "full"}
+    red = {i: torch.zeros(plan.C[i], dtype=dtype) for i in need if gmode[i] == "red"}
+    chunk = N if not red else BWD_CHUNK
+    bufs = {i: torch.empty(min(chunk, N), plan.C[i], dtype=dtype) for i in red}
+    item = flat[0].element_size()
+    for s in range(0, N, chunk):
+        m = min(chunk, N - s)
+        ins = [f.data_ptr() + (s * C * item if mode == "full" else 0) for f, (_, mode, C) in zip(flat, modes)]
+        gouts = []
+        for i in range(len(tensors)):
+            if i in full:
+                gouts.append(full[i].data_ptr() + s * plan.C[i] * item)
+            elif i in red:
+                gouts.append(bufs[i].data_ptr())
+            else:
+                gouts.append(None)
+        go_ptr = go.data_ptr() + (s * 3 * item if gls == 3 else 0)
+        fn(m, _ptrs(ins), P, go_ptr, _ptrs(gouts), nt)
+        for i in red:
+            red[i] += bufs[i][:m].sum(0)
+    grads = []
+    for i in need:
+        g = full[i].view(*plan.batch, plan.C[i]) if i in full else red[i]
+        grads.append(_to_shape(g, tensors[i]).contiguous())
+    return grads
+
+
+def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
+    """Output tangents: ``(*batch, 3)``, or ``(ntan, *batch, 3)`` when ``ntan > 0``."""
+    K = max(1, ntan)
+    N, dtype = plan.N, plan.dtype
+    shape = (*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3)
+    if N == 0 or not tidx:
+        return torch.zeros(shape, dtype=dtype)
+    flat, modes = plan.flat(tensors)
+    out = torch.empty((K, N, 3), dtype=dtype)
+    for j0 in range(0, K, TANGENTS_PER_PASS):
+        js = range(j0, min(K, j0 + TANGENTS_PER_PASS))
+        tflat, tmodes = [], []
+        for j in js:
+            for i, t in zip(tidx, tangents):
+                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
+                tflat.append(f)
+                tmodes.append(m)
+        spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=len(js))
+        lib = _load(spec, backward="jvp")
+        if lib is None:  # no kernel: forward-mode AD of the same formula, eagerly
+            primals = tuple(t.detach() for t in tensors)
+            for j in js:
+                tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
+                tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
+                _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
+                out[j] = o.expand(*plan.batch, 3).reshape(N, 3)
+            continue
+        ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
+        outs = _ptrs([out[j].data_ptr() for j in js])
+        lib[1](N, ins, _dparams(plan.floats), tins, outs, torch.get_num_threads())
+    return out.view(shape)
+
+
+# ---------------------------------------------------------------------------------------------
+# The custom operators
+# ---------------------------------------------------------------------------------------------
+
+@torch.library.custom_op("torchbrdf::principled_fwd", mutates_args=())
+def principled_fwd(tensors: list[Tensor], floats: list[float], cfg: str) -> Tensor:
+    """The fused forward kernel: ``(*batch, 3)``."""
+    return _run_fwd(_Plan(cfg, tensors, floats), tensors)
+
+
+@principled_fwd.register_fake
+def _(tensors, floats, cfg):
+    plan = _Plan(cfg, tensors, floats)
+    return tensors[0].new_empty((*plan.batch, 3))
+
+
+@torch.library.custom_op("torchbrdf::principled_bwd", mutates_args=())
+def principled_bwd(tensors: list[Tensor], floats: list[float], cfg: str, grad_out: Tensor,
+                   need: list[int]) -> list[Tensor]:
+    """The fused recompute-backward: the gradients of ``tensors[i]`` for ``i`` in ``need``."""
+    return _run_bwd(_Plan(cfg, tensors, floats), tensors, grad_out, list(need))
+
+
+@principled_bwd.register_fake
+def _(tensors, floats, cfg, grad_out, need):
+    return [tensors[i].new_empty(tensors[i].shape) for i in need]  # contiguous, like the real ones
+
+
+@torch.library.custom_op("torchbrdf::principled_jvp", mutates_args=())
+def principled_jvp(tensors: list[Tensor], floats: list[float], cfg: str, tangents: list[Tensor],
+                   tidx: list[int], ntan: int) -> Tensor:
+    """The fused forward-mode kernel (``ntan`` tangents per input in one pass when > 0)."""
+    return _run_jvp(_Plan(cfg, tensors, floats), tensors, tangents, list(tidx), ntan)
+
+
+@principled_jvp.register_fake
+def _(tensors, floats, cfg, tangents, tidx, ntan):
+    plan = _Plan(cfg, tensors, floats)
+    return tensors[0].new_empty((*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3))
+
+
+# vmap: the vmapped dimension becomes leading lanes. A batched input (bdim moved to 0) gets 1s
+# inserted after it so its own batch dims line up with the others' (right-aligned broadcast).
+
+def _logical_rank(t: Tensor, bdim, lead: int) -> int:
+    return t.dim() - 1 - lead - (bdim is not None)
+
+
+def _fold(t: Tensor, bdim, B: int, L: int, lead: int = 0, force: bool = False) -> Tensor:
+    """``t`` (optionally with ``lead`` leading tangent dims) as ``(lead…, B, 1…, *batch, C)``."""
+    if bdim is None:
+        if not force:
+            if lead:  # a K-led tangent: (K, *shape) -> (K, 1, 1…, *shape)
+                k = t.dim() - lead
+                return t.reshape(t.shape[:lead] + (1,) * (L + 1 - (k - 1)) + t.shape[lead:])
+            return t
+        t = t.unsqueeze(lead).expand(*t.shape[:lead], B, *t.shape[lead:])
+        bdim = lead
+    else:
+        t = t.movedim(bdim, lead)
+    k = t.dim() - lead - 1  # logical rank incl. C
+    return t.reshape(t.shape[:lead + 1] + (1,) * (L + 1 - k) + t.shape[lead + 1:])
+
+
+def _batch(info, in_dims, tensors):
+    dims = in_dims[0] or [None] * len(tensors)
+    L = max((t.dim() - (d is not None) - 1 for t, d in zip(tensors, dims)), default=0)
+    return dims, max(L, 0), info.batch_size
+
+
+def _vmap_fwd(info, in_dims, tensors, floats, cfg):
+    dims, L, B = _batch(info, in_dims, tensors)
+    ts = [_fold(t, d, B, L) for t, d in zip(tensors, dims)]
+    return principled_fwd(ts, floats, cfg), 0
+
+
+def _vmap_bwd(info, in_dims, tensors, floats, cfg, grad_out, need):
+    dims, L, B = _batch(info, in_dims, tensors)
+    L = max(L, grad_out.dim() - (in_dims[3] is not None) - 1)
+    ts = [_fold(t, d, B, L, force=i in need) for i, (t, d) in enumerate(zip(tensors, dims))]
+    go = _fold(grad_out, in_dims[3], B, L, force=True)
+    grads = principled_bwd(ts, floats, cfg, go, need)
+    out = []
+    for i, g in zip(need, grads):
+        logical = tensors[i].shape if dims[i] is None else tensors[i].movedim(dims[i], 0).shape[1:]
+        out.append(g.reshape(B, *logical))
+    return out, [0] * len(out)
+
+
+def _vmap_jvp(info, in_dims, tensors, floats, cfg, tangents, tidx, ntan):
+    dims, L, B = _batch(info, in_dims, tensors)
+    tdims = in_dims[3] or [None] * len(tangents)
+    lead = 1 if ntan else 0
+    if ntan == 0 and all(d is None for d in dims):
+        # Only the tangents are batched (jacfwd, several directions): K tangents in one pass.
+        ts = [t.movedim(d, 0) if d is not None else t.unsqueeze(0).expand(B, *t.shape)
+              for t, d in zip(tangents, tdims)]
+        return principled_jvp(list(tensors), floats, cfg, ts, tidx, B), 0
+    L = max([L] + [t.dim() - lead - (d is not None) - 1 for t, d in zip(tangents, tdims)])
+    # Some primal must carry the vmapped dimension into the lanes: expand the first if none does.
+    none_batched = all(d is None for d in dims)
+    ps = [_fold(t, d, B, L, force=none_batched and i == 0) for i, (t, d) in enumerate(zip(tensors, dims))]
+    ts = [_fold(t, d, B, L, lead=lead) for t, d in zip(tangents, tdims)]
+    out = principled_jvp(ps, floats, cfg, ts, tidx, ntan)
+    return out, lead
+
+
+torch.library.register_vmap("torchbrdf::principled_fwd", _vmap_fwd)
+torch.library.register_vmap("torchbrdf::principled_bwd", _vmap_bwd)
+torch.library.register_vmap("torchbrdf::principled_jvp", _vmap_jvp)
+
+
+# ---------------------------------------------------------------------------------------------
+# Autograd
+# ---------------------------------------------------------------------------------------------
+
+def _backward(tensors, floats, cfg, needs, grad_out):
+    """Gradients of the inputs (``None`` where not needed or with no path to the output)."""
+    need = [i for i, n in enumerate(needs) if n]
+    if not need:
+        return [None] * len(tensors)
+    plan = _Plan(cfg, tensors, floats)
+    if _forward_mode_over(tensors, grad_out):
+        # Forward mode over this backward (hessian = jacfwd(jacrev)): the backward kernel has no
+        # forward-mode rule of its own, so the backward of the same formula runs eagerly.
+        _, vjp_fn = torch.func.vjp(lambda *ts: _formula_eager(plan, ts, floats), *tensors)
+        gs = vjp_fn(grad_out.expand(*plan.batch, 3))
+        return [g if i in need else None for i, g in enumerate(gs)]
+    if torch.is_grad_enabled() and all(tensors[i].requires_grad for i in need):
+        # create_graph=True: a differentiable backward, eagerly (under torch.func transforms the
+        # inputs seen here are not differentiable at this level and the kernels run).
+        with torch.enable_grad():
+            out = _formula_eager(plan, tensors, floats)
+            if out.requires_grad:
+                gs = torch.autograd.grad(out, [tensors[i] for i in need], grad_out, create_graph=True,
+                                         allow_unused=True)
+                grads = [None] * len(tensors)
+                for i, g in zip(need, gs):
+                    grads[i] = g
+                return grads
+    ctype = "float" if plan.dtype == torch.float32 else "double"
+    modes = tuple((k, "full", C) for k, C in zip(plan.tensor_names, plan.C))
+    written = set(_written((ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint, plan.frame,
+                            (3, 1), tuple(need))))
+    need = [i for i in need if i in written]
+    grads = [None] * len(tensors)
+    if need:
+        for i, g in zip(need, principled_bwd(list(tensors), list(floats), cfg, grad_out, need)):
+            grads[i] = g
+    return grads
+
+
+def _forward_mode_over(tensors, grad_out) -> bool:
+    """True when forward-mode AD (``torch.func.jvp``/``jacfwd`` or dual tensors) is active around a backward."""
+    from torch._C._functorch import TransformType
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    if any(i.key() == TransformType.Jvp for i in retrieve_all_functorch_interpreters()):
+        return True
+    if torch._C._is_fwd_grad_enabled():
+        from torch.autograd import forward_ad
+
+        return any(forward_ad.unpack_dual(t).tangent is not None for t in (*tensors, grad_out))
+    return False
+
+
+def _setup_context(ctx, inputs, output):
+    tensors, floats, cfg = inputs
+    ctx.save_for_backward(*tensors)
+    ctx.floats, ctx.cfg = floats, cfg
+
+
+def _op_backward(ctx, grad_out):
+    tensors = ctx.saved_tensors
+    needs = ctx.needs_input_grad[0]
+    if isinstance(needs, bool):
+        needs = [needs] * len(tensors)
+    # The same structure as the inputs (tensors, floats, cfg): torch.library flattens a float
+    # list to one leaf, but an empty list to an empty list.
+    return _backward(tensors, ctx.floats, ctx.cfg, needs, grad_out), (None if ctx.floats else []), None
+
+
+principled_fwd.register_autograd(_op_backward, setup_context=_setup_context)
+
+
+def _jvp_vjp(tensors, tangents, floats, cfg, tidx, ntan, grad):
+    """Reverse mode over the forward-mode kernel (``jacrev(jacfwd(f))``): there is no kernel for
+    this second-order quantity, so it is the vjp of the formula's eager jvp."""
+    plan = _Plan(cfg, tensors, floats)
+
+    def out_tangent(ts, tans):
+        def one(tj):
+            full = [torch.zeros_like(t) for t in ts]
+            for i, t in zip(tidx, tj):
+                full[i] = t
+            _, o = torch.func.jvp(lambda *x: _formula_eager(plan, x, floats), tuple(ts), tuple(full))
+            return o.expand(*plan.batch, 3)
+
+        if ntan:
+            return torch.stack([one([t[j] for t in tans]) for j in range(ntan)])
+        return one(tans)
+
+    _, vjp_fn = torch.func.vjp(out_tangent, list(tensors), list(tangents))
+    return vjp_fn(grad)
+
+
+class _PrincipledJvpFunction(torch.autograd.Function):
+    """The forward-mode kernel with a (formula-eager) reverse mode, for ``grad``/``jacrev`` over ``jvp``."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(cfg, consts, n, *tensors_and_tangents):
+        tensors, tangents = list(tensors_and_tangents[:n]), list(tensors_and_tangents[n:])
+        floats, tidx, ntan = consts.values
+        return principled_jvp(tensors, floats, cfg, tangents, tidx, ntan)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        cfg, consts, n, *rest = inputs
+        ctx.save_for_backward(*rest)
+        ctx.cfg, ctx.consts, ctx.n = cfg, consts.values, n
+
+    @staticmethod
+    def backward(ctx, grad):
+        saved = ctx.saved_tensors
+        floats, tidx, ntan = ctx.consts
+        g_t, g_tan = _jvp_vjp(saved[:ctx.n], saved[ctx.n:], floats, ctx.cfg, tidx, ntan, grad)
+        return (None, None, None, *g_t, *g_tan)
+
+
+
+
+class _Floats:
+    """The runtime float parameters as one opaque argument (not a pytree: torch.func's generated
+    vmap rule of a ``jvp`` cannot hold per-element dims for a list of floats)."""
+
+    __slots__ = ("values",)
+
+    def __init__(self, values):
+        self.values = list(values)
+
+
+class _PrincipledFunction(torch.autograd.Function):
+    """The fused ops with reverse and forward mode, for eager calls and ``torch.func``."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(cfg, floats, *tensors):
+        return principled_fwd(list(tensors), floats.values, cfg)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        cfg, floats, *tensors = inputs
+        ctx.save_for_backward(*tensors)
+        ctx.save_for_forward(*tensors)
+        ctx.floats, ctx.cfg = floats.values, cfg
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        tensors = ctx.saved_tensors
+        return (None, None, *_backward(tensors, ctx.floats, ctx.cfg, ctx.needs_input_grad[2:], grad_out))
+
+    @staticmethod
+    def jvp(ctx, _cfg, _floats, *tangents):
+        tensors = ctx.saved_tensors
+        tidx = [i for i, t in enumerate(tangents) if t is not None]
+        consts = _Floats((list(ctx.floats), tidx, 0))
+        return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *[tangents[i] for i in tidx])
+
+
+def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
+    """Fused evaluation on checked, compute-dtype CPU inputs ``c`` (see ``principled._prepare``).
+
+    ``x``/``y`` must already be filled in when ``frame`` is true. Returns ``(*, 3)``.
+    """
+    names = [k for k in ("l", "v", "n") + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
+    tensor_names = [k for k in names if isinstance(c.get(k), Tensor)]
+    float_names = [k for k in names if k not in tensor_names]
+    # 0-d tensors become (1,) so that every tensor has its channel dimension (vmap rules).
+    tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
+    floats = [float(c[k]) for k in float_names]
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame)
+    if torch.compiler.is_compiling():
+        return principled_fwd(tensors, floats, cfg)
+    return _PrincipledFunction.apply(cfg, _Floats(floats), *tensors)
