@@ -523,7 +523,8 @@ class _PrincipledFunction(torch.autograd.Function):
         tensors = ctx.saved_tensors
         tidx = [i for i, t in enumerate(tangents) if t is not None]
         consts = _Floats((list(ctx.floats), tidx, 0))
-        return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *[tangents[i] for i in tidx])
+        tans = [tangents[i] for i in tidx]
+        return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *tans)
 
 
 def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
