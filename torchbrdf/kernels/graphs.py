@@ -91,7 +91,8 @@ def build(spec, kind: str) -> KernelGraph:
                     mode, C = spec.tangent_modes[j * T + i], spec.tensors[k][2]
                     for nd in loads:
                         if nd.attr["k"] == k:
-                            attr = {"role": "t", "j": j, "i": i, "k": k, "c": nd.attr["c"], "mode": mode, "C": C}
+                            attr = {"role": "t", "j": j, "i": i, "k": k, "c": nd.attr["c"], "mode": mode,
+                                    "C": C}
                             seeds[nd.id] = Node("in", (), "r", attr)
                 for c, tn in enumerate(tangents(g, outs, seeds)):
                     stores.append((("tout", j, c), tn if tn is not None else 0.0))

@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 
 from torchbrdf.brdf.principled import SCALAR_PARAMS
-from torchbrdf.kernels.fused import _KernelSpec, _load, _pool, codegen_c
+from torchbrdf.kernels import graphs
+from torchbrdf.kernels.fused import _KernelSpec, _load, _pool
 
 __all__ = ["principled_fast"]
 
@@ -121,9 +122,7 @@ def _formula_eager(plan: _Plan, tensors, floats):
 @functools.lru_cache(maxsize=None)
 def _written(spec_args: tuple) -> tuple:
     """Inputs (indices) whose gradient the backward kernel writes (those with a path to the output)."""
-    spec = _KernelSpec(*spec_args)
-    codegen_c.generate(spec, "bwd")
-    return spec.written
+    return graphs.build(_KernelSpec(*spec_args), "bwd").written
 
 
 # ---------------------------------------------------------------------------------------------
@@ -403,7 +402,7 @@ def _backward(tensors, floats, cfg, needs, grad_out):
 
 
 def _forward_mode_over(tensors, grad_out) -> bool:
-    """True when forward-mode AD (``torch.func.jvp``/``jacfwd`` or dual tensors) is active around a backward."""
+    """True when forward-mode AD (``torch.func.jvp``/``jacfwd``, dual tensors) is around a backward."""
     from torch._C._functorch import TransformType
     from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
 
@@ -436,8 +435,10 @@ principled_fwd.register_autograd(_op_backward, setup_context=_setup_context)
 
 
 def _jvp_vjp(tensors, tangents, floats, cfg, tidx, ntan, grad):
-    """Reverse mode over the forward-mode kernel (``jacrev(jacfwd(f))``): there is no kernel for
-    this second-order quantity, so it is the vjp of the formula's eager jvp."""
+    """Reverse mode over the forward-mode kernel (``jacrev(jacfwd(f))``).
+
+    There is no kernel for this second-order quantity: it is the vjp of the formula's eager jvp.
+    """
     plan = _Plan(cfg, tensors, floats)
 
     def out_tangent(ts, tans):
@@ -484,8 +485,11 @@ class _PrincipledJvpFunction(torch.autograd.Function):
 
 
 class _Floats:
-    """The runtime float parameters as one opaque argument (not a pytree: torch.func's generated
-    vmap rule of a ``jvp`` cannot hold per-element dims for a list of floats)."""
+    """Constant arguments (the runtime floats, ...) as one opaque value.
+
+    Not a pytree: torch.func's generated vmap rule of a ``jvp`` cannot hold per-element dims for
+    a list of floats.
+    """
 
     __slots__ = ("values",)
 
@@ -519,7 +523,8 @@ class _PrincipledFunction(torch.autograd.Function):
         tensors = ctx.saved_tensors
         tidx = [i for i, t in enumerate(tangents) if t is not None]
         consts = _Floats((list(ctx.floats), tidx, 0))
-        return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *[tangents[i] for i in tidx])
+        tans = [tangents[i] for i in tidx]
+        return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *tans)
 
 
 def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
