@@ -333,18 +333,18 @@ def pruned_lobes(N: int, paths, repeats: int, budget: float, log) -> list:
 # Mitsuba 3
 # ---------------------------------------------------------------------------------------------
 
-def mitsuba_available() -> str | None:
-    """Mitsuba version string when ``mitsuba`` with the ``llvm_ad_rgb`` variant imports, else None."""
+def mitsuba_available(variant: str = "llvm_ad_rgb") -> str | None:
+    """Mitsuba version string when ``mitsuba`` with ``variant`` imports, else None."""
     try:
         import mitsuba as mi
 
-        mi.set_variant("llvm_ad_rgb")
+        mi.set_variant(variant)
         return mi.__version__
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return None
 
 
-def _mitsuba_setup(inp: dict) -> dict:
+def _mitsuba_setup(inp: dict, variant: str = "llvm_ad_rgb") -> dict:
     """Mitsuba ``principled`` with per-lane parameters.
 
     Mitsuba's BSDF parameters are textures: each lane reads its own texel of a bitmap with
@@ -357,7 +357,7 @@ def _mitsuba_setup(inp: dict) -> dict:
     import mitsuba as mi
     import numpy as np
 
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(variant)
     N = inp["l"].shape[0]
     W = 2048 if N % 2048 == 0 else 1
     H = N // W
@@ -897,7 +897,17 @@ def main(argv=None) -> int:
     ap.add_argument("--torch-compile", action="store_true",
                     help="also measure torch.compile of the eager path at the headline N (~1 min of compiling)")
     ap.add_argument("--out", default="docs")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="cuda: the GPU benchmark of torchbrdf.bench.cuda (Triton, eager, torch.compile, "
+                         "Mitsuba cuda_ad_rgb; --sizes default 20..24); exits 0 with one line without CUDA")
+    ap.add_argument("--no-compile", action="store_true", help="--device cuda: skip torch.compile")
+    ap.add_argument("--shade-size", type=int, default=1024, help="--device cuda: shade image side (default 1024)")
+    ap.add_argument("--lights", type=int, default=16, help="--device cuda: shade lights (default 16)")
     args = ap.parse_args(argv)
+    if args.device == "cuda":
+        from torchbrdf.bench import cuda
+
+        return cuda.main(args)
     sizes = [1 << s for s in (args.sizes or ([12, 14, 16, 18] if args.quick else [12, 14, 16, 18, 20, 22]))]
     dtypes = args.dtypes or list(DTYPES)
     repeats = 3 if args.quick else args.repeats
