@@ -24,6 +24,13 @@ Rounding choices that keep IEEE semantics (as the C kernels' ``-ffp-contract=off
 ``tl.sqrt`` are approximate on NVIDIA GPUs), FMA contraction is disabled at launch, and the
 single ``log`` / ``log1p`` of the clearcoat lobe is evaluated in float64 and rounded once.
 
+Other fused kernels (the hook for the fused ``shade`` point/directional passes, which are not
+on this branch yet): build the pass's graph with :class:`.trace.TraceOps` (and
+:func:`.trace.reverse` / :func:`.trace.tangents`), print it with :func:`print_kernel`, import it
+with :func:`compile_source` and run it with :func:`launch`; register it in the same
+``torch.library`` operator as the C kernel, choosing by ``cfg``'s backend field as
+:mod:`.ops` does for ``principled``.
+
 Compilation: the source is written to ``<kernel cache dir>/triton/`` (Triton's ``@jit`` reads
 its function's source file) and imported; Triton then compiles it on first launch and keeps
 its own binary cache. Under ``TRITON_INTERPRET=1`` the same source runs on CPU tensors through
@@ -43,7 +50,7 @@ import warnings
 from torchbrdf.kernels.graphs import build
 from torchbrdf.kernels.trace import Node, live_order
 
-__all__ = ["generate", "load", "interpret_mode", "available", "block_size"]
+__all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "interpret_mode", "available", "block_size"]
 
 _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 _ARITH = {"add": "+", "sub": "-", "mul": "*"}
@@ -73,9 +80,9 @@ def _lit(x: float) -> str:
 class _Printer:
     """Prints nodes as Triton expressions for a compute type ``DT`` (``tl.float32``/``tl.float64``)."""
 
-    def __init__(self, spec):
-        self.spec = spec
-        self.f32 = spec.ctype == "float"
+    def __init__(self, ctype: str, go_strides=(3, 1)):
+        self.go_strides = tuple(go_strides)
+        self.f32 = ctype == "float"
         self.DT = "tl.float32" if self.f32 else "tl.float64"
 
     def ty(self, kind: str) -> str:
@@ -85,7 +92,7 @@ class _Printer:
         a = nd.attr
         role = a["role"]
         if role == "go":
-            gsl, gsc = self.spec.go_strides
+            gsl, gsc = self.go_strides
             return f"tl.load(go + (i * {gsl} + {a['c'] * gsc}), mask=m, other=0.0)"
         ptr = f"x{a['k']}" if role == "x" else f"t{a['j']}_{a['i']}"
         mode, C, c = a["mode"], a["C"], a["c"]
@@ -142,6 +149,9 @@ class _Printer:
 
 
 def _target(t) -> str:
+    if t[0] == "ptr":  # generic: ("ptr", argument name, channels, channel)
+        _, name, C, c = t
+        return f"{name} + (i * {C} + {c})" if C > 1 else f"{name} + i"
     if t[0] == "out":
         return f"out + (i * 3 + {t[1]})"
     if t[0] == "grad":
@@ -163,12 +173,6 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
         ``(source, written)``: ``written`` the inputs whose gradient the backward writes.
     """
     g, stores, written = build(spec, kind)
-    pr = _Printer(spec)
-    names: dict[int, str] = {}
-
-    def v(nd):
-        return names[nd.id] if isinstance(nd, Node) else f"tl.full([BLOCK], {_lit(nd)}, {pr.DT})"
-
     ins = [f"x{k}" for k in range(len(spec.tensors))]
     if kind == "fwd":
         args = ins + ["out"]
@@ -177,6 +181,24 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
     else:
         T = len(spec.tangent_inputs)
         args = ins + [f"t{j}_{i}" for j in range(spec.ntan) for i in range(T)] + [f"to{j}" for j in range(spec.ntan)]
+    return print_kernel(f"tb_{kind}", g, stores, args, spec.ctype, spec.go_strides, wide), written
+
+
+def print_kernel(name: str, g, stores, args, ctype: str, go_strides=(3, 1), wide: bool = False) -> str:
+    """Triton source of a kernel ``name(n, P, *args, BLOCK)`` computing ``stores`` of graph ``g``.
+
+    The generic entry (used by :func:`generate`; a fused shading graph prints the same way):
+    ``stores`` are ``(target, node)`` pairs as described in :mod:`.graphs` (plus the generic
+    target ``("ptr", argument name, channels, channel)``), ``in`` nodes carry the symbolic load
+    attributes of :mod:`.graphs`, ``P`` nodes index the float64 runtime-float tensor ``P``, and
+    ``ctype`` (``"float"``/``"double"``) is the compute type of kind-``'r'`` nodes.
+    """
+    pr = _Printer(ctype, go_strides)
+    names: dict[int, str] = {}
+
+    def v(nd):
+        return names[nd.id] if isinstance(nd, Node) else f"tl.full([BLOCK], {_lit(nd)}, {pr.DT})"
+
     body = []
     for nd in live_order(g, [val for _, val in stores]):
         names[nd.id] = f"v{nd.id}"
@@ -187,12 +209,12 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
     src = [
         _PRELUDE,
         "@triton.jit",
-        f"def tb_{kind}(n, P, {', '.join(args)}, BLOCK: tl.constexpr):",
+        f"def {name}(n, P, {', '.join(args)}, BLOCK: tl.constexpr):",
         f"    i = {pid} * BLOCK + tl.arange(0, BLOCK)",
         "    m = i < n",
         *("    " + b for b in body),
     ]
-    return "\n".join(src) + "\n", written
+    return "\n".join(src) + "\n"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,29 +287,41 @@ def load(spec, kind: str, wide: bool = False):
         if key in _failed:
             return None
         try:
-            import triton
-
             src, written = generate(spec, kind, wide)
-            tag = hashlib.sha1((src + triton.__version__).encode()).hexdigest()[:20]
-            path = os.path.join(_cache_dir(), f"tb_{kind}_{tag}.py")
-            if not os.path.exists(path):
-                fd, tmp = tempfile.mkstemp(suffix=".py", dir=os.path.dirname(path))
-                with os.fdopen(fd, "w") as fh:
-                    fh.write(src)
-                os.replace(tmp, path)  # atomic: concurrent processes never import a partial file
-            name = f"torchbrdf_triton_{kind}_{tag}_{int(interpret_mode())}"
-            mspec = importlib.util.spec_from_file_location(name, path)
-            mod = importlib.util.module_from_spec(mspec)
-            sys.modules[name] = mod  # Triton resolves the kernel's globals through its module
-            mspec.loader.exec_module(mod)
+            kernel = compile_source(src, f"tb_{kind}")
         except Exception as e:  # noqa: BLE001 - any failure: this family runs eagerly
             _failed.add(key)
             warnings.warn(f"torchbrdf: building the Triton kernel failed; using eager.\n{e!r}"[:2000],
                           RuntimeWarning, stacklevel=3)
             return None
-        hit = (getattr(mod, f"tb_{kind}"), written)
+        hit = (kernel, written)
         _kernels[key] = hit
         return hit
+
+
+def compile_source(src: str, fn_name: str):
+    """Write ``src`` to the per-user cache (named by its hash) and import it; returns ``fn_name``.
+
+    Triton's ``@jit`` reads its function's source file, so the kernel must live in a real
+    module. Whether the kernel is interpreted is fixed here (``TRITON_INTERPRET`` at import).
+    """
+    import triton
+
+    tag = hashlib.sha1((src + triton.__version__).encode()).hexdigest()[:20]
+    path = os.path.join(_cache_dir(), f"{fn_name}_{tag}.py")
+    if not os.path.exists(path):
+        fd, tmp = tempfile.mkstemp(suffix=".py", dir=os.path.dirname(path))
+        with os.fdopen(fd, "w") as fh:
+            fh.write(src)
+        os.replace(tmp, path)  # atomic: concurrent processes never import a partial file
+    name = f"torchbrdf_triton_{fn_name}_{tag}_{int(interpret_mode())}"
+    mod = sys.modules.get(name)
+    if mod is None:
+        mspec = importlib.util.spec_from_file_location(name, path)
+        mod = importlib.util.module_from_spec(mspec)
+        sys.modules[name] = mod  # Triton resolves the kernel's globals through its module
+        mspec.loader.exec_module(mod)
+    return getattr(mod, fn_name)
 
 
 def launch(kernel, kind: str, n: int, P, args) -> None:
