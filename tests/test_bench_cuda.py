@@ -1,6 +1,7 @@
 """``python -m torchbrdf.bench --device cuda``: its CPU-side logic (no GPU needed)."""
 
 import importlib
+
 import pytest
 import torch
 

@@ -1,4 +1,4 @@
-"""The Triton kernels of ``principled`` (torchbrdf/kernels/codegen_triton.py), run by Triton's CPU interpreter.
+"""The Triton kernels of ``principled`` (kernels/codegen_triton.py), run by Triton's CPU interpreter.
 
 No GPU is needed: with ``TRITON_INTERPRET=1`` the generated ``@triton.jit`` kernels run on CPU
 tensors through NumPy (the interpreter flag is read when a kernel is decorated, i.e. when the
@@ -180,7 +180,8 @@ def test_broadcasting_matches_eager():
 
     inputs = dict(l=up(4, 5), v=up(4, 5), n=n, base_color=torch.rand(4, 1, 3, generator=g, dtype=dt),
                   roughness=torch.tensor(0.4, dtype=dt), metallic=torch.rand(1, 1, generator=g, dtype=dt),
-                  clearcoat=torch.rand(4, 5, 1, generator=g, dtype=dt), sheen=torch.rand(5, 1, generator=g, dtype=dt))
+                  clearcoat=torch.rand(4, 5, 1, generator=g, dtype=dt),
+                  sheen=torch.rand(5, 1, generator=g, dtype=dt))
     go = torch.randn(4, 5, 3, generator=g, dtype=dt)
     ot, gt = _run("triton", inputs, go)
     oe, ge = _run("eager", inputs, go)
@@ -203,8 +204,8 @@ def test_expanded_inputs_and_chunked_reductions_match_eager(monkeypatch):
         old = backend_mod.get_backend()
         torchbrdf.set_backend(backend)
         try:
-            out = torchbrdf.principled(**{k: t for k, t in inputs.items() if k not in ("roughness", "specular")},
-                                       roughness=rough.expand(2500, 1), specular=spec)
+            rest = {k: t for k, t in inputs.items() if k not in ("roughness", "specular")}
+            out = torchbrdf.principled(**rest, roughness=rough.expand(2500, 1), specular=spec)
             out.backward(go)
         finally:
             torchbrdf.set_backend(old)
@@ -254,9 +255,9 @@ def test_triton_source_comes_from_the_one_formula(monkeypatch):
 def _diffuse_source():
     from torchbrdf.kernels.fused import _KernelSpec
 
-    spec = _KernelSpec("double", [("l", "full", 3), ("v", "full", 3), ("n", "full", 3), ("base_color", "full", 3),
-                                  ("roughness", "full", 1)], [k for k in SCALARS if k != "roughness"],
-                       ("diffuse",), False, False)
+    spec = _KernelSpec("double", [("l", "full", 3), ("v", "full", 3), ("n", "full", 3),
+                                  ("base_color", "full", 3), ("roughness", "full", 1)],
+                       [k for k in SCALARS if k != "roughness"], ("diffuse",), False, False)
     return ct.generate(spec, "fwd")[0]
 
 

@@ -19,6 +19,10 @@ One command, one run, everything on the same machine and inputs:
 
 It writes ``docs/benchmarks.md`` (tables, the command, the machine), ``docs/benchmarks.json``
 (raw numbers) and PNG plots into ``docs/``. ``--quick`` runs a reduced sweep (~1-2 min).
+
+``--device cuda`` runs the GPU benchmark instead (:mod:`torchbrdf.bench.cuda`: Triton kernels,
+eager on CUDA, ``torch.compile``, Mitsuba ``cuda_ad_rgb``, ``shade``); without CUDA it says so in
+one line and exits 0.
 """
 
 from __future__ import annotations
@@ -788,6 +792,9 @@ def write_report(res: dict, out_dir: str, argv) -> None:
         L += ["", "Pruned = `subsurface`, `sheen`, `clearcoat` passed as Python `0.0` (exactly the same values as "
               "tensors of zeros; the lobes are skipped).", ""]
     L += environment_section(res.get("environment"))
+    from torchbrdf.bench.cuda import gpu_section
+
+    L += gpu_section(out_dir)
     if plots:
         L += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     with open(os.path.join(out_dir, "benchmarks.md"), "w") as fh:

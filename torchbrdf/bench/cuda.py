@@ -34,7 +34,8 @@ import torch
 import torchbrdf
 
 PATHS = ("triton", "eager", "compile", "mitsuba")
-NO_CUDA = "torchbrdf.bench --device cuda: no CUDA device here (torch.cuda.is_available() is False); nothing measured."
+NO_CUDA = ("torchbrdf.bench --device cuda: no CUDA device here (torch.cuda.is_available() is False); "
+           "nothing measured.")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -215,8 +216,8 @@ def shade_rows(size: int, lights: int, backends, device: torch.device, repeats: 
     for i in range(lights):
         a = 2.0 * math.pi * i / max(lights, 1)
         if i % 2 == 0:
-            light_list.append(PointLight(torch.tensor([1.5 * math.cos(a), 1.5 * math.sin(a), 2.0], device=device),
-                                         torch.full((3,), 4.0, device=device)))
+            pos = torch.tensor([1.5 * math.cos(a), 1.5 * math.sin(a), 2.0], device=device)
+            light_list.append(PointLight(pos, torch.full((3,), 4.0, device=device)))
         else:
             light_list.append(DirectionalLight(torch.tensor([math.cos(a), math.sin(a), 2.0], device=device),
                                                torch.full((3,), 1.0, device=device)))
@@ -276,13 +277,39 @@ def report(res: dict) -> str:
         lines.append(f"| 2^{int(math.log2(r['N']))} | {r['path']} | {_rate(r, 'fwd_rate')} | "
                      f"{_rate(r, 'fwdbwd_rate')} | {_mib(r.get('peak_bytes'))} | "
                      f"{_mib(r.get('peak_above_inputs_bytes'))} |")
-    lines += ["", "### shade", "", "| size | lights | backend | forward (ms) | forward+backward (ms) | peak GPU memory |",
+    lines += ["", "### shade", "",
+              "| size | lights | backend | forward (ms) | forward+backward (ms) | peak GPU memory |",
               "|---|---|---|---|---|---|"]
     for r in res["shade"]:
         fwd = r.get("error", "n/a") if "fwd_s" not in r else f"{r['fwd_s'] * 1e3:.1f}"
         fb = r.get("error", "n/a") if "fwdbwd_s" not in r else f"{r['fwdbwd_s'] * 1e3:.1f}"
-        lines.append(f"| {r['size']}² | {r['lights']} | {r['backend']} | {fwd} | {fb} | {_mib(r.get('peak_bytes'))} |")
+        lines.append(f"| {r['size']}² | {r['lights']} | {r['backend']} | {fwd} | {fb} | "
+                     f"{_mib(r.get('peak_bytes'))} |")
     return "\n".join(lines) + "\n"
+
+
+def gpu_section(out_dir: str) -> list:
+    """The ``## GPU (CUDA)`` section of ``docs/benchmarks.md``: which GPU numbers exist, how to get them."""
+    measured = os.path.exists(os.path.join(out_dir, "benchmarks_cuda.md"))
+    L = ["## GPU (CUDA)", ""]
+    if measured:
+        L += ["Measured on a GPU: see [benchmarks_cuda.md](benchmarks_cuda.md) (written by the command "
+              "below, with the GPU's name; raw numbers in `benchmarks_cuda.json`).", ""]
+    else:
+        L += ["**No GPU numbers have been measured yet** (no machine used so far had a GPU). The Triton "
+              "kernels are tested for correctness on the CPU through Triton's interpreter "
+              "(`tests/test_triton_backend.py`) and compiled for sm_90 without a GPU, but their speed and "
+              "memory on a GPU are unknown.", ""]
+    L += ["On a machine with CUDA (and `pip install -e \".[triton]\"`; Mitsuba optional):", "", "```bash",
+          "python -m torchbrdf.bench --device cuda", "```", "",
+          "It measures, in one run, float32 with every parameter per lane: `principled` forward and "
+          "forward+backward throughput and peak GPU memory (`torch.cuda.max_memory_allocated`) at "
+          "N = 2^20 … 2^24 for the Triton kernels, eager on CUDA, `torch.compile` of the eager formula and "
+          "Mitsuba's `cuda_ad_rgb` principled (when installed); and `shade` at 1024² with 16 lights "
+          "(8 point, 8 directional) with the Triton and eager backends. It writes `benchmarks_cuda.md` and "
+          "`benchmarks_cuda.json` into `--out` (default `docs/`). Without CUDA it prints one line and "
+          "exits 0.", ""]
+    return L
 
 
 def run(device="cuda", sizes=tuple(1 << s for s in range(20, 25)), paths=PATHS, repeats: int = 10,
@@ -318,7 +345,9 @@ def main(args) -> int:
         print(NO_CUDA)
         return 0
     sizes = [1 << s for s in (args.sizes or range(20, 25))]
-    paths = [p for p in PATHS if not (p == "mitsuba" and args.no_mitsuba) and not (p == "compile" and args.no_compile)]
+    skip = {"mitsuba"} if args.no_mitsuba else set()
+    skip |= {"compile"} if args.no_compile else set()
+    paths = [p for p in PATHS if p not in skip]
     res = run("cuda", sizes, paths, args.repeats, args.shade_size, args.lights)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "benchmarks_cuda.json"), "w") as fh:

@@ -50,7 +50,8 @@ import warnings
 from torchbrdf.kernels.graphs import build
 from torchbrdf.kernels.trace import Node, live_order
 
-__all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "interpret_mode", "available", "block_size"]
+__all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "interpret_mode", "available",
+           "block_size"]
 
 _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 _ARITH = {"add": "+", "sub": "-", "mul": "*"}
@@ -180,7 +181,8 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
         args = ins + ["go"] + [f"g{k}" for k in written]
     else:
         T = len(spec.tangent_inputs)
-        args = ins + [f"t{j}_{i}" for j in range(spec.ntan) for i in range(T)] + [f"to{j}" for j in range(spec.ntan)]
+        args = ins + [f"t{j}_{i}" for j in range(spec.ntan) for i in range(T)]
+        args += [f"to{j}" for j in range(spec.ntan)]
     return print_kernel(f"tb_{kind}", g, stores, args, spec.ctype, spec.go_strides, wide), written
 
 
@@ -265,7 +267,8 @@ def _cache_dir() -> str:
     try:
         os.makedirs(d, exist_ok=True)
     except OSError:
-        d = os.path.join(tempfile.gettempdir(), f"torchbrdf-triton-{os.getuid() if hasattr(os, 'getuid') else 0}")
+        uid = os.getuid() if hasattr(os, "getuid") else 0
+        d = os.path.join(tempfile.gettempdir(), f"torchbrdf-triton-{uid}")
         os.makedirs(d, exist_ok=True)
     return d
 

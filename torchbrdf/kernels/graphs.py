@@ -69,7 +69,8 @@ def build(spec, kind: str):
                     continue  # no path to the output: None in autograd, as in eager
                 written.append(k)
                 for c in range(C):
-                    terms = [adj[nd.id] for nd in loads if nd.attr["k"] == k and nd.attr["c"] == c and nd.id in adj]
+                    terms = [adj[nd.id] for nd in loads
+                             if nd.attr["k"] == k and nd.attr["c"] == c and nd.id in adj]
                     val = terms[0] if terms else 0.0
                     for t in terms[1:]:
                         val = val + t

@@ -65,7 +65,8 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int):
 
 def make_cfg(tensor_names, float_names, active, need_tint, frame, backend: str = "c") -> str:
     """The ``cfg`` string of the operators; ``backend`` ``"c"`` (CPU kernels) or ``"triton"``."""
-    parts = [",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)), str(int(frame))]
+    parts = [",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
+             str(int(frame))]
     return "|".join(parts + (["triton"] if backend == "triton" else []))
 
 
@@ -301,8 +302,8 @@ def _triton_launch(spec, kind: str, N: int, plan: _Plan, args) -> bool:
         import warnings
 
         tl_.failed(spec, kind, wide)
-        warnings.warn(f"torchbrdf: the Triton {kind} kernel failed; using eager.\n{e!r}"[:2000], RuntimeWarning,
-                      stacklevel=3)
+        warnings.warn(f"torchbrdf: the Triton {kind} kernel failed; using eager.\n{e!r}"[:2000],
+                      RuntimeWarning, stacklevel=3)
         return False
     return True
 
@@ -331,12 +332,13 @@ def _triton_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
         gls, gcs = 3, 1
     flat, modes = plan.flat(tensors)
     spec = plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need))
-    written = set(_written((spec.ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint, plan.frame,
-                            (gls, gcs), tuple(need))))
+    written = set(_written((spec.ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint,
+                            plan.frame, (gls, gcs), tuple(need))))
     gmode = {i: _grad_mode(tensors[i], plan.C[i], N) for i in need}
     full = {i: torch.empty(N, plan.C[i], dtype=dtype, device=dev) for i in need
             if gmode[i] == "full" and i in written}
-    red = {i: torch.zeros(plan.C[i], dtype=dtype, device=dev) for i in need if gmode[i] == "red" and i in written}
+    red = {i: torch.zeros(plan.C[i], dtype=dtype, device=dev) for i in need
+           if gmode[i] == "red" and i in written}
     chunk = N if not red else TRITON_BWD_CHUNK
     bufs = {i: torch.empty(min(chunk, N), plan.C[i], dtype=dtype, device=dev) for i in red}
     for s in range(0, N, chunk):
