@@ -297,7 +297,11 @@ def _triton_launch(spec, kind: str, N: int, plan: _Plan, args) -> bool:
     if hit is None:
         return False
     try:
-        tl_.launch(hit[0], kind, N, _floats_tensor(plan), args)
+        if plan.device.type == "cuda":
+            with torch.cuda.device(plan.device):  # Triton launches on the current device
+                tl_.launch(hit[0], kind, N, _floats_tensor(plan), args)
+        else:
+            tl_.launch(hit[0], kind, N, _floats_tensor(plan), args)
     except Exception as e:  # noqa: BLE001 - a compile error shows at the first launch
         import warnings
 
