@@ -353,8 +353,10 @@ def test_kernels_compile_for_a_gpu_without_one():
         sig = {a: "i32" if a == "n" else "*fp64" if a == "P" else "constexpr" if a == "BLOCK" else "*fp32"
                for a in inspect.signature(kern.fn).parameters}
         try:
-            cc = triton.compile(ASTSource(fn=kern, signature=sig, constexprs={"BLOCK": 256}),
-                                target=GPUTarget("cuda", 90, 32), options={"enable_fp_fusion": False})
+            block = ct.block_size("fwd")  # what a GPU launch uses
+            cc = triton.compile(ASTSource(fn=kern, signature=sig, constexprs={"BLOCK": block}),
+                                target=GPUTarget("cuda", 90, 32),
+                                options={"enable_fp_fusion": False, "num_warps": block // 32})
         except (RuntimeError, FileNotFoundError) as e:  # e.g. no ptxas for this platform
             if "ptxas" in str(e):
                 pytest.skip(str(e))
