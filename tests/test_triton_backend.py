@@ -388,3 +388,22 @@ def test_jacfwd_and_vmap_run_the_triton_kernels(launches):
     assert jt.shape == (256, 3, 2)
     torch.testing.assert_close(jt, je, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(vt, ve, rtol=1e-12, atol=1e-14)
+
+
+def test_triton_operators_pass_opcheck(launches):
+    # The same torch.library operators with cfg naming the Triton backend: schema, fake
+    # implementations, autograd registration and AOT dispatch hold for them too.
+    inputs = _case(27, 16, torch.float64, min_cos=0.05)
+    names = ["l", "v", "n", "base_color", "roughness", "metallic"]
+    tensors = [inputs[k].requires_grad_() for k in names]
+    floats = [0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 1.0]
+    float_names = ["subsurface", "specular", "specular_tint", "anisotropic", "sheen", "sheen_tint",
+                   "clearcoat", "clearcoat_gloss"]
+    cfg = ops_mod.make_cfg(names, float_names, ("diffuse", "specular"), False, False, backend="triton")
+    torch.library.opcheck(torch.ops.torchbrdf.principled_fwd, (tensors, floats, cfg))
+    go = torch.ones(16, 3, dtype=torch.float64)
+    plain = [t.detach() for t in tensors]
+    torch.library.opcheck(torch.ops.torchbrdf.principled_bwd, (plain, floats, cfg, go, [0, 4]))
+    tans = [torch.ones_like(tensors[4])]
+    torch.library.opcheck(torch.ops.torchbrdf.principled_jvp, (plain, floats, cfg, tans, [4], 0))
+    assert {"fwd", "bwd", "jvp"} <= set(launches)
