@@ -154,16 +154,20 @@ class _Printer:
 
 
 def _target(t) -> str:
-    if t[0] == "ptr":  # generic: ("ptr", argument name, channels, channel)
-        _, name, C, c = t
-        return f"{name} + (i * {C} + {c})" if C > 1 else f"{name} + i"
+    """Address of a store target ``("ptr", argument name, channels, channel)`` (lane-dense)."""
+    _, name, C, c = t
+    return f"{name} + (i * {C} + {c})" if C > 1 else f"{name} + i"
+
+
+def _family_target(spec, t) -> tuple:
+    """A store target of :mod:`.graphs` as ``("ptr", argument, channels, channel)``."""
     if t[0] == "out":
-        return f"out + (i * 3 + {t[1]})"
+        return ("ptr", "out", 3, t[1])
     if t[0] == "grad":
-        _, k, c, C = t
-        return f"g{k} + (i * {C} + {c})" if C > 1 else f"g{k} + i"
-    _, j, c = t
-    return f"to{j} + (i * 3 + {c})"
+        return ("ptr", f"g{t[1]}", spec.tensors[t[1]][2], t[2])
+    if t[0] == "tout":
+        return ("ptr", f"to{t[1]}", 3, t[2])
+    raise ValueError(f"unknown store target {t!r}")
 
 
 def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
@@ -177,7 +181,9 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
     Returns:
         ``(source, written)``: ``written`` the inputs whose gradient the backward writes.
     """
-    g, stores, written = build(spec, kind)
+    kg = build(spec, kind)
+    written = tuple(kg.written)
+    stores = [(_family_target(spec, t), val) for t, val in kg.stores]
     ins = [f"x{k}" for k in range(len(spec.tensors))]
     if kind == "fwd":
         args = ins + ["out"]
@@ -187,15 +193,15 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
         T = len(spec.tangent_inputs)
         args = ins + [f"t{j}_{i}" for j in range(spec.ntan) for i in range(T)]
         args += [f"to{j}" for j in range(spec.ntan)]
-    return print_kernel(f"tb_{kind}", g, stores, args, spec.ctype, spec.go_strides, wide), written
+    return print_kernel(f"tb_{kind}", kg.graph, stores, args, spec.ctype, spec.go_strides, wide), written
 
 
 def print_kernel(name: str, g, stores, args, ctype: str, go_strides=(3, 1), wide: bool = False) -> str:
     """Triton source of a kernel ``name(n, P, *args, BLOCK)`` computing ``stores`` of graph ``g``.
 
     The generic entry (used by :func:`generate`; a fused shading graph prints the same way):
-    ``stores`` are ``(target, node)`` pairs as described in :mod:`.graphs` (plus the generic
-    target ``("ptr", argument name, channels, channel)``), ``in`` nodes carry the symbolic load
+    ``stores`` are ``(("ptr", argument name, channels, channel), node or float)`` pairs (a
+    lane-dense ``(n, channels)`` output), ``in`` nodes carry the symbolic load
     attributes of :mod:`.graphs`, ``P`` nodes index the float64 runtime-float tensor ``P``, and
     ``ctype`` (``"float"``/``"double"``) is the compute type of kind-``'r'`` nodes.
     """

@@ -1,32 +1,43 @@
-"""The per-lane graphs of one kernel family, with symbolic loads and stores (any emitter).
+"""The kernel graphs of one kernel family, independent of any emitter.
 
-:func:`build` traces :func:`torchbrdf.brdf.formula.principled` for a kernel family
-(:class:`torchbrdf.kernels.fused._KernelSpec`) and applies the derivative transform the kernel
-needs (:func:`.trace.reverse` for the backward, :func:`.trace.tangents` for the JVP). Loads and
-stores are left symbolic, so a printer (Triton today; the C printer builds the same graphs with
-C load strings) decides how a lane reads and writes memory:
+:func:`build` traces :func:`torchbrdf.brdf.formula.principled` for a kernel spec
+(``torchbrdf.kernels.fused._KernelSpec``) and applies the derivative transform a kernel needs.
+The result names its loads and stores abstractly, so a C printer (:mod:`.codegen_c`) and a
+Triton printer can print the same graph:
 
-* input loads: ``in`` nodes with ``attr = {"role": "x", "k": input index, "c": channel,
-  "mode": "full" | "b1" | "b0", "C": channels}``;
-* output-gradient loads (backward): ``{"role": "go", "c": channel}``;
-* tangent loads (JVP): ``{"role": "t", "j": tangent, "i": slot, "k", "c", "mode", "C"}``;
-* stores: ``(target, node-or-0.0)`` with ``target`` = ``("out", c)``, ``("grad", k, c, C)``
-  or ``("tan", j, c)``.
-
-Nothing here knows a derivative rule or a target language.
+* load nodes (op ``in``), ``attr``: ``{"role": "x", "k", "c", "mode", "C"}`` — channel ``c`` of
+  tensor input ``k`` (``mode`` 'full' lane-dense ``(n, C)``, 'b1' one ``C``-vector for all lanes,
+  'b0' one value); ``{"role": "go", "c"}`` — the output gradient; ``{"role": "t", "j", "i", "k",
+  "c", "mode", "C"}`` — channel ``c`` of tangent ``j`` of the ``i``-th input with a tangent
+  (``spec.tangent_inputs[i] == k``);
+* runtime floats: op ``P``, ``attr`` = index into the float parameters;
+* stores ``(target, value)``: ``("out", c)``, ``("grad", k, c)`` (lane-dense ``(n, C_k)``),
+  ``("tout", j, c)``; ``value`` is a node or a Python float.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse, tangents
 
-__all__ = ["build"]
+__all__ = ["KernelGraph", "build"]
+
+
+@dataclass
+class KernelGraph:
+    """One kernel: its graph, its stores and (backward) the inputs whose gradient it writes."""
+
+    kind: str
+    graph: Graph
+    stores: list
+    written: tuple = ()
 
 
 def _inputs(spec):
-    """Formula inputs and the load nodes of the tensor inputs of ``spec``."""
+    """Formula inputs of one kernel family and the load nodes."""
     inp, loads = {}, []
     for k, (name, mode, C) in enumerate(spec.tensors):
         chans = []
@@ -37,34 +48,30 @@ def _inputs(spec):
         inp[name] = Vec3(chans) if C == 3 else chans[0]
     for j, name in enumerate(spec.floats):
         inp[name] = Node("P", (), "p", j)
-    inp.setdefault("x", None)
-    inp.setdefault("y", None)
-    for name in SCALAR_PARAMS:
+    for name in ("x", "y", *SCALAR_PARAMS):
         inp.setdefault(name, None)
     return inp, loads
 
 
-def build(spec, kind: str):
-    """Graph and stores of one kernel (``kind`` = ``"fwd"``, ``"bwd"`` or ``"jvp"``).
+def build(spec, kind: str) -> KernelGraph:
+    """The graph of one kernel of a kernel family.
 
-    Returns:
-        ``(graph, stores, written)``: ``stores`` a list of ``(target, value)`` (see the module
-        docstring); ``written`` the inputs whose gradient the backward writes (those with a
-        path to the output and in ``spec.grad_mask``; empty for the other kinds).
+    ``kind``: ``"fwd"``, ``"bwd"`` (reverse transform) or ``"jvp"`` (forward transform,
+    ``spec.ntan`` tangents).
     """
     g = Graph()
-    written = []
+    stores, written = [], ()
     with g:
         ops = TraceOps(spec.hi_double)
         inp, loads = _inputs(spec)
         outs = list(formula.principled(ops, inp, spec.active, spec.need_tint, spec.frame).c)
-        stores = []
         if kind == "fwd":
             stores = [(("out", c), o) for c, o in enumerate(outs)]
         elif kind == "bwd":
             seeds = [Node("in", (), "r", {"role": "go", "c": c}) for c in range(3)]
             adj = reverse(g, outs, seeds)
-            for k, (_name, _mode, C) in enumerate(spec.tensors):
+            written = []
+            for k, (name, mode, C) in enumerate(spec.tensors):
                 if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj for nd in loads):
                     continue  # no path to the output: None in autograd, as in eager
                 written.append(k)
@@ -74,20 +81,20 @@ def build(spec, kind: str):
                     val = terms[0] if terms else 0.0
                     for t in terms[1:]:
                         val = val + t
-                    stores.append((("grad", k, c, C), val))
+                    stores.append((("grad", k, c), val))
+            written = tuple(written)
         elif kind == "jvp":
             T = len(spec.tangent_inputs)
             for j in range(spec.ntan):
                 seeds = {}
-                slot_modes = spec.tangent_modes[j * T:(j + 1) * T]
-                for i, (k, mode) in enumerate(zip(spec.tangent_inputs, slot_modes)):
-                    C = spec.tensors[k][2]
+                for i, k in enumerate(spec.tangent_inputs):
+                    mode, C = spec.tangent_modes[j * T + i], spec.tensors[k][2]
                     for nd in loads:
                         if nd.attr["k"] == k:
-                            seeds[nd.id] = Node("in", (), "r", {"role": "t", "j": j, "i": i, "k": k,
-                                                                "c": nd.attr["c"], "mode": mode, "C": C})
+                            attr = {"role": "t", "j": j, "i": i, "k": k, "c": nd.attr["c"], "mode": mode, "C": C}
+                            seeds[nd.id] = Node("in", (), "r", attr)
                 for c, tn in enumerate(tangents(g, outs, seeds)):
-                    stores.append((("tan", j, c), tn if tn is not None else 0.0))
+                    stores.append((("tout", j, c), tn if tn is not None else 0.0))
         else:
             raise ValueError(f"kind: expected 'fwd', 'bwd' or 'jvp', got {kind!r}")
-    return g, stores, tuple(written)
+    return KernelGraph(kind, g, stores, written)
