@@ -367,17 +367,19 @@ def test_kernels_compile_for_a_gpu_without_one():
     assert "div.rn.f32" in ptx and "sqrt.rn.f32" in ptx and "fma.rn.f32" not in ptx
 
 
-def test_jacfwd_and_vmap_run_the_triton_kernels(launches):
-    # jacfwd over a shared 2-number material: 2 tangents in one pass of the JVP kernel; vmap
-    # folds the vmapped dimension into the lanes.
-    inputs = {k: t for k, t in _case(10, 256, torch.float64).items() if k not in ("metallic", "roughness")}
-    p = torch.tensor([0.3, 0.6], dtype=torch.float64)
+def test_jacfwd_and_vmap_run_the_triton_kernels(launches, monkeypatch):
+    # jacfwd over a shared 3-number material: 3 tangents, here 2 per pass of the JVP kernel
+    # (2 launches); vmap folds the vmapped dimension into the lanes.
+    monkeypatch.setattr(ops_mod, "TRITON_TANGENTS_PER_PASS", 2)
+    drop = ("metallic", "roughness", "sheen")
+    inputs = {k: t for k, t in _case(10, 256, torch.float64).items() if k not in drop}
+    p = torch.tensor([0.3, 0.6, 0.2], dtype=torch.float64)
 
     def f(q):
-        return torchbrdf.principled(**inputs, metallic=q[0:1], roughness=q[1:2])
+        return torchbrdf.principled(**inputs, metallic=q[0:1], roughness=q[1:2], sheen=q[2:3])
 
     jt = torch.func.jacfwd(f)(p)
-    assert launches.count("jvp") == 1
+    assert launches.count("jvp") == 2
     vt = torch.func.vmap(f)(torch.stack([p, p.flip(0)]))
     torchbrdf.set_backend("eager")
     try:
@@ -385,7 +387,7 @@ def test_jacfwd_and_vmap_run_the_triton_kernels(launches):
         ve = torch.func.vmap(f)(torch.stack([p, p.flip(0)]))
     finally:
         torchbrdf.set_backend("triton")
-    assert jt.shape == (256, 3, 2)
+    assert jt.shape == (256, 3, 3)
     torch.testing.assert_close(jt, je, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(vt, ve, rtol=1e-12, atol=1e-14)
 

@@ -262,6 +262,9 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
 # Lanes per backward launch when some input's gradient is summed over all lanes (the per-lane
 # gradient of a chunk is reduced before the next: 2^20 lanes x 3 x 4 B = 12 MiB per input).
 TRITON_BWD_CHUNK = 1 << 20
+# Tangents per pass of the Triton JVP kernel: the generated code grows with the tangents, and 8
+# already share most of the primal work (jacfwd over K parameters runs ceil(K / 8) passes).
+TRITON_TANGENTS_PER_PASS = 8
 
 _P_CACHE: dict = {}
 
@@ -372,24 +375,25 @@ def _triton_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
     N, dtype = plan.N, plan.dtype
     shape = (*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3)
     flat, modes = plan.flat(tensors)
-    tflat, tmodes = [], []
-    for j in range(K):
-        for i, t in zip(tidx, tangents):
-            f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
-            tflat.append(f)
-            tmodes.append(m)
-    spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=K)
     out = torch.empty((K, N, 3), dtype=dtype, device=plan.device)
-    if _triton_launch(spec, "jvp", N, plan, [*flat, *tflat, *(out[j] for j in range(K))]):
-        return out.view(shape)
-    outs = []
-    for j in range(K):
-        tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
-        primals = tuple(t.detach() for t in tensors)
-        tans = tuple(tj.get(i, torch.zeros_like(t)) for i, t in enumerate(primals))
-        _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
-        outs.append(o.expand(*plan.batch, 3))
-    return torch.stack(outs) if ntan else outs[0].contiguous()
+    for j0 in range(0, K, TRITON_TANGENTS_PER_PASS):
+        js = range(j0, min(K, j0 + TRITON_TANGENTS_PER_PASS))
+        tflat, tmodes = [], []
+        for j in js:
+            for i, t in zip(tidx, tangents):
+                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
+                tflat.append(f)
+                tmodes.append(m)
+        spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=len(js))
+        if _triton_launch(spec, "jvp", N, plan, [*flat, *tflat, *(out[j] for j in js)]):
+            continue
+        primals = tuple(t.detach() for t in tensors)  # no kernel: forward-mode AD of the formula
+        for j in js:
+            tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
+            tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
+            _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
+            out[j] = o.expand(*plan.batch, 3).reshape(N, 3)
+    return out.view(shape)
 
 
 # ---------------------------------------------------------------------------------------------
