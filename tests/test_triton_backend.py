@@ -409,3 +409,22 @@ def test_triton_operators_pass_opcheck(launches):
     tans = [torch.ones_like(tensors[4])]
     torch.library.opcheck(torch.ops.torchbrdf.principled_jvp, (plain, floats, cfg, tans, [4], 0))
     assert {"fwd", "bwd", "jvp"} <= set(launches)
+
+
+def test_64_bit_lane_indices(monkeypatch):
+    # From 3 N >= 2^31 lanes the kernels index in int64; forced here on a small batch.
+    monkeypatch.setattr(ops_mod, "_wide", lambda N: True)
+    inputs = _case(11, 300, torch.float64)
+    ot, _ = _run("triton", inputs)
+    oe, _ = _run("eager", inputs)
+    assert _rel(ot, oe) <= 1e-12
+    src = ct.generate(_full_spec(), "fwd", wide=True)[0]
+    assert "tl.program_id(0).to(tl.int64)" in src
+
+
+def _full_spec():
+    from torchbrdf.kernels.fused import _KernelSpec
+
+    names = ["l", "v", "n", "x", "y", "base_color", *SCALARS]
+    return _KernelSpec("float", [(k, "full", 1 if k in SCALARS else 3) for k in names], [], torchbrdf.LOBES,
+                       True, True)
