@@ -79,6 +79,7 @@ from torchbrdf.render.geometry import pinhole_rays, plane_gbuffer, sphere_gbuffe
 from torchbrdf.brdf.lambert import LambertBRDF, lambert
 from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, PointLight
 from torchbrdf.render.shading import Shader, ShadingPlan, plan, shade
+from torchbrdf.kernels.backend import get_backend, set_backend
 from torchbrdf.brdf.principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, fast_path_enabled, principled, set_fast_path
 from torchbrdf.brdf.smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
 
@@ -105,6 +106,8 @@ __all__ = [
     "PRINCIPLED_DEFAULTS",
     "LOBES",
     "set_fast_path",
+    "set_backend",
+    "get_backend",
     "fast_path_enabled",
     "microfacet",
     "MicrofacetBRDF",

@@ -20,6 +20,10 @@ One command, one run, everything on the same machine and inputs:
 It writes ``benchmarks.md`` (tables, the command, the machine), ``benchmarks.json`` (raw
 numbers) and PNG plots into ``--out`` (default ``bench_out/``; ``--out docs`` refreshes the
 committed report). ``--quick`` runs a reduced sweep (~1-2 min).
+
+``--device cuda`` runs the GPU benchmark instead (:mod:`torchbrdf.bench.cuda`: Triton kernels,
+eager on CUDA, ``torch.compile``, Mitsuba ``cuda_ad_rgb``, ``shade``); without CUDA it says so in
+one line and exits 0.
 """
 
 from __future__ import annotations
@@ -334,18 +338,18 @@ def pruned_lobes(N: int, paths, repeats: int, budget: float, log) -> list:
 # Mitsuba 3
 # ---------------------------------------------------------------------------------------------
 
-def mitsuba_available() -> str | None:
-    """Mitsuba version string when ``mitsuba`` with the ``llvm_ad_rgb`` variant imports, else None."""
+def mitsuba_available(variant: str = "llvm_ad_rgb") -> str | None:
+    """Mitsuba version string when ``mitsuba`` with ``variant`` imports, else None."""
     try:
         import mitsuba as mi
 
-        mi.set_variant("llvm_ad_rgb")
+        mi.set_variant(variant)
         return mi.__version__
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return None
 
 
-def _mitsuba_setup(inp: dict) -> dict:
+def _mitsuba_setup(inp: dict, variant: str = "llvm_ad_rgb") -> dict:
     """Mitsuba ``principled`` with per-lane parameters.
 
     Mitsuba's BSDF parameters are textures: each lane reads its own texel of a bitmap with
@@ -358,7 +362,7 @@ def _mitsuba_setup(inp: dict) -> dict:
     import mitsuba as mi
     import numpy as np
 
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(variant)
     N = inp["l"].shape[0]
     W = 2048 if N % 2048 == 0 else 1
     H = N // W
@@ -936,6 +940,10 @@ def write_report(res: dict, out_dir: str, argv) -> None:
               "tensors of zeros; the lobes are skipped).", ""]
     L += environment_section(res.get("environment"))
     L += environment_lobes_section(res.get("environment_lobes"))
+
+    from torchbrdf.bench.cuda import gpu_section
+
+    L += gpu_section(out_dir)
     if plots:
         L += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     with open(os.path.join(out_dir, "benchmarks.md"), "w") as fh:
@@ -1093,7 +1101,17 @@ def main(argv=None) -> int:
     ap.add_argument("--no-env", action="store_true", help="skip the environment-lighting error/time section")
     ap.add_argument("--torch-compile", action="store_true",
                     help="also measure torch.compile of the eager path at the headline N (~1 min of compiling)")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="cuda: the GPU benchmark of torchbrdf.bench.cuda (Triton, eager, torch.compile, "
+                         "Mitsuba cuda_ad_rgb; --sizes default 20..24); exits 0 with one line without CUDA")
+    ap.add_argument("--no-compile", action="store_true", help="--device cuda: skip torch.compile")
+    ap.add_argument("--shade-size", type=int, default=1024, help="--device cuda: shade image side (default 1024)")
+    ap.add_argument("--lights", type=int, default=16, help="--device cuda: shade lights (default 16)")
     args = ap.parse_args(argv)
+    if args.device == "cuda":
+        from torchbrdf.bench import cuda
+
+        return cuda.main(args)
     sizes = [1 << s for s in (args.sizes or ([12, 14, 16, 18] if args.quick else [12, 14, 16, 18, 20, 22]))]
     dtypes = args.dtypes or list(DTYPES)
     repeats = 3 if args.quick else args.repeats

@@ -168,7 +168,8 @@ def principled(
         raise ValueError(f"anisotropic={anisotropic} needs a tangent frame: pass x (and optionally y)")
     dtype, c = _prepare(l, v, n, x, y, params, base_color)
     active = active_lobes(params, lobes)
-    f = _principled_fast_or_none(c, active) if _fast_path_wanted(c) else None
+    backend = _fast_backend(c)
+    f = _principled_fast_or_none(c, active, backend) if backend is not None else None
     if f is None:
         f = _principled_eager(c, active)
     return cast_back(f, dtype)
@@ -190,10 +191,15 @@ def set_fast_path(enabled: bool | None) -> None:
     """Choose how :func:`principled` evaluates.
 
     Args:
-        enabled: ``True`` uses the fused CPU kernels for every batch size where they apply;
-            ``False`` always uses the eager reference path; ``None`` (default) decides
-            automatically (fused from :data:`FAST_PATH_MIN_LANES` lanes, CPU float32/float64,
-            a C compiler present, ``TORCHBRDF_EAGER`` not set to ``1``).
+        enabled: ``True`` uses the fused kernels (of the backend in force, see
+            :func:`torchbrdf.set_backend`) for every batch size where they apply; ``False``
+            always uses the eager reference path, whatever the backend; ``None`` (default)
+            decides automatically (fused from :data:`FAST_PATH_MIN_LANES` lanes in the
+            ``"auto"`` backend, at any size for an explicitly named one; float32/float64;
+            ``TORCHBRDF_EAGER`` not set to ``1``).
+
+    :func:`torchbrdf.set_backend` chooses *which* fused kernels (C on CPU, Triton on CUDA);
+    this switch chooses *whether* they are used.
     """
     if enabled not in (True, False, None):
         raise ValueError(f"enabled: expected True, False or None, got {enabled!r}")
@@ -205,48 +211,62 @@ def fast_path_enabled() -> bool | None:
     return _fast_mode["enabled"]
 
 
-def _fast_path_wanted(c: dict) -> bool:
+def _fast_backend(c: dict):
+    """``"c"`` or ``"triton"`` when fused kernels evaluate this call, else ``None`` (eager).
+
+    The backend comes from :func:`torchbrdf.set_backend` / ``TORCHBRDF_BACKEND`` (see
+    :mod:`torchbrdf.kernels.backend`); :func:`set_fast_path` says whether a fused one is used.
+    """
     mode = _fast_mode["enabled"]
     if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
-        return False
+        return None
     t0 = c["l"]
-    if t0.device.type != "cpu" or t0.dtype not in (torch.float32, torch.float64):
-        return False
+    if t0.dtype not in (torch.float32, torch.float64):
+        return None
+    backend = _resolve_backend(t0.device.type)
+    if backend == "eager":
+        return None
     tensors = [t for t in c.values() if isinstance(t, Tensor)]
     if torch.compiler.is_compiling():
         # torch.compile traces the fused operator (torch.ops.torchbrdf.principled_fwd) at any
         # size, so the compiled graph never depends on the batch size or recompile history.
-        return _kernels_available()
+        return backend
     if torch.jit.is_tracing() or torch.jit.is_scripting():
-        return False
+        return None
     for t in tensors:
         # tensor subclasses (e.g. __torch_function__ wrappers) stay on eager ATen ops; torch.func
         # transforms (vmap, grad, jvp) and forward-mode AD go through the operator's rules.
         if type(t) not in (Tensor, nn.Parameter):
-            return False
-    if mode is None:
+            return None
+    if mode is None and _backend_setting() == "auto":
         shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
         try:
             lanes = math.prod(torch.broadcast_shapes(*shapes))
         except RuntimeError:
-            return False
+            return None
         if lanes < FAST_PATH_MIN_LANES:
-            return False
-    return _kernels_available()
+            return None
+    return backend
 
 
 @torch.compiler.assume_constant_result  # under torch.compile: evaluated once while tracing
-def _kernels_available() -> bool:
-    from torchbrdf.kernels import fused as _fast
+def _resolve_backend(device_type: str) -> str:
+    from torchbrdf.kernels import backend as _backend
 
-    return _fast.available()
+    return _backend.resolve(torch.device(device_type))
 
 
-def _principled_fast_or_none(c: dict, active: tuple[str, ...]):
+def _backend_setting() -> str:
+    from torchbrdf.kernels import backend as _backend
+
+    return _backend.get_backend()
+
+
+def _principled_fast_or_none(c: dict, active: tuple[str, ...], backend: str = "c"):
     from torchbrdf.kernels import ops as _ops
 
     c = _fill_frame(c)
-    return _ops.principled_fast(c, active, _need_tint(c, active), _needs_frame(c))
+    return _ops.principled_fast(c, active, _need_tint(c, active), _needs_frame(c), backend=backend)
 
 
 def _fill_frame(c: dict) -> dict:

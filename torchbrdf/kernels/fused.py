@@ -29,7 +29,8 @@ for the backward, which inputs need gradients. The shared library is cached on d
 (``$TORCHBRDF_CACHE_DIR`` or ``~/.cache/torchbrdf``), so the ~1–3 s build is paid once per
 machine and family; loading a cached kernel takes milliseconds. No compiler → eager.
 
-Limits: CPU float32/float64 only (CUDA and others use eager), first-order kernels (a
+Limits: CPU float32/float64 only (CUDA tensors use the Triton kernels printed from the same
+graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-order kernels (a
 ``create_graph=True`` backward re-runs the eager formula to build a differentiable graph).
 """
 

@@ -67,17 +67,20 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int):
     return f.contiguous(), "full"
 
 
-def make_cfg(tensor_names, float_names, active, need_tint, frame) -> str:
-    return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-                     str(int(frame))])
+def make_cfg(tensor_names, float_names, active, need_tint, frame, backend: str = "c") -> str:
+    """The ``cfg`` string of the operators; ``backend`` ``"c"`` (CPU kernels) or ``"triton"``."""
+    parts = [",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
+             str(int(frame))]
+    return "|".join(parts + (["triton"] if backend == "triton" else []))
 
 
 class _Plan:
     """One call's layout, from ``cfg`` and the tensors' shapes."""
 
     def __init__(self, cfg: str, tensors, floats):
-        tn, fn, act, tint, frame = cfg.split("|")
+        tn, fn, act, tint, frame, *rest = cfg.split("|")
         self.cfg = cfg
+        self.backend = rest[0] if rest else "c"  # which kernels: "c" or "triton"
         self.tensor_names = tn.split(",") if tn else []
         self.float_names = fn.split(",") if fn else []
         self.active = tuple(act.split(",")) if act else ()
@@ -87,6 +90,7 @@ class _Plan:
         self.batch = tuple(torch.broadcast_shapes(*shapes))
         self.N = math.prod(self.batch)
         self.dtype = tensors[0].dtype
+        self.device = tensors[0].device
         self.floats = [float(x) for x in floats]
 
     def flat(self, tensors):
@@ -130,13 +134,15 @@ def _written(spec_args: tuple) -> tuple:
 # ---------------------------------------------------------------------------------------------
 
 def _run_fwd(plan: _Plan, tensors) -> Tensor:
+    if plan.backend == "triton":
+        return _triton_fwd(plan, tensors)
     flat, modes = plan.flat(tensors)
     lib = _load(plan.spec(modes), backward=False) if plan.N > 0 else None
     if lib is None:
         if plan.N > 0:  # no kernel: the same formula, eagerly
             with torch.no_grad():
                 return _formula_eager(plan, tensors, plan.floats).expand(*plan.batch, 3).contiguous()
-        return torch.empty(*plan.batch, 3, dtype=plan.dtype)
+        return torch.empty(*plan.batch, 3, dtype=plan.dtype, device=plan.device)
     out = _pool.empty((plan.N, 3), plan.dtype)
     lib[1](plan.N, _ptrs([f.data_ptr() for f in flat]), _dparams(plan.floats), out.data_ptr(),
            torch.get_num_threads())
@@ -167,6 +173,8 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     N, dtype = plan.N, plan.dtype
     if N == 0:
         return [tensors[i].new_zeros(tensors[i].shape) for i in need]
+    if plan.backend == "triton":
+        return _triton_bwd(plan, tensors, grad_out, need)
     go = grad_out.expand(*plan.batch, 3).reshape(N, 3)
     if go.dtype != dtype:
         go = go.to(dtype)
@@ -222,7 +230,9 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
     N, dtype = plan.N, plan.dtype
     shape = (*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3)
     if N == 0 or not tidx:
-        return torch.zeros(shape, dtype=dtype)
+        return torch.zeros(shape, dtype=dtype, device=plan.device)
+    if plan.backend == "triton":
+        return _triton_jvp(plan, tensors, tangents, tidx, ntan)
     flat, modes = plan.flat(tensors)
     out = torch.empty((K, N, 3), dtype=dtype)
     for j0 in range(0, K, TANGENTS_PER_PASS):
@@ -246,6 +256,147 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
         ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
         outs = _ptrs([out[j].data_ptr() for j in js])
         lib[1](N, ins, _dparams(plan.floats), tins, outs, torch.get_num_threads())
+    return out.view(shape)
+
+
+# ---------------------------------------------------------------------------------------------
+# Triton kernel calls (CUDA tensors; CPU tensors under TRITON_INTERPRET=1)
+# ---------------------------------------------------------------------------------------------
+
+# Lanes per backward launch when some input's gradient is summed over all lanes (the per-lane
+# gradient of a chunk is reduced before the next: 2^20 lanes x 3 x 4 B = 12 MiB per input).
+TRITON_BWD_CHUNK = 1 << 20
+# Tangents per pass of the Triton JVP kernel: the generated code grows with the tangents, and 8
+# already share most of the primal work (jacfwd over K parameters runs ceil(K / 8) passes).
+TRITON_TANGENTS_PER_PASS = 8
+
+_P_CACHE: dict = {}
+
+
+def _triton():
+    from torchbrdf.kernels import codegen_triton
+
+    return codegen_triton
+
+
+def _wide(N: int) -> bool:
+    """64-bit lane indices needed (``i * 3`` past int32)."""
+    return 3 * N >= 2 ** 31 - 1
+
+
+def _floats_tensor(plan: _Plan) -> Tensor:
+    """The runtime Python floats as a float64 tensor on the device (cached: no copy per call)."""
+    key = (tuple(plan.floats), str(plan.device))
+    t = _P_CACHE.get(key)
+    if t is None:
+        if len(_P_CACHE) > 256:
+            _P_CACHE.clear()
+        t = torch.tensor(plan.floats or [0.0], dtype=torch.float64).to(plan.device)
+        _P_CACHE[key] = t
+    return t
+
+
+def _triton_launch(spec, kind: str, N: int, plan: _Plan, args) -> bool:
+    """Load and launch one Triton kernel; ``False`` (after one warning) when that fails."""
+    tl_ = _triton()
+    wide = _wide(N)
+    hit = tl_.load(spec, kind, wide)
+    if hit is None:
+        return False
+    try:
+        if plan.device.type == "cuda":
+            with torch.cuda.device(plan.device):  # Triton launches on the current device
+                tl_.launch(hit[0], kind, N, _floats_tensor(plan), args)
+        else:
+            tl_.launch(hit[0], kind, N, _floats_tensor(plan), args)
+    except Exception as e:  # noqa: BLE001 - a compile error shows at the first launch
+        import warnings
+
+        tl_.failed(spec, kind, wide)
+        warnings.warn(f"torchbrdf: the Triton {kind} kernel failed; using eager.\n{e!r}"[:2000],
+                      RuntimeWarning, stacklevel=3)
+        return False
+    return True
+
+
+def _triton_fwd(plan: _Plan, tensors) -> Tensor:
+    out = torch.empty(plan.N, 3, dtype=plan.dtype, device=plan.device)
+    if plan.N == 0:
+        return out.view(*plan.batch, 3)
+    flat, modes = plan.flat(tensors)
+    if _triton_launch(plan.spec(modes), "fwd", plan.N, plan, [*flat, out]):
+        return out.view(*plan.batch, 3)
+    with torch.no_grad():
+        return _formula_eager(plan, tensors, plan.floats).expand(*plan.batch, 3).contiguous()
+
+
+def _triton_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
+    N, dtype, dev = plan.N, plan.dtype, plan.device
+    go = grad_out.expand(*plan.batch, 3).reshape(N, 3)
+    if go.dtype != dtype:
+        go = go.to(dtype)
+    gls, gcs = go.stride()
+    if N == 1:
+        gls = 3
+    if (gls, gcs) not in ((3, 1), (0, 0), (0, 1)):
+        go = go.contiguous()
+        gls, gcs = 3, 1
+    flat, modes = plan.flat(tensors)
+    spec = plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need))
+    written = set(_written((spec.ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint,
+                            plan.frame, (gls, gcs), tuple(need))))
+    gmode = {i: _grad_mode(tensors[i], plan.C[i], N) for i in need}
+    full = {i: torch.empty(N, plan.C[i], dtype=dtype, device=dev) for i in need
+            if gmode[i] == "full" and i in written}
+    red = {i: torch.zeros(plan.C[i], dtype=dtype, device=dev) for i in need
+           if gmode[i] == "red" and i in written}
+    chunk = N if not red else TRITON_BWD_CHUNK
+    bufs = {i: torch.empty(min(chunk, N), plan.C[i], dtype=dtype, device=dev) for i in red}
+    for s in range(0, N, chunk):
+        m = min(chunk, N - s)
+        gouts = [full[i][s:s + m] if i in full else bufs[i][:m] for i in sorted(written)]
+        if not _triton_launch(spec, "bwd", m, plan, [*(f[s:s + m] for f in flat), go[s:s + m], *gouts]):
+            with torch.enable_grad():
+                ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
+                out = _formula_eager(plan, ts, plan.floats)
+                gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
+            return [g.contiguous() if g is not None else tensors[i].new_zeros(tensors[i].shape)
+                    for i, g in zip(need, gs)]
+        for i in red:
+            red[i] += bufs[i][:m].sum(0)
+    grads = []
+    for i in need:
+        if i not in written:  # no path to the output: zeros (the autograd wrapper passes None)
+            grads.append(tensors[i].new_zeros(tensors[i].shape))
+            continue
+        g = full[i].view(*plan.batch, plan.C[i]) if i in full else red[i]
+        grads.append(_to_shape(g, tensors[i]).contiguous())
+    return grads
+
+
+def _triton_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
+    K = max(1, ntan)
+    N, dtype = plan.N, plan.dtype
+    shape = (*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3)
+    flat, modes = plan.flat(tensors)
+    out = torch.empty((K, N, 3), dtype=dtype, device=plan.device)
+    for j0 in range(0, K, TRITON_TANGENTS_PER_PASS):
+        js = range(j0, min(K, j0 + TRITON_TANGENTS_PER_PASS))
+        tflat, tmodes = [], []
+        for j in js:
+            for i, t in zip(tidx, tangents):
+                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
+                tflat.append(f)
+                tmodes.append(m)
+        spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=len(js))
+        if _triton_launch(spec, "jvp", N, plan, [*flat, *tflat, *(out[j] for j in js)]):
+            continue
+        primals = tuple(t.detach() for t in tensors)  # no kernel: forward-mode AD of the formula
+        for j in js:
+            tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
+            tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
+            _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
+            out[j] = o.expand(*plan.batch, 3).reshape(N, 3)
     return out.view(shape)
 
 
@@ -527,10 +678,12 @@ class _PrincipledFunction(torch.autograd.Function):
         return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *tans)
 
 
-def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
-    """Fused evaluation on checked, compute-dtype CPU inputs ``c`` (see ``principled._prepare``).
+def principled_fast(c: dict, active, need_tint: bool, frame: bool, backend: str = "c") -> Tensor:
+    """Fused evaluation on checked, compute-dtype inputs ``c`` (see ``principled._prepare``).
 
-    ``x``/``y`` must already be filled in when ``frame`` is true. Returns ``(*, 3)``.
+    ``backend``: ``"c"`` (the CPU kernels) or ``"triton"`` (CUDA tensors, or CPU tensors under
+    ``TRITON_INTERPRET=1``). ``x``/``y`` must already be filled in when ``frame`` is true.
+    Returns ``(*, 3)``.
     """
     names = [k for k in ("l", "v", "n") + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
     tensor_names = [k for k in names if isinstance(c.get(k), Tensor)]
@@ -538,7 +691,7 @@ def principled_fast(c: dict, active, need_tint: bool, frame: bool) -> Tensor:
     # 0-d tensors become (1,) so that every tensor has its channel dimension (vmap rules).
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
-    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame)
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, backend)
     if torch.compiler.is_compiling():
         return principled_fwd(tensors, floats, cfg)
     return _PrincipledFunction.apply(cfg, _Floats(floats), *tensors)
