@@ -570,7 +570,7 @@ def _loss_plot(path: Path, history: list) -> None:
     """The fit loss per iteration: both hypotheses and each pixel's better one in the dual
     stages, the chosen class afterwards; stage boundaries marked."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(7, 4.6))
     it = [h["iteration"] for h in history]
     fit = [h.get("fit", {}) for h in history]
 
@@ -592,11 +592,14 @@ def _loss_plot(path: Path, history: list) -> None:
                     va="top", ha="left", transform=ax.get_xaxis_transform(), color="dimgrey")
     if finite:
         ax.set_ylim(min(finite) / 1.5, max(finite) * 3)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("LM iteration (all stages)")
     ax.set_ylabel(_LOSS_LABEL, fontsize=8)
     ax.set_title("SVBRDF recovery: fit loss per iteration (stage and level size marked)", fontsize=9)
     ax.grid(True, which="major", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)  # below: hides no curve
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
