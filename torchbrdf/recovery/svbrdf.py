@@ -589,7 +589,9 @@ def _loss_plot(path: Path, history: list) -> None:
             if k:
                 ax.axvline(it[k] - 0.5, color="grey", lw=0.6)
             ax.text(it[k] - 0.3, 0.97, f"{history[k]['stage']} {history[k]['size']}²", fontsize=7, rotation=90,
-                    va="top", ha="left", transform=ax.get_xaxis_transform(), color="dimgrey")
+                    va="top", ha="left", transform=ax.get_xaxis_transform(), color="dimgrey", clip_on=True)
+    if it:
+        ax.set_xlim(min(it) - 0.6, max(it) + 0.6)
     if finite:
         ax.set_ylim(min(finite) / 1.5, max(finite) * 3)
     from matplotlib.ticker import MaxNLocator
@@ -808,6 +810,9 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
         pred = render_capture(fin, cap, cap.camera_position, backend="compact")
         conf_fn = getattr(rec, "confidence_map", None)  # provided by newer solvers
         confidence = conf_fn() if callable(conf_fn) else None
+        if confidence is not None and tuple(confidence.shape[-2:]) != (cap.height, cap.width):
+            confidence = F.interpolate(confidence.reshape(1, 1, *confidence.shape[-2:]).float(),
+                                       size=(cap.height, cap.width), mode="bilinear", align_corners=False)[0]
     report = {
         "iterations": int(st["global_it"]),
         "seconds": float(seconds),
