@@ -1,5 +1,6 @@
 """Recovery driver: fingerprinted checkpoints, outputs as one unit, refusals, clear I/O
-messages, prompt stop, the Python API (issues 14 and 15)."""
+messages, prompt stop, the Python API (issues 14 and 15).
+"""
 
 import contextlib
 import errno
@@ -8,6 +9,7 @@ import json
 import os
 import shutil
 import signal
+from pathlib import Path
 
 import pytest
 import torch
@@ -54,7 +56,8 @@ def stopped(cap, tmp_path_factory):
 
 
 def _hashes(folder):
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+    files = [p for p in sorted(folder.iterdir()) if p.is_file()]
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
 
 
 def _copy(src, tmp_path):
@@ -86,7 +89,8 @@ def test_resume_with_another_capture_is_refused(stopped, other_cap, tmp_path, ca
 
 def test_resume_with_other_settings_is_refused_unless_forced(stopped, cap, tmp_path, capsys):
     out = _copy(stopped, tmp_path)
-    for flag, value in (("--lr", "0.5"), ("--seed", "3"), ("--prior-roughness", "0.01"), ("--model", "svbrdf_ggx")):
+    changes = (("--lr", "0.5"), ("--seed", "3"), ("--prior-roughness", "0.01"), ("--model", "svbrdf_ggx"))
+    for flag, value in changes:
         argv = ["--capture", str(cap), "--out", str(out), "--resume", *FAST, flag, value]
         assert main(argv) == 2, flag
         err = _one_line_error(capsys)
@@ -136,7 +140,8 @@ def test_failure_during_output_write_leaves_the_previous_run(done, cap, tmp_path
 
 def test_interrupted_write_never_mixes_runs(done, cap, tmp_path, monkeypatch):
     """A kill (here: an exception that is not an OSError) while the new run writes its outputs
-    leaves every output file of the previous run."""
+    leaves every output file of the previous run.
+    """
     out = _copy(done, tmp_path)
     before = {k: v for k, v in _hashes(out).items() if k != CHECKPOINT}
     real = svbrdf.write_png
@@ -167,19 +172,40 @@ def test_report_lists_its_files_and_readers_detect_a_mix(done, tmp_path):
         svbrdf.load_outputs(out)
 
 
-def test_leftovers_of_killed_runs_are_removed(done, cap, tmp_path):
+_KILL_DURING_WRITE = """
+import os, signal, sys
+import torchbrdf.recovery.svbrdf as s
+real = s.write_png
+def write_png(path, *a, **k):
+    if path.name == "roughness.png":  # base_color.exr/.png and roughness.exr are written already
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(path, *a, **k)
+s.write_png = write_png
+sys.exit(s.main(sys.argv[1:]))
+"""
+
+
+def test_sigkill_during_output_write_then_next_run_cleans_up(done, cap, tmp_path):
+    import subprocess
+    import sys
+
     out = _copy(done, tmp_path)
-    dead = 4194999  # above Linux's largest pid
-    staging = tmp_path / f".out.staging-{dead}-abc123"
-    staging.mkdir()
-    (staging / "base_color.exr").write_bytes(b"half")
-    tmp_ck = out / ".checkpoint.pt.k2j4h5g6.tmp.pt"
+    before = _hashes(out)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", _KILL_DURING_WRITE, "--capture", str(cap), "--out", str(out),
+                           *FAST[:-1], "9"], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert _hashes(out) == before  # the previous run, whole
+    svbrdf.load_outputs(out)
+    staging = [p for p in tmp_path.iterdir() if p.name.startswith(".out.staging-")]
+    assert len(staging) == 1 and (staging[0] / "base_color.exr").is_file()  # the killed run's half
+    tmp_ck = out / ".checkpoint.pt.k2j4h5g6.tmp.pt"  # what a kill during a checkpoint write leaves
     tmp_ck.write_bytes(b"half")
     mine = tmp_path / f".out.staging-{os.getpid()}-live00"  # a live process's folder stays
     mine.mkdir()
     assert main(["--capture", str(cap), "--out", str(out), *FAST]) == 0
-    assert not staging.exists() and not tmp_ck.exists() and mine.exists()
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([".out.staging-%d-live00" % os.getpid(), "out"])
+    assert not staging[0].exists() and not tmp_ck.exists() and mine.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([mine.name, "out"])
 
 
 def test_other_files_in_out_are_kept_and_mode_is_not_0700(done, cap, tmp_path):
@@ -201,7 +227,8 @@ def test_other_files_in_out_are_kept_and_mode_is_not_0700(done, cap, tmp_path):
     (["--iters", "-1"], "--iters"), (["--checkpoint-every", "0"], "--checkpoint-every"),
     (["--levels", "0"], "--levels"), (["--size", "0"], "--size"), (["--size", "nan"], "--size"),
     (["--prior-roughness", "nan"], "--prior-roughness"), (["--prior-specular", "-1"], "--prior-specular"),
-    (["--prior-metal-base", "inf"], "--prior-metal-base"), (["--prior-nonlocal-base", "-0.1"], "--prior-nonlocal-base"),
+    (["--prior-metal-base", "inf"], "--prior-metal-base"),
+    (["--prior-nonlocal-base", "-0.1"], "--prior-nonlocal-base"),
     (["--seed", "-1"], "--seed"), (["--threads", "0"], "--threads"), (["--force"], "--force"),
 ])
 def test_bad_option_is_one_line_rc2_and_no_folder(cap, tmp_path, capsys, extra, words):
@@ -276,8 +303,9 @@ def test_disk_full_during_checkpoint(done, cap, tmp_path, monkeypatch, capsys):
 
 
 def test_checkpoint_write_reports_enospc_as_oserror(tmp_path, monkeypatch):
-    """torch's own writer turns ENOSPC into an opaque RuntimeError; the checkpoint is
-    serialised in memory and written by Python, so the errno survives."""
+    """Torch's own writer turns ENOSPC into an opaque RuntimeError; the checkpoint is
+    serialised in memory and written by Python, so the errno survives.
+    """
     rec = solver.Recovery.__new__(solver.Recovery)
     rec.out, rec.state, rec.plan, rec.cfg = tmp_path, {"x": torch.zeros(3)}, [], RecoveryConfig()
     real_open = open

@@ -9,7 +9,15 @@ May import everything below it: ``torchbrdf.capture``, ``torchbrdf.render``,
 ``torchbrdf.brdf``, ``torchbrdf.io`` and the plumbing.
 """
 
-from torchbrdf.recovery.svbrdf import (RecoveryConfig, RecoveryError, RecoveryResult, load_outputs, map_errors, psnr,
-                                       recover)
+from torchbrdf.recovery.svbrdf import (
+    RecoveryConfig,
+    RecoveryError,
+    RecoveryResult,
+    load_outputs,
+    map_errors,
+    psnr,
+    recover,
+)
 
-__all__ = ["RecoveryConfig", "RecoveryError", "RecoveryResult", "recover", "load_outputs", "map_errors", "psnr"]
+__all__ = ["RecoveryConfig", "RecoveryError", "RecoveryResult", "recover", "load_outputs", "map_errors",
+           "psnr"]

@@ -41,6 +41,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -60,9 +61,11 @@ RESULT_INDEPENDENT = frozenset({"threads", "device", "checkpoint_every", "signal
 
 
 class RecoveryError(Exception):
-    """A refusal or failure with a one-line message for a person; ``rc`` is the CLI exit status
-    (2: refused before running — bad settings, capture, ``--gt`` or output location;
-    1: failed while running — e.g. no space left on device)."""
+    """A refusal or failure with a one-line message for a person.
+
+    ``rc`` is the CLI exit status (2: refused before running — bad settings, capture,
+    ``--gt`` or output location; 1: failed while running — e.g. no space left on device).
+    """
 
     def __init__(self, message: str, rc: int = 2):
         super().__init__(message)
@@ -128,7 +131,9 @@ def check_config(cfg: RecoveryConfig) -> None:
     _integer("threads", cfg.threads, 1, 4096, allow_none=True)
     _integer("cg_iters", cfg.cg_iters, 1, 100_000)
     _integer("propagate_passes", cfg.propagate_passes, 0, 10_000)
-    for name in ("prior_roughness", "prior_specular", "prior_metal_base", "prior_nonlocal_base", "prior_nonlocal"):
+    priors = ("prior_roughness", "prior_specular", "prior_metal_base", "prior_nonlocal_base",
+              "prior_nonlocal")
+    for name in priors:
         _finite(name, getattr(cfg, name), 0.0, 1e6)
     for name in ("prior_sigma", "nonlocal_range", "nonlocal_sigma"):
         _finite(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
@@ -213,8 +218,11 @@ def _sha256_file(path: Path) -> str:
 
 
 def capture_fingerprint(capture, cap: Capture) -> dict:
-    """What identifies the capture: ``capture.json``'s SHA-256 and each image's size and SHA-256
-    (for a folder), or the SHA-256 of the tensors (for an in-memory :class:`Capture`)."""
+    """What identifies the capture.
+
+    For a folder: ``capture.json``'s SHA-256 and each image's size and SHA-256; for an
+    in-memory :class:`Capture`, the SHA-256 of its tensors.
+    """
     if isinstance(capture, Capture):
         h = hashlib.sha256()
         for t in (cap.images, cap.light_positions, cap.light_intensities, cap.camera_position):
@@ -229,8 +237,10 @@ def capture_fingerprint(capture, cap: Capture) -> dict:
 
 
 def settings_fingerprint(cfg: RecoveryConfig) -> dict:
-    """Every :class:`RecoveryConfig` field that changes the result (all but threads, device,
-    checkpoint frequency and the test-only signal hook), as JSON values."""
+    """Every :class:`RecoveryConfig` field that changes the result, as JSON values.
+
+    All fields but threads, device, checkpoint frequency and the test-only signal hook), as JSON values.
+    """
     out = {}
     for f in dataclasses.fields(cfg):
         if f.name not in RESULT_INDEPENDENT:
@@ -261,7 +271,8 @@ def _capture_differences(old: dict, new: dict) -> list[str]:
 
 def _settings_differences(old: dict, new: dict) -> list[str]:
     keys = sorted(set(old) | set(new))
-    return [f"{k} {old.get(k, '(unset)')!r} -> {new.get(k, '(unset)')!r}" for k in keys if old.get(k) != new.get(k)]
+    return [f"{k} {old.get(k, '(unset)')!r} -> {new.get(k, '(unset)')!r}"
+            for k in keys if old.get(k) != new.get(k)]
 
 
 # --------------------------------------------------------------------------------------
@@ -291,9 +302,12 @@ def _alive(pid: int) -> bool:
 
 
 def clean_leftovers(out: Path, log: Callable[[str], None] = lambda m: None) -> list[str]:
-    """Remove what killed runs left: staging/old folders beside ``out`` (of processes that are
-    gone) and atomic-write temporaries inside it. If ``out`` itself is missing because a run
-    died between the two renames of a non-atomic swap, the previous outputs are put back."""
+    """Remove what killed runs left.
+
+    That is staging/old folders beside ``out`` (of processes that are gone) and
+    atomic-write temporaries inside it. If ``out`` itself is missing because a run died
+    between the two renames of a non-atomic swap, the previous outputs are put back.
+    """
     removed = []
     pat = _leftover_pattern(out)
     if out.parent.is_dir():
@@ -350,7 +364,8 @@ def _fsync_dir(path: Path) -> None:
 
 def _io_error(e: OSError, name: str) -> RecoveryError:
     if e.errno == errno.ENOSPC:
-        return RecoveryError(f"no space left on device while writing {name}; earlier outputs are unchanged", rc=1)
+        return RecoveryError(f"no space left on device while writing {name}; earlier outputs are unchanged",
+                             rc=1)
     return RecoveryError(f"cannot write {name}: {e.strerror or e}", rc=1)
 
 
@@ -402,14 +417,16 @@ def commit_outputs(out: Path, write: Callable[[Path], None]) -> None:
     try:
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(staging, (out.stat().st_mode & 0o7777) if out.is_dir() else (0o777 & ~umask))  # not mkdtemp's 0700
+        # The folder's usual mode, not mkdtemp's 0700.
+        os.chmod(staging, (out.stat().st_mode & 0o7777) if out.is_dir() else (0o777 & ~umask))
         write(staging)
         if out.is_dir():
-            with _Writing(CHECKPOINT):
+            with _Writing(f"{staging.name} (the files of {out.name} carried over)"):
                 _carry_over(out, staging)
         _fsync_dir(staging)
         if out.exists():
-            if not _exchange(staging, out):  # fallback: two renames (a crash between them is repaired by clean_leftovers)
+            # Fallback: two renames (a crash between them is repaired by clean_leftovers).
+            if not _exchange(staging, out):
                 old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-{os.getpid()}-", dir=out.parent))
                 os.rmdir(old)
                 os.rename(out, old)
@@ -476,18 +493,19 @@ def map_errors(maps: dict, gt_dir: Path) -> dict:
     for name in ("base_color", "roughness", "metallic", "specular"):
         f = gt_dir / f"{name}.exr"
         if f.is_file():
-            gt = read_exr(f)
+            gt = cast(Tensor, read_exr(f))
             if gt.shape[-2:] != maps[name].shape[-2:]:
                 gt = F.interpolate(gt[None], size=maps[name].shape[-2:], mode="area")[0]
             err[f"{name}_rmse"] = float(((maps[name] - gt) ** 2).mean().sqrt())
             if name == "specular":
-                gm = read_exr(gt_dir / "metallic.exr") if (gt_dir / "metallic.exr").is_file() else None
+                fm = gt_dir / "metallic.exr"
+                gm = cast(Tensor, read_exr(fm)) if fm.is_file() else None
                 if gm is not None and gm.shape[-2:] == gt.shape[-2:] and (gm < 0.5).any():
                     m = gm < 0.5
                     err["specular_rmse_dielectric"] = float(((maps[name] - gt)[m] ** 2).mean().sqrt())
     f = gt_dir / "normal.exr"
     if f.is_file():
-        gt = read_exr(f)
+        gt = cast(Tensor, read_exr(f))
         if gt.shape[-2:] != maps["normal"].shape[-2:]:
             gt = F.interpolate(gt[None], size=maps["normal"].shape[-2:], mode="area")[0]
             gt = gt / gt.norm(dim=0, keepdim=True)
@@ -499,10 +517,12 @@ def map_errors(maps: dict, gt_dir: Path) -> dict:
 
 
 def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: dict, history: list) -> None:
-    """Write one run's files into ``folder`` (the staging folder): the EXR maps and their PNG
-    previews, ``comparison.png``, ``loss.png`` and, last, ``report.json`` with every file's
-    SHA-256. ``maps`` are finite ``(C, H, W)`` at the capture's size; ``pred`` the re-rendered
-    images ``(L, 3, H, W)``."""
+    """Write one run's files into ``folder`` (the staging folder).
+
+    That is the EXR maps and their PNG previews, ``comparison.png``, ``loss.png`` and, last,
+    ``report.json`` with every file's SHA-256. ``maps`` are finite ``(C, H, W)`` at the
+    capture's size; ``pred`` the re-rendered images ``(L, 3, H, W)``.
+    """
     for name in MAP_NAMES:
         t = maps[name].detach().float().cpu()
         with _Writing(f"{name}.exr"):
@@ -567,8 +587,11 @@ _LOSS_LABEL = "fit loss: mean squared log residual\n(per pixel, training light a
 
 
 def _loss_plot(path: Path, history: list) -> None:
-    """The fit loss per iteration: both hypotheses and each pixel's better one in the dual
-    stages, the chosen class afterwards; stage boundaries marked."""
+    """Plot the fit loss per iteration.
+
+    Both hypotheses and each pixel's better one in the dual stages, the chosen class
+    afterwards; stage boundaries marked.
+    """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.6))
     it = [h["iteration"] for h in history]
@@ -579,16 +602,20 @@ def _loss_plot(path: Path, history: list) -> None:
 
     best = [f.get("best", f.get("chosen", float("nan"))) for f in fit]
     if any("dielectric" in f for f in fit):
-        ax.semilogy(it, series("dielectric"), "--", color="tab:blue", label="dielectric hypothesis (dual stages)")
+        ax.semilogy(it, series("dielectric"), "--", color="tab:blue",
+                    label="dielectric hypothesis (dual stages)")
         ax.semilogy(it, series("metal"), ":", color="tab:orange", label="metal hypothesis (dual stages)")
     ax.semilogy(it, best, "-o", ms=2.5, color="black",
                 label="each pixel's better hypothesis (dual) / its chosen class (after)")
     finite = [v for v in series("dielectric") + series("metal") + best if math.isfinite(v) and v > 0]
     for k in range(len(history)):
-        if k == 0 or history[k]["size"] != history[k - 1]["size"] or history[k]["stage"] != history[k - 1]["stage"]:
+        new_stage = k == 0 or (history[k]["size"], history[k]["stage"]) != (history[k - 1]["size"],
+                                                                            history[k - 1]["stage"])
+        if new_stage:
             if k:
                 ax.axvline(it[k] - 0.5, color="grey", lw=0.6)
-            ax.text(it[k] - 0.3, 0.97, f"{history[k]['stage']} {history[k]['size']}²", fontsize=7, rotation=90,
+            ax.text(it[k] - 0.3, 0.97, f"{history[k]['stage']} {history[k]['size']}²", fontsize=7,
+                    rotation=90,
                     va="top", ha="left", transform=ax.get_xaxis_transform(), color="dimgrey", clip_on=True)
     if it:
         ax.set_xlim(min(it) - 0.6, max(it) + 0.6)
@@ -601,7 +628,8 @@ def _loss_plot(path: Path, history: list) -> None:
     ax.set_ylabel(_LOSS_LABEL, fontsize=8)
     ax.set_title("SVBRDF recovery: fit loss per iteration (stage and level size marked)", fontsize=9)
     ax.grid(True, which="major", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)  # below: hides no curve
+    # Below the axes, where it hides no curve.
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
@@ -641,15 +669,15 @@ class _Progress:
         self.bar = None
         self.write = write
         if enabled:
-            from tqdm import tqdm
+            from tqdm import tqdm  # type: ignore[import-untyped]
 
             self.bar = tqdm(total=sum(u * p[2] for u, p in zip(self.units, plan)), initial=done, smoothing=0,
                             file=sys.stderr, desc="recover", dynamic_ncols=True,
                             bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
             self.write = self.bar.write
-            self.write("fit loss (bar and loss.png) = mean squared log residual per pixel, training light and "
-                       "channel; in the dual stages, of each pixel's better hypothesis")
-        self.stage = None
+            self.write("fit loss (bar and loss.png) = mean squared log residual per pixel, training light "
+                       "and channel; in the dual stages, of each pixel's better hypothesis")
+        self.stage: int | None = None
 
     def stage_start(self, stage: int, rec: Recovery) -> None:
         if not self.enabled or stage == self.stage:
@@ -657,22 +685,22 @@ class _Progress:
         self.stage = stage
         size, kind, n = self.plan[stage]
         extra = ""
-        if kind != "dual" and rec.state.get("metal") is not None:
-            extra = f" ({100 * float(rec.state['metal'].mean()):.0f}% of pixels metal)"
+        if kind != "dual" and _state(rec).get("metal") is not None:
+            extra = f" ({100 * float(_state(rec)['metal'].mean()):.0f}% of pixels metal)"
         self.write(f"stage {stage + 1}/{len(self.plan)}: {size}×{size} px, {n} iterations — "
                    f"{kind}: {_STAGE_TEXT.get(kind, kind)}{extra}")
 
     def tick(self, rec: Recovery) -> None:
         if self.bar is None:
             return
-        st = rec.state
+        st = _state(rec)
         h = st["history"][-1]
         stage = min(st["stage"], len(self.plan)) - (1 if st["it"] == 0 else 0)
         stage = max(0, min(stage, len(self.plan) - 1))
         fit = h.get("fit", {})
         loss = fit.get("best", fit.get("chosen", h["loss"]))
-        self.bar.set_description_str(f"iteration {st['global_it']}/{self.total_iters} ({h['stage']} {h['size']}², "
-                                     f"fit loss {loss:.3g})", refresh=False)
+        self.bar.set_description_str(f"iteration {st['global_it']}/{self.total_iters} "
+                                     f"({h['stage']} {h['size']}², fit loss {loss:.3g})", refresh=False)
         self.bar.update(self.units[stage])
 
     def close(self) -> None:
@@ -680,11 +708,18 @@ class _Progress:
             self.bar.close()
 
 
+def _state(rec: Recovery) -> dict[str, Any]:
+    """The solver's state dict (set by ``init_state`` or ``load_checkpoint``)."""
+    return cast(dict[str, Any], rec.state)
+
+
 def _fit_losses(rec: Recovery) -> dict:
-    """Data-only fit loss of the current state on the training lights (the quantity the bar
-    and ``loss.png`` show): per hypothesis and per pixel's better one in a dual stage, the
-    chosen class otherwise. Mean over pixels of the squared log residual per light and channel."""
-    st = rec.state
+    """Data-only fit loss of the current state on the training lights.
+
+    The quantity the bar and ``loss.png`` show: per hypothesis and per pixel's better one in a dual stage, the
+    chosen class otherwise. Mean over pixels of the squared log residual per light and channel.
+    """
+    st = _state(rec)
     size, kind, _ = rec.plan[min(st["stage"], len(rec.plan) - 1)]
     data = rec.data(size)
     n = max(1, len(data.train_idx) * 3)
@@ -696,7 +731,8 @@ def _fit_losses(rec: Recovery) -> dict:
     if len(st["theta"]) == 2:
         ones = torch.ones_like(st["lam"][0])
         cd, cm = cost(st["theta"][0], 0 * ones), cost(st["theta"][1], ones)
-        return {"dielectric": float(cd.mean()), "metal": float(cm.mean()), "best": float(torch.minimum(cd, cm).mean())}
+        best = float(torch.minimum(cd, cm).mean())  # each pixel's better hypothesis
+        return {"dielectric": float(cd.mean()), "metal": float(cm.mean()), "best": best}
     return {"chosen": float(cost(st["theta"][0], st["metal"]).mean())}
 
 
@@ -710,7 +746,8 @@ class _Interrupt(BaseException):
 
 
 def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None, resume: bool = False,
-            force: bool = False, progress: bool = True, log: Callable[[str], None] | None = None) -> RecoveryResult:
+            force: bool = False, progress: bool = True,
+            log: Callable[[str], None] | None = None) -> RecoveryResult:
     """Recover per-pixel principled maps from a capture.
 
     Args:
@@ -754,7 +791,7 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
     if resume and out is None:
         raise RecoveryError("--resume needs --out (the folder holding checkpoint.pt)")
     ck = out / CHECKPOINT if out is not None else None
-    if resume and not ck.is_file():
+    if resume and ck is not None and not ck.is_file():
         log(f"--resume: no checkpoint in {out}; starting from scratch")
         resume = False
 
@@ -762,14 +799,14 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     rec = Recovery(cap, cfg, out, log)
-    rec.fingerprint = fingerprint
+    rec.fingerprint = fingerprint  # type: ignore[attr-defined]  # stored by save_checkpoint
     forced = []
     if resume:
         def check(blob):
             old = blob.get("fingerprint")
             if not old:
-                raise RecoveryError(f"{ck}: made by an older version without a fingerprint; it cannot be checked "
-                                    "against this capture; delete it to start over")
+                raise RecoveryError(f"{ck}: made by an older version without a fingerprint; it cannot be "
+                                    "checked against this capture; delete it to start over")
             cdiff = _capture_differences(old["capture"], fingerprint["capture"])
             if cdiff:
                 raise RecoveryError(f"--resume: {ck} belongs to another capture ({'; '.join(cdiff)} differ); "
@@ -784,13 +821,14 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
             forced.extend(sdiff)
 
         try:
-            rec.load_checkpoint(ck, check=check)
+            rec.load_checkpoint(cast(Path, ck), check=check)
         except ValueError as e:
             raise RecoveryError(str(e)) from e
         if forced:
-            rec.state["events"].append({"iteration": rec.state["global_it"], "event": "resumed with --force",
-                                        "changed": forced})
-        log(f"resumed from {ck} at iteration {rec.state['global_it']}"
+            st0 = _state(rec)
+            st0["events"].append({"iteration": st0["global_it"], "event": "resumed with --force",
+                                  "changed": forced})
+        log(f"resumed from {ck} at iteration {_state(rec)['global_it']}"
             + (f" with changed settings: {', '.join(forced)}" if forced else ""))
     else:
         with torch.no_grad():
@@ -804,7 +842,7 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
         clean_leftovers(out, log)
     interrupted, seconds = _run(rec, cfg, ck, progress, log)
 
-    st = rec.state
+    st = _state(rec)
     with torch.no_grad():
         fin = _finite_maps(_resize_maps(rec.current_params(), cap.height, cap.width))
         pred = render_capture(fin, cap, cap.camera_position, backend="compact")
@@ -828,14 +866,16 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
         "per_image_psnr": {f: psnr(pred[k], cap.images[k]) for k, f in enumerate(cap.files)},
         "loss_history": [{k: h[k] for k in ("iteration", "stage", "size", "loss", "fit") if k in h}
                          for h in st["history"]],
-        "fingerprint": {"capture_sha256": _digest(fingerprint["capture"]), "settings": fingerprint["settings"]},
+        "fingerprint": {"capture_sha256": _digest(fingerprint["capture"]),
+                        "settings": fingerprint["settings"]},
     }
     if gt is not None:
         report["errors"] = map_errors(fin, gt)
     if out is not None:
         cpu_maps = {k: v.cpu() for k, v in fin.items()}
         try:
-            commit_outputs(out, lambda folder: write_outputs(folder, cap, cpu_maps, pred, report, st["history"]))
+            commit_outputs(out, lambda folder: write_outputs(folder, cap, cpu_maps, pred, report,
+                                                             st["history"]))
         except OSError as e:
             raise _io_error(e, f"the outputs in {out}") from e
         if interrupted:
@@ -883,9 +923,9 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
         pending["fit"] = _fit_losses(rec)
         plain_end_stage()
 
-    rec.end_stage = end_stage
-    bar = _Progress(rec.plan, rec.state["global_it"], progress, log)
-    t0 = time.perf_counter() - rec.state["seconds"]
+    rec.end_stage = end_stage  # type: ignore[method-assign]
+    bar = _Progress(rec.plan, _state(rec)["global_it"], progress, log)
+    t0 = time.perf_counter() - _state(rec)["seconds"]
     interrupted = False
 
     def save():
@@ -897,25 +937,27 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
     try:
         with torch.no_grad():
             while not rec.finished() and not rec.stop_requested:
-                bar.stage_start(rec.state["stage"], rec)
-                snapshot = (copy.deepcopy(rec.state), torch.get_rng_state())
+                bar.stage_start(_state(rec)["stage"], rec)
+                snapshot = (copy.deepcopy(_state(rec)), torch.get_rng_state())
                 pending.clear()
                 try:
                     in_tick[0] = True
+                    if rec.stop_requested:  # the signal came between two iterations
+                        raise _Interrupt()
                     rec.tick()
                     in_tick[0] = False
-                    rec.state["history"][-1]["fit"] = pending.get("fit") or _fit_losses(rec)
+                    _state(rec)["history"][-1]["fit"] = pending.get("fit") or _fit_losses(rec)
                 except _Interrupt:
-                    rec.state = snapshot[0]
+                    rec.state = snapshot[0]  # type: ignore[assignment]
                     torch.set_rng_state(snapshot[1])
                     break
                 finally:
                     in_tick[0] = False
-                rec.state["seconds"] = time.perf_counter() - t0
+                _state(rec)["seconds"] = time.perf_counter() - t0
                 bar.tick(rec)
-                if cfg.signal_at is not None and rec.state["global_it"] == cfg.signal_at:
+                if cfg.signal_at is not None and _state(rec)["global_it"] == cfg.signal_at:
                     os.kill(os.getpid(), signal.SIGTERM)
-                if ck is not None and rec.state["global_it"] % cfg.checkpoint_every == 0:
+                if ck is not None and _state(rec)["global_it"] % cfg.checkpoint_every == 0:
                     save()
         interrupted = not rec.finished()
         if interrupted and ck is not None:
@@ -940,7 +982,8 @@ def _parser() -> argparse.ArgumentParser:
         description="Recover per-pixel principled BRDF maps (base colour, roughness, metallic, specular, "
                     "normal) from a multi-light capture. Also run as `python -m training.recover_svbrdf`. "
                     "Input format and output layout: docs/capture_format.md. Exit status: 0 done, "
-                    "2 refused (bad option, capture, --gt or --out), 1 failed while running (e.g. disk full), "
+                    "2 refused (bad option, capture, --gt or --out), 1 failed while running "
+                    "(e.g. disk full), "
                     "130 interrupted (rerun with --resume).")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--capture", type=Path, help="capture folder (capture.json + one EXR per light)")
@@ -948,17 +991,21 @@ def _parser() -> argparse.ArgumentParser:
                      help="use the built-in synthetic capture (generated on first use, cached; no network)")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (replaced as a unit at the end; other files in it are kept)")
-    p.add_argument("--gt", type=Path, help="folder of ground-truth maps (base_color.exr, ...) to report errors against")
+    p.add_argument("--gt", type=Path,
+                   help="folder of ground-truth maps (base_color.exr, ...) to report errors against")
     p.add_argument("--iters", type=int, default=d.iters,
                    help="total LM iterations, spread over the stages (0 = the default schedule, 39)")
     p.add_argument("--lr", type=float, default=d.lr,
                    help="LM step multiplier in (0, 2] (1 = full damped Gauss-Newton step)")
     p.add_argument("--size", type=int, default=d.size,
-                   help="working resolution in pixels (default: the capture's; maps are written at capture size)")
-    p.add_argument("--seed", type=int, default=d.seed, help="random seed (the run is deterministic for a seed)")
+                   help="working resolution in pixels (default: the capture's; "
+                        "maps are written at capture size)")
+    p.add_argument("--seed", type=int, default=d.seed,
+                   help="random seed (the run is deterministic for a seed)")
     p.add_argument("--device", default=d.device, help="torch device to run on, e.g. cpu or cuda")
     p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/checkpoint.pt (refused if it belongs to another capture or settings)")
+                   help="continue from OUT/checkpoint.pt "
+                        "(refused if it belongs to another capture or settings)")
     p.add_argument("--force", action="store_true",
                    help="with --resume: continue even if settings differ (never for another capture)")
     p.add_argument("--model", choices=("principled", "svbrdf_ggx"), default=d.model,
@@ -977,7 +1024,8 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: light 0 with 5+ lights; -1: none)")
     p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                    help="write OUT/checkpoint.pt every N iterations (>= 1; also on SIGINT/SIGTERM)")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for torch (default: torch's choice)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads for torch (default: torch's choice)")
     p.add_argument("--demo-size", type=int, default=128, help="resolution of the --demo capture (16-4096)")
     p.add_argument("--quiet", action="store_true", help="no stage messages or progress bar")
     return p
@@ -991,10 +1039,11 @@ def main(argv=None) -> int:
         return int(e.code or 0)
     try:
         cfg = RecoveryConfig(
-            iters=args.iters, lr=args.lr, size=args.size, seed=args.seed, device=args.device, levels=args.levels,
-            prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
+            iters=args.iters, lr=args.lr, size=args.size, seed=args.seed, device=args.device,
+            levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
-            holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model, threads=args.threads,
+            holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
+            threads=args.threads,
         )
         if cfg.holdout is not None and cfg.holdout < 0:
             cfg.holdout = 10**9  # out of range: no held-out light
@@ -1015,7 +1064,7 @@ def main(argv=None) -> int:
         result = recover(capture, cfg, args.out, gt=gt, resume=args.resume, force=args.force,
                          progress=not args.quiet)
     except RecoveryError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print("error: " + " ".join(str(e).split()), file=sys.stderr)  # one line, whatever the message
         return e.rc
     report = result.report
     summary = {k: report[k] for k in ("iterations", "seconds", "final_loss", "completed")}
