@@ -391,9 +391,12 @@ def test_loss_history_states_both_hypotheses(done):
     assert all("chosen" in h["fit"] for h in hist if h["stage"] != "dual")
 
 
-def test_cli_prints_its_output_folder(cap, tmp_path, capsys):
+def test_cli_prints_stages_and_its_output_folder(cap, tmp_path, capsys):
     out = tmp_path / "o"
-    assert main(["--capture", str(cap), "--out", str(out), *FAST]) == 0
+    assert main(["--capture", str(cap), "--out", str(out), *[a for a in FAST if a != "--quiet"]]) == 0
     captured = capsys.readouterr()
     assert json.loads(captured.out)["out"] == str(out.resolve())
-    assert f"outputs written to {out.resolve()}" in captured.err
+    err = captured.err
+    assert f"outputs written to {out.resolve()}" in err
+    assert "stage 1/3: 16×16 px" in err and "both hypotheses" in err and "stage 3/3" in err
+    assert "fit loss (bar and loss.png) = mean squared log residual" in err  # the bar's loss, stated

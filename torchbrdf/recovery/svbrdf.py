@@ -688,7 +688,8 @@ class _Progress:
         if kind != "dual" and _state(rec).get("metal") is not None:
             extra = f" ({100 * float(_state(rec)['metal'].mean()):.0f}% of pixels metal)"
         self.write(f"stage {stage + 1}/{len(self.plan)}: {size}×{size} px, {n} iterations — "
-                   f"{kind}: {_STAGE_TEXT.get(kind, kind)}{extra}")
+                   f"{kind}: {_STAGE_TEXT.get(kind, kind)}{extra}; its first iteration also propagates "
+                   "neighbours' parameters and searches normals, so it takes longer")
 
     def tick(self, rec: Recovery) -> None:
         if self.bar is None:
@@ -828,6 +829,8 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
             st0 = _state(rec)
             st0["events"].append({"iteration": st0["global_it"], "event": "resumed with --force",
                                   "changed": forced})
+            if any(d.startswith("lr ") for d in forced):
+                st0["lr"] = float(cfg.lr)  # the step multiplier the run continues with
         log(f"resumed from {ck} at iteration {_state(rec)['global_it']}"
             + (f" with changed settings: {', '.join(forced)}" if forced else ""))
     else:
