@@ -674,7 +674,8 @@ class _Progress:
             self.bar = tqdm(total=sum(u * p[2] for u, p in zip(self.units, plan)), initial=done, smoothing=0,
                             file=sys.stderr, desc="recover", dynamic_ncols=True,
                             bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
-            self.write = self.bar.write
+            bar = self.bar
+            self.write = lambda msg: bar.write(msg, file=sys.stderr)  # tqdm.write defaults to stdout
             self.write("fit loss (bar and loss.png) = mean squared log residual per pixel, training light "
                        "and channel; in the dual stages, of each pixel's better hypothesis")
         self.stage: int | None = None
