@@ -516,12 +516,14 @@ def map_errors(maps: dict, gt_dir: Path) -> dict:
     return err
 
 
-def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: dict, history: list) -> None:
+def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: dict, history: list,
+                  plots: bool = True) -> None:
     """Write one run's files into ``folder`` (the staging folder).
 
     That is the EXR maps and their PNG previews, ``comparison.png``, ``loss.png`` and, last,
     ``report.json`` with every file's SHA-256. ``maps`` are finite ``(C, H, W)`` at the
-    capture's size; ``pred`` the re-rendered images ``(L, 3, H, W)``.
+    capture's size; ``pred`` the re-rendered images ``(L, 3, H, W)``. ``plots=False`` (an
+    interrupted run, which should exit promptly) skips the two matplotlib figures.
     """
     for name in MAP_NAMES:
         t = maps[name].detach().float().cpu()
@@ -532,10 +534,11 @@ def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: 
                 write_png(folder / f"{name}.png", t * 0.5 + 0.5, srgb=False)
             else:
                 write_png(folder / f"{name}.png", t, srgb=(name == "base_color"))
-    with _Writing("comparison.png"):
-        _side_by_side(folder / "comparison.png", cap, pred)
-    with _Writing("loss.png"):
-        _loss_plot(folder / "loss.png", history)
+    if plots:
+        with _Writing("comparison.png"):
+            _side_by_side(folder / "comparison.png", cap, pred)
+        with _Writing("loss.png"):
+            _loss_plot(folder / "loss.png", history)
     report["files"] = {p.name: _sha256_file(p) for p in sorted(folder.iterdir()) if p.name in OUTPUT_FILES}
     with _Writing(REPORT), atomic_path(folder / REPORT) as tmp:
         tmp.write_text(json.dumps(report, indent=2) + "\n")
@@ -879,7 +882,7 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
         cpu_maps = {k: v.cpu() for k, v in fin.items()}
         try:
             commit_outputs(out, lambda folder: write_outputs(folder, cap, cpu_maps, pred, report,
-                                                             st["history"]))
+                                                             st["history"], plots=not interrupted))
         except OSError as e:
             raise _io_error(e, f"the outputs in {out}") from e
         if interrupted:
