@@ -98,6 +98,10 @@ class RecoveryResult:
     def __contains__(self, key: str) -> bool:
         return key == "maps" or key in self.report
 
+    def get(self, key: str, default=None):
+        """Backward compatibility: ``result.get("held_out_light")``."""
+        return self[key] if key in self else default
+
 
 # --------------------------------------------------------------------------------------
 # Checking the input (before anything is created)
