@@ -651,7 +651,9 @@ class Recovery:
                 or it was made with a different schedule.
         """
         try:
-            blob = torch.load(path, weights_only=False)
+            # weights_only: tensors and plain Python containers only, so a checkpoint placed
+            # in OUT cannot run code when loaded.
+            blob = torch.load(path, weights_only=True)
             if not isinstance(blob, dict) or not {"state", "plan", "torch_rng"} <= blob.keys():
                 raise ValueError("not a recovery checkpoint")
         except Exception as e:  # truncated, corrupt, or another kind of file
