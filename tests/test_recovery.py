@@ -22,7 +22,7 @@ def tiny(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tiny_result(tiny):
-    return recover(tiny, None, RecoveryConfig(seed=0, threads=2), gt=tiny / "gt", progress=False)
+    return recover(tiny, RecoveryConfig(seed=0, threads=2), None, gt=tiny / "gt", progress=False)
 
 
 def test_tiny_capture_recovers_known_maps(tiny_result):
@@ -70,14 +70,14 @@ def test_demo_runs(tmp_path, monkeypatch):
 
 def test_resume_equals_uninterrupted(tiny, tmp_path):
     cfg = dict(seed=1, iters=12, checkpoint_every=3, threads=2)
-    full = recover(tiny, tmp_path / "full", RecoveryConfig(**cfg), progress=False)
-    part = recover(tiny, tmp_path / "part", RecoveryConfig(**cfg, signal_at=3), progress=False)
+    full = recover(tiny, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
+    part = recover(tiny, RecoveryConfig(**cfg, signal_at=3), tmp_path / "part", progress=False)
     assert not part["completed"] and part["iterations"] == 3
     assert (tmp_path / "part" / CHECKPOINT).is_file()
     for f in CONTRACT_FILES:  # partial outputs are valid files
         assert (tmp_path / "part" / f).is_file()
     assert torch.isfinite(read_exr(tmp_path / "part" / "roughness.exr")).all()
-    resumed = recover(tiny, tmp_path / "part", RecoveryConfig(**cfg), resume=True, progress=False)
+    resumed = recover(tiny, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
     assert resumed["completed"] and resumed["iterations"] == full["iterations"]
     for k in full["maps"]:
         torch.testing.assert_close(resumed["maps"][k], full["maps"][k], rtol=1e-5, atol=1e-6)
@@ -85,7 +85,7 @@ def test_resume_equals_uninterrupted(tiny, tmp_path):
 
 
 def test_nan_is_detected_recovered_and_never_written(tiny, tmp_path):
-    rep = recover(tiny, tmp_path / "nan", RecoveryConfig(seed=0, iters=10, fault_at=3, threads=2), progress=False)
+    rep = recover(tiny, RecoveryConfig(seed=0, iters=10, fault_at=3, threads=2), tmp_path / "nan", progress=False)
     assert rep["completed"]
     assert any(e["event"].startswith("non-finite") for e in rep["events"])
     for f in ("base_color", "roughness", "metallic", "specular", "normal"):

@@ -48,9 +48,9 @@ def evaluate_one(folder: Path, recipe: str, seed: int, size: int, lights: int, n
     if not (cap_dir / "capture.json").is_file():
         generate_capture(cap_dir, recipe=recipe, seed=seed, size=size, lights=lights, noise=noise)
     t0 = time.perf_counter()
-    rep = recover(cap_dir, None, cfg or RecoveryConfig(), progress=False)
+    res = recover(cap_dir, cfg or RecoveryConfig(), progress=False)
     seconds = time.perf_counter() - t0
-    maps = rep["maps"]
+    rep, maps = res.report, res.maps
     err = map_errors(maps, cap_dir / "gt")
     gt = make_material(recipe, seed, size)
     ps = heldout_psnr(maps, gt, test_lights, seed)

@@ -622,19 +622,51 @@ class Recovery:
         }
 
     def save_checkpoint(self):
+        """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
+
+        It holds the state, the plan, the RNG state and ``self.fingerprint`` (set by the
+        driver, :mod:`torchbrdf.recovery.svbrdf`: what the checkpoint belongs to). The blob is
+        serialised in memory first so that a full disk surfaces as ``OSError(ENOSPC)`` from
+        the file write (torch's own writer reports it as an opaque ``RuntimeError``).
+        """
         if self.out is None:
             return
-        blob = {"state": self.state, "plan": self.plan, "config": vars(self.cfg) | {"schedule": []},
-                "torch_rng": torch.get_rng_state()}
-        with atomic_path(self.out / CHECKPOINT) as tmp:
-            torch.save(blob, tmp)
+        import io
 
-    def load_checkpoint(self, path: Path):
-        blob = torch.load(path, weights_only=False)
+        blob = {"state": self.state, "plan": self.plan, "config": vars(self.cfg) | {"schedule": []},
+                "torch_rng": torch.get_rng_state(), "fingerprint": getattr(self, "fingerprint", None)}
+        buf = io.BytesIO()
+        torch.save(blob, buf)
+        with atomic_path(self.out / CHECKPOINT) as tmp, open(tmp, "wb") as f:
+            f.write(buf.getbuffer())
+
+    def load_checkpoint(self, path: Path, check=None) -> dict:
+        """Restore the state saved by :meth:`save_checkpoint`; returns the checkpoint blob.
+
+        ``check(blob)``, when given, runs before anything is restored and may raise (the
+        driver compares fingerprints there).
+
+        Raises:
+            ValueError: the file is not a readable recovery checkpoint (the message names it),
+                or it was made with a different schedule.
+        """
+        try:
+            # weights_only: tensors and plain Python containers only, so a checkpoint placed
+            # in OUT cannot run code when loaded.
+            blob = torch.load(path, weights_only=True)
+            if not isinstance(blob, dict) or not {"state", "plan", "torch_rng"} <= blob.keys():
+                raise ValueError("not a recovery checkpoint")
+        except Exception as e:  # truncated, corrupt, or another kind of file
+            why = (str(e).strip().splitlines() or [""])[0][:160]
+            raise ValueError(f"{path}: corrupt or unreadable checkpoint ({type(e).__name__}"
+                             f"{': ' + why if why else ''}); delete it to start over") from e
+        if check is not None:
+            check(blob)
         if blob["plan"] != self.plan:
             raise ValueError(f"{path}: checkpoint was made with a different schedule {blob['plan']}, now {self.plan}")
         self.state = blob["state"]
         torch.set_rng_state(blob["torch_rng"])
+        return blob
 
     # -- one iteration ---------------------------------------------------------------------
     def tick(self):
