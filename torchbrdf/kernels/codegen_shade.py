@@ -1,0 +1,320 @@
+"""C code generation for fused shading: geometry, principled BRDF and the sum over lights in one loop.
+
+:func:`generate` traces :func:`torchbrdf.brdf.formula.view_direction` and the per-light terms
+:func:`~torchbrdf.brdf.formula.point_light` / :func:`~torchbrdf.brdf.formula.directional_light`
+(with :func:`~torchbrdf.brdf.formula.principled` as the BRDF) into ONE graph whose inputs are
+of three kinds:
+
+* per-pixel loads (``px``): position, normal, tangent frame, material maps (and, in the
+  backward, the output gradient);
+* per-light uniforms (``lit``): ``u[0..2]`` position or direction, ``u[3..5]`` intensity or
+  irradiance of light ``j`` (``u`` points into the uniform table);
+* per-segment uniforms: the camera position ``U[0..2]``.
+
+Every node is classified by what it depends on, and the kernel is printed as three loops over
+a block of pixels (each vectorised over the pixels by gcc):
+
+1. *pre*: the pixel-level nodes (no light dependence: ``v``, the material terms, ``n·v`` …)
+   that the light loop reads are computed once per pixel into small stack arrays ``bd*``;
+2. *light loop*, ``for (j = 0; j < L; ++j)``: the light-dependent nodes; light-only nodes
+   (``normalize(d)``) are hoisted above the pixel loop. The forward accumulates the radiance;
+   the backward runs the reverse graph of the body (:func:`.trace.reverse` stopped at the
+   pixel-level boundary) and accumulates the adjoint of every boundary node across lights
+   (``ga*``);
+3. *post*: the forward stores the sum; the backward propagates the accumulated boundary
+   adjoints back to the per-pixel inputs (a second :func:`.trace.reverse` over the
+   pixel-level part, recomputed) and writes each input's gradient once.
+
+So each pixel's material is read once per pass, the per-light work is only what depends on the
+light, memory is flat in the number of lights, and the light count is a runtime argument (no
+rebuild per count). Nothing here knows a derivative rule or a formula.
+
+Kernel ABI (same symbols and arguments as the principled kernels, see :mod:`.codegen_c`):
+
+* ``tb_fwd(n, in, P, out, nthreads)``; ``tb_bwd(n, in, P, go, gout, nthreads)``;
+* ``in[k]`` the per-pixel tensors of ``spec.tensors``, ``in[T]`` the uniform row
+  ``[C (3), point lights Lp × (q, I), directional lights Ld × (d, E)]``;
+* ``P`` the runtime Python floats of ``spec.floats``, then ``Lp`` and ``Ld``;
+* ``out``/``go`` ``(n, 3)`` contiguous; ``gout[k]`` a lane-dense ``(n, C_k)`` gradient.
+"""
+
+from __future__ import annotations
+
+from torchbrdf.brdf import formula
+from torchbrdf.brdf.principled import SCALAR_PARAMS
+from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index
+from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse
+
+__all__ = ["ShadeSpec", "generate", "LIGHT_KINDS", "LIGHT_STRIDE"]
+
+LIGHT_KINDS = ("point", "directional")
+LIGHT_STRIDE = 6  # uniforms per light: position/direction (3), intensity/irradiance (3)
+CAMERA = 3  # uniforms before the lights: the camera position
+# Pixels per block: the pre-loop's boundary values and the backward's adjoint accumulators
+# live in stack arrays of this length (~60 arrays × 128 × 8 B ≈ 60 KiB, L2-resident).
+BLOCK = 128
+_FORMULA_FUNCS = ("view_direction", "point_light", "directional_light", "principled")
+
+
+def formula_token() -> tuple:
+    """Identity of the traced formula functions (part of the in-process kernel key, so that a
+    replaced formula function — e.g. patched in a test — is traced anew)."""
+    return tuple(id(getattr(formula, f)) for f in _FORMULA_FUNCS)
+
+
+class ShadeSpec:
+    """Everything that changes the generated shading code.
+
+    ``tensors``: ``(name, mode, C)`` per per-pixel input (``pos, n`` first, then ``x, y`` when
+    ``frame``, ``base_color`` and the scalar maps); ``floats``: names of the material
+    parameters passed as runtime floats; ``lights``: the light kinds present (each gets its
+    loop); ``grad_mask``: backward, the inputs whose gradient is wanted.
+    """
+
+    def __init__(self, ctype, tensors, floats, active, need_tint, frame, lights, grad_mask=()):
+        self.ctype = ctype
+        self.hi_double = ctype == "float"
+        self.tensors = tuple(tensors)
+        self.floats = tuple(floats)
+        self.active = tuple(active)
+        self.need_tint = bool(need_tint)
+        self.frame = bool(frame)
+        self.lights = tuple(k for k in LIGHT_KINDS if k in lights)
+        self.grad_mask = tuple(grad_mask)
+        self.written = ()
+
+    def key(self, backward) -> tuple:
+        base = ("shade", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.frame,
+                self.lights, formula_token())
+        return base + (("bwd", self.grad_mask) if backward else ("fwd",))
+
+    def generate(self, kind: str) -> str:
+        return generate(self, kind)
+
+
+def _trace(spec: ShadeSpec):
+    """Trace the shading formula. Returns ``(graph, loads, {light kind: [3 output nodes]})``."""
+    g = Graph()
+    with g:
+        ops = TraceOps(spec.hi_double)
+        inp, loads = {}, []
+        for k, (name, mode, C) in enumerate(spec.tensors):
+            chans = [Node("in", (), "r", {"load": f"p{k}[{_index(mode, C, c)}]", "k": k, "c": c, "px": True},
+                          grad=True) for c in range(C)]
+            loads += chans
+            inp[name] = Vec3(chans) if C == 3 else chans[0]
+        for j, name in enumerate(spec.floats):
+            inp[name] = Node("P", (), "p", j)
+        inp.setdefault("x", None)
+        inp.setdefault("y", None)
+        for name in SCALAR_PARAMS:
+            inp.setdefault(name, None)
+        pos, n = inp.pop("pos"), inp["n"]
+        cam = Vec3(Node("in", (), "r", {"load": f"U[{c}]"}) for c in range(3))
+        inp["v"] = formula.view_direction(ops, cam, pos)
+
+        def brdf(l):
+            return formula.principled(ops, {**inp, "l": l}, spec.active, spec.need_tint, spec.frame)
+
+        outs = {}
+        for kind in spec.lights:
+            u = [Node("in", (), "r", {"load": f"u[{c}]", "lit": True}) for c in range(LIGHT_STRIDE)]
+            a, b = Vec3(u[:3]), Vec3(u[3:])
+            if kind == "point":
+                out = formula.point_light(ops, pos, n, a, b, brdf)
+            else:
+                out = formula.directional_light(ops, n, a, b, brdf)
+            outs[kind] = list(out.c)
+    return g, loads, outs
+
+
+def _flags(g: Graph):
+    """Ids of the nodes that depend on a light uniform (``lit``) and on a per-pixel load (``px``)."""
+    lit, px = set(), set()
+    for nd in g.nodes:
+        if nd.op == "in":
+            if nd.attr.get("lit"):
+                lit.add(nd.id)
+            if nd.attr.get("px"):
+                px.add(nd.id)
+            continue
+        for a in nd.args:
+            if isinstance(a, Node):
+                if a.id in lit:
+                    lit.add(nd.id)
+                if a.id in px:
+                    px.add(nd.id)
+    return lit, px
+
+
+def _is_boundary(nd: Node, lit, px) -> bool:
+    """A pixel-level value the light loop reads from the pre-loop's array (loads are re-read
+    from their tensor and masks are printed inline, so neither needs an array)."""
+    return nd.id in px and nd.id not in lit and nd.op != "in" and nd.kind != "b"
+
+
+def _loop_nodes(roots, lit, px):
+    """Nodes of a light-loop body (ids) and the boundary nodes it reads (ids)."""
+    body, bnd = set(), set()
+    stack = [r for r in roots if isinstance(r, Node)]
+    while stack:
+        nd = stack.pop()
+        if nd.id in body or nd.id in bnd:
+            continue
+        if _is_boundary(nd, lit, px):
+            bnd.add(nd.id)
+            continue
+        body.add(nd.id)
+        stack.extend(a for a in nd.args if isinstance(a, Node))
+    return body, bnd
+
+
+def generate(spec: ShadeSpec, kind: str) -> str:
+    """C source of the forward (``"fwd"``) or backward (``"bwd"``) shading kernel.
+
+    For ``"bwd"`` it sets ``spec.written``: the inputs whose gradient the kernel writes.
+    """
+    g, loads, outs = _trace(spec)
+    em = _Emitter(spec.ctype)
+    T = len(spec.tensors)
+    F = len(spec.floats)
+    decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(T)]
+    decl += [f"const R* __restrict U = (const R*)in[{T}];",
+             f"const long Lp = (long)P[{F}];", f"const long Ld = (long)P[{F + 1}];"]
+    with g:
+        if kind == "fwd":
+            # light kind -> [(accumulator expression, node)]
+            accs = {lk: [(f"ao{c}[i - b0]", o) for c, o in enumerate(outs[lk])] for lk in spec.lights}
+            acc_arrays = [("R", f"ao{c}") for c in range(3)]
+            post_stores = [(f"out[i * 3 + {c}]", f"ao{c}[i - b0]") for c in range(3)]
+            post_roots, post_nodes = [], []
+            sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
+        elif kind == "bwd":
+            go = [Node("in", (), "r", {"load": f"go[i * 3 + {c}]", "px": True}) for c in range(3)]
+            lit0, px0 = _flags(g)
+            stop = frozenset(i for i in px0 if i not in lit0)
+            byid = {nd.id: nd for nd in g.nodes}
+            accs, bnd_adj = {}, {}
+            for lk in spec.lights:
+                adj = reverse(g, outs[lk], go, stop=stop)
+                accs[lk] = [(f"ga{b}[i - b0]", adj[b]) for b in sorted(stop) if b in adj]
+                for b in stop:
+                    if b in adj:
+                        bnd_adj[b] = True
+            acc_arrays = [("R" if byid[b].kind == "r" else "double", f"ga{b}") for b in sorted(bnd_adj)]
+            # After the loop: the accumulated boundary adjoints, propagated to the inputs.
+            seeds = [Node("in", (), byid[b].kind, {"load": f"ga{b}[i - b0]"}) for b in sorted(bnd_adj)]
+            adj2 = reverse(g, [byid[b] for b in sorted(bnd_adj)], seeds)
+            written, post_roots = [], []
+            for k, (name, mode, C) in enumerate(spec.tensors):
+                if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj2 for nd in loads):
+                    continue
+                written.append(k)
+                for c in range(C):
+                    nd = next(x for x in loads if x.attr["k"] == k and x.attr["c"] == c)
+                    post_roots.append((f"gp{k}[i * {C} + {c}]", adj2.get(nd.id)))
+            spec.written = tuple(written)
+            decl += [f"R* __restrict gp{k} = (R*)gout[{k}];" for k in written]
+            post_stores = []
+            sig = ("void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
+                   "int nthreads)")
+        else:
+            raise ValueError(kind)
+    lit, px = _flags(g)
+    return _print(spec, g, em, lit, px, accs, acc_arrays, post_roots, post_stores, decl, sig)
+
+
+def _print(spec, g, em, lit, px, accs, acc_arrays, post_roots, post_stores, decl, sig) -> str:
+    byid = {nd.id: nd for nd in g.nodes}
+
+    def emit(nodes, names, lines, reads=None):
+        reads = reads or {}
+        for nd in nodes:
+            if nd.id in reads:
+                names[nd.id] = f"v{nd.id}"
+                lines.append(f"const {em.t(nd.kind)} v{nd.id} = {reads[nd.id]};")
+                continue
+            v = _namer(names)
+            if nd.kind == "b":  # masks are inlined (int mask variables stop gcc vectorising)
+                names[nd.id] = f"({em.expr(nd, v)})"
+                continue
+            names[nd.id] = f"v{nd.id}"
+            lines.append(f"const {em.t(nd.kind)} v{nd.id} = {em.expr(nd, v)};")
+
+    # light loops
+    loops, bnd_all = [], set()
+    for lk in spec.lights:
+        roots = [nd for _, nd in accs[lk]]
+        body, bnd = _loop_nodes(roots, lit, px)
+        bnd_all |= bnd
+        names: dict = {}
+        scal, lane = [], []
+        order = [nd for nd in g.nodes if nd.id in body or nd.id in bnd]
+        emit([nd for nd in order if nd.id in body and nd.id not in px], names, scal)
+        emit([nd for nd in order if nd.id in bnd or nd.id in px], names, lane,
+             reads={b: f"bd{b}[i - b0]" for b in bnd})
+        lane += [f"{ptr} += {names[nd.id]};" for ptr, nd in accs[lk]]
+        first = "0" if lk == "point" else "Lp"
+        count = "Lp" if lk == "point" else "Ld"
+        loops += [f"    for (long j = 0; j < {count}; ++j) {{",
+                  f"      const R* __restrict u = U + {CAMERA} + {6} * ({first} + j);",
+                  *("      " + s for s in scal),
+                  "      #pragma GCC ivdep",
+                  "      for (long i = b0; i < b1; ++i) {",
+                  *("        " + s for s in lane),
+                  "      }",
+                  "    }"]
+
+    # pre-loop: pixel-level values read by the light loops
+    pre_names: dict = {}
+    pre = []
+    bnd_sorted = sorted(bnd_all)
+    emit(live_order(g, [byid[b] for b in bnd_sorted]), pre_names, pre)
+    pre += [f"bd{b}[i - b0] = {pre_names[b]};" for b in bnd_sorted]
+
+    # post-loop
+    post_names: dict = {}
+    post = []
+    roots = [nd for _, nd in post_roots if isinstance(nd, Node)]
+    emit(live_order(g, roots), post_names, post)
+    for ptr, nd in post_roots:
+        post.append(f"{ptr} = {post_names[nd.id] if isinstance(nd, Node) else '((R)0)'};")
+    post += [f"{ptr} = {src};" for ptr, src in post_stores]
+
+    def arr(kind_c, name):
+        return f"    {kind_c} {name}[{BLOCK}];"
+
+    src = [
+        _PRELUDE,
+        f"typedef {spec.ctype} R;",
+        "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
+        sig + " {",
+        *("  " + d for d in decl),
+        f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)",
+        f"  for (long b0 = 0; b0 < n; b0 += {BLOCK}) {{",
+        f"    const long b1 = b0 + {BLOCK} < n ? b0 + {BLOCK} : n;",
+        *(arr("R" if byid[b].kind == "r" else "double", f"bd{b}") for b in bnd_sorted),
+        *(arr(t, name) for t, name in acc_arrays),
+        *(f"    for (long i = 0; i < {BLOCK}; ++i) {name}[i] = 0;" for _, name in acc_arrays),
+        "    #pragma GCC ivdep",
+        "    for (long i = b0; i < b1; ++i) {",
+        *("      " + s for s in pre),
+        "    }",
+        *loops,
+        "    #pragma GCC ivdep",
+        "    for (long i = b0; i < b1; ++i) {",
+        *("      " + s for s in post),
+        "    }",
+        "  }",
+        "}",
+    ]
+    return "\n".join(src) + "\n"
+
+
+def _namer(names):
+    from torchbrdf.kernels.codegen_c import _lit
+
+    def v(nd):
+        return names[nd.id] if isinstance(nd, Node) else f"((R){_lit(nd)})"
+
+    return v
