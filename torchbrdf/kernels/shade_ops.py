@@ -182,12 +182,17 @@ def _setup_context(ctx, inputs, output):
     ctx.floats, ctx.seg, ctx.cfg = floats, seg, cfg
 
 
+def _no_grad(floats):
+    # torch.library matches the gradient structure to the inputs: an empty list stays a list.
+    return [] if len(floats) == 0 else None
+
+
 def _backward(ctx, grad_out):
     *tensors, uniforms = ctx.saved_tensors
     need = ctx.need
     grads = [None] * len(tensors)
     if not need:
-        return grads, None, None, None, None
+        return grads, _no_grad(ctx.floats), None, None, None
     if torch.is_grad_enabled() and any(tensors[i].requires_grad for i in need):
         # create_graph=True: a differentiable backward, eagerly from the same formula.
         plan = _Plan(ctx.cfg, tensors, ctx.floats)
@@ -197,11 +202,11 @@ def _backward(ctx, grad_out):
                                      allow_unused=True)
         for i, g in zip(need, gs):
             grads[i] = g
-        return grads, None, None, None, None
+        return grads, _no_grad(ctx.floats), None, None, None
     for i, g in zip(need, shade_lights_bwd(list(tensors), list(ctx.floats), uniforms, list(ctx.seg), ctx.cfg,
                                            grad_out, need)):
         grads[i] = g
-    return grads, None, None, None, None
+    return grads, _no_grad(ctx.floats), None, None, None
 
 
 shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)

@@ -576,9 +576,14 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             e = min(s + chunk_px, p_count)
 
             def sl(t, s=s, e=e):
+                # (one chunk: no slicing, whose backward would allocate and copy full-size gradients)
                 return (
                     t[s:e]
-                    if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == p_count and p_count > 1
+                    if isinstance(t, Tensor)
+                    and t.dim() >= 1
+                    and t.shape[0] == p_count
+                    and p_count > 1
+                    and (s, e) != (0, p_count)
                     else t
                 )
 
@@ -589,13 +594,12 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             }
             # One accumulator per chunk, updated in place: a fresh sum per light would land on
             # top of the heap each time and fragment it (freed pages stay resident).
-            acc = pos_s.new_zeros(e - s, 3)
-            if fused:
-                acc.add_(
-                    _fused_lights_term(
-                        table, pos_s, n_s, x_s, y_s, mat_s, bidx_s, lobes, need_frame, len(points), len(dirs)
-                    )
+            if fused:  # the kernel's output is a fresh buffer: accumulate into it
+                acc = _fused_lights_term(
+                    table, pos_s, n_s, x_s, y_s, mat_s, bidx_s, lobes, need_frame, len(points), len(dirs)
                 )
+            else:
+                acc = pos_s.new_zeros(e - s, 3)
             for kind_l, p1, p2 in light_params:
                 fn = _point_term if kind_l == "point" else _directional_term
                 term = _pass(e - s, fn, brdf, pos_s, n_s, v_s, x_s, y_s, mat_s, p1, p2, bidx_s)
