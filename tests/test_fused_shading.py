@@ -217,6 +217,6 @@ def test_custom_op_registration():
     floats = [0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 1.0]
     names = [k for k in NAMES if k != "roughness"]
     uniforms = torch.tensor([[0.0, 0.0, 3.0, 1.0, 0.5, 2.0, 4.0, 4.0, 4.0]], dtype=dtype)
-    cfg = make_cfg(["pos", "n", "base_color", "roughness"], names, ("diffuse", "specular"), False, False, 1, 0)
+    cfg = make_cfg(["pos", "n", "base_color", "roughness"], names, ("diffuse", "specular"), False, False, True, 1, 0)
     torch.library.opcheck(torch.ops.torchbrdf.shade_lights_fwd.default, (tensors, floats, uniforms, [0, P], cfg),
                           test_utils=("test_schema", "test_faketensor", "test_autograd_registration"))

@@ -53,7 +53,7 @@ CAMERA = 3  # uniforms before the lights: the camera position
 # Pixels per block: the pre-loop's boundary values and the backward's adjoint accumulators
 # live in stack arrays of this length (~60 arrays × 128 × 8 B ≈ 60 KiB, L2-resident).
 BLOCK = 128
-_FORMULA_FUNCS = ("view_direction", "point_light", "directional_light", "principled")
+_FORMULA_FUNCS = ("normalize", "view_direction", "point_light", "directional_light", "principled")
 
 
 def formula_token() -> tuple:
@@ -68,10 +68,11 @@ class ShadeSpec:
     ``tensors``: ``(name, mode, C)`` per per-pixel input (``pos, n`` first, then ``x, y`` when
     ``frame``, ``base_color`` and the scalar maps); ``floats``: names of the material
     parameters passed as runtime floats; ``lights``: the light kinds present (each gets its
-    loop); ``grad_mask``: backward, the inputs whose gradient is wanted.
+    loop); ``grad_mask``: backward, the inputs whose gradient is wanted; ``normalize_n``: ``n`` is the
+    raw normal, normalised in the kernel.
     """
 
-    def __init__(self, ctype, tensors, floats, active, need_tint, frame, lights, grad_mask=()):
+    def __init__(self, ctype, tensors, floats, active, need_tint, frame, lights, grad_mask=(), normalize_n=False):
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
@@ -81,11 +82,12 @@ class ShadeSpec:
         self.frame = bool(frame)
         self.lights = tuple(k for k in LIGHT_KINDS if k in lights)
         self.grad_mask = tuple(grad_mask)
+        self.normalize_n = bool(normalize_n)
         self.written = ()
 
     def key(self, backward) -> tuple:
         base = ("shade", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.frame,
-                self.lights, formula_token())
+                self.lights, self.normalize_n, formula_token())
         return base + (("bwd", self.grad_mask) if backward else ("fwd",))
 
     def generate(self, kind: str) -> str:
@@ -109,7 +111,10 @@ def _trace(spec: ShadeSpec):
         inp.setdefault("y", None)
         for name in SCALAR_PARAMS:
             inp.setdefault(name, None)
-        pos, n = inp.pop("pos"), inp["n"]
+        pos = inp.pop("pos")
+        if spec.normalize_n:  # the raw normal: normalised per pixel, outside the light loop
+            inp["n"] = formula.normalize(ops, inp["n"])
+        n = inp["n"]
         cam = Vec3(Node("in", (), "r", {"load": f"U[{c}]"}) for c in range(3))
         inp["v"] = formula.view_direction(ops, cam, pos)
 

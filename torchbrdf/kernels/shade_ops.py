@@ -15,7 +15,8 @@ batch element when lights or camera differ between images) the camera position, 
 are the segments' point ranges. Gradients flow to ``tensors`` only: a caller that needs
 gradients w.r.t. lights or camera uses the eager shader.
 
-``cfg`` = ``"tensor names|float names|lobes|tint|frame|Lp|Ld"``. Autograd is registered on
+``cfg`` = ``"tensor names|float names|lobes|tint|frame|normalize n|Lp|Ld"`` (normalize n: ``n``
+is the raw normal and the kernel normalises it, as the eager shader does). Autograd is registered on
 the forward op (what ``torch.compile`` traces). If a kernel cannot be built, the ops evaluate
 the same formula (:mod:`torchbrdf.brdf.formula`) eagerly.
 """
@@ -35,18 +36,18 @@ __all__ = ["shade_lights", "make_cfg", "TENSOR_ORDER"]
 TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES
 
 
-def make_cfg(tensor_names, float_names, active, need_tint, frame, n_point, n_dir) -> str:
+def make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir) -> str:
     return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-                     str(int(frame)), str(int(n_point)), str(int(n_dir))])
+                     str(int(frame)), str(int(normalize_n)), str(int(n_point)), str(int(n_dir))])
 
 
 class _Plan:
     def __init__(self, cfg: str, tensors, floats):
-        tn, fn, act, tint, frame, lp, ld = cfg.split("|")
+        tn, fn, act, tint, frame, nrm, lp, ld = cfg.split("|")
         self.tensor_names = tn.split(",") if tn else []
         self.float_names = fn.split(",") if fn else []
         self.active = tuple(act.split(",")) if act else ()
-        self.need_tint, self.frame = tint == "1", frame == "1"
+        self.need_tint, self.frame, self.normalize_n = tint == "1", frame == "1", nrm == "1"
         self.n_point, self.n_dir = int(lp), int(ld)
         self.C = [1 if k in SCALAR_NAMES else 3 for k in self.tensor_names]
         self.N = tensors[0].shape[0]  # pos is always a (P, 3) tensor
@@ -61,7 +62,8 @@ class _Plan:
     def spec(self, modes, grad_mask=()) -> ShadeSpec:
         ctype = "float" if self.dtype == torch.float32 else "double"
         lights = (("point",) if self.n_point else ()) + (("directional",) if self.n_dir else ())
-        return ShadeSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame, lights, grad_mask)
+        return ShadeSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame, lights, grad_mask,
+                         self.normalize_n)
 
     def params(self):
         return _dparams(self.floats + [float(self.n_point), float(self.n_dir)])
@@ -84,7 +86,10 @@ def _formula_eager(plan: _Plan, tensors, floats, uniforms: Tensor, seg) -> Tenso
         c.setdefault("x", None)
         c.setdefault("y", None)
         u = uniforms[r]
-        pos, n = c.pop("pos"), c["n"]
+        pos = c.pop("pos")
+        if plan.normalize_n:
+            c["n"] = formula.normalize(ops, c["n"])
+        n = c["n"]
         c["v"] = formula.view_direction(ops, u[:CAMERA], pos)
 
         def brdf(l, c=c):
@@ -212,8 +217,8 @@ def _backward(ctx, grad_out):
 shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)
 
 
-def shade_lights(c: dict, uniforms: Tensor, seg: list, active, need_tint: bool, frame: bool, n_point: int,
-                 n_dir: int) -> Tensor:
+def shade_lights(c: dict, uniforms: Tensor, seg: list, active, need_tint: bool, frame: bool, normalize_n: bool,
+                 n_point: int, n_dir: int) -> Tensor:
     """Fused shading of ``P`` points on compute-dtype CPU inputs.
 
     Args:
@@ -230,5 +235,5 @@ def shade_lights(c: dict, uniforms: Tensor, seg: list, active, need_tint: bool, 
     float_names = [k for k in names if k not in tensor_names]
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
-    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, n_point, n_dir)
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir)
     return shade_lights_fwd(tensors, floats, uniforms, [int(s) for s in seg], cfg)

@@ -324,8 +324,9 @@ def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
     return torch.cat([p.detach().expand(rows, 3) for p in parts], dim=1).contiguous()
 
 
-def _fused_lights_term(table: Tensor, pos, n, x, y, mat, bidx, active, frame, n_point, n_dir) -> Tensor:
-    """All point and directional lights at ``(P, 3)`` points in one fused kernel pass."""
+def _fused_lights_term(table: Tensor, pos, n, x, y, mat, bidx, active, frame, normalize_n, n_point, n_dir) -> Tensor:
+    """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
+    (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
     from torchbrdf.brdf.principled import _need_tint
     from torchbrdf.kernels.shade_ops import shade_lights
 
@@ -335,7 +336,7 @@ def _fused_lights_term(table: Tensor, pos, n, x, y, mat, bidx, active, frame, n_
     else:  # points are batch-major: one segment (uniform row) per image
         counts = torch.bincount(bidx, minlength=table.shape[0])
         seg = [0] + torch.cumsum(counts, 0).tolist()
-    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, n_point, n_dir)
+    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir)
 
 
 def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis") -> _Prepared:
@@ -536,10 +537,17 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             return cast_back(zero + 0.0 * pos_img.sum(), out_dtype)
         # Boundary conversion: (B, C, H, W) -> (P, C), once.
         pos = pixels.gather(pos_img)
-        n = safe_normalize(pixels.gather(gbuf.normal.to(cd)))
+        n = pixels.gather(gbuf.normal.to(cd))
+        # The fused kernel normalises the normal and computes v itself (the same formula) unless
+        # the frames or the environment passes need them here.
+        n_in_kernel = fused and not need_frame and not envs
+        if not n_in_kernel:
+            n = safe_normalize(n)
         bidx = pixels.batch_index
-        cam_p = cam[bidx] if cam.dim() == 2 and cam.shape[0] > 1 else cam.reshape(1, 3)
-        v = formula.view_direction(formula.TorchOps(cd, dev), cam_p, pos)
+        v = None
+        if not (fused and not envs):
+            cam_p = cam[bidx] if cam.dim() == 2 and cam.shape[0] > 1 else cam.reshape(1, 3)
+            v = formula.view_direction(formula.TorchOps(cd, dev), cam_p, pos)
         x = y = None
         if need_frame:
             if gbuf.tangent is not None:
@@ -596,7 +604,7 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             # top of the heap each time and fragment it (freed pages stay resident).
             if fused:  # the kernel's output is a fresh buffer: accumulate into it
                 acc = _fused_lights_term(
-                    table, pos_s, n_s, x_s, y_s, mat_s, bidx_s, lobes, need_frame, len(points), len(dirs)
+                    table, pos_s, n_s, x_s, y_s, mat_s, bidx_s, lobes, need_frame, n_in_kernel, len(points), len(dirs)
                 )
             else:
                 acc = pos_s.new_zeros(e - s, 3)
