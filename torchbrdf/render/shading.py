@@ -184,10 +184,10 @@ def _is_zero(p) -> bool:
 class _Pixels:
     """The shaded pixel set: gathers ``(B, C, H, W)`` maps to ``(P, C)`` and scatters back."""
 
-    def __init__(self, select: Tensor):
+    def __init__(self, select: Tensor, all_selected: bool | None = None):
         self.b, self.h, self.w = select.shape
         self.select = select
-        self.all = bool(select.all())
+        self.all = bool(select.all()) if all_selected is None else all_selected
         if self.all:
             self.count = self.b * self.h * self.w
             self.flat = None
@@ -385,13 +385,20 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
     with torch.no_grad():
         c4 = cam.reshape(-1, 3, 1, 1)
         facing = (gbuf.normal.detach().to(cd) * (c4 - pos_img.detach())).sum(1) > 0  # (B, H, W)
-        covered = torch.ones_like(facing) if gbuf.mask is None else (gbuf.mask[:, 0] > 0).expand(b, h, w)
-        active = facing & covered
         n_total = b * h * w
-        n_masked = int((~covered).sum())
-        n_back = int((covered & ~facing).sum())
+        if gbuf.mask is None:  # (few whole-image ops: each costs a thread wake-up on a loaded machine)
+            active = facing
+            n_masked = 0
+            n_facing = int(facing.sum())
+            n_back = n_total - n_facing
+        else:
+            covered = (gbuf.mask[:, 0] > 0).expand(b, h, w)
+            active = facing & covered
+            n_masked = int((~covered).sum())
+            n_facing = int(active.sum())
+            n_back = int((covered & ~facing).sum())
     select = active if prune else torch.ones_like(active)
-    pixels = _Pixels(select)
+    pixels = _Pixels(select, n_facing == n_total or not prune)
     p_count = pixels.count
 
     # ---- material, lobes, frames
