@@ -17,8 +17,18 @@ from torchbrdf.kernels import fused
 
 pytestmark = pytest.mark.skipif(not fused.available(), reason="no C compiler for the fused kernels")
 
-NAMES = ("metallic", "subsurface", "specular", "roughness", "specular_tint", "anisotropic", "sheen",
-         "sheen_tint", "clearcoat", "clearcoat_gloss")
+NAMES = (
+    "metallic",
+    "subsurface",
+    "specular",
+    "roughness",
+    "specular_tint",
+    "anisotropic",
+    "sheen",
+    "sheen_tint",
+    "clearcoat",
+    "clearcoat_gloss",
+)
 TOL = {torch.float32: 1e-4, torch.float64: 1e-10}
 
 
@@ -36,10 +46,17 @@ def rand(*shape, seed=0, dtype=torch.float64, lo=0.0, hi=1.0):
 
 def scene(dtype, b=1, h=12, w=10, params=("roughness", "metallic"), tangent=False, mask=None, seed=0):
     """A bumpy plane under a camera: leaves (requiring grad) and the g-buffer."""
-    pos = torch.stack(torch.meshgrid(torch.linspace(-1, 1, h, dtype=torch.float64),
-                                     torch.linspace(-1, 1, w, dtype=torch.float64), indexing="ij"))
+    pos = torch.stack(
+        torch.meshgrid(
+            torch.linspace(-1, 1, h, dtype=torch.float64),
+            torch.linspace(-1, 1, w, dtype=torch.float64),
+            indexing="ij",
+        )
+    )
     pos = torch.cat([pos, 0.1 * rand(1, h, w, seed=seed + 1)]).unsqueeze(0).expand(b, 3, h, w)
-    normal = torch.cat([0.3 * rand(b, 2, h, w, seed=seed + 2, lo=-1), torch.ones(b, 1, h, w, dtype=torch.float64)], 1)
+    normal = torch.cat(
+        [0.3 * rand(b, 2, h, w, seed=seed + 2, lo=-1), torch.ones(b, 1, h, w, dtype=torch.float64)], 1
+    )
     leaves = {"position": pos.to(dtype).clone().requires_grad_(), "normal": normal.to(dtype).requires_grad_()}
     mat = {"base_color": rand(b, 3, h, w, seed=seed + 3, dtype=dtype).requires_grad_()}
     for i, k in enumerate(params):
@@ -47,7 +64,9 @@ def scene(dtype, b=1, h=12, w=10, params=("roughness", "metallic"), tangent=Fals
     leaves.update(mat)
     kw = {}
     if tangent:
-        kw["tangent"] = torch.cat([torch.ones(b, 1, h, w), 0.2 * rand(b, 2, h, w, seed=seed + 4, lo=-1)], 1).to(dtype)
+        kw["tangent"] = torch.cat(
+            [torch.ones(b, 1, h, w), 0.2 * rand(b, 2, h, w, seed=seed + 4, lo=-1)], 1
+        ).to(dtype)
     if mask is not None:
         kw["mask"] = mask
     g = GBuffer(leaves["position"], leaves["normal"], torch.tensor([0.2, -0.1, 3.0], dtype=dtype), mat, **kw)
@@ -68,8 +87,13 @@ def points(dtype, k=3, batch=None):
 
 
 def dirs(dtype, k=2):
-    return [DirectionalLight(torch.tensor([0.3 * (i + 1), -0.2, 1.0], dtype=dtype), torch.tensor([1.0, 0.5, 0.25 + i], dtype=dtype))
-            for i in range(k)]
+    return [
+        DirectionalLight(
+            torch.tensor([0.3 * (i + 1), -0.2, 1.0], dtype=dtype),
+            torch.tensor([1.0, 0.5, 0.25 + i], dtype=dtype),
+        )
+        for i in range(k)
+    ]
 
 
 def both(g, leaves, lights, brdf=None, tol=None, weights_seed=7):
@@ -79,7 +103,9 @@ def both(g, leaves, lights, brdf=None, tol=None, weights_seed=7):
         torchbrdf.set_fast_path(fast)
         img = shade(g, lights, brdf)
         wts = rand(*img.shape, seed=weights_seed, dtype=img.dtype)
-        grads = torch.autograd.grad((img * wts).sum(), list(leaves.values()), retain_graph=True, allow_unused=True)
+        grads = torch.autograd.grad(
+            (img * wts).sum(), list(leaves.values()), retain_graph=True, allow_unused=True
+        )
         res[fast] = (img.detach(), grads)
     tol = tol or TOL[g.dtype]
     (e_img, e_g), (f_img, f_g) = res[False], res[True]
@@ -103,7 +129,9 @@ def uses_fused(g, lights, brdf=None) -> bool:
 @pytest.mark.parametrize("kind", ["point", "directional", "both"])
 def test_fused_matches_eager(dtype, kind):
     g, leaves = scene(dtype)
-    lights = {"point": points(dtype), "directional": dirs(dtype), "both": points(dtype, 2) + dirs(dtype, 1)}[kind]
+    lights = {"point": points(dtype), "directional": dirs(dtype), "both": points(dtype, 2) + dirs(dtype, 1)}[
+        kind
+    ]
     assert uses_fused(g, lights)
     both(g, leaves, lights)
 
@@ -111,7 +139,9 @@ def test_fused_matches_eager(dtype, kind):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_batched_lights_and_camera(dtype):
     g, leaves = scene(dtype, b=2)
-    g = GBuffer(g.position, g.normal, torch.tensor([[0.2, -0.1, 3.0], [-0.3, 0.2, 2.5]], dtype=dtype), g.material)
+    g = GBuffer(
+        g.position, g.normal, torch.tensor([[0.2, -0.1, 3.0], [-0.3, 0.2, 2.5]], dtype=dtype), g.material
+    )
     lights = points(dtype, 2, batch=2) + points(dtype, 1) + dirs(dtype, 1)
     assert uses_fused(g, lights)
     both(g, leaves, lights)
@@ -145,8 +175,12 @@ def test_pruned_lobe_combinations(dtype, case):
         g = GBuffer(g.position, g.normal, g.camera_position, {**g.material, "metallic": 1.0})
     elif case == "dielectric_const":  # constants as runtime floats, tinted specular
         g, leaves = scene(dtype, params=("roughness",))
-        g = GBuffer(g.position, g.normal, g.camera_position,
-                    {**g.material, "specular_tint": 0.5, "subsurface": 0.3, "metallic": 0.0})
+        g = GBuffer(
+            g.position,
+            g.normal,
+            g.camera_position,
+            {**g.material, "specular_tint": 0.5, "subsurface": 0.3, "metallic": 0.0},
+        )
     elif case == "all_maps":  # every lobe and tint from maps, anisotropy with a frame from the normal
         g, leaves = scene(dtype, params=NAMES)
     elif case == "clearcoat_sheen":
@@ -210,13 +244,23 @@ def test_custom_op_registration():
 
     dtype = torch.float64
     P = 7
-    tensors = [rand(P, 3, seed=1, dtype=dtype) * 0.1,
-               torch.nn.functional.normalize(rand(P, 3, seed=2, dtype=dtype) + torch.tensor([0, 0, 2.0], dtype=dtype), dim=-1),
-               rand(P, 3, seed=3, dtype=dtype), rand(P, 1, seed=4, dtype=dtype, lo=0.2, hi=0.8)]
+    tensors = [
+        rand(P, 3, seed=1, dtype=dtype) * 0.1,
+        torch.nn.functional.normalize(
+            rand(P, 3, seed=2, dtype=dtype) + torch.tensor([0, 0, 2.0], dtype=dtype), dim=-1
+        ),
+        rand(P, 3, seed=3, dtype=dtype),
+        rand(P, 1, seed=4, dtype=dtype, lo=0.2, hi=0.8),
+    ]
     tensors = [t.requires_grad_() for t in tensors]
     floats = [0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 1.0]
     names = [k for k in NAMES if k != "roughness"]
     uniforms = torch.tensor([[0.0, 0.0, 3.0, 1.0, 0.5, 2.0, 4.0, 4.0, 4.0]], dtype=dtype)
-    cfg = make_cfg(["pos", "n", "base_color", "roughness"], names, ("diffuse", "specular"), False, False, True, 1, 0)
-    torch.library.opcheck(torch.ops.torchbrdf.shade_lights_fwd.default, (tensors, floats, uniforms, [0, P], cfg),
-                          test_utils=("test_schema", "test_faketensor", "test_autograd_registration"))
+    cfg = make_cfg(
+        ["pos", "n", "base_color", "roughness"], names, ("diffuse", "specular"), False, False, True, 1, 0
+    )
+    torch.library.opcheck(
+        torch.ops.torchbrdf.shade_lights_fwd.default,
+        (tensors, floats, uniforms, [0, P], cfg),
+        test_utils=("test_schema", "test_faketensor", "test_autograd_registration"),
+    )

@@ -56,11 +56,12 @@ def _reset_peak() -> bool:
         return False
 
 
-def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str, fused: bool = False) -> dict:
+def _child(
+    size: int, lights: int, threads: int, recompute: bool, brdf_name: str, fused: bool = False
+) -> dict:
     import torch
 
     import torchbrdf
-
     from torchbrdf.render import shading
     from torchbrdf.render.geometry import plane_gbuffer
     from torchbrdf.render.lights import PointLight
@@ -172,8 +173,12 @@ def fused_compare(size: int, lights: int, threads: int, rounds: int, eager: bool
     }
     plane = plane_gbuffer(size, size)
     gbuf = GBuffer(plane.position, nm, plane.camera_position, material)
-    qs = [torch.tensor([1.5 * math.cos(2 * math.pi * i / lights), 1.5 * math.sin(2 * math.pi * i / lights), 2.0])
-          for i in range(lights)]
+    qs = [
+        torch.tensor(
+            [1.5 * math.cos(2 * math.pi * i / lights), 1.5 * math.sin(2 * math.pi * i / lights), 2.0]
+        )
+        for i in range(lights)
+    ]
     light_list = [PointLight(q, torch.full((3,), 4.0)) for q in qs]
     leaves = [nm, *material.values()]
 
@@ -182,11 +187,19 @@ def fused_compare(size: int, lights: int, threads: int, rounds: int, eager: bool
             torchbrdf.set_fast_path(fast)
             img = torchbrdf.shade(gbuf, light_list)
             return torch.autograd.grad(img.sum(), leaves)
+
         return f
 
     def run_hand():
-        img = _hand_loop(plane.position, nm, plane.camera_position, material["base_color"],
-                         material["roughness"], material["metallic"], [(q, torch.full((3,), 4.0)) for q in qs])
+        img = _hand_loop(
+            plane.position,
+            nm,
+            plane.camera_position,
+            material["base_color"],
+            material["roughness"],
+            material["metallic"],
+            [(q, torch.full((3,), 4.0)) for q in qs],
+        )
         return torch.autograd.grad(img.sum(), leaves)
 
     methods = {"fused shade": run_shade(True), "hand loop (Lambert+GGX)": run_hand}
@@ -203,10 +216,14 @@ def fused_compare(size: int, lights: int, threads: int, rounds: int, eager: bool
         loads.append(os.getloadavg()[0])
     torchbrdf.set_fast_path(None)
     work = size * size * lights
-    lines = [f"{size}x{size}, {lights} point lights, float32, forward+backward w.r.t. maps and normals, "
-             f"{threads} threads, {rounds} interleaved rounds; load average (1 min) during: "
-             f"{min(loads):.1f}-{max(loads):.1f} on {os.cpu_count()} CPUs", "",
-             "| method | median s | min s | pixel-lights/s (median) | fused speed-up (median) |", "|---|---|---|---|---|"]
+    lines = [
+        f"{size}x{size}, {lights} point lights, float32, forward+backward w.r.t. maps and normals, "
+        f"{threads} threads, {rounds} interleaved rounds; load average (1 min) during: "
+        f"{min(loads):.1f}-{max(loads):.1f} on {os.cpu_count()} CPUs",
+        "",
+        "| method | median s | min s | pixel-lights/s (median) | fused speed-up (median) |",
+        "|---|---|---|---|---|",
+    ]
     fused_med = statistics.median(times["fused shade"])
     for name, ts in times.items():
         med = statistics.median(ts)
@@ -219,6 +236,7 @@ def env_errors() -> str:
     import torch
 
     from torchbrdf._math import safe_normalize
+    from torchbrdf.brdf.principled import principled
     from torchbrdf.render.envmap import (
         SplitSumEnvironment,
         integrate_environment_mc,
@@ -226,7 +244,6 @@ def env_errors() -> str:
         integrate_environment_split_sum,
     )
     from torchbrdf.render.geometry import sphere_gbuffer
-    from torchbrdf.brdf.principled import principled
     from torchbrdf.render.sampling import latlong_directions
 
     d64 = torch.float64
@@ -311,11 +328,16 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--env-errors", action="store_true", help="print the environment strategies' error tables"
     )
-    ap.add_argument("--fused-compare", action="store_true",
-                    help="time eager shade, fused shade and a hand-written loop (first --lights count)")
+    ap.add_argument(
+        "--fused-compare",
+        action="store_true",
+        help="time eager shade, fused shade and a hand-written loop (first --lights count)",
+    )
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds of --fused-compare")
     ap.add_argument("--no-eager", action="store_true", help="--fused-compare without the (slow) eager shader")
-    ap.add_argument("--fused", action="store_true", help="memory children use the fused path (lights without grad)")
+    ap.add_argument(
+        "--fused", action="store_true", help="memory children use the fused path (lights without grad)"
+    )
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.env_errors:
@@ -325,7 +347,11 @@ def main(argv=None) -> int:
         print(fused_compare(args.size, args.lights[-1], args.threads, args.rounds, not args.no_eager))
         return 0
     if args.child is not None:
-        print(json.dumps(_child(args.size, args.child, args.threads, not args.no_recompute, args.brdf, args.fused)))
+        print(
+            json.dumps(
+                _child(args.size, args.child, args.threads, not args.no_recompute, args.brdf, args.fused)
+            )
+        )
         return 0
     rows = []
     for n in args.lights:

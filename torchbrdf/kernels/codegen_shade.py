@@ -45,7 +45,7 @@ from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse
 
-__all__ = ["ShadeSpec", "generate", "LIGHT_KINDS", "LIGHT_STRIDE"]
+__all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "LIGHT_KINDS", "LIGHT_STRIDE"]
 
 LIGHT_KINDS = ("point", "directional")
 LIGHT_STRIDE = 6  # uniforms per light: position/direction (3), intensity/irradiance (3)
@@ -72,7 +72,9 @@ class ShadeSpec:
     raw normal, normalised in the kernel.
     """
 
-    def __init__(self, ctype, tensors, floats, active, need_tint, frame, lights, grad_mask=(), normalize_n=False):
+    def __init__(
+        self, ctype, tensors, floats, active, need_tint, frame, lights, grad_mask=(), normalize_n=False
+    ):
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
@@ -86,12 +88,29 @@ class ShadeSpec:
         self.written = ()
 
     def key(self, backward) -> tuple:
-        base = ("shade", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.frame,
-                self.lights, self.normalize_n, formula_token())
+        base = (
+            "shade",
+            self.ctype,
+            self.tensors,
+            self.floats,
+            self.active,
+            self.need_tint,
+            self.frame,
+            self.lights,
+            self.normalize_n,
+            formula_token(),
+        )
         return base + (("bwd", self.grad_mask) if backward else ("fwd",))
 
     def generate(self, kind: str) -> str:
         return generate(self, kind)
+
+
+def _in(role: str, kind="r", grad=False, **attr) -> Node:
+    """An input node; ``role``: ``px`` (per-pixel load ``k``, channel ``c``), ``go`` (output
+    gradient), ``cam`` (camera), ``light`` (the current light's uniform ``c``) or ``acc`` (a
+    value accumulated over the light loop, read after it)."""
+    return Node("in", (), kind, {"role": role, **attr}, grad=grad)
 
 
 def _trace(spec: ShadeSpec):
@@ -101,8 +120,7 @@ def _trace(spec: ShadeSpec):
         ops = TraceOps(spec.hi_double)
         inp, loads = {}, []
         for k, (name, mode, C) in enumerate(spec.tensors):
-            chans = [Node("in", (), "r", {"load": f"p{k}[{_index(mode, C, c)}]", "k": k, "c": c, "px": True},
-                          grad=True) for c in range(C)]
+            chans = [_in("px", grad=True, k=k, c=c) for c in range(C)]
             loads += chans
             inp[name] = Vec3(chans) if C == 3 else chans[0]
         for j, name in enumerate(spec.floats):
@@ -115,7 +133,7 @@ def _trace(spec: ShadeSpec):
         if spec.normalize_n:  # the raw normal: normalised per pixel, outside the light loop
             inp["n"] = formula.normalize(ops, inp["n"])
         n = inp["n"]
-        cam = Vec3(Node("in", (), "r", {"load": f"U[{c}]"}) for c in range(3))
+        cam = Vec3(_in("cam", c=c) for c in range(3))
         inp["v"] = formula.view_direction(ops, cam, pos)
 
         def brdf(l):
@@ -123,7 +141,7 @@ def _trace(spec: ShadeSpec):
 
         outs = {}
         for kind in spec.lights:
-            u = [Node("in", (), "r", {"load": f"u[{c}]", "lit": True}) for c in range(LIGHT_STRIDE)]
+            u = [_in("light", c=c) for c in range(LIGHT_STRIDE)]
             a, b = Vec3(u[:3]), Vec3(u[3:])
             if kind == "point":
                 out = formula.point_light(ops, pos, n, a, b, brdf)
@@ -134,13 +152,14 @@ def _trace(spec: ShadeSpec):
 
 
 def _flags(g: Graph):
-    """Ids of the nodes that depend on a light uniform (``lit``) and on a per-pixel load (``px``)."""
+    """Ids of the nodes that depend on a light uniform (``lit``) and on a per-pixel value (``px``)."""
     lit, px = set(), set()
     for nd in g.nodes:
         if nd.op == "in":
-            if nd.attr.get("lit"):
+            role = nd.attr["role"]
+            if role == "light":
                 lit.add(nd.id)
-            if nd.attr.get("px"):
+            if role in ("px", "go"):
                 px.add(nd.id)
             continue
         for a in nd.args:
@@ -174,63 +193,130 @@ def _loop_nodes(roots, lit, px):
     return body, bnd
 
 
+class LoopSchedule:
+    """A light-loop kernel, independent of the language it is printed in.
+
+    * ``graph``: all nodes (forward, and for the backward both reverse passes);
+    * ``accs``: per light kind, ``[(key, node)]``: ``node`` is added into accumulator ``key``
+      once per light (keys: ``("out", c)`` radiance channel, ``("adj", id)`` the adjoint of
+      pixel-level node ``id``); ``acc_kind[key]`` its value kind;
+    * ``post``: ``[(store, node or None)]`` after the loop, ``store`` = ``("out", c)`` or
+      ``("grad", k, c)`` (``None``: zero); nodes there read accumulators through ``acc`` inputs;
+    * ``written``: inputs whose gradient the backward writes.
+
+    An emitter classifies nodes with :func:`_flags` / :func:`_loop_nodes` (pre-loop, per-light
+    scalars, light loop) and prints the three phases; see :func:`_print` for C.
+    """
+
+    def __init__(self, graph, accs, acc_kind, post, written=()):
+        self.graph, self.accs, self.acc_kind, self.post, self.written = (
+            graph,
+            accs,
+            acc_kind,
+            post,
+            tuple(written),
+        )
+
+
+def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
+    """Trace the formula and build the forward (``"fwd"``) or backward (``"bwd"``) schedule."""
+    g, loads, outs = _trace(spec)
+    with g:
+        if kind == "fwd":
+            accs = {lk: [(("out", c), o) for c, o in enumerate(outs[lk])] for lk in spec.lights}
+            acc_kind = {("out", c): "r" for c in range(3)}
+            post = [(("out", c), _in("acc", key=("out", c))) for c in range(3)]
+            return LoopSchedule(g, accs, acc_kind, post)
+        if kind != "bwd":
+            raise ValueError(kind)
+        go = [_in("go", c=c) for c in range(3)]
+        lit, px = _flags(g)
+        # The loop body's reverse pass stops at the pixel-level values (no light dependence):
+        # their adjoints are summed over the lights and propagated further after the loop.
+        stop = frozenset(i for i in px if i not in lit)
+        byid = {nd.id: nd for nd in g.nodes}
+        accs, bnd = {}, set()
+        for lk in spec.lights:
+            adj = reverse(g, outs[lk], go, stop=stop)
+            accs[lk] = [(("adj", b), adj[b]) for b in sorted(stop) if b in adj]
+            bnd |= {b for b in stop if b in adj}
+        bnd = sorted(bnd)
+        acc_kind = {("adj", b): byid[b].kind for b in bnd}
+        seeds = [_in("acc", byid[b].kind, key=("adj", b)) for b in bnd]
+        adj2 = reverse(g, [byid[b] for b in bnd], seeds)
+        written, post = [], []
+        for k, (name, mode, C) in enumerate(spec.tensors):
+            if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj2 for nd in loads):
+                continue  # no path to the output: None in autograd, as in eager
+            written.append(k)
+            for c in range(C):
+                nd = next(x for x in loads if x.attr["k"] == k and x.attr["c"] == c)
+                post.append((("grad", k, c), adj2.get(nd.id)))
+        return LoopSchedule(g, accs, acc_kind, post, written)
+
+
 def generate(spec: ShadeSpec, kind: str) -> str:
     """C source of the forward (``"fwd"``) or backward (``"bwd"``) shading kernel.
 
     For ``"bwd"`` it sets ``spec.written``: the inputs whose gradient the kernel writes.
     """
-    g, loads, outs = _trace(spec)
-    em = _Emitter(spec.ctype)
+    sch = schedule(spec, kind)
+    spec.written = sch.written
     T = len(spec.tensors)
     F = len(spec.floats)
     decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(T)]
-    decl += [f"const R* __restrict U = (const R*)in[{T}];",
-             f"const long Lp = (long)P[{F}];", f"const long Ld = (long)P[{F + 1}];"]
-    with g:
-        if kind == "fwd":
-            # light kind -> [(accumulator expression, node)]
-            accs = {lk: [(f"ao{c}[i - b0]", o) for c, o in enumerate(outs[lk])] for lk in spec.lights}
-            acc_arrays = [("R", f"ao{c}") for c in range(3)]
-            post_stores = [(f"out[i * 3 + {c}]", f"ao{c}[i - b0]") for c in range(3)]
-            post_roots, post_nodes = [], []
-            sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
-        elif kind == "bwd":
-            go = [Node("in", (), "r", {"load": f"go[i * 3 + {c}]", "px": True}) for c in range(3)]
-            lit0, px0 = _flags(g)
-            stop = frozenset(i for i in px0 if i not in lit0)
-            byid = {nd.id: nd for nd in g.nodes}
-            accs, bnd_adj = {}, {}
-            for lk in spec.lights:
-                adj = reverse(g, outs[lk], go, stop=stop)
-                accs[lk] = [(f"ga{b}[i - b0]", adj[b]) for b in sorted(stop) if b in adj]
-                for b in stop:
-                    if b in adj:
-                        bnd_adj[b] = True
-            acc_arrays = [("R" if byid[b].kind == "r" else "double", f"ga{b}") for b in sorted(bnd_adj)]
-            # After the loop: the accumulated boundary adjoints, propagated to the inputs.
-            seeds = [Node("in", (), byid[b].kind, {"load": f"ga{b}[i - b0]"}) for b in sorted(bnd_adj)]
-            adj2 = reverse(g, [byid[b] for b in sorted(bnd_adj)], seeds)
-            written, post_roots = [], []
-            for k, (name, mode, C) in enumerate(spec.tensors):
-                if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj2 for nd in loads):
-                    continue
-                written.append(k)
-                for c in range(C):
-                    nd = next(x for x in loads if x.attr["k"] == k and x.attr["c"] == c)
-                    post_roots.append((f"gp{k}[i * {C} + {c}]", adj2.get(nd.id)))
-            spec.written = tuple(written)
-            decl += [f"R* __restrict gp{k} = (R*)gout[{k}];" for k in written]
-            post_stores = []
-            sig = ("void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
-                   "int nthreads)")
-        else:
-            raise ValueError(kind)
+    decl += [
+        f"const R* __restrict U = (const R*)in[{T}];",
+        f"const long Lp = (long)P[{F}];",
+        f"const long Ld = (long)P[{F + 1}];",
+    ]
+    if kind == "fwd":
+        sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
+    else:
+        decl += [f"R* __restrict gp{k} = (R*)gout[{k}];" for k in sch.written]
+        sig = (
+            "void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
+            "int nthreads)"
+        )
+    return _print(spec, sch, decl, sig)
+
+
+def _acc_name(key) -> str:
+    return f"ao{key[1]}" if key[0] == "out" else f"ga{key[1]}"
+
+
+def _load_expr(spec: ShadeSpec, nd: Node) -> str:
+    a = nd.attr
+    role = a["role"]
+    if role == "px":
+        _, mode, C = spec.tensors[a["k"]]
+        return f"p{a['k']}[{_index(mode, C, a['c'])}]"
+    if role == "go":
+        return f"go[i * 3 + {a['c']}]"
+    if role == "cam":
+        return f"U[{a['c']}]"
+    if role == "light":
+        return f"u[{a['c']}]"
+    return f"{_acc_name(a['key'])}[i - b0]"
+
+
+def _store_expr(spec: ShadeSpec, store) -> str:
+    if store[0] == "out":
+        return f"out[i * 3 + {store[1]}]"
+    _, k, c = store
+    return f"gp{k}[i * {spec.tensors[k][2]} + {c}]"
+
+
+def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
+    """Print a schedule as C: pre-loop, light loops, post-loop over each block of pixels."""
+    g, accs = sch.graph, sch.accs
+    em = _Emitter(spec.ctype)
     lit, px = _flags(g)
-    return _print(spec, g, em, lit, px, accs, acc_arrays, post_roots, post_stores, decl, sig)
-
-
-def _print(spec, g, em, lit, px, accs, acc_arrays, post_roots, post_stores, decl, sig) -> str:
     byid = {nd.id: nd for nd in g.nodes}
+    for nd in g.nodes:
+        if nd.op == "in":
+            nd.attr["load"] = _load_expr(spec, nd)
+    acc_arrays = [("R" if k == "r" else "double", _acc_name(key)) for key, k in sch.acc_kind.items()]
 
     def emit(nodes, names, lines, reads=None):
         reads = reads or {}
@@ -256,19 +342,25 @@ def _print(spec, g, em, lit, px, accs, acc_arrays, post_roots, post_stores, decl
         scal, lane = [], []
         order = [nd for nd in g.nodes if nd.id in body or nd.id in bnd]
         emit([nd for nd in order if nd.id in body and nd.id not in px], names, scal)
-        emit([nd for nd in order if nd.id in bnd or nd.id in px], names, lane,
-             reads={b: f"bd{b}[i - b0]" for b in bnd})
-        lane += [f"{ptr} += {names[nd.id]};" for ptr, nd in accs[lk]]
+        emit(
+            [nd for nd in order if nd.id in bnd or nd.id in px],
+            names,
+            lane,
+            reads={b: f"bd{b}[i - b0]" for b in bnd},
+        )
+        lane += [f"{_acc_name(key)}[i - b0] += {names[nd.id]};" for key, nd in accs[lk]]
         first = "0" if lk == "point" else "Lp"
         count = "Lp" if lk == "point" else "Ld"
-        loops += [f"    for (long j = 0; j < {count}; ++j) {{",
-                  f"      const R* __restrict u = U + {CAMERA} + {6} * ({first} + j);",
-                  *("      " + s for s in scal),
-                  "      #pragma GCC ivdep",
-                  "      for (long i = b0; i < b1; ++i) {",
-                  *("        " + s for s in lane),
-                  "      }",
-                  "    }"]
+        loops += [
+            f"    for (long j = 0; j < {count}; ++j) {{",
+            f"      const R* __restrict u = U + {CAMERA} + {LIGHT_STRIDE} * ({first} + j);",
+            *("      " + s for s in scal),
+            "      #pragma GCC ivdep",
+            "      for (long i = b0; i < b1; ++i) {",
+            *("        " + s for s in lane),
+            "      }",
+            "    }",
+        ]
 
     # pre-loop: pixel-level values read by the light loops
     pre_names: dict = {}
@@ -280,11 +372,12 @@ def _print(spec, g, em, lit, px, accs, acc_arrays, post_roots, post_stores, decl
     # post-loop
     post_names: dict = {}
     post = []
-    roots = [nd for _, nd in post_roots if isinstance(nd, Node)]
+    roots = [nd for _, nd in sch.post if isinstance(nd, Node)]
     emit(live_order(g, roots), post_names, post)
-    for ptr, nd in post_roots:
-        post.append(f"{ptr} = {post_names[nd.id] if isinstance(nd, Node) else '((R)0)'};")
-    post += [f"{ptr} = {src};" for ptr, src in post_stores]
+    for store, nd in sch.post:
+        post.append(
+            f"{_store_expr(spec, store)} = {post_names[nd.id] if isinstance(nd, Node) else '((R)0)'};"
+        )
 
     def arr(kind_c, name):
         return f"    {kind_c} {name}[{BLOCK}];"

@@ -37,8 +37,18 @@ TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES
 
 
 def make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir) -> str:
-    return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-                     str(int(frame)), str(int(normalize_n)), str(int(n_point)), str(int(n_dir))])
+    return "|".join(
+        [
+            ",".join(tensor_names),
+            ",".join(float_names),
+            ",".join(active),
+            str(int(need_tint)),
+            str(int(frame)),
+            str(int(normalize_n)),
+            str(int(n_point)),
+            str(int(n_dir)),
+        ]
+    )
 
 
 class _Plan:
@@ -62,8 +72,17 @@ class _Plan:
     def spec(self, modes, grad_mask=()) -> ShadeSpec:
         ctype = "float" if self.dtype == torch.float32 else "double"
         lights = (("point",) if self.n_point else ()) + (("directional",) if self.n_dir else ())
-        return ShadeSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame, lights, grad_mask,
-                         self.normalize_n)
+        return ShadeSpec(
+            ctype,
+            modes,
+            self.float_names,
+            self.active,
+            self.need_tint,
+            self.frame,
+            lights,
+            grad_mask,
+            self.normalize_n,
+        )
 
     def params(self):
         return _dparams(self.floats + [float(self.n_point), float(self.n_dir)])
@@ -97,7 +116,7 @@ def _formula_eager(plan: _Plan, tensors, floats, uniforms: Tensor, seg) -> Tenso
 
         acc = torch.zeros(e - s, 3, dtype=plan.dtype, device=pos.device)
         for j in range(plan.n_point + plan.n_dir):
-            lu = u[CAMERA + LIGHT_STRIDE * j: CAMERA + LIGHT_STRIDE * (j + 1)]
+            lu = u[CAMERA + LIGHT_STRIDE * j : CAMERA + LIGHT_STRIDE * (j + 1)]
             if j < plan.n_point:
                 acc = acc + formula.point_light(ops, pos, n, lu[:3], lu[3:], brdf)
             else:
@@ -151,14 +170,17 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
     for r, s, e in _segments(seg):
         ins = [f.data_ptr() + (s * C * item if mode == "full" else 0) for f, (_, mode, C) in zip(flat, modes)]
         ins.append(uniforms[r].data_ptr())
-        gouts = [full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))]
+        gouts = [
+            full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))
+        ]
         lib[1](e - s, _ptrs(ins), P, go.data_ptr() + s * 3 * item, _ptrs(gouts), nt)
     return [_to_shape(full[i], tensors[i]) if i in full else torch.zeros_like(tensors[i]) for i in need]
 
 
 @torch.library.custom_op("torchbrdf::shade_lights_fwd", mutates_args=())
-def shade_lights_fwd(tensors: list[Tensor], floats: list[float], uniforms: Tensor, seg: list[int],
-                     cfg: str) -> Tensor:
+def shade_lights_fwd(
+    tensors: list[Tensor], floats: list[float], uniforms: Tensor, seg: list[int], cfg: str
+) -> Tensor:
     """The fused shading forward: ``(P, 3)`` radiance summed over the lights."""
     return _run_fwd(_Plan(cfg, tensors, floats), tensors, uniforms, list(seg))
 
@@ -169,8 +191,15 @@ def _(tensors, floats, uniforms, seg, cfg):
 
 
 @torch.library.custom_op("torchbrdf::shade_lights_bwd", mutates_args=())
-def shade_lights_bwd(tensors: list[Tensor], floats: list[float], uniforms: Tensor, seg: list[int], cfg: str,
-                     grad_out: Tensor, need: list[int]) -> list[Tensor]:
+def shade_lights_bwd(
+    tensors: list[Tensor],
+    floats: list[float],
+    uniforms: Tensor,
+    seg: list[int],
+    cfg: str,
+    grad_out: Tensor,
+    need: list[int],
+) -> list[Tensor]:
     """The fused recompute-backward: gradients of ``tensors[i]`` for ``i`` in ``need``."""
     return _run_bwd(_Plan(cfg, tensors, floats), tensors, uniforms, list(seg), grad_out, list(need))
 
@@ -203,13 +232,16 @@ def _backward(ctx, grad_out):
         plan = _Plan(ctx.cfg, tensors, ctx.floats)
         with torch.enable_grad():
             out = _formula_eager(plan, tensors, ctx.floats, uniforms, ctx.seg)
-            gs = torch.autograd.grad(out, [tensors[i] for i in need], grad_out, create_graph=True,
-                                     allow_unused=True)
+            gs = torch.autograd.grad(
+                out, [tensors[i] for i in need], grad_out, create_graph=True, allow_unused=True
+            )
         for i, g in zip(need, gs):
             grads[i] = g
         return grads, _no_grad(ctx.floats), None, None, None
-    for i, g in zip(need, shade_lights_bwd(list(tensors), list(ctx.floats), uniforms, list(ctx.seg), ctx.cfg,
-                                           grad_out, need)):
+    for i, g in zip(
+        need,
+        shade_lights_bwd(list(tensors), list(ctx.floats), uniforms, list(ctx.seg), ctx.cfg, grad_out, need),
+    ):
         grads[i] = g
     return grads, _no_grad(ctx.floats), None, None, None
 
@@ -217,8 +249,17 @@ def _backward(ctx, grad_out):
 shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)
 
 
-def shade_lights(c: dict, uniforms: Tensor, seg: list, active, need_tint: bool, frame: bool, normalize_n: bool,
-                 n_point: int, n_dir: int) -> Tensor:
+def shade_lights(
+    c: dict,
+    uniforms: Tensor,
+    seg: list,
+    active,
+    need_tint: bool,
+    frame: bool,
+    normalize_n: bool,
+    n_point: int,
+    n_dir: int,
+) -> Tensor:
     """Fused shading of ``P`` points on compute-dtype CPU inputs.
 
     Args:

@@ -317,14 +317,22 @@ def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
     one row per batch element (``R = 1`` when nothing is batched)."""
     parts = [cam.reshape(-1, 3)]
     for light in points:
-        parts += [light.position.to(device=dev, dtype=cd).reshape(-1, 3), light.intensity.to(device=dev, dtype=cd).reshape(-1, 3)]
+        parts += [
+            light.position.to(device=dev, dtype=cd).reshape(-1, 3),
+            light.intensity.to(device=dev, dtype=cd).reshape(-1, 3),
+        ]
     for light in dirs:
-        parts += [light.direction.to(device=dev, dtype=cd).reshape(-1, 3), light.irradiance.to(device=dev, dtype=cd).reshape(-1, 3)]
+        parts += [
+            light.direction.to(device=dev, dtype=cd).reshape(-1, 3),
+            light.irradiance.to(device=dev, dtype=cd).reshape(-1, 3),
+        ]
     rows = max(p.shape[0] for p in parts)
     return torch.cat([p.detach().expand(rows, 3) for p in parts], dim=1).contiguous()
 
 
-def _fused_lights_term(table: Tensor, pos, n, x, y, mat, bidx, active, frame, normalize_n, n_point, n_dir) -> Tensor:
+def _fused_lights_term(
+    table: Tensor, pos, n, x, y, mat, bidx, active, frame, normalize_n, n_point, n_dir
+) -> Tensor:
     """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
     (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
     from torchbrdf.brdf.principled import _need_tint
@@ -339,7 +347,9 @@ def _fused_lights_term(table: Tensor, pos, n, x, y, mat, bidx, active, frame, no
     return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir)
 
 
-def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis") -> _Prepared:
+def _prepare(
+    gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis"
+) -> _Prepared:
     if not isinstance(gbuf, GBuffer):
         raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
     lights = _as_light_list(lights)
@@ -494,7 +504,9 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
 
     brdf_evals = p_count * (len(points) + len(dirs)) + env_evals
     lobe_cost = sum(_LOBE_COST[x] for x in lobes) if lobes is not None else 4.0
-    fused = _fused_lights_wanted(kind, values, points, dirs, cam, dev, cd, p_count * (len(points) + len(dirs)))
+    fused = _fused_lights_wanted(
+        kind, values, points, dirs, cam, dev, cd, p_count * (len(points) + len(dirs))
+    )
     # Fused: all point and directional lights in one kernel pass per chunk.
     passes = n_slices * (min(1, len(points) + len(dirs)) if fused else len(points) + len(dirs)) + env_passes
     elements_per_pass = (
@@ -611,7 +623,18 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             # top of the heap each time and fragment it (freed pages stay resident).
             if fused:  # the kernel's output is a fresh buffer: accumulate into it
                 acc = _fused_lights_term(
-                    table, pos_s, n_s, x_s, y_s, mat_s, bidx_s, lobes, need_frame, n_in_kernel, len(points), len(dirs)
+                    table,
+                    pos_s,
+                    n_s,
+                    x_s,
+                    y_s,
+                    mat_s,
+                    bidx_s,
+                    lobes,
+                    need_frame,
+                    n_in_kernel,
+                    len(points),
+                    len(dirs),
                 )
             else:
                 acc = pos_s.new_zeros(e - s, 3)
