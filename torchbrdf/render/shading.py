@@ -273,7 +273,7 @@ def _lobes_for(brdf, kind: str, values: dict):
     return None, ()
 
 
-def _fused_lights_wanted(kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
+def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
     The principled BRDF on CPU float32/float64 with the fused kernels enabled (see
@@ -293,14 +293,14 @@ def _fused_lights_wanted(kind, values, points, dirs, cam, dev, cd, elements: int
         return False
     if "base_color" not in values or set(values) - set(_DEFAULTS) - {"base_color"}:
         return False  # the eager call raises the error naming the argument
-    for k, t in values.items():
+    for k, t in [("position", gbuf.position), ("normal", gbuf.normal), *values.items()]:
         if not isinstance(t, Tensor):
             continue
         if type(t) not in (Tensor, nn.Parameter) or (
             not torch.compiler.is_compiling() and torch._C._functorch.is_functorch_wrapped_tensor(t)
         ):
             return False
-        channels = (1, 3) if k == "base_color" else (1,)
+        channels = {"position": (3,), "normal": (3,), "base_color": (1, 3)}.get(k, (1,))
         if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
             return False
     if torch.is_grad_enabled():
@@ -505,7 +505,7 @@ def _prepare(
     brdf_evals = p_count * (len(points) + len(dirs)) + env_evals
     lobe_cost = sum(_LOBE_COST[x] for x in lobes) if lobes is not None else 4.0
     fused = _fused_lights_wanted(
-        kind, values, points, dirs, cam, dev, cd, p_count * (len(points) + len(dirs))
+        gbuf, kind, values, points, dirs, cam, dev, cd, p_count * (len(points) + len(dirs))
     )
     # Fused: all point and directional lights in one kernel pass per chunk.
     passes = n_slices * (min(1, len(points) + len(dirs)) if fused else len(points) + len(dirs)) + env_passes
