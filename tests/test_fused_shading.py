@@ -308,3 +308,20 @@ def test_chunks_across_images_and_no_pruning(dtype):
             res[fast] = (img.detach(), grads)
         for a, b in zip((res[False][0], *res[False][1]), (res[True][0], *res[True][1])):
             assert ((a - b).abs().max() / a.abs().max()).item() <= TOL[dtype]
+
+
+def test_shade_under_torch_compile():
+    """``shade`` compiled (graph breaks allowed) runs the fused op with its fake implementation
+    (contiguous gradients, as the kernels return them) and matches eager, values and gradients."""
+    dtype = torch.float32
+    g, leaves = scene(dtype, h=16, w=16)
+    lights = points(dtype, 2)
+    torchbrdf.set_fast_path(True)
+    ref = shade(g, lights)
+    (gref,) = torch.autograd.grad(ref.sum(), [leaves["base_color"]], retain_graph=True)
+    compiled = torch.compile(lambda g: shade(g, lights))
+    for _ in range(2):
+        out = compiled(g)
+        (gout,) = torch.autograd.grad(out.sum(), [leaves["base_color"]], retain_graph=True)
+        torch.testing.assert_close(out, ref)
+        torch.testing.assert_close(gout, gref)

@@ -148,10 +148,15 @@ def _run_fwd(plan: _Plan, tensors, uniforms: Tensor, seg) -> Tensor:
     return out
 
 
+def _zeros(t: Tensor) -> Tensor:
+    # Gradients are always contiguous (what the fake implementation promises torch.compile).
+    return t.new_zeros(t.shape)
+
+
 def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need) -> list:
     N = plan.N
     if N == 0 or not need:
-        return [torch.zeros_like(tensors[i]) for i in need]
+        return [_zeros(tensors[i]) for i in need]
     flat, modes = plan.flat(tensors)
     lib = _load(plan.spec(modes, grad_mask=tuple(need)), backward=True)
     if lib is None:
@@ -159,7 +164,7 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
             ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
             out = _formula_eager(plan, ts, plan.floats, uniforms, seg)
             gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
-        return [g if g is not None else torch.zeros_like(tensors[i]) for i, g in zip(need, gs)]
+        return [g.contiguous() if g is not None else _zeros(tensors[i]) for i, g in zip(need, gs)]
     written = lib[2]
     go = grad_out.to(plan.dtype).expand(N, 3).contiguous()
     uniforms = uniforms.contiguous()
@@ -174,7 +179,7 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
             full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))
         ]
         lib[1](e - s, _ptrs(ins), P, go.data_ptr() + s * 3 * item, _ptrs(gouts), nt)
-    return [_to_shape(full[i], tensors[i]) if i in full else torch.zeros_like(tensors[i]) for i in need]
+    return [_to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
 
 
 @torch.library.custom_op("torchbrdf::shade_lights_fwd", mutates_args=())
@@ -206,7 +211,7 @@ def shade_lights_bwd(
 
 @shade_lights_bwd.register_fake
 def _(tensors, floats, uniforms, seg, cfg, grad_out, need):
-    return [torch.empty_like(tensors[i]) for i in need]
+    return [tensors[i].new_empty(tensors[i].shape) for i in need]
 
 
 def _setup_context(ctx, inputs, output):
