@@ -325,3 +325,17 @@ def test_shade_under_torch_compile():
         (gout,) = torch.autograd.grad(out.sum(), [leaves["base_color"]], retain_graph=True)
         torch.testing.assert_close(out, ref)
         torch.testing.assert_close(gout, gref)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gradient_of_a_plain_sum(dtype):
+    """The output gradient of ``img.sum()`` is one value for all pixels (read in place, mode 'b0')."""
+    g, leaves = scene(dtype, b=2)
+    lights = points(dtype, 2, batch=2) + dirs(dtype, 1)
+    res = {}
+    for fast in (False, True):
+        torchbrdf.set_fast_path(fast)
+        img = shade(g, lights)
+        res[fast] = torch.autograd.grad(img.sum(), list(leaves.values()), retain_graph=True)
+    for a, b in zip(res[False], res[True]):
+        assert ((a - b).abs().max() / a.abs().max()).item() <= TOL[dtype]

@@ -35,7 +35,9 @@ Kernel ABI (same symbols and arguments as the principled kernels, see :mod:`.cod
 * ``in[k]`` the per-pixel tensors of ``spec.tensors``, ``in[T]`` the uniform row
   ``[C (3), point lights Lp × (q, I), directional lights Ld × (d, E)]``;
 * ``P`` the runtime Python floats of ``spec.floats``, then ``Lp`` and ``Ld``;
-* ``out``/``go`` ``(n, 3)`` contiguous; ``gout[k]`` a lane-dense ``(n, C_k)`` gradient.
+* ``out`` ``(n, 3)`` contiguous; ``go`` ``(n, 3)`` lane-dense, or one colour / one value for
+  all pixels (``spec.go_mode`` ``"b1"`` / ``"b0"``: the gradient of a sum is read in place);
+  ``gout[k]`` a lane-dense ``(n, C_k)`` gradient.
 """
 
 from __future__ import annotations
@@ -69,11 +71,21 @@ class ShadeSpec:
     ``frame``, ``base_color`` and the scalar maps); ``floats``: names of the material
     parameters passed as runtime floats; ``lights``: the light kinds present (each gets its
     loop); ``grad_mask``: backward, the inputs whose gradient is wanted; ``normalize_n``: ``n`` is the
-    raw normal, normalised in the kernel.
+    raw normal, normalised in the kernel; ``go_mode``: the output gradient's layout.
     """
 
     def __init__(
-        self, ctype, tensors, floats, active, need_tint, frame, lights, grad_mask=(), normalize_n=False
+        self,
+        ctype,
+        tensors,
+        floats,
+        active,
+        need_tint,
+        frame,
+        lights,
+        grad_mask=(),
+        normalize_n=False,
+        go_mode="full",
     ):
         self.ctype = ctype
         self.hi_double = ctype == "float"
@@ -84,6 +96,7 @@ class ShadeSpec:
         self.frame = bool(frame)
         self.lights = tuple(k for k in LIGHT_KINDS if k in lights)
         self.grad_mask = tuple(grad_mask)
+        self.go_mode = go_mode
         self.normalize_n = bool(normalize_n)
         self.written = ()
 
@@ -100,7 +113,7 @@ class ShadeSpec:
             self.normalize_n,
             formula_token(),
         )
-        return base + (("bwd", self.grad_mask) if backward else ("fwd",))
+        return base + (("bwd", self.grad_mask, self.go_mode) if backward else ("fwd",))
 
     def generate(self, kind: str) -> str:
         return generate(self, kind)
@@ -292,7 +305,7 @@ def _load_expr(spec: ShadeSpec, nd: Node) -> str:
         _, mode, C = spec.tensors[a["k"]]
         return f"p{a['k']}[{_index(mode, C, a['c'])}]"
     if role == "go":
-        return f"go[i * 3 + {a['c']}]"
+        return f"go[{_index(spec.go_mode, 3, a['c'])}]"
     if role == "cam":
         return f"U[{a['c']}]"
     if role == "light":

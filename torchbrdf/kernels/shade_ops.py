@@ -69,7 +69,7 @@ class _Plan:
         modes = tuple((k, m, C) for k, (_, m), C in zip(self.tensor_names, out, self.C))
         return [f for f, _ in out], modes
 
-    def spec(self, modes, grad_mask=()) -> ShadeSpec:
+    def spec(self, modes, grad_mask=(), go_mode="full") -> ShadeSpec:
         ctype = "float" if self.dtype == torch.float32 else "double"
         lights = (("point",) if self.n_point else ()) + (("directional",) if self.n_dir else ())
         return ShadeSpec(
@@ -82,6 +82,7 @@ class _Plan:
             lights,
             grad_mask,
             self.normalize_n,
+            go_mode,
         )
 
     def params(self):
@@ -158,7 +159,10 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
     if N == 0 or not need:
         return [_zeros(tensors[i]) for i in need]
     flat, modes = plan.flat(tensors)
-    lib = _load(plan.spec(modes, grad_mask=tuple(need)), backward=True)
+    # The output gradient as lanes too: the gradient of a sum is one value for all pixels ('b0'),
+    # read in place instead of being materialised.
+    go, go_mode = _flatten(grad_out.to(plan.dtype), 3, (N,), N)
+    lib = _load(plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode), backward=True)
     if lib is None:
         with torch.enable_grad():
             ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
@@ -166,7 +170,6 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
             gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
         return [g.contiguous() if g is not None else _zeros(tensors[i]) for i, g in zip(need, gs)]
     written = lib[2]
-    go = grad_out.to(plan.dtype).expand(N, 3).contiguous()
     uniforms = uniforms.contiguous()
     item = go.element_size()
     full = {i: _pool.empty((N, plan.C[i]), plan.dtype) for i in need if i in written}
@@ -178,7 +181,8 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
         gouts = [
             full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))
         ]
-        lib[1](e - s, _ptrs(ins), P, go.data_ptr() + s * 3 * item, _ptrs(gouts), nt)
+        go_ptr = go.data_ptr() + (s * 3 * item if go_mode == "full" else 0)
+        lib[1](e - s, _ptrs(ins), P, go_ptr, _ptrs(gouts), nt)
     return [_to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
 
 
