@@ -44,7 +44,7 @@ from __future__ import annotations
 
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.principled import SCALAR_PARAMS
-from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index
+from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index, _lit
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse
 
 __all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "LIGHT_KINDS", "LIGHT_STRIDE"]
@@ -423,7 +423,7 @@ def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
 
 
 def _namer(names):
-    from torchbrdf.kernels.codegen_c import _lit
+    """Name of a node (or a literal for a Python number) in the current loop."""
 
     def v(nd):
         return names[nd.id] if isinstance(nd, Node) else f"((R){_lit(nd)})"
