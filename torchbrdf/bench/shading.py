@@ -6,6 +6,8 @@ Usage::
     python -m torchbrdf.bench.shading --size 1024 --lights 1 16 --mmap-threshold 65536
     python -m torchbrdf.bench.shading --size 1024 --lights 1 4 --no-recompute   # for comparison
     python -m torchbrdf.bench.shading --env-errors   # error tables of the environment strategies
+    python -m torchbrdf.bench.shading --fused-compare --size 512 --lights 16   # eager vs fused vs hand loop
+    python -m torchbrdf.bench.shading --size 512 --lights 1 16 --fused   # fused peak memory vs lights
 
 Each configuration runs in a fresh subprocess so peak resident memory (``VmHWM`` from
 ``/proc/self/status``, Linux) belongs to that configuration alone. The scene is the flat
@@ -14,6 +16,13 @@ Each configuration runs in a fresh subprocess so peak resident memory (``VmHWM``
 intensities require grad; the loss is the image sum. Reported per configuration: resident
 memory before shading, peak during forward+backward, their difference and wall time.
 ``--no-recompute`` disables the per-light checkpointing to show what it saves.
+
+``--fused-compare`` times, in one process and interleaved round by round, forward+backward
+(w.r.t. the material maps and the normal map; lights without grad) of today's eager shader
+(``set_fast_path(False)``: one checkpointed pass per light), the fused shader
+(``set_fast_path(True)``: all lights in one kernel pass) and a hand-written per-light torch
+loop (Lambert + GGX), and prints pixel-lights/s with the load average. ``--fused`` makes the
+memory children use the fused path (light intensities then do not require grad).
 
 ``--env-errors`` prints the error of both environment strategies against brute-force
 quadrature on a small sphere (float64), the numbers quoted in ``docs/shading.md``.
@@ -47,14 +56,18 @@ def _reset_peak() -> bool:
         return False
 
 
-def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str) -> dict:
+def _child(
+    size: int, lights: int, threads: int, recompute: bool, brdf_name: str, fused: bool = False
+) -> dict:
     import torch
 
+    import torchbrdf
     from torchbrdf.render import shading
     from torchbrdf.render.geometry import plane_gbuffer
     from torchbrdf.render.lights import PointLight
 
     torch.set_num_threads(threads)
+    torchbrdf.set_fast_path(True if fused else None)
     if not recompute:
         shading._pass = lambda elements, fn, *a, **k: fn(*a, **k)
     brdf = None
@@ -73,7 +86,7 @@ def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str
     light_list = []
     for i in range(lights):
         a = 2.0 * math.pi * i / max(lights, 1)
-        inten = torch.full((3,), 4.0).requires_grad_()
+        inten = torch.full((3,), 4.0).requires_grad_(not fused)
         intensities.append(inten)
         light_list.append(PointLight(torch.tensor([1.5 * math.cos(a), 1.5 * math.sin(a), 2.0]), inten))
     # Warm up on a tiny scene first: the first checkpointed call imports torch._dynamo, whose
@@ -91,6 +104,7 @@ def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str
     return {
         "size": size,
         "lights": lights,
+        "fused": fused,
         "brdf": brdf_name,
         "recompute": recompute,
         "threads": threads,
@@ -103,11 +117,126 @@ def _child(size: int, lights: int, threads: int, recompute: bool, brdf_name: str
     }
 
 
+def _hand_loop(pos, normal, cam, base, rough, metal, lights):
+    """A hand-written per-light torch loop, Lambert + GGX (Smith-Schlick G, Schlick F), on
+    ``(B, C, H, W)`` maps: the baseline a user would write without the library."""
+    import torch
+
+    def unit(a):
+        return a * torch.rsqrt((a * a).sum(1, keepdim=True).clamp_min(1e-12))
+
+    n = unit(normal)
+    v = unit(cam.reshape(1, 3, 1, 1) - pos)
+    nv = (n * v).sum(1, keepdim=True).clamp_min(1e-7)
+    a = rough * rough
+    a2 = a * a
+    k = a * 0.5
+    f0 = 0.04 * (1 - metal) + base * metal
+    diffuse = base * (1 - metal) / math.pi
+    out = 0.0
+    for q, inten in lights:
+        d = q.reshape(1, 3, 1, 1) - pos
+        dist2 = (d * d).sum(1, keepdim=True).clamp_min(1e-12)
+        l = d * torch.rsqrt(dist2)
+        h = unit(l + v)
+        nl = (n * l).sum(1, keepdim=True).clamp_min(0.0)
+        nh = (n * h).sum(1, keepdim=True).clamp_min(0.0)
+        lh = (l * h).sum(1, keepdim=True).clamp(0.0, 1.0)
+        dd = a2 / (math.pi * (nh * nh * (a2 - 1) + 1) ** 2)
+        g = nl / (nl * (1 - k) + k) * nv / (nv * (1 - k) + k)
+        f = f0 + (1 - f0) * (1 - lh) ** 5
+        spec = dd * g * f / (4 * nl * nv + 1e-7)
+        out = out + (diffuse + spec) * inten.reshape(1, 3, 1, 1) * (nl / dist2)
+    return out
+
+
+def fused_compare(size: int, lights: int, threads: int, rounds: int, eager: bool = True) -> str:
+    """Forward+backward time of eager shade, fused shade and a hand loop, interleaved."""
+    import statistics
+
+    import torch
+
+    import torchbrdf
+    from torchbrdf.render.gbuffer import GBuffer
+    from torchbrdf.render.geometry import plane_gbuffer
+    from torchbrdf.render.lights import PointLight
+
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(0)
+    nm = torch.randn(1, 3, size, size, generator=g) * 0.2
+    nm[:, 2] = 1.0
+    nm.requires_grad_()
+    material = {
+        "base_color": torch.rand(1, 3, size, size, generator=g).requires_grad_(),
+        "roughness": (0.2 + 0.6 * torch.rand(1, 1, size, size, generator=g)).requires_grad_(),
+        "metallic": torch.rand(1, 1, size, size, generator=g).requires_grad_(),
+    }
+    plane = plane_gbuffer(size, size)
+    gbuf = GBuffer(plane.position, nm, plane.camera_position, material)
+    qs = [
+        torch.tensor(
+            [1.5 * math.cos(2 * math.pi * i / lights), 1.5 * math.sin(2 * math.pi * i / lights), 2.0]
+        )
+        for i in range(lights)
+    ]
+    light_list = [PointLight(q, torch.full((3,), 4.0)) for q in qs]
+    leaves = [nm, *material.values()]
+
+    def run_shade(fast):
+        def f():
+            torchbrdf.set_fast_path(fast)
+            img = torchbrdf.shade(gbuf, light_list)
+            return torch.autograd.grad(img.sum(), leaves)
+
+        return f
+
+    def run_hand():
+        img = _hand_loop(
+            plane.position,
+            nm,
+            plane.camera_position,
+            material["base_color"],
+            material["roughness"],
+            material["metallic"],
+            [(q, torch.full((3,), 4.0)) for q in qs],
+        )
+        return torch.autograd.grad(img.sum(), leaves)
+
+    methods = {"fused shade": run_shade(True), "hand loop (Lambert+GGX)": run_hand}
+    if eager:
+        methods["eager shade (today)"] = run_shade(False)
+    run_shade(True)()  # warm-up: builds (or loads) the kernels
+    times = {k: [] for k in methods}
+    loads = [os.getloadavg()[0]]
+    for _ in range(rounds):
+        for name, fn in methods.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+        loads.append(os.getloadavg()[0])
+    torchbrdf.set_fast_path(None)
+    work = size * size * lights
+    lines = [
+        f"{size}x{size}, {lights} point lights, float32, forward+backward w.r.t. maps and normals, "
+        f"{threads} threads, {rounds} interleaved rounds; load average (1 min) during: "
+        f"{min(loads):.1f}-{max(loads):.1f} on {os.cpu_count()} CPUs",
+        "",
+        "| method | median s | min s | pixel-lights/s (median) | fused speed-up (median) |",
+        "|---|---|---|---|---|",
+    ]
+    fused_med = statistics.median(times["fused shade"])
+    for name, ts in times.items():
+        med = statistics.median(ts)
+        lines.append(f"| {name} | {med:.3f} | {min(ts):.3f} | {work / med:.3g} | {med / fused_med:.1f}x |")
+    return "\n".join(lines)
+
+
 def env_errors() -> str:
     """Markdown tables: Monte Carlo and split-sum error against quadrature on a sphere."""
     import torch
 
     from torchbrdf._math import safe_normalize
+    from torchbrdf.brdf.principled import principled
     from torchbrdf.render.envmap import (
         SplitSumEnvironment,
         integrate_environment_mc,
@@ -115,7 +244,6 @@ def env_errors() -> str:
         integrate_environment_split_sum,
     )
     from torchbrdf.render.geometry import sphere_gbuffer
-    from torchbrdf.brdf.principled import principled
     from torchbrdf.render.sampling import latlong_directions
 
     d64 = torch.float64
@@ -200,13 +328,30 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--env-errors", action="store_true", help="print the environment strategies' error tables"
     )
+    ap.add_argument(
+        "--fused-compare",
+        action="store_true",
+        help="time eager shade, fused shade and a hand-written loop (first --lights count)",
+    )
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds of --fused-compare")
+    ap.add_argument("--no-eager", action="store_true", help="--fused-compare without the (slow) eager shader")
+    ap.add_argument(
+        "--fused", action="store_true", help="memory children use the fused path (lights without grad)"
+    )
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.env_errors:
         print(env_errors())
         return 0
+    if args.fused_compare:
+        print(fused_compare(args.size, args.lights[-1], args.threads, args.rounds, not args.no_eager))
+        return 0
     if args.child is not None:
-        print(json.dumps(_child(args.size, args.child, args.threads, not args.no_recompute, args.brdf)))
+        print(
+            json.dumps(
+                _child(args.size, args.child, args.threads, not args.no_recompute, args.brdf, args.fused)
+            )
+        )
         return 0
     rows = []
     for n in args.lights:
@@ -225,6 +370,8 @@ def main(argv=None) -> int:
         ]
         if args.no_recompute:
             cmd.append("--no-recompute")
+        if args.fused:
+            cmd.append("--fused")
         env = dict(os.environ)
         if args.mmap_threshold is not None:
             env["MALLOC_MMAP_THRESHOLD_"] = str(args.mmap_threshold)

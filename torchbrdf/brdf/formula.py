@@ -59,6 +59,8 @@ SERIES_EPS = 1e-4
 DEN_EPS = 1e-18
 # |l + v|² below which there is no half vector (l = -v); such lanes borrow h = n.
 HALF_DEGENERATE = 1e-20
+# Squared distance floor for point lights (a light exactly on the surface): keeps 1/d² finite.
+DIST2_EPS = 1e-12
 
 
 class TorchOps:
@@ -303,3 +305,45 @@ def principled(ops, c: dict, active: tuple, need_tint: bool, frame: bool):
         f = acc((0.25 * c["clearcoat"]) * gr * fr * dr)
 
     return ops.mask(valid, f)
+
+
+# ---------------------------------------------------------------------------------------------
+# Shading: one light's contribution at a surface point (the shader's per-light term)
+# ---------------------------------------------------------------------------------------------
+# Written once over ``ops`` like the BRDF above: the eager shader
+# (``torchbrdf.render.shading``) runs these on torch tensors with any BRDF callable, and the
+# fused shading kernels (``torchbrdf.kernels.codegen_shade``) trace them with the principled
+# BRDF, the per-pixel values outside and the light parameters inside the light loop.
+# ``brdf`` is a callable ``brdf(l) -> f (*, 3)`` closing over ``v, n`` and the material.
+
+def normalize(ops, a):
+    """``a / |a|`` with ``|a|²`` floored at ``NORM_EPS`` (a zero vector stays 0, finite gradient)."""
+    return a * ops.rsqrt(ops.clamp_min(ops.dot(a, a), NORM_EPS))
+
+
+def view_direction(ops, camera, pos):
+    """``v = normalize(C - P)``: unit direction from the surface point toward the camera, ``(*, 3)``."""
+    return normalize(ops, camera - pos)
+
+
+def point_light(ops, pos, n, position, intensity, brdf):
+    """Point light: ``f(l, v) I max(n·l, 0) / |q - P|²`` with ``l = normalize(q - P)``, ``(*, 3)``.
+
+    Args:
+        pos, n: surface point and unit normal ``(*, 3)``; position ``q``, intensity ``I``
+            ``(*, 3)`` (broadcast).
+    """
+    d = position - pos
+    dist2 = ops.clamp_min(ops.dot(d, d), DIST2_EPS)
+    l = d * ops.rsqrt(dist2)
+    f = brdf(l)
+    cos = ops.clamp_min(ops.dot(n, l), 0.0)
+    return f * intensity * (cos / dist2)
+
+
+def directional_light(ops, n, direction, irradiance, brdf):
+    """Directional light: ``f(d, v) E max(n·d, 0)`` with ``d`` normalised, ``(*, 3)``."""
+    l = normalize(ops, direction)
+    f = brdf(l)
+    cos = ops.clamp_min(ops.dot(n, l), 0.0)
+    return f * irradiance * cos

@@ -58,6 +58,8 @@ __all__ = ["available", "kernel_cache_dir", "compiled_kernels", "empty_cache"]
 
 def _generate(spec: "_KernelSpec", backward) -> str:
     """C source of the forward (``backward=False``), backward (``True``) or JVP (``"jvp"``) kernel."""
+    if hasattr(spec, "generate"):  # other kernel families (fused shading) print themselves
+        return spec.generate("jvp" if backward == "jvp" else ("bwd" if backward else "fwd"))
     return codegen_c.generate(spec, "jvp" if backward == "jvp" else ("bwd" if backward else "fwd"))
 
 

@@ -392,13 +392,15 @@ def _adjoint(nd: Node, g: Node) -> list:
     return []
 
 
-def reverse(graph: Graph, outs: list, seeds: list) -> dict:
+def reverse(graph: Graph, outs: list, seeds: list, stop=frozenset()) -> dict:
     """Reverse mode: adjoint nodes of every differentiable node ``outs`` depend on.
 
     Args:
         graph: the graph holding ``outs``; the adjoint nodes are added to it.
         outs: output nodes.
         seeds: their adjoints (nodes, same length).
+        stop: ids of nodes that receive their adjoint but do not pass it on (the boundary of a
+            loop body: the adjoint is accumulated there and propagated further after the loop).
 
     Returns:
         ``{node id: adjoint node}`` (only for nodes that receive a gradient).
@@ -417,7 +419,7 @@ def reverse(graph: Graph, outs: list, seeds: list) -> dict:
         for t in terms[1:]:
             g = g + t
         adj[nd.id] = g
-        if nd.op == "in":
+        if nd.op == "in" or nd.id in stop:
             continue
         for idx, e in _adjoint(nd, g):
             arg = nd.args[idx]

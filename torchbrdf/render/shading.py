@@ -20,6 +20,11 @@ How it works, in order:
    wrapped in ``torch.utils.checkpoint`` (non-reentrant): its intermediates are dropped after
    the forward pass and recomputed during backward, so forward+backward peak memory is that of
    one pass, whatever the number of lights (measured in ``docs/shading.md``).
+   With the principled BRDF on CPU, all point and directional lights instead go through ONE
+   fused kernel per chunk, forward and recompute-backward (the ``torchbrdf::shade_lights_fwd``
+   operator), generated from the same per-light formula the eager passes run
+   (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``); gradients w.r.t.
+   light parameters or the camera keep the eager passes.
 
 Gradients reach every tensor input: material maps, normals, positions, camera position,
 tangents, light positions/directions/intensities and environment maps. Masked and
@@ -30,14 +35,17 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+from torchbrdf import _checks
 from torchbrdf._checks import check_finite, validation_enabled
-from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize
+from torchbrdf._math import cast_back, compute_dtype, safe_normalize
+from torchbrdf.brdf import formula
 from torchbrdf.render.envmap import (
     ENV_SAMPLINGS,
     PREFILTER_ROUGHNESS,
@@ -62,8 +70,8 @@ DEFAULT_ENV_SAMPLES = 64
 # Environment samples are evaluated in passes of about this many (pixel, sample) pairs, so an
 # environment pass costs about as much memory as one point light over 2^18 pixels.
 ENV_ELEMENTS_PER_PASS = 1 << 18
-# Squared distance floor for point lights (a light exactly on the surface): keeps 1/d² finite.
-DIST2_EPS = 1e-12
+# Squared distance floor for point lights (defined with the shading formula).
+DIST2_EPS = formula.DIST2_EPS
 
 # One source of truth for the principled lobes and defaults.
 _LOBES = LOBES
@@ -298,7 +306,83 @@ def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
     check_finite(named)
 
 
-def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis") -> _Prepared:
+def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
+    """Whether the point and directional lights go through the fused shading kernel.
+
+    The principled BRDF on CPU float32/float64 with the fused kernels enabled (see
+    :func:`torchbrdf.set_fast_path`; automatic mode from ``FAST_PATH_MIN_LANES`` pixel-lights),
+    no gradient wanted w.r.t. lights or camera (those stay on the eager shader).
+    """
+    if kind != "principled" or not (points or dirs):
+        return False
+    from torchbrdf.brdf import principled as _pr
+
+    mode = _pr.fast_path_enabled()
+    if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
+        return False
+    if dev.type != "cpu" or cd not in (torch.float32, torch.float64):
+        return False
+    if torch.jit.is_tracing() or torch.jit.is_scripting():
+        return False
+    if "base_color" not in values or set(values) - set(_DEFAULTS) - {"base_color"}:
+        return False  # the eager call raises the error naming the argument
+    for k, t in [("position", gbuf.position), ("normal", gbuf.normal), *values.items()]:
+        if not isinstance(t, Tensor):
+            continue
+        if type(t) not in (Tensor, nn.Parameter) or (
+            not torch.compiler.is_compiling() and torch._C._functorch.is_functorch_wrapped_tensor(t)
+        ):
+            return False
+        channels = {"position": (3,), "normal": (3,), "base_color": (1, 3)}.get(k, (1,))
+        if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
+            return False
+    if torch.is_grad_enabled():
+        uniform = [cam] + [t for light in points + dirs for t in light._light_tensors()]
+        if any(t.requires_grad for t in uniform):
+            return False
+    if mode is None and elements < _pr.FAST_PATH_MIN_LANES:
+        return False
+    return _pr._kernels_available()
+
+
+def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
+    """``(R, 3 + 6 L)``: camera, then ``(q, I)`` per point and ``(d, E)`` per directional light,
+    one row per batch element (``R = 1`` when nothing is batched)."""
+    parts = [cam.reshape(-1, 3)]
+    for light in points:
+        parts += [
+            light.position.to(device=dev, dtype=cd).reshape(-1, 3),
+            light.intensity.to(device=dev, dtype=cd).reshape(-1, 3),
+        ]
+    for light in dirs:
+        parts += [
+            light.direction.to(device=dev, dtype=cd).reshape(-1, 3),
+            light.irradiance.to(device=dev, dtype=cd).reshape(-1, 3),
+        ]
+    rows = max(p.shape[0] for p in parts)
+    return torch.cat([p.detach().expand(rows, 3) for p in parts], dim=1).contiguous()
+
+
+def _fused_lights_term(
+    table: Tensor, pos, n, x, y, mat, bidx, active, frame, normalize_n, n_point, n_dir
+) -> Tensor:
+    """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
+    (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
+    from torchbrdf.brdf.principled import _need_tint
+    from torchbrdf.kernels.shade_ops import shade_lights
+
+    c = {**_DEFAULTS, **mat, "pos": pos, "n": n, "x": x, "y": y}
+    if table.shape[0] == 1:
+        seg = [0, pos.shape[0]]
+    else:  # points are batch-major: one segment (uniform row) per image
+        counts = torch.bincount(bidx, minlength=table.shape[0])
+        seg = [0] + torch.cumsum(counts, 0).tolist()
+    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir)
+
+
+def _prepare(
+    gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling="mis"
+) -> _Prepared:
     if not isinstance(gbuf, GBuffer):
         raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
     lights = _as_light_list(lights)
@@ -346,18 +430,26 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
     with torch.no_grad():
         c4 = cam.reshape(-1, 3, 1, 1)
         facing = (gbuf.normal.detach().to(cd) * (c4 - pos_img.detach())).sum(1) > 0  # (B, H, W)
-        covered = torch.ones_like(facing) if gbuf.mask is None else (gbuf.mask[:, 0] > 0).expand(b, h, w)
-        active = facing & covered
         n_total = b * h * w
         # Under torch.compile the value-dependent decisions (which pixels, which maps are
         # constant) would each be a graph break and a guard on the data, i.e. a recompile per
         # new input: there every pixel and map is evaluated (as with prune=False).
         compiling = torch.compiler.is_compiling()
         data_prune = prune and not compiling
-        n_masked = -1 if compiling else int((~covered).sum())  # -1: not counted under torch.compile
-        n_back = -1 if compiling else int((covered & ~facing).sum())
+        counted = not compiling  # -1: not counted under torch.compile
+        if gbuf.mask is None:  # (few whole-image ops: each costs a thread wake-up on a loaded machine)
+            active = facing
+            n_masked = 0
+            n_facing = int(facing.sum()) if counted else -1
+            n_back = n_total - n_facing if counted else -1
+        else:
+            covered = (gbuf.mask[:, 0] > 0).expand(b, h, w)
+            active = facing & covered
+            n_masked = int((~covered).sum()) if counted else -1
+            n_facing = int(active.sum()) if counted else -1
+            n_back = int((covered & ~facing).sum()) if counted else -1
     select = active if data_prune else torch.ones_like(active)
-    pixels = _Pixels(select, None if data_prune else True)
+    pixels = _Pixels(select, (n_facing == n_total) if data_prune else True)
     p_count = pixels.count
 
     # ---- material, lobes, frames
@@ -453,7 +545,11 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
 
     brdf_evals = p_count * (len(points) + len(dirs)) + env_evals
     lobe_cost = sum(_LOBE_COST[x] for x in lobes) if lobes is not None else 4.0
-    passes = n_slices * (len(points) + len(dirs)) + env_passes
+    fused = _fused_lights_wanted(
+        gbuf, kind, values, points, dirs, cam, dev, cd, p_count * (len(points) + len(dirs))
+    )
+    # Fused: all point and directional lights in one kernel pass per chunk.
+    passes = n_slices * (min(1, len(points) + len(dirs)) if fused else len(points) + len(dirs)) + env_passes
     elements_per_pass = (
         chunk_px
         if not (envs and env_strategy == "mc")
@@ -463,6 +559,11 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
     est = int(elements_per_pass * lobe_cost * _BYTES_PER_ELEMENT_COST * itemsize / 4)
     est += int(p_count * itemsize * 3 * (4 + len([v for v in values.values() if isinstance(v, Tensor)])))
     notes = []
+    if fused:
+        notes.append(
+            f"point/directional lights: fused kernel, the {len(points) + len(dirs)} light(s) looped inside"
+            " one pass (forward and recompute-backward)"
+        )
     if not prune:
         notes.append("pruning disabled (prune=False): every pixel and every material map is evaluated")
     the_plan = ShadingPlan(
@@ -496,10 +597,17 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             return cast_back(zero + 0.0 * pos_img.sum(), out_dtype)
         # Boundary conversion: (B, C, H, W) -> (P, C), once.
         pos = pixels.gather(pos_img)
-        n = safe_normalize(pixels.gather(gbuf.normal.to(cd)))
+        n = pixels.gather(gbuf.normal.to(cd))
+        # The fused kernel normalises the normal and computes v itself (the same formula) unless
+        # the frames or the environment passes need them here.
+        n_in_kernel = fused and not need_frame and not envs
+        if not n_in_kernel:
+            n = safe_normalize(n)
         bidx = pixels.batch_index
-        cam_p = cam[bidx] if cam.dim() == 2 and cam.shape[0] > 1 else cam.reshape(1, 3)
-        v = safe_normalize(cam_p - pos)
+        v = None
+        if not (fused and not envs):
+            cam_p = cam[bidx] if cam.dim() == 2 and cam.shape[0] > 1 else cam.reshape(1, 3)
+            v = formula.view_direction(formula.TorchOps(cd, dev), cam_p, pos)
         x = y = None
         if need_frame:
             if gbuf.tangent is not None:
@@ -510,12 +618,15 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             k: (pixels.gather(val) if isinstance(val, Tensor) and val.dim() == 4 else val)
             for k, val in values.items()
         }
-        light_params = []
-        for light in points:
+        table = _uniform_table(cam, points, dirs, dev, cd) if fused else None
+        if fused and _checks.validation_enabled():
+            _checks.check_finite({k: val for k, val in mat.items() if isinstance(val, Tensor)})
+        light_params = []  # per-light eager passes (the fused kernel takes them all at once)
+        for light in [] if fused else points:
             light_params.append(
                 ("point", light.position.to(device=dev, dtype=cd), light.intensity.to(device=dev, dtype=cd))
             )
-        for light in dirs:
+        for light in [] if fused else dirs:
             light_params.append(
                 ("dir", light.direction.to(device=dev, dtype=cd), light.irradiance.to(device=dev, dtype=cd))
             )
@@ -533,9 +644,14 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             e = min(s + chunk_px, p_count)
 
             def sl(t, s=s, e=e):
+                # (one chunk: no slicing, whose backward would allocate and copy full-size gradients)
                 return (
                     t[s:e]
-                    if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == p_count and p_count > 1
+                    if isinstance(t, Tensor)
+                    and t.dim() >= 1
+                    and t.shape[0] == p_count
+                    and p_count > 1
+                    and (s, e) != (0, p_count)
                     else t
                 )
 
@@ -546,7 +662,23 @@ def _prepare(gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, 
             }
             # One accumulator per chunk, updated in place: a fresh sum per light would land on
             # top of the heap each time and fragment it (freed pages stay resident).
-            acc = pos_s.new_zeros(e - s, 3)
+            if fused:  # the kernel's output is a fresh buffer: accumulate into it
+                acc = _fused_lights_term(
+                    table,
+                    pos_s,
+                    n_s,
+                    x_s,
+                    y_s,
+                    mat_s,
+                    bidx_s,
+                    lobes,
+                    need_frame,
+                    n_in_kernel,
+                    len(points),
+                    len(dirs),
+                )
+            else:
+                acc = pos_s.new_zeros(e - s, 3)
             for kind_l, p1, p2 in light_params:
                 fn = _point_term if kind_l == "point" else _directional_term
                 term = _pass(e - s, fn, brdf, pos_s, n_s, v_s, x_s, y_s, mat_s, p1, p2, bidx_s)
@@ -689,21 +821,23 @@ def _per_pixel(t: Tensor, bidx: Tensor) -> Tensor:
 
 
 def _point_term(brdf, pos, n, v, x, y, mat, q, intensity, bidx) -> Tensor:
-    """``f(l, v) I max(n·l, 0) / |q - P|²`` at ``(P, 3)`` points."""
-    d = _per_pixel(q, bidx) - pos
-    dist2 = torch.clamp(dot(d, d), min=DIST2_EPS)
-    l = d * torch.rsqrt(dist2)
-    f = brdf(l, v, n, x, y, **mat)
-    cos = torch.clamp(dot(n, l), min=0.0)
-    return f * _per_pixel(intensity, bidx) * (cos / dist2)
+    """``f(l, v) I max(n·l, 0) / |q - P|²`` at ``(P, 3)`` points (:func:`formula.point_light`)."""
+    ops = formula.TorchOps(pos.dtype, pos.device)
+    return formula.point_light(
+        ops, pos, n, _per_pixel(q, bidx), _per_pixel(intensity, bidx), lambda l: brdf(l, v, n, x, y, **mat)
+    )
 
 
 def _directional_term(brdf, pos, n, v, x, y, mat, direction, irradiance, bidx) -> Tensor:
-    """``f(d, v) E max(n·d, 0)`` at ``(P, 3)`` points."""
-    l = safe_normalize(_per_pixel(direction, bidx)).expand_as(n)
-    f = brdf(l, v, n, x, y, **mat)
-    cos = torch.clamp(dot(n, l), min=0.0)
-    return f * _per_pixel(irradiance, bidx) * cos
+    """``f(d, v) E max(n·d, 0)`` at ``(P, 3)`` points (:func:`formula.directional_light`)."""
+    ops = formula.TorchOps(n.dtype, n.device)
+    return formula.directional_light(
+        ops,
+        n,
+        _per_pixel(direction, bidx),
+        _per_pixel(irradiance, bidx),
+        lambda l: brdf(l.expand_as(n), v, n, x, y, **mat),
+    )
 
 
 # --------------------------------------------------------------------------------------

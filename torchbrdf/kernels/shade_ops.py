@@ -1,0 +1,289 @@
+"""Fused shading as PyTorch operators: ``torch.ops.torchbrdf.shade_lights_{fwd,bwd}``.
+
+* ``shade_lights_fwd(tensors, floats, uniforms, seg, cfg) -> (P, 3)``: the radiance of ``P``
+  surface points summed over the point and directional lights, in one kernel pass
+  (:mod:`torchbrdf.kernels.codegen_shade`);
+* ``shade_lights_bwd(tensors, floats, uniforms, seg, cfg, grad_out, need)``: the gradients of
+  ``tensors[i]`` for ``i`` in ``need``, by recomputation (nothing is saved but the inputs).
+
+``tensors`` are the per-pixel inputs named in ``cfg`` (``pos (P, 3)``, ``n (P, 3)``, ``x, y``
+when the anisotropic form is evaluated, ``base_color (P, 3)``, scalar maps ``(P, 1)``; each
+may also be one value broadcast to all points), ``floats`` the material parameters that are
+Python numbers. ``uniforms`` ``(S, 3 + 6 (Lp + Ld))`` holds per segment of points (one per
+batch element when lights or camera differ between images) the camera position, then
+``(q, I)`` per point light and ``(d, E)`` per directional light; ``seg`` (``S + 1`` offsets)
+are the segments' point ranges. Gradients flow to ``tensors`` only: a caller that needs
+gradients w.r.t. lights or camera uses the eager shader.
+
+``cfg`` = ``"tensor names|float names|lobes|tint|frame|normalize n|Lp|Ld"`` (normalize n: ``n``
+is the raw normal and the kernel normalises it, as the eager shader does). Autograd is registered on
+the forward op (what ``torch.compile`` traces). If a kernel cannot be built, the ops evaluate
+the same formula (:mod:`torchbrdf.brdf.formula`) eagerly.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchbrdf.kernels.codegen_shade import CAMERA, LIGHT_STRIDE, ShadeSpec
+from torchbrdf.kernels.fused import _load, _pool
+from torchbrdf.kernels.ops import SCALAR_NAMES, _dparams, _flatten, _ptrs, _to_shape
+
+__all__ = ["shade_lights", "make_cfg", "TENSOR_ORDER"]
+
+#: The order of the per-pixel inputs (those present).
+TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES
+
+
+def make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir) -> str:
+    return "|".join(
+        [
+            ",".join(tensor_names),
+            ",".join(float_names),
+            ",".join(active),
+            str(int(need_tint)),
+            str(int(frame)),
+            str(int(normalize_n)),
+            str(int(n_point)),
+            str(int(n_dir)),
+        ]
+    )
+
+
+class _Plan:
+    def __init__(self, cfg: str, tensors, floats):
+        tn, fn, act, tint, frame, nrm, lp, ld = cfg.split("|")
+        self.tensor_names = tn.split(",") if tn else []
+        self.float_names = fn.split(",") if fn else []
+        self.active = tuple(act.split(",")) if act else ()
+        self.need_tint, self.frame, self.normalize_n = tint == "1", frame == "1", nrm == "1"
+        self.n_point, self.n_dir = int(lp), int(ld)
+        self.C = [1 if k in SCALAR_NAMES else 3 for k in self.tensor_names]
+        self.N = tensors[0].shape[0]  # pos is always a (P, 3) tensor
+        self.dtype = tensors[0].dtype
+        self.floats = [float(x) for x in floats]
+
+    def flat(self, tensors):
+        out = [_flatten(t, C, (self.N,), self.N) for t, C in zip(tensors, self.C)]
+        modes = tuple((k, m, C) for k, (_, m), C in zip(self.tensor_names, out, self.C))
+        return [f for f, _ in out], modes
+
+    def spec(self, modes, grad_mask=(), go_mode="full") -> ShadeSpec:
+        ctype = "float" if self.dtype == torch.float32 else "double"
+        lights = (("point",) if self.n_point else ()) + (("directional",) if self.n_dir else ())
+        return ShadeSpec(
+            ctype,
+            modes,
+            self.float_names,
+            self.active,
+            self.need_tint,
+            self.frame,
+            lights,
+            grad_mask,
+            self.normalize_n,
+            go_mode,
+        )
+
+    def params(self):
+        return _dparams(self.floats + [float(self.n_point), float(self.n_dir)])
+
+
+def _segments(seg):
+    return [(r, s, e) for r, (s, e) in enumerate(zip(seg[:-1], seg[1:])) if e > s]
+
+
+def _formula_eager(plan: _Plan, tensors, floats, uniforms: Tensor, seg) -> Tensor:
+    """The shared formula on torch tensors: the fallback and the double backward."""
+    from torchbrdf.brdf import formula
+
+    ops = formula.TorchOps(plan.dtype, tensors[0].device)
+    pieces = []
+    for r, s, e in _segments(seg):
+        c = dict(zip(plan.float_names, floats))
+        for k, t in zip(plan.tensor_names, tensors):
+            c[k] = t[s:e] if t.dim() == 2 and t.shape[0] == plan.N and plan.N > 1 else t
+        c.setdefault("x", None)
+        c.setdefault("y", None)
+        u = uniforms[r]
+        pos = c.pop("pos")
+        if plan.normalize_n:
+            c["n"] = formula.normalize(ops, c["n"])
+        n = c["n"]
+        c["v"] = formula.view_direction(ops, u[:CAMERA], pos)
+
+        def brdf(l, c=c):
+            return formula.principled(ops, {**c, "l": l}, plan.active, plan.need_tint, plan.frame)
+
+        acc = torch.zeros(e - s, 3, dtype=plan.dtype, device=pos.device)
+        for j in range(plan.n_point + plan.n_dir):
+            lu = u[CAMERA + LIGHT_STRIDE * j : CAMERA + LIGHT_STRIDE * (j + 1)]
+            if j < plan.n_point:
+                acc = acc + formula.point_light(ops, pos, n, lu[:3], lu[3:], brdf)
+            else:
+                acc = acc + formula.directional_light(ops, n, lu[:3], lu[3:], brdf)
+        pieces.append(acc)
+    if not pieces:
+        return torch.zeros(plan.N, 3, dtype=plan.dtype, device=tensors[0].device)
+    return torch.cat(pieces) if len(pieces) > 1 else pieces[0]
+
+
+def _run_fwd(plan: _Plan, tensors, uniforms: Tensor, seg) -> Tensor:
+    N = plan.N
+    if N == 0:
+        return torch.zeros(0, 3, dtype=plan.dtype)
+    flat, modes = plan.flat(tensors)
+    lib = _load(plan.spec(modes), backward=False)
+    if lib is None:
+        with torch.no_grad():
+            return _formula_eager(plan, tensors, plan.floats, uniforms, seg)
+    uniforms = uniforms.contiguous()
+    out = _pool.empty((N, 3), plan.dtype)
+    item = out.element_size()
+    P = plan.params()
+    nt = torch.get_num_threads()
+    for r, s, e in _segments(seg):
+        ins = [f.data_ptr() + (s * C * item if mode == "full" else 0) for f, (_, mode, C) in zip(flat, modes)]
+        ins.append(uniforms[r].data_ptr())
+        lib[1](e - s, _ptrs(ins), P, out.data_ptr() + s * 3 * item, nt)
+    return out
+
+
+def _zeros(t: Tensor) -> Tensor:
+    # Gradients are always contiguous (what the fake implementation promises torch.compile).
+    return t.new_zeros(t.shape)
+
+
+def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need) -> list:
+    N = plan.N
+    if N == 0 or not need:
+        return [_zeros(tensors[i]) for i in need]
+    flat, modes = plan.flat(tensors)
+    # The output gradient as lanes too: the gradient of a sum is one value for all pixels ('b0'),
+    # read in place instead of being materialised.
+    go, go_mode = _flatten(grad_out.to(plan.dtype), 3, (N,), N)
+    lib = _load(plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode), backward=True)
+    if lib is None:
+        with torch.enable_grad():
+            ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
+            out = _formula_eager(plan, ts, plan.floats, uniforms, seg)
+            gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
+        return [g.contiguous() if g is not None else _zeros(tensors[i]) for i, g in zip(need, gs)]
+    written = lib[2]
+    uniforms = uniforms.contiguous()
+    item = go.element_size()
+    full = {i: _pool.empty((N, plan.C[i]), plan.dtype) for i in need if i in written}
+    P = plan.params()
+    nt = torch.get_num_threads()
+    for r, s, e in _segments(seg):
+        ins = [f.data_ptr() + (s * C * item if mode == "full" else 0) for f, (_, mode, C) in zip(flat, modes)]
+        ins.append(uniforms[r].data_ptr())
+        gouts = [
+            full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))
+        ]
+        go_ptr = go.data_ptr() + (s * 3 * item if go_mode == "full" else 0)
+        lib[1](e - s, _ptrs(ins), P, go_ptr, _ptrs(gouts), nt)
+    return [_to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
+
+
+@torch.library.custom_op("torchbrdf::shade_lights_fwd", mutates_args=())
+def shade_lights_fwd(
+    tensors: list[Tensor], floats: list[float], uniforms: Tensor, seg: list[int], cfg: str
+) -> Tensor:
+    """The fused shading forward: ``(P, 3)`` radiance summed over the lights."""
+    return _run_fwd(_Plan(cfg, tensors, floats), tensors, uniforms, list(seg))
+
+
+@shade_lights_fwd.register_fake
+def _(tensors, floats, uniforms, seg, cfg):
+    return tensors[0].new_empty((tensors[0].shape[0], 3))
+
+
+@torch.library.custom_op("torchbrdf::shade_lights_bwd", mutates_args=())
+def shade_lights_bwd(
+    tensors: list[Tensor],
+    floats: list[float],
+    uniforms: Tensor,
+    seg: list[int],
+    cfg: str,
+    grad_out: Tensor,
+    need: list[int],
+) -> list[Tensor]:
+    """The fused recompute-backward: gradients of ``tensors[i]`` for ``i`` in ``need``."""
+    return _run_bwd(_Plan(cfg, tensors, floats), tensors, uniforms, list(seg), grad_out, list(need))
+
+
+@shade_lights_bwd.register_fake
+def _(tensors, floats, uniforms, seg, cfg, grad_out, need):
+    return [tensors[i].new_empty(tensors[i].shape) for i in need]
+
+
+def _setup_context(ctx, inputs, output):
+    tensors, floats, uniforms, seg, cfg = inputs
+    ctx.save_for_backward(*tensors, uniforms)
+    ctx.need = [i for i, t in enumerate(tensors) if t.requires_grad]
+    ctx.floats, ctx.seg, ctx.cfg = floats, seg, cfg
+
+
+def _no_grad(floats):
+    # torch.library matches the gradient structure to the inputs: an empty list stays a list.
+    return [] if len(floats) == 0 else None
+
+
+def _backward(ctx, grad_out):
+    *tensors, uniforms = ctx.saved_tensors
+    need = ctx.need
+    grads = [None] * len(tensors)
+    if not need:
+        return grads, _no_grad(ctx.floats), None, None, None
+    if torch.is_grad_enabled() and any(tensors[i].requires_grad for i in need):
+        # create_graph=True: a differentiable backward, eagerly from the same formula.
+        plan = _Plan(ctx.cfg, tensors, ctx.floats)
+        with torch.enable_grad():
+            out = _formula_eager(plan, tensors, ctx.floats, uniforms, ctx.seg)
+            gs = torch.autograd.grad(
+                out, [tensors[i] for i in need], grad_out, create_graph=True, allow_unused=True
+            )
+        for i, g in zip(need, gs):
+            grads[i] = g
+        return grads, _no_grad(ctx.floats), None, None, None
+    for i, g in zip(
+        need,
+        shade_lights_bwd(list(tensors), list(ctx.floats), uniforms, list(ctx.seg), ctx.cfg, grad_out, need),
+    ):
+        grads[i] = g
+    return grads, _no_grad(ctx.floats), None, None, None
+
+
+shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)
+
+
+def shade_lights(
+    c: dict,
+    uniforms: Tensor,
+    seg: list,
+    active,
+    need_tint: bool,
+    frame: bool,
+    normalize_n: bool,
+    n_point: int,
+    n_dir: int,
+) -> Tensor:
+    """Fused shading of ``P`` points on compute-dtype CPU inputs.
+
+    Args:
+        c: ``pos``, ``n`` ``(P, 3)``; ``x, y`` ``(P, 3)`` when ``frame``; ``base_color`` and
+            the ten scalar parameters (tensors ``(P, C)`` / 0-d, or Python numbers).
+        uniforms: ``(S, 3 + 6 (n_point + n_dir))`` (see the module docstring); ``seg``: ``S + 1``
+            point offsets.
+
+    Returns:
+        ``(P, 3)`` radiance summed over the lights.
+    """
+    names = [k for k in TENSOR_ORDER if k in c and (k not in ("x", "y") or frame)]
+    tensor_names = [k for k in names if isinstance(c[k], Tensor)]
+    float_names = [k for k in names if k not in tensor_names]
+    tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
+    floats = [float(c[k]) for k in float_names]
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir)
+    return shade_lights_fwd(tensors, floats, uniforms, [int(s) for s in seg], cfg)
