@@ -396,10 +396,17 @@ def _remove(so: str) -> None:
 def _dlopen(so: str, symbols):
     """``ctypes.CDLL(so)`` with ``symbols`` (name -> (argtypes, restype)) resolved and typed."""
     cdll = ctypes.CDLL(so)
-    for sym, (argtypes, restype) in (symbols or {}).items():
-        fn = getattr(cdll, sym)  # AttributeError when missing
-        fn.argtypes = list(argtypes)
-        fn.restype = restype
+    try:
+        for sym, (argtypes, restype) in (symbols or {}).items():
+            fn = getattr(cdll, sym)  # AttributeError when missing
+            fn.argtypes = list(argtypes)
+            fn.restype = restype
+    except AttributeError:
+        # unload it: glibc would hand back this very object for the rebuilt file at this path
+        import _ctypes
+
+        _ctypes.dlclose(cdll._handle)
+        raise
     return cdll
 
 
