@@ -39,7 +39,7 @@ def _inputs():
 
 
 def _run(fast: bool):
-    """principled forward + backward (w.r.t. base_color and roughness); (out, grads, grad_fn name)."""
+    """Run ``principled`` forward + backward (w.r.t. base_color, roughness): (out, grads, grad_fn name)."""
     old = P.fast_path_enabled()
     P.set_fast_path(fast)
     try:
@@ -55,7 +55,7 @@ def _run(fast: bool):
 
 
 def _check_principled(expect_fused: bool | None = None):
-    """principled works and equals eager; returns whether the fused kernels ran."""
+    """Check that ``principled`` works and equals eager; returns whether the fused kernels ran."""
     of, gf, name = _run(True)
     oe, ge, _ = _run(False)
     torch.testing.assert_close(of, oe, rtol=1e-6, atol=1e-7)
@@ -211,7 +211,8 @@ def test_damaged_cached_kernel_is_rebuilt(cache, golden, recwarn, damage):
     bad = {}
     for so in _kernels(kd):
         data = (kd / so).read_bytes()
-        bad[so] = {"truncated": data[: len(data) // 2], "zero_bytes": b"", "garbage": os.urandom(len(data))}[damage]
+        bad[so] = {"truncated": data[: len(data) // 2], "zero_bytes": b"",
+                   "garbage": os.urandom(len(data))}[damage]
         (kd / so).write_bytes(bad[so])
     assert _check_principled(expect_fused=True)
     for so in bad:  # rebuilt in place
@@ -332,8 +333,8 @@ def test_two_processes_compiling_at_once(cache):
     """)
     env = dict(os.environ, TORCHBRDF_CACHE_DIR=str(cache), OMP_NUM_THREADS="1")
     ready = [cache.parent / f"ready{k}" for k in range(2)]
-    procs = [subprocess.Popen([sys.executable, "-c", script, str(r)], env=env, stderr=subprocess.PIPE, text=True)
-             for r in ready]
+    procs = [subprocess.Popen([sys.executable, "-c", script, str(r)], env=env, stderr=subprocess.PIPE,
+                              text=True) for r in ready]
     t0 = time.time()
     while not all(r.exists() for r in ready) and time.time() - t0 < 300:
         time.sleep(0.05)
