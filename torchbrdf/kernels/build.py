@@ -337,16 +337,21 @@ def _compile(source: str, so: str, cflags) -> str | None:
             fh.write(source)
         cc = _compiler()
         omp = _openmp_runtime() if "-fopenmp" in cflags else None
+        plain = [cc, *cflags, "-shared", cpath, "-o", tmp_so, "-lm"]
         if omp:
-            # compile with OpenMP, link against PyTorch's runtime (no -fopenmp at link: no -lgomp)
-            steps = [[cc, *cflags, "-c", cpath, "-o", obj],
-                     [cc, "-shared", "-fPIC", obj, omp, "-o", tmp_so, "-lm"]]
-        else:
-            steps = [[cc, *cflags, "-shared", cpath, "-o", tmp_so, "-lm"]]
-        for cmd in steps:
-            res = subprocess.run(cmd, capture_output=True, text=True)
+            # compile with OpenMP, link against PyTorch's runtime (no -fopenmp at link: no -lgomp);
+            # -z defs: a runtime lacking gcc's GOMP_* entry points fails here, not at dlopen
+            res = subprocess.run([cc, *cflags, "-c", cpath, "-o", obj], capture_output=True, text=True)
             if res.returncode != 0:
                 return (res.stderr or res.stdout)[-2000:]
+            res = subprocess.run([cc, "-shared", "-fPIC", "-Wl,-z,defs", obj, omp, "-o", tmp_so, "-lm"],
+                                 capture_output=True, text=True)
+            if res.returncode != 0:  # then the compiler's own OpenMP runtime
+                res = subprocess.run(plain, capture_output=True, text=True)
+        else:
+            res = subprocess.run(plain, capture_output=True, text=True)
+        if res.returncode != 0:
+            return (res.stderr or res.stdout)[-2000:]
         with open(tmp_so, "rb+") as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp_so, 0o700)
