@@ -281,8 +281,8 @@ def _passive_openmp_wait() -> None:
 
     OpenMP threads that spin while they wait made the recovery 5x slower next to one busy
     process (docs/fast_path.md). libgomp reads the policy when torch is imported, which the
-    console script has done before ``main`` runs, hence the re-exec (``python -m
-    training.recover_svbrdf`` sets it before importing torch instead). A policy the user set
+    console script has done before ``main`` runs, hence the re-exec (for ``python -m
+    training.recover_svbrdf``, ``training/__init__.py`` sets it before torch is imported). A policy the user set
     (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``) is kept; a library import never changes it.
     """
     if (os.name != "posix" or not sys.executable or "OMP_WAIT_POLICY" in os.environ
