@@ -78,3 +78,22 @@ def test_recovery_cli_sleeps_instead_of_spinning(user, expect):
         print(os.environ.get("OMP_WAIT_POLICY"), torch_first)
     """, {"OMP_WAIT_POLICY": user} if user else None)
     assert out.split() == [expect, "False"]  # set by the package, before anything imported torch
+
+
+@pytest.mark.skipif(os.name != "posix", reason="the re-exec is POSIX only")
+def test_console_script_restarts_once_with_passive_wait(tmp_path):
+    """``torchbrdf-recover`` imported torch before ``main``: it re-executes itself once with PASSIVE."""
+    script = tmp_path / "torchbrdf-recover"  # what pip generates for the console script
+    script.write_text(textwrap.dedent("""
+        import os, sys
+        from torchbrdf.recovery.svbrdf import main
+        print("POLICY", os.environ.get("OMP_WAIT_POLICY"), flush=True)
+        sys.exit(main())
+    """))
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    res = subprocess.run([sys.executable, str(script), "--help"], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert [x for x in res.stdout.splitlines() if x.startswith("POLICY")] == ["POLICY None", "POLICY PASSIVE"]
+    assert "usage:" in res.stdout
