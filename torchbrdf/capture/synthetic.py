@@ -680,15 +680,17 @@ def default_capture(folder: str | os.PathLike | None = None, size: int = 128) ->
     """The demo capture: generated deterministically on first use (no network).
 
     Args:
-        folder: where to put it; default ``~/.cache/torchbrdf/default_capture_<size>``
-            (``$TORCHBRDF_CACHE_DIR`` overrides the cache root).
+        folder: where to put it; default ``<cache>/default_capture_<size>`` where ``<cache>`` is
+            ``$TORCHBRDF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchbrdf`` or ``~/.cache/torchbrdf``.
         size: resolution.
 
     Returns:
         The capture folder (holding ``capture.json`` and ``gt/``).
     """
     if folder is None:
-        root = Path(os.environ.get("TORCHBRDF_CACHE_DIR") or Path.home() / ".cache" / "torchbrdf")
+        from torchbrdf.kernels.build import cache_root  # the one cache variable, one default
+
+        root = Path(cache_root())
         folder = root / f"default_capture_{size}"
     folder = Path(folder)
     if not (folder / "capture.json").is_file():

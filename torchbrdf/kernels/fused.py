@@ -25,9 +25,11 @@ Compilation: ``gcc -O3 -march=native -fopenmp -ffp-contract=off`` (no ``-ffast-m
 kernels keep IEEE semantics so values match eager), once per *kernel family* — dtype,
 which parameters are tensors vs Python floats (floats are runtime arguments, so sweeping a
 float parameter does not recompile), active lobes, tint/frame use, broadcast pattern and,
-for the backward, which inputs need gradients. The shared library is cached on disk
-(``$TORCHBRDF_CACHE_DIR`` or ``~/.cache/torchbrdf``), so the ~1–3 s build is paid once per
-machine and family; loading a cached kernel takes milliseconds. No compiler → eager.
+for the backward, which inputs need gradients. :mod:`torchbrdf.kernels.build` caches the shared
+library per user (``$TORCHBRDF_CACHE_DIR/kernels``, default ``~/.cache/torchbrdf/kernels``), so
+the ~1–3 s build is paid once per machine and family; loading a cached kernel takes
+milliseconds. No compiler, or any build/cache failure → eager (one warning). The OpenMP loops
+run on PyTorch's own OpenMP runtime and thread count (see ``build``).
 
 Limits: CPU float32/float64 only (CUDA tensors use the Triton kernels printed from the same
 graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-order kernels (a
@@ -37,20 +39,16 @@ graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-ord
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import math
 import mmap
 import os
-import shutil
-import subprocess
-import tempfile
 import threading
-import warnings
 import weakref
 
 import torch
 from torch import Tensor
 
+from torchbrdf.kernels import build as _build
 from torchbrdf.kernels import codegen_c
 
 __all__ = ["available", "kernel_cache_dir", "compiled_kernels", "empty_cache"]
@@ -98,50 +96,19 @@ class _KernelSpec:
         return base + ((self.go_strides, self.grad_mask) if backward else ())
 
 
-# -ffp-contract=off: no FMA contraction, so float results round exactly like ATen's ops.
-# -fno-math-errno/-fno-trapping-math: lets sqrt and the selects vectorise (IEEE results kept).
-# The -fno-* passes below would otherwise thread jumps through the clamps of the backward and
-# leave boolean selects that gcc 12 cannot vectorise (measured: 3-4x slower without them).
-_CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
-           "-fno-trapping-math", "-fno-tree-dominator-opts", "-fno-thread-jumps", "-fno-tree-pre",
-           "-fno-code-hoisting", "-fPIC", "-shared", "-std=c11"]
+# Building, caching and loading live in :mod:`torchbrdf.kernels.build` (per-user cache, atomic
+# writes, validated loads, locks, PyTorch's OpenMP runtime); these names stay for callers.
+_CFLAGS = _build.CFLAGS
 _lock = threading.Lock()
-_libs: dict = {}
+_libs: dict = {}  # spec key -> (cdll, fn, written)
 _failed: set = set()
-_compiler_state = {"checked": False, "cc": None}
+kernel_cache_dir = _build.kernel_cache_dir
+available = _build.available
+_compiler = _build._compiler
+_machine_tag = _build._machine_tag
 
-
-def kernel_cache_dir() -> str:
-    """Directory holding compiled kernels: ``$TORCHBRDF_CACHE_DIR`` or ``~/.cache/torchbrdf``."""
-    d = os.environ.get("TORCHBRDF_CACHE_DIR")
-    if not d:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        d = os.path.join(base, "torchbrdf", "kernels")
-    return d
-
-
-def _machine_tag() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("flags"):
-                    return hashlib.sha1(line.encode()).hexdigest()[:8]
-    except OSError:
-        pass
-    return "generic"
-
-
-def _compiler():
-    if not _compiler_state["checked"]:
-        _compiler_state["checked"] = True
-        cc = os.environ.get("CC") or "gcc"
-        _compiler_state["cc"] = shutil.which(cc) or shutil.which("gcc") or shutil.which("cc")
-    return _compiler_state["cc"]
-
-
-def available() -> bool:
-    """True when the fused CPU kernels can be built here (a C compiler with OpenMP is found)."""
-    return _compiler() is not None and os.name == "posix"
+_FWD_ARGS = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+_BWD_ARGS = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
 
 
 def compiled_kernels() -> int:
@@ -149,7 +116,9 @@ def compiled_kernels() -> int:
     return len(_libs)
 
 
-def _load(spec: _KernelSpec, backward):  # backward: False (forward), True or "jvp"
+def _load(spec: _KernelSpec, backward: bool | str):
+    """``(cdll, fn, written)`` for the kernel of ``spec`` (``backward``: False forward, True
+    backward, ``"jvp"``), or None (then run eager)."""
     key = spec.key(backward)
     lib = _libs.get(key)
     if lib is not None:
@@ -162,37 +131,13 @@ def _load(spec: _KernelSpec, backward):  # backward: False (forward), True or "j
             return None
         src = _generate(spec, backward)
         written = getattr(spec, "written", ())
-        tag = hashlib.sha1((src + " ".join(_CFLAGS) + _machine_tag() + str(_compiler())).encode()).hexdigest()[:20]
-        d = kernel_cache_dir()
-        try:
-            os.makedirs(d, exist_ok=True)
-        except OSError:
-            d = os.path.join(tempfile.gettempdir(), "torchbrdf-kernels")
-            os.makedirs(d, exist_ok=True)
-        so = os.path.join(d, f"principled_{'jvp' if backward == 'jvp' else ('bwd' if backward else 'fwd')}_{tag}.so")
-        if not os.path.exists(so):
-            fd, cpath = tempfile.mkstemp(suffix=".c", dir=d)
-            with os.fdopen(fd, "w") as fh:
-                fh.write(src)
-            tmp_so = cpath[:-2] + ".so"
-            cmd = [_compiler(), *_CFLAGS, cpath, "-o", tmp_so, "-lm"]
-            res = subprocess.run(cmd, capture_output=True, text=True)
-            os.unlink(cpath)
-            if res.returncode != 0:
-                _failed.add(key)
-                warnings.warn(f"torchbrdf: building the fused kernel failed; using eager.\n{res.stderr[-2000:]}",
-                              RuntimeWarning, stacklevel=3)
-                return None
-            os.replace(tmp_so, so)  # atomic: concurrent processes never load a partial file
-        cdll = ctypes.CDLL(so)
-        fn = cdll.tb_jvp if backward == "jvp" else (cdll.tb_bwd if backward else cdll.tb_fwd)
-        if backward:
-            fn.argtypes = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                           ctypes.c_int]
-        else:
-            fn.argtypes = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
-        fn.restype = None
-        lib = (cdll, fn, written)
+        kind = "jvp" if backward == "jvp" else ("bwd" if backward else "fwd")
+        sym = f"tb_{kind}"
+        cdll = _build.load_kernel(src, f"principled_{kind}", {sym: (_BWD_ARGS if backward else _FWD_ARGS, None)})
+        if cdll is None:
+            _failed.add(key)
+            return None
+        lib = (cdll, getattr(cdll, sym), written)
         _libs[key] = lib
         return lib
 

@@ -1,0 +1,99 @@
+"""Threads that share the machine: the fused kernels run on PyTorch's OpenMP pool; the CLI sleeps, not spins.
+
+Each check runs in a fresh interpreter (thread pools and OpenMP settings are per process).
+Timings are in ``python -m torchbrdf.bench.threads`` and docs/fast_path.md, not here.
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from torchbrdf.kernels import build
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _python(code: str, env_extra=None, drop=("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS")) -> str:
+    env = {k: v for k, v in os.environ.items() if k not in drop}
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    env.update(env_extra or {})
+    res = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True,
+                         text=True, timeout=600, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return res.stdout
+
+
+@pytest.mark.skipif(not build.available() or not os.path.exists("/proc/self/maps"),
+                    reason="needs the fused kernels and /proc")
+def test_kernels_share_torchs_openmp_runtime_and_thread_count(tmp_path):
+    out = _python("""
+        import os, torch, torchbrdf
+        from torchbrdf.brdf.principled import set_fast_path
+        set_fast_path(True)
+        torch.set_num_threads(1)
+        N = 1 << 16
+        l = torch.nn.functional.normalize(torch.rand(N, 3) + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+        def run():
+            b = torch.rand(N, 3, requires_grad=True)
+            out = torchbrdf.principled(l, l, l, base_color=b, roughness=0.5)
+            out.sum().backward()
+            assert "PrincipledFunction" in out.grad_fn.name()
+        before = len(os.listdir("/proc/self/task"))
+        run()
+        after = len(os.listdir("/proc/self/task"))
+        maps = {x.split()[-1] for x in open("/proc/self/maps") if "/" in x}
+        omp = sorted(p for p in maps if "gomp" in os.path.basename(p) or "libomp" in os.path.basename(p)
+                     or "iomp5" in os.path.basename(p))
+        kernels = [p for p in maps if "principled_" in p]
+        print("THREADS", before, after)
+        print("OMP", len(omp), omp)
+        print("KERNELS", len(kernels))
+    """, {"TORCHBRDF_CACHE_DIR": str(tmp_path / "cache")})
+    lines = dict(line.split(" ", 1) for line in out.splitlines())
+    before, after = map(int, lines["THREADS"].split())
+    assert after == before  # torch.set_num_threads(1): the kernels started no threads of their own
+    assert lines["OMP"].startswith("1 ")  # one OpenMP runtime in the process: PyTorch's
+    assert int(lines["KERNELS"]) == 2
+
+
+def test_library_import_leaves_the_openmp_environment_alone():
+    out = _python("""
+        import os, torchbrdf, torchbrdf.recovery.svbrdf
+        print(os.environ.get("OMP_WAIT_POLICY"))
+    """)
+    assert out.strip() == "None"
+
+
+@pytest.mark.parametrize("user, expect", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_recovery_cli_sleeps_instead_of_spinning(user, expect):
+    """``python -m training.recover_svbrdf`` has OMP_WAIT_POLICY=PASSIVE set before torch loads libgomp."""
+    out = _python("""
+        import os, sys
+        import training
+        torch_first = "torch" in sys.modules
+        import training.recover_svbrdf
+        print(os.environ.get("OMP_WAIT_POLICY"), torch_first)
+    """, {"OMP_WAIT_POLICY": user} if user else None)
+    assert out.split() == [expect, "False"]  # set by the package, before anything imported torch
+
+
+@pytest.mark.skipif(os.name != "posix", reason="the re-exec is POSIX only")
+def test_console_script_restarts_once_with_passive_wait(tmp_path):
+    """``torchbrdf-recover`` imported torch before ``main``: it re-executes itself once with PASSIVE."""
+    script = tmp_path / "torchbrdf-recover"  # what pip generates for the console script
+    script.write_text(textwrap.dedent("""
+        import os, sys
+        from torchbrdf.recovery.svbrdf import main
+        print("POLICY", os.environ.get("OMP_WAIT_POLICY"), flush=True)
+        sys.exit(main())
+    """))
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    res = subprocess.run([sys.executable, str(script), "--help"], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert [x for x in res.stdout.splitlines() if x.startswith("POLICY")] == ["POLICY None", "POLICY PASSIVE"]
+    assert "usage:" in res.stdout

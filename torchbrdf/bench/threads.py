@@ -1,0 +1,108 @@
+"""``python -m torchbrdf.bench.threads``: wall time quiet vs with one competing busy process.
+
+Why: OpenMP threads that spin-wait collapse on a shared machine (issue 12: the demo recovery
+took 97 s quiet, 507 s next to one busy process). This runs a workload in a fresh process,
+alternately on its own and next to ``python -c "while True: pass"``, for each OpenMP wait
+policy asked for, and prints the median wall times and their ratio. Results: docs/fast_path.md.
+
+Workloads:
+    brdf      ``principled`` forward+backward on the fused kernels, 2^20 lanes, float32, repeated.
+    recovery  ``python -m training.recover_svbrdf --demo --quiet`` (more options with ``--cli``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+_BRDF = r"""
+import sys, time, torch, torchbrdf
+from torchbrdf.brdf.principled import set_fast_path
+set_fast_path(True)
+N, reps = int(sys.argv[1]), int(sys.argv[2])
+g = torch.Generator().manual_seed(0)
+up = torch.tensor([0.0, 0.0, 1.2])
+nrm = lambda x: torch.nn.functional.normalize(x, dim=-1)
+l, v = nrm(torch.rand(N, 3, generator=g) - 0.5 + up), nrm(torch.rand(N, 3, generator=g) - 0.5 + up)
+n = nrm(torch.rand(N, 3, generator=g) * 0.2 - 0.1 + up)
+p = dict(base_color=torch.rand(N, 3, generator=g), roughness=torch.rand(N, 1, generator=g),
+         metallic=torch.rand(N, 1, generator=g), specular=torch.rand(N, 1, generator=g))
+for t in p.values():
+    t.requires_grad_(True)
+def step():
+    out = torchbrdf.principled(l, v, n, **p)
+    out.backward(torch.ones_like(out))
+step()  # build/load the kernels outside the timing
+t0 = time.perf_counter()
+for _ in range(reps):
+    step()
+print("SECONDS", time.perf_counter() - t0)
+"""
+
+
+def _run(cmd, env, busy: bool) -> float:
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+    try:
+        if hog is not None:
+            time.sleep(0.2)
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+    if res.returncode != 0:
+        raise RuntimeError(f"{cmd} failed:\n{res.stderr[-3000:]}")
+    for line in res.stdout.splitlines():
+        if line.startswith("SECONDS"):
+            return float(line.split()[1])  # the workload's own timing (without interpreter start)
+    return wall
+
+
+def main(argv=None) -> int:
+    """Entry point; prints one line per (policy, quiet/busy) and the busy/quiet ratio."""
+    p = argparse.ArgumentParser(prog="python -m torchbrdf.bench.threads",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("workload", choices=("brdf", "recovery"))
+    p.add_argument("--lanes", type=int, default=1 << 20)
+    p.add_argument("--reps", type=int, default=10)
+    p.add_argument("--repeat", type=int, default=3, help="alternating quiet/busy runs per policy")
+    p.add_argument("--policies", default="default,PASSIVE", help="OMP_WAIT_POLICY values ('default' = unset)")
+    p.add_argument("--cli", default="", help="extra options of the recovery CLI, e.g. '--iters 6'")
+    args = p.parse_args(argv)
+    out = tempfile.mkdtemp(prefix="tb-threads-")
+    if args.workload == "brdf":
+        cmd = [sys.executable, "-c", _BRDF, str(args.lanes), str(args.reps)]
+    else:
+        extra = shlex.split(args.cli)
+        cmd = [sys.executable, "-m", "training.recover_svbrdf", "--demo", "--out", out, "--quiet", *extra]
+    print(f"workload: {args.workload}  cores: {os.cpu_count()}  load average: {os.getloadavg()}")
+    for pol in args.policies.split(","):
+        env = dict(os.environ)
+        env.pop("OMP_WAIT_POLICY", None)
+        env.pop("GOMP_SPINCOUNT", None)
+        if pol != "default":
+            env["OMP_WAIT_POLICY"] = pol
+        else:
+            env["GOMP_SPINCOUNT"] = "300000"  # libgomp's default, set so the recovery CLI keeps it
+        times = {False: [], True: []}
+        for _ in range(args.repeat):
+            for busy in (False, True):
+                times[busy].append(_run(cmd, env, busy))
+        q, b = statistics.median(times[False]), statistics.median(times[True])
+        print(f"OMP_WAIT_POLICY={pol:8s} quiet {q:8.2f} s  busy {b:8.2f} s  busy/quiet {b / q:5.2f}  "
+              f"(runs: quiet {[round(t, 2) for t in times[False]]}, "
+              f"busy {[round(t, 2) for t in times[True]]})")
+    print(f"load average after: {os.getloadavg()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
