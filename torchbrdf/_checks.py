@@ -15,11 +15,16 @@ import contextlib
 import math
 import numbers
 import reprlib
+from collections.abc import Iterator
+from typing import TypeVar
 
 import torch
 from torch import Tensor
 
 _VALIDATE = False
+
+# check_tensor returns its argument unchanged, so callers keep their own (narrower) type.
+_T = TypeVar("_T")
 
 
 def set_validation(enabled: bool) -> None:
@@ -34,7 +39,7 @@ def validation_enabled() -> bool:
 
 
 @contextlib.contextmanager
-def validation(enabled: bool = True):
+def validation(enabled: bool = True) -> Iterator[None]:
     """Context manager form of :func:`set_validation`."""
     global _VALIDATE
     old = _VALIDATE
@@ -54,7 +59,7 @@ _REPR.maxstring = 60
 _REPR.maxother = 60  # numpy arrays and other objects: their repr, cut to 60 characters
 
 
-def excerpt(value) -> str:
+def excerpt(value: object) -> str:
     """A repr of ``value`` short enough for an error message (at most a few dozen characters
     per level; long sequences end in ``...``)."""
     return _REPR.repr(value)
@@ -67,7 +72,7 @@ def _describe(t) -> str:
     return f"{type(t).__name__}{size} {excerpt(t)}"
 
 
-def check_tensor(name: str, t, last: int | None = None, allow_scalar: bool = False):
+def check_tensor(name: str, t: _T, last: int | None = None, allow_scalar: bool = False) -> _T:
     """Check a tensor argument's type, floating dtype and trailing dimension.
 
     Args:
@@ -158,7 +163,7 @@ def check_finite(named: dict) -> None:
             raise ValueError(f"{name}: expected a finite number, got {float(t)}")
 
 
-def check_nonnegative(name: str, t) -> None:
+def check_nonnegative(name: str, t: Tensor | float) -> None:
     """Raise if ``t`` has a negative entry (reads data)."""
     if isinstance(t, Tensor):
         if bool((t < 0).any()):

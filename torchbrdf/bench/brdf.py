@@ -38,6 +38,8 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 
@@ -49,12 +51,15 @@ SCALARS = tuple(torchbrdf.PRINCIPLED_DEFAULTS)
 DTYPES = {"float64": torch.float64, "float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 GEN_CHUNK = 1 << 18
 
+# Where progress lines go (print, or a collector).
+_Log = Callable[[str], object]
+
 
 # ---------------------------------------------------------------------------------------------
 # Inputs
 # ---------------------------------------------------------------------------------------------
 
-def make_inputs(N: int, dtype=torch.float32, seed: int = 0, requires_grad: bool = False) -> dict:
+def make_inputs(N: int, dtype: torch.dtype = torch.float32, seed: int = 0, requires_grad: bool = False) -> dict:
     """Per-lane inputs of ``principled``: random frames, directions mostly above the surface.
 
     Generated chunk by chunk into the final tensors, so the only memory held is the inputs
@@ -135,7 +140,8 @@ def _fwdbwd(inputs):
     return run
 
 
-def throughput(sizes, dtypes, paths, repeats, budget, eager_max, log):
+def throughput(sizes: Sequence[int], dtypes: Sequence[str], paths: Sequence[str], repeats: int, budget: float,
+               eager_max: int, log: _Log) -> list:
     rows = []
     for dname in dtypes:
         dt = DTYPES[dname]
@@ -191,7 +197,7 @@ def _rss_child(N: int, what: str) -> dict:
     return dict(what=what, N=N, rss_start_MiB=rss0, rss_after_inputs_MiB=rss1, peak_MiB=_status_mib("VmHWM"))
 
 
-def peak_memory(N: int, whats, log) -> list:
+def peak_memory(N: int, whats: Sequence[str], log: _Log) -> list:
     rows = []
     for what in whats:
         cmd = [sys.executable, "-m", "torchbrdf.bench", "--_rss-child", str(N), what]
@@ -217,7 +223,8 @@ def _rel_stats(out: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
     return float(err.max()), float(torch.quantile(err[: 1 << 24], 0.99))
 
 
-def accuracy(N: int, dtypes, paths, log) -> list:
+def accuracy(N: int, dtypes: Sequence[str], paths: Sequence[str],
+             log: _Log) -> tuple[list[dict], tuple[float, float] | None]:
     rows = []
     base = make_inputs(N, torch.float32, seed=3)
     for dname in dtypes:
@@ -249,7 +256,7 @@ def accuracy(N: int, dtypes, paths, log) -> list:
 # Model choices
 # ---------------------------------------------------------------------------------------------
 
-MODEL_CHOICES = [
+MODEL_CHOICES: list[tuple[str, dict[str, Any], str | None]] = [
     # label, microfacet kwargs, reference label for the "error" column
     ("GGX + Schlick + Smith height-correlated", dict(distribution="ggx", fresnel="schlick", masking="smith_correlated"), None),
     ("GGX + exact dielectric Fresnel", dict(distribution="ggx", fresnel="dielectric", masking="smith_correlated"),
@@ -263,8 +270,8 @@ MODEL_CHOICES = [
 ]
 
 
-def model_choices(N: int, repeats: int, budget: float, log) -> list:
-    rows = []
+def model_choices(N: int, repeats: int, budget: float, log: _Log) -> list:
+    rows: list[dict[str, Any]] = []
     x = make_inputs(N, torch.float32, seed=4)
     alpha = torch.clamp(x["roughness"] ** 2, min=1e-3)
     vec = {k: x[k] for k in ("l", "v", "n")}
@@ -304,7 +311,7 @@ def model_choices(N: int, repeats: int, budget: float, log) -> list:
     return rows
 
 
-def pruned_lobes(N: int, paths, repeats: int, budget: float, log) -> list:
+def pruned_lobes(N: int, paths: Sequence[str], repeats: int, budget: float, log: _Log) -> list:
     rows = []
     x = make_inputs(N, torch.float32, seed=5)
     pruned = {k: t for k, t in x.items() if k not in ("subsurface", "sheen", "sheen_tint", "clearcoat",
@@ -458,7 +465,7 @@ def _mitsuba_fwdbwd(s, world: bool = True):
     return run
 
 
-def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
+def head_to_head(N: int, repeats: int, log: _Log, with_mitsuba: bool) -> dict:
     """Ours (as a user calls it) vs eager vs Mitsuba at N, float32, per-lane; runs interleaved."""
     x = make_inputs(N, torch.float32, seed=6)
     xg = {k: t.clone().requires_grad_() for k, t in x.items()}
@@ -470,7 +477,7 @@ def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
     old = _P.fast_path_enabled()
     _P.set_fast_path(None)  # the default dispatch, exactly as a user calls it
     try:
-        times = {k: ([], []) for k in fns}
+        times: dict[str, tuple[list[float], list[float]]] = {k: ([], []) for k in fns}
         for k, (f, b) in fns.items():  # warm-up (kernel builds, Dr.Jit tracing)
             f()
             b()
@@ -490,7 +497,7 @@ def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
                         times[k][j].append(time.perf_counter() - t0)
     finally:
         _P.set_fast_path(old)
-    res = {k: dict(fwd_rate=N / statistics.median(v[0]), fwdbwd_rate=N / statistics.median(v[1]),
+    res: dict[str, Any] = {k: dict(fwd_rate=N / statistics.median(v[0]), fwdbwd_rate=N / statistics.median(v[1]),
                    fwd_times=v[0], fwdbwd_times=v[1]) for k, v in times.items()}
     for k, r in res.items():
         log(f"  {k:9s} N=2^{int(math.log2(N))} fwd {r['fwd_rate']:.3e}/s  fwd+bwd {r['fwdbwd_rate']:.3e}/s")
@@ -502,7 +509,7 @@ def head_to_head(N: int, repeats: int, log, with_mitsuba: bool) -> dict:
     return res
 
 
-def torch_compile_baseline(N: int, repeats: int, log) -> dict:
+def torch_compile_baseline(N: int, repeats: int, log: _Log) -> dict:
     """``torch.compile`` (inductor) of the eager reference path: the alternative to the fused
     kernels, measured for comparison (its compile time is reported too)."""
     x = make_inputs(N, torch.float32, seed=8)
@@ -551,7 +558,7 @@ ENV_METHODS = (
 )
 
 
-def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256, 1024), repeats: int = 3) -> dict | None:
+def environment(points: int, log: _Log, sample_counts: Sequence[int] = (1, 4, 16, 64, 256, 1024), repeats: int = 3) -> dict | None:
     """Error vs time of MC (each proposal) at increasing sample counts and of the split sum.
 
     The reference is the per-texel quadrature (:func:`torchbrdf.render.envmap.integrate_environment_quadrature`,
@@ -630,7 +637,7 @@ def environment(points: int, log, sample_counts=(1, 4, 16, 64, 256, 1024), repea
 
 
 #: Lobes measured one by one by :func:`environment_lobes`: label -> (brdf kind, material).
-ENV_LOBES = (
+ENV_LOBES: tuple[tuple[str, str, dict[str, float]], ...] = (
     ("Lambert", "lambert", {}),
     ("Burley diffuse, roughness 0.5", "diffuse", {"roughness": 0.5}),
     ("GGX, roughness 0.2", "specular", {"roughness": 0.2, "metallic": 1.0}),
@@ -639,7 +646,7 @@ ENV_LOBES = (
 )
 
 
-def sky_with_sun(height: int = 64, dtype=torch.float64) -> torch.Tensor:
+def sky_with_sun(height: int = 64, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """``(3, height, 2·height)`` lat-long sky: a blue gradient, a darker ground and a small sun.
 
     The sun is a disc of 2.5° radius at 35° elevation, 2000× the zenith sky (2 texels at 64
@@ -658,7 +665,8 @@ def sky_with_sun(height: int = 64, dtype=torch.float64) -> torch.Tensor:
     return (sky + 2000.0 * disc * torch.tensor([1.0, 0.95, 0.85], dtype=dtype)).permute(2, 0, 1).contiguous()
 
 
-def sphere_points(side: int, grazing: int, dtype=torch.float64):
+def sphere_points(side: int, grazing: int,
+                  dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Normals and view of an orthographic sphere: ``(n, v, n_graze)``.
 
     ``n`` ``(P, 3)``: the pixels of a ``side × side`` image of the sphere (so means over it are
@@ -684,7 +692,8 @@ def sphere_points(side: int, grazing: int, dtype=torch.float64):
     return n, v, ng
 
 
-def environment_lobes(log, side: int = 32, grazing: int = 128, sample_counts=(64, 256, 1024, 4096),
+def environment_lobes(log: _Log, side: int = 32, grazing: int = 128,
+                      sample_counts: Sequence[int] = (64, 256, 1024, 4096),
                       ref_samples: int = 16384, height: int = 64, repeats: int = 3) -> dict:
     """Split sum vs Monte Carlo per lobe on a sphere under :func:`sky_with_sun` (float64).
 
@@ -715,7 +724,7 @@ def environment_lobes(log, side: int = 32, grazing: int = 128, sample_counts=(64
     t0 = time.perf_counter()
     env = SplitSumEnvironment(radiance)
     t_pre = time.perf_counter() - t0
-    out = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height],
+    out: dict[str, Any] = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height],
                ref_samples=ref_samples, prefilter_seconds=t_pre, threads=torch.get_num_threads(),
                repeats=repeats, lobes=[])
     for label, kind, mat in ENV_LOBES:
@@ -841,7 +850,7 @@ def _fmt(x, spec=".3g"):
     return "—" if x is None else format(x, spec)
 
 
-def write_report(res: dict, out_dir: str, argv) -> None:
+def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "benchmarks.json"), "w") as fh:
         json.dump(res, fh, indent=1, default=str)
@@ -1007,12 +1016,12 @@ def _plots(res: dict, out_dir: str) -> list:
         fig, ax = plt.subplots(figsize=(7.5, 5.0))
         mc = [r for r in env["rows"] if r["samples"]]
         for (_, label), marker in zip(ENV_METHODS, "osD^"):
-            pts = [r for r in mc if r["method"] == label]
-            if not pts:
+            mrows = [r for r in mc if r["method"] == label]
+            if not mrows:
                 continue
-            (line,) = ax.plot([r["seconds"] for r in pts], [r["mean_rel_err"] for r in pts], "-", marker=marker,
+            (line,) = ax.plot([r["seconds"] for r in mrows], [r["mean_rel_err"] for r in mrows], "-", marker=marker,
                               ms=4, label=label.replace("MC, ", "MC: "))
-            for r in pts:
+            for r in mrows:
                 ax.annotate(str(r["samples"]), (r["seconds"], r["mean_rel_err"]), fontsize=6,
                             color=line.get_color(), xytext=(3, 2), textcoords="offset points")
         ss = [r for r in env["rows"] if not r["samples"]]
@@ -1082,7 +1091,7 @@ def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
     return name
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["--_rss-child"]:
         print(json.dumps(_rss_child(int(argv[1]), argv[2])))
@@ -1123,7 +1132,7 @@ def main(argv=None) -> int:
         print(msg, flush=True)
 
     mver = None if args.no_mitsuba else mitsuba_available()
-    res = dict(machine=_machine(), mitsuba_version=mver,
+    res: dict[str, Any] = dict(machine=_machine(), mitsuba_version=mver,
                config=dict(sizes=sizes, dtypes=dtypes, repeats=repeats, eager_max=eager_max, head_N=head_N,
                            quick=args.quick))
     log(f"machine: {res['machine']}")
@@ -1150,8 +1159,8 @@ def main(argv=None) -> int:
         log("environment lighting:")
         res["environment"] = environment(64 if args.quick else 256, log)
         log("environment lighting per lobe:")
-        res["environment_lobes"] = environment_lobes(log, **(dict(side=16, grazing=64, ref_samples=4096)
-                                                             if args.quick else {}))
+        quick_lobes: dict[str, Any] = dict(side=16, grazing=64, ref_samples=4096) if args.quick else {}
+        res["environment_lobes"] = environment_lobes(log, **quick_lobes)
     res["machine"]["load_end"] = os.getloadavg()
     write_report(res, args.out, argv)
     log(f"wrote {os.path.join(args.out, 'benchmarks.md')}")

@@ -23,17 +23,21 @@ configurations are reported as such, not skipped silently.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
 import statistics
 import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
 import torch
 
 import torchbrdf
 
 PATHS = ("triton", "eager", "compile", "mitsuba")
+SIZES = tuple(1 << s for s in range(20, 25))  # N = 2^20 ... 2^24
 NO_CUDA = ("torchbrdf.bench --device cuda: no CUDA device here (torch.cuda.is_available() is False); "
            "nothing measured.")
 
@@ -143,7 +147,8 @@ def _principled_fns(path: str, x: dict, xg: dict):
     raise ValueError(f"path: expected one of {PATHS}, got {path!r}")
 
 
-def principled_rows(sizes, paths, device: torch.device, repeats: int, log) -> list:
+def principled_rows(sizes: Iterable[int], paths: Sequence[str], device: torch.device, repeats: int,
+                    log: Callable[[str], object]) -> list:
     """One row per (path, N): rates, times, peak memory (bytes; None off CUDA) or an error."""
     rows = []
     for N in sizes:
@@ -155,7 +160,7 @@ def principled_rows(sizes, paths, device: torch.device, repeats: int, log) -> li
             log(f"  N=2^{int(math.log2(N))}: the inputs do not fit")
             continue
         for path in paths:
-            row = dict(path=path, N=N)
+            row: dict[str, Any] = dict(path=path, N=N)  # a JSON row: numbers, strings, None
             fns = None
             try:
                 fns = _principled_fns(path, x, xg)
@@ -190,7 +195,7 @@ def principled_rows(sizes, paths, device: torch.device, repeats: int, log) -> li
                 if device.type == "cuda":
                     torch.cuda.empty_cache()
             rows.append(row)
-        x = xg = None
+        del x, xg  # free the inputs before the next size
     return rows
 
 
@@ -198,10 +203,11 @@ def principled_rows(sizes, paths, device: torch.device, repeats: int, log) -> li
 # shade
 # ---------------------------------------------------------------------------------------------
 
-def shade_rows(size: int, lights: int, backends, device: torch.device, repeats: int, log) -> list:
+def shade_rows(size: int, lights: int, backends: Iterable[str], device: torch.device, repeats: int,
+               log: Callable[[str], object]) -> list:
     """``shade`` at ``size``² with ``lights`` lights (half point, half directional)."""
     from torchbrdf.render.geometry import plane_gbuffer
-    from torchbrdf.render.lights import DirectionalLight, PointLight
+    from torchbrdf.render.lights import DirectionalLight, Light, PointLight
 
     g = torch.Generator().manual_seed(0)
     nm = torch.randn(1, 3, size, size, generator=g) * 0.2
@@ -212,7 +218,7 @@ def shade_rows(size: int, lights: int, backends, device: torch.device, repeats: 
             "clearcoat": torch.rand(1, 1, size, size, generator=g)}
     maps = {k: v.to(device).requires_grad_() for k, v in maps.items()}
     gbuf = plane_gbuffer(size, size, normal_map=nm.to(device), material=maps, device=device)
-    light_list = []
+    light_list: list[Light] = []
     for i in range(lights):
         a = 2.0 * math.pi * i / max(lights, 1)
         if i % 2 == 0:
@@ -223,7 +229,7 @@ def shade_rows(size: int, lights: int, backends, device: torch.device, repeats: 
                                                torch.full((3,), 1.0, device=device)))
     rows = []
     for backend in backends:
-        row = dict(backend=backend, size=size, lights=lights)
+        row: dict[str, Any] = dict(backend=backend, size=size, lights=lights)
         try:
             def fwd():
                 with _Backend(backend), torch.no_grad():
@@ -312,8 +318,8 @@ def gpu_section(out_dir: str) -> list:
     return L
 
 
-def run(device="cuda", sizes=tuple(1 << s for s in range(20, 25)), paths=PATHS, repeats: int = 10,
-        shade_size: int = 1024, lights: int = 16, log=print) -> dict:
+def run(device: torch.device | str | int = "cuda", sizes: Iterable[int] = SIZES, paths: Sequence[str] = PATHS, repeats: int = 10,
+        shade_size: int = 1024, lights: int = 16, log: Callable[[str], object] = print) -> dict:
     """Measure everything on ``device``; returns the raw results (see :func:`report`)."""
     device = torch.device(device)
     try:
@@ -339,7 +345,7 @@ def run(device="cuda", sizes=tuple(1 << s for s in range(20, 25)), paths=PATHS, 
     return res
 
 
-def main(args) -> int:
+def main(args: argparse.Namespace) -> int:
     """Entry of ``python -m torchbrdf.bench --device cuda`` (``args`` from ``bench.brdf.main``)."""
     if not torch.cuda.is_available():
         print(NO_CUDA)

@@ -37,6 +37,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Sequence
 
 
 def _status_mib(field: str) -> float:
@@ -70,7 +71,7 @@ def _child(
     torchbrdf.set_fast_path(True if fused else None)
     if not recompute:
         shading._pass = lambda elements, fn, *a, **k: fn(*a, **k)
-    brdf = None
+    brdf: Callable[..., torch.Tensor] | None = None  # None: shade's default (principled)
     if brdf_name == "lambert":
         from torchbrdf.brdf.lambert import lambert as brdf
     g = torch.Generator().manual_seed(0)
@@ -100,7 +101,7 @@ def _child(
     img.sum().backward()
     seconds = time.perf_counter() - t0
     peak = _status_mib("VmHWM")
-    assert all(torch.isfinite(t.grad).all() for t in material.values())
+    assert all(t.grad is not None and torch.isfinite(t.grad).all() for t in material.values())
     return {
         "size": size,
         "lights": lights,
@@ -249,6 +250,7 @@ def env_errors() -> str:
     d64 = torch.float64
     gen = torch.Generator().manual_seed(0)
     gb = sphere_gbuffer(9, 9, dtype=d64)
+    assert gb.mask is not None  # sphere_gbuffer always sets one
     m = gb.mask[0, 0]
     n = gb.normal[0].permute(1, 2, 0)[m]
     v = safe_normalize(gb.camera_position - gb.position[0].permute(1, 2, 0)[m])
@@ -307,7 +309,7 @@ def env_errors() -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=1024, help="image is size x size")

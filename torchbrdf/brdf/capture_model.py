@@ -51,12 +51,14 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from torchbrdf import _checks
 from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
+from torchbrdf._types import Color, Scalar
 
 __all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN", "ROUGHNESS_FLOOR_DESCHAINTRE"]
 
@@ -74,7 +76,7 @@ def _floored_alpha(r: Tensor, alpha_floor, roughness_floor) -> Tensor:
     return torch.clamp(r * r, min=ALPHA_MIN if alpha_floor is None else alpha_floor)
 
 
-def _check_floors(alpha_floor, roughness_floor) -> None:
+def _check_floors(alpha_floor: float | None, roughness_floor: float | None) -> None:
     if alpha_floor is not None and roughness_floor is not None:
         raise ValueError(
             f"alpha_floor={alpha_floor!r} and roughness_floor={roughness_floor!r}: give at most one floor"
@@ -101,9 +103,9 @@ def svbrdf_ggx(
     x: Tensor | None = None,
     y: Tensor | None = None,
     *,
-    diffuse_albedo,
-    specular_albedo,
-    roughness,
+    diffuse_albedo: Color,
+    specular_albedo: Color,
+    roughness: Scalar,
     alpha_floor: float | None = None,
     roughness_floor: float | None = None,
 ) -> Tensor:
@@ -216,9 +218,11 @@ class SVBRDFGGX(nn.Module):
         self.alpha_floor = alpha_floor
         self.roughness_floor = roughness_floor
 
-    def forward(self, l: Tensor, v: Tensor, n: Tensor, x=None, y=None, **material) -> Tensor:
+    def forward(self, l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None,
+                **material: Scalar) -> Tensor:
         """Evaluate :func:`svbrdf_ggx` with the given maps and this module's floor."""
-        floors = {"alpha_floor": self.alpha_floor, "roughness_floor": self.roughness_floor}
+        # Any: the floors (float | None) and the maps (Scalar) go through one ** expansion.
+        floors: dict[str, Any] = {"alpha_floor": self.alpha_floor, "roughness_floor": self.roughness_floor}
         return svbrdf_ggx(l, v, n, x, y, **{**floors, **material})
 
     def extra_repr(self) -> str:

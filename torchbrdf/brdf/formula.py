@@ -37,11 +37,38 @@ are not known until run time as runtime-float nodes, which fold in double like P
 from __future__ import annotations
 
 import math
+from typing import Any, Protocol, TypeAlias
 
 import torch
 from torch import Tensor
 
 from torchbrdf._math import cross_norm2, dot
+
+# A value inside a formula: a Tensor or Python number (TorchOps), or a graph node / 3-vector of
+# nodes (kernels.trace.TraceOps). The formulas are written once for both, and the two kinds share
+# only arithmetic, which the type system cannot express as one type; hence Any, named here.
+Value: TypeAlias = Any
+
+
+class Ops(Protocol):
+    """The ``ops`` namespace a formula receives: :class:`TorchOps` or the tracer's ``TraceOps``."""
+
+    def sqrt(self, x: Value, /) -> Value: ...
+    def rsqrt(self, x: Value, /) -> Value: ...
+    def log(self, x: Value, /) -> Value: ...
+    def log1p(self, x: Value, /) -> Value: ...
+    def abs(self, x: Value, /) -> Value: ...
+    def dot(self, a: Value, b: Value, /) -> Value: ...
+    def cross_norm2(self, a: Value, b: Value, /) -> Value: ...
+    def clamp(self, x: Value, lo: float, hi: float, /) -> Value: ...
+    def clamp_min(self, x: Value, lo: float, /) -> Value: ...
+    def where(self, c: Value, a: Value, b: Value, /) -> Value: ...
+    def channel(self, x: Value, i: int, /) -> Value: ...
+    def as_tensor(self, x: Value, /) -> Value: ...
+    def as_color(self, x: Value, /) -> Value: ...
+    def to_hi(self, x: Value, /) -> Value: ...
+    def to_compute(self, x: Value, /) -> Value: ...
+    def mask(self, valid: Value, f: Value | None, /) -> Value: ...
 
 INV_PI = 1.0 / math.pi
 # Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine
@@ -66,13 +93,13 @@ DIST2_EPS = 1e-12
 class TorchOps:
     """The ``ops`` namespace on torch tensors of compute dtype ``dtype`` on ``device``."""
 
-    def __init__(self, dtype: torch.dtype, device=None):
+    def __init__(self, dtype: torch.dtype, device: torch.device | str | None = None) -> None:
         self.dtype = dtype
         self.device = device
         self.hi = torch.float64 if dtype == torch.float32 else dtype
 
     @staticmethod
-    def sqrt(x):
+    def sqrt(x: Tensor | float) -> Tensor | float:
         """Square root (``math.sqrt`` on Python numbers)."""
         return torch.sqrt(x) if isinstance(x, Tensor) else math.sqrt(x)
 
@@ -84,44 +111,44 @@ class TorchOps:
     cross_norm2 = staticmethod(cross_norm2)
 
     @staticmethod
-    def clamp(x, lo, hi):
+    def clamp(x: Tensor, lo: float, hi: float) -> Tensor:
         """``x`` clamped to ``[lo, hi]``."""
         return torch.clamp(x, lo, hi)
 
     @staticmethod
-    def clamp_min(x, lo):
+    def clamp_min(x: Tensor | float, lo: float) -> Tensor | float:
         """``max(x, lo)`` (``torch.clamp(x, min=lo)`` on tensors)."""
         return torch.clamp(x, min=lo) if isinstance(x, Tensor) else max(x, lo)
 
     @staticmethod
-    def where(c, a, b):
+    def where(c: Tensor, a: Tensor | float, b: Tensor | float) -> Tensor:
         """``a`` where ``c``, else ``b``."""
         return torch.where(c, a, b)
 
     @staticmethod
-    def channel(x, i):
+    def channel(x: Tensor, i: int) -> Tensor:
         """Channel ``i`` of a colour, ``(*, 1)``."""
         return x[..., i:i + 1]
 
-    def as_tensor(self, x):
+    def as_tensor(self, x: Tensor | float) -> Tensor:
         """A number as a compute-dtype value."""
         return x if isinstance(x, Tensor) else torch.as_tensor(x, dtype=self.dtype, device=self.device)
 
-    def as_color(self, x):
+    def as_color(self, x: Tensor | float) -> Tensor:
         """A colour ``(*, 3)``; a number becomes grey."""
         if isinstance(x, Tensor) and x.dim() > 0:
             return x
         return self.as_tensor(x).expand(3)
 
-    def to_hi(self, x):
+    def to_hi(self, x: Tensor) -> Tensor:
         """To float64 when computing in float32."""
         return x.to(self.hi)
 
-    def to_compute(self, x):
+    def to_compute(self, x: Tensor) -> Tensor:
         """Back to the compute dtype."""
         return x.to(self.dtype)
 
-    def mask(self, valid, f):
+    def mask(self, valid: Tensor, f: Tensor | None) -> Tensor:
         """``f`` where ``valid``, exactly 0 elsewhere, ``(*, 3)``."""
         if f is None:
             f = torch.zeros((), dtype=self.dtype, device=valid.device)
@@ -133,29 +160,29 @@ class TorchOps:
 # Pieces (each also the eager implementation of the public function named in its docstring)
 # ---------------------------------------------------------------------------------------------
 
-def lerp(a, b, t):
+def lerp(a: Value, b: Value, t: Value) -> Value:
     """``a + (b - a) t``."""
     return a + (b - a) * t
 
 
-def pow5(m):
+def pow5(m: Value) -> Value:
     """``m^5`` as repeated products (no ``pow``)."""
     m2 = m * m
     return m2 * m2 * m
 
 
-def schlick_weight(ops, u):
+def schlick_weight(ops: Ops, u: Value) -> Value:
     """``(1 - u)^5`` with ``u`` clamped to ``[0, 1]``."""
     return pow5(ops.clamp(1.0 - u, 0.0, 1.0))
 
 
-def burley_retro_factor(ops, nl, nv, lh, roughness):
+def burley_retro_factor(ops: Ops, nl: Value, nv: Value, lh: Value, roughness: Value) -> Value:
     """Burley's diffuse Fresnel factor (``torchbrdf.brdf.diffuse.burley_retro_factor``)."""
     fd90 = 0.5 + 2.0 * roughness * lh * lh
     return lerp(1.0, fd90, schlick_weight(ops, nl)) * lerp(1.0, fd90, schlick_weight(ops, nv))
 
 
-def subsurface_factor(ops, nl, nv, lh, roughness):
+def subsurface_factor(ops: Ops, nl: Value, nv: Value, lh: Value, roughness: Value) -> Value:
     """Burley's subsurface factor (``torchbrdf.brdf.diffuse.subsurface_factor``)."""
     fss90 = roughness * lh * lh
     fss = lerp(1.0, fss90, schlick_weight(ops, nl)) * lerp(1.0, fss90, schlick_weight(ops, nv))
@@ -163,7 +190,7 @@ def subsurface_factor(ops, nl, nv, lh, roughness):
     return 1.25 * (fss * (inv - 0.5) + 0.5)
 
 
-def ndf_gtr1(ops, nh, alpha, sin2_h):
+def ndf_gtr1(ops: Ops, nh: Value, alpha: Value, sin2_h: Value) -> Value:
     """GTR1, the clearcoat NDF ``(α²-1) / (π ln α² (α² cos² + sin²))`` (``ndf_gtr1``).
 
     ``ln α²`` is ``log1p(α² - 1)`` near 1 (where ``α² - 1`` is exact) and ``log(α²)``
@@ -182,12 +209,13 @@ def ndf_gtr1(ops, nh, alpha, sin2_h):
     return ops.where(nh > 0.0, d, 0.0)
 
 
-def g_over_4nn(ops, n_dot_w, tangent_alpha2):
+def g_over_4nn(ops: Ops, n_dot_w: Value, tangent_alpha2: Value) -> Value:
     """``G1(w) / (2 n·w) = 1 / (n·w + sqrt((n·w)² + tangent_alpha2))`` (addendum form)."""
     return 1.0 / (n_dot_w + ops.sqrt(ops.clamp_min(n_dot_w * n_dot_w + tangent_alpha2, SQRT_EPS)))
 
 
-def half_vector_terms(ops, l, v, n, x=None, y=None):
+def half_vector_terms(ops: Ops, l: Value, v: Value, n: Value, x: Value | None = None,
+                      y: Value | None = None) -> dict[str, Value]:
     """Half-vector cosines ``nh``, ``lh``, ``one_minus_lh``, ``sin2_h = |n × h|²`` (+ ``hx``, ``hy``).
 
     For float32 inputs these few projections (and ``1 - l·h``, the Schlick base that cancels
@@ -210,7 +238,8 @@ def half_vector_terms(ops, l, v, n, x=None, y=None):
     return {k: ops.to_compute(t) for k, t in terms.items()}
 
 
-def specular_dg(ops, l, v, x, y, nl, nv, hg, roughness, anisotropic):
+def specular_dg(ops: Ops, l: Value, v: Value, x: Value | None, y: Value | None, nl: Value, nv: Value,
+                hg: dict[str, Value], roughness: Value, anisotropic: Value) -> Value:
     """``Ds · Gs`` of the primary GGX lobe (``Gs`` already holds ``1 / (4 NL NV)``), ``(*, 1)``.
 
     Isotropic (``x`` is None): ``(h·x)² + (h·y)²`` is ``|n × h|²`` and no frame is needed.
@@ -235,7 +264,7 @@ def specular_dg(ops, l, v, x, y, nl, nv, hg, roughness, anisotropic):
     return ops.where(nh > 0.0, ds * gs, 0.0)
 
 
-def principled(ops, c: dict, active: tuple, need_tint: bool, frame: bool):
+def principled(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool) -> Value:
     """The Disney principled BRDF ``f(l, v)`` (without the ``n·l`` cosine).
 
     Args:

@@ -7,10 +7,16 @@ Schlick and the F0 table; PBRT's notes (seed 004) for the exact forms.
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import torch
 from torch import Tensor
 
 from torchbrdf._math import half_safe, safe_sqrt, schlick_weight
+from torchbrdf._types import Color, Scalar
+
+# A float in gives a float out, a tensor gives a tensor (the conversions below are pure arithmetic).
+_S = TypeVar("_S", float, Tensor)
 
 __all__ = [
     "fresnel_schlick",
@@ -27,7 +33,7 @@ SPECULAR_TO_F0 = 0.08
 
 
 @half_safe
-def fresnel_schlick(cos_theta: Tensor, f0, f90=1.0) -> Tensor:
+def fresnel_schlick(cos_theta: Tensor, f0: Color, f90: Color = 1.0) -> Tensor:
     """Schlick's approximation ``F0 + (F90 - F0) (1 - cos)^5``.
 
     Args:
@@ -43,7 +49,7 @@ def fresnel_schlick(cos_theta: Tensor, f0, f90=1.0) -> Tensor:
 
 
 @half_safe
-def fresnel_dielectric(cos_theta_i: Tensor, eta) -> Tensor:
+def fresnel_dielectric(cos_theta_i: Tensor, eta: Scalar) -> Tensor:
     """Exact unpolarised Fresnel reflectance of a dielectric interface.
 
     Args:
@@ -75,7 +81,7 @@ def _sqrt0(x: Tensor) -> Tensor:
 
 
 @half_safe
-def fresnel_conductor(cos_theta_i: Tensor, eta, k) -> Tensor:
+def fresnel_conductor(cos_theta_i: Tensor, eta: Color, k: Color) -> Tensor:
     """Exact unpolarised Fresnel reflectance of a conductor with complex IOR ``eta + i k``.
 
     Real-arithmetic form (no complex dtypes, so half precision and autograd work alike),
@@ -127,23 +133,23 @@ def fresnel_conductor(cos_theta_i: Tensor, eta, k) -> Tensor:
     return 0.5 * r_s * (1.0 + ratio_p)
 
 
-def f0_from_ior(ior):
+def f0_from_ior(ior: _S) -> _S:
     """Normal-incidence reflectance ``((ior - 1) / (ior + 1))^2`` of a dielectric in air."""
     r = (ior - 1.0) / (ior + 1.0)
     return r * r
 
 
-def ior_from_f0(f0):
+def ior_from_f0(f0: Scalar) -> Tensor:
     """Inverse of :func:`f0_from_ior` for ``0 <= f0 < 1``: ``(1 + sqrt F0) / (1 - sqrt F0)``."""
     s = torch.sqrt(torch.as_tensor(f0))
     return (1.0 + s) / (1.0 - s)
 
 
-def f0_from_specular(specular):
+def f0_from_specular(specular: _S) -> _S:
     """Principled ``specular`` to normal-incidence reflectance: ``F0 = 0.08 * specular``."""
     return SPECULAR_TO_F0 * specular
 
 
-def specular_from_f0(f0):
+def specular_from_f0(f0: _S) -> _S:
     """Inverse of :func:`f0_from_specular`: ``specular = F0 / 0.08``."""
     return f0 / SPECULAR_TO_F0

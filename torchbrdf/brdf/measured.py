@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,7 @@ from torch import Tensor, nn
 
 from torchbrdf import _checks
 from torchbrdf._math import cast_back, compute_dtype, dot, safe_normalize, safe_sqrt
+from torchbrdf._types import Scalar
 from torchbrdf.brdf.frames import frame_from_normal, to_local
 from torchbrdf.io import atomic_path, check_readable_file
 
@@ -208,7 +210,7 @@ def _corners(u: Tensor, size: int, wrap: bool) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def merl_interpolate(
-    table: Tensor, theta_h: Tensor, theta_d: Tensor, phi_d: Tensor, scale=None
+    table: Tensor, theta_h: Tensor, theta_d: Tensor, phi_d: Tensor, scale: Tensor | None = None
 ) -> Tensor:
     """Trilinear lookup in a MERL-layout table; negative (missing) samples count as 0.
 
@@ -323,7 +325,8 @@ def read_merl(path: str | os.PathLike, raw: bool = False, *, allow_nonfinite: bo
     return stored * torch.tensor(MERL_SCALE, dtype=torch.float64)[:, None, None, None]
 
 
-def write_merl(path: str | os.PathLike, brdf_or_table, **params) -> None:
+def write_merl(path: str | os.PathLike, brdf_or_table: MERLBRDF | Tensor | np.ndarray | Callable[..., Tensor],
+               **params: Any) -> None:  # Any: forwarded to from_brdf (materials and its options)
     """Write a BRDF to the MERL binary format (atomically).
 
     Args:
@@ -439,7 +442,7 @@ class MERLBRDF(nn.Module):
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float64,
         name: str | None = None,
-        **params,
+        **params: Scalar,
     ) -> MERLBRDF:
         """Tabulate any BRDF callable at the MERL sample positions.
 

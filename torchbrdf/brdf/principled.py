@@ -24,12 +24,14 @@ from __future__ import annotations
 import math
 import numbers
 import os
+from collections.abc import Iterable
 
 import torch
 from torch import Tensor, nn
 
 from torchbrdf import _checks
 from torchbrdf._math import cast_back, cast_in, compute_dtype
+from torchbrdf._types import Color, Scalar
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.formula import ASPECT2_MIN, COS_EPS, INV_PI  # noqa: F401  (re-exported constants)
 from torchbrdf.brdf.frames import frame_from_normal
@@ -58,7 +60,7 @@ def _is_const(p, value: float) -> bool:
     return isinstance(p, numbers.Real) and float(p) == value
 
 
-def active_lobes(params: dict, lobes=None) -> tuple[str, ...]:
+def active_lobes(params: dict, lobes: Iterable[str] | None = None) -> tuple[str, ...]:
     """Lobes ``principled`` evaluates for these parameters.
 
     A lobe is skipped when its weight is a Python number equal to 0 (exactly the same result,
@@ -110,18 +112,18 @@ def principled(
     x: Tensor | None = None,
     y: Tensor | None = None,
     *,
-    base_color,
-    metallic=0.0,
-    subsurface=0.0,
-    specular=0.5,
-    roughness=0.5,
-    specular_tint=0.0,
-    anisotropic=0.0,
-    sheen=0.0,
-    sheen_tint=0.5,
-    clearcoat=0.0,
-    clearcoat_gloss=1.0,
-    lobes=None,
+    base_color: Color,
+    metallic: Scalar = 0.0,
+    subsurface: Scalar = 0.0,
+    specular: Scalar = 0.5,
+    roughness: Scalar = 0.5,
+    specular_tint: Scalar = 0.0,
+    anisotropic: Scalar = 0.0,
+    sheen: Scalar = 0.0,
+    sheen_tint: Scalar = 0.5,
+    clearcoat: Scalar = 0.0,
+    clearcoat_gloss: Scalar = 1.0,
+    lobes: Iterable[str] | None = None,
 ) -> Tensor:
     """Evaluate the Disney principled BRDF ``f(l, v)`` (without the ``n·l`` cosine).
 
@@ -300,7 +302,8 @@ def _needs_frame(c: dict) -> bool:
     return not (c["x"] is None and c["y"] is None and _is_const(c["anisotropic"], 0.0))
 
 
-def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, need_frame: bool = False) -> dict:
+def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None,
+                      need_frame: bool = False) -> dict:
     """Half-vector cosines ``nh``, ``lh``, ``one_minus_lh``, ``sin2_h = |n × h|²``, each ``(*, 1)``.
 
     Also ``hx``, ``hy`` and the frame ``x``, ``y`` when ``need_frame``; in the inputs' dtype.
@@ -338,13 +341,14 @@ class PrincipledBRDF(nn.Module):
         torch.Size([1, 3])
     """
 
-    def __init__(self, lobes=None):
+    def __init__(self, lobes: Iterable[str] | None = None) -> None:
         super().__init__()
         if lobes is not None:
             active_lobes({}, lobes)  # validates the names
         self.lobes = None if lobes is None else tuple(lobes)
 
-    def forward(self, l, v, n, x=None, y=None, **params) -> Tensor:
+    def forward(self, l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None,
+                **params: Scalar) -> Tensor:
         """Evaluate the BRDF; see :func:`principled` for arguments and shapes."""
         return principled(l, v, n, x, y, lobes=self.lobes, **params)
 

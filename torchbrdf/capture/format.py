@@ -143,7 +143,7 @@ def _vec3(value, where: str, json_path: Path, nonnegative: bool = False) -> list
     return [float(c) for c in value]
 
 
-def image_path(folder: str | os.PathLike, name, where: str) -> Path:
+def image_path(folder: str | os.PathLike, name: object, where: str) -> Path:
     """The path of image ``name`` inside the capture ``folder``, refusing names that leave it.
 
     Image names are relative paths inside the folder: an absolute path (POSIX or Windows,
@@ -389,8 +389,8 @@ def _split_lights(lights) -> tuple[np.ndarray, np.ndarray]:
 def write_capture(
     folder: str | os.PathLike,
     images: Tensor,
-    lights,
-    camera_position,
+    lights: Mapping | Sequence,
+    camera_position: Tensor | Sequence[float],
     *,
     files: Sequence[str] | None = None,
     half: bool = False,

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import Any, TypeAlias, cast
 from pathlib import Path
 
 import torch
@@ -35,7 +36,11 @@ from torch import Tensor
 from torchbrdf.brdf.principled import principled
 from torchbrdf.io import write_exr, write_png
 
-from torchbrdf.capture.format import pixel_points, write_capture
+from torchbrdf.capture.format import Capture, pixel_points, write_capture
+
+# Point lights as render_capture takes them: a pair (positions, intensities) of (L, 3), a mapping
+# {"position", "intensity"}, or a Capture (its light_positions / light_intensities).
+Lights: TypeAlias = tuple[Tensor, Tensor] | Sequence | Mapping | Capture
 
 __all__ = [
     "RECIPES",
@@ -348,7 +353,7 @@ def light_layout(
     radius: float = 1.5,
     height: float = 2.0,
     intensity: float = 30.0,
-    camera_position=DEFAULT_CAMERA,
+    camera_position: Tensor | Sequence[float] = DEFAULT_CAMERA,
 ) -> tuple[Tensor, Tensor]:
     """A ring of ``count`` point lights, plus one beside the camera (a flash).
 
@@ -374,7 +379,8 @@ def light_layout(
 
 
 def random_lights(
-    count: int, seed: int = 0, distance=(2.0, 3.0), elevation_deg=(25.0, 80.0), intensity: float = 30.0
+    count: int, seed: int = 0, distance: tuple[float, float] = (2.0, 3.0),
+    elevation_deg: tuple[float, float] = (25.0, 80.0), intensity: float = 30.0,
 ) -> tuple[Tensor, Tensor]:
     """Random point lights over the sample (for held-out evaluation), deterministic in ``seed``.
 
@@ -433,7 +439,8 @@ def frame_from_normal_map(n: Tensor) -> tuple[Tensor, Tensor]:
     return x, y
 
 
-def compact_principled(nl, nv, nh, lh, sin2_h, base_color, metallic, specular, roughness) -> Tensor:
+def compact_principled(nl: Tensor, nv: Tensor, nh: Tensor, lh: Tensor, sin2_h: Tensor, base_color: Tensor,
+                       metallic: Tensor, specular: Tensor, roughness: Tensor) -> Tensor:
     """The principled BRDF for the recovery's parameters only (isotropic, defaults elsewhere).
 
     Exactly :func:`torchbrdf.principled` with ``subsurface = specular_tint = anisotropic =
@@ -482,7 +489,7 @@ def light_geometry(points: Tensor, camera: Tensor, light_pos: Tensor) -> dict:
 
 
 def shading_geometry(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor,
-                     light: dict | None = None):
+                     light: dict | None = None) -> dict[str, Tensor]:
     """Per-pixel, per-light geometry for the compact renderer.
 
     Args:
@@ -534,8 +541,8 @@ def render_compact_points(
 
 def render_capture(
     maps: Mapping,
-    lights,
-    camera_position=DEFAULT_CAMERA,
+    lights: Lights,
+    camera_position: Tensor | Sequence[float] = DEFAULT_CAMERA,
     *,
     backend: str = "principled",
     noise: float = 0.0,
@@ -568,12 +575,12 @@ def render_capture(
     pos, inten = pos.to(device=device, dtype=dtype), inten.to(device=device, dtype=dtype)
     cam = torch.as_tensor(camera_position, dtype=dtype, device=device)
     if "normal" in maps:
-        n = _map_hwc(maps["normal"], 3, h, w, dtype, device)
+        n = cast(Tensor, _map_hwc(maps["normal"], 3, h, w, dtype, device))  # a normal map is a tensor
         n = n * torch.rsqrt(torch.clamp((n * n).sum(-1, keepdim=True), min=1e-12))
     else:
         n = torch.zeros(h, w, 3, dtype=dtype, device=device)
         n[..., 2] = 1.0
-    params = {}
+    params: dict[str, Any] = {}  # Any: maps (Tensor) or numbers (float), passed on as **params
     for name, value in maps.items():
         if name == "normal":
             continue
@@ -581,9 +588,10 @@ def render_capture(
     p = pixel_points(w, h, device=device, dtype=dtype)
     if backend == "compact":
         extra = set(params) - {"base_color", "metallic", "specular", "roughness"}
-        extra = [k for k in extra if not (isinstance(params[k], float) and params[k] == _FIXED_DEFAULTS.get(k))]
-        if extra:
-            raise ValueError(f"render_capture: backend='compact' supports no {sorted(extra)}; use 'principled'")
+        unsupported = [k for k in extra
+                       if not (isinstance(params[k], float) and params[k] == _FIXED_DEFAULTS.get(k))]
+        if unsupported:
+            raise ValueError(f"render_capture: backend='compact' supports no {sorted(unsupported)}; use 'principled'")
         flat = {k: (v.reshape(-1, v.shape[-1]) if isinstance(v, Tensor) else v) for k, v in params.items()}
         img = render_compact_points(n.reshape(-1, 3), p.reshape(-1, 3), cam, pos, inten, flat)
         img = img.reshape(-1, h, w, 3).permute(0, 3, 1, 2)
@@ -652,7 +660,7 @@ def generate_capture(
     lights: int = 16,
     near_camera: bool = True,
     noise: float = 0.01,
-    camera_position=DEFAULT_CAMERA,
+    camera_position: Tensor | Sequence[float] = DEFAULT_CAMERA,
     backend: str = "principled",
 ) -> Path:
     """Generate a synthetic capture folder: images + ``capture.json`` + ``gt/`` maps.

@@ -32,8 +32,10 @@ import sys
 import textwrap
 import time
 import traceback
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
+from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON
 from torchbrdf.recovery.solver import RecoveryConfig
 
@@ -52,7 +54,7 @@ _NOT_PASSED = {"threads"}  # replaced by --threads-per-task
 # --------------------------------------------------------------------------------------
 
 
-def find_captures(specs) -> list[Path]:
+def find_captures(specs: Iterable[PathLike]) -> list[Path]:
     """Capture folders named by ``specs``: folders, glob patterns, or parents of capture folders.
 
     A folder holding ``capture.json`` is a capture; any other folder contributes its direct
@@ -94,7 +96,7 @@ def _read_report(out_dir: Path) -> dict | None:
         return None
 
 
-def is_complete(out_dir) -> bool:
+def is_complete(out_dir: PathLike) -> bool:
     """Whether ``out_dir`` holds a finished recovery: ``report.json`` with ``"completed": true``."""
     rep = _read_report(Path(out_dir))
     return bool(rep and rep.get("completed") is True)
@@ -109,7 +111,7 @@ def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, 
     """The one call into the single-capture API; its outputs (``out/report.json``) are the result."""
     from torchbrdf.recovery.svbrdf import recover
 
-    recover(capture, out, cfg, gt=gt, resume=resume, progress=False)
+    recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
 
 
 def _kill_hook() -> None:
@@ -155,7 +157,7 @@ def _gt_folder(capture: Path, gt_name: str | None) -> Path | None:
     return gt if gt.is_dir() else None
 
 
-def recover_capture(capture, out_root, cfg: RecoveryConfig, gt_name: str | None = "gt", threads: int = 1,
+def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, gt_name: str | None = "gt", threads: int = 1,
                     force: bool = False) -> dict:
     """Recover one capture into ``out_root/<capture name>/``; the body of each Ray task.
 
@@ -204,10 +206,10 @@ def _import_ray():
     return ray, ""
 
 
-def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str | None = None,
+def run_batch(captures: Iterable[PathLike], out: PathLike, cfg: RecoveryConfig | None = None, *, address: str | None = None,
               workers: int = 1, threads_per_task: int = 1, gpus_per_task: float = 0.0, retries: int = 3,
               gt_name: str | None = "gt", force: bool = False, use_ray: bool = True, progress: bool = True,
-              log=None) -> list[dict]:
+              log: Callable[[str], None] | None = None) -> list[dict]:
     """Recover every capture into ``out/<name>/``; write the summary files and the overview.
 
     Args:
@@ -236,7 +238,7 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
     """
     cfg = cfg or RecoveryConfig()
     log = log or (lambda msg: print(msg, file=sys.stderr))
-    captures = [Path(c).resolve() for c in captures]
+    dirs = [Path(c).resolve() for c in captures]
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     ray = None
@@ -248,10 +250,10 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
     interrupted = False
     from tqdm import tqdm
 
-    bar = tqdm(total=len(captures), desc="captures", unit="capture", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=len(dirs), desc="captures", unit="capture", disable=not progress, file=sys.stderr)
     # Completed captures are skipped here, without a task.
     todo = []
-    for i, c in enumerate(captures):
+    for i, c in enumerate(dirs):
         if not force and is_complete(out / c.name):
             rows[i] = _row(c.name, c, out / c.name, "skipped")
             bar.update(1)
@@ -259,19 +261,19 @@ def run_batch(captures, out, cfg: RecoveryConfig | None = None, *, address: str 
             todo.append(i)
     try:
         if ray is None:
-            _run_sequential(captures, todo, out, cfg, gt_name, threads_per_task, force, rows, bar)
+            _run_sequential(dirs, todo, out, cfg, gt_name, threads_per_task, force, rows, bar)
         else:
-            _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads_per_task,
+            _run_ray(ray, dirs, todo, out, cfg, gt_name, address, workers, threads_per_task,
                      gpus_per_task, retries, force, rows, bar, log)
     except KeyboardInterrupt:
         interrupted = True
     finally:
         bar.close()
-    for i, c in enumerate(captures):
+    for i, c in enumerate(dirs):
         if i not in rows:  # after Ctrl-C; a task may have finished while the others were cancelled
             rows[i] = (_row(c.name, c, out / c.name, "done") if is_complete(out / c.name) else
                        _row(c.name, c, out / c.name, "interrupted", "cancelled (Ctrl-C); a rerun resumes it"))
-    result = [rows[i] for i in range(len(captures))]
+    result = [rows[i] for i in range(len(dirs))]
     write_summary(out, result)
     try:
         write_overview(out / "overview.png", result)
@@ -342,7 +344,7 @@ def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, 
 # --------------------------------------------------------------------------------------
 
 
-def write_summary(out, rows: list[dict]) -> None:
+def write_summary(out: PathLike, rows: list[dict]) -> None:
     """``out/summary.json`` (the rows) and ``out/summary.csv`` (one line each; errors as columns)."""
     from torchbrdf.io import atomic_path
 
@@ -368,7 +370,7 @@ def _csv_value(v):
     return v
 
 
-def write_overview(path, rows: list[dict], max_rows: int = 24, thumb: int = 64) -> None:
+def write_overview(path: PathLike, rows: list[dict], max_rows: int = 24, thumb: int = 64) -> None:
     """Write the overview PNG: thumbnail rows per capture and a histogram of the held-out PSNR.
 
     Each of the first ``max_rows`` captures gets a row of base colour, roughness, metallic and
@@ -426,7 +428,8 @@ def write_overview(path, rows: list[dict], max_rows: int = 24, thumb: int = 64) 
         ax.hist(psnrs, bins=min(20, max(5, len(psnrs))), color="steelblue", edgecolor="white")
     ax.set_xlabel("held-out light PSNR (dB)")
     ax.set_ylabel("captures")
-    ax.yaxis.get_major_locator().set_params(integer=True)
+    # The default locator is a MaxNLocator (it takes integer=); the stub types it as the base Locator.
+    ax.yaxis.get_major_locator().set_params(integer=True)  # type: ignore[call-arg]
     title = f"{len(psnrs)} of {len(rows)} captures with a held-out PSNR"
     if len(rows) > len(shown):
         title += f" (thumbnails: first {len(shown)})"
@@ -471,7 +474,7 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def config_from_args(args) -> RecoveryConfig:
+def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
     """The :class:`RecoveryConfig` of the recovery flags in ``args``."""
     fields = {f.name for f in dataclasses.fields(RecoveryConfig)} - _NOT_PASSED
     cfg = RecoveryConfig(**{k: v for k, v in vars(args).items() if k in fields})
@@ -480,7 +483,7 @@ def config_from_args(args) -> RecoveryConfig:
     return cfg
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point (contract §6).
 
     Returns:

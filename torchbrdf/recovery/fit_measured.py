@@ -44,6 +44,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import torch
@@ -160,7 +161,8 @@ class PrincipledFit(nn.Module):
         ``forward(l, v, n)``: ``(N, 3)`` directions → ``(N, 3)`` BRDF values.
     """
 
-    def __init__(self, names=DEFAULT_PARAMS, two_lobes: bool = False, init: dict | None = None):
+    def __init__(self, names: Iterable[str] = DEFAULT_PARAMS, two_lobes: bool = False,
+                 init: dict | None = None) -> None:
         super().__init__()
         names = list(names)
         if "base_color" not in names:
@@ -262,15 +264,15 @@ def _adam(model, s, eps, iters, lr, log=None, tag=""):
 def fit(
     samples: MeasuredSamples,
     *,
-    names=DEFAULT_PARAMS,
+    names: Iterable[str] = DEFAULT_PARAMS,
     two_lobes: bool = False,
     iters: int = 300,
     lbfgs_iters: int = 30,
-    restarts=((0.15, 0.05), (0.4, 0.05), (0.75, 0.05), (0.15, 0.9), (0.4, 0.9), (0.75, 0.9)),
+    restarts: Sequence[tuple[float, float]] = ((0.15, 0.05), (0.4, 0.05), (0.75, 0.05), (0.15, 0.9), (0.4, 0.9), (0.75, 0.9)),
     restart_iters: int | None = None,
     lr: float = 0.05,
     eps: float = 1e-3,
-    log=print,
+    log: Callable[[str], object] | None = print,
 ) -> PrincipledFit:
     """Fit principled parameters to measured samples.
 

@@ -38,7 +38,7 @@ import signal
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -47,6 +47,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON, Capture, load_capture
 from torchbrdf.capture.synthetic import MAP_NAMES, render_capture
 from torchbrdf.io import atomic_path, read_exr, write_exr, write_png
@@ -98,7 +99,7 @@ class RecoveryResult:
     def __contains__(self, key: str) -> bool:
         return key == "maps" or key in self.report
 
-    def get(self, key: str, default=None):
+    def get(self, key: str, default: Any = None) -> Any:  # Any: a map dict or any report value
         """Backward compatibility: ``result.get("held_out_light")``."""
         return self[key] if key in self else default
 
@@ -221,7 +222,7 @@ def _sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def capture_fingerprint(capture, cap: Capture) -> dict:
+def capture_fingerprint(capture: PathLike | Capture, cap: Capture) -> dict:
     """What identifies the capture.
 
     For a folder: ``capture.json``'s SHA-256 and each image's size and SHA-256; for an
@@ -497,19 +498,19 @@ def map_errors(maps: dict, gt_dir: Path) -> dict:
     for name in ("base_color", "roughness", "metallic", "specular"):
         f = gt_dir / f"{name}.exr"
         if f.is_file():
-            gt = cast(Tensor, read_exr(f))
+            gt = read_exr(f)
             if gt.shape[-2:] != maps[name].shape[-2:]:
                 gt = F.interpolate(gt[None], size=maps[name].shape[-2:], mode="area")[0]
             err[f"{name}_rmse"] = float(((maps[name] - gt) ** 2).mean().sqrt())
             if name == "specular":
                 fm = gt_dir / "metallic.exr"
-                gm = cast(Tensor, read_exr(fm)) if fm.is_file() else None
+                gm = read_exr(fm) if fm.is_file() else None
                 if gm is not None and gm.shape[-2:] == gt.shape[-2:] and (gm < 0.5).any():
                     m = gm < 0.5
                     err["specular_rmse_dielectric"] = float(((maps[name] - gt)[m] ** 2).mean().sqrt())
     f = gt_dir / "normal.exr"
     if f.is_file():
-        gt = cast(Tensor, read_exr(f))
+        gt = read_exr(f)
         if gt.shape[-2:] != maps["normal"].shape[-2:]:
             gt = F.interpolate(gt[None], size=maps["normal"].shape[-2:], mode="area")[0]
             gt = gt / gt.norm(dim=0, keepdim=True)
@@ -676,7 +677,7 @@ class _Progress:
         self.bar = None
         self.write = write
         if enabled:
-            from tqdm import tqdm  # type: ignore[import-untyped]
+            from tqdm import tqdm
 
             self.bar = tqdm(total=sum(u * p[2] for u, p in zip(self.units, plan)), initial=done, smoothing=0,
                             file=sys.stderr, desc="recover", dynamic_ncols=True,
@@ -754,7 +755,7 @@ class _Interrupt(BaseException):
 # --------------------------------------------------------------------------------------
 
 
-def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None, resume: bool = False,
+def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, out: PathLike | None = None, *, gt: PathLike | None = None, resume: bool = False,
             force: bool = False, progress: bool = True,
             log: Callable[[str], None] | None = None) -> RecoveryResult:
     """Recover per-pixel principled maps from a capture.
@@ -782,7 +783,8 @@ def recover(capture, config: RecoveryConfig | None = None, out=None, *, gt=None,
             checkpoint that does not match or is corrupt (2), a full disk or another write
             failure (``rc`` 1; the previous outputs stay intact).
     """
-    # Backward compatibility: the old order was recover(capture, out, cfg).
+    # Backward compatibility: the old order was recover(capture, out, cfg). (The annotations give
+    # only the current order, so the type checker sees this branch as unreachable.)
     if isinstance(config, (str, os.PathLike)) or isinstance(out, RecoveryConfig):
         config, out = out, config
     cfg = config or RecoveryConfig()
@@ -1062,7 +1064,7 @@ def _passive_openmp_wait() -> None:
     os.execv(sys.executable, [sys.executable, sys.argv[0], *sys.argv[1:]])
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """``torchbrdf-recover`` / ``python -m training.recover_svbrdf``; returns the exit status."""
     if argv is None:
         _passive_openmp_wait()

@@ -57,12 +57,15 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
 from functools import lru_cache
+from typing import cast
 
 import torch
 from torch import Tensor
 
 from torchbrdf._math import dot, lerp, luminance, safe_normalize, safe_sqrt
+from torchbrdf._types import BRDF, Device, Scalar
 from torchbrdf.brdf.frames import frame_from_normal, to_local, to_world
 from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
 from torchbrdf.render.sampling import (
@@ -203,7 +206,7 @@ def latlong_bilinear(img: Tensor, d: Tensor, batch_index: Tensor | None = None) 
     r1 = torch.clamp(y0 + 1, 0, h - 1)
     c0 = torch.remainder(x0, w)
     c1 = torch.remainder(x0 + 1, w)
-    base = 0
+    base: Tensor | int = 0
     if b > 1:
         if batch_index is None:
             raise ValueError(f"batch_index is required to look up a batch of {b} maps")
@@ -380,7 +383,7 @@ def _mis_power(n_t: int, p_t: Tensor, n_o: int, p_o) -> Tensor:
 # --------------------------------------------------------------------------------------
 
 
-def sampling_lobes_for(brdf, material: dict) -> dict:
+def sampling_lobes_for(brdf: BRDF, material: dict) -> dict:
     """Which sampling lobes suit ``brdf`` with ``material``: ``{lobe: active}``.
 
     A BRDF may declare ``brdf.sampling_lobes`` (e.g. Lambert: ``("diffuse",)``). The
@@ -429,7 +432,7 @@ def _sampling_frame(n: Tensor, x, y, material: dict):
     return frame_from_normal(n.detach())
 
 
-def check_env_sampling(sampling, who: str, name: str = "sampling") -> str:
+def check_env_sampling(sampling: object, who: str, name: str = "sampling") -> str:
     """Validate a Monte Carlo proposal name (:data:`ENV_SAMPLINGS`); ``ValueError`` naming ``name``."""
     if not isinstance(sampling, str) or sampling not in ENV_SAMPLINGS:
         raise ValueError(f"{who}: `{name}` must be one of {ENV_SAMPLINGS}, got {sampling!r}")
@@ -516,14 +519,16 @@ def _mc_pass(
         u = rotated_hammersley(shift.detach(), start, count, total)  # (P, k, 2)
         bk = None if bidx is None else bidx[:, None].expand(u.shape[:-1])
         if technique == "brdf":
+            assert mix is not None  # built whenever BRDF samples exist (n_brdf > 0)
             l = mix.sample(u)
             p_b = mix.pdf(l)
             p_m = setup.sampler.pdf(l, bk) if setup.sampler is not None else 0.0
             w = _mis_power(setup.n_brdf, p_b, setup.n_map, p_m)
         elif technique == "map":
+            assert setup.sampler is not None  # map samples exist only with a sampler
             l, p_m = setup.sampler.sample(u, bk)
-            p_b = mix.pdf(l) if mix is not None else 0.0
-            w = _mis_power(setup.n_map, p_m, setup.n_brdf, p_b)
+            p_o = mix.pdf(l) if mix is not None else 0.0
+            w = _mis_power(setup.n_map, p_m, setup.n_brdf, p_o)
         elif technique == "uniform":
             l_local = _sample_uniform_hemisphere(u)
             l = to_world(l_local, xs.detach().unsqueeze(1), ys.detach().unsqueeze(1), n.detach().unsqueeze(1))
@@ -543,7 +548,7 @@ def _mc_pass(
 
 
 def integrate_environment_mc(
-    brdf,
+    brdf: BRDF,
     n: Tensor,
     v: Tensor,
     radiance: Tensor,
@@ -614,7 +619,7 @@ def integrate_environment_mc(
 
 
 def integrate_environment_quadrature(
-    brdf,
+    brdf: BRDF,
     n: Tensor,
     v: Tensor,
     radiance: Tensor,
@@ -787,7 +792,7 @@ def _level_size(height: int, width: int, alpha: float) -> tuple[int, int]:
     return hk, wk
 
 
-def prefilter_environment(radiance: Tensor, roughness_levels=PREFILTER_ROUGHNESS) -> list[Tensor]:
+def prefilter_environment(radiance: Tensor, roughness_levels: Sequence[float] = PREFILTER_ROUGHNESS) -> list[Tensor]:
     """GGX-prefiltered copies of a lat-long map, one per roughness level (differentiable).
 
     Level ``k`` is ``∫ L(l) D(h) max(r·l, 0) dω / ∫ D(h) max(r·l, 0) dω`` with
@@ -902,8 +907,8 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
 
 def split_sum_table(
     *,
-    dtype=torch.float32,
-    device=None,
+    dtype: torch.dtype = torch.float32,
+    device: Device = None,
     resolution: int = SPLIT_SUM_RESOLUTION,
     samples: int = SPLIT_SUM_SAMPLES,
 ) -> Tensor:
@@ -968,7 +973,7 @@ class SplitSumEnvironment:
         dtype: compute dtype (default the map's).
     """
 
-    def __init__(self, radiance: Tensor, dtype=None):
+    def __init__(self, radiance: Tensor, dtype: torch.dtype | None = None) -> None:
         dtype = dtype or radiance.dtype
         rad = radiance.to(dtype)
         self.irradiance = _as_bhwc(irradiance_environment(rad))
@@ -976,25 +981,25 @@ class SplitSumEnvironment:
         self.roughness = PREFILTER_ROUGHNESS
         self.batch = self.irradiance.shape[0]
 
-    def specular(self, r_dir: Tensor, roughness, batch_index=None) -> Tensor:
+    def specular(self, r_dir: Tensor, roughness: Scalar, batch_index: Tensor | None = None) -> Tensor:
         """Prefiltered radiance along ``r_dir`` ``(P, 3)`` at ``roughness`` (float or ``(P, 1)``)."""
         k = len(self.roughness) - 1
         if isinstance(roughness, Tensor):
             t = torch.clamp(roughness, 0.0, 1.0) * k
-            out = 0.0
+            acc: Tensor | float = 0.0
             for i, level in enumerate(self.levels):
                 wi = torch.clamp(1.0 - (t - i).abs(), min=0.0)
-                out = out + wi * latlong_bilinear(level, r_dir, batch_index)
-            return out
-        t = min(max(float(roughness), 0.0), 1.0) * k
-        i0 = min(int(math.floor(t)), k - 1)
-        a = t - i0
+                acc = acc + wi * latlong_bilinear(level, r_dir, batch_index)
+            return cast(Tensor, acc)  # a tensor: there is always at least one level
+        tf = min(max(float(roughness), 0.0), 1.0) * k
+        i0 = min(int(math.floor(tf)), k - 1)
+        a = tf - i0
         out = latlong_bilinear(self.levels[i0], r_dir, batch_index) * (1.0 - a)
         if a > 0:
             out = out + latlong_bilinear(self.levels[i0 + 1], r_dir, batch_index) * a
         return out
 
-    def diffuse(self, n: Tensor, batch_index=None) -> Tensor:
+    def diffuse(self, n: Tensor, batch_index: Tensor | None = None) -> Tensor:
         """Normalised irradiance ``∫ L max(n·l, 0) dω / π`` at normals ``(P, 3)`` -> ``(P, 3)``."""
         return latlong_bilinear(self.irradiance, n, batch_index)
 
@@ -1018,7 +1023,7 @@ def _dominant_direction(n: Tensor, r_dir: Tensor, alpha) -> Tensor:
     return safe_normalize(n + (r_dir - n) * f)
 
 
-def brdf_kind(brdf) -> str:
+def brdf_kind(brdf: BRDF) -> str:
     """``"lambert"``, ``"principled"`` or ``"custom"`` — what the split sum knows how to handle."""
     if getattr(brdf, "sampling_lobes", None) == ("diffuse",):
         return "lambert"
@@ -1030,7 +1035,7 @@ def brdf_kind(brdf) -> str:
 
 
 def integrate_environment_split_sum(
-    brdf,
+    brdf: BRDF,
     n: Tensor,
     v: Tensor,
     env: SplitSumEnvironment,

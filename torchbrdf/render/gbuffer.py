@@ -12,6 +12,7 @@ import dataclasses
 import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -163,6 +164,7 @@ class GBuffer:
         if value.dim() == 0:
             return value
         b, _, h, w = self.position.shape
+        allowed: tuple[int, ...]
         if name in COLOR_PARAMS:
             allowed = (3,)
         elif name in PRINCIPLED_SCALAR_PARAMS:
@@ -234,7 +236,7 @@ class GBuffer:
         """A copy with every tensor detached from autograd."""
         return self._map(lambda t: t.detach())
 
-    def to(self, *args, **kwargs) -> "GBuffer":
+    def to(self, *args: Any, **kwargs: Any) -> "GBuffer":  # Any: whatever Tensor.to accepts
         """``Tensor.to`` applied to every tensor (a boolean mask keeps its dtype)."""
 
         def conv(t):
@@ -245,6 +247,6 @@ class GBuffer:
 
         return self._map(conv)
 
-    def replace(self, **changes) -> "GBuffer":
+    def replace(self, **changes: Any) -> "GBuffer":  # Any: each field has its own type
         """A copy with some fields replaced (``dataclasses.replace``)."""
         return dataclasses.replace(self, **changes)

@@ -8,12 +8,18 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
+from typing import TypeAlias
 
 import torch
 from torch import Tensor
 
 from torchbrdf._math import dot, safe_normalize
+from torchbrdf._types import Device
 from torchbrdf.render.gbuffer import GBuffer
+
+# A 3-vector argument: a (3,) tensor or three numbers.
+Vec3: TypeAlias = Tensor | Sequence[float]
 
 __all__ = ["pinhole_rays", "sphere_gbuffer", "plane_gbuffer"]
 
@@ -27,13 +33,13 @@ def _vec(x, dtype, device) -> Tensor:
 def pinhole_rays(
     height: int,
     width: int,
-    camera_position,
-    look_at=(0.0, 0.0, 0.0),
-    up=(0.0, 1.0, 0.0),
+    camera_position: Vec3,
+    look_at: Vec3 = (0.0, 0.0, 0.0),
+    up: Vec3 = (0.0, 1.0, 0.0),
     fov_degrees: float = 40.0,
     *,
-    dtype=None,
-    device=None,
+    dtype: torch.dtype | None = None,
+    device: Device = None,
 ) -> Tensor:
     """Unit ray directions through pixel centres of a pinhole camera, ``(H, W, 3)``.
 
@@ -84,14 +90,14 @@ def sphere_gbuffer(
     width: int,
     *,
     radius: float = 1.0,
-    center=(0.0, 0.0, 0.0),
-    camera_position=(0.0, 0.0, 4.0),
+    center: Vec3 = (0.0, 0.0, 0.0),
+    camera_position: Vec3 = (0.0, 0.0, 4.0),
     fov_degrees: float | None = None,
-    up=(0.0, 1.0, 0.0),
+    up: Vec3 = (0.0, 1.0, 0.0),
     material: dict | None = None,
     batch_size: int = 1,
-    dtype=None,
-    device=None,
+    dtype: torch.dtype | None = None,
+    device: Device = None,
 ) -> GBuffer:
     """G-buffer of a sphere seen by a pinhole camera aimed at its centre.
 
@@ -174,11 +180,11 @@ def plane_gbuffer(
     width: int,
     *,
     normal_map: Tensor | None = None,
-    camera_position=(0.0, 0.0, 3.0),
+    camera_position: Vec3 = (0.0, 0.0, 3.0),
     material: dict | None = None,
     batch_size: int | None = None,
-    dtype=None,
-    device=None,
+    dtype: torch.dtype | None = None,
+    device: Device = None,
 ) -> GBuffer:
     """G-buffer of the flat sample ``[-1, 1]²`` at ``z = 0`` (+z up), optionally normal-mapped.
 

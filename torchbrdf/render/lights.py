@@ -20,6 +20,8 @@ Radiance contributed at a pixel with BRDF ``f``, normal ``n`` and position ``P``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
 
@@ -86,7 +88,10 @@ class PointLight(Light):
         tensor([0., 0., 3.], dtype=torch.float64)
     """
 
-    def __init__(self, position, intensity):
+    position: Tensor  # registered by _store (parameter or buffer); declared for the type checker
+    intensity: Tensor
+
+    def __init__(self, position: Tensor | Sequence[float], intensity: Tensor | Sequence[float] | float) -> None:
         super().__init__()
         pos = self._vec3("position", position)
         inten = self._vec3("intensity", intensity, allow_scalar=True)
@@ -124,7 +129,10 @@ class DirectionalLight(Light):
         tensor([1., 1., 1.], dtype=torch.float64)
     """
 
-    def __init__(self, direction, irradiance):
+    direction: Tensor  # registered by _store (parameter or buffer)
+    irradiance: Tensor
+
+    def __init__(self, direction: Tensor | Sequence[float], irradiance: Tensor | Sequence[float] | float) -> None:
         super().__init__()
         d = self._vec3("direction", direction)
         e = self._vec3("irradiance", irradiance, allow_scalar=True)
@@ -158,7 +166,9 @@ class EnvironmentLight(Light):
         torch.Size([3, 8, 16])
     """
 
-    def __init__(self, radiance):
+    radiance: Tensor  # registered by _store (parameter or buffer)
+
+    def __init__(self, radiance: Tensor) -> None:
         super().__init__()
         r = _to_tensor("radiance", "EnvironmentLight", radiance)
         if not (r.dim() in (3, 4) and r.shape[-3] == 3 and r.shape[-1] >= 1 and r.shape[-2] >= 1):
