@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchbrdf.capture.format import Capture, load_capture
 from torchbrdf.capture.synthetic import render_capture, write_maps
-from torchbrdf.io import atomic_path, read_exr, write_png
+from torchbrdf.io import atomic_path, read_exr, write_exr, write_png
 from torchbrdf.recovery.solver import CHECKPOINT, Recovery, RecoveryConfig, psnr
 
 __all__ = ["RecoveryConfig", "recover", "main", "psnr", "map_errors", "CHECKPOINT"]
@@ -226,9 +226,14 @@ def recover(capture, out=None, cfg: RecoveryConfig | None = None, gt=None, resum
         "metal_fraction": float(st["metal"].mean()) if st["metal"] is not None else None,
         "events": st["events"],
         "seed": cfg.seed,
+        "light_intensity_scale": rec.light_corrections(),  # estimated / stated, per image (calibration)
     }
     if out is not None:
         write_outputs(out, cap, maps, report, st["history"], partial=interrupted)
+        if not interrupted:  # what the data measured (1) vs what the priors inferred (0)
+            conf = _resize_maps({"c": rec.confidence_map()}, cap.height, cap.width)["c"].clamp(0, 1)
+            write_exr(out / "confidence.exr", conf, channels=["Y"])
+            write_png(out / "confidence.png", conf, srgb=False)
         fin = _finite_maps(_resize_maps(maps, cap.height, cap.width))
     else:
         fin = _finite_maps(_resize_maps(maps, cap.height, cap.width))
