@@ -36,13 +36,33 @@ def main(cap_dir: str, out_dir: str, png: str = "docs/recovery_confidence.png") 
         hv = torch.nn.functional.normalize(l + v, dim=-1)
         ang.append(torch.rad2deg(torch.acos((hv * n).sum(-1).clamp(-1, 1))))
     reach = torch.stack(ang).min(0).values.reshape(h, w)
+    # In lobe widths: a GGX lobe of roughness r is ~ atan(r²) wide; > 3 widths: no highlight.
+    width = torch.rad2deg(torch.atan(gt["roughness"][0] ** 2)).clamp(min=0.5)
+    ratio = reach / width
     err = (rough - gt["roughness"][0]).abs()
-    fig, ax = plt.subplots(1, 5, figsize=(17, 3.8))
+    fig, ax = plt.subplots(1, 6, figsize=(21, 3.8))
     panels = [(gt["base_color"].permute(1, 2, 0).clamp(0, 1) ** (1 / 2.2), "true base colour", None, None),
-              (reach, "smallest normal–half-vector angle\nover captured lights (°)", "magma_r", (0, 30)),
+              (ratio, "highlight miss: smallest normal–half-vector\nangle over captured lights / lobe width", "magma_r", (0, 6)),
               (gt["roughness"][0], "true roughness", "viridis", (0, 1)),
               (conf, "recovered confidence.exr", "viridis", (0, 1)),
               (err, "|roughness error|", "magma", (0, 0.2))]
+    a = ax[5]
+    edges = torch.tensor([0, 0.5, 1, 1.5, 2, 3, 4, 6, 10, 1e9])
+    for sel, lab, col in ((gt["roughness"][0] < 0.5, "glossy pixels (true r < 0.5)", "C0"),
+                          (gt["roughness"][0] >= 0.5, "rough pixels", "C1")):
+        xs, ys, es = [], [], []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = sel & (ratio >= lo) & (ratio < hi)
+            if int(m.sum()) >= 10:
+                xs.append(float(ratio[m].median()))
+                ys.append(float(conf[m].mean()))
+                es.append(float(err[m].pow(2).mean().sqrt()))
+        a.plot(xs, ys, "-o", color=col, label=f"{lab}: mean confidence")
+        a.plot(xs, es, "--x", color=col, label=f"{lab}: roughness RMSE")
+    a.set_xlabel("highlight miss (lobe widths)")
+    a.set_ylim(0, 1)
+    a.legend(fontsize=6)
+    a.set_title("confidence and error vs highlight miss", fontsize=9)
     for a, (img, title, cmap, lim) in zip(ax, panels):
         im = a.imshow(img.numpy(), cmap=cmap, vmin=None if lim is None else lim[0], vmax=None if lim is None else lim[1])
         a.set_title(title, fontsize=9)
@@ -50,7 +70,7 @@ def main(cap_dir: str, out_dir: str, png: str = "docs/recovery_confidence.png") 
         a.set_yticks([])
         if cmap is not None:
             fig.colorbar(im, ax=a, fraction=0.046, pad=0.04)
-    fig.suptitle(f"{Path(cap_dir).name}: confidence is low where no captured highlight reaches a glossy pixel", fontsize=10)
+    fig.suptitle(f"{Path(cap_dir).name}: recovered confidence vs where the captured highlights reach", fontsize=10)
     fig.tight_layout()
     fig.savefig(png, dpi=90)
     print(f"wrote {png}")

@@ -51,6 +51,9 @@ def test_cli_writes_every_contract_file(tiny, tmp_path, capsys):
         assert names == (["R", "G", "B"] if ch == 3 else ["Y"])
     n = read_exr(out / "normal.exr")
     assert (n[2] > 0).all() and torch.allclose(n.norm(dim=0), torch.ones(32, 32), atol=1e-4)
+    conf, names = read_exr(out / "confidence.exr", return_names=True)  # issue 13
+    assert names == ["Y"] and conf.shape == (1, 32, 32) and bool(((conf >= 0) & (conf <= 1)).all())
+    assert (out / "confidence.png").is_file() and len(rep["light_intensity_scale"]) == 9
 
 
 def test_cli_bad_capture_is_a_clear_error(tmp_path, capsys):
@@ -313,3 +316,24 @@ def test_nonlocal_fill_takes_the_measured_value_of_the_same_material(monkeypatch
     assert bool((prec[blind, 4] > 1e3 * info[blind, 4]).all())  # the prior dominates where data are silent
     assert bool((prec[good, 4] < 1e-2 * info[good, 4]).all())  # ... and not where they speak
     assert torch.allclose(tgt[~half, 4], torch.full((int((~half).sum()),), 2.0), atol=1e-4)
+
+
+def test_light_position_step_finds_a_moved_light():
+    """Issue 13: a light 1.5 cm from where capture.json says; the position step finds the offset."""
+    from torchbrdf.capture.synthetic import render_capture
+
+    R, data, theta, metal = _flat_level(size=24)
+    n_l = data.pos.shape[0]
+    true = torch.zeros(n_l, 3)
+    true[2] = torch.tensor([0.015, -0.01, 0.005])
+    maps = {k: v.T.reshape(-1, 24, 24) for k, v in R.decode(theta, metal).items()}
+    with torch.no_grad():
+        img = render_capture(maps, (data.pos_stated + true, data.inten_stated), backend="compact")
+    obs = img.permute(0, 2, 3, 1).reshape(n_l, -1, 3)
+    data.log_obs = torch.log(torch.clamp(obs + data.eps, min=0.5 * data.eps))
+    data._light = {}
+    off = torch.zeros(n_l, 3)
+    for _ in range(4):
+        data.set_light_offset(off)
+        off = R.light_position_step(data, theta, metal, off, "principled", stride=1)
+    assert torch.allclose(off, true, atol=2e-3)

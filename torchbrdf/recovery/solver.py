@@ -48,6 +48,18 @@ Method (each choice measured, see ``docs/recovery.md``):
   information ``info = 1/diag((JᵀJ)⁻¹)`` against a fixed ``κ = prior_nonlocal_base``;
   pixels far from every highlight (low information) take the average, the well-observed
   ones keep their own value.
+* **Refit before the class choice**: where the metal hypothesis wins but the dielectric never
+  converged (a narrow structure the coarse levels blended, such as tiles' half-width grout at
+  the image edge), the dielectric is refitted per pixel from the metal's geometry first — a
+  metal's win is evidence only against a converged dielectric. Class votes count only the
+  neighbours a pixel has (5 on an edge, 3 in a corner), not padded copies of itself.
+* **Per-light intensity scales** (calibration error) are estimated jointly with the maps, the
+  training lights' geometric mean held at the stated intensities.
+* **Non-local fill** (before the last stage): under-determined roughness / specular get a
+  unary prior toward the reliability-weighted value of same-material pixels found anywhere
+  in the image (base colour and normal-spread similarity).
+* **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
+  specular from the marginal information, mapped to [0, 1].
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 
@@ -96,7 +108,7 @@ class RecoveryConfig:
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
-    fill: bool = True  # non-local fill of under-determined roughness / specular (nonlocal_fill)
+    fill: bool = False  # non-local fill of under-determined roughness / specular (nonlocal_fill; measured, not kept: docs)
     fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
     fill_weight: float = 1.0  # its precision, × sigma² / fill_sigma²
     fill_range: float = 0.04  # base-colour similarity scale
@@ -104,6 +116,7 @@ class RecoveryConfig:
     fill_candidates: int = 256  # random same-class candidates per pixel
     fill_min_similar: float = 2.0  # fewer similar candidates (summed similarity): no fill
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
+    light_position: bool = True  # ... and a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate a per-light intensity scale jointly (calibration error)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
@@ -175,6 +188,7 @@ class LevelData:
         self.camera = cap.camera_position
         self.pos, self.inten = cap.light_positions, cap.light_intensities
         self.inten_stated = cap.light_intensities  # capture.json's; self.inten carries the estimated scales
+        self.pos_stated = cap.light_positions  # capture.json's; self.pos carries the estimated offsets
         self.eps = eps
         self.log_obs = torch.log(torch.clamp(self.obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
@@ -192,6 +206,13 @@ class LevelData:
     def set_light_scale(self, log_scale: Tensor | None):
         """Use intensities ``stated × exp(log_scale)`` (``log_scale (L,)``; None: as stated)."""
         self.inten = self.inten_stated if log_scale is None else self.inten_stated * torch.exp(log_scale)[:, None]
+
+    def set_light_offset(self, offset: Tensor | None):
+        """Use positions ``stated + offset`` (``offset (L, 3)``; None: as stated)."""
+        pos = self.pos_stated if offset is None else self.pos_stated + offset
+        if not torch.equal(pos, self.pos):
+            self.pos = pos
+            self._light = {}  # the cached light geometry depends on the positions
 
     def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
                  rows: Tensor | None = None) -> Tensor:
@@ -512,6 +533,46 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     if extra is not None:
         extra["residual"] = torch.where(better, r1, r0)
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
+
+
+def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: Tensor, model: str,
+                        prior_sigma: float = 0.01, stride: int = 4) -> Tensor:
+    """One Gauss–Newton update of the per-light position offsets ``(L, 3)`` (world units).
+
+    Each light's residuals depend only on its own position, so three forward-mode passes (one
+    per axis, every light at once) give every light's ``(pixels, 3)`` Jacobian; the step solves
+    each light's 3×3 normal equations with a Gaussian prior of ``prior_sigma`` (1 cm) on the
+    offset, over every ``stride``-th pixel (cheap; the offset is 3 numbers per light against
+    thousands of pixels). Lights not in ``data.train_idx`` keep their offsets.
+    """
+    idx = data.train_idx
+    rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
+    p = decode(theta[rows], metal[rows])
+    pts, cam = data.points[rows], data.camera
+    log_obs = data.log_obs[idx][:, rows]
+    inten = data.inten[idx]
+    base = data.pos_stated[idx] + offset[idx]
+
+    def res(pos):
+        light = light_geometry(pts, cam, pos)
+        pred = _render_points(p, pts, cam, pos, inten, model, light)
+        return torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)) - log_obs  # (L, N, 3)
+
+    r = torch.nan_to_num(res(base))
+    jac = []
+    for k in range(3):
+        tg = torch.zeros_like(base)
+        tg[:, k] = 1.0
+        jac.append(torch.nan_to_num(torch.func.jvp(res, (base,), (tg,))[1]))
+    jac = torch.stack(jac, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
+    r = r.reshape(len(idx), -1)
+    sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
+    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * torch.eye(3, dtype=r.dtype)
+    g = torch.einsum("lni,ln->li", jac, r) + (sigma2 / prior_sigma**2) * offset[idx]
+    step = torch.linalg.solve(jtj, -g[..., None])[..., 0]
+    out = offset.clone()
+    out[idx] = (offset[idx] + torch.nan_to_num(step)).clamp(-5 * prior_sigma, 5 * prior_sigma)
+    return out
 
 
 def _unary_cost(theta: Tensor, unary: tuple[Tensor, Tensor] | None):
@@ -839,14 +900,25 @@ class Recovery:
         s = self.state.get("light_log_scale") if self.state else None
         return s if s is not None else torch.zeros(len(self.cap), dtype=self.cap.light_intensities.dtype)
 
+    def light_offset(self) -> Tensor:
+        """Estimated per-light position offsets ``(L, 3)`` (0: as stated in capture.json)."""
+        s = self.state.get("light_offset") if self.state else None
+        return s if s is not None else torch.zeros_like(self.cap.light_positions)
+
     def _sync_light_scale(self):
         for d in self._data.values():
             d.set_light_scale(self.light_log_scale())
+            d.set_light_offset(self.light_offset())
 
     def light_corrections(self) -> dict:
         """``{image file: estimated intensity / stated intensity}`` (report.json)."""
         s = torch.exp(self.light_log_scale())
         return {f: float(s[k]) for k, f in enumerate(self.cap.files)}
+
+    def light_position_corrections(self) -> dict:
+        """``{image file: estimated − stated position (3,)}`` (report.json)."""
+        o = self.light_offset()
+        return {f: [float(x) for x in o[k]] for k, f in enumerate(self.cap.files)}
 
     def tick(self):
         st = self.state
@@ -888,6 +960,9 @@ class Recovery:
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
                 self._sync_light_scale()
+                if self.cfg.light_position:
+                    st["light_offset"] = light_position_step(data, theta, metal, self.light_offset(), self.cfg.model)
+                    self._sync_light_scale()
             if n_bad:
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite loss", "pixels": n_bad,
                                      "action": "step rejected, damping raised"})

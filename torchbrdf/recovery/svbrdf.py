@@ -227,6 +227,7 @@ def recover(capture, out=None, cfg: RecoveryConfig | None = None, gt=None, resum
         "events": st["events"],
         "seed": cfg.seed,
         "light_intensity_scale": rec.light_corrections(),  # estimated / stated, per image (calibration)
+        "light_position_offset": rec.light_position_corrections(),  # estimated − stated, per image
     }
     if out is not None:
         write_outputs(out, cap, maps, report, st["history"], partial=interrupted)
