@@ -1032,7 +1032,8 @@ class Recovery:
     def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int],
                                       factor: float = 10.0, max_pixels: int = 4096, iters: int = 8) -> Tensor:
         """Before the metal/dielectric choice: refit the dielectric hypothesis where the metal wins
-        but the dielectric never converged (cost > ``factor`` × its median, the noise level).
+        but the dielectric never converged (cost > ``factor`` × its median, the noise level) and
+        the metal does not fit at the noise level either (> 2× the median).
 
         A metal's win is evidence only against a converged dielectric. Where the coarse levels
         blended a narrow structure (tiles' grout at the image edge is half as wide as inside:
@@ -1046,7 +1047,10 @@ class Recovery:
         """
         st = self.state
         med = float(scores[0].median())
-        sus = ((scores[1] < self.cfg.metal_margin * scores[0]) & (scores[0] > factor * med))[:, 0]
+        # A metal fitting at the noise level (< 2× the median) is a metal: no refit needed (cheap
+        # on metal-heavy captures); the border rims' metal fits were 3–10× it.
+        sus = ((scores[1] < self.cfg.metal_margin * scores[0]) & (scores[0] > factor * med)
+               & (scores[1] > 2.0 * med))[:, 0]
         rows = torch.nonzero(sus).flatten()
         if rows.numel() == 0:
             return scores[0]
