@@ -13,8 +13,8 @@ model other than the one the recovery fits, with light-calibration error:
   Fresnel (index from ``specular``; the fit uses Schlick) and height-correlated Smith masking
   (the fit uses the separable form), metals with Schlick F0 = base colour;
 * **calibration error** (``calibration=True``): each light's true intensity is the stated one
-  × (1 + N(0, 0.03)) and its true position the stated one + N(0, 0.01) per axis (1 cm when
-  the [-1, 1]² sample is 2 m wide; the lights are 2.5 units away), while ``capture.json``
+  × (1 + N(0, 0.03)) and its true position the stated one + N(0, 0.01) per axis (0.01 scene
+  units: 1 cm if a unit is a metre; the lights are ~2.5 units away), while ``capture.json``
   states the nominal values.
 
 Seeds < 100 are for tuning, seeds ≥ 100 are held out (``training.evaluate --set photo``).

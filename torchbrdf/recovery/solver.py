@@ -108,7 +108,7 @@ class RecoveryConfig:
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
-    fill: bool = False  # non-local fill of under-determined roughness / specular (nonlocal_fill; measured, not kept: docs)
+    fill: bool = False  # non-local fill of roughness / specular (nonlocal_fill; measured, not kept: docs)
     fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
     fill_weight: float = 1.0  # its precision, × sigma² / fill_sigma²
     fill_range: float = 0.04  # base-colour similarity scale
@@ -205,7 +205,8 @@ class LevelData:
 
     def set_light_scale(self, log_scale: Tensor | None):
         """Use intensities ``stated × exp(log_scale)`` (``log_scale (L,)``; None: as stated)."""
-        self.inten = self.inten_stated if log_scale is None else self.inten_stated * torch.exp(log_scale)[:, None]
+        scale = 1.0 if log_scale is None else torch.exp(log_scale)[:, None]
+        self.inten = self.inten_stated * scale
 
     def set_light_offset(self, offset: Tensor | None):
         """Use positions ``stated + offset`` (``offset (L, 3)``; None: as stated)."""
@@ -425,7 +426,8 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     that tells a smooth glaze from a bumpy stone of the same colour."""
     img = theta[:, 5:7].T.reshape(1, 2, size, size)
     k = 2 * radius + 1
-    pad = F.pad(torch.cat((img, img * img), 1), (radius,) * 4, mode="reflect" if size > radius else "replicate")
+    mode = "reflect" if size > radius else "replicate"
+    pad = F.pad(torch.cat((img, img * img), 1), (radius,) * 4, mode=mode)
     mom = F.avg_pool2d(pad, k, 1)
     var = (mom[:, 2:] - mom[:, :2] ** 2).clamp(min=0).sum(1)
     return var.sqrt().reshape(-1, 1)
@@ -463,7 +465,6 @@ def nonlocal_fill(data: "LevelData", theta: Tensor, metal: Tensor, cfg: "Recover
     feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
                       _normal_texture(theta, size) / cfg.fill_texture), -1)  # (P, 4)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
-    p = theta.shape[0]
     tgt = theta.clone()
     prec = torch.zeros_like(theta)
     ism = metal[:, 0] > 0.5
@@ -608,7 +609,8 @@ def light_scale_step(residual: Tensor, idx: list[int], log_scale: Tensor, ref_id
 
 
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
-              margin: float | None = None, unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, int]:
+              margin: float | None = None,
+              unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, int]:
     """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
 
     A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
@@ -649,8 +651,8 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
     return best, best_metal, int((best != theta).any(-1).sum())
 
 
-def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor], idx: list[int],
-                 model: str, iters: int = 10) -> tuple[Tensor, Tensor]:
+def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
+                 idx: list[int], model: str, iters: int = 10) -> tuple[Tensor, Tensor]:
     """Per-pixel Levenberg–Marquardt (data term only) on the listed pixels from several starts.
 
     ``theta (P, 7)``, ``metal (P, 1)``, ``rows (N,)`` pixel indices, ``starts``: ``(N, 7)``
@@ -955,13 +957,15 @@ class Recovery:
                 theta, _ = normal_search(data, theta, metal, self.cfg.model)
             calibrate = self.cfg.light_scale and kind != "dual"
             extra = {} if calibrate else None
-            theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"], extra, unary)
+            theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
+                                              extra, unary)
             if calibrate:  # alternate: maps (LM step above), then each light's intensity scale
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
                 self._sync_light_scale()
                 if self.cfg.light_position:
-                    st["light_offset"] = light_position_step(data, theta, metal, self.light_offset(), self.cfg.model)
+                    st["light_offset"] = light_position_step(data, theta, metal, self.light_offset(),
+                                                             self.cfg.model)
                     self._sync_light_scale()
             if n_bad:
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite loss", "pixels": n_bad,
