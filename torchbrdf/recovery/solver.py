@@ -48,6 +48,18 @@ Method (each choice measured, see ``docs/recovery.md``):
   information ``info = 1/diag((JᵀJ)⁻¹)`` against a fixed ``κ = prior_nonlocal_base``;
   pixels far from every highlight (low information) take the average, the well-observed
   ones keep their own value.
+* **Refit before the class choice**: where the metal hypothesis wins but the dielectric never
+  converged (a narrow structure the coarse levels blended, such as tiles' half-width grout at
+  the image edge), the dielectric is refitted per pixel from the metal's geometry first — a
+  metal's win is evidence only against a converged dielectric. Class votes count only the
+  neighbours a pixel has (5 on an edge, 3 in a corner), not padded copies of itself.
+* **Per-light intensity scales** (calibration error) are estimated jointly with the maps, the
+  training lights' geometric mean held at the stated intensities.
+* **Non-local fill** (before the last stage): under-determined roughness / specular get a
+  unary prior toward the reliability-weighted value of same-material pixels found anywhere
+  in the image (base colour and normal-spread similarity).
+* **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
+  specular from the marginal information, mapped to [0, 1].
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 
@@ -96,6 +108,16 @@ class RecoveryConfig:
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
+    fill: bool = False  # non-local fill of roughness / specular (nonlocal_fill; measured, not kept: docs)
+    fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
+    fill_weight: float = 1.0  # its precision, × sigma² / fill_sigma²
+    fill_range: float = 0.04  # base-colour similarity scale
+    fill_texture: float = 0.05  # normal-spread similarity scale (slope units)
+    fill_candidates: int = 256  # random same-class candidates per pixel
+    fill_min_similar: float = 2.0  # fewer similar candidates (summed similarity): no fill
+    refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
+    light_position: bool = True  # ... and a per-light position offset (prior 1 cm)
+    light_scale: bool = True  # estimate a per-light intensity scale jointly (calibration error)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
     prior_nonlocal_base: float = 0.003  # precision of the non-local prior on a metal's base colour
@@ -165,10 +187,33 @@ class LevelData:
         self.points = pixel_points(size, size, device=img.device, dtype=img.dtype).reshape(-1, 3)
         self.camera = cap.camera_position
         self.pos, self.inten = cap.light_positions, cap.light_intensities
+        self.inten_stated = cap.light_intensities  # capture.json's; self.inten carries the estimated scales
+        self.pos_stated = cap.light_positions  # capture.json's; self.pos carries the estimated offsets
         self.eps = eps
         self.log_obs = torch.log(torch.clamp(self.obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
         self._light = {}  # light-set tuple -> (log targets, light_geometry)
+
+    def subset(self, rows: Tensor) -> "LevelData":
+        """The same capture restricted to pixels ``rows (N,)`` (its own light-geometry cache)."""
+        sub = LevelData.__new__(LevelData)
+        sub.__dict__.update(self.__dict__)
+        sub.size, sub.images = None, None
+        sub.obs, sub.log_obs, sub.points = self.obs[:, rows], self.log_obs[:, rows], self.points[rows]
+        sub._light = {}
+        return sub
+
+    def set_light_scale(self, log_scale: Tensor | None):
+        """Use intensities ``stated × exp(log_scale)`` (``log_scale (L,)``; None: as stated)."""
+        scale = 1.0 if log_scale is None else torch.exp(log_scale)[:, None]
+        self.inten = self.inten_stated * scale
+
+    def set_light_offset(self, offset: Tensor | None):
+        """Use positions ``stated + offset`` (``offset (L, 3)``; None: as stated)."""
+        pos = self.pos_stated if offset is None else self.pos_stated + offset
+        if not torch.equal(pos, self.pos):
+            self.pos = pos
+            self._light = {}  # the cached light geometry depends on the positions
 
     def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
                  rows: Tensor | None = None) -> Tensor:
@@ -247,12 +292,13 @@ def photometric_stereo(data: LevelData, idx: list[int], drop: int = 3) -> tuple[
 # --------------------------------------------------------------------------------------
 
 
-def _neighbours(x: Tensor, size: int) -> Tensor:
-    """4-neighbour values ``(4, P, C)`` of a ``(P, C)`` map (replicated border)."""
+def _neighbour_mean(x: Tensor, size: int) -> Tensor:
+    """Mean ``(P, C)`` of each pixel's 4-neighbours that exist (2 in a corner, 3 on an edge)."""
     img = x.T.reshape(1, -1, size, size)
-    pad = F.pad(img, (1, 1, 1, 1), mode="replicate")
-    nb = torch.stack((pad[..., :-2, 1:-1], pad[..., 2:, 1:-1], pad[..., 1:-1, :-2], pad[..., 1:-1, 2:]))
-    return nb[:, 0].reshape(4, x.shape[1], -1).permute(0, 2, 1)
+    k = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=x.dtype, device=x.device)
+    s = F.conv2d(img, k.view(1, 1, 3, 3).expand(img.shape[1], 1, 3, 3), padding=1, groups=img.shape[1])
+    n = F.conv2d(torch.ones_like(img[:, :1]), k.view(1, 1, 3, 3), padding=1)
+    return (s / n)[0].reshape(x.shape[1], -1).T
 
 
 def _blur(x: Tensor, size: int, sigma: float) -> Tensor:
@@ -374,11 +420,91 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
     return w, m, info
 
 
-def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float):
+def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
+    """Local standard deviation ``(P, 1)`` of the normal slope ``(p, q)`` in a ``(2r+1)²`` window
+    (reflect-padded: an edge pixel's window lies inside the image): the geometry statistic
+    that tells a smooth glaze from a bumpy stone of the same colour."""
+    img = theta[:, 5:7].T.reshape(1, 2, size, size)
+    k = 2 * radius + 1
+    mode = "reflect" if size > radius else "replicate"
+    pad = F.pad(torch.cat((img, img * img), 1), (radius,) * 4, mode=mode)
+    mom = F.avg_pool2d(pad, k, 1)
+    var = (mom[:, 2:] - mom[:, :2] ** 2).clamp(min=0).sum(1)
+    return var.sqrt().reshape(-1, 1)
+
+
+def nonlocal_fill(data: "LevelData", theta: Tensor, metal: Tensor, cfg: "RecoveryConfig",
+                  info: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Targets and precisions ``(P, 7)`` of a unary prior that fills under-determined roughness and
+    specular from same-material pixels the captured highlights do constrain.
+
+    Each pixel draws ``cfg.fill_candidates`` pixels of its class from the whole image
+    (non-local: a glossy region no highlight reaches borrows from the same material where one
+    does) and averages their roughness / specular logits with weights
+    ``similarity × reliability``: similarity ``exp(−|Δbase|²/σ_b² − Δtex²/σ_t²)`` in base
+    colour and in the local spread of the normal (``_normal_texture``), reliability the
+    candidate's own confidence ``1 / (1 + var / tol²)`` from its marginal information
+    ``1 / diag((JᵀJ)⁻¹)`` (its posterior variance in map units; ``tol`` = ``cfg.fill_sigma``).
+    The prior's precision (logit units) is ``σ² / fill_sigma² · (dvalue/dlogit)²`` × the
+    mean reliability of the similar candidates — a value ``fill_sigma`` wide around the
+    material's measured one, as strong as the data at a pixel of confidence ½, and nothing
+    where no similar pixel was measured. The LM then fuses it with each pixel's data: the
+    well-measured pixels keep their own values, the under-determined ones take the material's.
+    """
+    size = data.size
+    if info is None:
+        info = marginal_information(data, theta, metal, cfg.model)
+    r = data.residual(theta, metal, data.train_idx, cfg.model)
+    sigma2 = float(torch.nan_to_num((r * r).mean(-1), nan=0.0).median())
+    sr, ss = torch.sigmoid(theta[:, 4:5]), torch.sigmoid(theta[:, 3:4])
+    d_r = (_R_MAX - _R_MIN) * sr * (1 - sr)  # d roughness / d logit
+    d_s = ss * (1 - ss)
+    tol = cfg.fill_sigma
+    rel_r = 1.0 / (1.0 + sigma2 * d_r**2 / (info[:, 4:5].clamp(min=1e-12) * tol**2))
+    rel_s = 1.0 / (1.0 + sigma2 * d_s**2 / (info[:, 3:4].clamp(min=1e-12) * tol**2))
+    feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
+                      _normal_texture(theta, size) / cfg.fill_texture), -1)  # (P, 4)
+    gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
+    tgt = theta.clone()
+    prec = torch.zeros_like(theta)
+    ism = metal[:, 0] > 0.5
+    for cls in (~ism, ism):
+        pool = torch.nonzero(cls).flatten()
+        if pool.numel() < 2:
+            continue
+        k = min(cfg.fill_candidates, pool.numel())
+        rows = pool
+        num = torch.zeros(rows.numel(), 2, dtype=theta.dtype)
+        den = torch.zeros(rows.numel(), 2, dtype=theta.dtype)
+        sim_sum = torch.zeros(rows.numel(), 1, dtype=theta.dtype)
+        chunk = max(1, 2**21 // k)
+        for s0 in range(0, rows.numel(), chunk):
+            rr = rows[s0:s0 + chunk]
+            cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
+            sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1))  # (n, K)
+            w = sim[..., None] * torch.stack((rel_s[cand, 0], rel_r[cand, 0]), -1)  # (n, K, 2)
+            num[s0:s0 + rr.numel()] = (w * theta[cand][..., 3:5]).sum(1)
+            den[s0:s0 + rr.numel()] = w.sum(1)
+            sim_sum[s0:s0 + rr.numel()] = sim.sum(1, keepdim=True)
+        ok = den > 1e-9
+        tgt[rows, 3:5] = torch.where(ok, num / den.clamp(min=1e-12), theta[rows, 3:5])
+        support = (den / sim_sum.clamp(min=1e-12)) * (sim_sum >= cfg.fill_min_similar)  # mean reliability
+        base_prec = sigma2 / tol**2 * torch.cat((d_s[rows], d_r[rows]), -1) ** 2
+        prec[rows, 3:5] = cfg.fill_weight * base_prec * support * ok
+    if bool(ism.any()):
+        prec[ism, 3] = 0.0  # a metal's specular is invisible and already tied to its neighbours
+    return torch.nan_to_num(tgt), torch.nan_to_num(prec)
+
+
+def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float,
+            extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None):
     """One Levenberg–Marquardt iteration with the coupled smoothness prior.
 
     ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
-    ``lr`` scales the step. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``.
+    ``lr`` scales the step. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``; when ``extra``
+    (a dict) is given, ``extra["residual"]`` receives the residuals ``(P, M)`` at the returned
+    ``theta`` (for the light-scale update, without another render). ``unary = (target, precision)``
+    ``(P, 7)`` each adds ``½ Σ precision (θ − target)²`` (the non-local fill, :func:`nonlocal_fill`).
     """
     idx, size = data.train_idx, data.size
     wx, wy = edge_weights(theta, metal, size, cfg)
@@ -388,25 +514,103 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     r0s = torch.where(torch.isfinite(r0), r0, torch.zeros_like(r0))
     jtj = torch.einsum("pmi,pmj->pij", jac, jac)
     g = torch.einsum("pmi,pm->pi", jac, r0s) + laplacian(theta, wx, wy, size)
+    if unary is not None:
+        g = g + unary[1] * (theta - unary[0])
+        jtj = jtj + torch.diag_embed(unary[1])
     hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + laplacian_diag(wx, wy, size)
     hess = jtj + torch.diag_embed(lam * (hd + 1e-6))  # per-pixel Marquardt damping
     step = pcg(hess, wx, wy, -g, size, cfg.cg_iters)
     step = torch.where(torch.isfinite(step), step, torch.zeros_like(step)).clamp(-3, 3)
-    c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size)
+    c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size) + _unary_cost(theta, unary)
     c0 = torch.where(torch.isfinite(c0), c0, torch.full_like(c0, float("inf")))
     cand = theta + lr * step
     r1 = fn(cand)
-    c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size)
+    c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size) + _unary_cost(cand, unary)
     c1 = torch.where(torch.isfinite(c1), c1, torch.full_like(c1, float("inf")))
     better = c1 < c0
     theta = torch.where(better, cand, theta)
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
     cost = torch.where(better, c1, c0)
+    if extra is not None:
+        extra["residual"] = torch.where(better, r1, r0)
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
 
 
+def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: Tensor, model: str,
+                        prior_sigma: float = 0.01, stride: int = 4) -> Tensor:
+    """One Gauss–Newton update of the per-light position offsets ``(L, 3)`` (world units).
+
+    Each light's residuals depend only on its own position, so three forward-mode passes (one
+    per axis, every light at once) give every light's ``(pixels, 3)`` Jacobian; the step solves
+    each light's 3×3 normal equations with a Gaussian prior of ``prior_sigma`` (1 cm) on the
+    offset, over every ``stride``-th pixel (cheap; the offset is 3 numbers per light against
+    thousands of pixels). Lights not in ``data.train_idx`` keep their offsets.
+    """
+    idx = data.train_idx
+    rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
+    p = decode(theta[rows], metal[rows])
+    pts, cam = data.points[rows], data.camera
+    log_obs = data.log_obs[idx][:, rows]
+    inten = data.inten[idx]
+    base = data.pos_stated[idx] + offset[idx]
+
+    def res(pos):
+        light = light_geometry(pts, cam, pos)
+        pred = _render_points(p, pts, cam, pos, inten, model, light)
+        return torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)) - log_obs  # (L, N, 3)
+
+    r = torch.nan_to_num(res(base))
+    jac = []
+    for k in range(3):
+        tg = torch.zeros_like(base)
+        tg[:, k] = 1.0
+        jac.append(torch.nan_to_num(torch.func.jvp(res, (base,), (tg,))[1]))
+    jac = torch.stack(jac, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
+    r = r.reshape(len(idx), -1)
+    sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
+    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * torch.eye(3, dtype=r.dtype)
+    g = torch.einsum("lni,ln->li", jac, r) + (sigma2 / prior_sigma**2) * offset[idx]
+    step = torch.linalg.solve(jtj, -g[..., None])[..., 0]
+    out = offset.clone()
+    out[idx] = (offset[idx] + torch.nan_to_num(step)).clamp(-5 * prior_sigma, 5 * prior_sigma)
+    return out
+
+
+def _unary_cost(theta: Tensor, unary: tuple[Tensor, Tensor] | None):
+    """Per-pixel share ``(P, 1)`` (on the ``|r|²`` scale) of the unary prior, or 0."""
+    if unary is None:
+        return 0.0
+    return (unary[1] * (theta - unary[0]) ** 2).sum(-1, keepdim=True)
+
+
+def light_scale_step(residual: Tensor, idx: list[int], log_scale: Tensor, ref_idx: list[int],
+                     prior_sigma: float = 0.1) -> Tensor:
+    """One Gauss–Newton update of the per-light log intensity scales ``(L,)``.
+
+    ``residual (P, len(idx) * 3)`` are the log residuals on lights ``idx``. A light whose
+    stated intensity is off by a factor ``c`` shifts every bright pixel's log residual by
+    ``log c``; the update is minus the per-light *median* residual over pixels (robust to
+    the few badly fitted ones; the log residual's derivative w.r.t. the log scale is
+    ``pred / (pred + ε) ≈ 1``), shrunk by a Gaussian prior of width ``prior_sigma`` on the
+    log scale. One number per light against every pixel (65k at 256²): 1 % noise moves it
+    by ~5e-5, so it cannot fit noise. The absolute scale is fixed by the capture's stated
+    intensities: the mean log scale over ``ref_idx`` (the training lights) is kept at 0.
+    """
+    p = residual.shape[0]
+    r = residual.reshape(p, len(idx), -1).mean(-1)  # (P, n) per pixel and light
+    r = torch.where(torch.isfinite(r), r, torch.zeros_like(r))
+    med = r.median(0).values  # (n,)
+    noise = float((r - med).abs().median()) * 1.4826 + 1e-12  # robust std of one pixel's residual
+    shrink = p / (p + (noise / prior_sigma) ** 2)
+    out = log_scale.clone()
+    out[idx] = shrink * (out[idx] - med)  # posterior mean: data optimum shrunk toward 0
+    out[ref_idx] = out[ref_idx] - out[ref_idx].mean()
+    return out.clamp(-0.3, 0.3)
+
+
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
-              margin: float | None = None) -> tuple[Tensor, Tensor, int]:
+              margin: float | None = None,
+              unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, int]:
     """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
 
     A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
@@ -426,14 +630,14 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
         (data.residual(t, m, data.train_idx, cfg.model) ** 2).sum(-1, keepdim=True), nan=float("inf"))
     wx, wy = edge_weights(theta, metal, size, cfg)
     best, best_metal = theta, metal
-    best_score = cost(theta, metal) + local_prior(theta, theta, wx, wy, size)
+    best_score = cost(theta, metal) + local_prior(theta, theta, wx, wy, size) + _unary_cost(theta, unary)
     pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
     padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
     for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
         cand = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
         cm = padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T
         same = cm == metal
-        prior = local_prior(cand, theta, wx, wy, size)
+        prior = local_prior(cand, theta, wx, wy, size) + _unary_cost(cand, unary)
         if margin is None:
             score = torch.where(same, cost(cand, metal) + prior, float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
@@ -445,6 +649,47 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
         best_metal = torch.where(better, cm, best_metal)
         best_score = torch.where(better, score, best_score)
     return best, best_metal, int((best != theta).any(-1).sum())
+
+
+def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
+                 idx: list[int], model: str, iters: int = 10) -> tuple[Tensor, Tensor]:
+    """Per-pixel Levenberg–Marquardt (data term only) on the listed pixels from several starts.
+
+    ``theta (P, 7)``, ``metal (P, 1)``, ``rows (N,)`` pixel indices, ``starts``: ``(N, 7)``
+    starting points; ``idx`` the lights. Cheap — a few hundred pixels, no prior coupling.
+    Returns the best ``(theta rows (N, 7), data cost (N, 1))`` over the starts.
+    """
+    m = metal[rows]
+    sub = data.subset(rows)
+
+    def cost(t):
+        r = sub.residual(t, m, idx, model)
+        return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+
+    best, best_c = None, None
+    for t in starts:
+        t = t.clone()
+        lam = torch.full((t.shape[0], 1), 1e-2, dtype=t.dtype, device=t.device)
+        c = cost(t)
+        for _ in range(iters):
+            r = torch.nan_to_num(sub.residual(t, m, idx, model))
+            jac = jacobian(sub, t, m, idx, model)
+            jtj = torch.einsum("pmi,pmj->pij", jac, jac)
+            g = torch.einsum("pmi,pm->pi", jac, r)
+            h = jtj + torch.diag_embed(lam * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
+            step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
+            cand = t + step
+            c1 = cost(cand)
+            better = c1 < c
+            t = torch.where(better, cand, t)
+            c = torch.where(better, c1, c)
+            lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
+        if best is None:
+            best, best_c = t, c
+        else:
+            better = c < best_c
+            best, best_c = torch.where(better, t, best), torch.where(better, c, best_c)
+    return best, best_c
 
 
 def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
@@ -543,39 +788,54 @@ def _upsample(x: Tensor, s0: int, s1: int, mode="bilinear") -> Tensor:
     return up[0].reshape(x.shape[1], -1).T.contiguous()
 
 
+def _neighbour_count(label: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """Number of metal pixels among each pixel's 8 neighbours, and the number of neighbours it has.
+
+    ``label (P, 1)`` in {0, 1} → two ``(P, 1)`` maps. Pixels on the image edge have 5
+    neighbours, corners 3: the outside is *absent*, not a copy of the edge (replicate padding
+    made an edge pixel its own neighbour, so a wrong pixel on the edge outvoted its real
+    neighbours and an edge row of one class could never be flipped by the rows inside).
+    """
+    img = label.T.reshape(1, 1, size, size)
+    ones = torch.ones_like(img)
+    s = F.avg_pool2d(F.pad(img, (1, 1, 1, 1)), 3, 1) * 9 - img
+    n = F.avg_pool2d(F.pad(ones, (1, 1, 1, 1)), 3, 1) * 9 - ones
+    return s.reshape(-1, 1), n.reshape(-1, 1)
+
+
 def _choose_class(cost_diel: Tensor, cost_metal: Tensor, margin: float, size: int, sweeps: int = 8) -> Tensor:
     """Per-pixel metal (1) / dielectric (0) choice ``(P, 1)`` from the two hypotheses' data costs.
 
     Decisive pixels follow the data: metal when its cost is below ``margin`` × the
     dielectric's, dielectric when above ``1 / margin`` × it. The pixels in between are ones the
     data cannot decide — typically a metal far from every highlight, whose tail a black
-    glossy dielectric reproduces as well — and take the majority class of their 8
-    neighbours (a few iterated-conditional-modes sweeps grow the decisive regions into
-    them); with no decisive neighbourhood they stay dielectric, the common case.
+    glossy dielectric reproduces as well — and take the majority class of their
+    neighbours (8 inside the image, 5 on an edge, 3 in a corner; a few
+    iterated-conditional-modes sweeps grow the decisive regions into them); with no
+    decisive neighbourhood they stay dielectric, the common case.
     """
     ratio = cost_metal / cost_diel.clamp(min=1e-30)
     sure_metal = ratio < margin
     ambiguous = ~sure_metal & (ratio <= 1.0 / margin)
     label = sure_metal.to(cost_diel.dtype)
     for _ in range(sweeps if bool(ambiguous.any()) else 0):
-        img = label.T.reshape(1, 1, size, size)
-        frac = (F.avg_pool2d(F.pad(img, (1, 1, 1, 1), mode="replicate"), 3, 1) * 9 - img) / 8
-        label = torch.where(ambiguous, (frac.reshape(-1, 1) > 0.5).to(label.dtype), label)
+        metal_nb, n_nb = _neighbour_count(label, size)
+        label = torch.where(ambiguous, (metal_nb > 0.5 * n_nb).to(label.dtype), label)
     return label
 
 
 def _majority(metal: Tensor, size: int) -> Tensor:
-    img = metal.T.reshape(1, 1, size, size)
-    avg = F.avg_pool2d(F.pad(img, (1, 1, 1, 1), mode="replicate"), 3, 1)
-    return (avg > 0.5).to(metal.dtype).reshape(-1, 1)
+    """3×3 majority vote ``(P, 1)`` over the pixel and its neighbours that exist."""
+    metal_nb, n_nb = _neighbour_count(metal, size)
+    return ((metal_nb + metal) > 0.5 * (n_nb + 1)).to(metal.dtype)
 
 
 def _despeckle(metal: Tensor, size: int) -> Tensor:
-    img = metal.T.reshape(1, 1, size, size)
-    same_metal = F.avg_pool2d(F.pad(img, (1, 1, 1, 1), mode="replicate"), 3, 1) * 9 - img  # metal neighbours
-    agree = torch.where(img > 0.5, same_metal, 8 - same_metal)
-    out = torch.where(agree <= 1, 1 - img, img)
-    return out.reshape(-1, 1)
+    """Flip isolated choices ``(P, 1)``: at most one in 8 of the pixel's neighbours agrees with it
+    (on an edge: none of its 5; keeps one-pixel-wide lines, which have 2 agreeing neighbours)."""
+    metal_nb, n_nb = _neighbour_count(metal, size)
+    agree = torch.where(metal > 0.5, metal_nb, n_nb - metal_nb)
+    return torch.where(agree * 8 <= n_nb, 1 - metal, metal)
 
 
 class Recovery:
@@ -669,13 +929,40 @@ class Recovery:
         return blob
 
     # -- one iteration ---------------------------------------------------------------------
+    def light_log_scale(self) -> Tensor:
+        """Estimated per-light log intensity scales ``(L,)`` (0: as stated in capture.json)."""
+        s = self.state.get("light_log_scale") if self.state else None
+        return s if s is not None else torch.zeros(len(self.cap), dtype=self.cap.light_intensities.dtype)
+
+    def light_offset(self) -> Tensor:
+        """Estimated per-light position offsets ``(L, 3)`` (0: as stated in capture.json)."""
+        s = self.state.get("light_offset") if self.state else None
+        return s if s is not None else torch.zeros_like(self.cap.light_positions)
+
+    def _sync_light_scale(self):
+        for d in self._data.values():
+            d.set_light_scale(self.light_log_scale())
+            d.set_light_offset(self.light_offset())
+
+    def light_corrections(self) -> dict:
+        """``{image file: estimated intensity / stated intensity}`` (report.json)."""
+        s = torch.exp(self.light_log_scale())
+        return {f: float(s[k]) for k, f in enumerate(self.cap.files)}
+
+    def light_position_corrections(self) -> dict:
+        """``{image file: estimated − stated position (3,)}`` (report.json)."""
+        o = self.light_offset()
+        return {f: [float(x) for x in o[k]] for k, f in enumerate(self.cap.files)}
+
     def tick(self):
         st = self.state
         size, kind, n_it = self.plan[st["stage"]]
         data = self.data(size, all_lights=(kind == "all"))
+        self._sync_light_scale()
         if self.cfg.fault_at is not None and st["global_it"] == self.cfg.fault_at:
             st["theta"][0][: max(1, st["theta"][0].shape[0] // 10)] = float("nan")  # injected fault
         hyps = [0, 1] if kind == "dual" else [0]
+        unary = st.get("fill") if kind == "all" else None
         total = 0.0
         for h in hyps:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
@@ -686,21 +973,32 @@ class Recovery:
                                      "pixels": int(bad.sum()), "action": "reset to neighbours, lr halved"})
                 self.log(f"warning: {int(bad.sum())} non-finite parameters at iteration {st['global_it']}; "
                          "stepping back and halving the step")
-                fill = _neighbours(torch.nan_to_num(theta, nan=0.0), size).mean(0)
+                fill = _neighbour_mean(torch.nan_to_num(theta, nan=0.0), size)
                 theta = torch.where(bad, torch.nan_to_num(fill, nan=0.0), theta)
                 st["lam"][h] = torch.where(bad, st["lam"][h] * 100, st["lam"][h])
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
                 cross = None if kind == "dual" else self.cfg.metal_margin
                 for _ in range(self.cfg.propagate_passes if st["it"] == 0 else 1):
-                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross)
+                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary)
                     if not changed:
                         break
                 if kind != "dual":
                     st["metal"] = metal
             if st["it"] == 0 and self.cfg.propagate:
                 theta, _ = normal_search(data, theta, metal, self.cfg.model)
-            theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"])
+            calibrate = self.cfg.light_scale and kind != "dual"
+            extra = {} if calibrate else None
+            theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
+                                              extra, unary)
+            if calibrate:  # alternate: maps (LM step above), then each light's intensity scale
+                st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
+                                                         self.light_log_scale(), self.train_idx)
+                self._sync_light_scale()
+                if self.cfg.light_position:
+                    st["light_offset"] = light_position_step(data, theta, metal, self.light_offset(),
+                                                             self.cfg.model)
+                    self._sync_light_scale()
             if n_bad:
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite loss", "pixels": n_bad,
                                      "action": "step rejected, damping raised"})
@@ -728,6 +1026,8 @@ class Recovery:
                 r = self.data(size).residual(st["theta"][h], metal, lights, self.cfg.model)
                 c = (r * r).sum(-1, keepdim=True)
                 scores.append(torch.nan_to_num(c, nan=float("inf")))
+            if self.cfg.refit_before_choice:
+                scores[0] = self._refit_unconverged_dielectric(size, scores, lights)
             # Metal only when clearly better: a rough metal's broad GGX lobe can mimic a
             # rough dielectric's diffuse, and dielectrics are the common case.
             metal = _choose_class(scores[0], scores[1], self.cfg.metal_margin, size)
@@ -751,6 +1051,9 @@ class Recovery:
                     st["metal"] = (_upsample(st["metal"], size, s1) > 0.5).to(st["theta"][0].dtype)
             if kind1 == "all":
                 st["validation"] = self.validation()
+                if self.cfg.fill and kind == "polish":
+                    # Fill what no captured highlight constrains from the same material where one does.
+                    st["fill"] = nonlocal_fill(self.data(size), st["theta"][0], st["metal"], self.cfg)
         elif self.cfg.prior_nonlocal > 0 or self.cfg.prior_nonlocal_base > 0:
             # Done: fuse each pixel's roughness / metal base colour with its non-local
             # estimate by their precisions (see nonlocal_prior).
@@ -758,8 +1061,52 @@ class Recovery:
                                         self.cfg)
             th = st["theta"][0]
             st["theta"][0] = torch.where(w > 0, (info * th + w * m) / (info + w).clamp(min=1e-12), th)
+            st["info"] = info
         st["stage"] = nxt
         st["it"] = 0
+
+    def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int],
+                                      factor: float = 10.0, max_pixels: int = 4096, iters: int = 8) -> Tensor:
+        """Before the metal/dielectric choice: refit the dielectric hypothesis where the metal wins
+        but the dielectric never converged (cost > ``factor`` × its median, the noise level) and
+        the metal does not fit at the noise level either (> 2× the median).
+
+        A metal's win is evidence only against a converged dielectric. Where the coarse levels
+        blended a narrow structure (tiles' grout at the image edge is half as wide as inside:
+        one coarse pixel at S/4), the dielectric's start at this level is a glossy, flat local
+        optimum that Gauss–Newton does not leave, while the metal start (rough, flat) reached the
+        rim's normal — and those pixels were called metal, a frame along the image border.
+        They get a per-pixel LM (:func:`refit_pixels`, data only) from their own parameters
+        and from the metal hypothesis's normal and roughness (geometry does not depend on the
+        material) with specular 0.5; the better result replaces the dielectric where it fits
+        better. Returns the dielectric's updated scores ``(P, 1)`` on ``lights``.
+        """
+        st = self.state
+        med = float(scores[0].median())
+        # A metal fitting at the noise level (< 2× the median) is a metal: no refit needed (cheap
+        # on metal-heavy captures); the border rims' metal fits were 3–10× it.
+        sus = ((scores[1] < self.cfg.metal_margin * scores[0]) & (scores[0] > factor * med)
+               & (scores[1] > 2.0 * med))[:, 0]
+        rows = torch.nonzero(sus).flatten()
+        if rows.numel() == 0:
+            return scores[0]
+        if rows.numel() > max_pixels:
+            rows = rows[torch.topk(scores[0][rows, 0], max_pixels).indices]
+        d = self.data(size)
+        th0, th1 = st["theta"][0], st["theta"][1]
+        cross = th0[rows].clone()
+        cross[:, 4:7] = th1[rows, 4:7]
+        cross[:, 3] = 0.0  # specular 0.5
+        zero = torch.zeros_like(st["lam"][0])
+        new, _ = refit_pixels(d, th0, zero, rows, [th0[rows], cross], self.train_idx, self.cfg.model, iters)
+        r = d.subset(rows).residual(new, zero[rows], lights, self.cfg.model)
+        c = torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+        better = c < scores[0][rows]
+        st["theta"][0] = th0.clone()
+        st["theta"][0][rows] = torch.where(better, new, th0[rows])
+        out = scores[0].clone()
+        out[rows] = torch.where(better, c, scores[0][rows])
+        return out
 
     def finished(self) -> bool:
         return self.state["stage"] >= len(self.plan)
@@ -782,6 +1129,38 @@ class Recovery:
         # Specular is invisible on a metal pixel (F0 = base colour): write the contract default.
         p["specular"] = torch.where(metal > 0.5, torch.full_like(p["specular"], 0.5), p["specular"])
         return {k: v.T.reshape(-1, size, size).contiguous() for k, v in p.items()}
+
+    def confidence_map(self, tol_roughness: float = 0.05, tol_specular: float = 0.1) -> Tensor:
+        """Per-pixel confidence ``(1, S, S)`` in [0, 1] that roughness (and a dielectric's specular)
+        were *measured*, not inferred.
+
+        From the Gauss–Newton posterior: the marginal information ``1 / diag((JᵀJ)⁻¹)`` of the
+        roughness and specular logits (the other unknowns free to trade off) and the residual
+        noise variance ``σ²`` (median per-residual data cost) give each pixel's posterior
+        variance in map units, ``var = σ² / info · (d value / d logit)²``; the confidence is
+        ``1 / (1 + var_r / tol_r² + var_s / tol_s²)`` — about 1 where a captured highlight pins
+        the value far inside the tolerances, → 0 where no highlight reaches (the value then
+        comes from the priors). A metal's specular is invisible and not counted.
+        """
+        st = self.state
+        size = self.plan[min(st["stage"], len(self.plan) - 1)][0]
+        theta = torch.nan_to_num(st["theta"][0], nan=0.0, posinf=0.0, neginf=0.0)
+        metal = st["metal"] if st["metal"] is not None else torch.zeros_like(theta[:, :1])
+        kind = self.plan[min(st["stage"], len(self.plan) - 1)][1]
+        data = self.data(size, all_lights=(kind == "all"))
+        info = st.get("info")
+        if info is None or info.shape[0] != theta.shape[0]:
+            with torch.no_grad():
+                info = marginal_information(data, theta, metal, self.cfg.model)
+        with torch.no_grad():
+            r = data.residual(theta, metal, data.train_idx, self.cfg.model)
+        sigma2 = float(torch.nan_to_num((r * r).mean(-1), nan=0.0).median())
+        sr = torch.sigmoid(theta[:, 4:5])
+        ss = torch.sigmoid(theta[:, 3:4])
+        var_r = sigma2 / info[:, 4:5] * ((_R_MAX - _R_MIN) * sr * (1 - sr)) ** 2
+        var_s = sigma2 / info[:, 3:4] * (ss * (1 - ss)) ** 2 * (metal < 0.5)
+        conf = 1.0 / (1.0 + var_r / tol_roughness**2 + var_s / tol_specular**2)
+        return torch.nan_to_num(conf, nan=0.0).clamp(0, 1).T.reshape(1, size, size).contiguous()
 
     def validation(self) -> dict | None:
         if self.holdout is None:

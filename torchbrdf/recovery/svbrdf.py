@@ -286,7 +286,7 @@ def _settings_differences(old: dict, new: dict) -> list[str]:
 
 #: Every file a run writes into OUT (besides checkpoint.pt); the rest of OUT is carried over.
 OUTPUT_FILES = tuple([f"{n}.exr" for n in MAP_NAMES] + [f"{n}.png" for n in MAP_NAMES]
-                     + ["comparison.png", "loss.png", REPORT])
+                     + ["confidence.exr", "confidence.png", "comparison.png", "loss.png", REPORT])
 _TMP_FILE = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")  # atomic_path's temporaries
 
 
@@ -522,12 +522,14 @@ def map_errors(maps: dict, gt_dir: Path) -> dict:
 
 
 def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: dict, history: list,
-                  plots: bool = True) -> None:
+                  plots: bool = True, confidence: Tensor | None = None) -> None:
     """Write one run's files into ``folder`` (the staging folder).
 
     That is the EXR maps and their PNG previews, ``comparison.png``, ``loss.png`` and, last,
     ``report.json`` with every file's SHA-256. ``maps`` are finite ``(C, H, W)`` at the
-    capture's size; ``pred`` the re-rendered images ``(L, 3, H, W)``. ``plots=False`` (an
+    capture's size; ``pred`` the re-rendered images ``(L, 3, H, W)``; ``confidence`` the
+    ``(1, H, W)`` confidence map in [0, 1] (what the data measured, 1, vs what the priors
+    inferred, 0), written as ``confidence.exr`` and ``confidence.png``. ``plots=False`` (an
     interrupted run, which should exit promptly) skips the two matplotlib figures.
     """
     for name in MAP_NAMES:
@@ -539,6 +541,12 @@ def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: 
                 write_png(folder / f"{name}.png", t * 0.5 + 0.5, srgb=False)
             else:
                 write_png(folder / f"{name}.png", t, srgb=(name == "base_color"))
+    if confidence is not None:
+        c = confidence.detach().float().cpu().clamp(0, 1).reshape(1, *confidence.shape[-2:])
+        with _Writing("confidence.exr"):
+            write_exr(folder / "confidence.exr", c, channels=["Y"])
+        with _Writing("confidence.png"):
+            write_png(folder / "confidence.png", c, srgb=False)
     if plots:
         with _Writing("comparison.png"):
             _side_by_side(folder / "comparison.png", cap, pred)
@@ -881,6 +889,8 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
                          for h in st["history"]],
         "fingerprint": {"capture_sha256": _digest(fingerprint["capture"]),
                         "settings": fingerprint["settings"]},
+        "light_intensity_scale": rec.light_corrections(),  # estimated / stated, per image (calibration)
+        "light_position_offset": rec.light_position_corrections(),  # estimated − stated, per image
     }
     if gt is not None:
         report["errors"] = map_errors(fin, gt)
@@ -888,7 +898,8 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         cpu_maps = {k: v.cpu() for k, v in fin.items()}
         try:
             commit_outputs(out, lambda folder: write_outputs(folder, cap, cpu_maps, pred, report,
-                                                             st["history"], plots=not interrupted))
+                                                             st["history"], plots=not interrupted,
+                                                             confidence=None if interrupted else confidence))
         except OSError as e:
             raise _io_error(e, f"the outputs in {out}") from e
         if interrupted:
