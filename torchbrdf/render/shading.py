@@ -309,9 +309,10 @@ def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
 def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
-    The principled BRDF on CPU float32/float64 with the fused kernels enabled (see
-    :func:`torchbrdf.set_fast_path`; automatic mode from ``FAST_PATH_MIN_LANES`` pixel-lights),
-    no gradient wanted w.r.t. lights or camera (those stay on the eager shader).
+    The principled BRDF on CPU float32/float64 with the C kernels in force (see
+    :func:`torchbrdf.set_fast_path` and :func:`torchbrdf.set_backend`; the ``"auto"`` backend
+    from ``FAST_PATH_MIN_LANES`` pixel-lights on), no gradient wanted w.r.t. lights or camera
+    (those stay on the eager shader).
     """
     if kind != "principled" or not (points or dirs):
         return False
@@ -340,9 +341,11 @@ def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, element
         uniform = [cam] + [t for light in points + dirs for t in light._light_tensors()]
         if any(t.requires_grad for t in uniform):
             return False
-    if mode is None and elements < _pr.FAST_PATH_MIN_LANES:
+    if mode is None and _pr._backend_setting() == "auto" and elements < _pr.FAST_PATH_MIN_LANES:
         return False
-    return _pr._kernels_available()
+    # The fused shading kernel is printed as C only: the CPU backend (a Triton light loop is
+    # still to come, so CUDA and the "triton" backend shade through per-light passes).
+    return _pr._resolve_backend(dev.type) == "c"
 
 
 def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
