@@ -57,11 +57,13 @@ def _run(fast: bool):
 def _check_principled(expect_fused: bool | None = None):
     """Check that ``principled`` works and equals eager; returns whether the fused kernels ran."""
     of, gf, name = _run(True)
+    # The operator falls back to the eager formula inside itself when no kernel loads, so
+    # whether a kernel ran is whether a kernel library is loaded, not the grad_fn's name.
+    ran_fused = bool(fused._libs)
     oe, ge, _ = _run(False)
     torch.testing.assert_close(of, oe, rtol=1e-6, atol=1e-7)
     for a, b in zip(gf, ge):
         torch.testing.assert_close(a, b, rtol=2e-6, atol=1e-6)
-    ran_fused = "PrincipledFunction" in name
     if expect_fused is not None:
         assert ran_fused == expect_fused, name
     return ran_fused
@@ -275,7 +277,9 @@ def test_kernel_that_never_loads_runs_eager_with_one_warning(cache, golden, monk
     monkeypatch.setattr(build, "_dlopen", broken_dlopen)
     assert not _check_principled(expect_fused=False)
     assert not _check_principled(expect_fused=False)
-    assert len(builds) == 1  # the forward's cached file, rebuilt once; then eager, no more builds
+    # Each kernel that fails to load (the forward's cached file, then the backward's, which the
+    # operator's autograd still asks for) is rebuilt once; then eager, no more builds.
+    assert len(builds) == 2 and len({b.rsplit("_", 1)[0] for b in builds}) == 2
     assert len(_our_warnings(recwarn)) == 1
 
 

@@ -187,12 +187,17 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     flat, modes = plan.flat(tensors)
     lib = _load(plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need)), backward=True)
     if lib is None:
-        with torch.enable_grad():
-            ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
-            out = _formula_eager(plan, ts, plan.floats)
-            gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
-        return [g.contiguous() if g is not None else tensors[i].new_zeros(tensors[i].shape)
-                for i, g in zip(need, gs)]
+        # No kernel (no compiler, a cache fault): the vjp of the shared formula. torch.func, not
+        # autograd: inside an operator's implementation the autograd keys are switched off.
+        def f(*wrt):
+            ts = list(tensors)
+            for i, t in zip(need, wrt):
+                ts[i] = t
+            return _formula_eager(plan, ts, plan.floats)
+
+        _, vjp_fn = torch.func.vjp(f, *[tensors[i] for i in need])
+        gs = vjp_fn(grad_out.to(dtype))
+        return [g.contiguous() for g in gs]
     fn = lib[1]
     P = _dparams(plan.floats)
     nt = torch.get_num_threads()
