@@ -124,17 +124,19 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     """CLI: evaluate the recovery on N unseen synthetic materials (and the light-count study)."""
     p = argparse.ArgumentParser(prog="python -m training.evaluate", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--materials", type=int, default=3)
+    p.add_argument("--out", type=Path, required=True, help="folder for the captures, recovered maps and the table")
+    p.add_argument("--materials", type=int, default=3, help="number of captures (materials) to evaluate")
     p.add_argument("--recipes", default=",".join(RECIPES), help="comma-separated recipes to cycle")
-    p.add_argument("--seed0", type=int, default=100, help="first material seed (tuning used seed 1)")
-    p.add_argument("--size", type=int, default=256)
-    p.add_argument("--lights", type=int, default=16)
-    p.add_argument("--noise", type=float, default=0.01)
-    p.add_argument("--test-lights", type=int, default=8)
+    p.add_argument("--seed0", type=int, default=100,
+                   help="first material seed (seeds < 100 are the tuning set, >= 100 held out)")
+    p.add_argument("--size", type=int, default=256, help="capture width and height in pixels")
+    p.add_argument("--lights", type=int, default=16, help="ring lights per capture (plus one beside the camera)")
+    p.add_argument("--noise", type=float, default=0.01, help="relative sensor noise (0.01 = 1 %%)")
+    p.add_argument("--test-lights", type=int, default=8,
+                   help="held-out point lights (not in the capture) for the held-out PSNR")
     p.add_argument("--light-study", action="store_true", help="also run 4/8/16/32 lights on the first material")
-    p.add_argument("--study-counts", default="4,8,16,32")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--study-counts", default="4,8,16,32", help="light counts of --light-study, comma-separated")
+    p.add_argument("--threads", type=int, default=2, help="torch threads per recovery")
     p.add_argument("--set", choices=("synthetic", "photo"), default="synthetic",
                    help="synthetic: the generator's recipes; photo: maps from scikit-image photographs, "
                         "another forward model, light calibration error (training/photo_set.py)")
