@@ -17,6 +17,7 @@ Python floats):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, cast
 
 from torchbrdf.kernels.graphs import build
@@ -95,9 +96,11 @@ _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 
 
 class _Emitter:
-    def __init__(self, spec):
-        self.R = spec.ctype
-        self.load = lambda attr: _load_expr(attr, spec)
+    """Prints nodes as C for compute type ``ctype``; ``load(attr)`` prints an ``in`` node's load."""
+
+    def __init__(self, ctype: str, load: Callable[[dict], str]) -> None:
+        self.R = ctype
+        self.load = load
 
     def t(self, kind):
         return "R" if kind == "r" else _CTYPE[kind]
@@ -213,7 +216,7 @@ def generate(spec: _KernelSpec, kind: str) -> str:
 
 
 def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
-    em = _Emitter(spec)
+    em = _Emitter(spec.ctype, lambda attr: _load_expr(attr, spec))
     names: dict[int, str] = {}
 
     def v(nd):

@@ -339,7 +339,7 @@ def _store_expr(spec: ShadeSpec, store) -> str:
 def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
     """Print a schedule as C: pre-loop, light loops, post-loop over each block of pixels."""
     g, accs = sch.graph, sch.accs
-    em = _Emitter(spec.ctype)
+    em = _Emitter(spec.ctype, lambda attr: attr["load"])  # the loads are set on the nodes below
     lit, px = _flags(g)
     byid = {nd.id: nd for nd in g.nodes}
     for nd in g.nodes:

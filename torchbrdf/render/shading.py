@@ -342,7 +342,9 @@ def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, element
             return False
     if mode is None and elements < _pr.FAST_PATH_MIN_LANES:
         return False
-    return _pr._kernels_available()
+    # The fused shading kernel is C only: used when the backend in force picks the C kernels
+    # for this device (torchbrdf.set_backend / TORCHBRDF_BACKEND, compiler available).
+    return _pr._resolve_backend(dev.type) == "c"
 
 
 def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
