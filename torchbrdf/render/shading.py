@@ -36,7 +36,9 @@ from __future__ import annotations
 import math
 import numbers
 import os
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -219,14 +221,16 @@ class _Pixels:
         if self.all:
             full = vals
         else:
-            full = vals.new_zeros(self.b * self.h * self.w, vals.shape[-1]).index_copy(0, self.flat, vals)
+            flat = self.flat
+            assert flat is not None  # set whenever not all pixels are selected
+            full = vals.new_zeros(self.b * self.h * self.w, vals.shape[-1]).index_copy(0, flat, vals)
         return full.reshape(self.b, self.h, self.w, -1).permute(0, 3, 1, 2)
 
 
 @dataclass
 class _Prepared:
     plan: ShadingPlan
-    run: object
+    run: Callable[[], Tensor]
 
 
 def _describe_value(v) -> str:
@@ -236,7 +240,7 @@ def _describe_value(v) -> str:
     return f"constant {v:g}"
 
 
-def _inspect_material(material: dict, prune: bool, cd: torch.dtype):
+def _inspect_material(material: Mapping[str, Any], prune: bool, cd: torch.dtype):
     """Decide, per material entry, how it reaches the BRDF. Returns (values, descriptions).
 
     ``values[name]`` is a Python float, a 0-d tensor (compute dtype) or a ``(B, C, H, W)``
@@ -624,22 +628,23 @@ def _prepare(
         if fused and _checks.validation_enabled():
             _checks.check_finite({k: val for k, val in mat.items() if isinstance(val, Tensor)})
         light_params = []  # per-light eager passes (the fused kernel takes them all at once)
-        for light in [] if fused else points:
+        for pl in [] if fused else points:
             light_params.append(
-                ("point", light.position.to(device=dev, dtype=cd), light.intensity.to(device=dev, dtype=cd))
+                ("point", pl.position.to(device=dev, dtype=cd), pl.intensity.to(device=dev, dtype=cd))
             )
-        for light in [] if fused else dirs:
+        for dl in [] if fused else dirs:
             light_params.append(
-                ("dir", light.direction.to(device=dev, dtype=cd), light.irradiance.to(device=dev, dtype=cd))
+                ("dir", dl.direction.to(device=dev, dtype=cd), dl.irradiance.to(device=dev, dtype=cd))
             )
-        env_inputs = []
-        for i, light in enumerate(envs):
-            rad = light.radiance.to(device=dev, dtype=cd)
+        # (kind, radiance (*, H, W, 3) or split-sum tables, batch size, MC setup or None)
+        env_inputs: list[tuple[str, Any, int, _MCSetup | None]] = []
+        for i, env in enumerate(envs):
+            rad = env.radiance.to(device=dev, dtype=cd)
             env_b = rad.shape[0] if rad.dim() == 4 else 1
             if env_strategy == "mc":
                 env_inputs.append(("mc", _as_bhwc(rad).contiguous(), env_b, mc_setups[i]))
             else:
-                env_inputs.append(("split_sum", _split_sum_env(light, rad, cd), env_b, None))
+                env_inputs.append(("split_sum", _split_sum_env(env, rad, cd), env_b, None))
 
         pieces = []
         for s in range(0, p_count, chunk_px):
@@ -664,7 +669,7 @@ def _prepare(
             }
             # One accumulator per chunk, updated in place: a fresh sum per light would land on
             # top of the heap each time and fragment it (freed pages stay resident).
-            if fused:  # the kernel's output is a fresh buffer: accumulate into it
+            if table is not None:  # fused (the kernel's output is a fresh buffer: accumulate into it)
                 acc = _fused_lights_term(
                     table,
                     pos_s,
@@ -688,6 +693,7 @@ def _prepare(
             for kind_e, env_data, env_b, setup in env_inputs:
                 eb = bidx_s if env_b > 1 else None
                 if kind_e == "mc":
+                    assert setup is not None  # every "mc" entry carries its setup
                     per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(e - s, 1))
                     slobes = sampling_lobes_for(brdf, mat_s)
                     for technique, total, shift in setup.techniques():
