@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,6 +45,7 @@ from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from torchbrdf import _checks
+from torchbrdf._types import BRDF
 from torchbrdf._checks import check_finite, validation_enabled
 from torchbrdf._math import cast_back, compute_dtype, safe_normalize
 from torchbrdf.brdf import formula
@@ -855,8 +856,8 @@ def _directional_term(brdf, pos, n, v, x, y, mat, direction, irradiance, bidx) -
 
 def shade(
     gbuf: GBuffer,
-    lights,
-    brdf=None,
+    lights: Light | Sequence[Light],
+    brdf: BRDF | None = None,
     *,
     env_strategy: str = "mc",
     env_samples: int = DEFAULT_ENV_SAMPLES,
@@ -921,8 +922,8 @@ def shade(
 
 def plan(
     gbuf: GBuffer,
-    lights,
-    brdf=None,
+    lights: Light | Sequence[Light],
+    brdf: BRDF | None = None,
     *,
     env_strategy: str = "mc",
     env_samples: int = DEFAULT_ENV_SAMPLES,
@@ -973,15 +974,15 @@ class Shader(nn.Module):
 
     def __init__(
         self,
-        brdf=None,
+        brdf: BRDF | None = None,
         *,
-        env_strategy="mc",
-        env_samples=DEFAULT_ENV_SAMPLES,
-        env_sampling="mis",
-        seed=0,
-        chunk=None,
-        prune=True,
-    ):
+        env_strategy: str = "mc",
+        env_samples: int = DEFAULT_ENV_SAMPLES,
+        env_sampling: str = "mis",
+        seed: int | None = 0,
+        chunk: int | None = None,
+        prune: bool = True,
+    ) -> None:
         super().__init__()
         if env_strategy not in ENV_STRATEGIES:
             raise ValueError(f"Shader: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
@@ -1004,11 +1005,11 @@ class Shader(nn.Module):
             prune=self.prune,
         )
 
-    def forward(self, gbuf: GBuffer, lights) -> Tensor:
+    def forward(self, gbuf: GBuffer, lights: Light | Sequence[Light]) -> Tensor:
         """Shade ``gbuf`` under ``lights``; see :func:`shade`."""
         return shade(gbuf, lights, self.brdf, **self._kwargs())
 
-    def plan(self, gbuf: GBuffer, lights) -> ShadingPlan:
+    def plan(self, gbuf: GBuffer, lights: Light | Sequence[Light]) -> ShadingPlan:
         """See :func:`plan`."""
         return plan(gbuf, lights, self.brdf, **self._kwargs())
 
