@@ -207,7 +207,7 @@ def fused_compare(size: int, lights: int, threads: int, rounds: int, eager: bool
     if eager:
         methods["eager shade (today)"] = run_shade(False)
     run_shade(True)()  # warm-up: builds (or loads) the kernels
-    times = {k: [] for k in methods}
+    times: dict[str, list[float]] = {k: [] for k in methods}
     loads = [os.getloadavg()[0]]
     for _ in range(rounds):
         for name, fn in methods.items():

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 
 _BRDF = r"""
 import sys, time, torch, torchbrdf
@@ -66,7 +67,7 @@ def _run(cmd, env, busy: bool) -> float:
     return wall
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; prints one line per (policy, quiet/busy) and the busy/quiet ratio."""
     p = argparse.ArgumentParser(prog="python -m torchbrdf.bench.threads",
                                 description=__doc__.split("\n\n")[0])
@@ -92,7 +93,7 @@ def main(argv=None) -> int:
             env["OMP_WAIT_POLICY"] = pol
         else:
             env["GOMP_SPINCOUNT"] = "300000"  # libgomp's default, set so the recovery CLI keeps it
-        times = {False: [], True: []}
+        times: dict[bool, list[float]] = {False: [], True: []}
         for _ in range(args.repeat):
             for busy in (False, True):
                 times[busy].append(_run(cmd, env, busy))

@@ -37,6 +37,7 @@ are not known until run time as runtime-float nodes, which fold in double like P
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, Protocol, TypeAlias
 
 import torch
@@ -345,17 +346,18 @@ def principled(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool) -
 # BRDF, the per-pixel values outside and the light parameters inside the light loop.
 # ``brdf`` is a callable ``brdf(l) -> f (*, 3)`` closing over ``v, n`` and the material.
 
-def normalize(ops, a):
+def normalize(ops: Ops, a: Value) -> Value:
     """``a / |a|`` with ``|a|²`` floored at ``NORM_EPS`` (a zero vector stays 0, finite gradient)."""
     return a * ops.rsqrt(ops.clamp_min(ops.dot(a, a), NORM_EPS))
 
 
-def view_direction(ops, camera, pos):
+def view_direction(ops: Ops, camera: Value, pos: Value) -> Value:
     """``v = normalize(C - P)``: unit direction from the surface point toward the camera, ``(*, 3)``."""
     return normalize(ops, camera - pos)
 
 
-def point_light(ops, pos, n, position, intensity, brdf):
+def point_light(ops: Ops, pos: Value, n: Value, position: Value, intensity: Value,
+                brdf: Callable[[Value], Value]) -> Value:
     """Point light: ``f(l, v) I max(n·l, 0) / |q - P|²`` with ``l = normalize(q - P)``, ``(*, 3)``.
 
     Args:
@@ -370,7 +372,8 @@ def point_light(ops, pos, n, position, intensity, brdf):
     return f * intensity * (cos / dist2)
 
 
-def directional_light(ops, n, direction, irradiance, brdf):
+def directional_light(ops: Ops, n: Value, direction: Value, irradiance: Value,
+                      brdf: Callable[[Value], Value]) -> Value:
     """Directional light: ``f(d, v) E max(n·d, 0)`` with ``d`` normalised, ``(*, 3)``."""
     l = normalize(ops, direction)
     f = brdf(l)

@@ -50,6 +50,8 @@ import subprocess
 import tempfile
 import threading
 import warnings
+from collections.abc import Sequence
+from typing import Any
 
 __all__ = ["load_kernel", "cache_root", "kernel_cache_dir", "available", "CACHE_ENV", "CFLAGS"]
 
@@ -68,16 +70,16 @@ CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-er
 class _State:
     """Process-wide state (one object, so tests can swap in a fresh one)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.lock = threading.RLock()
-        self.loaded: dict = {}  # file name -> CDLL
-        self.failed: set = set()  # so names that failed twice: eager from now on
-        self.warned: set = set()
+        self.loaded: dict[str, ctypes.CDLL] = {}  # file name -> CDLL
+        self.failed: set[str] = set()  # so names that failed twice: eager from now on
+        self.warned: set[str] = set()
         self.compiler_checked = False
         self.compiler: str | None = None
         self.compiler_id: str | None = None
         self.private_dir: str | None = None
-        self.omp: tuple | None = None
+        self.omp: tuple[str | None] | None = None
 
 
 _state = _State()
@@ -172,6 +174,8 @@ def _compiler_id() -> str:
     """Compiler path and version: part of the cache key (an upgraded gcc rebuilds)."""
     if _state.compiler_id is None:
         cc = _compiler()
+        if cc is None:  # only reached after available() found one; keeps the key well-defined
+            return "no compiler"
         try:
             v = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60).stdout
             _state.compiler_id = f"{cc} {v.splitlines()[0] if v else ''}"
@@ -219,7 +223,7 @@ def _openmp_runtime() -> str | None:
             cands = sorted(p for p in paths if _OMP_RE.search(p))
             # prefer the copy shipped with torch (torch/lib or torch.libs)
             pref = [p for p in cands if p.startswith(torch_dir)]
-            found = (pref or cands or [None])[0]
+            found = next(iter(pref or cands), None)
         except OSError:
             found = None
         _state.omp = (found,)
@@ -336,6 +340,8 @@ def _compile(source: str, so: str, cflags) -> str | None:
         with os.fdopen(fd, "w") as fh:
             fh.write(source)
         cc = _compiler()
+        if cc is None:  # only reached after available() found one
+            return "no C compiler found"
         omp = _openmp_runtime() if "-fopenmp" in cflags else None
         plain = [cc, *cflags, "-shared", cpath, "-o", tmp_so, "-lm"]
         if omp:
@@ -415,7 +421,8 @@ def _dlopen(so: str, symbols):
     return cdll
 
 
-def load_kernel(source: str, name: str, symbols=None, cflags=None):
+def load_kernel(source: str, name: str, symbols: dict[str, tuple[Sequence[Any], Any]] | None = None,
+                cflags: Sequence[str] | None = None) -> ctypes.CDLL | None:
     """Build (once per machine), cache and load the C ``source``.
 
     Args:
@@ -432,10 +439,10 @@ def load_kernel(source: str, name: str, symbols=None, cflags=None):
         raise ValueError(f"name: expected letters, digits and '_', got {name!r}")
     if not available():
         return None
-    cflags = list(CFLAGS if cflags is None else cflags)
+    flags = list(CFLAGS if cflags is None else cflags)
     try:
-        key = "\0".join([source, " ".join(cflags), _machine_tag(), _compiler_id(),
-                         str(_openmp_runtime() if "-fopenmp" in cflags else None)])
+        key = "\0".join([source, " ".join(flags), _machine_tag(), _compiler_id(),
+                         str(_openmp_runtime() if "-fopenmp" in flags else None)])
         tag = hashlib.sha256(key.encode()).hexdigest()[:24]
         fname = f"{name}_{tag}.so"
         with _state.lock:
@@ -448,7 +455,7 @@ def load_kernel(source: str, name: str, symbols=None, cflags=None):
             if d is None:
                 return None
             so = os.path.join(d, fname)
-            lib = _build_and_load(source, so, symbols, cflags)
+            lib = _build_and_load(source, so, symbols, flags)
             if lib is None:
                 _state.failed.add(fname)
             else:

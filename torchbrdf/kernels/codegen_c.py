@@ -17,8 +17,14 @@ Python floats):
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, cast
+
 from torchbrdf.kernels.graphs import build
 from torchbrdf.kernels.trace import Graph, Node, live_order
+
+if TYPE_CHECKING:  # fused imports this module at run time
+    from torchbrdf.kernels.fused import _KernelSpec
 
 _PRELUDE = r"""
 #include <math.h>
@@ -90,9 +96,11 @@ _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 
 
 class _Emitter:
-    def __init__(self, spec):
-        self.R = spec.ctype
-        self.load = lambda attr: _load_expr(attr, spec)
+    """Prints nodes as C for compute type ``ctype``; ``load(attr)`` prints an ``in`` node's load."""
+
+    def __init__(self, ctype: str, load: Callable[[dict], str]) -> None:
+        self.R = ctype
+        self.load = load
 
     def t(self, kind):
         return "R" if kind == "r" else _CTYPE[kind]
@@ -103,7 +111,8 @@ class _Emitter:
         A ``&&`` becomes a boolean phi that gcc 12 cannot vectorise.
         """
         if c.op == "and":
-            return self.sel(c.args[0], self.sel(c.args[1], x, y, v), y, v)
+            # The operands of a mask are masks (nodes).
+            return self.sel(cast(Node, c.args[0]), self.sel(cast(Node, c.args[1]), x, y, v), y, v)
         return f"({v(c)} ? {x} : {y})"
 
     def expr(self, nd: Node, v) -> str:
@@ -140,7 +149,7 @@ class _Emitter:
         if op == "clamp":
             return f"({a[0]} < {a[1]} ? {a[1]} : ({a[0]} > {a[2]} ? {a[2]} : {a[0]}))"
         if op == "where":
-            return self.sel(nd.args[0], a[1], a[2], v)
+            return self.sel(cast(Node, nd.args[0]), a[1], a[2], v)  # the mask is a node
         if op == "and":  # only printed inside selects, which expand it (see sel)
             return f"({a[0]} && {a[1]})"
         if op == "tod":
@@ -182,7 +191,7 @@ def _store_expr(target: tuple, spec) -> str:
     return f"to{j}[i * 3 + {c}]"
 
 
-def generate(spec, kind: str) -> str:
+def generate(spec: _KernelSpec, kind: str) -> str:
     """C source of one kernel (``kind`` = ``"fwd"``, ``"bwd"`` or ``"jvp"``) of a kernel family.
 
     For ``"bwd"`` it sets ``spec.written``: the inputs whose gradient the kernel writes.
@@ -207,8 +216,8 @@ def generate(spec, kind: str) -> str:
 
 
 def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
-    em = _Emitter(spec)
-    names = {}
+    em = _Emitter(spec.ctype, lambda attr: _load_expr(attr, spec))
+    names: dict[int, str] = {}
 
     def v(nd):
         return names[nd.id] if isinstance(nd, Node) else (f"((R){_lit(nd)})")
@@ -228,7 +237,7 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
             names[nd.id] = f"v{nd.id}"
             out_lines.append(f"const {em.t(nd.kind)} v{nd.id} = {em.expr(nd, v)};")
 
-    pre = []
+    pre: list[str] = []
     emit([nd for nd in order if nd.id in pre_ids], pre)
     for j, nd in enumerate(logs):
         pre.append(f"lg{j}[i - b0] = {em.expr(nd, v)};")

@@ -42,6 +42,9 @@ Kernel ABI (same symbols and arguments as the principled kernels, see :mod:`.cod
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any
+
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index, _lit
@@ -76,17 +79,17 @@ class ShadeSpec:
 
     def __init__(
         self,
-        ctype,
-        tensors,
-        floats,
-        active,
-        need_tint,
-        frame,
-        lights,
-        grad_mask=(),
-        normalize_n=False,
-        go_mode="full",
-    ):
+        ctype: str,
+        tensors: Iterable[tuple[str, str, int]],
+        floats: Iterable[str],
+        active: Iterable[str],
+        need_tint: bool,
+        frame: bool,
+        lights: Iterable[str],
+        grad_mask: Iterable[int] = (),
+        normalize_n: bool = False,
+        go_mode: str = "full",
+    ) -> None:
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
@@ -98,9 +101,10 @@ class ShadeSpec:
         self.grad_mask = tuple(grad_mask)
         self.go_mode = go_mode
         self.normalize_n = bool(normalize_n)
-        self.written = ()
+        self.written: tuple[int, ...] = ()  # set by the backward's generator
 
-    def key(self, backward) -> tuple:
+    def key(self, backward: bool | str) -> tuple[Any, ...]:
+        """The in-process cache key of the forward (``backward`` false) or backward kernel."""
         base = (
             "shade",
             self.ctype,
@@ -131,7 +135,8 @@ def _trace(spec: ShadeSpec):
     g = Graph()
     with g:
         ops = TraceOps(spec.hi_double)
-        inp, loads = {}, []
+        inp: dict[str, Node | Vec3 | None] = {}
+        loads: list[Node] = []
         for k, (name, mode, C) in enumerate(spec.tensors):
             chans = [_in("px", grad=True, k=k, c=c) for c in range(C)]
             loads += chans
@@ -221,7 +226,14 @@ class LoopSchedule:
     scalars, light loop) and prints the three phases; see :func:`_print` for C.
     """
 
-    def __init__(self, graph, accs, acc_kind, post, written=()):
+    def __init__(
+        self,
+        graph: Graph,
+        accs: dict[str, list[tuple[tuple[Any, ...], Node]]],
+        acc_kind: dict[tuple[Any, ...], str],
+        post: list[tuple[tuple[Any, ...], Node | None]],
+        written: Iterable[int] = (),
+    ) -> None:
         self.graph, self.accs, self.acc_kind, self.post, self.written = (
             graph,
             accs,
@@ -234,6 +246,8 @@ class LoopSchedule:
 def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
     """Trace the formula and build the forward (``"fwd"``) or backward (``"bwd"``) schedule."""
     g, loads, outs = _trace(spec)
+    accs: dict[str, list[tuple[tuple[Any, ...], Node]]]
+    post: list[tuple[tuple[Any, ...], Node | None]]
     with g:
         if kind == "fwd":
             accs = {lk: [(("out", c), o) for c, o in enumerate(outs[lk])] for lk in spec.lights}
@@ -248,16 +262,18 @@ def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
         # their adjoints are summed over the lights and propagated further after the loop.
         stop = frozenset(i for i in px if i not in lit)
         byid = {nd.id: nd for nd in g.nodes}
-        accs, bnd = {}, set()
+        accs = {}
+        bnd: set[int] = set()
         for lk in spec.lights:
             adj = reverse(g, outs[lk], go, stop=stop)
             accs[lk] = [(("adj", b), adj[b]) for b in sorted(stop) if b in adj]
             bnd |= {b for b in stop if b in adj}
-        bnd = sorted(bnd)
-        acc_kind = {("adj", b): byid[b].kind for b in bnd}
-        seeds = [_in("acc", byid[b].kind, key=("adj", b)) for b in bnd]
-        adj2 = reverse(g, [byid[b] for b in bnd], seeds)
-        written, post = [], []
+        bnd_ids = sorted(bnd)
+        acc_kind = {("adj", b): byid[b].kind for b in bnd_ids}
+        seeds = [_in("acc", byid[b].kind, key=("adj", b)) for b in bnd_ids]
+        adj2 = reverse(g, [byid[b] for b in bnd_ids], seeds)
+        written: list[int] = []
+        post = []
         for k, (name, mode, C) in enumerate(spec.tensors):
             if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj2 for nd in loads):
                 continue  # no path to the output: None in autograd, as in eager
@@ -323,8 +339,7 @@ def _store_expr(spec: ShadeSpec, store) -> str:
 def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
     """Print a schedule as C: pre-loop, light loops, post-loop over each block of pixels."""
     g, accs = sch.graph, sch.accs
-    em = _Emitter(spec)
-    em.load = lambda attr: attr["load"]  # this printer names its loads itself (below)
+    em = _Emitter(spec.ctype, lambda attr: attr["load"])  # the loads are set on the nodes below
     lit, px = _flags(g)
     byid = {nd.id: nd for nd in g.nodes}
     for nd in g.nodes:
@@ -353,7 +368,8 @@ def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
         body, bnd = _loop_nodes(roots, lit, px)
         bnd_all |= bnd
         names: dict = {}
-        scal, lane = [], []
+        scal: list[str] = []
+        lane: list[str] = []
         order = [nd for nd in g.nodes if nd.id in body or nd.id in bnd]
         emit([nd for nd in order if nd.id in body and nd.id not in px], names, scal)
         emit(
@@ -378,19 +394,19 @@ def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
 
     # pre-loop: pixel-level values read by the light loops
     pre_names: dict = {}
-    pre = []
+    pre: list[str] = []
     bnd_sorted = sorted(bnd_all)
     emit(live_order(g, [byid[b] for b in bnd_sorted]), pre_names, pre)
     pre += [f"bd{b}[i - b0] = {pre_names[b]};" for b in bnd_sorted]
 
     # post-loop
     post_names: dict = {}
-    post = []
+    post: list[str] = []
     roots = [nd for _, nd in sch.post if isinstance(nd, Node)]
     emit(live_order(g, roots), post_names, post)
-    for store, nd in sch.post:
+    for store, val in sch.post:
         post.append(
-            f"{_store_expr(spec, store)} = {post_names[nd.id] if isinstance(nd, Node) else '((R)0)'};"
+            f"{_store_expr(spec, store)} = {post_names[val.id] if isinstance(val, Node) else '((R)0)'};"
         )
 
     def arr(kind_c, name):

@@ -50,9 +50,16 @@ import sys
 import tempfile
 import threading
 import warnings
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from torchbrdf.kernels.graphs import build
-from torchbrdf.kernels.trace import Node, live_order
+from torchbrdf.kernels.trace import Graph, Node, live_order
+
+if TYPE_CHECKING:  # fused imports the kernels package at run time
+    from torch import Tensor
+
+    from torchbrdf.kernels.fused import _KernelSpec
 
 __all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "interpret_mode", "available",
            "block_size"]
@@ -170,7 +177,7 @@ def _family_target(spec, t) -> tuple:
     raise ValueError(f"unknown store target {t!r}")
 
 
-def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
+def generate(spec: _KernelSpec, kind: str, wide: bool = False) -> tuple[str, tuple[int, ...]]:
     """Triton source of one kernel (``kind`` = ``"fwd"``, ``"bwd"`` or ``"jvp"``) of a family.
 
     Args:
@@ -196,7 +203,8 @@ def generate(spec, kind: str, wide: bool = False) -> tuple[str, tuple]:
     return print_kernel(f"tb_{kind}", kg.graph, stores, args, spec.ctype, spec.go_strides, wide), written
 
 
-def print_kernel(name: str, g, stores, args, ctype: str, go_strides=(3, 1), wide: bool = False) -> str:
+def print_kernel(name: str, g: Graph, stores: Sequence[tuple[tuple[Any, ...], Node | float]], args: Sequence[str],
+                 ctype: str, go_strides: tuple[int, ...] = (3, 1), wide: bool = False) -> str:
     """Triton source of a kernel ``name(n, P, *args, BLOCK)`` computing ``stores`` of graph ``g``.
 
     The generic entry (used by :func:`generate`; a fused shading graph prints the same way):
@@ -286,7 +294,7 @@ def _cache_dir() -> str:
     return d
 
 
-def load(spec, kind: str, wide: bool = False):
+def load(spec: _KernelSpec, kind: str, wide: bool = False) -> tuple[Any, tuple[int, ...]] | None:
     """The ``@triton.jit`` kernel of a family, or ``None`` when it cannot be built.
 
     Returns:
@@ -315,7 +323,7 @@ def load(spec, kind: str, wide: bool = False):
         return hit
 
 
-def compile_source(src: str, fn_name: str):
+def compile_source(src: str, fn_name: str) -> Any:
     """Write ``src`` to the per-user cache (named by its hash) and import it; returns ``fn_name``.
 
     Triton's ``@jit`` reads its function's source file, so the kernel must live in a real
@@ -334,13 +342,15 @@ def compile_source(src: str, fn_name: str):
     mod = sys.modules.get(name)
     if mod is None:
         mspec = importlib.util.spec_from_file_location(name, path)
+        if mspec is None or mspec.loader is None:
+            raise ImportError(f"cannot import the generated Triton module {path}")
         mod = importlib.util.module_from_spec(mspec)
         sys.modules[name] = mod  # Triton resolves the kernel's globals through its module
         mspec.loader.exec_module(mod)
     return getattr(mod, fn_name)
 
 
-def launch(kernel, kind: str, n: int, P, args) -> None:
+def launch(kernel: Any, kind: str, n: int, P: Tensor, args: Sequence[Tensor]) -> None:
     """Run ``kernel`` over ``n`` lanes (one program per block). ``args`` after ``n, P``."""
     import triton
 
@@ -355,7 +365,7 @@ def launch(kernel, kind: str, n: int, P, args) -> None:
         kernel[grid](n, P, *args, BLOCK=block, num_warps=max(1, block // 32), enable_fp_fusion=False)
 
 
-def failed(spec, kind: str, wide: bool = False) -> None:
+def failed(spec: _KernelSpec, kind: str, wide: bool = False) -> None:
     """Mark a family as failed (its first launch raised): later calls run eagerly."""
     key = (spec.key("jvp" if kind == "jvp" else kind == "bwd"), kind, wide, interpret_mode())
     with _lock:

@@ -44,6 +44,8 @@ import mmap
 import os
 import threading
 import weakref
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -51,10 +53,13 @@ from torch import Tensor
 from torchbrdf.kernels import build as _build
 from torchbrdf.kernels import codegen_c
 
+if TYPE_CHECKING:  # codegen_shade's kernels are loaded here too; it is imported lazily by callers
+    from torchbrdf.kernels.codegen_shade import ShadeSpec
+
 __all__ = ["available", "kernel_cache_dir", "compiled_kernels", "empty_cache"]
 
 
-def _generate(spec: "_KernelSpec", backward) -> str:
+def _generate(spec: _KernelSpec | ShadeSpec, backward: bool | str) -> str:
     """C source of the forward (``backward=False``), backward (``True``) or JVP (``"jvp"``) kernel."""
     if hasattr(spec, "generate"):  # other kernel families (fused shading) print themselves
         return spec.generate("jvp" if backward == "jvp" else ("bwd" if backward else "fwd"))
@@ -74,8 +79,10 @@ class _KernelSpec:
     ``ntan`` × ``len(tangent_inputs)``) and ``ntan`` (tangents per pass).
     """
 
-    def __init__(self, ctype, tensors, floats, active, need_tint, frame, go_strides=(3, 1), grad_mask=(),
-                 tangent_inputs=(), tangent_modes=(), ntan=0):
+    def __init__(self, ctype: str, tensors: Iterable[tuple[str, str, int]], floats: Iterable[str],
+                 active: Iterable[str], need_tint: bool, frame: bool, go_strides: Iterable[int] = (3, 1),
+                 grad_mask: Iterable[int] = (), tangent_inputs: Iterable[int] = (),
+                 tangent_modes: Iterable[str] = (), ntan: int = 0) -> None:
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)  # (name, mode, C)
@@ -88,8 +95,10 @@ class _KernelSpec:
         self.tangent_inputs = tuple(tangent_inputs)
         self.tangent_modes = tuple(tangent_modes)
         self.ntan = int(ntan)
+        # Set by the backward kernel's generator: the inputs whose gradient it writes.
+        self.written: tuple[int, ...] = ()
 
-    def key(self, backward):
+    def key(self, backward: bool | str) -> tuple[Any, ...]:
         base = (self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.frame)
         if backward == "jvp":
             return base + ("jvp", self.tangent_inputs, self.tangent_modes, self.ntan)
@@ -116,7 +125,7 @@ def compiled_kernels() -> int:
     return len(_libs)
 
 
-def _load(spec: _KernelSpec, backward: bool | str):
+def _load(spec: _KernelSpec | ShadeSpec, backward: bool | str) -> tuple[Any, Any, tuple[int, ...]] | None:
     """``(cdll, fn, written)`` for the kernel of ``spec`` (``backward``: False forward, True
     backward, ``"jvp"``), or None (then run eager)."""
     key = spec.key(backward)
@@ -159,8 +168,8 @@ class _BufferPool:
 
     MIN_BYTES = 1 << 20
 
-    def __init__(self):
-        self.free: dict = {}
+    def __init__(self) -> None:
+        self.free: dict[int, list[mmap.mmap]] = {}
         self.cached = 0
         self.lock = threading.Lock()
 
@@ -170,7 +179,7 @@ class _BufferPool:
         except ValueError:
             return 2048 << 20
 
-    def empty(self, shape, dtype) -> Tensor:
+    def empty(self, shape: tuple[int, ...] | list[int], dtype: torch.dtype) -> Tensor:
         n = math.prod(shape)
         nbytes = n * torch.empty((), dtype=dtype).element_size()
         if nbytes < self.MIN_BYTES or self.limit() <= 0:
@@ -195,7 +204,7 @@ class _BufferPool:
                 return
         mm.close()
 
-    def clear(self):
+    def clear(self) -> None:
         with self.lock:
             lists, self.free, self.cached = self.free, {}, 0
         for lst in lists.values():

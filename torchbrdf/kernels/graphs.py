@@ -18,10 +18,14 @@ Triton printer can print the same graph:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse, tangents
+
+if TYPE_CHECKING:  # fused imports this module (through codegen_c) at run time
+    from torchbrdf.kernels.fused import _KernelSpec
 
 __all__ = ["KernelGraph", "build"]
 
@@ -32,8 +36,8 @@ class KernelGraph:
 
     kind: str
     graph: Graph
-    stores: list
-    written: tuple = ()
+    stores: list[tuple[tuple[Any, ...], Node | float]]
+    written: tuple[int, ...] = ()
 
 
 def _inputs(spec):
@@ -53,14 +57,15 @@ def _inputs(spec):
     return inp, loads
 
 
-def build(spec, kind: str) -> KernelGraph:
+def build(spec: _KernelSpec, kind: str) -> KernelGraph:
     """The graph of one kernel of a kernel family.
 
     ``kind``: ``"fwd"``, ``"bwd"`` (reverse transform) or ``"jvp"`` (forward transform,
     ``spec.ntan`` tangents).
     """
     g = Graph()
-    stores, written = [], ()
+    stores: list[tuple[tuple[Any, ...], Node | float]] = []
+    written: tuple[int, ...] = ()
     with g:
         ops = TraceOps(spec.hi_double)
         inp, loads = _inputs(spec)
@@ -70,11 +75,11 @@ def build(spec, kind: str) -> KernelGraph:
         elif kind == "bwd":
             seeds = [Node("in", (), "r", {"role": "go", "c": c}) for c in range(3)]
             adj = reverse(g, outs, seeds)
-            written = []
+            written_k: list[int] = []
             for k, (name, mode, C) in enumerate(spec.tensors):
                 if k not in spec.grad_mask or not any(nd.attr["k"] == k and nd.id in adj for nd in loads):
                     continue  # no path to the output: None in autograd, as in eager
-                written.append(k)
+                written_k.append(k)
                 for c in range(C):
                     terms = [adj[nd.id] for nd in loads
                              if nd.attr["k"] == k and nd.attr["c"] == c and nd.id in adj]
@@ -82,19 +87,19 @@ def build(spec, kind: str) -> KernelGraph:
                     for t in terms[1:]:
                         val = val + t
                     stores.append((("grad", k, c), val))
-            written = tuple(written)
+            written = tuple(written_k)
         elif kind == "jvp":
             T = len(spec.tangent_inputs)
             for j in range(spec.ntan):
-                seeds = {}
+                tseeds: dict[int, Node] = {}
                 for i, k in enumerate(spec.tangent_inputs):
                     mode, C = spec.tangent_modes[j * T + i], spec.tensors[k][2]
                     for nd in loads:
                         if nd.attr["k"] == k:
                             attr = {"role": "t", "j": j, "i": i, "k": k, "c": nd.attr["c"], "mode": mode,
                                     "C": C}
-                            seeds[nd.id] = Node("in", (), "r", attr)
-                for c, tn in enumerate(tangents(g, outs, seeds)):
+                            tseeds[nd.id] = Node("in", (), "r", attr)
+                for c, tn in enumerate(tangents(g, outs, tseeds)):
                     stores.append((("tout", j, c), tn if tn is not None else 0.0))
         else:
             raise ValueError(f"kind: expected 'fwd', 'bwd' or 'jvp', got {kind!r}")

@@ -25,6 +25,8 @@ from __future__ import annotations
 import ctypes
 import functools
 import math
+from collections.abc import Iterable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -67,7 +69,8 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int):
     return f.contiguous(), "full"
 
 
-def make_cfg(tensor_names, float_names, active, need_tint, frame, backend: str = "c") -> str:
+def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
+             frame: bool, backend: str = "c") -> str:
     """The ``cfg`` string of the operators; ``backend`` ``"c"`` (CPU kernels) or ``"triton"``."""
     parts = [",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
              str(int(frame))]
@@ -255,7 +258,7 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
             for j in js:
                 tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
                 tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
-                _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
+                o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)[1]
                 out[j] = o.expand(*plan.batch, 3).reshape(N, 3)
             continue
         ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
@@ -400,7 +403,7 @@ def _triton_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
         for j in js:
             tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
             tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
-            _, o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)
+            o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)[1]
             out[j] = o.expand(*plan.batch, 3).reshape(N, 3)
     return out.view(shape)
 
@@ -683,7 +686,7 @@ class _PrincipledFunction(torch.autograd.Function):
         return _PrincipledJvpFunction.apply(ctx.cfg, consts, len(tensors), *tensors, *tans)
 
 
-def principled_fast(c: dict, active, need_tint: bool, frame: bool, backend: str = "c") -> Tensor:
+def principled_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, frame: bool, backend: str = "c") -> Tensor:
     """Fused evaluation on checked, compute-dtype inputs ``c`` (see ``principled._prepare``).
 
     ``backend``: ``"c"`` (the CPU kernels) or ``"triton"`` (CUDA tensors, or CPU tensors under

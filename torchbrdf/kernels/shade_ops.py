@@ -23,6 +23,9 @@ the same formula (:mod:`torchbrdf.brdf.formula`) eagerly.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -36,7 +39,9 @@ __all__ = ["shade_lights", "make_cfg", "TENSOR_ORDER"]
 TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES
 
 
-def make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir) -> str:
+def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
+             frame: bool, normalize_n: bool, n_point: int, n_dir: int) -> str:
+    """The ``cfg`` string of the shading operators (what changes the kernel, as text)."""
     return "|".join(
         [
             ",".join(tensor_names),
@@ -259,10 +264,10 @@ shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)
 
 
 def shade_lights(
-    c: dict,
+    c: dict[str, Any],
     uniforms: Tensor,
-    seg: list,
-    active,
+    seg: list[int] | Tensor,
+    active: Iterable[str],
     need_tint: bool,
     frame: bool,
     normalize_n: bool,

@@ -30,8 +30,14 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterable
+from typing import Any, TypeAlias, TypeGuard, overload
 
 __all__ = ["Graph", "Node", "Vec3", "TraceOps", "reverse", "tangents", "live_order"]
+
+# A per-lane value the formula handles while tracing: a node, a 3-vector of nodes, or a Python
+# number (folded in double, as the eager code folds it).
+Operand: TypeAlias = "Node | Vec3 | float"
 
 
 class Graph:
@@ -39,14 +45,14 @@ class Graph:
 
     current: "Graph | None" = None
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.nodes: list[Node] = []
 
-    def __enter__(self):
+    def __enter__(self) -> Graph:
         self._prev, Graph.current = Graph.current, self
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         Graph.current = self._prev
 
 
@@ -55,58 +61,62 @@ class Node:
 
     __slots__ = ("id", "op", "args", "kind", "attr", "grad")
 
-    def __init__(self, op, args, kind, attr=None, grad=None):
-        self.op, self.args, self.kind, self.attr = op, tuple(args), kind, attr
+    def __init__(self, op: str, args: Iterable[Node | float], kind: str, attr: Any = None,
+                 grad: bool | None = None) -> None:
+        self.op, self.kind, self.attr = op, kind, attr
+        self.args: tuple[Node | float, ...] = tuple(args)
         # Does this value depend on a differentiable input? ('in' nodes say so themselves.)
-        self.grad = grad if grad is not None else any(isinstance(a, Node) and a.grad for a in self.args)
+        self.grad: bool = grad if grad is not None else any(isinstance(a, Node) and a.grad for a in self.args)
         g = Graph.current
+        if g is None:
+            raise RuntimeError("a trace Node must be created inside a `with Graph():` block")
         self.id = len(g.nodes)
         g.nodes.append(self)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"Node({self.id}, {self.op}, {self.kind})"
 
     # arithmetic -------------------------------------------------------------------------
-    def __add__(self, o):
+    def __add__(self, o: Node | float) -> Node:
         return _bin("add", self, o)
 
-    def __radd__(self, o):
+    def __radd__(self, o: Node | float) -> Node:
         return _bin("add", o, self)
 
-    def __sub__(self, o):
+    def __sub__(self, o: Node | float) -> Node:
         return _bin("sub", self, o)
 
-    def __rsub__(self, o):
+    def __rsub__(self, o: Node | float) -> Node:
         return _bin("sub", o, self)
 
-    def __mul__(self, o):
+    def __mul__(self, o: Node | float) -> Node:
         return _bin("mul", self, o)
 
-    def __rmul__(self, o):
+    def __rmul__(self, o: Node | float) -> Node:
         return _bin("mul", o, self)
 
-    def __truediv__(self, o):
+    def __truediv__(self, o: Node | float) -> Node:
         return _div(self, o)
 
-    def __rtruediv__(self, o):
+    def __rtruediv__(self, o: Node | float) -> Node:
         return _div(o, self)
 
-    def __neg__(self):
+    def __neg__(self) -> Node:
         return Node("neg", (self,), self.kind)
 
-    def __gt__(self, o):
+    def __gt__(self, o: Node | float) -> Node:
         return _cmp("gt", self, o)
 
-    def __lt__(self, o):
+    def __lt__(self, o: Node | float) -> Node:
         return _cmp("lt", self, o)
 
-    def __ge__(self, o):
+    def __ge__(self, o: Node | float) -> Node:
         return _cmp("ge", self, o)
 
-    def __le__(self, o):
+    def __le__(self, o: Node | float) -> Node:
         return _cmp("le", self, o)
 
-    def __and__(self, o):
+    def __and__(self, o: Node) -> Node:
         return Node("and", (self, o), "b")
 
 
@@ -115,39 +125,39 @@ class Vec3:
 
     __slots__ = ("c",)
 
-    def __init__(self, chans):
-        self.c = tuple(chans)
+    def __init__(self, chans: Iterable[Node | float]) -> None:
+        self.c: tuple[Node | float, ...] = tuple(chans)
 
     def _map(self, o, fn):
         oc = o.c if isinstance(o, Vec3) else (o, o, o)
         return Vec3(fn(a, b) for a, b in zip(self.c, oc))
 
-    def __add__(self, o):
+    def __add__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: a + b)
 
-    def __radd__(self, o):
+    def __radd__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: b + a)
 
-    def __sub__(self, o):
+    def __sub__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: a - b)
 
-    def __rsub__(self, o):
+    def __rsub__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: b - a)
 
-    def __mul__(self, o):
+    def __mul__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: a * b)
 
-    def __rmul__(self, o):
+    def __rmul__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: b * a)
 
-    def __truediv__(self, o):
+    def __truediv__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: a / b)
 
-    def __rtruediv__(self, o):
+    def __rtruediv__(self, o: Operand) -> Vec3:
         return self._map(o, lambda a, b: b / a)
 
 
-def _is_tensor(a) -> bool:
+def _is_tensor(a: object) -> TypeGuard[Node]:
     return isinstance(a, Node) and a.kind in ("r", "d")
 
 
@@ -155,7 +165,8 @@ def _kind(a) -> str:
     return a.kind if isinstance(a, Node) else "c"
 
 
-def const(value, kind):
+def const(value: float, kind: str) -> Node:
+    """A constant node of kind ``kind`` holding ``float(value)``."""
     return Node("const", (), kind, float(value))
 
 
@@ -215,43 +226,59 @@ class TraceOps:
     inputs); otherwise ``to_hi``/``to_compute`` are the identity.
     """
 
-    def __init__(self, hi_double: bool):
+    def __init__(self, hi_double: bool) -> None:
         self.hi_double = hi_double
 
     @staticmethod
-    def sqrt(a):
+    def sqrt(a: Operand) -> Operand:
         """Square root (``math.sqrt`` on Python numbers)."""
         return math.sqrt(a) if isinstance(a, numbers.Real) else _un("sqrt", a)
 
     @staticmethod
-    def rsqrt(a):
+    def rsqrt(a: Node | Vec3) -> Node | Vec3:
         """``1 / sqrt(x)``."""
         return _un("rsqrt", a)
 
     @staticmethod
-    def log(a):
+    def log(a: Node | Vec3) -> Node | Vec3:
         """Natural log."""
         return _un("log", a)
 
     @staticmethod
-    def log1p(a):
+    def log1p(a: Node | Vec3) -> Node | Vec3:
         """``log(1 + x)``."""
         return _un("log1p", a)
 
     @staticmethod
-    def abs(a):
+    def abs(a: Node | Vec3) -> Node | Vec3:
         """``|x|``."""
         return _un("abs", a)
 
+    @overload
     @staticmethod
-    def clamp(a, lo, hi):
+    def clamp(a: Vec3, lo: float, hi: float) -> Vec3: ...
+    @overload
+    @staticmethod
+    def clamp(a: Node, lo: float, hi: float) -> Node: ...
+    @staticmethod
+    def clamp(a: Node | Vec3, lo: float, hi: float) -> Node | Vec3:
         """``x`` clamped to ``[lo, hi]``."""
         if isinstance(a, Vec3):
-            return Vec3(TraceOps.clamp(c, lo, hi) for c in a.c)
+            # The channels of a traced vector that reaches clamp are nodes.
+            return Vec3(TraceOps.clamp(c, lo, hi) for c in a.c)  # type: ignore[arg-type]
         return Node("clamp", (a, _to_kind(lo, a.kind), _to_kind(hi, a.kind)), a.kind)
 
+    @overload
     @staticmethod
-    def clamp_min(a, lo):
+    def clamp_min(a: Vec3, lo: float) -> Vec3: ...
+    @overload
+    @staticmethod
+    def clamp_min(a: Node, lo: float) -> Node: ...
+    @overload
+    @staticmethod
+    def clamp_min(a: float, lo: float) -> float: ...
+    @staticmethod
+    def clamp_min(a: Operand, lo: float) -> Operand:
         """``max(x, lo)`` (``torch.clamp(x, min=lo)`` on tensors)."""
         if isinstance(a, Vec3):
             return Vec3(TraceOps.clamp_min(c, lo) for c in a.c)
@@ -261,8 +288,14 @@ class TraceOps:
             return Node("pmax", (a, _to_kind(lo, "p")), "p")
         return max(a, lo)
 
+    @overload
     @staticmethod
-    def where(c, a, b):
+    def where(c: Node, a: Node | float, b: Node | float) -> Node: ...
+    @overload
+    @staticmethod
+    def where(c: Node, a: Operand, b: Operand) -> Node | Vec3: ...
+    @staticmethod
+    def where(c: Node, a: Operand, b: Operand) -> Node | Vec3:
         """``a`` where ``c``, else ``b``."""
         if isinstance(a, Vec3) or isinstance(b, Vec3):
             ac = a.c if isinstance(a, Vec3) else (a, a, a)
@@ -273,38 +306,42 @@ class TraceOps:
         return Node("where", (c, _to_kind(a, t), _to_kind(b, t)), t)
 
     @staticmethod
-    def dot(a, b):
+    def dot(a: Vec3, b: Vec3) -> Node | float:
         """Dot product over the channels, ``(*, 3) -> (*, 1)``."""
-        a, b = a.c, b.c
-        return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+        ac, bc = a.c, b.c
+        return (ac[0] * bc[0] + ac[1] * bc[1]) + ac[2] * bc[2]
 
     @staticmethod
-    def cross_norm2(a, b):
+    def cross_norm2(a: Vec3, b: Vec3) -> Node | float:
         """``|a × b|²``, ``(*, 1)``."""
-        a, b = a.c, b.c
-        c0 = a[1] * b[2] - a[2] * b[1]
-        c1 = a[2] * b[0] - a[0] * b[2]
-        c2 = a[0] * b[1] - a[1] * b[0]
+        ac, bc = a.c, b.c
+        c0 = ac[1] * bc[2] - ac[2] * bc[1]
+        c1 = ac[2] * bc[0] - ac[0] * bc[2]
+        c2 = ac[0] * bc[1] - ac[1] * bc[0]
         return (c0 * c0 + c1 * c1) + c2 * c2
 
     @staticmethod
-    def channel(x, i):
+    def channel(x: Vec3, i: int) -> Node | float:
         """Channel ``i`` of a colour, ``(*, 1)``."""
         return x.c[i]
 
     @staticmethod
-    def as_tensor(a):
+    def as_tensor(a: Node | float) -> Node:
         """A number as a compute-dtype value."""
         return a if _is_tensor(a) else _to_kind(a, "r")
 
-    def as_color(self, a):
+    def as_color(self, a: Operand) -> Vec3:
         """A colour ``(*, 3)``; a number becomes grey."""
         if isinstance(a, Vec3):
             return a
         b = self.as_tensor(a)
         return Vec3((b, b, b))
 
-    def to_hi(self, a):
+    @overload
+    def to_hi(self, a: Vec3) -> Vec3: ...
+    @overload
+    def to_hi(self, a: Node | float) -> Node | float: ...
+    def to_hi(self, a: Operand) -> Operand:
         """To float64 when computing in float32."""
         if not self.hi_double:
             return a
@@ -312,7 +349,11 @@ class TraceOps:
             return Vec3(self.to_hi(c) for c in a.c)
         return Node("tod", (a,), "d")
 
-    def to_compute(self, a):
+    @overload
+    def to_compute(self, a: Vec3) -> Vec3: ...
+    @overload
+    def to_compute(self, a: Node | float) -> Node | float: ...
+    def to_compute(self, a: Operand) -> Operand:
         """Back to the compute dtype."""
         if not self.hi_double:
             return a
@@ -320,14 +361,14 @@ class TraceOps:
             return Vec3(self.to_compute(c) for c in a.c)
         return Node("tor", (a,), "r")
 
-    def mask(self, valid, f):
+    def mask(self, valid: Node, f: Operand | None) -> Node | Vec3:
         """``f`` where ``valid``, exactly 0 elsewhere, ``(*, 3)``."""
         if f is None:
             f = 0.0
         return self.where(valid, f if isinstance(f, Vec3) else Vec3((f, f, f)), 0.0)
 
 
-def live_order(graph: Graph, roots) -> list:
+def live_order(graph: Graph, roots: Iterable[Node | float | None]) -> list[Node]:
     """The nodes ``roots`` depend on, in graph order."""
     live = set()
     stack = [r for r in roots if isinstance(r, Node)]
@@ -354,7 +395,8 @@ def _sel(c, a, b):
 
 def _adjoint(nd: Node, g: Node) -> list:
     """Contributions ``(arg index, node)`` of the adjoint ``g`` of ``nd`` to its arguments."""
-    a = nd.args
+    # Nodes or Python floats; each op's rule knows which of its arguments are nodes.
+    a: tuple[Any, ...] = nd.args
     op = nd.op
     k = nd.kind
     if op == "add":
@@ -392,7 +434,8 @@ def _adjoint(nd: Node, g: Node) -> list:
     return []
 
 
-def reverse(graph: Graph, outs: list, seeds: list, stop=frozenset()) -> dict:
+def reverse(graph: Graph, outs: list[Any], seeds: list[Any],
+            stop: frozenset[int] | set[int] = frozenset()) -> dict[int, Any]:
     """Reverse mode: adjoint nodes of every differentiable node ``outs`` depend on.
 
     Args:
@@ -434,7 +477,8 @@ def _add_opt(a, b):
 
 def _tangent(nd: Node, t: list):
     """The tangent of ``nd`` from its arguments' tangents ``t`` (``None`` = zero)."""
-    a = nd.args
+    # Nodes or Python floats; each op's rule knows which of its arguments are nodes.
+    a: tuple[Any, ...] = nd.args
     op = nd.op
     k = nd.kind
     if op == "add":
@@ -475,7 +519,7 @@ def _tangent(nd: Node, t: list):
     return None
 
 
-def tangents(graph: Graph, outs: list, seeds: dict) -> list:
+def tangents(graph: Graph, outs: list[Any], seeds: dict[int, Any]) -> list[Any]:
     """Forward mode: tangent nodes of ``outs`` given ``seeds`` = ``{input node id: tangent node}``.
 
     Returns one tangent node per output (``None`` where the output does not depend on a seed).

@@ -36,13 +36,16 @@ from __future__ import annotations
 import math
 import numbers
 import os
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from torchbrdf import _checks
+from torchbrdf._types import BRDF
 from torchbrdf._checks import check_finite, validation_enabled
 from torchbrdf._math import cast_back, compute_dtype, safe_normalize
 from torchbrdf.brdf import formula
@@ -219,14 +222,16 @@ class _Pixels:
         if self.all:
             full = vals
         else:
-            full = vals.new_zeros(self.b * self.h * self.w, vals.shape[-1]).index_copy(0, self.flat, vals)
+            flat = self.flat
+            assert flat is not None  # set whenever not all pixels are selected
+            full = vals.new_zeros(self.b * self.h * self.w, vals.shape[-1]).index_copy(0, flat, vals)
         return full.reshape(self.b, self.h, self.w, -1).permute(0, 3, 1, 2)
 
 
 @dataclass
 class _Prepared:
     plan: ShadingPlan
-    run: object
+    run: Callable[[], Tensor]
 
 
 def _describe_value(v) -> str:
@@ -236,7 +241,7 @@ def _describe_value(v) -> str:
     return f"constant {v:g}"
 
 
-def _inspect_material(material: dict, prune: bool, cd: torch.dtype):
+def _inspect_material(material: Mapping[str, Any], prune: bool, cd: torch.dtype):
     """Decide, per material entry, how it reaches the BRDF. Returns (values, descriptions).
 
     ``values[name]`` is a Python float, a 0-d tensor (compute dtype) or a ``(B, C, H, W)``
@@ -309,10 +314,9 @@ def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
 def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
-    The principled BRDF on CPU float32/float64 with the C kernels in force (see
-    :func:`torchbrdf.set_fast_path` and :func:`torchbrdf.set_backend`; the ``"auto"`` backend
-    from ``FAST_PATH_MIN_LANES`` pixel-lights on), no gradient wanted w.r.t. lights or camera
-    (those stay on the eager shader).
+    The principled BRDF on CPU float32/float64 with the fused kernels enabled (see
+    :func:`torchbrdf.set_fast_path`; automatic mode from ``FAST_PATH_MIN_LANES`` pixel-lights),
+    no gradient wanted w.r.t. lights or camera (those stay on the eager shader).
     """
     if kind != "principled" or not (points or dirs):
         return False
@@ -341,10 +345,10 @@ def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, element
         uniform = [cam] + [t for light in points + dirs for t in light._light_tensors()]
         if any(t.requires_grad for t in uniform):
             return False
-    if mode is None and _pr._backend_setting() == "auto" and elements < _pr.FAST_PATH_MIN_LANES:
+    if mode is None and elements < _pr.FAST_PATH_MIN_LANES:
         return False
-    # The fused shading kernel is printed as C only: the CPU backend (a Triton light loop is
-    # still to come, so CUDA and the "triton" backend shade through per-light passes).
+    # The fused shading kernel is C only: used when the backend in force picks the C kernels
+    # for this device (torchbrdf.set_backend / TORCHBRDF_BACKEND, compiler available).
     return _pr._resolve_backend(dev.type) == "c"
 
 
@@ -625,22 +629,23 @@ def _prepare(
         if fused and _checks.validation_enabled():
             _checks.check_finite({k: val for k, val in mat.items() if isinstance(val, Tensor)})
         light_params = []  # per-light eager passes (the fused kernel takes them all at once)
-        for light in [] if fused else points:
+        for pl in [] if fused else points:
             light_params.append(
-                ("point", light.position.to(device=dev, dtype=cd), light.intensity.to(device=dev, dtype=cd))
+                ("point", pl.position.to(device=dev, dtype=cd), pl.intensity.to(device=dev, dtype=cd))
             )
-        for light in [] if fused else dirs:
+        for dl in [] if fused else dirs:
             light_params.append(
-                ("dir", light.direction.to(device=dev, dtype=cd), light.irradiance.to(device=dev, dtype=cd))
+                ("dir", dl.direction.to(device=dev, dtype=cd), dl.irradiance.to(device=dev, dtype=cd))
             )
-        env_inputs = []
-        for i, light in enumerate(envs):
-            rad = light.radiance.to(device=dev, dtype=cd)
+        # (kind, radiance (*, H, W, 3) or split-sum tables, batch size, MC setup or None)
+        env_inputs: list[tuple[str, Any, int, _MCSetup | None]] = []
+        for i, env in enumerate(envs):
+            rad = env.radiance.to(device=dev, dtype=cd)
             env_b = rad.shape[0] if rad.dim() == 4 else 1
             if env_strategy == "mc":
                 env_inputs.append(("mc", _as_bhwc(rad).contiguous(), env_b, mc_setups[i]))
             else:
-                env_inputs.append(("split_sum", _split_sum_env(light, rad, cd), env_b, None))
+                env_inputs.append(("split_sum", _split_sum_env(env, rad, cd), env_b, None))
 
         pieces = []
         for s in range(0, p_count, chunk_px):
@@ -665,7 +670,7 @@ def _prepare(
             }
             # One accumulator per chunk, updated in place: a fresh sum per light would land on
             # top of the heap each time and fragment it (freed pages stay resident).
-            if fused:  # the kernel's output is a fresh buffer: accumulate into it
+            if table is not None:  # fused (the kernel's output is a fresh buffer: accumulate into it)
                 acc = _fused_lights_term(
                     table,
                     pos_s,
@@ -689,6 +694,7 @@ def _prepare(
             for kind_e, env_data, env_b, setup in env_inputs:
                 eb = bidx_s if env_b > 1 else None
                 if kind_e == "mc":
+                    assert setup is not None  # every "mc" entry carries its setup
                     per_pass = max(1, ENV_ELEMENTS_PER_PASS // max(e - s, 1))
                     slobes = sampling_lobes_for(brdf, mat_s)
                     for technique, total, shift in setup.techniques():
@@ -850,8 +856,8 @@ def _directional_term(brdf, pos, n, v, x, y, mat, direction, irradiance, bidx) -
 
 def shade(
     gbuf: GBuffer,
-    lights,
-    brdf=None,
+    lights: Light | Sequence[Light],
+    brdf: BRDF | None = None,
     *,
     env_strategy: str = "mc",
     env_samples: int = DEFAULT_ENV_SAMPLES,
@@ -916,8 +922,8 @@ def shade(
 
 def plan(
     gbuf: GBuffer,
-    lights,
-    brdf=None,
+    lights: Light | Sequence[Light],
+    brdf: BRDF | None = None,
     *,
     env_strategy: str = "mc",
     env_samples: int = DEFAULT_ENV_SAMPLES,
@@ -968,15 +974,15 @@ class Shader(nn.Module):
 
     def __init__(
         self,
-        brdf=None,
+        brdf: BRDF | None = None,
         *,
-        env_strategy="mc",
-        env_samples=DEFAULT_ENV_SAMPLES,
-        env_sampling="mis",
-        seed=0,
-        chunk=None,
-        prune=True,
-    ):
+        env_strategy: str = "mc",
+        env_samples: int = DEFAULT_ENV_SAMPLES,
+        env_sampling: str = "mis",
+        seed: int | None = 0,
+        chunk: int | None = None,
+        prune: bool = True,
+    ) -> None:
         super().__init__()
         if env_strategy not in ENV_STRATEGIES:
             raise ValueError(f"Shader: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
@@ -999,11 +1005,11 @@ class Shader(nn.Module):
             prune=self.prune,
         )
 
-    def forward(self, gbuf: GBuffer, lights) -> Tensor:
+    def forward(self, gbuf: GBuffer, lights: Light | Sequence[Light]) -> Tensor:
         """Shade ``gbuf`` under ``lights``; see :func:`shade`."""
         return shade(gbuf, lights, self.brdf, **self._kwargs())
 
-    def plan(self, gbuf: GBuffer, lights) -> ShadingPlan:
+    def plan(self, gbuf: GBuffer, lights: Light | Sequence[Light]) -> ShadingPlan:
         """See :func:`plan`."""
         return plan(gbuf, lights, self.brdf, **self._kwargs())
 
