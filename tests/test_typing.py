@@ -94,7 +94,6 @@ def test_annotated_modules_stay_annotated():
     assert not bad, "unannotated public callables:\n" + "\n".join(bad)
 
 
-@pytest.mark.xfail(strict=False, reason="other modules are annotated in the merge")
 def test_public_callables_are_annotated():
     """Every public callable of the package is fully annotated."""
     bad = _checker().unannotated(PACKAGE)
@@ -102,7 +101,6 @@ def test_public_callables_are_annotated():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="other modules are annotated in the merge")
 def test_mypy_passes():
     """``mypy -p torchbrdf`` is clean."""
     pytest.importorskip("mypy")

@@ -198,7 +198,7 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
                 ts[i] = t
             return _formula_eager(plan, ts, plan.floats)
 
-        _, vjp_fn = torch.func.vjp(f, *[tensors[i] for i in need])
+        vjp_fn = torch.func.vjp(f, *[tensors[i] for i in need])[1]
         gs = vjp_fn(grad_out.to(dtype))
         return [g.contiguous() for g in gs]
     fn = lib[1]

@@ -9,11 +9,13 @@ weighted graph Laplacian ``L Î¸`` and its Hessian ``L``, which couples pixels â€
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
 
-def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg) -> tuple[Tensor, Tensor]:
+def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Tensor, Tensor]:
     """Smoothness-prior weights ``(S, S-1, 7)`` (horizontal edges) and ``(S-1, S, 7)`` (vertical).
 
     ``theta (P, 7)`` are the recovery's unknowns (base-colour logits first), ``metal (P, 1)``

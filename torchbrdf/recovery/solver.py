@@ -71,8 +71,10 @@ Maps are never written with non-finite values.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -181,8 +183,8 @@ class LevelData:
         img = cap.images
         if img.shape[-1] != size or img.shape[-2] != size:
             img = F.interpolate(img, size=(size, size), mode="area")
-        self.size = size
-        self.images = img  # (L, 3, S, S)
+        self.size: int = size  # (a pixel subset, see subset, has no image layout: size 0)
+        self.images: Tensor | None = img  # (L, 3, S, S); None on a pixel subset
         self.obs = img.permute(0, 2, 3, 1).reshape(img.shape[0], -1, 3)  # (L, P, 3)
         self.points = pixel_points(size, size, device=img.device, dtype=img.dtype).reshape(-1, 3)
         self.camera = cap.camera_position
@@ -192,23 +194,23 @@ class LevelData:
         self.eps = eps
         self.log_obs = torch.log(torch.clamp(self.obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
-        self._light = {}  # light-set tuple -> (log targets, light_geometry)
+        self._light: dict[tuple, tuple] = {}  # light-set tuple -> (log targets, light_geometry)
 
     def subset(self, rows: Tensor) -> "LevelData":
         """The same capture restricted to pixels ``rows (N,)`` (its own light-geometry cache)."""
         sub = LevelData.__new__(LevelData)
         sub.__dict__.update(self.__dict__)
-        sub.size, sub.images = None, None
+        sub.size, sub.images = 0, None  # no image layout: a pixel list
         sub.obs, sub.log_obs, sub.points = self.obs[:, rows], self.log_obs[:, rows], self.points[rows]
         sub._light = {}
         return sub
 
-    def set_light_scale(self, log_scale: Tensor | None):
+    def set_light_scale(self, log_scale: Tensor | None) -> None:
         """Use intensities ``stated × exp(log_scale)`` (``log_scale (L,)``; None: as stated)."""
         scale = 1.0 if log_scale is None else torch.exp(log_scale)[:, None]
         self.inten = self.inten_stated * scale
 
-    def set_light_offset(self, offset: Tensor | None):
+    def set_light_offset(self, offset: Tensor | None) -> None:
         """Use positions ``stated + offset`` (``offset (L, 3)``; None: as stated)."""
         pos = self.pos_stated if offset is None else self.pos_stated + offset
         if not torch.equal(pos, self.pos):
@@ -216,7 +218,7 @@ class LevelData:
             self._light = {}  # the cached light geometry depends on the positions
 
     def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
-                 rows: Tensor | None = None) -> Tensor:
+                 rows: Tensor | slice | None = None) -> Tensor:
         """Log residuals ``(N, len(idx) * 3)`` on lights ``idx``.
 
         ``theta (N, 7)`` and ``metal (N, 1)`` are every pixel's (``N = P``), or, with
@@ -366,7 +368,8 @@ def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model:
     return (1.0 / torch.diagonal(cov, dim1=-2, dim2=-1).clamp(min=1e-12)).to(theta.dtype)
 
 
-def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: RecoveryConfig):
+def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: RecoveryConfig
+                   ) -> tuple[Tensor, Tensor, Tensor]:
     """Confidence-weighted non-local estimate of a metal's base colour (and, optionally, roughness).
 
     A metal's base colour (F0, logit) gets the average of the metal pixels within a large
@@ -497,7 +500,8 @@ def nonlocal_fill(data: "LevelData", theta: Tensor, metal: Tensor, cfg: "Recover
 
 
 def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float,
-            extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None):
+            extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None
+            ) -> tuple[Tensor, Tensor, Tensor, int]:
     """One Levenberg–Marquardt iteration with the coupled smoothness prior.
 
     ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
@@ -560,12 +564,12 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
         return torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)) - log_obs  # (L, N, 3)
 
     r = torch.nan_to_num(res(base))
-    jac = []
+    cols = []
     for k in range(3):
         tg = torch.zeros_like(base)
         tg[:, k] = 1.0
-        jac.append(torch.nan_to_num(torch.func.jvp(res, (base,), (tg,))[1]))
-    jac = torch.stack(jac, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
+        cols.append(torch.nan_to_num(torch.func.jvp(res, (base,), (tg,))[1]))
+    jac = torch.stack(cols, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
     r = r.reshape(len(idx), -1)
     sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
     jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * torch.eye(3, dtype=r.dtype)
@@ -666,7 +670,8 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
         r = sub.residual(t, m, idx, model)
         return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
 
-    best, best_c = None, None
+    best: Tensor | None = None
+    best_c: Tensor | None = None
     for t in starts:
         t = t.clone()
         lam = torch.full((t.shape[0], 1), 1e-2, dtype=t.dtype, device=t.device)
@@ -684,11 +689,12 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
             t = torch.where(better, cand, t)
             c = torch.where(better, c1, c)
             lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
-        if best is None:
+        if best is None or best_c is None:
             best, best_c = t, c
         else:
             better = c < best_c
             best, best_c = torch.where(better, t, best), torch.where(better, c, best_c)
+    assert best is not None and best_c is not None, "refit_pixels: `starts` must not be empty"
     return best, best_c
 
 
@@ -725,13 +731,13 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
         bad = bad[torch.topk(cost[bad], max_pixels).indices]
     # Own parameters and the 8 neighbours' (replicated border), same class only.
     r, col = bad // size, bad % size
-    bases, valid = [], []
+    base_list, valid_list = [], []
     for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
         q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
-        bases.append(theta[q])
-        valid.append(metal[q, 0] == metal[bad, 0])
-    bases = torch.stack(bases, 1)  # (B, 9, 7)
-    valid = torch.stack(valid, 1)  # (B, 9)
+        base_list.append(theta[q])
+        valid_list.append(metal[q, 0] == metal[bad, 0])
+    bases = torch.stack(base_list, 1)  # (B, 9, 7)
+    valid = torch.stack(valid_list, 1)  # (B, 9)
     slopes = _candidate_slopes(theta.dtype, theta.device)  # (K, 2)
     nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
     cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
@@ -841,7 +847,8 @@ def _despeckle(metal: Tensor, size: int) -> Tensor:
 class Recovery:
     """The resumable optimisation state machine (see the module docstring)."""
 
-    def __init__(self, cap: Capture, cfg: RecoveryConfig, out: Path | None = None, log=print):
+    def __init__(self, cap: Capture, cfg: RecoveryConfig, out: Path | None = None,
+                 log: Callable[[str], Any] = print):
         self.cap, self.cfg, self.out, self.log = cap, cfg, out, log
         self.size = cfg.size or max(cap.width, cap.height)
         n_l = len(cap)
@@ -853,8 +860,8 @@ class Recovery:
         self.eps = float(0.01 * cap.images.clamp(min=0).mean())
         self.plan = _schedule(self.size, cfg)
         self.stop_requested = False
-        self._data = {}
-        self.state = None
+        self._data: dict[tuple[int, bool], LevelData] = {}
+        self.state: dict[str, Any] = {}  # filled by init_state / load_checkpoint
 
     def data(self, size: int, all_lights: bool = False) -> LevelData:
         key = (size, all_lights)
@@ -864,7 +871,7 @@ class Recovery:
         return self._data[key]
 
     # -- state ---------------------------------------------------------------------------
-    def init_state(self):
+    def init_state(self) -> None:
         s0 = self.plan[0][0]
         d = self.data(s0)
         n, alb = photometric_stereo(d, self.train_idx)
@@ -881,7 +888,7 @@ class Recovery:
             "metal": None, "history": [], "events": [], "seconds": 0.0,
         }
 
-    def save_checkpoint(self):
+    def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
 
         It holds the state, the plan, the RNG state and ``self.fingerprint`` (set by the
@@ -900,7 +907,7 @@ class Recovery:
         with atomic_path(self.out / CHECKPOINT) as tmp, open(tmp, "wb") as f:
             f.write(buf.getbuffer())
 
-    def load_checkpoint(self, path: Path, check=None) -> dict:
+    def load_checkpoint(self, path: Path, check: Callable[[dict], Any] | None = None) -> dict:
         """Restore the state saved by :meth:`save_checkpoint`; returns the checkpoint blob.
 
         ``check(blob)``, when given, runs before anything is restored and may raise (the
@@ -954,7 +961,7 @@ class Recovery:
         o = self.light_offset()
         return {f: [float(x) for x in o[k]] for k, f in enumerate(self.cap.files)}
 
-    def tick(self):
+    def tick(self) -> None:
         st = self.state
         size, kind, n_it = self.plan[st["stage"]]
         data = self.data(size, all_lights=(kind == "all"))
@@ -988,10 +995,10 @@ class Recovery:
             if st["it"] == 0 and self.cfg.propagate:
                 theta, _ = normal_search(data, theta, metal, self.cfg.model)
             calibrate = self.cfg.light_scale and kind != "dual"
-            extra = {} if calibrate else None
+            extra: dict[str, Any] | None = {} if calibrate else None
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
                                               extra, unary)
-            if calibrate:  # alternate: maps (LM step above), then each light's intensity scale
+            if extra is not None:  # alternate: maps (LM step above), then each light's intensity scale
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
                 self._sync_light_scale()
@@ -1013,7 +1020,7 @@ class Recovery:
         if st["it"] >= n_it:
             self.end_stage()
 
-    def end_stage(self):
+    def end_stage(self) -> None:
         st = self.state
         size, kind, _ = self.plan[st["stage"]]
         if kind == "dual":
@@ -1170,6 +1177,7 @@ class Recovery:
         d = self.data(size)
         with torch.no_grad():
             pred = render_capture(maps, (d.pos[[self.holdout]], d.inten[[self.holdout]]), d.camera, backend="compact")
+        assert d.images is not None  # a full level, not a pixel subset
         return {"light": self.holdout, "file": self.cap.files[self.holdout],
                 "psnr": psnr(pred[0], d.images[self.holdout])}
 

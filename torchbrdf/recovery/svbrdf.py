@@ -728,7 +728,7 @@ class _Progress:
 
 def _state(rec: Recovery) -> dict[str, Any]:
     """The solver's state dict (set by ``init_state`` or ``load_checkpoint``)."""
-    return cast(dict[str, Any], rec.state)
+    return rec.state
 
 
 def _fit_losses(rec: Recovery) -> dict:
@@ -972,7 +972,7 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
                     in_tick[0] = False
                     _state(rec)["history"][-1]["fit"] = pending.get("fit") or _fit_losses(rec)
                 except _Interrupt:
-                    rec.state = snapshot[0]  # type: ignore[assignment]
+                    rec.state = snapshot[0]
                     torch.set_rng_state(snapshot[1])
                     break
                 finally:
