@@ -63,6 +63,21 @@ def _default_file_mode() -> int:
 _FILE_MODE = _default_file_mode()
 
 
+def fsync_dir(path: PathLike) -> None:
+    """Flush a folder's entries to disk (after an atomic rename), best effort: a file system
+    that cannot open or sync folders is left as it is."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def atomic_path(path: PathLike) -> Iterator[Path]:
     """Context manager yielding a temporary path that replaces ``path`` on success.

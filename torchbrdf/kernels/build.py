@@ -53,6 +53,8 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
+from torchbrdf.io import fsync_dir
+
 __all__ = ["load_kernel", "cache_root", "kernel_cache_dir", "available", "CACHE_ENV", "CFLAGS"]
 
 #: The one environment variable naming torchbrdf's per-user cache (kernels, demo capture).
@@ -301,19 +303,6 @@ def _valid(so: str) -> bool:
 # Build
 # ---------------------------------------------------------------------------------------------
 
-def _fsync_dir(d: str) -> None:
-    try:
-        fd = os.open(d, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def _write_atomic(path: str, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-", suffix=".part")
     try:
@@ -365,7 +354,7 @@ def _compile(source: str, so: str, cflags) -> str | None:
         os.replace(tmp_so, so)
         # the sidecar is written after the .so: it only ever vouches for a whole file
         _write_atomic(so + ".sha256", f"{size} {digest}\n".encode())
-        _fsync_dir(d)
+        fsync_dir(d)
         return None
     finally:
         for p in (cpath, obj, tmp_so):

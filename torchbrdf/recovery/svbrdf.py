@@ -50,7 +50,7 @@ from torch import Tensor
 from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON, Capture, load_capture
 from torchbrdf.capture.synthetic import MAP_NAMES, render_capture
-from torchbrdf.io import atomic_path, read_exr, write_exr, write_png
+from torchbrdf.io import atomic_path, fsync_dir, read_exr, write_exr, write_png
 from torchbrdf.recovery.solver import CHECKPOINT, Recovery, RecoveryConfig, psnr
 
 __all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "psnr",
@@ -354,19 +354,6 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def _io_error(e: OSError, name: str) -> RecoveryError:
     if e.errno == errno.ENOSPC:
         return RecoveryError(f"no space left on device while writing {name}; earlier outputs are unchanged",
@@ -428,7 +415,7 @@ def commit_outputs(out: Path, write: Callable[[Path], None]) -> None:
         if out.is_dir():
             with _Writing(f"{staging.name} (the files of {out.name} carried over)"):
                 _carry_over(out, staging)
-        _fsync_dir(staging)
+        fsync_dir(staging)
         if out.exists():
             # Fallback: two renames (a crash between them is repaired by clean_leftovers).
             if not _exchange(staging, out):
@@ -439,7 +426,7 @@ def commit_outputs(out: Path, write: Callable[[Path], None]) -> None:
                 staging = old
         else:
             os.rename(staging, out)
-        _fsync_dir(out.parent)
+        fsync_dir(out.parent)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # the new run's leftovers, or the previous outputs
 
