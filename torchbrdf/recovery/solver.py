@@ -17,7 +17,7 @@ Method (each choice measured, see ``docs/recovery.md``):
 * **Per-pixel Levenberg–Marquardt** (Gauss–Newton with per-pixel damping; the Jacobian by
   forward-mode AD, ``torch.func.jvp``): pixels are independent except through the priors, so
   the normal equations are one 7×7 block per pixel plus the prior's sparse Laplacian, solved
-  by block-preconditioned conjugate gradients (45 iterations in the default schedule).
+  by block-preconditioned conjugate gradients (39 iterations in the default schedule).
   A step that raises a pixel's
   cost — or makes it non-finite — is rejected for that pixel and its damping raised (step
   back, smaller step); a non-finite total loss also halves the global step (``--lr``).
