@@ -4,7 +4,7 @@ These are for readers and for mypy; nothing checks them at run time. They are re
 objects (not strings), so ``typing.get_type_hints`` resolves annotations that use them.
 
 * :data:`Scalar` — a material parameter or width that may be a Python number or a tensor
-  (``(*, 1)`` or 0-d), as the contract allows "a Python float or a 0-d tensor wherever a
+  (``(*, 1)`` or 0-d), as the API allows "a Python float or a 0-d tensor wherever a
   tensor is".
 * :data:`Color` — a colour ``(*, C)`` (usually ``C = 3``), or a float / 0-d tensor for grey.
 * :data:`BRDF` — a BRDF callable with the principled signature

@@ -893,7 +893,7 @@ def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
                   f"directions: forward ×{h['ratio_fwd_local']:.2f}, forward+backward ×{h['ratio_fwdbwd_local']:.2f}."]
         L += ["", "Mitsuba reads its per-lane parameters from nearest-filtered bitmap textures (one texel per "
               "lane), which is how Mitsuba takes spatially varying parameters; its `specular` is a scalar "
-              "(it sets the IOR) and it has no `subsurface`. torchbrdf's contract takes world-space `l, v, n, x, y` "
+              "(it sets the IOR) and it has no `subsurface`. torchbrdf's API takes world-space `l, v, n, x, y` "
               "(15 floats per lane) and projects them itself; the first Mitsuba row gets exactly those "
               "tensors and does the same projection (`Frame3f(x, y, n).to_local`) inside the timed call, "
               "the second row is handed local `wi, wo` (6 floats per lane) computed beforehand — the "

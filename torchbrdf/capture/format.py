@@ -1,4 +1,4 @@
-"""Multi-light captures on disk (contract §3): ``capture.json`` plus one RGB EXR per light.
+"""Multi-light captures on disk (docs/capture_format.md): ``capture.json`` plus one RGB EXR per light.
 
 A capture photographs the flat sample ``[-1, 1] x [-1, 1]`` at ``z = 0`` (+z up) under one
 point light per image. :func:`load_capture` reads and validates a capture folder,
@@ -83,7 +83,7 @@ def pixel_points(
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> Tensor:
-    """World point seen by each pixel of a capture (contract §3).
+    """World point seen by each pixel of a capture (docs/capture_format.md).
 
     Pixel (row i, column j) sees ``p = (-1 + (j + 0.5) 2 / W, 1 - (i + 0.5) 2 / H, 0)``:
     row 0 is the +y edge, column 0 the -x edge.
@@ -228,7 +228,7 @@ def load_capture(
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> Capture:
-    """Load and validate a capture folder (contract §3).
+    """Load and validate a capture folder (docs/capture_format.md).
 
     Args:
         folder: folder holding ``capture.json`` and the images it lists (paths relative to it).
@@ -395,7 +395,7 @@ def write_capture(
     files: Sequence[str] | None = None,
     half: bool = False,
 ) -> Path:
-    """Write a capture folder (contract §3): one RGB EXR per light, then ``capture.json``.
+    """Write a capture folder (docs/capture_format.md): one RGB EXR per light, then ``capture.json``.
 
     Every file is written atomically, and ``capture.json`` last, so a reader never sees a
     description that lists images not yet on disk. The folder is created if needed.

@@ -1,4 +1,4 @@
-"""Synthetic multi-light captures with known ground truth (contract §3 and §4).
+"""Synthetic multi-light captures with known ground truth (the formats of docs/capture_format.md).
 
 Three pieces:
 
@@ -9,16 +9,16 @@ Three pieces:
   (row 0 is the +y edge). Deterministic in ``(recipe, seed, size)``.
 * **Light layouts** (:func:`light_layout`, :func:`random_lights`): a ring of point lights
   plus one beside the camera (a flash), and random lights for held-out evaluation.
-* **The renderer** (:func:`render_capture`): the contract §3 image formation,
+* **The renderer** (:func:`render_capture`): the capture format's image formation (docs/capture_format.md),
   ``radiance(p) = f(l, v) · I · max(n·l, 0) / |q − p|²`` with ``f`` the principled BRDF evaluated
   in the normal-mapped frame (tangent by Gram–Schmidt from +X). ``backend="principled"``
   calls :func:`torchbrdf.principled`; ``backend="compact"`` is a specialised, differentiable
   diffuse + GGX evaluation of the same formula for the parameters the recovery fits (the
-  other principled parameters at their contract defaults), equal to ``principled`` to float
+  other principled parameters at their defaults), equal to ``principled`` to float
   rounding (pinned by ``tests/test_synthetic.py``) and several times faster.
 
 :func:`generate_capture` ties them together and writes a capture folder plus ``gt/`` maps
-named as in contract §4.
+named as in the recovery's output layout (docs/capture_format.md).
 """
 
 from __future__ import annotations
@@ -60,12 +60,12 @@ __all__ = [
 
 #: Recipes understood by :func:`make_material`.
 RECIPES = ("tiles", "metal_inlay", "scratched_metal", "painted", "stone", "circuit")
-#: Map names and channel counts of contract §4.
+#: Map names and channel counts of the recovery's output layout.
 MAP_NAMES = {"base_color": 3, "roughness": 1, "metallic": 1, "specular": 1, "normal": 3}
 #: Default camera of the generated captures.
 DEFAULT_CAMERA = (0.0, 0.0, 3.0)
 
-# Contract defaults of the principled parameters the recovery does not fit.
+# Defaults of the principled parameters the recovery does not fit.
 _FIXED_DEFAULTS = {"subsurface": 0.0, "specular_tint": 0.0, "anisotropic": 0.0, "sheen": 0.0, "clearcoat": 0.0}
 _ALPHA_MIN = 1e-3  # torchbrdf.brdf.distributions.ALPHA_MIN: floor of alpha = roughness²
 _COS_EPS = 1e-7  # torchbrdf.brdf.principled.COS_EPS
@@ -430,7 +430,7 @@ def _split_lights(lights) -> tuple[Tensor, Tensor]:
 
 
 def frame_from_normal_map(n: Tensor) -> tuple[Tensor, Tensor]:
-    """Tangent frame of contract §3: ``x = normalize(X − (X·n) n)``, ``y = n × x``; ``(*, 3)``."""
+    """Tangent frame of the capture format: ``x = normalize(X − (X·n) n)``, ``y = n × x``; ``(*, 3)``."""
     ex = torch.zeros_like(n)
     ex[..., 0] = 1.0
     x = ex - n[..., 0:1] * n
@@ -520,7 +520,7 @@ def render_compact_points(
     normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: dict,
     light: dict | None = None,
 ) -> Tensor:
-    """Compact contract §3 radiance for flat lists of pixels: ``(L, P, 3)``.
+    """Compact capture-format radiance for flat lists of pixels: ``(L, P, 3)``.
 
     ``params`` holds ``base_color (P, 3)`` and ``metallic``, ``specular``, ``roughness``
     ``(P, 1)`` (tensors or floats); ``light`` optionally the precomputed
@@ -548,7 +548,7 @@ def render_capture(
     noise: float = 0.0,
     seed: int = 0,
 ) -> Tensor:
-    """Render the contract §3 capture of a flat sample with SVBRDF ``maps``.
+    """Render the capture (docs/capture_format.md) of a flat sample with SVBRDF ``maps``.
 
     Args:
         maps: principled parameter maps ``(C, H, W)`` (or floats): ``base_color`` (3 channels,
@@ -633,7 +633,7 @@ def add_noise(images: Tensor, level: float = 0.01, seed: int = 0) -> Tensor:
 
 
 def write_maps(folder: str | os.PathLike, maps: Mapping, previews: bool = True) -> None:
-    """Write SVBRDF maps as contract §4 EXRs (float32) and optional PNG previews."""
+    """Write SVBRDF maps as the recovery's EXRs (float32) and optional PNG previews."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for name, c in MAP_NAMES.items():

@@ -1,6 +1,6 @@
 """Which kernels evaluate the BRDF: ``torchbrdf.set_backend`` and ``TORCHBRDF_BACKEND``.
 
-Backends (contract names):
+Backends (the names of set_backend and TORCHBRDF_BACKEND):
 
 * ``"auto"`` (default): the fused C kernels on CPU tensors, the Triton kernels on CUDA tensors
   when Triton imports, the eager path otherwise;

@@ -1,7 +1,7 @@
 """Batch SVBRDF recovery of many captures: one Ray task per capture, or sequential without Ray.
 
-``python -m training.recover_many`` / ``torchbrdf-recover-many`` (contract §6) recovers every
-capture folder into ``OUT/<capture folder name>/`` (the contract §4 layout of the single
+``python -m training.recover_many`` / ``torchbrdf-recover-many`` recovers every
+capture folder into ``OUT/<capture folder name>/`` (the output layout of the single
 recovery) and writes ``OUT/summary.json``, ``OUT/summary.csv`` and ``OUT/overview.png``.
 
 - Each capture is one Ray task (``num_cpus = --threads-per-task``). Without ``--address`` a
@@ -484,7 +484,7 @@ def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry point (contract §6).
+    """CLI entry point.
 
     Returns:
         The exit status: 0 all done or skipped, 1 some failed, 130 Ctrl-C, 2 bad arguments.

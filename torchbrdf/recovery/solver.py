@@ -1,7 +1,7 @@
 """SVBRDF recovery: the algorithm (capture in, per-pixel principled maps out).
 
 ``python -m training.recover_svbrdf --capture DIR --out DIR`` (or ``--demo``) fits per-pixel
-principled maps — base colour, roughness, metallic, specular, normal — so that the contract's
+principled maps — base colour, roughness, metallic, specular, normal — so that the capture format's
 image formation reproduces every captured image.
 
 Method (each choice measured, see ``docs/recovery.md``):
@@ -1133,7 +1133,7 @@ class Recovery:
         size = int(round(math.sqrt(theta.shape[0])))
         theta = torch.nan_to_num(theta, nan=0.0, posinf=0.0, neginf=0.0)
         p = decode(theta, metal)
-        # Specular is invisible on a metal pixel (F0 = base colour): write the contract default.
+        # Specular is invisible on a metal pixel (F0 = base colour): write the default.
         p["specular"] = torch.where(metal > 0.5, torch.full_like(p["specular"], 0.5), p["specular"])
         return {k: v.T.reshape(-1, size, size).contiguous() for k, v in p.items()}
 
