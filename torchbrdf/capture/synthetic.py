@@ -51,6 +51,8 @@ __all__ = [
     "light_layout",
     "random_lights",
     "render_capture",
+    "render_points",
+    "light_geometry",
     "add_noise",
     "generate_capture",
     "write_maps",
@@ -435,9 +437,11 @@ def frame_from_normal_map(n: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def light_geometry(points: Tensor, camera: Tensor, light_pos: Tensor) -> dict[str, Tensor]:
-    """The normal-independent geometry of a capture: ``v (P, 3)``, ``l (L, P, 3)`` and
-    ``inv_d2 (L, P, 1)`` (1 / squared light distance) — fixed for a capture, so a fit can
-    compute it once. ``points (P, 3)``, ``camera (3,)``, ``light_pos (L, 3)``."""
+    """The normal-independent geometry of a capture (fixed for it, so a fit computes it once).
+
+    Args ``points (P, 3)``, ``camera (3,)``, ``light_pos (L, 3)``; returns ``v (P, 3)``,
+    ``l (L, P, 3)`` and ``inv_d2 (L, P, 1)`` (1 / squared light distance).
+    """
     v = camera - points
     v = v * torch.rsqrt((v * v).sum(-1, keepdim=True))
     dl = light_pos[:, None, :] - points[None]
