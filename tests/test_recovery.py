@@ -197,6 +197,29 @@ def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     return R, data, R.encode(p), metal
 
 
+def test_jacobian_through_the_fused_kernels_equals_eager():
+    # The fit's Jacobian is forward mode vmapped over the 7 unknowns through torchbrdf.principled;
+    # the fused kernels (used at fit sizes) must give the eager formula's values.
+    import torchbrdf
+    from torchbrdf.kernels import fused
+
+    if not fused.available():
+        pytest.skip("no C compiler: the fused path is unavailable")
+    R, data, theta, metal = _flat_level(size=12, lights=6, normal_tilt_deg=10.0)
+    theta = theta + 0.3 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(0))
+    metal = metal.clone()
+    metal[::3] = 1.0
+    jac = {}
+    for fast in (False, True):
+        torchbrdf.set_fast_path(fast)
+        try:
+            jac[fast] = R.jacobian(data, theta, metal, data.train_idx, "principled")
+        finally:
+            torchbrdf.set_fast_path(None)
+    assert jac[True].shape == (theta.shape[0], len(data.train_idx) * 3, 7)
+    assert torch.allclose(jac[True], jac[False], rtol=1e-4, atol=1e-4 * float(jac[False].abs().max()))
+
+
 def test_propagation_repairs_a_pixel_from_its_neighbours():
     R, data, theta, metal = _flat_level()
     bad = theta.clone()

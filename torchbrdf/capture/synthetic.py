@@ -11,11 +11,11 @@ Three pieces:
   plus one beside the camera (a flash), and random lights for held-out evaluation.
 * **The renderer** (:func:`render_capture`): the capture format's image formation (docs/capture_format.md),
   ``radiance(p) = f(l, v) · I · max(n·l, 0) / |q − p|²`` with ``f`` the principled BRDF evaluated
-  in the normal-mapped frame (tangent by Gram–Schmidt from +X). ``backend="principled"``
-  calls :func:`torchbrdf.principled`; ``backend="compact"`` is a specialised, differentiable
-  diffuse + GGX evaluation of the same formula for the parameters the recovery fits (the
-  other principled parameters at their defaults), equal to ``principled`` to float
-  rounding (pinned by ``tests/test_synthetic.py``) and several times faster.
+  in the normal-mapped frame (tangent by Gram–Schmidt from +X). Both backends
+  call :func:`torchbrdf.principled` (the one definition of the formula): ``"principled"``
+  one light at a time on the image grid, ``"compact"`` (:func:`render_points`, what the
+  recovery fits with) every light and pixel in one call, which the fused kernels evaluate;
+  they agree to float rounding (pinned by ``tests/test_synthetic.py``).
 
 :func:`generate_capture` ties them together and writes a capture folder plus ``gt/`` maps
 named as in the recovery's output layout (docs/capture_format.md).
@@ -51,7 +51,8 @@ __all__ = [
     "light_layout",
     "random_lights",
     "render_capture",
-    "compact_principled",
+    "render_points",
+    "light_geometry",
     "add_noise",
     "generate_capture",
     "write_maps",
@@ -65,10 +66,6 @@ MAP_NAMES = {"base_color": 3, "roughness": 1, "metallic": 1, "specular": 1, "nor
 #: Default camera of the generated captures.
 DEFAULT_CAMERA = (0.0, 0.0, 3.0)
 
-# Defaults of the principled parameters the recovery does not fit.
-_FIXED_DEFAULTS = {"subsurface": 0.0, "specular_tint": 0.0, "anisotropic": 0.0, "sheen": 0.0, "clearcoat": 0.0}
-_ALPHA_MIN = 1e-3  # torchbrdf.brdf.distributions.ALPHA_MIN: floor of alpha = roughness²
-_COS_EPS = 1e-7  # torchbrdf.brdf.principled.COS_EPS
 
 
 # --------------------------------------------------------------------------------------
@@ -439,104 +436,46 @@ def frame_from_normal_map(n: Tensor) -> tuple[Tensor, Tensor]:
     return x, y
 
 
-def compact_principled(nl: Tensor, nv: Tensor, nh: Tensor, lh: Tensor, sin2_h: Tensor, base_color: Tensor,
-                       metallic: Tensor, specular: Tensor, roughness: Tensor) -> Tensor:
-    """The principled BRDF for the recovery's parameters only (isotropic, defaults elsewhere).
+def light_geometry(points: Tensor, camera: Tensor, light_pos: Tensor) -> dict[str, Tensor]:
+    """The normal-independent geometry of a capture (fixed for it, so a fit computes it once).
 
-    Exactly :func:`torchbrdf.principled` with ``subsurface = specular_tint = anisotropic =
-    sheen = clearcoat = 0``: Burley diffuse ``(1 − m) base/π · Fd`` plus the GGX lobe with
-    Schlick Fresnel toward ``lerp(0.08 specular, base, m)`` and the un-remapped Smith G.
-    Inputs are channel-last cosines ``(*, 1)`` (``nl``/``nv`` already clamped to be
-    positive), ``sin2_h = |n × h|²``, colours ``(*, 3)`` and scalars ``(*, 1)``.
-
-    Returns:
-        ``(*, 3)`` BRDF values (without the ``n·l`` cosine).
+    Args ``points (P, 3)``, ``camera (3,)``, ``light_pos (L, 3)``; returns ``v (P, 3)``,
+    ``l (L, P, 3)`` and ``inv_d2 (L, P, 1)`` (1 / squared light distance).
     """
-    fl = torch.clamp(1.0 - nl, 0.0, 1.0)
-    fl = fl * fl * fl * fl * fl
-    fv = torch.clamp(1.0 - nv, 0.0, 1.0)
-    fv = fv * fv * fv * fv * fv
-    fd90m1 = 2.0 * roughness * lh * lh - 0.5
-    fd = (1.0 + fd90m1 * fl) * (1.0 + fd90m1 * fv)
-    diffuse = base_color * ((1.0 - metallic) * (fd / math.pi))
-    fh = torch.clamp(1.0 - lh, 0.0, 1.0)
-    fh = fh * fh * fh * fh * fh
-    cspec0 = 0.08 * specular * (1.0 - metallic) + base_color * metallic
-    fs = cspec0 + (1.0 - cspec0) * fh
-    alpha = torch.clamp(roughness * roughness, min=_ALPHA_MIN)
-    a2 = alpha * alpha
-    den = a2 * nh * nh + sin2_h
-    ds = a2 / (math.pi * den * den)
-    gl = 1.0 / (nl + torch.sqrt(nl * nl + a2 * (1.0 - nl * nl)))
-    gv = 1.0 / (nv + torch.sqrt(nv * nv + a2 * (1.0 - nv * nv)))
-    spec = torch.where(nh > 0, ds * gl * gv, torch.zeros_like(ds))
-    return diffuse + fs * spec
-
-
-def light_geometry(points: Tensor, camera: Tensor, light_pos: Tensor) -> dict:
-    """The normal-independent part of :func:`shading_geometry`: ``v (P, 3)``, ``l``/``h``
-    ``(L, P, 3)``, ``lh`` and ``inv_d2`` ``(L, P, 1)`` — fixed for a capture, so a fit can
-    compute it once."""
     v = camera - points
     v = v * torch.rsqrt((v * v).sum(-1, keepdim=True))
     dl = light_pos[:, None, :] - points[None]
     d2 = (dl * dl).sum(-1, keepdim=True)
-    l = dl * torch.rsqrt(d2)
-    h = l + v[None]
-    h = h * torch.rsqrt(torch.clamp((h * h).sum(-1, keepdim=True), min=1e-12))
-    lh = torch.clamp((l * h).sum(-1, keepdim=True), 0.0, 1.0)
-    return {"v": v, "l": l, "h": h, "lh": lh, "inv_d2": 1.0 / d2}
+    return {"v": v, "l": dl * torch.rsqrt(d2), "inv_d2": 1.0 / d2}
 
 
-def shading_geometry(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor,
-                     light: dict | None = None) -> dict[str, Tensor]:
-    """Per-pixel, per-light geometry for the compact renderer.
-
-    Args:
-        normal: unit normals ``(P, 3)``; points ``(P, 3)``; camera ``(3,)``;
-            light_pos ``(L, 3)``.
-        light: :func:`light_geometry` of the same points, camera and lights, if precomputed.
-
-    Returns:
-        dict of ``(L, P, 1)`` tensors ``nl`` (raw), ``nv`` (raw, ``(1, P, 1)``), ``nh``, ``lh``,
-        ``sin2_h`` and ``inv_d2`` (1 / squared light distance).
-    """
-    lg = light if light is not None else light_geometry(points, camera, light_pos)
-    l, h, v = lg["l"], lg["h"], lg["v"]
-    n = normal[None]
-    nh = (n * h).sum(-1, keepdim=True)
-    sin2_h = torch.linalg.cross(n.expand_as(h), h, dim=-1).square().sum(-1, keepdim=True)
-    return {
-        "nl": (n * l).sum(-1, keepdim=True),
-        "nv": (normal * v).sum(-1, keepdim=True)[None],
-        "nh": nh,
-        "lh": lg["lh"],
-        "sin2_h": sin2_h,
-        "inv_d2": lg["inv_d2"],
-    }
-
-
-def render_compact_points(
-    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: dict,
+def render_points(
+    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: Mapping,
     light: dict | None = None,
 ) -> Tensor:
-    """Compact capture-format radiance for flat lists of pixels: ``(L, P, 3)``.
+    """Capture-format radiance of a flat list of pixels under every light: ``(L, P, 3)``.
 
-    ``params`` holds ``base_color (P, 3)`` and ``metallic``, ``specular``, ``roughness``
-    ``(P, 1)`` (tensors or floats); ``light`` optionally the precomputed
-    :func:`light_geometry`. Differentiable w.r.t. every input.
+    ``radiance = f · I · max(n·l, 0) / d²`` with ``f`` :func:`torchbrdf.principled` itself (one
+    call for all lights and pixels, so the fused kernels evaluate it at fit sizes).
+    ``normal (P, 3)`` unit normals, ``points (P, 3)``, ``camera (3,)``, ``light_pos`` and
+    ``light_int (L, 3)``; ``params`` holds ``base_color (P, 3)`` and any scalar principled
+    parameters ``(P, 1)`` (tensors or floats; a ``"normal"`` entry is ignored); the others
+    keep ``principled``'s defaults, Python 0 for every optional lobe, so those lobes are
+    pruned. The tangent frame (:func:`frame_from_normal_map`) is built only when
+    ``anisotropic`` is given and not a Python 0 (otherwise ``f`` does not depend on it).
+    ``light`` optionally the precomputed :func:`light_geometry`. Differentiable (reverse and
+    forward mode) w.r.t. every input.
     """
-    g = shading_geometry(normal, points, camera, light_pos, light)
-    nl_raw, nv_raw = g["nl"], g["nv"]
-    nl = torch.clamp(nl_raw, min=_COS_EPS)
-    nv = torch.clamp(nv_raw, min=_COS_EPS)
-    f = compact_principled(
-        nl, nv, g["nh"], g["lh"], g["sin2_h"],
-        params["base_color"], params.get("metallic", 0.0), params.get("specular", 0.5), params.get("roughness", 0.5),
-    )
-    valid = (nl_raw > 0) & (nv_raw > 0)
-    f = torch.where(valid, f, torch.zeros_like(f))
-    return f * (light_int[:, None, :] * nl * g["inv_d2"])
+    lg = light if light is not None else light_geometry(points, camera, light_pos)
+    l, n = lg["l"], normal[None]
+    brdf_params = {k: v for k, v in params.items() if k != "normal"}
+    aniso = brdf_params.get("anisotropic", 0.0)
+    x = y = None
+    if isinstance(aniso, Tensor) or aniso != 0.0:
+        x, y = (t[None] for t in frame_from_normal_map(normal))
+    f = principled(l, lg["v"][None], n, x, y, **brdf_params)
+    nl = torch.clamp((n * l).sum(-1, keepdim=True), min=0.0)
+    return f * (light_int[:, None, :] * nl * lg["inv_d2"])
 
 
 def render_capture(
@@ -557,8 +496,8 @@ def render_capture(
         lights: ``(positions (L, 3), intensities (L, 3))``, a mapping with ``position``
             and ``intensity``, or a :class:`datasets.Capture`.
         camera_position: ``(3,)`` camera position (only the view vectors depend on it).
-        backend: ``"principled"`` (reference: :func:`torchbrdf.principled`, any parameter)
-            or ``"compact"`` (fast, for base_color/metallic/specular/roughness/normal only).
+        backend: ``"principled"`` (one light at a time) or ``"compact"`` (all lights in one
+            call, :func:`render_points`); both evaluate :func:`torchbrdf.principled`.
         noise: relative sensor noise level (0.01 = 1 %); see :func:`add_noise`.
         seed: noise seed.
 
@@ -587,13 +526,8 @@ def render_capture(
         params[name] = _map_hwc(value, 3 if name == "base_color" else 1, h, w, dtype, device)
     p = pixel_points(w, h, device=device, dtype=dtype)
     if backend == "compact":
-        extra = set(params) - {"base_color", "metallic", "specular", "roughness"}
-        unsupported = [k for k in extra
-                       if not (isinstance(params[k], float) and params[k] == _FIXED_DEFAULTS.get(k))]
-        if unsupported:
-            raise ValueError(f"render_capture: backend='compact' supports no {sorted(unsupported)}; use 'principled'")
         flat = {k: (v.reshape(-1, v.shape[-1]) if isinstance(v, Tensor) else v) for k, v in params.items()}
-        img = render_compact_points(n.reshape(-1, 3), p.reshape(-1, 3), cam, pos, inten, flat)
+        img = render_points(n.reshape(-1, 3), p.reshape(-1, 3), cam, pos, inten, flat)
         img = img.reshape(-1, h, w, 3).permute(0, 3, 1, 2)
     elif backend == "principled":
         x, y = frame_from_normal_map(n)

@@ -81,7 +81,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import (light_geometry, render_capture, render_compact_points)
+from torchbrdf.capture.synthetic import light_geometry, render_capture, render_points
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, local_prior, pcg, prior_energy
 
@@ -232,7 +232,7 @@ class LevelData:
         points = self.points
         if rows is not None:
             points, log_obs = points[rows], log_obs[:, rows]
-            light = {"v": light["v"][rows], **{k: light[k][:, rows] for k in ("l", "h", "lh", "inv_d2")}}
+            light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
         pred = _render_points(p, points, self.camera, self.pos[idx], self.inten[idx], model, light)
         r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs
         return r.permute(1, 0, 2).reshape(theta.shape[0], -1)
@@ -240,7 +240,7 @@ class LevelData:
 
 def _render_points(p, points, camera, pos, inten, model, light):
     if model == "principled":
-        return render_compact_points(p["normal"], points, camera, pos, inten, p, light)
+        return render_points(p["normal"], points, camera, pos, inten, p, light)
     if model == "svbrdf_ggx":  # the GGX model of torchbrdf.capture_model (not tuned)
         from torchbrdf.brdf.capture_model import svbrdf_ggx
 
