@@ -172,21 +172,28 @@ def _to_shape(g: Tensor, t: Tensor) -> Tensor:
     return g.sum_to_size(t.shape) if tuple(g.shape) != tuple(t.shape) else g
 
 
+def _grad_out_lanes(plan: _Plan, grad_out: Tensor) -> tuple[Tensor, tuple[int, int]]:
+    """The output gradient as ``(N, 3)`` lanes in the compute dtype, and its ``(lane, channel)``
+    strides: a broadcast gradient (a ``sum``'s) keeps stride 0, anything else is made contiguous."""
+    go = grad_out.expand(*plan.batch, 3).reshape(plan.N, 3)
+    if go.dtype != plan.dtype:
+        go = go.to(plan.dtype)
+    gls, gcs = go.stride()
+    if plan.N == 1:
+        gls = 3
+    if (gls, gcs) not in ((3, 1), (0, 0), (0, 1)):
+        go = go.contiguous()
+        gls, gcs = 3, 1
+    return go, (gls, gcs)
+
+
 def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     N, dtype = plan.N, plan.dtype
     if N == 0:
         return [tensors[i].new_zeros(tensors[i].shape) for i in need]
     if plan.backend == "triton":
         return _triton_bwd(plan, tensors, grad_out, need)
-    go = grad_out.expand(*plan.batch, 3).reshape(N, 3)
-    if go.dtype != dtype:
-        go = go.to(dtype)
-    gls, gcs = go.stride()
-    if N == 1:
-        gls = 3
-    if (gls, gcs) not in ((3, 1), (0, 0), (0, 1)):
-        go = go.contiguous()
-        gls, gcs = 3, 1
+    go, (gls, gcs) = _grad_out_lanes(plan, grad_out)
     flat, modes = plan.flat(tensors)
     lib = _load(plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need)), backward=True)
     if lib is None:
@@ -340,15 +347,7 @@ def _triton_fwd(plan: _Plan, tensors) -> Tensor:
 
 def _triton_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     N, dtype, dev = plan.N, plan.dtype, plan.device
-    go = grad_out.expand(*plan.batch, 3).reshape(N, 3)
-    if go.dtype != dtype:
-        go = go.to(dtype)
-    gls, gcs = go.stride()
-    if N == 1:
-        gls = 3
-    if (gls, gcs) not in ((3, 1), (0, 0), (0, 1)):
-        go = go.contiguous()
-        gls, gcs = 3, 1
+    go, (gls, gcs) = _grad_out_lanes(plan, grad_out)
     flat, modes = plan.flat(tensors)
     spec = plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need))
     written = set(_written((spec.ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint,
