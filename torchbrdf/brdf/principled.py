@@ -22,6 +22,7 @@ Numerics (each pinned by ``tests/test_principled.py`` and ``tests/test_hard_case
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 import numbers
 import os
 from collections.abc import Iterable
@@ -213,25 +214,42 @@ def fast_path_enabled() -> bool | None:
     return _fast_mode["enabled"]
 
 
-def _fast_backend(c: dict):
-    """``"c"`` or ``"triton"`` when fused kernels evaluate this call, else ``None`` (eager).
+def _fast_backend(c: dict) -> str | None:
+    """``"c"`` or ``"triton"`` when fused kernels evaluate this ``principled`` call, else None."""
+    tensors = [t for t in c.values() if isinstance(t, Tensor)]
 
-    The backend comes from :func:`torchbrdf.set_backend` / ``TORCHBRDF_BACKEND`` (see
-    :mod:`torchbrdf.kernels.backend`); :func:`set_fast_path` says whether a fused one is used.
+    def lanes() -> int | None:
+        shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
+        try:
+            return math.prod(torch.broadcast_shapes(*shapes))
+        except RuntimeError:
+            return None
+
+    return _fused_backend(c["l"].device, c["l"].dtype, tensors, lanes)
+
+
+def _fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor],
+                   lanes: Callable[[], int | None]) -> str | None:
+    """The one dispatch rule of the fused kernels (``principled`` and the shader's light pass).
+
+    Returns ``"c"`` or ``"triton"`` when fused kernels evaluate a call on ``device`` in
+    ``dtype`` with these input ``tensors``, else ``None`` (eager). The backend comes from
+    :func:`torchbrdf.set_backend` / ``TORCHBRDF_BACKEND`` (see :mod:`torchbrdf.kernels.backend`);
+    :func:`set_fast_path` says whether a fused one is used; in automatic mode with the
+    ``"auto"`` backend, ``lanes()`` (the batch's lane count, None if it does not broadcast)
+    must reach :data:`FAST_PATH_MIN_LANES`.
     """
     mode = _fast_mode["enabled"]
     if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
         return None
-    t0 = c["l"]
-    if t0.dtype not in (torch.float32, torch.float64):
+    if dtype not in (torch.float32, torch.float64):
         return None
-    backend = _resolve_backend(t0.device.type)
+    backend = _resolve_backend(device.type)
     if backend == "eager":
         return None
-    tensors = [t for t in c.values() if isinstance(t, Tensor)]
     if torch.compiler.is_compiling():
-        # torch.compile traces the fused operator (torch.ops.torchbrdf.principled_fwd) at any
-        # size, so the compiled graph never depends on the batch size or recompile history.
+        # torch.compile traces the fused operator (torch.ops.torchbrdf.*) at any size, so the
+        # compiled graph never depends on the batch size or recompile history.
         return backend
     if torch.jit.is_tracing() or torch.jit.is_scripting():
         return None
@@ -241,12 +259,8 @@ def _fast_backend(c: dict):
         if type(t) not in (Tensor, nn.Parameter):
             return None
     if mode is None and _backend_setting() == "auto":
-        shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
-        try:
-            lanes = math.prod(torch.broadcast_shapes(*shapes))
-        except RuntimeError:
-            return None
-        if lanes < FAST_PATH_MIN_LANES:
+        n = lanes()
+        if n is None or n < FAST_PATH_MIN_LANES:
             return None
     return backend
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -314,42 +313,32 @@ def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
 def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
-    The principled BRDF on CPU float32/float64 with the fused kernels enabled (see
-    :func:`torchbrdf.set_fast_path`; automatic mode from ``FAST_PATH_MIN_LANES`` pixel-lights),
-    no gradient wanted w.r.t. lights or camera (those stay on the eager shader).
+    The principled BRDF, inputs the kernel reads (4-D maps or constants), no gradient wanted
+    w.r.t. lights or camera (those stay on the eager shader), and the fused kernels' dispatch
+    rule (``principled._fused_backend``, on ``elements`` pixel-lights) picking the C kernels:
+    the shading kernel is printed as C only.
     """
     if kind != "principled" or not (points or dirs):
         return False
-    from torchbrdf.brdf import principled as _pr
-
-    mode = _pr.fast_path_enabled()
-    if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
-        return False
-    if dev.type != "cpu" or cd not in (torch.float32, torch.float64):
-        return False
-    if torch.jit.is_tracing() or torch.jit.is_scripting():
-        return False
     if "base_color" not in values or set(values) - set(_DEFAULTS) - {"base_color"}:
         return False  # the eager call raises the error naming the argument
+    from torchbrdf.brdf import principled as _pr
+
+    tensors = []
     for k, t in [("position", gbuf.position), ("normal", gbuf.normal), *values.items()]:
         if not isinstance(t, Tensor):
             continue
-        if type(t) not in (Tensor, nn.Parameter) or (
-            not torch.compiler.is_compiling() and torch._C._functorch.is_functorch_wrapped_tensor(t)
-        ):
-            return False
+        if not torch.compiler.is_compiling() and torch._C._functorch.is_functorch_wrapped_tensor(t):
+            return False  # the shade ops have no vmap/jvp rule: torch.func goes eager
         channels = {"position": (3,), "normal": (3,), "base_color": (1, 3)}.get(k, (1,))
         if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
             return False
+        tensors.append(t)
     if torch.is_grad_enabled():
         uniform = [cam] + [t for light in points + dirs for t in light._light_tensors()]
         if any(t.requires_grad for t in uniform):
             return False
-    if mode is None and elements < _pr.FAST_PATH_MIN_LANES:
-        return False
-    # The fused shading kernel is C only: used when the backend in force picks the C kernels
-    # for this device (torchbrdf.set_backend / TORCHBRDF_BACKEND, compiler available).
-    return _pr._resolve_backend(dev.type) == "c"
+    return _pr._fused_backend(dev, cd, tensors, lambda: elements) == "c"
 
 
 def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
