@@ -33,6 +33,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import torch
+from torch import Tensor
 
 import torchbrdf
 
@@ -63,6 +64,27 @@ def _allocated(device: torch.device):
 
 def _peak(device: torch.device):
     return torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None
+
+
+def _time_and_peak(fwd: Callable[[], Any], fwd_bwd: Callable[[], Any], device: torch.device, repeats: int,
+                   before_peak: Callable[[], Any] | None = None) -> dict[str, Any]:
+    """Median times of ``fwd`` and ``fwd_bwd`` and the peak memory of one more ``fwd_bwd``.
+
+    Returns ``fwd_s``, ``fwdbwd_s``, ``peak_bytes`` and ``peak_above_inputs_bytes`` (the peak
+    above what was allocated before that run; None where the device reports no memory).
+    """
+    out: dict[str, Any] = {"fwd_s": _median_time(fwd, device, repeats),
+                           "fwdbwd_s": _median_time(fwd_bwd, device, repeats)}
+    if before_peak is not None:
+        before_peak()
+    base = _allocated(device)
+    _reset_peak(device)
+    fwd_bwd()
+    _sync(device)
+    peak = _peak(device)
+    out["peak_bytes"] = peak
+    out["peak_above_inputs_bytes"] = None if peak is None else peak - base
+    return out
 
 
 def _median_time(fn, device: torch.device, repeats: int) -> float:
@@ -168,18 +190,13 @@ def principled_rows(sizes: Iterable[int], paths: Sequence[str], device: torch.de
                     log(f"  {path:8s} N=2^{int(math.log2(N))}: not available")
                     continue
                 fwd, fb = fns
-                row["fwd_s"] = _median_time(fwd, device, repeats)
-                row["fwdbwd_s"] = _median_time(fb, device, repeats)
+
+                def clear_grads(g: dict[str, Tensor] = xg) -> None:  # the peak run starts without grads
+                    for t in g.values():
+                        t.grad = None
+
+                row.update(_time_and_peak(fwd, fb, device, repeats, before_peak=clear_grads))
                 row["fwd_rate"], row["fwdbwd_rate"] = N / row["fwd_s"], N / row["fwdbwd_s"]
-                for t in xg.values():
-                    t.grad = None
-                base = _allocated(device)
-                _reset_peak(device)
-                fb()
-                _sync(device)
-                peak = _peak(device)
-                row["peak_bytes"] = peak
-                row["peak_above_inputs_bytes"] = None if peak is None else peak - base
                 log(f"  {path:8s} N=2^{int(math.log2(N)):<2d} fwd {row['fwd_rate']:10.3e}/s  "
                     f"fwd+bwd {row['fwdbwd_rate']:10.3e}/s  peak {_mib(row['peak_bytes'])}")
             except torch.cuda.OutOfMemoryError:
@@ -241,15 +258,8 @@ def shade_rows(size: int, lights: int, backends: Iterable[str], device: torch.de
                 with _Backend(backend):
                     torchbrdf.shade(gbuf, light_list).sum().backward()
 
-            row["fwd_s"] = _median_time(fwd, device, repeats)
-            row["fwdbwd_s"] = _median_time(fb, device, repeats)
-            base = _allocated(device)
-            _reset_peak(device)
-            fb()
-            _sync(device)
-            peak = _peak(device)
-            row["peak_bytes"] = peak
-            row["peak_above_inputs_bytes"] = None if peak is None else peak - base
+            row.update(_time_and_peak(fwd, fb, device, repeats))
+            peak = row["peak_bytes"]
             log(f"  shade {backend:8s} {size}² {lights} lights: fwd {row['fwd_s'] * 1e3:.1f} ms  "
                 f"fwd+bwd {row['fwdbwd_s'] * 1e3:.1f} ms  peak {_mib(peak)}")
         except torch.cuda.OutOfMemoryError:
