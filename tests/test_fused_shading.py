@@ -17,18 +17,7 @@ from torchbrdf.kernels import fused
 
 pytestmark = pytest.mark.skipif(not fused.available(), reason="no C compiler for the fused kernels")
 
-NAMES = (
-    "metallic",
-    "subsurface",
-    "specular",
-    "roughness",
-    "specular_tint",
-    "anisotropic",
-    "sheen",
-    "sheen_tint",
-    "clearcoat",
-    "clearcoat_gloss",
-)
+NAMES = tuple(torchbrdf.PRINCIPLED_DEFAULTS)  # the ten scalar parameters
 TOL = {torch.float32: 1e-4, torch.float64: 1e-10}
 
 

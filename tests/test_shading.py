@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+import torchbrdf
 from torchbrdf._math import safe_normalize
 from torchbrdf.brdf.lambert import LambertBRDF, lambert
 from torchbrdf.brdf.principled import PrincipledBRDF, principled
@@ -23,18 +24,7 @@ def rand(*shape, seed=0, dtype=D, lo=0.0, hi=1.0):
 
 def full_material(b, h, w, dtype=D, seed=0):
     """Every principled parameter as a random map."""
-    names = [
-        "metallic",
-        "subsurface",
-        "specular",
-        "roughness",
-        "specular_tint",
-        "anisotropic",
-        "sheen",
-        "sheen_tint",
-        "clearcoat",
-        "clearcoat_gloss",
-    ]
+    names = list(torchbrdf.PRINCIPLED_DEFAULTS)  # the ten scalar parameters
     mat = {"base_color": rand(b, 3, h, w, seed=seed, dtype=dtype)}
     for i, k in enumerate(names):
         mat[k] = rand(b, 1, h, w, seed=seed + i + 1, dtype=dtype, lo=0.05, hi=0.95)
