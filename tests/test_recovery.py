@@ -197,27 +197,60 @@ def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     return R, data, R.encode(p), metal
 
 
-def test_jacobian_through_the_fused_kernels_equals_eager():
-    # The fit's Jacobian is forward mode vmapped over the 7 unknowns through torchbrdf.principled;
-    # the fused kernels (used at fit sizes) must give the eager formula's values.
+def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
+    # The fit's JᵀJ and Jᵀr come from forward mode vmapped over the 7 unknowns through
+    # torchbrdf.principled, block by block. Against them: the full Jacobian by reverse mode
+    # (eager), and the same computation through the fused kernels (used at fit sizes).
     import torchbrdf
     from torchbrdf.kernels import fused
 
-    if not fused.available():
-        pytest.skip("no C compiler: the fused path is unavailable")
     R, data, theta, metal = _flat_level(size=12, lights=6, normal_tilt_deg=10.0)
     theta = theta + 0.3 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(0))
     metal = metal.clone()
     metal[::3] = 1.0
-    jac = {}
-    for fast in (False, True):
-        torchbrdf.set_fast_path(fast)
+    idx = data.train_idx
+    P = theta.shape[0]
+    torchbrdf.set_fast_path(False)
+    try:
+        r_ref = data.residual(theta, metal, idx)
+        # d r[p] / d theta[p]: the residual of pixel p depends only on its own unknowns.
+        full = torch.func.jacrev(lambda t: data.residual(t, metal, idx))(theta)  # (P, M, P, 7)
+        jac = full[torch.arange(P), :, torch.arange(P)]  # (P, M, 7)
+        got = {False: R.gauss_newton(data, theta, metal, idx, "principled", chunk=50)}
+    finally:
+        torchbrdf.set_fast_path(None)
+    jtj_ref = torch.einsum("pmi,pmj->pij", jac, jac)
+    jtr_ref = torch.einsum("pmi,pm->pi", jac, r_ref)
+    if fused.available():
+        torchbrdf.set_fast_path(True)
         try:
-            jac[fast] = R.jacobian(data, theta, metal, data.train_idx, "principled")
+            got[True] = R.gauss_newton(data, theta, metal, idx, "principled", chunk=50)
         finally:
             torchbrdf.set_fast_path(None)
-    assert jac[True].shape == (theta.shape[0], len(data.train_idx) * 3, 7)
-    assert torch.allclose(jac[True], jac[False], rtol=1e-4, atol=1e-4 * float(jac[False].abs().max()))
+    for r, jtj, jtr in got.values():
+        assert jtj.shape == (P, 7, 7) and jtr.shape == (P, 7) and r.shape == r_ref.shape
+        assert torch.allclose(r, r_ref, rtol=1e-5, atol=1e-6)
+        scale = float(jtj_ref.abs().max())
+        assert torch.allclose(jtj, jtj_ref, rtol=1e-4, atol=1e-5 * scale)
+        assert torch.allclose(jtr, jtr_ref, rtol=1e-4, atol=1e-5 * float(jtr_ref.abs().max()))
+
+
+def test_a_propagation_pass_restricted_to_the_last_changes_equals_a_full_pass():
+    # Pass 2 can differ from pass 1 only where a 3x3 neighbourhood changed in pass 1, so the
+    # recovery evaluates only those pixels; the result must be exactly the full pass's. A
+    # wrong 6x6 block is repaired one ring per pass, so pass 2 has work to do.
+    R, data, theta, metal = _flat_level(size=12, lights=6)
+    bad = theta.clone().reshape(12, 12, -1)
+    bad[3:9, 3:9, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])
+    bad = bad.reshape(theta.shape)
+    t1, m1, changed = R.propagate(data, bad, metal, RecoveryConfig())
+    full = R.propagate(data, t1, m1, RecoveryConfig())
+    part = R.propagate(data, t1, m1, RecoveryConfig(), active=R._dilate(changed, 12))
+    assert bool(changed.any()) and bool(full[2].any())
+    assert torch.equal(full[0], part[0]) and torch.equal(full[1], part[1]) and torch.equal(full[2], part[2])
+    # Only the changed pixels themselves would miss the next ring.
+    only = R.propagate(data, t1, m1, RecoveryConfig(), active=changed)
+    assert not torch.equal(full[0], only[0])
 
 
 def test_propagation_repairs_a_pixel_from_its_neighbours():
@@ -225,7 +258,7 @@ def test_propagation_repairs_a_pixel_from_its_neighbours():
     bad = theta.clone()
     bad[40, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])  # a wrong local optimum
     fixed, new_metal, changed = R.propagate(data, bad, metal, RecoveryConfig())
-    assert changed >= 1 and torch.allclose(fixed[40], theta[40], atol=1e-5)
+    assert int(changed.sum()) >= 1 and torch.allclose(fixed[40], theta[40], atol=1e-5)
     assert torch.equal(new_metal, metal)
     # Across classes: a pixel wrongly called metal returns to dielectric by the margin rule.
     m2 = metal.clone()

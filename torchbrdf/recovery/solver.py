@@ -332,26 +332,40 @@ def _kmeans(x: Tensor, k: int, iters: int = 8, return_centres: bool = False) -> 
     return c if return_centres else torch.cdist(x, c).argmin(-1)
 
 
-def jacobian(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int], model: str,
-             chunk: int = 16384) -> Tensor:
-    """Jacobian ``(P, M, 7)`` of the log residuals on lights ``idx`` w.r.t. each pixel's 7 unknowns.
+def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int], model: str,
+                 chunk: int = 8192) -> tuple[Tensor, Tensor, Tensor]:
+    """Residuals and the per-pixel normal equations of the log residuals on lights ``idx``.
 
-    Pixels are independent, so one forward-mode pass per unknown (``torch.func.jvp`` vmapped
-    over the 7 tangents) gives every pixel's Jacobian; it runs over blocks of ``chunk``
-    pixels, which keeps the 7 × lights × pixels intermediates in cache (3× faster than one
-    pass over 256² pixels, measured). Non-finite entries are zeroed.
+    Returns ``r (P, M)`` (the residuals at ``theta``, non-finite entries as they come),
+    ``JᵀJ (P, 7, 7)`` and ``Jᵀr (P, 7)`` w.r.t. each pixel's 7 unknowns (non-finite Jacobian
+    entries and residuals count as 0 there). Pixels are independent, so one forward-mode pass
+    per unknown (``torch.func.jvp`` vmapped over the 7 tangents; its primal output is the
+    residual, so no extra render) gives every pixel's Jacobian. It runs over blocks of
+    ``chunk`` pixels and reduces each block to its 7×7 products at once, so the
+    ``7 × lights × pixels`` Jacobian never exists whole: its blocks stay in cache and below
+    the allocator's mmap threshold (a whole 256² Jacobian is 88 MB, and every fresh
+    allocation that size is page-faulted in anew: 0.5 s of a 1.4 s Jacobian, measured).
     """
-    out = []
+    P = theta.shape[0]
     eye = torch.eye(_N_PARAMS, dtype=theta.dtype, device=theta.device)
-    for s0 in range(0, theta.shape[0], chunk):
-        rows = slice(s0, min(s0 + chunk, theta.shape[0]))
+    r_out = jtj = jtr = None
+    for s0 in range(0, P, chunk):
+        rows = slice(s0, min(s0 + chunk, P))
         t, m = theta[rows], metal[rows]
         fn = lambda x: data.residual(x, m, idx, model, rows=rows)  # noqa: E731
         tangents = eye[:, None, :].expand(_N_PARAMS, *t.shape)
-        cols = torch.func.vmap(lambda tg: torch.func.jvp(fn, (t,), (tg,))[1])(tangents)  # (7, n, M)
-        out.append(cols.permute(1, 2, 0))
-    jac = torch.cat(out)
-    return torch.where(torch.isfinite(jac), jac, torch.zeros_like(jac))
+        r, cols = torch.func.vmap(lambda tg: torch.func.jvp(fn, (t,), (tg,)), out_dims=(None, 0))(tangents)
+        cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0)  # (7, n, M)
+        if r_out is None:
+            r_out = r.new_empty(P, r.shape[1])
+            jtj = r.new_empty(P, _N_PARAMS, _N_PARAMS)
+            jtr = r.new_empty(P, _N_PARAMS)
+        r_out[rows] = r
+        jt = cols.permute(1, 0, 2)  # (n, 7, M)
+        torch.bmm(jt, jt.transpose(1, 2), out=jtj[rows])
+        torch.bmm(jt, torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)[..., None], out=jtr[rows, :, None])
+    assert r_out is not None and jtj is not None and jtr is not None, "gauss_newton: no pixels"
+    return r_out, jtj, jtr
 
 
 def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model: str) -> Tensor:
@@ -361,8 +375,7 @@ def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model:
     trade off against it (Gauss–Newton posterior precision): small for a glossy pixel's
     roughness when no highlight reaches it, and for a metal's F0 far from every highlight.
     """
-    jac = jacobian(data, theta, metal, data.train_idx, model)
-    jtj = torch.einsum("pmi,pmj->pij", jac, jac)
+    jtj = gauss_newton(data, theta, metal, data.train_idx, model)[1]
     jtj = jtj + 1e-6 * torch.eye(_N_PARAMS, dtype=jtj.dtype, device=jtj.device)
     cov = torch.linalg.inv(jtj.double())
     return (1.0 / torch.diagonal(cov, dim1=-2, dim2=-1).clamp(min=1e-12)).to(theta.dtype)
@@ -513,11 +526,8 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     idx, size = data.train_idx, data.size
     wx, wy = edge_weights(theta, metal, size, cfg)
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
-    r0 = fn(theta)
-    jac = jacobian(data, theta, metal, idx, cfg.model)  # (P, M, 7)
-    r0s = torch.where(torch.isfinite(r0), r0, torch.zeros_like(r0))
-    jtj = torch.einsum("pmi,pmj->pij", jac, jac)
-    g = torch.einsum("pmi,pm->pi", jac, r0s) + laplacian(theta, wx, wy, size)
+    r0, jtj, jtr = gauss_newton(data, theta, metal, idx, cfg.model)
+    g = jtr + laplacian(theta, wx, wy, size)
     if unary is not None:
         g = g + unary[1] * (theta - unary[0])
         jtj = jtj + torch.diag_embed(unary[1])
@@ -614,7 +624,8 @@ def light_scale_step(residual: Tensor, idx: list[int], log_scale: Tensor, ref_id
 
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
               margin: float | None = None,
-              unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, int]:
+              unary: tuple[Tensor, Tensor] | None = None,
+              active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
 
     A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
@@ -627,23 +638,41 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
     the dual-hypothesis choice: becoming metal needs a cost below ``margin`` × the pixel's
     own, becoming dielectric one below ``1 / margin`` × it.
 
-    Returns ``(theta (P, 7), metal (P, 1), number of pixels changed)``.
+    ``active (P,)`` (bool, optional): only these pixels try their neighbours (the renders
+    shrink to them); the others keep their parameters. A pass after a pass can give a new
+    answer only where something in the pixel's 3×3 neighbourhood changed (its candidates,
+    the prior's neighbours and edge weights are all there), so ``active =``
+    :func:`_dilate` ``(changed)`` gives the same result as a full pass.
+
+    Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
     """
     size, c = data.size, theta.shape[1]
-    cost = lambda t, m: torch.nan_to_num(  # noqa: E731
-        (data.residual(t, m, data.train_idx, cfg.model) ** 2).sum(-1, keepdim=True), nan=float("inf"))
+    rows = None if active is None else active.nonzero()[:, 0]
+    if rows is not None and rows.numel() == 0:
+        return theta, metal, torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
+
+    def sel(x: Tensor) -> Tensor:
+        return x if rows is None else x[rows]
+
+    def cost(t: Tensor, m: Tensor) -> Tensor:
+        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
+        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+
+    un = None if unary is None else (sel(unary[0]), sel(unary[1]))
     wx, wy = edge_weights(theta, metal, size, cfg)
-    best, best_metal = theta, metal
-    best_score = cost(theta, metal) + local_prior(theta, theta, wx, wy, size) + _unary_cost(theta, unary)
+    own, own_metal = sel(theta), sel(metal)
+    best, best_metal = own, own_metal
+    best_score = cost(own, own_metal) + sel(local_prior(theta, theta, wx, wy, size)) + _unary_cost(own, un)
     pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
     padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
     for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        cand = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
-        cm = padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T
-        same = cm == metal
-        prior = local_prior(cand, theta, wx, wy, size) + _unary_cost(cand, unary)
+        cand_all = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
+        cand = sel(cand_all)
+        cm = sel(padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T)
+        same = cm == own_metal
+        prior = sel(local_prior(cand_all, theta, wx, wy, size)) + _unary_cost(cand, un)
         if margin is None:
-            score = torch.where(same, cost(cand, metal) + prior, float("inf"))
+            score = torch.where(same, cost(cand, own_metal) + prior, float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
             data_cost = cost(cand, cm)
             score = torch.where(same, data_cost + prior,
@@ -652,7 +681,16 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
         best = torch.where(better, cand, best)
         best_metal = torch.where(better, cm, best_metal)
         best_score = torch.where(better, score, best_score)
-    return best, best_metal, int((best != theta).any(-1).sum())
+    if rows is not None:
+        best = theta.index_copy(0, rows, best)
+        best_metal = metal.index_copy(0, rows, best_metal)
+    return best, best_metal, (best != theta).any(-1)
+
+
+def _dilate(mask: Tensor, size: int) -> Tensor:
+    """``mask (P,)`` bool grown by one pixel in every direction (3×3)."""
+    m = mask.reshape(1, 1, size, size).to(torch.float32)
+    return (F.max_pool2d(m, 3, stride=1, padding=1) > 0).reshape(-1)
 
 
 def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
@@ -677,10 +715,7 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
         lam = torch.full((t.shape[0], 1), 1e-2, dtype=t.dtype, device=t.device)
         c = cost(t)
         for _ in range(iters):
-            r = torch.nan_to_num(sub.residual(t, m, idx, model))
-            jac = jacobian(sub, t, m, idx, model)
-            jtj = torch.einsum("pmi,pmj->pij", jac, jac)
-            g = torch.einsum("pmi,pm->pi", jac, r)
+            _, jtj, g = gauss_newton(sub, t, m, idx, model)
             h = jtj + torch.diag_embed(lam * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
             step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
             cand = t + step
@@ -986,10 +1021,13 @@ class Recovery:
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
                 cross = None if kind == "dual" else self.cfg.metal_margin
+                active = None  # a later pass needs only the pixels near the last one's changes
                 for _ in range(self.cfg.propagate_passes if st["it"] == 0 else 1):
-                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary)
-                    if not changed:
+                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary,
+                                                      active=active)
+                    if not bool(changed.any()):
                         break
+                    active = _dilate(changed, size)
                 if kind != "dual":
                     st["metal"] = metal
             if st["it"] == 0 and self.cfg.propagate:
