@@ -379,3 +379,32 @@ def directional_light(ops: Ops, n: Value, direction: Value, irradiance: Value,
     f = brdf(l)
     cos = ops.clamp_min(ops.dot(n, l), 0.0)
     return f * irradiance * cos
+
+
+# ---------------------------------------------------------------------------------------------
+# Capture fitting: one pixel under one point light, as a log residual (the SVBRDF recovery)
+# ---------------------------------------------------------------------------------------------
+
+def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool) -> Value:
+    """``log(max(L + ε, ε/2)) − log_obs`` with ``L`` the capture's radiance, ``(*, 3)``.
+
+    ``L = f(l, v) I max(n·l, 0) / |q − P|²`` (:func:`point_light` with the principled BRDF,
+    ``v`` = :func:`view_direction`) is what docs/capture_format.md defines a capture pixel to
+    be. ``c`` holds the principled material (as :func:`principled` takes it), ``pos`` (the
+    surface point ``P``), ``n``, ``camera``, ``light_pos`` ``q``, ``light_int`` ``I``,
+    ``log_obs`` (``log(observed + ε)``) and ``eps`` ``ε``. The recovery's fit minimises the
+    square of this; the fused kernels evaluate it, its JVPs and its backward in one pass per
+    lane, with the geometry inside.
+    """
+    v = view_direction(ops, c["camera"], c["pos"])
+
+    def brdf(l: Value) -> Value:
+        return principled(ops, {**c, "l": l, "v": v}, active, need_tint, frame)
+
+    rad = point_light(ops, c["pos"], c["n"], c["light_pos"], c["light_int"], brdf)
+    eps = c["eps"]
+    return ops.log(ops.clamp_min(rad + eps, 0.5 * eps)) - c["log_obs"]
+
+
+#: The formulas a fused kernel family can be built from (``_KernelSpec.family``).
+FAMILIES: dict[str, Callable[..., Value]] = {"principled": principled, "capture": capture_log_residual}

@@ -478,6 +478,47 @@ def render_points(
     return f * (light_int[:, None, :] * nl * lg["inv_d2"])
 
 
+def log_residual_points(
+    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: Mapping,
+    log_obs: Tensor, eps: float,
+) -> Tensor:
+    """Log residuals of a flat list of pixels under every light, ``(P, L, 3)``: what a fit minimises.
+
+    ``log(max(radiance + ε, ε/2)) − log_obs`` with the radiance of :func:`render_points` (the
+    same inputs: ``normal``, ``points (P, 3)``, ``camera (3,)``, ``light_pos``, ``light_int
+    (L, 3)``, ``params``), ``log_obs (P, L, 3)`` = ``log(observed + ε)`` and ``eps`` ε. It is
+    :func:`torchbrdf.brdf.formula.capture_log_residual` — the capture's image formation
+    (:func:`~torchbrdf.brdf.formula.point_light` with the principled BRDF) followed by the log
+    — so at fit sizes the fused kernels evaluate the whole residual, its JVPs (the fit's
+    Jacobian) and its backward in one pass per lane, with no ``(P, L, 3)`` intermediates.
+    Differentiable (reverse and forward mode) w.r.t. every tensor input.
+    """
+    from torchbrdf.brdf import formula
+    from torchbrdf.brdf import principled as _p
+
+    def px(t: Any) -> Any:  # a per-pixel value as (P, 1, C): broadcast over the lights
+        return t[:, None] if isinstance(t, Tensor) else t
+
+    mat = {**_p.PRINCIPLED_DEFAULTS, **{k: px(v) for k, v in params.items() if k != "normal"}}
+    x = y = None
+    aniso = mat["anisotropic"]
+    if isinstance(aniso, Tensor) or aniso != 0.0:
+        x, y = (t[:, None] for t in frame_from_normal_map(normal))
+    c: dict[str, Any] = {**mat, "pos": points[:, None], "n": normal[:, None], "camera": camera,
+                         "light_pos": light_pos[None], "light_int": light_int[None], "log_obs": log_obs,
+                         "eps": float(eps), "x": x, "y": y}
+    active = _p.active_lobes(mat)
+    need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
+    tensors = [t for t in c.values() if isinstance(t, Tensor)]
+    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors, lambda: log_obs.shape[0] * log_obs.shape[1])
+    if backend is not None:
+        from torchbrdf.kernels.ops import capture_fast
+
+        return capture_fast(c, active, need_tint, frame, backend)
+    ops = formula.TorchOps(log_obs.dtype, log_obs.device)
+    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+
+
 def render_capture(
     maps: Mapping,
     lights: Lights,

@@ -76,14 +76,16 @@ class _KernelSpec:
     ``tensors``: ``(name, mode, C)`` per tensor input; ``floats``: names of the runtime
     Python floats; backward: ``go_strides`` and ``grad_mask`` (indices needing gradients);
     JVP: ``tangent_inputs`` (indices with tangents), ``tangent_modes`` (one per tangent slot,
-    ``ntan`` × ``len(tangent_inputs)``) and ``ntan`` (tangents per pass).
+    ``ntan`` × ``len(tangent_inputs)``) and ``ntan`` (tangents per pass); ``family``: the
+    formula (:data:`torchbrdf.brdf.formula.FAMILIES`).
     """
 
     def __init__(self, ctype: str, tensors: Iterable[tuple[str, str, int]], floats: Iterable[str],
                  active: Iterable[str], need_tint: bool, frame: bool, go_strides: Iterable[int] = (3, 1),
                  grad_mask: Iterable[int] = (), tangent_inputs: Iterable[int] = (),
-                 tangent_modes: Iterable[str] = (), ntan: int = 0) -> None:
+                 tangent_modes: Iterable[str] = (), ntan: int = 0, family: str = "principled") -> None:
         self.ctype = ctype
+        self.family = family  # which formula (torchbrdf.brdf.formula.FAMILIES)
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)  # (name, mode, C)
         self.floats = tuple(floats)
@@ -100,6 +102,8 @@ class _KernelSpec:
 
     def key(self, backward: bool | str) -> tuple[Any, ...]:
         base = (self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.frame)
+        if self.family != "principled":
+            base = base + (self.family,)
         if backward == "jvp":
             return base + ("jvp", self.tangent_inputs, self.tangent_modes, self.ntan)
         return base + ((self.go_strides, self.grad_mask) if backward else ())

@@ -1,6 +1,8 @@
 """The kernel graphs of one kernel family, independent of any emitter.
 
-:func:`build` traces :func:`torchbrdf.brdf.formula.principled` for a kernel spec
+:func:`build` traces the family's formula (:data:`torchbrdf.brdf.formula.FAMILIES`:
+:func:`~torchbrdf.brdf.formula.principled`, or the recovery's
+:func:`~torchbrdf.brdf.formula.capture_log_residual`) for a kernel spec
 (``torchbrdf.kernels.fused._KernelSpec``) and applies the derivative transform a kernel needs.
 The result names its loads and stores abstractly, so a C printer (:mod:`.codegen_c`) and a
 Triton printer can print the same graph:
@@ -69,7 +71,8 @@ def build(spec: _KernelSpec, kind: str) -> KernelGraph:
     with g:
         ops = TraceOps(spec.hi_double)
         inp, loads = _inputs(spec)
-        outs = list(formula.principled(ops, inp, spec.active, spec.need_tint, spec.frame).c)
+        fn = formula.FAMILIES[spec.family]
+        outs = list(fn(ops, inp, spec.active, spec.need_tint, spec.frame).c)
         if kind == "fwd":
             stores = [(("out", c), o) for c, o in enumerate(outs)]
         elif kind == "bwd":

@@ -35,7 +35,7 @@ from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels import graphs
 from torchbrdf.kernels.fused import _KernelSpec, _load, _pool
 
-__all__ = ["principled_fast"]
+__all__ = ["principled_fast", "capture_fast", "CAPTURE_INPUTS"]
 
 SCALAR_NAMES = SCALAR_PARAMS
 
@@ -70,25 +70,31 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int):
 
 
 def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
-             frame: bool, backend: str = "c") -> str:
-    """The ``cfg`` string of the operators; ``backend`` ``"c"`` (CPU kernels) or ``"triton"``."""
+             frame: bool, backend: str = "c", family: str = "principled") -> str:
+    """The ``cfg`` string of the operators; ``backend`` ``"c"`` (CPU kernels) or ``"triton"``;
+    ``family`` the formula (:data:`torchbrdf.brdf.formula.FAMILIES`)."""
     parts = [",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-             str(int(frame))]
-    return "|".join(parts + (["triton"] if backend == "triton" else []))
+             str(int(frame)), backend]
+    return "|".join(parts + ([family] if family != "principled" else []))
+
+
+#: Channels of each tensor input that is not a scalar principled parameter (all others: 3).
+_ONE_CHANNEL = frozenset(SCALAR_PARAMS)
 
 
 class _Plan:
     """One call's layout, from ``cfg`` and the tensors' shapes."""
 
     def __init__(self, cfg: str, tensors, floats):
-        tn, fn, act, tint, frame, *rest = cfg.split("|")
+        tn, fn, act, tint, frame, backend, *rest = cfg.split("|")
         self.cfg = cfg
-        self.backend = rest[0] if rest else "c"  # which kernels: "c" or "triton"
+        self.backend = backend  # which kernels: "c" or "triton"
+        self.family = rest[0] if rest else "principled"  # which formula
         self.tensor_names = tn.split(",") if tn else []
         self.float_names = fn.split(",") if fn else []
         self.active = tuple(act.split(",")) if act else ()
         self.need_tint, self.frame = tint == "1", frame == "1"
-        self.C = [1 if k in SCALAR_NAMES else 3 for k in self.tensor_names]
+        self.C = [1 if k in _ONE_CHANNEL else 3 for k in self.tensor_names]
         shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
         self.batch = tuple(torch.broadcast_shapes(*shapes))
         self.N = math.prod(self.batch)
@@ -103,7 +109,8 @@ class _Plan:
 
     def spec(self, modes, **kw):
         ctype = "float" if self.dtype == torch.float32 else "double"
-        return _KernelSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame, **kw)
+        return _KernelSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame,
+                           family=self.family, **kw)
 
 
 def _ptrs(ptrs):
@@ -123,13 +130,13 @@ def _formula_eager(plan: _Plan, tensors, floats):
     c.setdefault("x", None)
     c.setdefault("y", None)
     ops = formula.TorchOps(plan.dtype, tensors[0].device)
-    return formula.principled(ops, c, plan.active, plan.need_tint, plan.frame)
+    return formula.FAMILIES[plan.family](ops, c, plan.active, plan.need_tint, plan.frame)
 
 
 @functools.lru_cache(maxsize=None)
-def _written(spec_args: tuple) -> tuple:
+def _written(spec_args: tuple, family: str = "principled") -> tuple:
     """Inputs (indices) whose gradient the backward kernel writes (those with a path to the output)."""
-    return graphs.build(_KernelSpec(*spec_args), "bwd").written
+    return graphs.build(_KernelSpec(*spec_args, family=family), "bwd").written
 
 
 # ---------------------------------------------------------------------------------------------
@@ -550,7 +557,7 @@ def _backward(tensors, floats, cfg, needs, grad_out):
     ctype = "float" if plan.dtype == torch.float32 else "double"
     modes = tuple((k, "full", C) for k, C in zip(plan.tensor_names, plan.C))
     written = set(_written((ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint, plan.frame,
-                            (3, 1), tuple(need))))
+                            (3, 1), tuple(need)), plan.family))
     need = [i for i in need if i in written]
     grads = [None] * len(tensors)
     if need:
@@ -692,13 +699,29 @@ def principled_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, f
     ``TRITON_INTERPRET=1``). ``x``/``y`` must already be filled in when ``frame`` is true.
     Returns ``(*, 3)``.
     """
-    names = [k for k in ("l", "v", "n") + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
+    return _fused(c, ("l", "v", "n"), active, need_tint, frame, backend, "principled")
+
+
+#: The non-material inputs of the recovery's residual (:func:`torchbrdf.brdf.formula.capture_log_residual`).
+CAPTURE_INPUTS = ("pos", "n", "camera", "light_pos", "light_int", "log_obs", "eps")
+
+
+def capture_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, frame: bool, backend: str = "c") -> Tensor:
+    """Fused :func:`torchbrdf.brdf.formula.capture_log_residual` on compute-dtype inputs ``c``
+    (:data:`CAPTURE_INPUTS` and the principled material; broadcastable tensors or floats).
+    Returns ``(*, 3)``; reverse and forward mode as for :func:`principled_fast`."""
+    return _fused(c, CAPTURE_INPUTS, active, need_tint, frame, backend, "capture")
+
+
+def _fused(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need_tint: bool, frame: bool,
+           backend: str, family: str) -> Tensor:
+    names = [k for k in lead + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
     tensor_names = [k for k in names if isinstance(c.get(k), Tensor)]
     float_names = [k for k in names if k not in tensor_names]
     # 0-d tensors become (1,) so that every tensor has its channel dimension (vmap rules).
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
-    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, backend)
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, backend, family)
     if torch.compiler.is_compiling():
         return principled_fwd(tensors, floats, cfg)
     return _PrincipledFunction.apply(cfg, _Floats(floats), *tensors)

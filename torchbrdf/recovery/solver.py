@@ -81,7 +81,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import light_geometry, render_capture, render_points
+from torchbrdf.capture.synthetic import light_geometry, log_residual_points, render_capture, render_points
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, local_prior, pcg, prior_energy
 
@@ -225,16 +225,23 @@ class LevelData:
         ``rows`` (pixel indices ``(N,)``, repeats allowed, or a slice), those of the listed pixels.
         """
         p = decode(theta, metal)
-        key = tuple(idx)
-        if key not in self._light:  # per light set, once: targets and the normal-independent geometry
-            self._light[key] = (self.log_obs[idx], light_geometry(self.points, self.camera, self.pos[idx]))
+        key = (model, tuple(idx))
+        if key not in self._light:  # per light set, once: the targets (and the geometry a model needs)
+            log_obs_pl = self.log_obs[idx].permute(1, 0, 2).contiguous()  # (P, L, 3)
+            geo = light_geometry(self.points, self.camera, self.pos[idx]) if model != "principled" else None
+            self._light[key] = (log_obs_pl, geo)
         log_obs, light = self._light[key]
         points = self.points
         if rows is not None:
-            points, log_obs = points[rows], log_obs[:, rows]
+            points, log_obs = points[rows], log_obs[rows]
+        if model == "principled":  # the whole residual in one fused evaluation
+            r = log_residual_points(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
+                                    log_obs, self.eps)
+            return r.reshape(theta.shape[0], -1)
+        if rows is not None:
             light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
         pred = _render_points(p, points, self.camera, self.pos[idx], self.inten[idx], model, light)
-        r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs
+        r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs.permute(1, 0, 2)
         return r.permute(1, 0, 2).reshape(theta.shape[0], -1)
 
 
