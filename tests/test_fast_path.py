@@ -188,6 +188,51 @@ def test_broadcast_shapes_match_eager():
     _grad_close(gf, ge, 2e-6)
 
 
+@pytest.mark.parametrize("pixels_first", [True, False])
+def test_values_broadcast_over_one_of_two_batch_dims_are_read_in_place(pixels_first, monkeypatch):
+    # Per-pixel material under every light, a per-light direction at every pixel: the kernels
+    # read them through two lane strides (mode 's2', no (P, L) copies). Values, gradients
+    # and forward-mode tangents must equal eager's.
+    from torchbrdf.kernels import ops as ops_mod
+
+    modes = []
+    real = ops_mod._flatten
+    monkeypatch.setattr(ops_mod, "_flatten", lambda *a, **k: (lambda r: modes.append(r[1]) or r)(real(*a, **k)))
+    g = torch.Generator().manual_seed(11)
+    P, L = 700, 6
+    px = (lambda t: t[:, None]) if pixels_first else (lambda t: t[None])
+    lt = (lambda t: t[None]) if pixels_first else (lambda t: t[:, None])
+    n = torch.nn.functional.normalize(torch.rand(P, 3, generator=g, dtype=torch.float64) + torch.tensor([0, 0, 1.0]), dim=-1)
+    inputs = dict(
+        l=lt(torch.nn.functional.normalize(torch.rand(L, 3, generator=g, dtype=torch.float64) + torch.tensor([0, 0, .5]), dim=-1)),
+        v=torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+        n=px(n),
+        base_color=px(torch.rand(P, 3, generator=g, dtype=torch.float64)),
+        roughness=px(0.1 + 0.8 * torch.rand(P, 1, generator=g, dtype=torch.float64)),
+        metallic=px(torch.rand(P, 1, generator=g, dtype=torch.float64)),
+    )
+    go = torch.rand((P, L, 3) if pixels_first else (L, P, 3), generator=g, dtype=torch.float64)
+    of, gf, _ = _eval(True, inputs, go)
+    assert "s2" in modes
+    oe, ge, _ = _eval(False, inputs, go)
+    assert _rel(of, oe) <= 1e-12
+    _grad_close(gf, ge, 1e-12)
+    tang = {k: torch.randn(inputs[k].shape, generator=g, dtype=torch.float64) for k in ("n", "base_color", "roughness")}
+    rest = {k: t for k, t in inputs.items() if k not in tang}
+
+    def f(*ts):
+        return torchbrdf.principled(**rest, **dict(zip(tang, ts)))
+
+    out = {}
+    for fast in (True, False):
+        torchbrdf.set_fast_path(fast)
+        try:
+            out[fast] = torch.func.jvp(f, tuple(inputs[k] for k in tang), tuple(tang.values()))[1]
+        finally:
+            torchbrdf.set_fast_path(None)
+    assert _rel(out[True], out[False]) <= 1e-10
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_types_round_trip(dtype):
     inputs = _case(4, 512, dtype, min_cos=0.05)

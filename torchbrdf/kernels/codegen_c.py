@@ -172,12 +172,56 @@ def _index(mode: str, C: int, c: int) -> str:
 def _load_expr(attr: dict, spec) -> str:
     """The C expression of a load node."""
     role = attr["role"]
+    if attr.get("mode") == "s2":  # gathered per block by the pre-loop (see _gathers)
+        return f"{_gather_buf(attr)}[i - b0]"
     if role == "x":
         return f"p{attr['k']}[{_index(attr['mode'], attr['C'], attr['c'])}]"
     if role == "go":
         gsl, gsc = spec.go_strides
         return f"go[i * {gsl} + {attr['c'] * gsc}]"
     return f"t{attr['j']}_{attr['i']}[{_index(attr['mode'], attr['C'], attr['c'])}]"
+
+
+def _gather_buf(attr: dict) -> str:
+    if attr["role"] == "x":
+        return f"g{attr['k']}_{attr['c']}"
+    return f"gt{attr['j']}_{attr['i']}_{attr['c']}"
+
+
+def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
+    """Inputs in mode 's2' (a value broadcast over one of two batch dims, see ``ops._flatten``):
+    ``(declarations, per-block buffers, pre-loop body)``.
+
+    Lane ``i`` is ``(q, r) = (i / B, i % B)`` and reads element ``q·sA + r·sB + c``; ``B`` and
+    each input's ``(sA, sB)`` follow the runtime floats in ``P``, in slot order (the tensor
+    inputs, then the tangents). A scalar pre-loop gathers a block's values into small stack
+    buffers, so the main loop (which an integer division would stop gcc from vectorising)
+    reads them lane-dense.
+    """
+    slots: dict[tuple, int] = {}
+    for k, (_, mode, _) in enumerate(spec.tensors):
+        if mode == "s2":
+            slots[("x", k)] = len(slots)
+    T = len(spec.tangent_inputs)
+    for j in range(spec.ntan):
+        for i in range(T):
+            if spec.tangent_modes[j * T + i] == "s2":
+                slots[("t", j, i)] = len(slots)
+    loads = [nd.attr for nd in order if nd.op == "in" and nd.attr.get("mode") == "s2"]
+    if not loads:
+        return [], [], []
+    nf = len(spec.floats)
+    decl = [f"const long SB = (long)P[{nf}];"]
+    decl += [f"const long sa{m} = (long)P[{nf + 1 + 2 * m}], sb{m} = (long)P[{nf + 2 + 2 * m}];"
+             for m in range(len(slots))]
+    bufs, body = [], []
+    for a in loads:
+        key = ("x", a["k"]) if a["role"] == "x" else ("t", a["j"], a["i"])
+        m = slots[key]
+        ptr = f"p{a['k']}" if a["role"] == "x" else f"t{a['j']}_{a['i']}"
+        bufs.append(f"R {_gather_buf(a)}[{_BLOCK}];")
+        body.append(f"{_gather_buf(a)}[t - b0] = {ptr}[q * sa{m} + (r + t - i) * sb{m} + {a['c']}];")
+    return decl, bufs, body
 
 
 def _store_expr(target: tuple, spec) -> str:
@@ -223,6 +267,8 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
         return names[nd.id] if isinstance(nd, Node) else (f"((R){_lit(nd)})")
 
     order = live_order(g, [s for _, s in stores])
+    gdecl, gbufs, gbody = _gathers(spec, order)
+    decl = decl + gdecl
     # log/log1p nodes are evaluated in a pre-loop over each block of lanes and read back
     # from a small stack buffer: with the (inlined) log in the main loop gcc 12 gives up
     # vectorising it, and the logs only depend on a few inputs (the clearcoat gloss).
@@ -258,6 +304,13 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
         f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)",
         f"  for (long b0 = 0; b0 < n; b0 += {_BLOCK}) {{",
         f"    const long b1 = b0 + {_BLOCK} < n ? b0 + {_BLOCK} : n;",
+        *("    " + b for b in gbufs),
+        # one run of lanes per outer index q (r = 0 .. SB-1): the inner loop vectorises (a
+        # broadcast when sB = 0, a strided read otherwise)
+        *(["    for (long i = b0, q = b0 / SB, r = b0 - (b0 / SB) * SB; i < b1; ++q, r = 0) {",
+           "      const long e = i + (SB - r) < b1 ? i + (SB - r) : b1;",
+           "      for (long t = i; t < e; ++t) {", *("        " + b for b in gbody), "      }",
+           "      i = e;", "    }"] if gbody else []),
         *(f"    {'float' if nd.kind == 'r' and spec.ctype == 'float' else 'double'} lg{j}[{_BLOCK}];"
           for j, nd in enumerate(logs)),
         *(["    #pragma GCC ivdep", "    for (long i = b0; i < b1; ++i) {", *("      " + b for b in pre), "    }"]

@@ -51,22 +51,34 @@ TANGENTS_PER_PASS = 8
 # Layout of one call
 # ---------------------------------------------------------------------------------------------
 
-def _flatten(t: Tensor, C: int, batch: tuple, N: int):
-    """View ``t`` as ``(N, C)`` lanes: mode 'full' (lane-dense), 'b1'/'b0' (same for all lanes)."""
+def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
+    """View ``t`` as ``(N, C)`` lanes: mode 'full' (lane-dense), 'b1'/'b0' (same for all lanes).
+
+    With ``s2`` (kernels that support it), a value broadcast over one of two batch dims — a
+    per-pixel value under every light, or a per-light value at every pixel — is not copied
+    out to all lanes: mode 's2' returns the ``(N / B, B, C)`` strided view (``B = batch[-1]``),
+    and lane ``(q, r)`` reads row ``q·sA + r·sB`` (:meth:`_Plan.params` passes the strides).
+    """
     e = t.expand(*batch, C) if t.dim() > 0 else t.reshape(1).expand(*batch, C)
     try:
         f = e.view(N, C)
     except RuntimeError:
-        f = e.reshape(N, C)
-    ls, cs = f.stride()
-    if N > 1 and ls == 0:
-        if C == 1 or cs == 1:
-            return f, "b1"
-        if cs == 0:
-            return f, "b0"
-    if (ls == C or N <= 1) and (cs == 1 or C == 1):
-        return f, "full"
-    return f.contiguous(), "full"
+        f = None
+    if f is not None:
+        ls, cs = f.stride()
+        if N > 1 and ls == 0:
+            if C == 1 or cs == 1:
+                return f, "b1"
+            if cs == 0:
+                return f, "b0"
+        if (ls == C or N <= 1) and (cs == 1 or C == 1):
+            return f, "full"
+    if s2 and len(batch) >= 2 and batch[-1] > 1 and N > batch[-1] and (C == 1 or e.stride(-1) == 1):
+        try:
+            return e.view(N // batch[-1], batch[-1], C), "s2"
+        except RuntimeError:  # the leading batch dims do not collapse: copy
+            pass
+    return (f if f is not None else e).reshape(N, C).contiguous(), "full"
 
 
 def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
@@ -102,8 +114,18 @@ class _Plan:
         self.device = tensors[0].device
         self.floats = [float(x) for x in floats]
 
-    def flat(self, tensors):
-        out = [_flatten(t, C, self.batch, self.N) for t, C in zip(tensors, self.C)]
+    def params(self, *flats) -> list[float]:
+        """The kernel's runtime parameter row: the Python floats, then, when some input of
+        ``flats`` (iterables of ``(flat, mode)``, ``mode`` a string or a ``(name, mode, C)`` slot,
+        in the kernel's slot order) is 's2', the inner
+        batch size and each such input's two lane strides (see :func:`_flatten`)."""
+        s2 = [f for fl in flats for f, m in fl if (m if isinstance(m, str) else m[1]) == "s2"]
+        if not s2:
+            return self.floats
+        return self.floats + [float(self.batch[-1])] + [float(x) for f in s2 for x in f.stride()[:2]]
+
+    def flat(self, tensors, s2: bool = False):
+        out = [_flatten(t, C, self.batch, self.N, s2) for t, C in zip(tensors, self.C)]
         modes = tuple((k, m, C) for k, (_, m), C in zip(self.tensor_names, out, self.C))
         return [f for f, _ in out], modes
 
@@ -146,7 +168,7 @@ def _written(spec_args: tuple, family: str = "principled") -> tuple:
 def _run_fwd(plan: _Plan, tensors) -> Tensor:
     if plan.backend == "triton":
         return _triton_fwd(plan, tensors)
-    flat, modes = plan.flat(tensors)
+    flat, modes = plan.flat(tensors, s2=True)
     lib = _load(plan.spec(modes), backward=False) if plan.N > 0 else None
     if lib is None:
         if plan.N > 0:  # no kernel: the same formula, eagerly
@@ -154,7 +176,7 @@ def _run_fwd(plan: _Plan, tensors) -> Tensor:
                 return _formula_eager(plan, tensors, plan.floats).expand(*plan.batch, 3).contiguous()
         return torch.empty(*plan.batch, 3, dtype=plan.dtype, device=plan.device)
     out = _pool.empty((plan.N, 3), plan.dtype)
-    lib[1](plan.N, _ptrs([f.data_ptr() for f in flat]), _dparams(plan.floats), out.data_ptr(),
+    lib[1](plan.N, _ptrs([f.data_ptr() for f in flat]), _dparams(plan.params(zip(flat, modes))), out.data_ptr(),
            torch.get_num_threads())
     return out.view(*plan.batch, 3)
 
@@ -201,7 +223,10 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     if plan.backend == "triton":
         return _triton_bwd(plan, tensors, grad_out, need)
     go, (gls, gcs) = _grad_out_lanes(plan, grad_out)
-    flat, modes = plan.flat(tensors)
+    gmode = {i: _grad_mode(tensors[i], plan.C[i], N) for i in need}
+    # Chunked (a gradient summed over all lanes): lane offsets move the pointers, so no 's2'.
+    chunked = any(m == "red" for m in gmode.values())
+    flat, modes = plan.flat(tensors, s2=not chunked)
     lib = _load(plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need)), backward=True)
     if lib is None:
         # No kernel (no compiler, a cache fault): the vjp of the shared formula. torch.func, not
@@ -216,9 +241,8 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
         gs = vjp_fn(grad_out.to(dtype))
         return [g.contiguous() for g in gs]
     fn = lib[1]
-    P = _dparams(plan.floats)
+    P = _dparams(plan.params(zip(flat, modes)))
     nt = torch.get_num_threads()
-    gmode = {i: _grad_mode(tensors[i], plan.C[i], N) for i in need}
     full = {i: _pool.empty((N, plan.C[i]), dtype) for i in need if gmode[i] == "full"}
     red = {i: torch.zeros(plan.C[i], dtype=dtype) for i in need if gmode[i] == "red"}
     chunk = N if not red else BWD_CHUNK
@@ -255,14 +279,14 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
         return torch.zeros(shape, dtype=dtype, device=plan.device)
     if plan.backend == "triton":
         return _triton_jvp(plan, tensors, tangents, tidx, ntan)
-    flat, modes = plan.flat(tensors)
+    flat, modes = plan.flat(tensors, s2=True)
     out = torch.empty((K, N, 3), dtype=dtype)
     for j0 in range(0, K, TANGENTS_PER_PASS):
         js = range(j0, min(K, j0 + TANGENTS_PER_PASS))
         tflat, tmodes = [], []
         for j in js:
             for i, t in zip(tidx, tangents):
-                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N)
+                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N, s2=True)
                 tflat.append(f)
                 tmodes.append(m)
         spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=len(js))
@@ -277,7 +301,8 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
             continue
         ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
         outs = _ptrs([out[j].data_ptr() for j in js])
-        lib[1](N, ins, _dparams(plan.floats), tins, outs, torch.get_num_threads())
+        P = _dparams(plan.params(zip(flat, modes), zip(tflat, tmodes)))
+        lib[1](N, ins, P, tins, outs, torch.get_num_threads())
     return out.view(shape)
 
 
@@ -358,7 +383,7 @@ def _triton_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     flat, modes = plan.flat(tensors)
     spec = plan.spec(modes, go_strides=(gls, gcs), grad_mask=tuple(need))
     written = set(_written((spec.ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint,
-                            plan.frame, (gls, gcs), tuple(need))))
+                            plan.frame, (gls, gcs), tuple(need)), plan.family))
     gmode = {i: _grad_mode(tensors[i], plan.C[i], N) for i in need}
     full = {i: torch.empty(N, plan.C[i], dtype=dtype, device=dev) for i in need
             if gmode[i] == "full" and i in written}
