@@ -333,7 +333,7 @@ def _kmeans(x: Tensor, k: int, iters: int = 8, return_centres: bool = False) -> 
     c = torch.stack(cent)
     for _ in range(iters):
         lab = torch.cdist(x, c).argmin(-1)
-        cnt = torch.zeros(k, dtype=x.dtype).index_add_(0, lab, torch.ones_like(x[:, 0]))
+        cnt = torch.zeros(k, dtype=x.dtype, device=x.device).index_add_(0, lab, torch.ones_like(x[:, 0]))
         s = torch.zeros_like(c).index_add_(0, lab, x)
         c = torch.where(cnt[:, None] > 0, s / cnt.clamp(min=1)[:, None], c)
     return c if return_centres else torch.cdist(x, c).argmin(-1)
@@ -416,7 +416,7 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
         # A bilateral grid in base colour: splat into k-means clusters, slice with a
         # Gaussian range weight around each pixel's own colour.
         cent = _kmeans(base[cls], cfg.nonlocal_clusters, return_centres=True)
-        num = torch.zeros(theta.shape[0], dtype=theta.dtype)
+        num = torch.zeros(theta.shape[0], dtype=theta.dtype, device=theta.device)
         den = torch.zeros_like(num)
         lab = torch.cdist(base, cent).argmin(-1)
         g = torch.exp(-((base[:, None, :] - cent[None]) ** 2).sum(-1) / cfg.nonlocal_range**2)  # (P, K)
@@ -497,9 +497,9 @@ def nonlocal_fill(data: "LevelData", theta: Tensor, metal: Tensor, cfg: "Recover
             continue
         k = min(cfg.fill_candidates, pool.numel())
         rows = pool
-        num = torch.zeros(rows.numel(), 2, dtype=theta.dtype)
-        den = torch.zeros(rows.numel(), 2, dtype=theta.dtype)
-        sim_sum = torch.zeros(rows.numel(), 1, dtype=theta.dtype)
+        num = torch.zeros(rows.numel(), 2, dtype=theta.dtype, device=theta.device)
+        den = torch.zeros_like(num)
+        sim_sum = torch.zeros(rows.numel(), 1, dtype=theta.dtype, device=theta.device)
         chunk = max(1, 2**21 // k)
         for s0 in range(0, rows.numel(), chunk):
             rr = rows[s0:s0 + chunk]
@@ -589,7 +589,7 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
     jac = torch.stack(cols, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
     r = r.reshape(len(idx), -1)
     sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
-    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * torch.eye(3, dtype=r.dtype)
+    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * torch.eye(3, dtype=r.dtype, device=r.device)
     g = torch.einsum("lni,ln->li", jac, r) + (sigma2 / prior_sigma**2) * offset[idx]
     step = torch.linalg.solve(jtj, -g[..., None])[..., 0]
     out = offset.clone()
@@ -918,7 +918,7 @@ class Recovery:
         d = self.data(s0)
         n, alb = photometric_stereo(d, self.train_idx)
         p = d.points.shape[0]
-        ones = torch.ones(p, 1, dtype=alb.dtype)
+        ones = torch.ones(p, 1, dtype=alb.dtype, device=alb.device)
         diel = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
         flat = torch.zeros_like(n)
         flat[:, 2] = 1.0  # Lambertian normals mean nothing on a metal: start it flat
@@ -926,7 +926,7 @@ class Recovery:
                       "roughness": 0.4 * ones, "normal": flat})
         self.state = {
             "stage": 0, "it": 0, "global_it": 0, "lr": float(self.cfg.lr),
-            "theta": [diel, met], "lam": [torch.full((p, 1), 1e-2), torch.full((p, 1), 1e-2)],
+            "theta": [diel, met], "lam": [torch.full_like(ones, 1e-2), torch.full_like(ones, 1e-2)],
             "metal": None, "history": [], "events": [], "seconds": 0.0,
         }
 
@@ -962,7 +962,7 @@ class Recovery:
         try:
             # weights_only: tensors and plain Python containers only, so a checkpoint placed
             # in OUT cannot run code when loaded.
-            blob = torch.load(path, weights_only=True)
+            blob = torch.load(path, weights_only=True, map_location=self.cap.images.device)
             if not isinstance(blob, dict) or not {"state", "plan", "torch_rng"} <= blob.keys():
                 raise ValueError("not a recovery checkpoint")
         except Exception as e:  # truncated, corrupt, or another kind of file
@@ -981,7 +981,8 @@ class Recovery:
     def light_log_scale(self) -> Tensor:
         """Estimated per-light log intensity scales ``(L,)`` (0: as stated in capture.json)."""
         s = self.state.get("light_log_scale") if self.state else None
-        return s if s is not None else torch.zeros(len(self.cap), dtype=self.cap.light_intensities.dtype)
+        return s if s is not None else torch.zeros(len(self.cap), dtype=self.cap.light_intensities.dtype,
+                                                    device=self.cap.light_intensities.device)
 
     def light_offset(self) -> Tensor:
         """Estimated per-light position offsets ``(L, 3)`` (0: as stated in capture.json)."""
@@ -1098,7 +1099,7 @@ class Recovery:
                 st["lam"] = [torch.where(m > 0.5, st["lam"][1], st["lam"][0])]
             if s1 != size:
                 st["theta"] = [_upsample(t, size, s1) for t in st["theta"]]
-                st["lam"] = [torch.full((s1 * s1, 1), 1e-2) for _ in st["lam"]]
+                st["lam"] = [torch.full((s1 * s1, 1), 1e-2, dtype=t.dtype, device=t.device) for t in st["lam"]]
                 if st["metal"] is not None:
                     st["metal"] = (_upsample(st["metal"], size, s1) > 0.5).to(st["theta"][0].dtype)
             if kind1 == "all":

@@ -879,10 +879,10 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         "light_intensity_scale": rec.light_corrections(),  # estimated / stated, per image (calibration)
         "light_position_offset": rec.light_position_corrections(),  # estimated − stated, per image
     }
+    cpu_maps = {k: v.cpu() for k, v in fin.items()}  # the ground truth and the files live on the CPU
     if gt is not None:
-        report["errors"] = map_errors(fin, gt)
+        report["errors"] = map_errors(cpu_maps, gt)
     if out is not None:
-        cpu_maps = {k: v.cpu() for k, v in fin.items()}
         try:
             commit_outputs(out, lambda folder: write_outputs(folder, cap, cpu_maps, pred, report,
                                                              st["history"], plots=not interrupted,
