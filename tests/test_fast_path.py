@@ -233,6 +233,33 @@ def test_values_broadcast_over_one_of_two_batch_dims_are_read_in_place(pixels_fi
     assert _rel(out[True], out[False]) <= 1e-10
 
 
+def test_jvp_kernel_carries_only_the_differentiated_inputs(monkeypatch):
+    # torch.func.jvp passes zero tangents for every other tensor input; the kernel must not
+    # propagate them (its spec lists only base_color), and the result still equals eager.
+    from torchbrdf.kernels import ops as ops_mod
+
+    specs = []
+    real = ops_mod._load
+    monkeypatch.setattr(ops_mod, "_load", lambda spec, backward: (specs.append(spec), real(spec, backward))[1])
+    inputs = _case(5, 9000, torch.float64)
+    base = inputs.pop("base_color")
+
+    def f(b):
+        return torchbrdf.principled(**inputs, base_color=b)
+
+    out = {}
+    for fast in (True, False):
+        torchbrdf.set_fast_path(fast)
+        try:
+            out[fast] = torch.func.jvp(f, (base,), (torch.ones_like(base),))[1]
+        finally:
+            torchbrdf.set_fast_path(None)
+    jvp_specs = [sp for sp in specs if sp.ntan or sp.tangent_inputs]
+    names = [sp.tensors[k][0] for sp in jvp_specs for k in sp.tangent_inputs]
+    assert names == ["base_color"]
+    assert _rel(out[True], out[False]) <= 1e-10
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_types_round_trip(dtype):
     inputs = _case(4, 512, dtype, min_cos=0.05)
