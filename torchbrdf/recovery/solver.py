@@ -109,8 +109,6 @@ class RecoveryConfig:
     propagate: bool = True  # PatchMatch-style neighbour propagation (see propagate)
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
-    # ... by the pixels whose data cost is above this × the median (0: every pixel; see propagate)
-    propagate_unsettled: float = 3.0
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     fill: bool = False  # non-local fill of roughness / specular (nonlocal_fill; measured, not kept: docs)
     fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
@@ -637,7 +635,7 @@ def light_scale_step(residual: Tensor, idx: list[int], log_scale: Tensor, ref_id
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
               margin: float | None = None,
               unary: tuple[Tensor, Tensor] | None = None,
-              active: Tensor | None = None, unsettled: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+              active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
 
     A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
@@ -654,27 +652,11 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
     shrink to them); the others keep their parameters. A pass after a pass can give a new
     answer only where something in the pixel's 3×3 neighbourhood changed (its candidates,
     the prior's neighbours and edge weights are all there), so ``active =``
-    :func:`_dilate` ``(changed)`` gives the same result as a full pass. ``unsettled > 0``
-    (without ``active``): only pixels whose data cost is above ``unsettled`` × the median
-    (the noise level) try their neighbours — a pixel that fits its observations to the noise
-    is not stuck in a wrong optimum, and where the data leave a parameter free the
-    prior's coupled solve (:func:`lm_step`) already pulls it to its neighbours.
+    :func:`_dilate` ``(changed)`` gives the same result as a full pass.
 
     Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
     """
     size, c = data.size, theta.shape[1]
-    rows: Tensor | None = None
-
-    def cost(t: Tensor, m: Tensor) -> Tensor:
-        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
-        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
-
-    own_cost = None
-    if active is None and unsettled > 0:
-        own_cost = cost(theta, metal)
-        finite = torch.isfinite(own_cost)
-        noise = float(own_cost[finite].median()) if bool(finite.any()) else float("inf")
-        active = (own_cost > unsettled * noise)[:, 0]
     rows = None if active is None else active.nonzero()[:, 0]
     if rows is not None and rows.numel() == 0:
         return theta, metal, torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
@@ -682,12 +664,15 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
     def sel(x: Tensor) -> Tensor:
         return x if rows is None else x[rows]
 
+    def cost(t: Tensor, m: Tensor) -> Tensor:
+        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
+        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+
     un = None if unary is None else (sel(unary[0]), sel(unary[1]))
     wx, wy = edge_weights(theta, metal, size, cfg)
     own, own_metal = sel(theta), sel(metal)
     best, best_metal = own, own_metal
-    own_data = cost(own, own_metal) if own_cost is None else sel(own_cost)
-    best_score = own_data + sel(local_prior(theta, theta, wx, wy, size)) + _unary_cost(own, un)
+    best_score = cost(own, own_metal) + sel(local_prior(theta, theta, wx, wy, size)) + _unary_cost(own, un)
     pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
     padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
     for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
@@ -1048,11 +1033,9 @@ class Recovery:
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
                 cross = None if kind == "dual" else self.cfg.metal_margin
                 active = None  # a later pass needs only the pixels near the last one's changes
-                # between LM iterations only the pixels that do not yet fit to the noise try
-                unsettled = self.cfg.propagate_unsettled if st["it"] > 0 else 0.0
                 for _ in range(self.cfg.propagate_passes if st["it"] == 0 else 1):
                     theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary,
-                                                      active=active, unsettled=unsettled)
+                                                      active=active)
                     if not bool(changed.any()):
                         break
                     active = _dilate(changed, size)
