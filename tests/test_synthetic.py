@@ -7,6 +7,7 @@ import torch
 
 from torchbrdf.capture.format import load_capture
 from torchbrdf.capture.synthetic import (
+    DEFAULT_CAMERA,
     MAP_NAMES,
     RECIPES,
     generate_capture,
@@ -59,6 +60,38 @@ def test_compact_renderer_equals_principled(recipe, fast):
     finally:
         torchbrdf.set_fast_path(None)
     assert torch.allclose(fit, ref, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_fit_residual_is_the_log_of_the_rendered_capture(fast):
+    # The recovery minimises log_residual_points (formula.capture_log_residual: the point light,
+    # the principled BRDF and the log in one kernel family). It must be log(render + eps) - log_obs
+    # of the per-light reference renderer, with every principled parameter, eager and fused.
+    import torchbrdf
+    from torchbrdf.capture.synthetic import log_residual_points, pixel_points
+
+    maps = make_material("metal_inlay", seed=2, size=20)
+    gen = torch.Generator().manual_seed(1)
+    for name in ("subsurface", "sheen", "clearcoat", "anisotropic", "specular_tint"):
+        maps[name] = torch.rand(1, 20, 20, generator=gen)
+    pos, inten = light_layout(7)
+    ref = render_capture(maps, (pos, inten), backend="principled")  # (L, 3, H, W)
+    eps = 0.01
+    obs = ref * (1 + 0.05 * torch.randn(ref.shape, generator=gen)).clamp(min=0)
+    log_obs = torch.log(obs + eps).permute(2, 3, 0, 1).reshape(-1, ref.shape[0], 3)  # (P, L, 3)
+    flat = {k: v.permute(1, 2, 0).reshape(-1, v.shape[0]) for k, v in maps.items() if k != "normal"}
+    n = maps["normal"].permute(1, 2, 0).reshape(-1, 3)
+    n = n / n.norm(dim=-1, keepdim=True)
+    pts = pixel_points(20, 20).reshape(-1, 3)
+    torchbrdf.set_fast_path(fast)
+    try:
+        r = log_residual_points(n, pts, torch.as_tensor(DEFAULT_CAMERA, dtype=torch.float32), pos, inten, flat,
+                                log_obs, eps)
+    finally:
+        torchbrdf.set_fast_path(None)
+    want = torch.log(ref + eps).permute(2, 3, 0, 1).reshape(-1, ref.shape[0], 3) - log_obs
+    assert r.shape == want.shape
+    assert torch.allclose(r, want, atol=2e-5)
 
 
 def test_compact_renderer_is_the_library_formula_for_every_parameter():

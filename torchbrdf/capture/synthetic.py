@@ -510,7 +510,8 @@ def log_residual_points(
     active = _p.active_lobes(mat)
     need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
     tensors = [t for t in c.values() if isinstance(t, Tensor)]
-    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors, lambda: log_obs.shape[0] * log_obs.shape[1])
+    lanes = log_obs.shape[0] * log_obs.shape[1]
+    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors, lambda: lanes)
     if backend is not None:
         from torchbrdf.kernels.ops import capture_fast
 

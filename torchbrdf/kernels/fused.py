@@ -101,7 +101,8 @@ class _KernelSpec:
         self.written: tuple[int, ...] = ()
 
     def key(self, backward: bool | str) -> tuple[Any, ...]:
-        base = (self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.frame)
+        base: tuple[Any, ...] = (self.ctype, self.tensors, self.floats, self.active, self.need_tint,
+                                 self.frame)
         if self.family != "principled":
             base = base + (self.family,)
         if backward == "jvp":

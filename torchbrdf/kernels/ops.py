@@ -83,8 +83,11 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
 
 def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
              frame: bool, backend: str = "c", family: str = "principled") -> str:
-    """The ``cfg`` string of the operators; ``backend`` ``"c"`` (CPU kernels) or ``"triton"``;
-    ``family`` the formula (:data:`torchbrdf.brdf.formula.FAMILIES`)."""
+    """The ``cfg`` string of the operators.
+
+    ``backend``: ``"c"`` (CPU kernels) or ``"triton"``; ``family``: the formula
+    (:data:`torchbrdf.brdf.formula.FAMILIES`).
+    """
     parts = [",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
              str(int(frame)), backend]
     return "|".join(parts + ([family] if family != "principled" else []))
@@ -115,10 +118,12 @@ class _Plan:
         self.floats = [float(x) for x in floats]
 
     def params(self, *flats) -> list[float]:
-        """The kernel's runtime parameter row: the Python floats, then, when some input of
-        ``flats`` (iterables of ``(flat, mode)``, ``mode`` a string or a ``(name, mode, C)`` slot,
-        in the kernel's slot order) is 's2', the inner
-        batch size and each such input's two lane strides (see :func:`_flatten`)."""
+        """The kernel's runtime parameter row.
+
+        The Python floats, then, when some input of ``flats`` (iterables of ``(flat, mode)``,
+        ``mode`` a string or a ``(name, mode, C)`` slot, in the kernel's slot order) is 's2',
+        the inner batch size and each such input's two lane strides (see :func:`_flatten`).
+        """
         s2 = [f for fl in flats for f, m in fl if (m if isinstance(m, str) else m[1]) == "s2"]
         if not s2:
             return self.floats
@@ -131,8 +136,8 @@ class _Plan:
 
     def spec(self, modes, **kw):
         ctype = "float" if self.dtype == torch.float32 else "double"
-        return _KernelSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame,
-                           family=self.family, **kw)
+        kw["family"] = self.family
+        return _KernelSpec(ctype, modes, self.float_names, self.active, self.need_tint, self.frame, **kw)
 
 
 def _ptrs(ptrs):
@@ -158,7 +163,9 @@ def _formula_eager(plan: _Plan, tensors, floats):
 @functools.lru_cache(maxsize=None)
 def _written(spec_args: tuple, family: str = "principled") -> tuple:
     """Inputs (indices) whose gradient the backward kernel writes (those with a path to the output)."""
-    return graphs.build(_KernelSpec(*spec_args, family=family), "bwd").written
+    ctype, tensors, floats, active, tint, frame, go_strides, grad_mask = spec_args
+    spec = _KernelSpec(ctype, tensors, floats, active, tint, frame, go_strides, grad_mask, family=family)
+    return graphs.build(spec, "bwd").written
 
 
 # ---------------------------------------------------------------------------------------------
@@ -732,14 +739,18 @@ def principled_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, f
     return _fused(c, ("l", "v", "n"), active, need_tint, frame, backend, "principled")
 
 
-#: The non-material inputs of the recovery's residual (:func:`torchbrdf.brdf.formula.capture_log_residual`).
+#: The non-material inputs of the recovery's residual
+#: (:func:`torchbrdf.brdf.formula.capture_log_residual`).
 CAPTURE_INPUTS = ("pos", "n", "camera", "light_pos", "light_int", "log_obs", "eps")
 
 
-def capture_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, frame: bool, backend: str = "c") -> Tensor:
-    """Fused :func:`torchbrdf.brdf.formula.capture_log_residual` on compute-dtype inputs ``c``
-    (:data:`CAPTURE_INPUTS` and the principled material; broadcastable tensors or floats).
-    Returns ``(*, 3)``; reverse and forward mode as for :func:`principled_fast`."""
+def capture_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, frame: bool,
+                 backend: str = "c") -> Tensor:
+    """Fused :func:`torchbrdf.brdf.formula.capture_log_residual` on compute-dtype inputs ``c``.
+
+    ``c``: :data:`CAPTURE_INPUTS` and the principled material (broadcastable tensors or
+    floats). Returns ``(*, 3)``; reverse and forward mode as for :func:`principled_fast`.
+    """
     return _fused(c, CAPTURE_INPUTS, active, need_tint, frame, backend, "capture")
 
 

@@ -355,23 +355,22 @@ def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int]
     """
     P = theta.shape[0]
     eye = torch.eye(_N_PARAMS, dtype=theta.dtype, device=theta.device)
-    r_out = jtj = jtr = None
+    r_out = theta.new_empty(P, 3 * len(idx))
+    jtj = theta.new_empty(P, _N_PARAMS, _N_PARAMS)
+    jtr = theta.new_empty(P, _N_PARAMS)
     for s0 in range(0, P, chunk):
         rows = slice(s0, min(s0 + chunk, P))
         t, m = theta[rows], metal[rows]
         fn = lambda x: data.residual(x, m, idx, model, rows=rows)  # noqa: E731
         tangents = eye[:, None, :].expand(_N_PARAMS, *t.shape)
-        r, cols = torch.func.vmap(lambda tg: torch.func.jvp(fn, (t,), (tg,)), out_dims=(None, 0))(tangents)
+        out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the tangents
+        pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (t,), (tg,)), out_dims=out_dims)(tangents)
+        r, cols = pair
         cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0)  # (7, n, M)
-        if r_out is None:
-            r_out = r.new_empty(P, r.shape[1])
-            jtj = r.new_empty(P, _N_PARAMS, _N_PARAMS)
-            jtr = r.new_empty(P, _N_PARAMS)
         r_out[rows] = r
         jt = cols.permute(1, 0, 2)  # (n, 7, M)
         torch.bmm(jt, jt.transpose(1, 2), out=jtj[rows])
         torch.bmm(jt, torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)[..., None], out=jtr[rows, :, None])
-    assert r_out is not None and jtj is not None and jtr is not None, "gauss_newton: no pixels"
     return r_out, jtj, jtr
 
 
@@ -592,7 +591,8 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
     jac = torch.stack(cols, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
     r = r.reshape(len(idx), -1)
     sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
-    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * torch.eye(3, dtype=r.dtype, device=r.device)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device)
+    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * eye
     g = torch.einsum("lni,ln->li", jac, r) + (sigma2 / prior_sigma**2) * offset[idx]
     step = torch.linalg.solve(jtj, -g[..., None])[..., 0]
     out = offset.clone()
