@@ -714,10 +714,15 @@ class _PrincipledFunction(torch.autograd.Function):
         ctx.save_for_backward(*tensors)
         ctx.save_for_forward(*tensors)
         ctx.floats, ctx.cfg = floats.values, cfg
+        # Inputs that are not being differentiated reach jvp as None, not as materialised zeros
+        # (a fit's targets and geometry: a (7, P, L, 3) fill, then a scan to prune it).
+        ctx.set_materialize_grads(False)
 
     @staticmethod
     def backward(ctx, grad_out):
         tensors = ctx.saved_tensors
+        if grad_out is None:  # undefined (not materialised, see setup_context): no gradient
+            return (None, None, *([None] * len(tensors)))
         return (None, None, *_backward(tensors, ctx.floats, ctx.cfg, ctx.needs_input_grad[2:], grad_out))
 
     @staticmethod

@@ -340,7 +340,7 @@ def _kmeans(x: Tensor, k: int, iters: int = 8, return_centres: bool = False) -> 
 
 
 def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int], model: str,
-                 chunk: int = 8192) -> tuple[Tensor, Tensor, Tensor]:
+                 chunk: int = 16384) -> tuple[Tensor, Tensor, Tensor]:
     """Residuals and the per-pixel normal equations of the log residuals on lights ``idx``.
 
     Returns ``r (P, M)`` (the residuals at ``theta``, non-finite entries as they come),
