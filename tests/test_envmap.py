@@ -226,6 +226,38 @@ def test_split_sum_table_properties():
     assert torch.allclose(t[4], t[4][:, :1].expand_as(t[4]))
 
 
+def _albedo_by_quadrature(nv, roughness, steps=400, **material):
+    """``∫ principled · cos dω`` for a white-furnace viewer at ``n·v = nv``: midpoint rule in
+    ``(cos θ, φ)``, ``steps × 2·steps`` cells (independent of the table's importance sampling)."""
+    ct = (torch.arange(steps, dtype=D) + 0.5) / steps
+    ph = (torch.arange(2 * steps, dtype=D) + 0.5) * (math.pi / steps)
+    ct, ph = torch.meshgrid(ct, ph, indexing="ij")
+    st = torch.sqrt(1.0 - ct * ct)
+    l = torch.stack((st * torch.cos(ph), st * torch.sin(ph), ct), -1).reshape(-1, 3)
+    v = torch.tensor([math.sqrt(1.0 - nv * nv), 0.0, nv], dtype=D).expand_as(l)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=D).expand_as(l)
+    f = principled(l, v, n, roughness=roughness, **material)[..., 0]
+    return float((f * l[:, 2]).sum() * (2.0 * math.pi / l.shape[0]))
+
+
+@pytest.mark.parametrize("nv_node, r_node", [(6, 31), (13, 31), (19, 16), (31, 16), (25, 6)])
+def test_split_sum_table_matches_quadrature_at_its_nodes(nv_node, r_node):
+    """The tabulated albedos are the model's to 0.1 %: a white furnace is exact to that.
+
+    The table's samples sit at the centres of their strata (a Hammersley set left in the
+    corners integrates with an O(1/N) error: −0.42 % for Burley's diffuse at roughness 0.5 and
+    +0.43 % for GGX at 0.9 with 256 samples, which went straight into the split sum's bias)."""
+    t = split_sum_table(dtype=D)
+    nv, r = nv_node / 31, r_node / 31
+    bare = dict(base_color=0.0, specular=0.0)
+    f0 = _albedo_by_quadrature(nv, r, **bare)
+    diffuse = _albedo_by_quadrature(nv, r, base_color=1.0, specular=0.0) - f0
+    assert abs(float(t[SPLIT_SUM_TABLE_CHANNELS.index("diffuse"), nv_node, r_node]) / diffuse - 1.0) < 1e-3
+    if r_node >= 16:  # lobes the quadrature grid resolves
+        metal = _albedo_by_quadrature(nv, r, base_color=1.0, metallic=1.0)  # Cspec0 = 1
+        assert abs(float(t[0, nv_node, r_node] + t[1, nv_node, r_node]) / metal - 1.0) < 1e-3
+
+
 def test_split_sum_table_diffuse_tilt():
     """Burley's lobe is symmetric about n at normal view and leans toward v at grazing view."""
     t = split_sum_table(dtype=D)[SPLIT_SUM_TABLE_CHANNELS.index("diffuse_tilt")]

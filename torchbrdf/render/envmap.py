@@ -107,7 +107,7 @@ PREFILTER_MAX_HEIGHT = 128
 IRRADIANCE_HEIGHT = 64
 #: (n·v, roughness) table: resolution per axis and quasi-random samples per cell.
 SPLIT_SUM_RESOLUTION = 32
-SPLIT_SUM_SAMPLES = 256
+SPLIT_SUM_SAMPLES = 1024
 SPLIT_SUM_TABLE_CHANNELS = (
     "specular_scale",
     "specular_bias",
@@ -843,7 +843,10 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
 
     dt = torch.float64
     nodes = torch.linspace(0.0, 1.0, res, dtype=dt)
-    u = hammersley(0, samples, samples, dtype=dt)  # (S, 2)
+    # The Hammersley points moved to the centres of their strata: left in the corners (i / N)
+    # they integrate with an O(1/N) error, 0.2-0.4 % of the albedos at 256 samples, which a
+    # white furnace showed as the split sum's bias.
+    u = hammersley(0, samples, samples, dtype=dt) + 0.5 / samples  # (S, 2)
     table = torch.zeros(len(SPLIT_SUM_TABLE_CHANNELS), res, res, dtype=dt)
     rows = 8  # n·v nodes per batched evaluation: (rows, res, samples) points per call
     for i0 in range(0, res, rows):
@@ -930,8 +933,9 @@ def split_sum_table(
        split sum reads the irradiance along ``normalize(n + tilt · t)``, the lobe's centroid.
 
     Computed with :func:`torchbrdf.principled` itself (so the table follows the model
-    exactly) using ``samples`` Hammersley samples per cell with the matching importance
-    sampler (VNDF, cosine, GTR1) in float64, then cast.
+    exactly) using ``samples`` Hammersley samples per cell, centred in their strata, with the
+    matching importance sampler (VNDF, cosine, GTR1) in float64, then cast: the albedos are
+    the model's to about 1e-3 (tested against a brute-force quadrature).
 
     Returns:
         ``(7, resolution, resolution)`` in ``dtype`` on ``device``.
