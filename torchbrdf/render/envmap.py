@@ -911,7 +911,8 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         # Its lobe's centroid (x toward v, z along n): Burley's retro-reflection leans toward v.
         table[6, i0 : i0 + m] = mean(fd * l[..., 0:1]) / mean(fd * l[..., 2:3])
         # ... and its spread: the length of its first moment over its albedo, |∫ Fd cos l| / ∫ Fd cos.
-        table[7, i0 : i0 + m] = torch.hypot(mean(fd * l[..., 0:1]), mean(fd * l[..., 2:3])) / table[2, i0 : i0 + m]
+        moment = torch.hypot(mean(fd * l[..., 0:1]), mean(fd * l[..., 2:3]))
+        table[7, i0 : i0 + m] = moment / table[2, i0 : i0 + m]
         table[3, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, base_color=1.0, subsurface=1.0) - f0))
         table[4, i0 : i0 + m] = mean(math.pi * (f(l, roughness=col, sheen=1.0, sheen_tint=0.0) - f0))
         # Clearcoat over (n·v, gloss): GTR1 sampling.
@@ -1013,7 +1014,8 @@ class SplitSumEnvironment:
         # The roughest level below 1: the lobe a diffuse lobe narrower than the cosine blends in.
         sharp = max(i for i, r in enumerate(self.roughness) if 0 < r < 1)
         self._sharp = self.levels[sharp]
-        self._kappa = (_kernel_mean_cosine(None), _kernel_mean_cosine(max(self.roughness[sharp] ** 2, ALPHA_MIN)))
+        alpha_sharp = max(self.roughness[sharp] ** 2, ALPHA_MIN)
+        self._kappa = (_kernel_mean_cosine(None), _kernel_mean_cosine(alpha_sharp))
 
     def specular(self, r_dir: Tensor, roughness: Scalar, batch_index: Tensor | None = None) -> Tensor:
         """Prefiltered radiance along ``r_dir`` ``(P, 3)`` at ``roughness`` (float or ``(P, 1)``)."""
