@@ -639,6 +639,7 @@ def environment(points: int, log: _Log, sample_counts: Sequence[int] = (1, 4, 16
 #: Lobes measured one by one by :func:`environment_lobes`: label -> (brdf kind, material).
 ENV_LOBES: tuple[tuple[str, str, dict[str, float]], ...] = (
     ("Lambert", "lambert", {}),
+    ("Burley diffuse, roughness 0", "diffuse", {"roughness": 0.0}),
     ("Burley diffuse, roughness 0.5", "diffuse", {"roughness": 0.5}),
     ("GGX, roughness 0.2", "specular", {"roughness": 0.2, "metallic": 1.0}),
     ("GGX, roughness 0.5", "specular", {"roughness": 0.5, "metallic": 1.0}),
@@ -646,11 +647,13 @@ ENV_LOBES: tuple[tuple[str, str, dict[str, float]], ...] = (
 )
 
 
-def sky_with_sun(height: int = 64, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+def sky_with_sun(height: int = 64, dtype: torch.dtype = torch.float64,
+                 sun_elevation: float = 35.0) -> torch.Tensor:
     """``(3, height, 2·height)`` lat-long sky: a blue gradient, a darker ground and a small sun.
 
-    The sun is a disc of 2.5° radius at 35° elevation, 2000× the zenith sky (2 texels at 64
-    rows): it gives 60–80 % (blue–red) of the irradiance of an upward-facing surface.
+    The sun is a disc of 2.5° radius at ``sun_elevation`` degrees (default 35°), 2000× the
+    zenith sky (2 texels at 64 rows): at 35° it gives 60–80 % (blue–red) of the irradiance of
+    an upward-facing surface.
     """
     from torchbrdf.render.sampling import latlong_directions
 
@@ -658,7 +661,7 @@ def sky_with_sun(height: int = 64, dtype: torch.dtype = torch.float64) -> torch.
     z = d[..., 2:3]
     sky = torch.where(z > 0, torch.tensor([0.35, 0.5, 0.9], dtype=dtype) * (0.6 + 0.4 * z),
                       torch.tensor([0.25, 0.2, 0.15], dtype=dtype) * (1.0 + z))
-    el = math.radians(35.0)
+    el = math.radians(sun_elevation)
     az = 0.6
     sun = torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=dtype)
     disc = ((d * sun).sum(-1, keepdim=True) > math.cos(math.radians(2.5))).to(dtype)
@@ -694,7 +697,8 @@ def sphere_points(side: int, grazing: int,
 
 def environment_lobes(log: _Log, side: int = 32, grazing: int = 128,
                       sample_counts: Sequence[int] = (64, 256, 1024, 4096),
-                      ref_samples: int = 16384, height: int = 64, repeats: int = 3) -> dict:
+                      ref_samples: int = 16384, height: int = 64, repeats: int = 3,
+                      sun_elevation: float = 35.0) -> dict:
     """Split sum vs Monte Carlo per lobe on a sphere under :func:`sky_with_sun` (float64).
 
     For each lobe of :data:`ENV_LOBES` (white base colour): the reference is MIS Monte Carlo
@@ -704,8 +708,9 @@ def environment_lobes(log: _Log, side: int = 32, grazing: int = 128,
     time of one call (median of ``repeats`` after a warm-up), for the split sum and for MIS
     at each of ``sample_counts``. Runs on its own::
 
-        from torchbrdf import bench
-        lobes = bench.environment_lobes(print)
+        from torchbrdf.bench import brdf as bench
+        lobes = bench.environment_lobes(print)                    # sun at 35° elevation
+        other = bench.environment_lobes(print, sun_elevation=15)  # the same at another sun
         bench._plots({"environment_lobes": lobes}, "docs")  # writes only bench_pareto_env_lobes.png
     """
     from torchbrdf.brdf.lambert import lambert
@@ -716,7 +721,7 @@ def environment_lobes(log: _Log, side: int = 32, grazing: int = 128,
         integrate_environment_split_sum,
     )
 
-    radiance = sky_with_sun(height)
+    radiance = sky_with_sun(height, sun_elevation=sun_elevation)
     n, v, ng = sphere_points(side, grazing)
     npix = n.shape[0]
     n_all = torch.cat((n, ng))
@@ -726,6 +731,7 @@ def environment_lobes(log: _Log, side: int = 32, grazing: int = 128,
     t_pre = time.perf_counter() - t0
     out: dict[str, Any] = dict(side=side, pixels=npix, grazing=grazing, env_size=[height, 2 * height],
                ref_samples=ref_samples, prefilter_seconds=t_pre, threads=torch.get_num_threads(),
+               sun_elevation=sun_elevation,
                repeats=repeats, lobes=[])
     for label, kind, mat in ENV_LOBES:
         brdf = lambert if kind == "lambert" else PrincipledBRDF(lobes=(kind,))
@@ -768,7 +774,8 @@ def environment_lobes_section(res: dict | None) -> list:
     h, w = res["env_size"]
     L += [f"An orthographic sphere ({res['pixels']} pixels of a {res['side']}×{res['side']} picture, "
           f"plus {res['grazing']} normals with n·v < 0.1) under a {h}×{w} sky with a sun "
-          "(`bench.sky_with_sun`: 2.5° disc, 2000× the zenith sky), white base colour, float64. "
+          f"(`bench.sky_with_sun`: 2.5° disc at {res.get('sun_elevation', 35.0):g}° elevation, 2000× the "
+          "zenith sky), white base colour, float64. "
           f"Reference: MIS Monte Carlo at {res['ref_samples']} samples per point (another seed). "
           "Error = relative L1 (Σ|est − ref| / Σ ref over the picture); bias = Σ(est − ref) / Σ ref "
           f"over the picture, and over the n·v < 0.1 band; time = median of {res['repeats']} call(s) "
