@@ -75,7 +75,13 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
     row = {"recipe": f"photo:{name}", "seed": seed, "lights": lights, "size": size, "seconds": seconds, **err,
            "heldout_psnr_mean": statistics.mean(ps), "heldout_psnr_min": min(ps), "heldout_psnr": ps,
            "calibration_error": calibration, "true_intensity_scale": true_scale, "estimated_intensity_scale": est,
-           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"]}
+           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"],
+           "fractional_metallic_fraction": rep.get("fractional_metallic_fraction"),
+           "soft_metal_seconds": (rep.get("soft_metal") or {}).get("seconds")}
+    # Clear pixels (ground-truth metallic exactly 0 or 1) given a fractional value: must stay ~0.
+    gm, m = gt["metallic"], maps["metallic"].to(gm.device)
+    clear = (gm == 0) | (gm == 1)
+    row["fractional_on_clear"] = float((((m > 0) & (m < 1)) & clear).float().sum() / clear.float().sum().clamp(min=1))
     return row
 
 
@@ -105,7 +111,9 @@ def table(rows: list[dict]) -> str:
             ("roughness_rmse", "rough RMSE"), ("metallic_rmse", "metal RMSE"), ("specular_rmse", "spec RMSE"),
             ("specular_rmse_dielectric", "spec RMSE (diel.)"), ("normal_mean_deg", "normal mean °"),
             ("normal_p95_deg", "normal p95 °"), ("heldout_psnr_mean", "held-out PSNR mean"),
-            ("heldout_psnr_min", "held-out PSNR min"), ("seconds", "time s")]
+            ("heldout_psnr_min", "held-out PSNR min"), ("fractional_metallic_fraction", "fractional px"),
+            ("fractional_on_clear", "fractional on clear px"), ("seconds", "time s"),
+            ("soft_metal_seconds", "soft-metal stage s")]
     lines = ["| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         cells = []
@@ -114,7 +122,8 @@ def table(rows: list[dict]) -> str:
             v = r.get(k)
             if isinstance(v, float):
                 mark = " ✗" if (k in thr and v > thr[k]) or (k in MIN_PSNR and v < MIN_PSNR[k]) else ""
-                cells.append(f"{v:.3f}{mark}" if "rmse" in k else f"{v:.1f}{mark}" if k != "seconds" else f"{v:.0f}")
+                cells.append(f"{v:.3f}{mark}" if "rmse" in k else f"{v:.4f}" if "fractional" in k
+                             else f"{v:.1f}{mark}" if "seconds" not in k else f"{v:.0f}")
             else:
                 cells.append("–" if v is None else str(v))
         lines.append("| " + " | ".join(cells) + " |")
