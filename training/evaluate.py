@@ -44,6 +44,18 @@ def heldout_psnr(maps: dict, gt: dict, n_lights: int, seed: int) -> list[float]:
     return [psnr(pred[k], ref[k]) for k in range(n_lights)]
 
 
+def soft_metal_fields(rep: dict, metallic, gt_metallic) -> dict:
+    """The soft-metal stage's columns: the fraction of fractional pixels (report.json), the share of
+    the *clear* pixels (ground truth exactly 0 or 1) given a fractional value (should stay ~0),
+    and the stage's seconds. ``metallic``, ``gt_metallic``: ``(1, H, W)``."""
+    m = metallic.to(gt_metallic.device)
+    clear = (gt_metallic == 0) | (gt_metallic == 1)
+    on_clear = (((m > 0) & (m < 1)) & clear).float().sum() / clear.float().sum().clamp(min=1)
+    return {"fractional_metallic_fraction": rep.get("fractional_metallic_fraction"),
+            "fractional_on_clear": float(on_clear),
+            "soft_metal_seconds": (rep.get("soft_metal") or {}).get("seconds")}
+
+
 def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, noise: float, test_lights: int,
                    calibration: bool = True, cfg: RecoveryConfig | None = None) -> dict:
     """One photo-derived capture (:mod:`training.photo_set`): recover, then errors and held-out PSNR.
@@ -76,12 +88,7 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
            "heldout_psnr_mean": statistics.mean(ps), "heldout_psnr_min": min(ps), "heldout_psnr": ps,
            "calibration_error": calibration, "true_intensity_scale": true_scale, "estimated_intensity_scale": est,
            "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"],
-           "fractional_metallic_fraction": rep.get("fractional_metallic_fraction"),
-           "soft_metal_seconds": (rep.get("soft_metal") or {}).get("seconds")}
-    # Clear pixels (ground-truth metallic exactly 0 or 1) given a fractional value: must stay ~0.
-    gm, m = gt["metallic"], maps["metallic"].to(gm.device)
-    clear = (gm == 0) | (gm == 1)
-    row["fractional_on_clear"] = float((((m > 0) & (m < 1)) & clear).float().sum() / clear.float().sum().clamp(min=1))
+           **soft_metal_fields(rep, maps["metallic"], gt["metallic"])}
     return row
 
 
@@ -99,7 +106,8 @@ def evaluate_one(folder: Path, recipe: str, seed: int, size: int, lights: int, n
     ps = heldout_psnr(maps, gt, test_lights, seed)
     row = {"recipe": recipe, "seed": seed, "lights": lights, "size": size, "seconds": seconds, **err,
            "heldout_psnr_mean": statistics.mean(ps), "heldout_psnr_min": min(ps),
-           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"]}
+           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"],
+           **soft_metal_fields(rep, maps["metallic"], gt["metallic"])}
     return row
 
 

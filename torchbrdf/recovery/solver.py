@@ -127,13 +127,13 @@ class RecoveryConfig:
     nonlocal_sigma: float = 0.25  # its spatial radius, as a fraction of the map size
     nonlocal_clusters: int = 12  # base-colour clusters per class guiding it
     soft_metal: bool = True  # final stage: continuous metallic where the binary choice fits poorly (soft_metal_fit)
-    soft_metal_factor: float = 4.0  # ... for pixels whose cost is above this × the median (and class boundaries)
+    soft_metal_factor: float = 8.0  # ... for pixels whose cost is above this × the median (and class boundaries)
     soft_metal_well: float = 32.0  # double-well prior w m²(1−m)², w in units of the per-residual noise variance
     soft_metal_gain: float = 8.0  # keep a fractional value only if it lowers the data cost by this × that variance
     soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic (noise-variance units)
     soft_metal_band: int = 2  # ... and pixels within this many pixels of a metal/dielectric boundary
-    soft_metal_iters: int = 6  # per-pixel LM iterations
-    soft_metal_max: float = 0.3  # at most this fraction of the pixels (the worst fitting) is refitted
+    soft_metal_iters: int = 5  # per-pixel LM iterations
+    soft_metal_max: float = 0.2  # at most this fraction of the pixels (the worst fitting) is refitted
     holdout: int | None = None  # index of the validation light (default: a ring light)
     checkpoint_every: int = 5
     model: str = "principled"
