@@ -784,8 +784,8 @@ def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x
 
 def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
                    well: float, gain: float, iters: int = 8, starts: tuple = (None, 0.5),
-                   target: Tensor | None = None, smooth: float = 0.0, refit_reference: bool = True
-                   ) -> tuple[Tensor, Tensor, Tensor]:
+                   target: Tensor | None = None, smooth: float = 0.0, refit_reference: bool = True,
+                   snap: float = 0.02) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pixel LM on 8 unknowns — theta (7) and a continuous metallic in [0, 1] — for ``rows (N,)``.
 
     Energy: data (lights ``idx``) + the double-well prior ``well · m²(1 − m)²`` (minima at exactly
@@ -800,7 +800,8 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     it by the noise variance) below the same fit with metallic held at its own value (with
     ``refit_reference``; else below ``theta``, ``metal`` as given): one more
     unknown always fits noise a little, and a clear pixel must stay exactly 0 or 1 (it then
-    keeps the better of its old and its refitted 7 unknowns). ``theta (P, 7)``, ``metal (P, 1)``.
+    keeps the better of its old and its refitted 7 unknowns); a metallic within ``snap`` of 0
+    or 1 is set to it. ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta rows (N, 7), metal rows (N, 1), changed (N,))``.
     """
     sub = data.subset(rows)
@@ -835,6 +836,11 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
             better = c < best_c
             best, best_c = torch.where(better, x, best), torch.where(better, c, best_c)
     assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
+    # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
+    # apart, so it is set exactly (to the reference fit when that is its own class).
+    m = best[:, 7:8]
+    m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    best = torch.where((m_snap != m) & (m_snap == ref[:, 7:8]), ref, torch.cat((best[:, :7], m_snap), -1))
     m = best[:, 7:8]
     newly_fractional = (m > 0) & (m < 1) & ((m0 == 0) | (m0 == 1))
     accepted = (best_c < c_ref - torch.where(newly_fractional, gain, 0.0))[:, 0]
