@@ -154,6 +154,8 @@ def main(argv=None) -> int:
     p.add_argument("--light-study", action="store_true", help="also run 4/8/16/32 lights on the first material")
     p.add_argument("--study-counts", default="4,8,16,32", help="light counts of --light-study, comma-separated")
     p.add_argument("--threads", type=int, default=2, help="torch threads per recovery")
+    p.add_argument("--no-soft-metal", action="store_true",
+                   help="without the final continuous-metallic stage (metallic only 0 or 1; for comparison)")
     p.add_argument("--set", choices=("synthetic", "photo"), default="synthetic",
                    help="synthetic: the generator's recipes; photo: maps from scikit-image photographs, "
                         "another forward model, light calibration error (training/photo_set.py)")
@@ -180,7 +182,8 @@ def main(argv=None) -> int:
         return 0
     for k in range(args.materials):
         recipe, seed = recipes[k % len(recipes)], args.seed0 + k
-        rows.append(evaluate_one(args.out, recipe, seed, args.size, args.lights, args.noise, args.test_lights))
+        cfg = RecoveryConfig(soft_metal=not args.no_soft_metal)
+        rows.append(evaluate_one(args.out, recipe, seed, args.size, args.lights, args.noise, args.test_lights, cfg))
         print(table(rows[-1:]).splitlines()[-1], flush=True)
         _save(args.out, rows, study)
     if args.light_study:
