@@ -1054,6 +1054,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="weight pulling a metal's base colour (F0) toward its metal neighbours (>= 0)")
     p.add_argument("--prior-nonlocal-base", type=float, default=d.prior_nonlocal_base,
                    help="precision of the final non-local fusion of a metal's base colour (0: off)")
+    p.add_argument("--no-soft-metal", action="store_true",
+                   help="no final continuous-metallic step: every pixel's metallic is exactly 0 or 1")
     p.add_argument("--holdout", type=int, default=None,
                    help="index of the validation light held out of the fit until the last stage "
                         "(default: light 0 with 5+ lights; -1: none)")
@@ -1100,7 +1102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
-            threads=args.threads,
+            threads=args.threads, soft_metal=not args.no_soft_metal,
         )
         if cfg.holdout is not None and cfg.holdout < 0:
             cfg.holdout = 10**9  # out of range: no held-out light
