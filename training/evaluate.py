@@ -183,7 +183,8 @@ def main(argv=None) -> int:
     for k in range(args.materials):
         recipe, seed = recipes[k % len(recipes)], args.seed0 + k
         cfg = RecoveryConfig(soft_metal=not args.no_soft_metal)
-        rows.append(evaluate_one(args.out, recipe, seed, args.size, args.lights, args.noise, args.test_lights, cfg))
+        rows.append(evaluate_one(args.out, recipe, seed, args.size, args.lights, args.noise, args.test_lights,
+                                 cfg))
         print(table(rows[-1:]).splitlines()[-1], flush=True)
         _save(args.out, rows, study)
     if args.light_study:

@@ -314,7 +314,8 @@ def _recipe_rusted_metal(gen, size):
     rust_col = _hsv(_pick(gen, 0.03, 0.08), _pick(gen, 0.6, 0.85), _pick(gen, 0.2, 0.45))
     field = _noise(gen, size, 3, 5) + 0.25 * _noise(gen, size, 12, 3)
     rust = _soft_step(field, _pick(gen, 0.3, 0.5), _pick(gen, 0.08, 0.13))
-    base = mcol[:, None, None] * (1 - rust) + rust_col[:, None, None] * (1 + 0.15 * _noise(gen, size, 16))[None] * rust
+    rust_tex = rust_col[:, None, None] * (1 + 0.15 * _noise(gen, size, 16))[None]
+    base = mcol[:, None, None] * (1 - rust) + rust_tex * rust
     rough = (_pick(gen, 0.2, 0.35) + 0.04 * _noise(gen, size, 8)) * (1 - rust) + 0.8 * rust
     spec = torch.full((size, size), 0.5)
     height = 0.003 * rust + 0.002 * _noise(gen, size, 16, 3) * rust

@@ -126,11 +126,12 @@ class RecoveryConfig:
     nonlocal_range: float = 0.02  # base-colour range sigma of the non-local roughness prior
     nonlocal_sigma: float = 0.25  # its spatial radius, as a fraction of the map size
     nonlocal_clusters: int = 12  # base-colour clusters per class guiding it
-    soft_metal: bool = True  # final stage: continuous metallic where the binary choice fits poorly (soft_metal_fit)
-    soft_metal_factor: float = 8.0  # ... for pixels whose cost is above this × the median (and class boundaries)
-    soft_metal_well: float = 32.0  # double-well prior w m²(1−m)², w in units of the per-residual noise variance
-    soft_metal_gain: float = 8.0  # keep a fractional value only if it lowers the data cost by this × that variance
-    soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic (noise-variance units)
+    # Final step: continuous metallic where the binary choice fits poorly (Recovery._soft_metal)
+    soft_metal: bool = True
+    soft_metal_factor: float = 8.0  # ... for pixels whose cost is above this × the median (and boundaries)
+    soft_metal_well: float = 32.0  # double-well prior w m²(1−m)², w in per-residual noise variances σ²
+    soft_metal_gain: float = 8.0  # keep a fractional value only if it lowers the cost by this × σ²
+    soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic (× σ²)
     soft_metal_band: int = 2  # ... and pixels within this many pixels of a metal/dielectric boundary
     soft_metal_iters: int = 5  # per-pixel LM iterations
     soft_metal_max: float = 0.2  # at most this fraction of the pixels (the worst fitting) is refitted
@@ -1281,8 +1282,10 @@ class Recovery:
             r = data.residual(theta, metal, data.train_idx, cfg.model)
         cost = torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
         # Noise variance of one residual: the median pixel's cost per residual.
-        sigma2 = float(cost[torch.isfinite(cost)].median()) / max(1, r.shape[1]) if bool(torch.isfinite(cost).any()) else 0.0
-        rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max, cfg.soft_metal_band)
+        finite = torch.isfinite(cost)
+        sigma2 = float(cost[finite].median()) / max(1, r.shape[1]) if bool(finite.any()) else 0.0
+        rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
+                                     cfg.soft_metal_band)
         n_frac = 0
         if rows.numel() and sigma2 > 0:
             t_new, m_new, acc = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
