@@ -796,13 +796,12 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     a pixel can land on exactly 0 or 1. The Jacobian is forward-mode (``torch.func.jvp``
     vmapped over the 8 tangents). ``starts``: metallic start values, ``None`` = the pixel's
     own, ``"target"`` = ``target``, or ``(theta start (N, 7), one of those)``; the lowest
-    energy wins. A fractional result replaces a
-    binary ``metal`` only where it lowers the energy by more than ``gain`` (the caller scales
-    it by the noise variance) below the same fit with metallic held at its own value (with
-    ``refit_reference``; else below ``theta``, ``metal`` as given): one more
-    unknown always fits noise a little, and a clear pixel must stay exactly 0 or 1 (it then
-    keeps the better of its old and its refitted 7 unknowns); a metallic within ``snap`` of 0
-    or 1 is set to it. ``theta (P, 7)``, ``metal (P, 1)``.
+    energy wins. A fractional result replaces a binary ``metal`` only where it lowers the
+    energy by more than ``gain`` (the caller scales it by the noise variance) below the same
+    fit with metallic held at its own value (with ``refit_reference``; else below ``theta``,
+    ``metal`` as given): one more unknown always fits noise a little, and a clear pixel must
+    stay exactly 0 or 1 (it then keeps the better of its old and its refitted 7 unknowns); a
+    metallic within ``snap`` of 0 or 1 is set to it. ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta rows (N, 7), metal rows (N, 1), changed (N,))``.
     """
     sub = data.subset(rows)
@@ -848,6 +847,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     best = torch.where(accepted[:, None], best, ref)
     accepted = accepted | keep[:, 0]
     return best[:, :7], best[:, 7:8], accepted
+
 
 def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
     """Normal slopes ``(K, 2)``: the flat normal and a polar grid of tilts (degrees)."""
@@ -1288,9 +1288,9 @@ class Recovery:
                                      cfg.soft_metal_band)
         n_frac = 0
         if rows.numel() and sigma2 > 0:
-            t_new, m_new, acc = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
-                                               cfg.soft_metal_well * sigma2, cfg.soft_metal_gain * sigma2,
-                                               cfg.soft_metal_iters)
+            t_new, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
+                                             cfg.soft_metal_well * sigma2, cfg.soft_metal_gain * sigma2,
+                                             cfg.soft_metal_iters)
             theta, metal = theta.clone(), metal.clone()
             theta[rows], metal[rows] = t_new, m_new
             if cfg.soft_metal_smooth > 0:
