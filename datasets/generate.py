@@ -10,14 +10,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from torchbrdf.capture.synthetic import RECIPES, generate_capture
+from torchbrdf.capture.synthetic import RECIPES, SOFT_RECIPES, generate_capture
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, generate one capture folder, print where it went."""
     ap = argparse.ArgumentParser(prog="python -m datasets.generate", description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True, help="capture folder to create (capture.json, img_*.exr, gt/)")
-    ap.add_argument("--recipe", choices=RECIPES, default=None, help="procedural material (default: chosen by --seed)")
+    ap.add_argument("--recipe", choices=RECIPES + SOFT_RECIPES, default=None, help="procedural material (default: chosen by --seed)")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the material and the noise")
     ap.add_argument("--size", type=int, default=256, help="image width and height in pixels")
     ap.add_argument("--lights", type=int, default=16, help="number of ring lights (plus one beside the camera)")

@@ -44,6 +44,18 @@ def heldout_psnr(maps: dict, gt: dict, n_lights: int, seed: int) -> list[float]:
     return [psnr(pred[k], ref[k]) for k in range(n_lights)]
 
 
+def soft_metal_fields(rep: dict, metallic, gt_metallic) -> dict:
+    """The soft-metal stage's columns: the fraction of fractional pixels (report.json), the share of
+    the *clear* pixels (ground truth exactly 0 or 1) given a fractional value (should stay ~0),
+    and the stage's seconds. ``metallic``, ``gt_metallic``: ``(1, H, W)``."""
+    m = metallic.to(gt_metallic.device)
+    clear = (gt_metallic == 0) | (gt_metallic == 1)
+    on_clear = (((m > 0) & (m < 1)) & clear).float().sum() / clear.float().sum().clamp(min=1)
+    return {"fractional_metallic_fraction": rep.get("fractional_metallic_fraction"),
+            "fractional_on_clear": float(on_clear),
+            "soft_metal_seconds": (rep.get("soft_metal") or {}).get("seconds")}
+
+
 def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, noise: float, test_lights: int,
                    calibration: bool = True, cfg: RecoveryConfig | None = None) -> dict:
     """One photo-derived capture (:mod:`training.photo_set`): recover, then errors and held-out PSNR.
@@ -75,7 +87,8 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
     row = {"recipe": f"photo:{name}", "seed": seed, "lights": lights, "size": size, "seconds": seconds, **err,
            "heldout_psnr_mean": statistics.mean(ps), "heldout_psnr_min": min(ps), "heldout_psnr": ps,
            "calibration_error": calibration, "true_intensity_scale": true_scale, "estimated_intensity_scale": est,
-           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"]}
+           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"],
+           **soft_metal_fields(rep, maps["metallic"], gt["metallic"])}
     return row
 
 
@@ -93,7 +106,8 @@ def evaluate_one(folder: Path, recipe: str, seed: int, size: int, lights: int, n
     ps = heldout_psnr(maps, gt, test_lights, seed)
     row = {"recipe": recipe, "seed": seed, "lights": lights, "size": size, "seconds": seconds, **err,
            "heldout_psnr_mean": statistics.mean(ps), "heldout_psnr_min": min(ps),
-           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"]}
+           "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"],
+           **soft_metal_fields(rep, maps["metallic"], gt["metallic"])}
     return row
 
 
@@ -105,7 +119,9 @@ def table(rows: list[dict]) -> str:
             ("roughness_rmse", "rough RMSE"), ("metallic_rmse", "metal RMSE"), ("specular_rmse", "spec RMSE"),
             ("specular_rmse_dielectric", "spec RMSE (diel.)"), ("normal_mean_deg", "normal mean °"),
             ("normal_p95_deg", "normal p95 °"), ("heldout_psnr_mean", "held-out PSNR mean"),
-            ("heldout_psnr_min", "held-out PSNR min"), ("seconds", "time s")]
+            ("heldout_psnr_min", "held-out PSNR min"), ("fractional_metallic_fraction", "fractional px"),
+            ("fractional_on_clear", "fractional on clear px"), ("seconds", "time s"),
+            ("soft_metal_seconds", "soft-metal stage s")]
     lines = ["| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         cells = []
@@ -114,7 +130,8 @@ def table(rows: list[dict]) -> str:
             v = r.get(k)
             if isinstance(v, float):
                 mark = " ✗" if (k in thr and v > thr[k]) or (k in MIN_PSNR and v < MIN_PSNR[k]) else ""
-                cells.append(f"{v:.3f}{mark}" if "rmse" in k else f"{v:.1f}{mark}" if k != "seconds" else f"{v:.0f}")
+                cells.append(f"{v:.3f}{mark}" if "rmse" in k else f"{v:.4f}" if "fractional" in k
+                             else f"{v:.1f}{mark}" if "seconds" not in k else f"{v:.0f}")
             else:
                 cells.append("–" if v is None else str(v))
         lines.append("| " + " | ".join(cells) + " |")
@@ -137,6 +154,8 @@ def main(argv=None) -> int:
     p.add_argument("--light-study", action="store_true", help="also run 4/8/16/32 lights on the first material")
     p.add_argument("--study-counts", default="4,8,16,32", help="light counts of --light-study, comma-separated")
     p.add_argument("--threads", type=int, default=2, help="torch threads per recovery")
+    p.add_argument("--no-soft-metal", action="store_true",
+                   help="without the final continuous-metallic stage (metallic only 0 or 1; for comparison)")
     p.add_argument("--set", choices=("synthetic", "photo"), default="synthetic",
                    help="synthetic: the generator's recipes; photo: maps from scikit-image photographs, "
                         "another forward model, light calibration error (training/photo_set.py)")
@@ -163,7 +182,9 @@ def main(argv=None) -> int:
         return 0
     for k in range(args.materials):
         recipe, seed = recipes[k % len(recipes)], args.seed0 + k
-        rows.append(evaluate_one(args.out, recipe, seed, args.size, args.lights, args.noise, args.test_lights))
+        cfg = RecoveryConfig(soft_metal=not args.no_soft_metal)
+        rows.append(evaluate_one(args.out, recipe, seed, args.size, args.lights, args.noise, args.test_lights,
+                                 cfg))
         print(table(rows[-1:]).splitlines()[-1], flush=True)
         _save(args.out, rows, study)
     if args.light_study:

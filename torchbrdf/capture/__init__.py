@@ -11,6 +11,7 @@ Never ``recovery``.
 from torchbrdf.capture.format import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
 from torchbrdf.capture.synthetic import (
     RECIPES,
+    SOFT_RECIPES,
     default_capture,
     generate_capture,
     light_layout,
@@ -21,6 +22,6 @@ from torchbrdf.capture.synthetic import (
 
 __all__ = [
     "CAPTURE_JSON", "Capture", "load_capture", "pixel_points", "write_capture",
-    "RECIPES", "default_capture", "generate_capture", "light_layout", "make_material", "random_lights",
+    "RECIPES", "SOFT_RECIPES", "default_capture", "generate_capture", "light_layout", "make_material", "random_lights",
     "render_capture",
 ]

@@ -44,6 +44,7 @@ Lights: TypeAlias = tuple[Tensor, Tensor] | Sequence | Mapping | Capture
 
 __all__ = [
     "RECIPES",
+    "SOFT_RECIPES",
     "MAP_NAMES",
     "DEFAULT_CAMERA",
     "make_material",
@@ -61,6 +62,9 @@ __all__ = [
 
 #: Recipes understood by :func:`make_material`.
 RECIPES = ("tiles", "metal_inlay", "scratched_metal", "painted", "stone", "circuit")
+#: Recipes with soft metal/dielectric transitions (5–15 % of pixels with metallic in [0.05, 0.95]):
+#: selectable by name only, so ``recipe=None`` keeps picking from :data:`RECIPES` as before.
+SOFT_RECIPES = ("rusted_metal", "dusty_metal", "aa_inlay")
 #: Map names and channel counts of the recovery's output layout.
 MAP_NAMES = {"base_color": 3, "roughness": 1, "metallic": 1, "specular": 1, "normal": 3}
 #: Default camera of the generated captures.
@@ -290,6 +294,74 @@ def _recipe_circuit(gen, size):
     return base, rough, mask, spec, height
 
 
+def _soft_step(field: Tensor, coverage: float, soft: float) -> Tensor:
+    """A ramp in [0, 1] ``(H, W)`` over the values of ``field (H, W)``: exactly a fraction ``soft``
+    of the pixels get a value in (0.05, 0.95) and about ``coverage`` of them a value ≥ 0.5.
+
+    The band is set by quantiles of ``field`` (not fixed levels), so the soft fraction is the
+    same at every resolution and seed: the values between the ``1 − coverage ∓ soft/2``
+    quantiles map linearly onto [0.05, 0.95] (and on outward to 0 and 1).
+    """
+    q = torch.quantile(field.flatten().double(),
+                       torch.tensor([1 - coverage - soft / 2, 1 - coverage + soft / 2], dtype=torch.float64))
+    lo, hi = float(q[0]), float(q[1])
+    return (0.05 + 0.9 * (field - lo) / max(hi - lo, 1e-9)).clamp(0.0, 1.0)
+
+
+def _recipe_rusted_metal(gen, size):
+    """Steel with a rust front: metallic ramps smoothly from 1 (bare) to 0 (rust) across it."""
+    mcol = torch.tensor(_METALS["iron" if float(torch.rand((), generator=gen)) < 0.5 else "silver"])
+    rust_col = _hsv(_pick(gen, 0.03, 0.08), _pick(gen, 0.6, 0.85), _pick(gen, 0.2, 0.45))
+    field = _noise(gen, size, 3, 5) + 0.25 * _noise(gen, size, 12, 3)
+    rust = _soft_step(field, _pick(gen, 0.3, 0.5), _pick(gen, 0.08, 0.13))
+    rust_tex = rust_col[:, None, None] * (1 + 0.15 * _noise(gen, size, 16))[None]
+    base = mcol[:, None, None] * (1 - rust) + rust_tex * rust
+    rough = (_pick(gen, 0.2, 0.35) + 0.04 * _noise(gen, size, 8)) * (1 - rust) + 0.8 * rust
+    spec = torch.full((size, size), 0.5)
+    height = 0.003 * rust + 0.002 * _noise(gen, size, 16, 3) * rust
+    return base, rough, 1 - rust, spec, height
+
+
+def _recipe_dusty_metal(gen, size):
+    """A metal with speckles of dust: small dielectric specks with soft edges."""
+    mcol = _metal_color(gen)
+    dust_col = _hsv(_pick(gen, 0.08, 0.14), _pick(gen, 0.1, 0.3), _pick(gen, 0.4, 0.6))
+    field = _noise(gen, size, 24, 2) + 0.5 * _noise(gen, size, 4, 2)
+    dust = _soft_step(field, _pick(gen, 0.12, 0.2), _pick(gen, 0.08, 0.13))
+    base = mcol[:, None, None] * (1 - dust) + dust_col[:, None, None] * dust
+    rough = (_pick(gen, 0.25, 0.4) + 0.05 * _noise(gen, size, 8)) * (1 - dust) + 0.9 * dust
+    spec = torch.full((size, size), 0.5)
+    height = 0.002 * _noise(gen, size, 8, 3)
+    return base, rough, 1 - dust, spec, height
+
+
+def _recipe_aa_inlay(gen, size):
+    """metal_inlay's wood and discs/bars, with anti-aliased (filtered) inlay edges: metallic ramps
+    from 0 to 1 across each edge, as in a texture magnified with bilinear filtering."""
+    x, y = _coords(size)
+    stripes = torch.sin(18 * (y + 0.15 * _noise(gen, size, 4)) + 3 * _noise(gen, size, 8))
+    c0, c1 = _rand_color(gen, (0.4, 0.7), (0.25, 0.5)), _rand_color(gen, (0.4, 0.8), (0.1, 0.3))
+    t = (stripes * 0.5 + 0.5)[None]
+    base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
+    rough = 0.55 + 0.12 * _noise(gen, size, 6)
+    spec = torch.full((size, size), _pick(gen, 0.35, 0.6))
+    sdf = torch.full((size, size), 10.0)  # signed distance to the union of the inlays (< 0 inside)
+    for _ in range(int(torch.randint(6, 10, (1,), generator=gen))):
+        cx, cy, r = _pick(gen, -0.75, 0.75), _pick(gen, -0.75, 0.75), _pick(gen, 0.1, 0.25)
+        if float(torch.rand((), generator=gen)) < 0.5:
+            d = ((x - cx) ** 2 + (y - cy) ** 2).sqrt() - r
+        else:
+            d = torch.maximum((x - cx).abs() - r * 1.6, (y - cy).abs() - r * 0.35)
+        sdf = torch.minimum(sdf, d)
+    mask = _soft_step(-sdf, float((sdf < 0).float().mean()), _pick(gen, 0.07, 0.12))
+    mcol = _metal_color(gen)
+    mrough = _pick(gen, 0.2, 0.4) + 0.06 * _noise(gen, size, 8)
+    base = base * (1 - mask) + mcol[:, None, None] * mask
+    rough = rough * (1 - mask) + mrough * mask
+    height = 0.004 * mask + 0.002 * _noise(gen, size, 8, 3)
+    return base, rough, mask, spec, height
+
+
 _RECIPE_FUNCS = {
     "tiles": _recipe_tiles,
     "metal_inlay": _recipe_metal_inlay,
@@ -297,6 +369,9 @@ _RECIPE_FUNCS = {
     "painted": _recipe_painted,
     "stone": _recipe_stone,
     "circuit": _recipe_circuit,
+    "rusted_metal": _recipe_rusted_metal,
+    "dusty_metal": _recipe_dusty_metal,
+    "aa_inlay": _recipe_aa_inlay,
 }
 
 
@@ -304,16 +379,18 @@ def make_material(recipe: str | None = None, seed: int = 0, size: int = 256) -> 
     """Procedural ground-truth SVBRDF maps.
 
     Args:
-        recipe: one of :data:`RECIPES`, or ``None`` to pick one from ``seed``.
+        recipe: one of :data:`RECIPES` or :data:`SOFT_RECIPES`, or ``None`` to pick one of
+            :data:`RECIPES` from ``seed``.
         seed: random seed; the maps are a deterministic function of ``(recipe, seed, size)``.
         size: output resolution (square).
 
     Returns:
         dict with ``base_color (3, H, W)``, ``roughness``, ``metallic``, ``specular``
         ``(1, H, W)`` and ``normal (3, H, W)`` (tangent-space unit vectors, z > 0), float32.
-        Dielectric base colours stay above 0.03 and metals are binary with bright F0, so the
-        metal/dielectric question has one answer (a black dielectric and a dark metal render
-        identically under this model).
+        Dielectric base colours stay above 0.03 and metals are bright, so the metal/dielectric
+        question has one answer (a black dielectric and a dark metal render identically under
+        this model); metallic is binary in :data:`RECIPES` and has 5–15 % of its pixels in
+        [0.05, 0.95] in :data:`SOFT_RECIPES` (rust fronts, dust specks, filtered inlay edges).
 
     Example:
         >>> m = make_material("tiles", seed=1, size=32)
@@ -323,10 +400,10 @@ def make_material(recipe: str | None = None, seed: int = 0, size: int = 256) -> 
     if recipe is None:
         recipe = RECIPES[seed % len(RECIPES)]
     if recipe not in _RECIPE_FUNCS:
-        raise ValueError(f"make_material: unknown recipe {recipe!r}; choose one of {RECIPES}")
+        raise ValueError(f"make_material: unknown recipe {recipe!r}; choose one of {RECIPES + SOFT_RECIPES}")
     if size < 4:
         raise ValueError(f"make_material: size must be >= 4, got {size}")
-    gen = torch.Generator().manual_seed(int(seed) * 7919 + RECIPES.index(recipe))
+    gen = torch.Generator().manual_seed(int(seed) * 7919 + (RECIPES + SOFT_RECIPES).index(recipe))
     base, rough, metal, spec, height = _RECIPE_FUNCS[recipe](gen, size)
     metal = metal.clamp(0, 1)
     base = base.clamp(0.03, 1.0)

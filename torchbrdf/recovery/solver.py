@@ -126,6 +126,15 @@ class RecoveryConfig:
     nonlocal_range: float = 0.02  # base-colour range sigma of the non-local roughness prior
     nonlocal_sigma: float = 0.25  # its spatial radius, as a fraction of the map size
     nonlocal_clusters: int = 12  # base-colour clusters per class guiding it
+    # Final step: continuous metallic where the binary choice fits poorly (Recovery._soft_metal)
+    soft_metal: bool = True
+    soft_metal_factor: float = 8.0  # ... for pixels whose cost is above this × the median (and boundaries)
+    soft_metal_well: float = 32.0  # double-well prior w m²(1−m)², w in per-residual noise variances σ²
+    soft_metal_gain: float = 8.0  # keep a fractional value only if it lowers the cost by this × σ²
+    soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic (× σ²)
+    soft_metal_band: int = 2  # ... and pixels within this many pixels of a metal/dielectric boundary
+    soft_metal_iters: int = 5  # per-pixel LM iterations
+    soft_metal_max: float = 0.2  # at most this fraction of the pixels (the worst fitting) is refitted
     holdout: int | None = None  # index of the validation light (default: a ring light)
     checkpoint_every: int = 5
     model: str = "principled"
@@ -743,6 +752,148 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
     return best, best_c
 
 
+# --------------------------------------------------------------------------------------
+# Continuous metallic (final stage)
+# --------------------------------------------------------------------------------------
+
+
+def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float, max_frac: float,
+                          band: int = 1) -> Tensor:
+    """Pixels ``(N,)`` (indices) where metallic may become continuous: the binary choice fits
+    poorly (data ``cost (P, 1)`` above ``factor`` × its median, the noise level) or the pixel
+    lies within ``band`` pixels of a metal/dielectric boundary (band 1: one of its 8 neighbours
+    is of the other class; a soft ramp is several pixels wide, and the binary choice puts its
+    boundary anywhere on it).
+
+    ``metal (P, 1)`` in {0, 1}. At most ``max_frac`` × P pixels, the worst fitting first.
+    """
+    img = (metal > 0.5).to(cost.dtype).T.reshape(1, 1, size, size)
+    k = 2 * band + 1
+    hi = F.max_pool2d(img, k, 1, band)  # a metal within the band
+    lo = -F.max_pool2d(-img, k, 1, band)  # a dielectric within the band
+    boundary = (hi != lo).reshape(-1, 1)
+    finite = torch.isfinite(cost)
+    med = float(cost[finite].median()) if bool(finite.any()) else 0.0
+    sel = ((cost > factor * med) | boundary)[:, 0]
+    rows = torch.nonzero(sel).flatten()
+    cap = max(1, int(max_frac * cost.shape[0]))
+    if rows.numel() > cap:
+        rows = rows[torch.topk(torch.nan_to_num(cost[rows, 0], nan=float("inf")), cap).indices]
+    return rows
+
+
+def _soft_residual(data: LevelData, x: Tensor, idx: list[int], model: str, well: float,
+                   target: Tensor | None = None, smooth: float = 0.0) -> Tensor:
+    """Residuals ``(N, M + 1 [+ 1])`` of ``x (N, 8)`` = (theta, metallic): the log residuals on
+    lights ``idx``, the double-well term ``√well · m (1 − m)`` (its square is ``well m² (1 − m)²``)
+    and, with ``target (N, 1)``, the pull ``√smooth · (m − target)`` toward the neighbours' metallic."""
+    m = x[:, 7:8]
+    r = data.residual(x[:, :7], m, idx, model)
+    out = [r, math.sqrt(well) * m * (1 - m)]
+    if target is not None:
+        out.append(math.sqrt(smooth) * (m - target))
+    return torch.cat(out, -1)
+
+
+def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x: Tensor, iters: int,
+             fix_metal: bool = False) -> tuple[Tensor, Tensor]:
+    """``iters`` per-pixel LM iterations on ``x (N, 8)`` (residuals ``fn``, metallic — the last
+    column — clamped to [0, 1] after each step; held fixed with ``fix_metal``). Returns
+    ``(x, cost (N, 1))``."""
+    n_x = x.shape[1]
+    eye = torch.eye(n_x, dtype=x.dtype, device=x.device)
+    lam = torch.full((x.shape[0], 1), 1e-2, dtype=x.dtype, device=x.device)
+    c = cost(x)
+    for _ in range(iters):
+        r = torch.nan_to_num(fn(x))
+        xc = x
+        tangents = eye[:, None, :].expand(n_x, *x.shape)
+        jac = torch.func.vmap(lambda tg: torch.func.jvp(fn, (xc,), (tg,))[1])(tangents).permute(1, 2, 0)
+        jac = torch.nan_to_num(jac)  # (N, M + 1, 8)
+        if fix_metal:
+            jac = torch.cat((jac[..., :-1], torch.zeros_like(jac[..., -1:])), -1)
+        jtj = torch.einsum("pmi,pmj->pij", jac, jac)
+        g = torch.einsum("pmi,pm->pi", jac, r)
+        h = jtj + torch.diag_embed(lam * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
+        if fix_metal:  # a zero column: unit pivot, zero step
+            h[:, -1, -1] = 1.0
+        step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
+        cand = x + step
+        cand = torch.cat((cand[:, :-1], cand[:, -1:].clamp(0.0, 1.0)), -1)
+        c1 = cost(cand)
+        better = c1 < c
+        x = torch.where(better, cand, x)
+        c = torch.where(better, c1, c)
+        lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
+    return x, c
+
+
+def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
+                   well: float, gain: float, iters: int = 8, starts: tuple = (None, 0.5),
+                   target: Tensor | None = None, smooth: float = 0.0, refit_reference: bool = True,
+                   snap: float = 0.02) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-pixel LM on 8 unknowns — theta (7) and a continuous metallic in [0, 1] — for ``rows (N,)``.
+
+    Energy: data (lights ``idx``) + the double-well prior ``well · m²(1 − m)²`` (minima at exactly
+    0 and 1) [+ ``smooth · (m − target)²``, ``target (N, 1)``: the neighbours' metallic, which
+    decides where the data cannot — a rough metal's broad lobe mimics a rough dielectric's
+    diffuse]. Metallic is a bounded value, clamped to [0, 1] after each step (projected LM), so
+    a pixel can land on exactly 0 or 1. The Jacobian is forward-mode (``torch.func.jvp``
+    vmapped over the 8 tangents). ``starts``: metallic start values, ``None`` = the pixel's
+    own, ``"target"`` = ``target``, or ``(theta start (N, 7), one of those)``; the lowest
+    energy wins. A fractional result replaces a binary ``metal`` only where it lowers the
+    energy by more than ``gain`` (the caller scales it by the noise variance) below the same
+    fit with metallic held at its own value (with ``refit_reference``; else below ``theta``,
+    ``metal`` as given): one more unknown always fits noise a little, and a clear pixel must
+    stay exactly 0 or 1 (it then keeps the better of its old and its refitted 7 unknowns); a
+    metallic within ``snap`` of 0 or 1 is set to it. ``theta (P, 7)``, ``metal (P, 1)``.
+    Returns ``(theta rows (N, 7), metal rows (N, 1), changed (N,))``.
+    """
+    sub = data.subset(rows)
+    t0, m0 = theta[rows], metal[rows]
+    fn = lambda v: _soft_residual(sub, v, idx, model, well, target, smooth)  # noqa: E731
+
+    def cost(v):
+        r = fn(v)
+        return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+
+    c_ref = cost(torch.cat((t0, m0), -1))  # the solution so far (a binary one: no double-well cost)
+    # The reference a fractional value must beat: the same per-pixel fit with metallic held at
+    # the pixel's own value, so a fractional value wins by what it explains, not by the refit
+    # of the other unknowns (the main fit's priors leave some pixels off their data optimum).
+    ref = torch.cat((t0, m0), -1)
+    ref, c_fix = _soft_lm(fn, cost, ref, iters, fix_metal=True) if refit_reference else (ref, c_ref)
+    keep = c_fix < c_ref
+    ref, c_ref = torch.where(keep, ref, torch.cat((t0, m0), -1)), torch.where(keep, c_fix, c_ref)
+    best, best_c = None, None
+    for m_start in starts:
+        # Several metallic starts: a pixel that is 30 % metal has another local optimum near
+        # the class it was given.
+        t_init = t0
+        if isinstance(m_start, tuple):  # (theta start (N, 7), metallic start)
+            t_init, m_start = m_start
+        m_init = m0 if m_start is None else target if m_start == "target" else torch.full_like(m0, m_start)
+        assert m_init is not None, "soft_metal_fit: a 'target' start needs `target`"
+        x, c = _soft_lm(fn, cost, torch.cat((t_init, m_init), -1), iters)
+        if best is None or best_c is None:
+            best, best_c = x, c
+        else:
+            better = c < best_c
+            best, best_c = torch.where(better, x, best), torch.where(better, c, best_c)
+    assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
+    # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
+    # apart, so it is set exactly (to the reference fit when that is its own class).
+    m = best[:, 7:8]
+    m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    best = torch.where((m_snap != m) & (m_snap == ref[:, 7:8]), ref, torch.cat((best[:, :7], m_snap), -1))
+    m = best[:, 7:8]
+    newly_fractional = (m > 0) & (m < 1) & ((m0 == 0) | (m0 == 1))
+    accepted = (best_c < c_ref - torch.where(newly_fractional, gain, 0.0))[:, 0]
+    best = torch.where(accepted[:, None], best, ref)
+    accepted = accepted | keep[:, 0]
+    return best[:, :7], best[:, 7:8], accepted
+
+
 def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
     """Normal slopes ``(K, 2)``: the flat normal and a polar grid of tilts (degrees)."""
     out = [torch.zeros(1, 2, dtype=torch.float64)]
@@ -1118,6 +1269,8 @@ class Recovery:
             th = st["theta"][0]
             st["theta"][0] = torch.where(w > 0, (info * th + w * m) / (info + w).clamp(min=1e-12), th)
             st["info"] = info
+        if nxt >= len(self.plan) and self.cfg.soft_metal and st.get("metal") is not None:
+            self._soft_metal(size, kind)
         st["stage"] = nxt
         st["it"] = 0
 
@@ -1164,6 +1317,48 @@ class Recovery:
         out[rows] = torch.where(better, c, scores[0][rows])
         return out
 
+    def _soft_metal(self, size: int, kind: str) -> None:
+        """Final stage: continuous metallic where the binary choice fits poorly or at a class
+        boundary (:func:`soft_metal_candidates`, :func:`soft_metal_fit`); every other pixel
+        keeps exactly 0 or 1. Records ``state["soft_metal"]`` (pixels refitted, fractional, seconds)."""
+        import time
+
+        t_start = time.perf_counter()
+        st, cfg = self.state, self.cfg
+        data = self.data(size, all_lights=(kind == "all"))
+        theta, metal = st["theta"][0], st["metal"]
+        with torch.no_grad():
+            r = data.residual(theta, metal, data.train_idx, cfg.model)
+        cost = torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+        # Noise variance of one residual: the median pixel's cost per residual.
+        finite = torch.isfinite(cost)
+        sigma2 = float(cost[finite].median()) / max(1, r.shape[1]) if bool(finite.any()) else 0.0
+        rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
+                                     cfg.soft_metal_band)
+        n_frac = 0
+        if rows.numel() and sigma2 > 0:
+            t_new, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
+                                             cfg.soft_metal_well * sigma2, cfg.soft_metal_gain * sigma2,
+                                             cfg.soft_metal_iters)
+            theta, metal = theta.clone(), metal.clone()
+            theta[rows], metal[rows] = t_new, m_new
+            if cfg.soft_metal_smooth > 0:
+                # Second pass: where the data cannot tell (a rough metal's lobe mimics a rough
+                # dielectric's diffuse), the neighbours' metallic decides.
+                # Start: its 4-neighbours' mean parameters (a rust pixel that pass 1 left in the
+                # metal mode starts from the rust beside it), metallic = target; kept only if better.
+                target = _neighbour_mean(metal, size)[rows]
+                t_nb = _neighbour_mean(theta, size)[rows]
+                t_new, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
+                                                 cfg.soft_metal_well * sigma2, cfg.soft_metal_gain * sigma2,
+                                                 cfg.soft_metal_iters, ((t_nb, "target"),), target,
+                                                 cfg.soft_metal_smooth * sigma2, refit_reference=False)
+                theta[rows], metal[rows] = t_new, m_new
+            st["theta"][0], st["metal"] = theta, metal
+            n_frac = int(((m_new > 0) & (m_new < 1)).sum())
+        st["soft_metal"] = {"pixels_refitted": int(rows.numel()), "fractional_pixels": n_frac,
+                            "seconds": time.perf_counter() - t_start}
+
     def finished(self) -> bool:
         return self.state["stage"] >= len(self.plan)
 
@@ -1182,8 +1377,9 @@ class Recovery:
         size = int(round(math.sqrt(theta.shape[0])))
         theta = torch.nan_to_num(theta, nan=0.0, posinf=0.0, neginf=0.0)
         p = decode(theta, metal)
-        # Specular is invisible on a metal pixel (F0 = base colour): write the default.
-        p["specular"] = torch.where(metal > 0.5, torch.full_like(p["specular"], 0.5), p["specular"])
+        # Specular is invisible on a metal pixel (F0 = base colour): write the default. A
+        # fractional metal's dielectric lobe shows its specular: keep the fitted value there.
+        p["specular"] = torch.where(metal >= 1.0, torch.full_like(p["specular"], 0.5), p["specular"])
         return {k: v.T.reshape(-1, size, size).contiguous() for k, v in p.items()}
 
     def confidence_map(self, tol_roughness: float = 0.05, tol_specular: float = 0.1) -> Tensor:

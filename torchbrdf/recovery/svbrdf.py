@@ -143,6 +143,10 @@ def check_config(cfg: RecoveryConfig) -> None:
     for name in ("prior_sigma", "nonlocal_range", "nonlocal_sigma"):
         _finite(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
     _finite("metal_margin", cfg.metal_margin, 0.0, 1.0, lo_open=True)
+    for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_gain"):
+        _finite(name, getattr(cfg, name), 0.0, 1e6)
+    _finite("soft_metal_max", cfg.soft_metal_max, 0.0, 1.0)
+    _integer("soft_metal_iters", cfg.soft_metal_iters, 0, 10_000)
     if cfg.holdout is not None and (not isinstance(cfg.holdout, int) or isinstance(cfg.holdout, bool)):
         raise RecoveryError(f"--holdout must be an integer light index, got {cfg.holdout!r}")
     if cfg.model not in ("principled", "svbrdf_ggx"):
@@ -508,6 +512,21 @@ def map_errors(maps: dict, gt_dir: Path) -> dict:
     return err
 
 
+def fractional_metallic_fraction(metallic: Tensor) -> float:
+    """Fraction of the pixels of ``metallic (1, H, W)`` strictly between 0 and 1."""
+    return float(((metallic > 0) & (metallic < 1)).float().mean())
+
+
+def metallic_preview(metallic: Tensor) -> Tensor:
+    """RGB preview ``(3, H, W)`` of ``metallic (1, H, W)``: binary pixels black (0) and white (1),
+    fractional ones (0 < m < 1, the soft-metal stage's) coloured from red (m → 0) through
+    orange to yellow (m → 1), so they stand out from both classes."""
+    m = metallic.clamp(0, 1)
+    frac = (m > 0) & (m < 1)
+    tint = torch.cat((torch.ones_like(m), 0.15 + 0.85 * m, 0.1 * torch.ones_like(m)), 0)
+    return torch.where(frac, tint, m.expand(3, -1, -1))
+
+
 def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: dict, history: list,
                   plots: bool = True, confidence: Tensor | None = None) -> None:
     """Write one run's files into ``folder`` (the staging folder).
@@ -526,6 +545,8 @@ def write_outputs(folder: Path, cap: Capture, maps: dict, pred: Tensor, report: 
         with _Writing(f"{name}.png"):
             if name == "normal":
                 write_png(folder / f"{name}.png", t * 0.5 + 0.5, srgb=False)
+            elif name == "metallic":
+                write_png(folder / f"{name}.png", metallic_preview(t), srgb=False)
             else:
                 write_png(folder / f"{name}.png", t, srgb=(name == "base_color"))
     if confidence is not None:
@@ -869,6 +890,9 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         "schedule": [{"size": s, "stage": k, "iterations": n} for s, k, n in rec.plan],
         "held_out_light": st.get("validation"),
         "metal_fraction": float(st["metal"].mean()) if st["metal"] is not None else None,
+        # 0 < metallic < 1 in the written map (the soft-metal stage; the others are exactly 0 or 1)
+        "fractional_metallic_fraction": fractional_metallic_fraction(fin["metallic"]),
+        "soft_metal": st.get("soft_metal"),
         "events": st["events"],
         "seed": cfg.seed,
         "per_image_psnr": {f: psnr(pred[k], cap.images[k]) for k, f in enumerate(cap.files)},
@@ -1030,6 +1054,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="weight pulling a metal's base colour (F0) toward its metal neighbours (>= 0)")
     p.add_argument("--prior-nonlocal-base", type=float, default=d.prior_nonlocal_base,
                    help="precision of the final non-local fusion of a metal's base colour (0: off)")
+    p.add_argument("--no-soft-metal", action="store_true",
+                   help="no final continuous-metallic step: every pixel's metallic is exactly 0 or 1")
     p.add_argument("--holdout", type=int, default=None,
                    help="index of the validation light held out of the fit until the last stage "
                         "(default: light 0 with 5+ lights; -1: none)")
@@ -1076,7 +1102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
-            threads=args.threads,
+            threads=args.threads, soft_metal=not args.no_soft_metal,
         )
         if cfg.holdout is not None and cfg.holdout < 0:
             cfg.holdout = 10**9  # out of range: no held-out light
