@@ -1337,6 +1337,7 @@ class Recovery:
                                      cfg.soft_metal_band)
         n_frac = 0
         if rows.numel() and sigma2 > 0:
+            theta0, metal0 = theta, metal
             t_new, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
                                              cfg.soft_metal_well * sigma2, cfg.soft_metal_gain * sigma2,
                                              cfg.soft_metal_iters)
@@ -1354,8 +1355,15 @@ class Recovery:
                                                  cfg.soft_metal_iters, ((t_nb, "target"),), target,
                                                  cfg.soft_metal_smooth * sigma2, refit_reference=False)
                 theta[rows], metal[rows] = t_new, m_new
+            # Only a fractional answer is taken: a pixel that stays 0 or 1 keeps the fit it had,
+            # with the priors' regularisation (a data-only refit of a metal's weakly observed F0
+            # doubled scratched_metal 103's base-colour RMSE, 0.015 -> 0.027).
+            frac = (metal[rows] > 0) & (metal[rows] < 1)
+            theta, metal = theta0.clone(), metal0.clone()
+            theta[rows] = torch.where(frac, t_new, theta0[rows])
+            metal[rows] = torch.where(frac, m_new, metal0[rows])
             st["theta"][0], st["metal"] = theta, metal
-            n_frac = int(((m_new > 0) & (m_new < 1)).sum())
+            n_frac = int(frac.sum())
         st["soft_metal"] = {"pixels_refitted": int(rows.numel()), "fractional_pixels": n_frac,
                             "seconds": time.perf_counter() - t_start}
 
