@@ -202,15 +202,20 @@ def _recipe_tiles(gen, size):
     return base, rough, metal, spec, height
 
 
-def _recipe_metal_inlay(gen, size):
-    x, y = _coords(size)
-    # Wood-like dielectric: stretched noise stripes.
+def _wood(gen, size, y):
+    """A wood-like dielectric (stretched noise stripes): ``base (3, S, S)``, ``rough``, ``spec``."""
     stripes = torch.sin(18 * (y + 0.15 * _noise(gen, size, 4)) + 3 * _noise(gen, size, 8))
     c0, c1 = _rand_color(gen, (0.4, 0.7), (0.25, 0.5)), _rand_color(gen, (0.4, 0.8), (0.1, 0.3))
     t = (stripes * 0.5 + 0.5)[None]
     base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
     rough = 0.55 + 0.12 * _noise(gen, size, 6)
     spec = torch.full((size, size), _pick(gen, 0.35, 0.6))
+    return base, rough, spec
+
+
+def _recipe_metal_inlay(gen, size):
+    x, y = _coords(size)
+    base, rough, spec = _wood(gen, size, y)
     # Inlays: discs and bars.
     mask = torch.zeros(size, size)
     for _ in range(int(torch.randint(3, 6, (1,), generator=gen))):
@@ -339,12 +344,7 @@ def _recipe_aa_inlay(gen, size):
     """metal_inlay's wood and discs/bars, with anti-aliased (filtered) inlay edges: metallic ramps
     from 0 to 1 across each edge, as in a texture magnified with bilinear filtering."""
     x, y = _coords(size)
-    stripes = torch.sin(18 * (y + 0.15 * _noise(gen, size, 4)) + 3 * _noise(gen, size, 8))
-    c0, c1 = _rand_color(gen, (0.4, 0.7), (0.25, 0.5)), _rand_color(gen, (0.4, 0.8), (0.1, 0.3))
-    t = (stripes * 0.5 + 0.5)[None]
-    base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
-    rough = 0.55 + 0.12 * _noise(gen, size, 6)
-    spec = torch.full((size, size), _pick(gen, 0.35, 0.6))
+    base, rough, spec = _wood(gen, size, y)
     sdf = torch.full((size, size), 10.0)  # signed distance to the union of the inlays (< 0 inside)
     for _ in range(int(torch.randint(6, 10, (1,), generator=gen))):
         cx, cy, r = _pick(gen, -0.75, 0.75), _pick(gen, -0.75, 0.75), _pick(gen, 0.1, 0.25)

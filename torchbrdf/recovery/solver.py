@@ -712,6 +712,16 @@ def _dilate(mask: Tensor, size: int) -> Tensor:
     return (F.max_pool2d(m, 3, stride=1, padding=1) > 0).reshape(-1)
 
 
+def _keep_better(best: Tensor | None, best_c: Tensor | None, x: Tensor, c: Tensor
+                 ) -> tuple[Tensor, Tensor]:
+    """Per pixel, the better of ``(best, best_c)`` and ``(x, c)`` (lower cost ``(N, 1)``; the
+    first start when ``best`` is None)."""
+    if best is None or best_c is None:
+        return x, c
+    better = c < best_c
+    return torch.where(better, x, best), torch.where(better, c, best_c)
+
+
 def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
                  idx: list[int], model: str, iters: int = 10) -> tuple[Tensor, Tensor]:
     """Per-pixel Levenberg–Marquardt (data term only) on the listed pixels from several starts.
@@ -743,11 +753,7 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
             t = torch.where(better, cand, t)
             c = torch.where(better, c1, c)
             lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
-        if best is None or best_c is None:
-            best, best_c = t, c
-        else:
-            better = c < best_c
-            best, best_c = torch.where(better, t, best), torch.where(better, c, best_c)
+        best, best_c = _keep_better(best, best_c, t, c)
     assert best is not None and best_c is not None, "refit_pixels: `starts` must not be empty"
     return best, best_c
 
@@ -875,11 +881,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         m_init = m0 if m_start is None else target if m_start == "target" else torch.full_like(m0, m_start)
         assert m_init is not None, "soft_metal_fit: a 'target' start needs `target`"
         x, c = _soft_lm(fn, cost, torch.cat((t_init, m_init), -1), iters)
-        if best is None or best_c is None:
-            best, best_c = x, c
-        else:
-            better = c < best_c
-            best, best_c = torch.where(better, x, best), torch.where(better, c, best_c)
+        best, best_c = _keep_better(best, best_c, x, c)
     assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
     # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
     # apart, so it is set exactly (to the reference fit when that is its own class).
