@@ -618,3 +618,45 @@ def test_torch_func_compositions_match_eager(fast):
         P.set_fast_path(False)
         ref = fn()
         torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()), msg=name)
+
+
+_SMALL_STACK_JVP = r"""
+import sys, threading, torch, torchbrdf
+from torch.func import jvp, vmap
+g = torch.Generator().manual_seed(0)
+dt, P, L = torch.float64, 64, 8
+z = torch.tensor([0.0, 0.0, 2.0], dtype=dt)
+l = torch.nn.functional.normalize(torch.randn(1, L, 3, dtype=dt, generator=g) + z, dim=-1)  # per light
+v = torch.nn.functional.normalize(torch.randn(P, 1, 3, dtype=dt, generator=g) + z, dim=-1)  # per pixel
+n = torch.nn.functional.normalize(torch.randn(P, 1, 3, dtype=dt, generator=g) + z, dim=-1)
+th = torch.rand(P, 1, 5, dtype=dt, generator=g)
+
+def f(t):
+    return torchbrdf.principled(l, v, n, base_color=t[..., :3], roughness=t[..., 3:4], metallic=t[..., 4:5])
+
+torchbrdf.set_fast_path(True)
+tg = torch.eye(5, dtype=dt)[:, None, None, :].expand(5, P, 1, 5)
+run = lambda: vmap(lambda t: jvp(f, (th,), (t,))[1])(tg)
+want = run()  # compiles in the main thread
+threading.stack_size(128 * 1024)  # musl's default thread stack
+got = []
+t = threading.Thread(target=lambda: got.append(run()))
+t.start()
+t.join()
+sys.exit(0 if got and torch.equal(got[0], want) else 3)
+"""
+
+
+def test_broadcast_reads_fit_a_small_thread_stack():
+    # Inputs broadcast over one of two batch dims ('s2') are gathered per block of lanes. The
+    # gather buffers lived on the stack: a JVP pass with 5 tangents of per-pixel inputs under
+    # per-light directions needed ~150 KiB (0.5 MiB with 8 tangents and every parameter), and
+    # a thread with a 128 KiB stack (musl's default; a 512 KiB macOS pthread with more
+    # tangents) crashed with SIGSEGV. They are now one heap block per thread.
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-c", _SMALL_STACK_JVP], env=env, capture_output=True, timeout=600)
+    assert r.returncode == 0, (r.returncode, r.stderr.decode()[-2000:])

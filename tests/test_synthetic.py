@@ -153,3 +153,39 @@ def test_generate_capture_roundtrip_and_determinism(tmp_path):
     clean = render_capture(make_material("circuit", 5, 16), cap, backend="principled")
     rel = ((cap.images - clean) / clean.clamp(min=1e-3)).std()
     assert 0.005 < rel < 0.02
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_fit_residual_refuses_mixed_dtypes(fast):
+    # The fused kernels read every input's memory in log_obs's dtype: a float32 `points` beside a
+    # float64 `log_obs` was misread (residuals ~1e19), so a mismatch is an error naming the argument.
+    import torchbrdf
+    from torchbrdf.capture.synthetic import log_residual_points, pixel_points
+
+    pos, inten = light_layout(4)
+    P, L = 16, pos.shape[0]
+    n = torch.zeros(P, 3)
+    n[:, 2] = 1.0
+    pts = pixel_points(4, 4).reshape(-1, 3)
+    cam = torch.as_tensor(DEFAULT_CAMERA, dtype=torch.float32)
+    params = {"base_color": torch.full((P, 3), 0.5), "roughness": torch.full((P, 1), 0.4)}
+    log_obs = torch.zeros(P, L, 3, dtype=torch.float64)
+    torchbrdf.set_fast_path(fast)
+    try:
+        with pytest.raises(TypeError, match="normal"):
+            log_residual_points(n, pts, cam, pos.float(), inten.float(), params, log_obs, 0.01)
+    finally:
+        torchbrdf.set_fast_path(None)
+
+
+def test_fused_kernel_refuses_mixed_dtypes():
+    # The internal invariant behind every fused entry point: one dtype for all inputs.
+    from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS, active_lobes
+    from torchbrdf.kernels.ops import capture_fast
+
+    P, L = 4, 3
+    c = {**PRINCIPLED_DEFAULTS, "pos": torch.zeros(P, 1, 3), "n": torch.zeros(P, 1, 3), "camera": torch.ones(3),
+         "light_pos": torch.ones(1, L, 3), "light_int": torch.ones(1, L, 3),
+         "log_obs": torch.zeros(P, L, 3, dtype=torch.float64), "eps": 0.01, "base_color": 0.5}
+    with pytest.raises(TypeError, match="log_obs"):
+        capture_fast(c, active_lobes(PRINCIPLED_DEFAULTS), False, False)

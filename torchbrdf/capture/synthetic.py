@@ -568,10 +568,17 @@ def log_residual_points(
     (:func:`~torchbrdf.brdf.formula.point_light` with the principled BRDF) followed by the log
     — so at fit sizes the fused kernels evaluate the whole residual, its JVPs (the fit's
     Jacobian) and its backward in one pass per lane, with no ``(P, L, 3)`` intermediates.
-    Differentiable (reverse and forward mode) w.r.t. every tensor input.
+    Differentiable (reverse and forward mode) w.r.t. every tensor input. Every tensor must
+    share ``log_obs``'s floating dtype and device (the fused kernels read raw memory in one
+    dtype: a float32 ``points`` beside a float64 ``log_obs`` would be misread).
     """
+    from torchbrdf import _checks
     from torchbrdf.brdf import formula
     from torchbrdf.brdf import principled as _p
+
+    _checks.check_same_dtype_device({"log_obs": log_obs, "normal": normal, "points": points, "camera": camera,
+                                     "light_pos": light_pos, "light_int": light_int,
+                                     **{f"params[{k!r}]": v for k, v in params.items()}})
 
     def px(t: Any) -> Any:  # a per-pixel value as (P, 1, C): broadcast over the lights
         return t[:, None] if isinstance(t, Tensor) else t

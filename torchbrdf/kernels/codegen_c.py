@@ -29,6 +29,7 @@ if TYPE_CHECKING:  # fused imports this module at run time
 _PRELUDE = r"""
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 #if defined(__AVX512F__)
 #include <immintrin.h>
@@ -195,9 +196,11 @@ def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
 
     Lane ``i`` is ``(q, r) = (i / B, i % B)`` and reads element ``q·sA + r·sB + c``; ``B`` and
     each input's ``(sA, sB)`` follow the runtime floats in ``P``, in slot order (the tensor
-    inputs, then the tangents). A scalar pre-loop gathers a block's values into small stack
+    inputs, then the tangents). A scalar pre-loop gathers a block's values into per-thread
     buffers, so the main loop (which an integer division would stop gcc from vectorising)
-    reads them lane-dense.
+    reads them lane-dense. The buffers are one heap block per thread (``gs``, see
+    :func:`_print`), not stack arrays: a JVP pass gathers up to 8 tangents × every 's2'
+    input's channels (~130 buffers, 0.5 MiB in double), more than a small thread stack holds.
     """
     slots: dict[tuple, int] = {}
     for k, (_, mode, _) in enumerate(spec.tensors):
@@ -220,7 +223,7 @@ def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
         key = ("x", a["k"]) if a["role"] == "x" else ("t", a["j"], a["i"])
         m = slots[key]
         ptr = f"p{a['k']}" if a["role"] == "x" else f"t{a['j']}_{a['i']}"
-        bufs.append(f"R {_gather_buf(a)}[{_BLOCK}];")
+        bufs.append(f"R* const {_gather_buf(a)} = gs + {len(bufs)} * {_BLOCK}L;")
         body.append(f"{_gather_buf(a)}[t - b0] = {ptr}[q * sa{m} + (r + t - i) * sb{m} + {a['c']}];")
     return decl, bufs, body
 
@@ -302,7 +305,11 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
         "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
         sig + " {",
         *("  " + d for d in decl),
-        f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)",
+        # with gathers: one heap block of gather buffers per thread (see _gathers)
+        *([f"  #pragma omp parallel num_threads(nthreads)", "  {",
+           f"  R* const gs = (R*)malloc(sizeof(R) * {len(gbufs)} * {_BLOCK});",
+           f"  #pragma omp for schedule(dynamic, {_CHUNK_BLOCKS})"] if gbufs else
+          [f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)"]),
         f"  for (long b0 = 0; b0 < n; b0 += {_BLOCK}) {{",
         f"    const long b1 = b0 + {_BLOCK} < n ? b0 + {_BLOCK} : n;",
         *("    " + b for b in gbufs),
@@ -323,6 +330,7 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
         "    }",
         *(_store_block(spec.ctype) if planar_out else []),
         "  }",
+        *(["  free(gs);", "  }"] if gbufs else []),
         "}",
     ]
     return "\n".join(src) + "\n"

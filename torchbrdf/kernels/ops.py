@@ -115,6 +115,12 @@ class _Plan:
         self.N = math.prod(self.batch)
         self.dtype = tensors[0].dtype
         self.device = tensors[0].device
+        for k, t in zip(self.tensor_names, tensors):
+            # The kernels read every input's memory in one dtype on one device: a mismatch here
+            # would be misread silently (the public entry points cast or check before).
+            if t.dtype != self.dtype or t.device != self.device:
+                raise TypeError(f"fused {self.family} kernel: input {k!r} is {t.dtype} on {t.device}, "
+                                f"expected {self.dtype} on {self.device} like {self.tensor_names[0]!r}")
         self.floats = [float(x) for x in floats]
 
     def params(self, *flats) -> list[float]:
