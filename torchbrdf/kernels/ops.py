@@ -288,10 +288,11 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
     K = max(1, ntan)
     N, dtype = plan.N, plan.dtype
     shape = (*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3)
-    # torch.func.jvp hands the operator a zero tangent for every input that is not being
-    # differentiated (the capture residual's geometry and targets): dropping them prunes
-    # their forward-mode work from the kernel (a third of a fit's Jacobian, measured).
-    nonzero = [k for k, t in enumerate(tangents) if t.numel() and bool(t.ne(0).any())]
+    # An all-zero tangent (one a caller passes explicitly; torch.func's own arrive as None, see
+    # _PrincipledFunction.setup_context) is dropped, which prunes its forward-mode work from the
+    # kernel. Only on the CPU: on CUDA the scan would be a host sync per tangent.
+    nonzero = [k for k, t in enumerate(tangents)
+               if t.numel() and (t.device.type != "cpu" or bool(t.ne(0).any()))]
     tidx, tangents = [tidx[k] for k in nonzero], [tangents[k] for k in nonzero]
     if N == 0 or not tidx:
         return torch.zeros(shape, dtype=dtype, device=plan.device)
