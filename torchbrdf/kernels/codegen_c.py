@@ -218,7 +218,8 @@ def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
     decl = [f"const long SB = (long)P[{nf}];"]
     decl += [f"const long sa{m} = (long)P[{nf + 1 + 2 * m}], sb{m} = (long)P[{nf + 2 + 2 * m}];"
              for m in range(len(slots))]
-    bufs, body = [], []
+    bufs: list[str] = []
+    body: list[str] = []
     for a in loads:
         key = ("x", a["k"]) if a["role"] == "x" else ("t", a["j"], a["i"])
         m = slots[key]
