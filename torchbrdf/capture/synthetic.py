@@ -546,13 +546,19 @@ def render_points(
     lg = light if light is not None else light_geometry(points, camera, light_pos)
     l, n = lg["l"], normal[None]
     brdf_params = {k: v for k, v in params.items() if k != "normal"}
-    aniso = brdf_params.get("anisotropic", 0.0)
-    x = y = None
-    if isinstance(aniso, Tensor) or aniso != 0.0:
-        x, y = (t[None] for t in frame_from_normal_map(normal))
+    x, y = (t if t is None else t[None] for t in _fit_frame(normal, brdf_params))
     f = principled(l, lg["v"][None], n, x, y, **brdf_params)
     nl = torch.clamp((n * l).sum(-1, keepdim=True), min=0.0)
     return f * (light_int[:, None, :] * nl * lg["inv_d2"])
+
+
+def _fit_frame(normal: Tensor, params: Mapping) -> tuple[Tensor | None, Tensor | None]:
+    """The capture format's tangent frame ``(P, 3)`` each (:func:`frame_from_normal_map`), or
+    ``(None, None)`` when ``anisotropic`` is absent or a Python 0 (``f`` does not depend on it)."""
+    aniso = params.get("anisotropic", 0.0)
+    if isinstance(aniso, Tensor) or aniso != 0.0:
+        return frame_from_normal_map(normal)
+    return None, None
 
 
 def log_residual_points(
@@ -570,7 +576,8 @@ def log_residual_points(
     Jacobian) and its backward in one pass per lane, with no ``(P, L, 3)`` intermediates.
     Differentiable (reverse and forward mode) w.r.t. every tensor input. Every tensor must
     share ``log_obs``'s floating dtype and device (the fused kernels read raw memory in one
-    dtype: a float32 ``points`` beside a float64 ``log_obs`` would be misread).
+    dtype: a float32 ``points`` beside a float64 ``log_obs`` would be misread); the result is
+    in that dtype, on that device.
     """
     from torchbrdf import _checks
     from torchbrdf.brdf import formula
@@ -584,10 +591,7 @@ def log_residual_points(
         return t[:, None] if isinstance(t, Tensor) else t
 
     mat = {**_p.PRINCIPLED_DEFAULTS, **{k: px(v) for k, v in params.items() if k != "normal"}}
-    x = y = None
-    aniso = mat["anisotropic"]
-    if isinstance(aniso, Tensor) or aniso != 0.0:
-        x, y = (t[:, None] for t in frame_from_normal_map(normal))
+    x, y = (px(t) for t in _fit_frame(normal, mat))
     c: dict[str, Any] = {**mat, "pos": points[:, None], "n": normal[:, None], "camera": camera,
                          "light_pos": light_pos[None], "light_int": light_int[None], "log_obs": log_obs,
                          "eps": float(eps), "x": x, "y": y}

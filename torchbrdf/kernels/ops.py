@@ -126,11 +126,11 @@ class _Plan:
     def params(self, *flats) -> list[float]:
         """The kernel's runtime parameter row.
 
-        The Python floats, then, when some input of ``flats`` (iterables of ``(flat, mode)``,
-        ``mode`` a string or a ``(name, mode, C)`` slot, in the kernel's slot order) is 's2',
-        the inner batch size and each such input's two lane strides (see :func:`_flatten`).
+        The Python floats, then, when some input of ``flats`` (iterables of ``(flat, mode)``, in
+        the kernel's slot order) is 's2', the inner batch size and each such input's two lane
+        strides (see :func:`_flatten`).
         """
-        s2 = [f for fl in flats for f, m in fl if (m if isinstance(m, str) else m[1]) == "s2"]
+        s2 = [f for fl in flats for f, m in fl if m == "s2"]
         if not s2:
             return self.floats
         return self.floats + [float(self.batch[-1])] + [float(x) for f in s2 for x in f.stride()[:2]]
@@ -189,8 +189,8 @@ def _run_fwd(plan: _Plan, tensors) -> Tensor:
                 return _formula_eager(plan, tensors, plan.floats).expand(*plan.batch, 3).contiguous()
         return torch.empty(*plan.batch, 3, dtype=plan.dtype, device=plan.device)
     out = _pool.empty((plan.N, 3), plan.dtype)
-    lib[1](plan.N, _ptrs([f.data_ptr() for f in flat]), _dparams(plan.params(zip(flat, modes))), out.data_ptr(),
-           torch.get_num_threads())
+    P = _dparams(plan.params(zip(flat, (m for _, m, _ in modes))))
+    lib[1](plan.N, _ptrs([f.data_ptr() for f in flat]), P, out.data_ptr(), torch.get_num_threads())
     return out.view(*plan.batch, 3)
 
 
@@ -254,7 +254,7 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
         gs = vjp_fn(grad_out.to(dtype))
         return [g.contiguous() for g in gs]
     fn = lib[1]
-    P = _dparams(plan.params(zip(flat, modes)))
+    P = _dparams(plan.params(zip(flat, (m for _, m, _ in modes))))
     nt = torch.get_num_threads()
     full = {i: _pool.empty((N, plan.C[i]), dtype) for i in need if gmode[i] == "full"}
     red = {i: torch.zeros(plan.C[i], dtype=dtype) for i in need if gmode[i] == "red"}
@@ -320,7 +320,7 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
             continue
         ins, tins = _ptrs([f.data_ptr() for f in flat]), _ptrs([f.data_ptr() for f in tflat])
         outs = _ptrs([out[j].data_ptr() for j in js])
-        P = _dparams(plan.params(zip(flat, modes), zip(tflat, tmodes)))
+        P = _dparams(plan.params(zip(flat, (m for _, m, _ in modes)), zip(tflat, tmodes)))
         lib[1](N, ins, P, tins, outs, torch.get_num_threads())
     return out.view(shape)
 

@@ -81,7 +81,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import light_geometry, log_residual_points, render_capture, render_points
+from torchbrdf.capture.synthetic import light_geometry, log_residual_points, render_capture
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, local_prior, pcg, prior_energy
 
@@ -249,27 +249,23 @@ class LevelData:
             return r.reshape(theta.shape[0], -1)
         if rows is not None:
             light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
-        pred = _render_points(p, points, self.camera, self.pos[idx], self.inten[idx], model, light)
+        pred = _render_points(p, self.inten[idx], model, light)
         r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs.permute(1, 0, 2)
         return r.permute(1, 0, 2).reshape(theta.shape[0], -1)
 
 
-def _render_points(p, points, camera, pos, inten, model, light):
-    if model == "principled":
-        return render_points(p["normal"], points, camera, pos, inten, p, light)
+def _render_points(p, inten, model, light):
+    """Radiance ``(L, P, 3)`` of the fit's other models (``"principled"`` goes through the fused
+    :func:`log_residual_points`); ``light`` is :func:`light_geometry` of the pixels and lights."""
     if model == "svbrdf_ggx":  # the GGX model of torchbrdf.capture_model (not tuned)
         from torchbrdf.brdf.capture_model import svbrdf_ggx
 
-        v = camera - points
-        v = v / v.norm(dim=-1, keepdim=True)
-        dl = pos[:, None] - points[None]
-        d2 = (dl * dl).sum(-1, keepdim=True)
-        l = dl / d2.sqrt()
+        l = light["l"]
         n = p["normal"][None].expand_as(l)
         spec_alb = 0.08 * p["specular"] * (1 - p["metallic"]) + p["base_color"] * p["metallic"]
-        f = svbrdf_ggx(l, v[None].expand_as(l), n, diffuse_albedo=p["base_color"] * (1 - p["metallic"]),
+        f = svbrdf_ggx(l, light["v"][None].expand_as(l), n, diffuse_albedo=p["base_color"] * (1 - p["metallic"]),
                        specular_albedo=spec_alb, roughness=p["roughness"])
-        return f * inten[:, None] * torch.clamp((n * l).sum(-1, keepdim=True), min=0) / d2
+        return f * inten[:, None] * torch.clamp((n * l).sum(-1, keepdim=True), min=0) * light["inv_d2"]
     raise ValueError(f"unknown model {model!r}")
 
 
@@ -588,7 +584,7 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
             return log_residual_points(p["normal"], pts, cam, pos, inten, p, log_obs.permute(1, 0, 2),
                                        data.eps).permute(1, 0, 2)
         light = light_geometry(pts, cam, pos)
-        pred = _render_points(p, pts, cam, pos, inten, model, light)
+        pred = _render_points(p, inten, model, light)
         return torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)) - log_obs
 
     r = torch.nan_to_num(res(base))
