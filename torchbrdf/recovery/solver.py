@@ -17,7 +17,9 @@ Method (each choice measured, see ``docs/recovery.md``):
 * **Per-pixel Levenberg–Marquardt** (Gauss–Newton with per-pixel damping; the Jacobian by
   forward-mode AD, ``torch.func.jvp``): pixels are independent except through the priors, so
   the normal equations are one 7×7 block per pixel plus the prior's sparse Laplacian, solved
-  by block-preconditioned conjugate gradients (39 iterations in the default schedule).
+  by conjugate gradients on the prior-joined channels (the others eliminated per pixel).
+  At most 39 iterations in the default schedule: a full-resolution stage ends once an
+  iteration changes its fit loss by less than 1 % (``converge_tol``).
   A step that raises a pixel's
   cost — or makes it non-finite — is rejected for that pixel and its damping raised (step
   back, smaller step); a non-finite total loss also halves the global step (``--lr``).
@@ -110,6 +112,10 @@ class RecoveryConfig:
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
+    # A full-resolution stage ends early once an iteration lowers every hypothesis' fit loss by
+    # less than this fraction (0: run every planned iteration), after at least converge_min_iters.
+    converge_tol: float = 0.01
+    converge_min_iters: int = 2
     fill: bool = False  # non-local fill of roughness / specular (nonlocal_fill; measured, not kept: docs)
     fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
     fill_weight: float = 1.0  # its precision, × sigma² / fill_sigma²
@@ -531,7 +537,8 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
     ``lr`` scales the step. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``; when ``extra``
     (a dict) is given, ``extra["residual"]`` receives the residuals ``(P, M)`` at the returned
-    ``theta`` (for the light-scale update, without another render). ``unary = (target, precision)``
+    ``theta`` (for the light-scale update, without another render) and ``extra["fit"]`` their
+    data cost ``Σ r²`` ``(P,)`` (non-finite: inf; the fit loss the progress bar shows). ``unary = (target, precision)``
     ``(P, 7)`` each adds ``½ Σ precision (θ − target)²`` (the non-local fill, :func:`nonlocal_fill`).
     """
     idx, size = data.train_idx, data.size
@@ -557,7 +564,8 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
     cost = torch.where(better, c1, c0)
     if extra is not None:
-        extra["residual"] = torch.where(better, r1, r0)
+        extra["residual"] = r = torch.where(better, r1, r0)
+        extra["fit"] = torch.nan_to_num((r * r).sum(-1), nan=float("inf"))
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
 
 
@@ -1055,6 +1063,9 @@ class Recovery:
         self.plan = _schedule(self.size, cfg)
         self.stop_requested = False
         self._data: dict[tuple[int, bool], LevelData] = {}
+        # Each hypothesis' data cost per pixel (P,) after the last LM step, per light and channel
+        # (the fit loss the progress bar shows; not state: every iteration sets it anew).
+        self.fit_cost: dict[int, Tensor] = {}
         self.state: dict[str, Any] = {}  # filled by init_state / load_checkpoint
 
     def data(self, size: int, all_lights: bool = False) -> LevelData:
@@ -1165,6 +1176,7 @@ class Recovery:
             st["theta"][0][: max(1, st["theta"][0].shape[0] // 10)] = float("nan")  # injected fault
         hyps = [0, 1] if kind == "dual" else [0]
         unary = st.get("fill") if kind == "all" else None
+        self.fit_cost = {}
         total = 0.0
         for h in hyps:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
@@ -1182,7 +1194,9 @@ class Recovery:
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
                 cross = None if kind == "dual" else self.cfg.metal_margin
                 active = None  # a later pass needs only the pixels near the last one's changes
-                for _ in range(self.cfg.propagate_passes if st["it"] == 0 else 1):
+                # A stage's start (a new level, or the class choice) moves pixels far; "all"
+                # continues the converged polish at its size, like one more of its iterations.
+                for _ in range(self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1):
                     theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary,
                                                       active=active)
                     if not bool(changed.any()):
@@ -1190,13 +1204,14 @@ class Recovery:
                     active = _dilate(changed, size)
                 if kind != "dual":
                     st["metal"] = metal
-            if st["it"] == 0 and self.cfg.propagate:
+            if st["it"] == 0 and self.cfg.propagate and kind != "all":
                 theta, _ = normal_search(data, theta, metal, self.cfg.model)
             calibrate = self.cfg.light_scale and kind != "dual"
-            extra: dict[str, Any] | None = {} if calibrate else None
+            extra: dict[str, Any] = {}
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
                                               extra, unary)
-            if extra is not None:  # alternate: maps (LM step above), then each light's intensity scale
+            self.fit_cost[h] = extra["fit"] / max(1, len(data.train_idx) * 3)
+            if calibrate:  # alternate: maps (LM step above), then each light's intensity scale
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
                 self._sync_light_scale()
@@ -1215,8 +1230,31 @@ class Recovery:
         st["history"].append({"iteration": st["global_it"], "size": size, "stage": kind, "loss": total})
         st["it"] += 1
         st["global_it"] += 1
+        if st["it"] < n_it and self._converged(size, float(self.fit_cost[0].mean()) if len(hyps) == 1 else
+                                               float(torch.minimum(self.fit_cost[0], self.fit_cost[1]).mean())):
+            st["history"][-1]["skipped"] = n_it - st["it"]  # planned iterations the stage no longer needs
+            st["it"] = n_it
         if st["it"] >= n_it:
             self.end_stage()
+
+    def _converged(self, size: int, fit: float) -> bool:
+        """Whether the stage at ``size`` is done: its fit loss ``fit`` (this iteration's; in a
+        dual stage, of each pixel's better hypothesis) changed by less than ``converge_tol`` of
+        its previous value.
+
+        Each pixel's better hypothesis, not each hypothesis' mean: a hypothesis' mean is
+        dominated by the pixels of the other class, where it fits badly and stays put. Only
+        the full-resolution stages stop early (the coarse ones are cheap and set up the finer
+        ones), and only after ``converge_min_iters`` iterations: the first iteration of a
+        stage moves the state by propagation and normal search as well as by LM.
+        """
+        st, cfg = self.state, self.cfg
+        last, st["last_fit"] = st.get("last_fit"), (st["stage"], fit)
+        if cfg.converge_tol <= 0 or size != self.plan[-1][0] or st["it"] < cfg.converge_min_iters:
+            return False
+        if last is None or last[0] != st["stage"] or not math.isfinite(fit):
+            return False
+        return abs(last[1] - fit) < cfg.converge_tol * last[1]
 
     def end_stage(self) -> None:
         st = self.state

@@ -136,6 +136,8 @@ def check_config(cfg: RecoveryConfig) -> None:
     _integer("threads", cfg.threads, 1, 4096, allow_none=True)
     _integer("cg_iters", cfg.cg_iters, 1, 100_000)
     _integer("propagate_passes", cfg.propagate_passes, 0, 10_000)
+    _finite("converge_tol", cfg.converge_tol, 0.0, 1.0)
+    _integer("converge_min_iters", cfg.converge_min_iters, 1, 1_000_000)
     priors = ("prior_roughness", "prior_specular", "prior_metal_base", "prior_nonlocal_base",
               "prior_nonlocal")
     for name in priors:
@@ -728,7 +730,7 @@ class _Progress:
         loss = fit.get("best", fit.get("chosen", h["loss"]))
         self.bar.set_description_str(f"iteration {st['global_it']}/{self.total_iters} "
                                      f"({h['stage']} {h['size']}², fit loss {loss:.3g})", refresh=False)
-        self.bar.update(self.units[stage])
+        self.bar.update(self.units[stage] * (1 + h.get("skipped", 0)))  # a converged stage's rest at once
 
     def close(self) -> None:
         if self.bar is not None:
@@ -745,8 +747,15 @@ def _fit_losses(rec: Recovery) -> dict:
 
     The quantity the bar and ``loss.png`` show: per hypothesis and per pixel's better one in a dual stage, the
     chosen class otherwise. Mean over pixels of the squared log residual per light and channel.
+    It is the last LM step's (``rec.fit_cost``, no extra render); a state without one is rendered.
     """
     st = _state(rec)
+    fc = getattr(rec, "fit_cost", {})
+    if len(fc) == len(st["theta"]) and all(v.shape[0] == st["theta"][0].shape[0] for v in fc.values()):
+        if len(fc) == 2:
+            return {"dielectric": float(fc[0].mean()), "metal": float(fc[1].mean()),
+                    "best": float(torch.minimum(fc[0], fc[1]).mean())}
+        return {"chosen": float(fc[0].mean())}
     size, kind, _ = rec.plan[min(st["stage"], len(rec.plan) - 1)]
     data = rec.data(size)
     n = max(1, len(data.train_idx) * 3)
@@ -897,7 +906,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         "events": st["events"],
         "seed": cfg.seed,
         "per_image_psnr": {f: psnr(pred[k], cap.images[k]) for k, f in enumerate(cap.files)},
-        "loss_history": [{k: h[k] for k in ("iteration", "stage", "size", "loss", "fit") if k in h}
+        "loss_history": [{k: h[k] for k in ("iteration", "stage", "size", "loss", "fit", "skipped") if k in h}
                          for h in st["history"]],
         "fingerprint": {"capture_sha256": _digest(fingerprint["capture"]),
                         "settings": fingerprint["settings"]},
@@ -1030,7 +1039,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--gt", type=Path,
                    help="folder of ground-truth maps (base_color.exr, ...) to report errors against")
     p.add_argument("--iters", type=int, default=d.iters,
-                   help="total LM iterations, spread over the stages (0 = the default schedule, 39)")
+                   help="total LM iterations planned, spread over the stages (0 = the default schedule, 39); "
+                        "converged full-resolution stages end early (--converge-tol)")
     p.add_argument("--lr", type=float, default=d.lr,
                    help="LM step multiplier in (0, 2] (1 = full damped Gauss-Newton step)")
     p.add_argument("--size", type=int, default=d.size,
@@ -1047,6 +1057,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--model", choices=("principled", "svbrdf_ggx"), default=d.model,
                    help="BRDF model fitted (default principled)")
     p.add_argument("--levels", type=int, default=d.levels, help="coarse-to-fine levels (1-12)")
+    p.add_argument("--converge-tol", type=float, default=d.converge_tol,
+                   help="a full-resolution stage ends once an iteration changes its fit loss by less than this "
+                        "fraction (default %(default)s; 0 runs every planned iteration)")
     p.add_argument("--prior-roughness", type=float, default=d.prior_roughness,
                    help="weight of the roughness smoothness prior (>= 0)")
     p.add_argument("--prior-specular", type=float, default=d.prior_specular,
@@ -1103,7 +1116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
-            threads=args.threads, soft_metal=not args.no_soft_metal,
+            threads=args.threads, soft_metal=not args.no_soft_metal, converge_tol=args.converge_tol,
         )
         if cfg.holdout is not None and cfg.holdout < 0:
             cfg.holdout = 10**9  # out of range: no held-out light
