@@ -51,3 +51,25 @@ def test_contract_point_light_matches_formula():
     f = torchbrdf.principled(l, v, n, base_color=mat["base_color"].view(3), roughness=0.4)
     expect = f * I * torch.clamp(l @ n, min=0) / (d @ d)
     torch.testing.assert_close(img.view(3), expect, rtol=1e-10, atol=0)
+
+
+def test_import_does_not_load_the_compiler_stack():
+    """``import torchbrdf`` leaves ``torch._dynamo`` (1.6 s) to users who compile."""
+    import subprocess
+    import sys
+
+    code = "import sys, torchbrdf, torchbrdf.recovery.svbrdf; print('torch._dynamo' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", out.stderr
+
+
+def test_the_constant_result_mark_is_torchs_own():
+    """The backend resolver is marked for torch.compile the way torch.compiler marks a function."""
+    from torchbrdf.brdf import principled as P
+
+    def probe():
+        return 0
+
+    marked = torch.compiler.assume_constant_result(probe)
+    flags = {k for k in vars(marked) if k.startswith("_dynamo")}
+    assert flags and flags <= set(vars(P._resolve_backend)), flags
