@@ -130,7 +130,9 @@ def test_worker_death_without_retries_is_reported(ray_local, good, tmp_path):
 def test_ctrl_c_cancels_ray_tasks_and_rerun_finishes(ray_local, good, tmp_path):
     """Ctrl-C while tasks run: summary with interrupted rows, KeyboardInterrupt; the rerun finishes."""
     out = tmp_path / "out"
-    cfg = RecoveryConfig(iters=20, seed=3, checkpoint_every=1)
+    # Every planned iteration (no early end of converged stages): the tasks must still be running
+    # when the interrupt arrives.
+    cfg = RecoveryConfig(iters=20, seed=3, checkpoint_every=1, converge_tol=0.0)
 
     def press_ctrl_c():  # as soon as a task has written its first checkpoint
         deadline = time.monotonic() + 120

@@ -108,6 +108,55 @@ def test_full_resolution_stages_end_once_converged(tiny):
     assert loose["iterations"] == len(loose["loss_history"]) < exact["iterations"]
 
 
+def test_resume_after_a_converged_stage_equals_uninterrupted(tiny, tmp_path):
+    """Stopped just before the iteration that ends a stage early, a resumed run ends it there too."""
+    cfg = dict(seed=1, checkpoint_every=1, threads=2, converge_tol=0.05)
+    full = recover(tiny, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
+    first = next(h["iteration"] for h in full["loss_history"] if "skipped" in h)
+    part = recover(tiny, RecoveryConfig(**cfg, signal_at=first), tmp_path / "part", progress=False)
+    assert not part["completed"] and part["iterations"] == first
+    resumed = recover(tiny, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
+    assert resumed["iterations"] == full["iterations"]
+    assert [h.get("skipped") for h in resumed["loss_history"]] == [h.get("skipped") for h in full["loss_history"]]
+    for k in full["maps"]:
+        torch.testing.assert_close(resumed["maps"][k], full["maps"][k], rtol=1e-5, atol=1e-6)
+
+
+def test_the_fit_loss_is_the_training_lights_data_cost(tiny):
+    """The fit loss taken from each LM step equals a render of the state on the training lights,
+    in every stage (the "all" stage also fits the held-out light, which it leaves out)."""
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+    from torchbrdf.recovery.svbrdf import _fit_losses
+
+    cfg = RecoveryConfig(seed=0, light_scale=False, light_position=False, soft_metal=False)
+    rec = Recovery(load_capture(tiny), cfg, log=lambda m: None)
+    kinds = set()
+    with torch.no_grad():
+        rec.init_state()
+        while not rec.finished():
+            stage = rec.state["stage"]
+            rec.tick()
+            if rec.state["stage"] != stage:  # end_stage changed the state after the LM step
+                continue
+            kinds.add(rec.plan[stage][1])
+            from_lm = _fit_losses(rec)
+            rec.fit_cost = {}
+            rendered = _fit_losses(rec)
+            assert from_lm.keys() == rendered.keys()
+            for key in from_lm:
+                assert math.isclose(from_lm[key], rendered[key], rel_tol=1e-4), (rec.plan[stage], key)
+    assert kinds == {"dual", "polish", "all"}
+
+
+def test_a_resumed_progress_bar_starts_where_the_stages_left_off():
+    from torchbrdf.recovery.svbrdf import _Progress
+
+    plan = [(8, "dual", 2), (16, "polish", 3), (16, "all", 2)]
+    bar = _Progress(plan, 2, 1, False, lambda m: None)  # polish ended early after 1 of its 3
+    assert bar.done == 8 * 8 * 2 * 2 + 16 * 16 * 3 + 16 * 16
+
+
 def test_nan_is_detected_recovered_and_never_written(tiny, tmp_path):
     rep = recover(tiny, RecoveryConfig(seed=0, iters=10, fault_at=3, threads=2), tmp_path / "nan", progress=False)
     assert rep["completed"]

@@ -1063,8 +1063,9 @@ class Recovery:
         self.plan = _schedule(self.size, cfg)
         self.stop_requested = False
         self._data: dict[tuple[int, bool], LevelData] = {}
-        # Each hypothesis' data cost per pixel (P,) after the last LM step, per light and channel
-        # (the fit loss the progress bar shows; not state: every iteration sets it anew).
+        # Each hypothesis' data cost per pixel (P,) on the training lights after the last LM step
+        # (before that iteration's light-calibration update), per light and channel: the fit loss
+        # the progress bar shows. Not state: every iteration sets it anew.
         self.fit_cost: dict[int, Tensor] = {}
         self.state: dict[str, Any] = {}  # filled by init_state / load_checkpoint
 
@@ -1210,7 +1211,7 @@ class Recovery:
             extra: dict[str, Any] = {}
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
                                               extra, unary)
-            self.fit_cost[h] = extra["fit"] / max(1, len(data.train_idx) * 3)
+            self.fit_cost[h] = self._training_fit(extra, data)
             if calibrate:  # alternate: maps (LM step above), then each light's intensity scale
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
@@ -1237,6 +1238,16 @@ class Recovery:
         if st["it"] >= n_it:
             self.end_stage()
 
+    def _training_fit(self, extra: dict, data: LevelData) -> Tensor:
+        """Data cost ``(P,)`` per training light and channel from an LM step's ``extra``; the
+        "all" stage also fits the held-out light, which the fit loss leaves out."""
+        if list(data.train_idx) == list(self.train_idx):
+            return extra["fit"] / max(1, len(self.train_idx) * 3)
+        cols = torch.tensor([3 * data.train_idx.index(k) + c for k in self.train_idx for c in range(3)],
+                            device=extra["residual"].device)
+        r = extra["residual"].index_select(1, cols)
+        return torch.nan_to_num((r * r).sum(-1), nan=float("inf")) / max(1, len(self.train_idx) * 3)
+
     def _converged(self, size: int, fit: float) -> bool:
         """Whether the stage at ``size`` is done: its fit loss ``fit`` (this iteration's; in a
         dual stage, of each pixel's better hypothesis) changed by less than ``converge_tol`` of
@@ -1245,8 +1256,9 @@ class Recovery:
         Each pixel's better hypothesis, not each hypothesis' mean: a hypothesis' mean is
         dominated by the pixels of the other class, where it fits badly and stays put. Only
         the full-resolution stages stop early (the coarse ones are cheap and set up the finer
-        ones), and only after ``converge_min_iters`` iterations: the first iteration of a
-        stage moves the state by propagation and normal search as well as by LM.
+        ones), and only after ``converge_min_iters`` iterations (at least 2: the first has no
+        earlier fit of its stage to compare with, and it moves the state by propagation and
+        normal search as well as by LM).
         """
         st, cfg = self.state, self.cfg
         last, st["last_fit"] = st.get("last_fit"), (st["stage"], fit)

@@ -683,15 +683,15 @@ class _Progress:
     stages instead of jumping when a level four times the size starts.
     """
 
-    def __init__(self, plan, done_iters: int, enabled: bool, write: Callable[[str], None]):
+    def __init__(self, plan, stage: int, it: int, enabled: bool, write: Callable[[str], None]):
         self.plan = plan
         self.units = [s * s * (2 if kind == "dual" else 1) for s, kind, _ in plan]
         self.total_iters = sum(p[2] for p in plan)
-        done = 0
-        left = done_iters
-        for (_, _, n), u in zip(plan, self.units):
-            done += min(left, n) * u
-            left -= min(left, n)
+        # Where a resumed run starts: by stage and iteration, not by iterations run (a converged
+        # stage skipped its rest).
+        done = sum(u * p[2] for u, p in zip(self.units[:stage], plan[:stage]))
+        done += it * self.units[stage] if stage < len(plan) else 0
+        self.done = done  # work units
         self.enabled = enabled
         self.bar = None
         self.write = write
@@ -715,9 +715,11 @@ class _Progress:
         extra = ""
         if kind != "dual" and _state(rec).get("metal") is not None:
             extra = f" ({100 * float(_state(rec)['metal'].mean()):.0f}% of pixels metal)"
-        self.write(f"stage {stage + 1}/{len(self.plan)}: {size}×{size} px, {n} iterations — "
-                   f"{kind}: {_STAGE_TEXT.get(kind, kind)}{extra}; its first iteration also propagates "
-                   "neighbours' parameters and searches normals, so it takes longer")
+        start = ("" if kind == "all" else "; its first iteration also propagates neighbours' parameters and "
+                 "searches normals, so it takes longer")
+        upto = "up to " if size == self.plan[-1][0] and rec.cfg.converge_tol > 0 else ""
+        self.write(f"stage {stage + 1}/{len(self.plan)}: {size}×{size} px, {upto}{n} iterations — "
+                   f"{kind}: {_STAGE_TEXT.get(kind, kind)}{extra}{start}")
 
     def tick(self, rec: Recovery) -> None:
         if self.bar is None:
@@ -969,7 +971,7 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
         plain_end_stage()
 
     rec.end_stage = end_stage  # type: ignore[method-assign]
-    bar = _Progress(rec.plan, _state(rec)["global_it"], progress, log)
+    bar = _Progress(rec.plan, _state(rec)["stage"], _state(rec)["it"], progress, log)
     t0 = time.perf_counter() - _state(rec)["seconds"]
     interrupted = False
 
@@ -1060,6 +1062,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--converge-tol", type=float, default=d.converge_tol,
                    help="a full-resolution stage ends once an iteration changes its fit loss by less than this "
                         "fraction (default %(default)s; 0 runs every planned iteration)")
+    p.add_argument("--converge-min-iters", type=int, default=d.converge_min_iters,
+                   help="... but not before this many of its iterations (default %(default)s)")
     p.add_argument("--prior-roughness", type=float, default=d.prior_roughness,
                    help="weight of the roughness smoothness prior (>= 0)")
     p.add_argument("--prior-specular", type=float, default=d.prior_specular,
@@ -1117,6 +1121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
             threads=args.threads, soft_metal=not args.no_soft_metal, converge_tol=args.converge_tol,
+            converge_min_iters=args.converge_min_iters,
         )
         if cfg.holdout is not None and cfg.holdout < 0:
             cfg.holdout = 10**9  # out of range: no held-out light
