@@ -535,6 +535,40 @@ def test_torch_compile_fullgraph_runs_the_fused_operator():
     assert not counters["graph_break"]
 
 
+@pytest.mark.parametrize("mode", ["jvp", "jvp_of_vmap", "jacfwd", "forward_ad"])
+def test_forward_mode_inside_torch_compile_matches_eager(mode):
+    """Forward mode traced by torch.compile (fullgraph) gives eager's tangents, not zeros: the
+    fused operator has no forward-mode rule, so the compiled graph takes the eager formula
+    there (a ``torch.func`` forward transform at any depth, or a ``forward_ad`` dual level)."""
+    import torch.autograd.forward_ad as fwad
+    import torch._dynamo
+
+    inputs = _case(31, 64, torch.float32, min_cos=0.05)
+    l, v, n, base, rough = inputs["l"], inputs["v"], inputs["n"], inputs["base_color"], inputs["roughness"]
+
+    def f(r):
+        return torchbrdf.principled(l, v, n, base_color=base, roughness=r)
+
+    def tangent(r):
+        one = torch.ones_like(r)
+        if mode == "jvp":
+            return torch.func.jvp(f, (r,), (one,))[1]
+        if mode == "jvp_of_vmap":  # the forward transform below the top of the stack
+            g = torch.func.vmap(lambda rr: torchbrdf.principled(l[:1], v[:1], n[:1], base_color=base[:1],
+                                                                roughness=rr))
+            return torch.func.jvp(g, (r[:, None],), (one[:, None],))[1][:, 0]
+        if mode == "jacfwd":
+            return torch.func.jacfwd(lambda r: f(r).sum(0))(r).sum(1)[..., 0].T
+        with fwad.dual_level():
+            return fwad.unpack_dual(f(fwad.make_dual(r, one))).tangent
+
+    torch._dynamo.reset()
+    ref = tangent(rough)
+    out = torch.compile(tangent, fullgraph=True, backend="aot_eager")(rough)
+    assert float(ref.abs().max()) > 0
+    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
+
+
 def test_jacfwd_over_many_parameters_runs_in_passes_of_a_few_tangents(fast, monkeypatch):
     # jacfwd w.r.t. a per-lane map: K = lanes tangents, split into passes of TANGENTS_PER_PASS.
     monkeypatch.setattr(_ops, "TANGENTS_PER_PASS", 4)
