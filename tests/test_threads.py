@@ -67,17 +67,18 @@ def test_library_import_leaves_the_openmp_environment_alone():
     assert out.strip() == "None"
 
 
-@pytest.mark.parametrize("user, expect", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+@pytest.mark.parametrize("user, expect", [(None, ["PASSIVE", "1000"]), ("ACTIVE", ["ACTIVE", "None"])])
 def test_recovery_cli_sleeps_instead_of_spinning(user, expect):
-    """``python -m training.recover_svbrdf`` has OMP_WAIT_POLICY=PASSIVE set before torch loads libgomp."""
+    """``python -m training.recover_svbrdf`` sets a short poll, then sleep (OMP_WAIT_POLICY=PASSIVE,
+    GOMP_SPINCOUNT=1000) before torch loads libgomp; a policy the user set is kept."""
     out = _python("""
         import os, sys
         import training
         torch_first = "torch" in sys.modules
         import training.recover_svbrdf
-        print(os.environ.get("OMP_WAIT_POLICY"), torch_first)
+        print(os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT"), torch_first)
     """, {"OMP_WAIT_POLICY": user} if user else None)
-    assert out.split() == [expect, "False"]  # set by the package, before anything imported torch
+    assert out.split() == [*expect, "False"]  # set by the package, before anything imported torch
 
 
 @pytest.mark.skipif(os.name != "posix", reason="the re-exec is POSIX only")
@@ -87,7 +88,7 @@ def test_console_script_restarts_once_with_passive_wait(tmp_path):
     script.write_text(textwrap.dedent("""
         import os, sys
         from torchbrdf.recovery.svbrdf import main
-        print("POLICY", os.environ.get("OMP_WAIT_POLICY"), flush=True)
+        print("POLICY", os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT"), flush=True)
         sys.exit(main())
     """))
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
@@ -95,5 +96,6 @@ def test_console_script_restarts_once_with_passive_wait(tmp_path):
     res = subprocess.run([sys.executable, str(script), "--help"], env=env, capture_output=True, text=True,
                          timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert [x for x in res.stdout.splitlines() if x.startswith("POLICY")] == ["POLICY None", "POLICY PASSIVE"]
+    assert [x for x in res.stdout.splitlines() if x.startswith("POLICY")] == ["POLICY None None",
+                                                                             "POLICY PASSIVE 1000"]
     assert "usage:" in res.stdout
