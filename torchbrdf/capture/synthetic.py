@@ -213,18 +213,26 @@ def _wood(gen, size, y):
     return base, rough, spec
 
 
+def _inlay_sdf(gen, x, y, count: tuple[int, int], extent: float, radius: tuple[float, float]):
+    """Signed distance ``(S, S)`` to a union of random inlays (< 0 inside): discs and bars,
+    ``count`` = [low, high) of their number, centres in ``±extent``, sizes in ``radius``;
+    ``x``, ``y`` are :func:`_coords`."""
+    sdf = torch.full(x.shape, 10.0)
+    for _ in range(int(torch.randint(count[0], count[1], (1,), generator=gen))):
+        cx, cy = _pick(gen, -extent, extent), _pick(gen, -extent, extent)
+        r = _pick(gen, *radius)
+        if float(torch.rand((), generator=gen)) < 0.5:  # a disc
+            d = ((x - cx) ** 2 + (y - cy) ** 2).sqrt() - r
+        else:  # a bar
+            d = torch.maximum((x - cx).abs() - r * 1.6, (y - cy).abs() - r * 0.35)
+        sdf = torch.minimum(sdf, d)
+    return sdf
+
+
 def _recipe_metal_inlay(gen, size):
     x, y = _coords(size)
     base, rough, spec = _wood(gen, size, y)
-    # Inlays: discs and bars.
-    mask = torch.zeros(size, size)
-    for _ in range(int(torch.randint(3, 6, (1,), generator=gen))):
-        cx, cy, r = _pick(gen, -0.7, 0.7), _pick(gen, -0.7, 0.7), _pick(gen, 0.12, 0.3)
-        if float(torch.rand((), generator=gen)) < 0.5:
-            d = ((x - cx) ** 2 + (y - cy) ** 2).sqrt() - r
-        else:
-            d = torch.maximum((x - cx).abs() - r * 1.6, (y - cy).abs() - r * 0.35)
-        mask = torch.maximum(mask, (d < 0).float())
+    mask = (_inlay_sdf(gen, x, y, (3, 6), 0.7, (0.12, 0.3)) < 0).float()
     mcol = _metal_color(gen)
     mrough = _pick(gen, 0.2, 0.4) + 0.06 * _noise(gen, size, 8)
     scratch = _scratches(gen, x, y, 25, (0.1, 0.5))
@@ -345,14 +353,7 @@ def _recipe_aa_inlay(gen, size):
     from 0 to 1 across each edge, as in a texture magnified with bilinear filtering."""
     x, y = _coords(size)
     base, rough, spec = _wood(gen, size, y)
-    sdf = torch.full((size, size), 10.0)  # signed distance to the union of the inlays (< 0 inside)
-    for _ in range(int(torch.randint(6, 10, (1,), generator=gen))):
-        cx, cy, r = _pick(gen, -0.75, 0.75), _pick(gen, -0.75, 0.75), _pick(gen, 0.1, 0.25)
-        if float(torch.rand((), generator=gen)) < 0.5:
-            d = ((x - cx) ** 2 + (y - cy) ** 2).sqrt() - r
-        else:
-            d = torch.maximum((x - cx).abs() - r * 1.6, (y - cy).abs() - r * 0.35)
-        sdf = torch.minimum(sdf, d)
+    sdf = _inlay_sdf(gen, x, y, (6, 10), 0.75, (0.1, 0.25))
     mask = _soft_step(-sdf, float((sdf < 0).float().mean()), _pick(gen, 0.07, 0.12))
     mcol = _metal_color(gen)
     mrough = _pick(gen, 0.2, 0.4) + 0.06 * _noise(gen, size, 8)

@@ -112,8 +112,9 @@ class RecoveryConfig:
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
-    # A full-resolution stage ends early once an iteration lowers every hypothesis' fit loss by
-    # less than this fraction (0: run every planned iteration), after at least converge_min_iters.
+    # A full-resolution stage ends early once an iteration changes its fit loss (a dual stage's: of
+    # each pixel's better hypothesis) by less than this fraction (0: run every planned iteration),
+    # after at least converge_min_iters of its iterations (Recovery._converged).
     converge_tol: float = 0.01
     converge_min_iters: int = 2
     fill: bool = False  # non-local fill of roughness / specular (nonlocal_fill; measured, not kept: docs)
@@ -537,8 +538,7 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
     ``lr`` scales the step. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``; when ``extra``
     (a dict) is given, ``extra["residual"]`` receives the residuals ``(P, M)`` at the returned
-    ``theta`` (for the light-scale update, without another render) and ``extra["fit"]`` their
-    data cost ``Σ r²`` ``(P,)`` (non-finite: inf; the fit loss the progress bar shows). ``unary = (target, precision)``
+    ``theta`` (for the light-scale update and the fit loss, without another render). ``unary = (target, precision)``
     ``(P, 7)`` each adds ``½ Σ precision (θ − target)²`` (the non-local fill, :func:`nonlocal_fill`).
     """
     idx, size = data.train_idx, data.size
@@ -564,8 +564,7 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
     cost = torch.where(better, c1, c0)
     if extra is not None:
-        extra["residual"] = r = torch.where(better, r1, r0)
-        extra["fit"] = torch.nan_to_num((r * r).sum(-1), nan=float("inf"))
+        extra["residual"] = torch.where(better, r1, r0)
     return theta, lam, cost, int((~torch.isfinite(c1)).sum())
 
 
@@ -1239,13 +1238,13 @@ class Recovery:
             self.end_stage()
 
     def _training_fit(self, extra: dict, data: LevelData) -> Tensor:
-        """Data cost ``(P,)`` per training light and channel from an LM step's ``extra``; the
-        "all" stage also fits the held-out light, which the fit loss leaves out."""
-        if list(data.train_idx) == list(self.train_idx):
-            return extra["fit"] / max(1, len(self.train_idx) * 3)
-        cols = torch.tensor([3 * data.train_idx.index(k) + c for k in self.train_idx for c in range(3)],
-                            device=extra["residual"].device)
-        r = extra["residual"].index_select(1, cols)
+        """Data cost ``(P,)`` per training light and channel (non-finite: inf) from an LM step's
+        residuals ``extra["residual"] (P, 3 · len(data.train_idx))``; the "all" stage also fits
+        the held-out light, which the fit loss leaves out."""
+        r = extra["residual"]
+        if list(data.train_idx) != list(self.train_idx):
+            cols = [3 * data.train_idx.index(k) + c for k in self.train_idx for c in range(3)]
+            r = r.index_select(1, torch.tensor(cols, device=r.device))
         return torch.nan_to_num((r * r).sum(-1), nan=float("inf")) / max(1, len(self.train_idx) * 3)
 
     def _converged(self, size: int, fit: float) -> bool:

@@ -753,7 +753,7 @@ def _fit_losses(rec: Recovery) -> dict:
     It is the last LM step's (``rec.fit_cost``, no extra render); a state without one is rendered.
     """
     st = _state(rec)
-    fc = getattr(rec, "fit_cost", {})
+    fc = rec.fit_cost
     if len(fc) == len(st["theta"]) and all(v.shape[0] == st["theta"][0].shape[0] for v in fc.values()):
         if len(fc) == 2:
             return {"dielectric": float(fc[0].mean()), "metal": float(fc[1].mean()),
