@@ -260,6 +260,55 @@ def test_jvp_kernel_carries_only_the_differentiated_inputs(monkeypatch):
     assert _rel(out[True], out[False]) <= 1e-10
 
 
+def test_jvp_directions_pass_only_their_nonzero_inputs(monkeypatch):
+    # A Gauss-Newton Jacobian's directions are unit vectors in one unknown each: the passes are
+    # grouped by which inputs' tangents a direction moves, and each pass carries only those.
+    from torchbrdf.kernels import ops as ops_mod
+
+    specs = []
+    real = ops_mod._load
+    monkeypatch.setattr(ops_mod, "_load", lambda spec, backward: (specs.append(spec), real(spec, backward))[1])
+    inputs = _case(31, 9000, torch.float64, min_cos=0.05)
+    base, rough = inputs.pop("base_color"), inputs.pop("roughness")
+    K = 6
+    tb, tr = torch.zeros(K, *base.shape, dtype=base.dtype), torch.zeros(K, *rough.shape, dtype=rough.dtype)
+    tb[0] = torch.rand_like(base)        # base colour only
+    tr[1] = torch.rand_like(rough)       # roughness only
+    tb[2], tr[2] = torch.rand_like(base), torch.rand_like(rough)  # both
+    #                                      direction 3: nothing moves
+    tb[4, :, 1] = 1.0                      # base colour only, like direction 0
+    tr[5] = -1.0                           # roughness only, like direction 1
+
+    def f(b, r):
+        return torchbrdf.principled(**inputs, base_color=b, roughness=r)
+
+    def jvps():
+        return torch.func.vmap(lambda u, w: torch.func.jvp(f, (base, rough), (u, w))[1])(tb, tr)
+
+    fused = jvps()
+    P.set_fast_path(False)
+    try:
+        ref = jvps()
+    finally:
+        P.set_fast_path(None)
+    torch.testing.assert_close(fused, ref, rtol=1e-10, atol=1e-12)
+    assert float(fused[3].abs().max()) == 0.0
+    passes = sorted((sp.ntan, tuple(sp.tensors[k][0] for k in sp.tangent_inputs)) for sp in specs if sp.ntan)
+    assert passes == [(1, ("base_color", "roughness")), (2, ("base_color",)), (2, ("roughness",))]
+
+
+def test_a_channel_strided_per_pixel_input_is_not_copied_to_every_lane():
+    # A per-pixel (P, 1, 3) value broadcast over lights whose channels are not adjacent (a slice
+    # of a transposed tensor) is made dense at its own size, and read broadcast ('s2').
+    from torchbrdf.kernels.ops import _flatten
+
+    P_, L = 50, 4
+    strided = torch.rand(3, P_).T[:, None]  # (P, 1, 3), channel stride P
+    flat, mode = _flatten(strided, 3, (P_, L), P_ * L, s2=True)
+    assert mode == "s2" and flat.shape == (P_, L, 3)
+    torch.testing.assert_close(flat, strided.expand(P_, L, 3))
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_types_round_trip(dtype):
     inputs = _case(4, 512, dtype, min_cos=0.05)

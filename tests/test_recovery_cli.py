@@ -410,3 +410,21 @@ def test_cli_prints_stages_and_its_output_folder(cap, tmp_path, capsys):
     assert f"outputs written to {out.resolve()}" in err
     assert "stage 1/3: 16×16 px" in err and "both hypotheses" in err and "stage 3/3" in err
     assert "fit loss (bar and loss.png) = mean squared log residual" in err  # the bar's loss, stated
+
+
+def test_command_line_exit_status_and_output_reach_the_caller(cap, tmp_path):
+    # The command line ends the process without the interpreter's teardown (svbrdf.cli): its
+    # exit status and everything it printed must still arrive.
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    bad = subprocess.run([sys.executable, "-m", "training.recover_svbrdf", "--capture", str(tmp_path / "none"),
+                          "--out", str(tmp_path / "o1")], capture_output=True, text=True, cwd=root, env=env)
+    assert bad.returncode == 2 and bad.stderr.startswith("error: ") and "none" in bad.stderr
+    ok = subprocess.run([sys.executable, "-m", "training.recover_svbrdf", "--capture", str(cap),
+                         "--out", str(tmp_path / "o2"), *FAST], capture_output=True, text=True, cwd=root, env=env)
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    assert json.loads(ok.stdout)["completed"] is True
+    assert (tmp_path / "o2" / "report.json").is_file()

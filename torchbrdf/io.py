@@ -449,7 +449,7 @@ def write_png(
     pixels = (display * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
     if pixels.shape[-1] == 1:
         pixels = pixels[..., 0]  # greyscale PNG
-    from skimage import io as skio
+    from PIL import Image  # Pillow, the PNG codec under matplotlib and scikit-image's imsave
 
     with atomic_path(path) as tmp:
-        skio.imsave(str(tmp), pixels, check_contrast=False)
+        Image.fromarray(pixels).save(tmp, format="PNG")

@@ -3,9 +3,7 @@
 See :mod:`torchbrdf.recovery.svbrdf` and ``docs/recovery.md``.
 """
 
-import sys
-
-from torchbrdf.recovery.svbrdf import main
+from torchbrdf.recovery.svbrdf import cli
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli()

@@ -73,6 +73,10 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
                 return f, "b0"
         if (ls == C or N <= 1) and (cs == 1 or C == 1):
             return f, "full"
+    if s2 and C > 1 and t.dim() > 0 and t.stride(-1) != 1 and t.numel() < N * C:
+        # Channels not adjacent (a slice of a transposed tensor): make the small tensor dense,
+        # not its broadcast to every lane (that also kept a second kernel variant).
+        return _flatten(t.contiguous(), C, batch, N, s2)
     if s2 and len(batch) >= 2 and batch[-1] > 1 and N > batch[-1] and (C == 1 or e.stride(-1) == 1):
         try:
             return e.view(N // batch[-1], batch[-1], C), "s2"
@@ -283,6 +287,30 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     return grads
 
 
+def _tangent_groups(tangents: list[Tensor], ntan: int, K: int) -> list[tuple[list[int], list[int]]]:
+    """The passes of a JVP: ``(directions js, tangent positions ks)``, at most
+    ``TANGENTS_PER_PASS`` directions each.
+
+    With ``ntan = K`` directions on the CPU, directions are grouped by which inputs' tangents
+    are nonzero in them, and each pass carries only those: the pruning then drops the
+    forward-mode work of the others. A Gauss–Newton Jacobian's directions are unit vectors in
+    one unknown each (a base colour channel, the roughness, a normal slope), so this turns one
+    pass over every input's tangent into a few narrow ones (0.11 -> 0.06 s for 7 directions at
+    256², 16 lights). On CUDA the scan would be a host sync: one group.
+    """
+    everything = list(range(len(tangents)))
+    if ntan == 0 or any(t.device.type != "cpu" for t in tangents):
+        sig_of = {j: tuple(everything) for j in range(K)}
+    else:
+        nz = torch.stack([t.reshape(K, -1).ne(0).any(1) for t in tangents]).T.tolist()  # (K, T)
+        sig_of = {j: tuple(k for k in everything if nz[j][k]) for j in range(K)}
+    by_sig: dict[tuple, list[int]] = {}
+    for j in range(K):
+        by_sig.setdefault(sig_of[j], []).append(j)
+    return [(js[a:a + TANGENTS_PER_PASS], list(sig)) for sig, js in by_sig.items()
+            for a in range(0, len(js), TANGENTS_PER_PASS)]
+
+
 def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
     """Output tangents: ``(*batch, 3)``, or ``(ntan, *batch, 3)`` when ``ntan > 0``."""
     K = max(1, ntan)
@@ -300,20 +328,24 @@ def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
         return _triton_jvp(plan, tensors, tangents, tidx, ntan)
     flat, modes = plan.flat(tensors, s2=True)
     out = torch.empty((K, N, 3), dtype=dtype)
-    for j0 in range(0, K, TANGENTS_PER_PASS):
-        js = range(j0, min(K, j0 + TANGENTS_PER_PASS))
+    for js, ks in _tangent_groups(tangents, ntan, K):
+        if not ks:  # every input's tangent is zero in these directions
+            out[list(js)] = 0
+            continue
+        g_tidx = [tidx[k] for k in ks]
         tflat, tmodes = [], []
         for j in js:
-            for i, t in zip(tidx, tangents):
-                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[i], plan.batch, N, s2=True)
+            for k in ks:
+                t = tangents[k]
+                f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[tidx[k]], plan.batch, N, s2=True)
                 tflat.append(f)
                 tmodes.append(m)
-        spec = plan.spec(modes, tangent_inputs=tuple(tidx), tangent_modes=tuple(tmodes), ntan=len(js))
+        spec = plan.spec(modes, tangent_inputs=tuple(g_tidx), tangent_modes=tuple(tmodes), ntan=len(js))
         lib = _load(spec, backward="jvp")
         if lib is None:  # no kernel: forward-mode AD of the same formula, eagerly
             primals = tuple(t.detach() for t in tensors)
             for j in js:
-                tj = {i: (t[j] if ntan else t) for i, t in zip(tidx, tangents)}
+                tj = {tidx[k]: (tangents[k][j] if ntan else tangents[k]) for k in ks}
                 tans = tuple(tj.get(i, torch.zeros_like(t)).to(dtype) for i, t in enumerate(primals))
                 o = torch.func.jvp(lambda *ts: _formula_eager(plan, ts, plan.floats), primals, tans)[1]
                 out[j] = o.expand(*plan.batch, 3).reshape(N, 3)

@@ -42,7 +42,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, NoReturn, cast
 
 import torch
 import torch.nn.functional as F
@@ -54,7 +54,7 @@ from torchbrdf.capture.synthetic import MAP_NAMES, render_capture
 from torchbrdf.io import atomic_path, fsync_dir, read_exr, write_exr, write_png
 from torchbrdf.recovery.solver import CHECKPOINT, Recovery, RecoveryConfig, psnr
 
-__all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "psnr",
+__all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "cli", "psnr",
            "map_errors", "CHECKPOINT", "REPORT"]
 
 REPORT = "report.json"
@@ -579,35 +579,52 @@ def _pyplot():
 
 
 def _side_by_side(path: Path, cap: Capture, pred: Tensor, max_rows: int = 6) -> None:
-    """Captured / re-rendered / 10×|difference| for up to ``max_rows`` lights, labelled."""
+    """Captured / re-rendered / 10×|difference| for up to ``max_rows`` lights, labelled.
+
+    The panels are composed into one mosaic shown in a single axes at one figure pixel per
+    image pixel: 18 separate axes cost most of a second to lay out and draw.
+    """
     from torchbrdf.io import to_display
 
     captured = cap.images.detach().float().cpu()
     pred = pred.detach().float().cpu()
-    n = captured.shape[0]
+    n, _, h, w = captured.shape
+    if max(h, w) > 256:  # panels of at most 256 px: a figure, not a second copy of the images
+        h, w = max(1, round(h * 256 / max(h, w))), max(1, round(w * 256 / max(h, w)))
+        captured = F.interpolate(captured, size=(h, w), mode="area")
+        pred = F.interpolate(pred, size=(h, w), mode="area")
     pick = sorted({round(k * (n - 1) / max(1, min(n, max_rows) - 1)) for k in range(min(n, max_rows))})
     scale = float(torch.quantile(captured.flatten()[:: max(1, captured.numel() // 200000)].clamp(min=0), 0.9))
     exposure = -math.log2(max(scale, 1e-6)) - 1.0
-    plt = _pyplot()
-    fig, axes = plt.subplots(len(pick), 3, figsize=(7.2, 2.25 * len(pick) + 0.6), squeeze=False)
-    cols = ("captured", "re-rendered from the maps", "|difference| × 10")
+    gap = max(2, w // 64)  # white gutter between panels
+    mosaic = torch.ones(3, len(pick) * (h + gap) - gap, 3 * (w + gap) - gap)
     for r, k in enumerate(pick):
         a = to_display(captured[k], exposure=exposure, tonemap="aces")
         b = to_display(pred[k], exposure=exposure, tonemap="aces")
         d = ((pred[k] - captured[k]).abs() * 10 * 2**exposure).clamp(0, 1)
         for c, img in enumerate((a, b, d)):
-            ax = axes[r, c]
-            ax.imshow(img.permute(1, 2, 0).numpy(), interpolation="nearest")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(cols[c], fontsize=9)
-        axes[r, 0].set_ylabel(f"light {k}\n{cap.files[k]}", fontsize=8)
+            y, x = r * (h + gap), c * (w + gap)
+            mosaic[:, y:y + h, x:x + w] = img
+    plt = _pyplot()
+    dpi = 100
+    margin_l, margin_t, margin_b = 1.1, 0.55, 0.1  # inches: row labels, column titles + title
+    iw, ih = mosaic.shape[2] / dpi, mosaic.shape[1] / dpi
+    fig = plt.figure(figsize=(iw + margin_l + 0.1, ih + margin_t + margin_b), dpi=dpi)
+    ax = fig.add_axes((margin_l / fig.get_figwidth(), margin_b / fig.get_figheight(),
+                       iw / fig.get_figwidth(), ih / fig.get_figheight()))
+    ax.imshow(mosaic.permute(1, 2, 0).numpy(), interpolation="nearest")
+    cols = ("captured", "re-rendered from the maps", "|difference| × 10")
+    ax.xaxis.tick_top()
+    ax.set_xticks([c * (w + gap) + w / 2 for c in range(3)], cols, fontsize=9)
+    ax.set_yticks([r * (h + gap) + h / 2 for r in range(len(pick))],
+                  [f"light {k}\n{cap.files[k]}" for k in pick], fontsize=8)
+    ax.tick_params(length=0)
+    for side in ax.spines.values():
+        side.set_visible(False)
     fig.suptitle(f"Fit check, {len(pick)} of {n} lights (exposure {exposure:+.1f} EV, ACES tone map; "
-                 "difference at the same exposure)", fontsize=8)
-    fig.tight_layout()
+                 "difference at the same exposure)", fontsize=8, y=1 - 0.08 / fig.get_figheight(), va="top")
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png", pil_kwargs={"compress_level": 3})
     plt.close(fig)
 
 
@@ -882,8 +899,9 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         except OSError as e:
             raise RecoveryError(f"--out {out}: cannot create it ({e.strerror or e})") from e
         clean_leftovers(out, log)
-    # torch imports torch._dynamo (about 2 s) on a process's first custom-op call: take that
-    # one-time library import before the clock starts, so `seconds` is the fit's own time.
+    # torch imports torch._dynamo (about 1.4 s) on a process's first custom-op call and in its
+    # Python decompositions under torch.func: take that one-time library import before the
+    # clock starts, so `seconds` is the fit's own time.
     importlib.import_module("torch._dynamo")
 
     interrupted, seconds = _run(rec, cfg, ck, progress, log)
@@ -1162,5 +1180,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0 if report["completed"] else 130
 
 
+def cli() -> NoReturn:
+    """The command line (``torchbrdf-recover``, ``python -m training.recover_svbrdf``): :func:`main`,
+    then the process ends without the interpreter's teardown.
+
+    Freeing torch's modules and the fit's objects one by one took ~1 s after a recovery; by
+    then every output is written, fsync'd and renamed into place, and nothing else is pending.
+    """
+    rc = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(rc)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    cli()
