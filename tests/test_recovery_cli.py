@@ -420,11 +420,12 @@ def test_command_line_exit_status_and_output_reach_the_caller(cap, tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONPATH": str(root)}
-    bad = subprocess.run([sys.executable, "-m", "training.recover_svbrdf", "--capture", str(tmp_path / "none"),
-                          "--out", str(tmp_path / "o1")], capture_output=True, text=True, cwd=root, env=env)
+    cmd = [sys.executable, "-m", "training.recover_svbrdf"]
+    bad = subprocess.run([*cmd, "--capture", str(tmp_path / "none"), "--out", str(tmp_path / "o1")],
+                         capture_output=True, text=True, cwd=root, env=env)
     assert bad.returncode == 2 and bad.stderr.startswith("error: ") and "none" in bad.stderr
-    ok = subprocess.run([sys.executable, "-m", "training.recover_svbrdf", "--capture", str(cap),
-                         "--out", str(tmp_path / "o2"), *FAST], capture_output=True, text=True, cwd=root, env=env)
+    ok = subprocess.run([*cmd, "--capture", str(cap), "--out", str(tmp_path / "o2"), *FAST],
+                        capture_output=True, text=True, cwd=root, env=env)
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert json.loads(ok.stdout)["completed"] is True
     assert (tmp_path / "o2" / "report.json").is_file()

@@ -288,8 +288,7 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
 
 
 def _tangent_groups(tangents: list[Tensor], ntan: int, K: int) -> list[tuple[list[int], list[int]]]:
-    """The passes of a JVP: ``(directions js, tangent positions ks)``, at most
-    ``TANGENTS_PER_PASS`` directions each.
+    """The passes of a JVP: ``(directions js, tangent positions ks)``, ≤ ``TANGENTS_PER_PASS`` js.
 
     With ``ntan = K`` directions on the CPU, directions are grouped by which inputs' tangents
     are nonzero in them, and each pass carries only those: the pruning then drops the

@@ -54,8 +54,8 @@ from torchbrdf.capture.synthetic import MAP_NAMES, render_capture
 from torchbrdf.io import atomic_path, fsync_dir, read_exr, write_exr, write_png
 from torchbrdf.recovery.solver import CHECKPOINT, Recovery, RecoveryConfig, psnr
 
-__all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "cli", "psnr",
-           "map_errors", "CHECKPOINT", "REPORT"]
+__all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "cli",
+           "psnr", "map_errors", "CHECKPOINT", "REPORT"]
 
 REPORT = "report.json"
 #: Settings that do not change the result (excluded from the fingerprint).
@@ -1181,10 +1181,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def cli() -> NoReturn:
-    """The command line (``torchbrdf-recover``, ``python -m training.recover_svbrdf``): :func:`main`,
-    then the process ends without the interpreter's teardown.
+    """Run :func:`main` as the command line, then end the process without the interpreter's teardown.
 
-    Freeing torch's modules and the fit's objects one by one took ~1 s after a recovery; by
+    ``torchbrdf-recover`` and ``python -m training.recover_svbrdf`` run this. Freeing torch's modules and the fit's objects one by one took ~1 s after a recovery; by
     then every output is written, fsync'd and renamed into place, and nothing else is pending.
     """
     rc = main()
