@@ -378,7 +378,7 @@ def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int]
         out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the tangents
         pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (t,), (tg,)), out_dims=out_dims)(tangents)
         r, cols = pair
-        cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0)  # (7, n, M)
+        cols = cols.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)  # (7, n, M), a fresh tensor: in place
         r_out[rows] = r
         jt = cols.permute(1, 0, 2)  # (n, 7, M)
         torch.bmm(jt, jt.transpose(1, 2), out=jtj[rows])
