@@ -205,3 +205,28 @@ def test_find_captures(captures, tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no folder holding capture.json"):
         find_captures([tmp_path / "empty"])
+
+
+def test_an_interrupt_during_the_first_imports_waits_until_they_are_complete(monkeypatch):
+    """An interrupt that lands inside the first imports is raised after them.
+
+    Ray cancels a task by interrupting its worker, then reuses the worker: a half-imported
+    module would fail the next task.
+    """
+    import signal
+
+    from torchbrdf.recovery import batch, svbrdf
+
+    done = []
+
+    def pyplot_interrupted_midway():
+        _thread.interrupt_main()  # Ray's cancel of a running task
+        time.sleep(0.05)  # the interrupt would land here, inside the import
+        done.append(True)
+
+    monkeypatch.setattr(svbrdf, "_pyplot", pyplot_interrupted_midway)
+    handler = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        batch._import_before_interrupts()
+    assert done == [True]
+    assert signal.getsignal(signal.SIGINT) is handler

@@ -480,6 +480,19 @@ def test_custom_brdf_callable():
         shade(g, [EnvironmentLight(torch.rand(3, 4, 8, dtype=D))], my_brdf, env_strategy="split_sum")
 
 
+def test_a_material_the_brdf_does_not_take_is_refused_up_front():
+    # SVBRDFGGX takes diffuse/specular albedo: a principled material (base_color) is named and
+    # refused before any shading, with the parameters the BRDF does take.
+    g = sphere_gbuffer(5, 5, dtype=D)  # base_color, roughness, ...
+    for brdf in (torchbrdf.SVBRDFGGX(), torchbrdf.svbrdf_ggx):
+        with pytest.raises(ValueError, match=r"base_color.*diffuse_albedo"):
+            shade(g, LIGHTS, brdf)
+    albedo = {"diffuse_albedo": torch.full((1, 3, 5, 5), 0.5, dtype=D), "specular_albedo": 0.04,
+              "roughness": 0.3}
+    ggx = sphere_gbuffer(5, 5, dtype=D, material=albedo)
+    assert bool(torch.isfinite(shade(ggx, LIGHTS, torchbrdf.SVBRDFGGX())).all())
+
+
 # ------------------------------------------------------------------ validation
 
 

@@ -218,12 +218,19 @@ class SVBRDFGGX(nn.Module):
         self.alpha_floor = alpha_floor
         self.roughness_floor = roughness_floor
 
-    def forward(self, l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None,
-                **material: Scalar) -> Tensor:
-        """Evaluate :func:`svbrdf_ggx` with the given maps and this module's floor."""
-        # Any: the floors (float | None) and the maps (Scalar) go through one ** expansion.
+    def forward(self, l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None, *,
+                diffuse_albedo: Color, specular_albedo: Color, roughness: Scalar,
+                alpha_floor: float | None = None, roughness_floor: float | None = None) -> Tensor:
+        """Evaluate :func:`svbrdf_ggx` with the given maps and this module's floor.
+
+        A floor given here replaces the module's. The parameters are spelled out so that callers
+        (``shade``) can check a material's keys against them.
+        """
         floors: dict[str, Any] = {"alpha_floor": self.alpha_floor, "roughness_floor": self.roughness_floor}
-        return svbrdf_ggx(l, v, n, x, y, **{**floors, **material})
+        floors.update({k: f for k, f in (("alpha_floor", alpha_floor), ("roughness_floor", roughness_floor))
+                       if f is not None})
+        return svbrdf_ggx(l, v, n, x, y, diffuse_albedo=diffuse_albedo, specular_albedo=specular_albedo,
+                          roughness=roughness, **floors)
 
     def extra_repr(self) -> str:
         if self.roughness_floor is not None:

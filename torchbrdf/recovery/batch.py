@@ -28,6 +28,7 @@ import glob
 import json
 import math
 import os
+import signal
 import sys
 import textwrap
 import time
@@ -114,6 +115,36 @@ def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, 
     recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
 
 
+def _import_before_interrupts() -> None:
+    """Take every import a recovery makes, with Ctrl-C held back until they are complete.
+
+    Ray cancels a running task by interrupting its worker's main thread (a simulated SIGINT)
+    and then reuses the worker. An interrupt that lands inside a first import leaves a
+    half-imported module behind, so the next task in that worker failed: "module
+    'triton.language' has no attribute 'core'" (``torch._dynamo``, 1.4 s to import, imports
+    Triton when it is installed). Held back here, the interrupt is raised once the imports are
+    done; later imports (the plots at the end) then find their modules whole.
+    """
+    held: list[int] = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    except ValueError:  # not the main thread: no interrupt can reach it
+        previous = None
+    try:
+        import kornia.color  # noqa: F401
+        import PIL.Image  # noqa: F401
+        import torch._dynamo  # noqa: F401
+
+        from torchbrdf.recovery import svbrdf
+
+        svbrdf._pyplot()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if held:
+        raise KeyboardInterrupt
+
+
 def _kill_hook() -> None:
     """Testing: kill this worker once, as a lost node would, so that Ray's retry is exercised.
 
@@ -170,6 +201,7 @@ def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, 
     """
     import torch
 
+    _import_before_interrupts()
     capture, out_root = Path(capture), Path(out_root)
     name, out = capture.name, Path(out_root) / capture.name
     if not force and is_complete(out):

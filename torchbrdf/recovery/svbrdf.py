@@ -593,6 +593,11 @@ def _side_by_side(path: Path, cap: Capture, pred: Tensor, max_rows: int = 6) -> 
         h, w = max(1, round(h * 256 / max(h, w))), max(1, round(w * 256 / max(h, w)))
         captured = F.interpolate(captured, size=(h, w), mode="area")
         pred = F.interpolate(pred, size=(h, w), mode="area")
+    elif max(h, w) < 200:  # and at least 200 px (pixel-replicated), room for the labels
+        k = math.ceil(200 / max(h, w))
+        captured = captured.repeat_interleave(k, -1).repeat_interleave(k, -2)
+        pred = pred.repeat_interleave(k, -1).repeat_interleave(k, -2)
+        h, w = h * k, w * k
     pick = sorted({round(k * (n - 1) / max(1, min(n, max_rows) - 1)) for k in range(min(n, max_rows))})
     scale = float(torch.quantile(captured.flatten()[:: max(1, captured.numel() // 200000)].clamp(min=0), 0.9))
     exposure = -math.log2(max(scale, 1e-6)) - 1.0
@@ -1183,8 +1188,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def cli() -> NoReturn:
     """Run :func:`main` as the command line, then end the process without the interpreter's teardown.
 
-    ``torchbrdf-recover`` and ``python -m training.recover_svbrdf`` run this. Freeing torch's modules and the fit's objects one by one took ~1 s after a recovery; by
-    then every output is written, fsync'd and renamed into place, and nothing else is pending.
+    ``torchbrdf-recover`` and ``python -m training.recover_svbrdf`` run this. Freeing torch's
+    modules and the fit's objects one by one took ~1 s after a recovery; by then every output
+    is written, fsync'd and renamed into place, and nothing else is pending.
     """
     rc = main()
     sys.stdout.flush()

@@ -33,6 +33,7 @@ back-facing pixels are exactly 0 with zero (finite) gradients.
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
@@ -165,6 +166,28 @@ def _brdf_name(brdf) -> str:
     if isinstance(brdf, nn.Module):
         return type(brdf).__name__
     return getattr(brdf, "__name__", type(brdf).__name__)
+
+
+def _check_material_fits(brdf, material: Mapping) -> None:
+    """Refuse a material whose keys ``brdf`` does not take (they are passed as keywords).
+
+    A BRDF whose signature cannot be read, or that takes ``**kwargs``, is not checked.
+    """
+    fn = brdf.forward if isinstance(brdf, nn.Module) else brdf
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return
+    if any(p.kind == p.VAR_KEYWORD for p in params):
+        return
+    names = {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    unknown = sorted(set(material) - names)
+    if unknown:
+        takes = sorted(names - {"l", "v", "n", "x", "y"})
+        raise ValueError(
+            f"shade: the g-buffer's material has {unknown}, which brdf={_brdf_name(brdf)} does not take; "
+            f"its material parameters are {takes}"
+        )
 
 
 def _as_light_list(lights) -> list[Light]:
@@ -396,6 +419,7 @@ def _prepare(
         raise TypeError(
             f"shade: `brdf` must be callable with the principled signature, got {type(brdf).__name__}"
         )
+    _check_material_fits(brdf, gbuf.material)
     b, h, w = gbuf.shape
     for i, light in enumerate(lights):
         lb = light.batch_size
