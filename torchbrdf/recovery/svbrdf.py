@@ -741,6 +741,10 @@ class _Progress:
         start = ("" if kind == "all" else "; its first iteration also propagates neighbours' parameters and "
                  "searches normals, so it takes longer")
         upto = "up to " if size == self.plan[-1][0] and rec.cfg.converge_tol > 0 else ""
+        if self.bar is not None:  # the last stage's final iteration first, then this stage's header
+            self.bar.refresh()
+            self.bar.set_description_str(f"stage {stage + 1}/{len(self.plan)} ({kind} {size}²) starting",
+                                         refresh=False)
         self.write(f"stage {stage + 1}/{len(self.plan)}: {size}×{size} px, {upto}{n} iterations — "
                    f"{kind}: {_STAGE_TEXT.get(kind, kind)}{extra}{start}")
 
