@@ -312,6 +312,10 @@ def test_a_channel_strided_per_pixel_input_is_not_copied_to_every_lane():
     flat, mode = _flatten(strided, 3, (P_, L), P_ * L, s2=True)
     assert mode == "s2" and flat.shape == (P_, L, 3)
     torch.testing.assert_close(flat, strided.expand(P_, L, 3))
+    # One value for all three channels, its size-1 last dim strided: already "contiguous".
+    one = torch.rand(3, 4, 5).permute(1, 2, 0)[..., :1]
+    flat, mode = _flatten(one, 3, (4, 5), 20, s2=True)
+    torch.testing.assert_close(flat.reshape(4, 5, 3), one.expand(4, 5, 3))
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

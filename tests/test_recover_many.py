@@ -230,3 +230,10 @@ def test_an_interrupt_during_the_first_imports_waits_until_they_are_complete(mon
         batch._import_before_interrupts()
     assert done == [True]
     assert signal.getsignal(signal.SIGINT) is handler
+    # An ignored SIGINT stays ignored: the held interrupt goes to the handler that was there.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        batch._import_before_interrupts()  # interrupted midway again; nothing raised
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    assert done == [True, True]

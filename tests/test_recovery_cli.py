@@ -429,3 +429,9 @@ def test_command_line_exit_status_and_output_reach_the_caller(cap, tmp_path):
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert json.loads(ok.stdout)["completed"] is True
     assert (tmp_path / "o2" / "report.json").is_file()
+    # The interpreter's teardown is skipped, its exit handlers are not (a private kernel folder's removal).
+    code = ("import atexit, sys; atexit.register(print, 'exit handler ran'); "
+            f"sys.argv = ['torchbrdf-recover', '--capture', {str(tmp_path / 'none')!r}, '--out', 'o']; "
+            "from torchbrdf.recovery.svbrdf import cli; cli()")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, env=env)
+    assert run.returncode == 2 and "exit handler ran" in run.stdout

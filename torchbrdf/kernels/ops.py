@@ -73,7 +73,7 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
                 return f, "b0"
         if (ls == C or N <= 1) and (cs == 1 or C == 1):
             return f, "full"
-    if s2 and C > 1 and t.dim() > 0 and t.stride(-1) != 1 and t.numel() < N * C:
+    if s2 and C > 1 and t.dim() > 0 and t.size(-1) > 1 and t.stride(-1) != 1 and t.numel() < N * C:
         # Channels not adjacent (a slice of a transposed tensor): make the small tensor dense,
         # not its broadcast to every lane (that also kept a second kernel variant).
         return _flatten(t.contiguous(), C, batch, N, s2)
@@ -301,7 +301,7 @@ def _tangent_groups(tangents: list[Tensor], ntan: int, K: int) -> list[tuple[lis
     if ntan == 0 or any(t.device.type != "cpu" for t in tangents):
         sig_of = {j: tuple(everything) for j in range(K)}
     else:
-        nz = torch.stack([t.reshape(K, -1).ne(0).any(1) for t in tangents]).T.tolist()  # (K, T)
+        nz = torch.stack([t.ne(0).reshape(K, -1).any(1) for t in tangents]).T.tolist()  # (K, T)
         sig_of = {j: tuple(k for k in everything if nz[j][k]) for j in range(K)}
     by_sig: dict[tuple, list[int]] = {}
     for j in range(K):

@@ -126,10 +126,11 @@ def _import_before_interrupts() -> None:
     done; later imports (the plots at the end) then find their modules whole.
     """
     held: list[int] = []
+    main_thread = True
     try:
         previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
     except ValueError:  # not the main thread: no interrupt can reach it
-        previous = None
+        main_thread = False
     try:
         import kornia.color  # noqa: F401
         import PIL.Image  # noqa: F401
@@ -139,10 +140,10 @@ def _import_before_interrupts() -> None:
 
         svbrdf._pyplot()
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        if main_thread:  # None: a handler installed outside Python, which cannot be put back
+            signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
     if held:
-        raise KeyboardInterrupt
+        signal.raise_signal(signal.SIGINT)  # now, to whatever handled it before (ignored stays ignored)
 
 
 def _kill_hook() -> None:

@@ -24,6 +24,7 @@ Guarantees (see ``docs/recovery.md``):
 from __future__ import annotations
 
 import argparse
+import atexit
 import copy
 import ctypes
 import dataclasses
@@ -1197,6 +1198,7 @@ def cli() -> NoReturn:
     is written, fsync'd and renamed into place, and nothing else is pending.
     """
     rc = main()
+    atexit._run_exitfuncs()  # the registered clean-ups still run (e.g. a private kernel folder's removal)
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(rc)

@@ -180,10 +180,11 @@ def _check_material_fits(brdf, material: Mapping) -> None:
         return
     if any(p.kind == p.VAR_KEYWORD for p in params):
         return
-    names = {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    geometry = {"l", "v", "n", "x", "y"}  # passed positionally: never a material key
+    names = {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)} - geometry
     unknown = sorted(set(material) - names)
     if unknown:
-        takes = sorted(names - {"l", "v", "n", "x", "y"})
+        takes = sorted(names)
         raise ValueError(
             f"shade: the g-buffer's material has {unknown}, which brdf={_brdf_name(brdf)} does not take; "
             f"its material parameters are {takes}"
