@@ -81,21 +81,34 @@ def test_recovery_cli_sleeps_instead_of_spinning(user, expect):
     assert out.split() == [*expect, "False"]  # set by the package, before anything imported torch
 
 
-@pytest.mark.skipif(os.name != "posix", reason="the re-exec is POSIX only")
-def test_console_script_restarts_once_with_passive_wait(tmp_path):
-    """``torchbrdf-recover`` imported torch before ``main``: it re-executes itself once with PASSIVE."""
-    script = tmp_path / "torchbrdf-recover"  # what pip generates for the console script
+@pytest.mark.parametrize("user, expect", [(None, "PASSIVE 1000"), ("ACTIVE", "ACTIVE None")])
+def test_console_script_sets_the_wait_before_torch_loads(tmp_path, user, expect):
+    """``torchbrdf-recover`` has the policy set when torch is first imported, in one process.
+
+    The script is what pip generates (import the entry point, call it); no restart; a policy the
+    user set is kept.
+    """
+    script = tmp_path / "torchbrdf-recover"
     script.write_text(textwrap.dedent("""
         import os, sys
-        from torchbrdf.recovery.svbrdf import main
-        print("POLICY", os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT"), flush=True)
-        sys.exit(main())
+        seen = []
+
+        class Spy:  # records the environment at torch's first import
+            def find_spec(self, name, path=None, target=None):
+                if name == "torch" and not seen:
+                    seen.append((os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT")))
+
+        sys.meta_path.insert(0, Spy())
+        from torchbrdf.recovery.svbrdf import cli
+        print("POLICY", *seen[0], flush=True)
+        cli()
     """))
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    if user:
+        env["OMP_WAIT_POLICY"] = user
     res = subprocess.run([sys.executable, str(script), "--help"], env=env, capture_output=True, text=True,
                          timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert [x for x in res.stdout.splitlines() if x.startswith("POLICY")] == ["POLICY None None",
-                                                                             "POLICY PASSIVE 1000"]
+    assert [x for x in res.stdout.splitlines() if x.startswith("POLICY")] == [f"POLICY {expect}"]
     assert "usage:" in res.stdout

@@ -16,6 +16,19 @@ the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-
 #   capture/             the multi-light capture format and the synthetic capture generator
 #   recovery/            SVBRDF recovery and measured-BRDF fitting
 #   bench/               benchmarks (python -m torchbrdf.bench)
+import os as _os
+import sys as _sys
+
+# The `torchbrdf-recover` command owns its process, so it chooses how OpenMP threads wait: a
+# short poll, then sleep (docs/fast_path.md, "Threads"). libgomp reads this once, when torch
+# loads it, which the first line below does; the console script gets here before anything else
+# imports torch (python -m training.<script> sets the same in training/__init__.py). A value the
+# user set is kept, and an import in any other process leaves the environment alone.
+if (_os.path.basename(getattr(_sys, "argv", [""])[0] or "").startswith("torchbrdf-recover")
+        and "OMP_WAIT_POLICY" not in _os.environ and "GOMP_SPINCOUNT" not in _os.environ):
+    _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    _os.environ["GOMP_SPINCOUNT"] = "1000"
+
 from torchbrdf import analysis, io
 from torchbrdf.analysis import plots
 from torchbrdf.brdf import diffuse, distributions, fresnel, masking, measured

@@ -14,7 +14,7 @@ import os
 # over the policy; other runtimes take PASSIVE. They are read once, when torch loads the
 # runtime, and ``python -m training.<script>`` runs this file before the script imports torch.
 # A value the user set (OMP_WAIT_POLICY or GOMP_SPINCOUNT) is kept. The library itself never
-# sets them (the console script does the same: torchbrdf.recovery.svbrdf._passive_openmp_wait).
+# sets them (the console script torchbrdf-recover does the same, in torchbrdf/__init__.py).
 if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     os.environ["GOMP_SPINCOUNT"] = "1000"

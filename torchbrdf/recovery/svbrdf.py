@@ -1119,32 +1119,8 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _passive_openmp_wait() -> None:
-    """Console script ``torchbrdf-recover`` only: restart once with ``OMP_WAIT_POLICY=PASSIVE`` and
-    ``GOMP_SPINCOUNT=1000`` (a short poll, then sleep; see ``training/__init__.py``).
-
-    OpenMP threads that spin while they wait made the recovery 5x slower next to one busy
-    process (docs/fast_path.md). libgomp reads the policy when torch is imported, which the
-    console script has done before ``main`` runs, hence the re-exec (for ``python -m
-    training.recover_svbrdf``, ``training/__init__.py`` sets it before torch is imported). A policy the user set
-    (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``) is kept; a library import never changes it.
-    """
-    if (os.name != "posix" or not sys.executable or "OMP_WAIT_POLICY" in os.environ
-            or "GOMP_SPINCOUNT" in os.environ or not sys.argv
-            or not os.path.basename(sys.argv[0]).startswith("torchbrdf-recover")
-            or not os.path.isfile(sys.argv[0])):
-        return
-    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
-    os.environ["GOMP_SPINCOUNT"] = "1000"
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os.execv(sys.executable, [sys.executable, sys.argv[0], *sys.argv[1:]])
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """``torchbrdf-recover`` / ``python -m training.recover_svbrdf``; returns the exit status."""
-    if argv is None:
-        _passive_openmp_wait()
     try:
         args = _parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a malformed option (2, one line already printed)
