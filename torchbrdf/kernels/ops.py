@@ -294,8 +294,9 @@ def _tangent_groups(tangents: list[Tensor], ntan: int, K: int) -> list[tuple[lis
     are nonzero in them, and each pass carries only those: the pruning then drops the
     forward-mode work of the others. A Gauss–Newton Jacobian's directions are unit vectors in
     one unknown each (a base colour channel, the roughness, a normal slope), so this turns one
-    pass over every input's tangent into a few narrow ones (0.11 -> 0.06 s for 7 directions at
-    256², 16 lights). On CUDA the scan would be a host sync: one group.
+    pass over every input's tangent into a few narrow ones: the recovery's 7 directions run in
+    the same time (0.11 s at 256², 16 lights) from four kernels that compile in 0.3-0.5 s each,
+    instead of one that took 3.3 s. On CUDA the scan would be a host sync: one group.
     """
     everything = list(range(len(tangents)))
     if ntan == 0 or any(t.device.type != "cpu" for t in tangents):

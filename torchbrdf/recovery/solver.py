@@ -1230,12 +1230,24 @@ class Recovery:
         st["history"].append({"iteration": st["global_it"], "size": size, "stage": kind, "loss": total})
         st["it"] += 1
         st["global_it"] += 1
-        if st["it"] < n_it and self._converged(size, float(self.fit_cost[0].mean()) if len(hyps) == 1 else
-                                               float(torch.minimum(self.fit_cost[0], self.fit_cost[1]).mean())):
+        summary = self.fit_summary()
+        if st["it"] < n_it and self._converged(size, summary.get("best", summary.get("chosen", math.nan))):
             st["history"][-1]["skipped"] = n_it - st["it"]  # planned iterations the stage no longer needs
             st["it"] = n_it
         if st["it"] >= n_it:
             self.end_stage()
+
+    def fit_summary(self) -> dict[str, float]:
+        """The fit loss of the last iteration, from :attr:`fit_cost` (empty before the first).
+
+        ``dielectric``, ``metal`` and each pixel's better hypothesis, ``best``, in a dual stage;
+        ``chosen`` otherwise.
+        """
+        fc = self.fit_cost
+        if len(fc) == 2:
+            return {"dielectric": float(fc[0].mean()), "metal": float(fc[1].mean()),
+                    "best": float(torch.minimum(fc[0], fc[1]).mean())}
+        return {"chosen": float(fc[0].mean())} if fc else {}
 
     def _training_fit(self, extra: dict, data: LevelData) -> Tensor:
         """Data cost ``(P,)`` per training light and channel (non-finite: inf) from an LM step's

@@ -782,10 +782,7 @@ def _fit_losses(rec: Recovery) -> dict:
     st = _state(rec)
     fc = rec.fit_cost
     if len(fc) == len(st["theta"]) and all(v.shape[0] == st["theta"][0].shape[0] for v in fc.values()):
-        if len(fc) == 2:
-            return {"dielectric": float(fc[0].mean()), "metal": float(fc[1].mean()),
-                    "best": float(torch.minimum(fc[0], fc[1]).mean())}
-        return {"chosen": float(fc[0].mean())}
+        return rec.fit_summary()
     size, kind, _ = rec.plan[min(st["stage"], len(rec.plan) - 1)]
     data = rec.data(size)
     n = max(1, len(data.train_idx) * 3)
