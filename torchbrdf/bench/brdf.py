@@ -766,6 +766,111 @@ def environment_lobes(log: _Log, side: int = 32, grazing: int = 128,
     return out
 
 
+#: Skies of :func:`environment_skies`: name -> (map height, [(elevation °, azimuth rad,
+#: disc radius °, radiance over the sky)]): suns in front of and behind the viewer, two suns,
+#: a sun too large for the peak budget, no sun, and broad patches too dim to be peaks.
+ENV_SKIES: tuple[tuple[str, int, tuple[tuple[float, float, float, float], ...]], ...] = (
+    ("sun at 60°", 64, ((60.0, 0.6, 2.5, 2000.0),)),
+    ("sun behind the viewer", 64, ((20.0, 3.0, 2.5, 2000.0),)),
+    ("two suns", 64, ((35.0, 0.6, 2.5, 2000.0), (50.0, 2.5, 1.5, 3000.0))),
+    ("8° sun, 128 rows (> peak budget)", 128, ((30.0, 0.3, 8.0, 300.0),)),
+    ("no sun", 64, ()),
+    ("20° patch 5×", 64, ((40.0, 0.6, 20.0, 5.0),)),
+    ("20° patch 20×", 64, ((40.0, 0.6, 20.0, 20.0),)),
+    ("15° patch 20× at the horizon", 64, ((10.0, 0.0, 15.0, 20.0),)),
+)
+
+
+def sky_with_discs(height: int, discs: Sequence[tuple[float, float, float, float]],
+                   dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(3, height, 2·height)`` sky of :func:`sky_with_sun` with other discs added.
+
+    Each disc is ``(elevation °, azimuth rad, radius °, radiance)``, warm white.
+    """
+    from torchbrdf.render.sampling import latlong_directions
+
+    d = latlong_directions(height, 2 * height, dtype=dtype)
+    z = d[..., 2:3]
+    out = torch.where(z > 0, torch.tensor([0.35, 0.5, 0.9], dtype=dtype) * (0.6 + 0.4 * z),
+                      torch.tensor([0.25, 0.2, 0.15], dtype=dtype) * (1.0 + z))
+    for el, az, radius, k in discs:
+        e = math.radians(el)
+        c = torch.tensor([math.cos(e) * math.cos(az), math.cos(e) * math.sin(az), math.sin(e)],
+                         dtype=dtype)
+        disc = ((d * c).sum(-1, keepdim=True) > math.cos(math.radians(radius))).to(dtype)
+        out = out + k * disc * torch.tensor([1.0, 0.9, 0.8], dtype=dtype)
+    return out.permute(2, 0, 1).contiguous()
+
+
+def environment_skies(log: _Log, side: int = 20, grazing: int = 64,
+                      roughness: Sequence[float] = (0.2, 0.5, 0.9)) -> dict:
+    """The split sum's GGX bias on other skies (:data:`ENV_SKIES`), with and without peaks.
+
+    A white metal on the sphere of :func:`sphere_points` (``side``, ``grazing``), float64,
+    against :func:`~torchbrdf.render.envmap.integrate_environment_quadrature` (2×2 cells per
+    texel at 64 rows, 1 at 128); for each sky and roughness the bias over the picture and the
+    n·v < 0.1 band and the L1 error, with the default peaks and with ``peak_directions=0``
+    (the whole map prefiltered). Runs on its own::
+
+        from torchbrdf.bench import brdf as bench
+        lines = bench.environment_skies_section(bench.environment_skies(print))
+    """
+    from torchbrdf.brdf.principled import PrincipledBRDF
+    from torchbrdf.render.envmap import (
+        SplitSumEnvironment,
+        integrate_environment_quadrature,
+        integrate_environment_split_sum,
+    )
+
+    n, v, ng = sphere_points(side, grazing)
+    npix = n.shape[0]
+    n_all = torch.cat((n, ng))
+    v_all = v.expand_as(n_all).contiguous()
+    brdf = PrincipledBRDF(lobes=("specular",))
+    rows = []
+    for name, height, discs in ENV_SKIES:
+        radiance = sky_with_discs(height, discs)
+        envs = {"peaks": SplitSumEnvironment(radiance),
+                "whole map": SplitSumEnvironment(radiance, peak_directions=0)}
+        used = envs["peaks"].peak_directions.shape[1]
+        for r in roughness:
+            material = dict(base_color=1.0, roughness=r, metallic=1.0)
+            ref = integrate_environment_quadrature(brdf, n_all, v_all, radiance, material,
+                                                   subdivisions=2 if height <= 64 else 1)
+            row: dict[str, Any] = dict(sky=name, roughness=r, peak_directions=used)
+            for key, env in envs.items():
+                est = integrate_environment_split_sum(brdf, n_all, v_all, env, material)
+                e, f = est[:npix], ref[:npix]
+                row[key] = dict(bias=float((e - f).sum() / f.sum()),
+                                bias_grazing=float((est[npix:] - ref[npix:]).sum() / ref[npix:].sum()),
+                                rel_l1=float((e - f).abs().sum() / f.sum()))
+            rows.append(row)
+            p, w = row["peaks"], row["whole map"]
+            log(f"  {name:34s} GGX {r:.1f}: peaks ({used:2d} dirs) bias {p['bias'] * 100:+6.2f} % "
+                f"n·v<0.1 {p['bias_grazing'] * 100:+6.1f} % L1 {p['rel_l1'] * 100:5.2f} % | whole map bias "
+                f"{w['bias'] * 100:+6.2f} % n·v<0.1 {w['bias_grazing'] * 100:+6.1f} % "
+                f"L1 {w['rel_l1'] * 100:5.2f} %")
+    return dict(side=side, pixels=npix, grazing=grazing, rows=rows)
+
+
+def environment_skies_section(res: dict | None) -> list:
+    """Markdown table of :func:`environment_skies`."""
+    if not res:
+        return []
+    L = [f"The split sum's GGX error on other skies (`bench.environment_skies(print)`): a white metal "
+         f"on a {res['side']}×{res['side']} sphere picture ({res['pixels']} pixels) plus {res['grazing']} "
+         "normals with n·v < 0.1, float64, against per-texel quadrature; with the default peaks and "
+         "with the whole map prefiltered (`peak_directions=0`):", "",
+         "| sky | peak directions | roughness | bias | bias, n·v < 0.1 | rel. L1 | whole map: bias | "
+         "n·v < 0.1 | rel. L1 |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in res["rows"]:
+        p, w = r["peaks"], r["whole map"]
+        L.append(f"| {r['sky']} | {r['peak_directions']} | {r['roughness']:.1f} | {p['bias'] * 100:+.2f} % | "
+                 f"{p['bias_grazing'] * 100:+.1f} % | {p['rel_l1'] * 100:.2f} % | {w['bias'] * 100:+.2f} % | "
+                 f"{w['bias_grazing'] * 100:+.1f} % | {w['rel_l1'] * 100:.2f} % |")
+    return L + [""]
+
+
 def environment_lobes_section(res: dict | None) -> list:
     """Markdown lines of the per-lobe split-sum section (heading included)."""
     L = ["## Environment lighting per lobe: split sum vs Monte Carlo", ""]
@@ -956,6 +1061,7 @@ def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
               "tensors of zeros; the lobes are skipped).", ""]
     L += environment_section(res.get("environment"))
     L += environment_lobes_section(res.get("environment_lobes"))
+    L += environment_skies_section(res.get("environment_skies"))
 
     from torchbrdf.bench.cuda import gpu_section
 
@@ -1058,8 +1164,9 @@ def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
     """One panel per lobe: MC error vs time (labels: samples per point) and the split sum."""
     k = len(res["lobes"])
     cols = 3
-    rows = (k + cols) // cols  # one spare panel holds the legend
-    fig, grid = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), sharey=True)
+    rows = -(-k // cols)
+    # (the legend goes below the panels, in a band of its own)
+    fig, grid = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows + 0.9), sharey=True, squeeze=False)
     axes = list(grid.ravel())
     for ax, lobe in zip(axes, res["lobes"]):
         mc = [r for r in lobe["rows"] if r["samples"]]
@@ -1087,11 +1194,11 @@ def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:
     handles, labels = axes[0].get_legend_handles_labels()
     for ax in axes[k:]:
         ax.axis("off")
-    axes[-1].legend(handles, labels, loc="center", fontsize=8,
-                    title="MC labels: samples per point", title_fontsize=8)
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8,
+               title="MC labels: samples per point", title_fontsize=8)
     fig.suptitle(f"environment lighting per lobe: split sum vs Monte Carlo ({res['pixels']}-pixel sphere, "
                  f"{res['env_size'][0]}×{res['env_size'][1]} sky with a sun)", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.9 / (3.4 * rows + 0.9) * 1.2, 1, 1))
     name = "bench_pareto_env_lobes.png"
     fig.savefig(os.path.join(out_dir, name), dpi=110)
     plt.close(fig)
@@ -1168,6 +1275,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         log("environment lighting per lobe:")
         quick_lobes: dict[str, Any] = dict(side=16, grazing=64, ref_samples=4096) if args.quick else {}
         res["environment_lobes"] = environment_lobes(log, **quick_lobes)
+        if not args.quick:
+            log("environment lighting on other skies:")
+            res["environment_skies"] = environment_skies(log)
     res["machine"]["load_end"] = os.getloadavg()
     write_report(res, args.out, argv)
     log(f"wrote {os.path.join(args.out, 'benchmarks.md')}")

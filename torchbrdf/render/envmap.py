@@ -33,26 +33,31 @@ stratified and seeded the same way, only the variance differs:
 * ``"uniform"`` — uniform over the hemisphere about ``n`` (``pdf = 1 / 2π``), no importance
   sampling at all: the baseline the others are measured against.
 
-**Split sum** (:func:`integrate_environment_split_sum`, fast, biased). Karis 2013: the
-specular integral is split into a prefiltered map (the map convolved with the GGX lobe under
-the ``n = v = r`` assumption, at ``len(PREFILTER_ROUGHNESS)`` roughness levels, interpolated
-linearly) times a pre-integrated (n·v, roughness) table of the lobe with Schlick Fresnel
-split into a scale on ``Cspec0`` and a bias. Diffuse, subsurface and sheen use the
-cosine-convolved irradiance times their own tabulated directional albedo; Burley's diffuse
-reads the irradiance along its lobe's centroid, tabulated beside its albedo (the
-retro-reflection leans the lobe toward ``v`` at grazing view), blended toward a sharper
+**Split sum** (:func:`integrate_environment_split_sum`, fast, biased). Karis 2013, with the
+map's concentrated sources taken out first: texels brighter than :data:`PEAK_CONTRAST` × the
+map's mean radiance (a sun, a lamp; at most :data:`PEAK_DIRECTIONS` cells of them) are summed
+exactly as directional lights through the BRDF itself (:func:`extract_peaks`), and only the
+smooth rest is prefiltered. The specular integral of the rest is split into a prefiltered map
+(the map convolved with the GGX lobe under the ``n = v = r`` assumption, at
+``len(PREFILTER_ROUGHNESS)`` levels), read along the lobe's centroid and blended between the
+two levels whose kernels have the lobe's mean cosine — so the lobe's first moment is right,
+and a map linear in ``l`` is exact — times a pre-integrated (n·v, roughness) table of the lobe
+with Schlick Fresnel split into a scale on ``Cspec0`` and a bias. Diffuse, subsurface and
+sheen use the cosine-convolved irradiance times their own tabulated directional albedo;
+Burley's diffuse reads the irradiance along its lobe's centroid, tabulated beside its albedo
+(the retro-reflection leans the lobe toward ``v`` at grazing view), blended toward a sharper
 prefiltered level where its lobe is narrower than the cosine (its tabulated mean cosine, so
-its first moment is right: exact under a map linear in ``l``); clearcoat uses a
-(n·v, clearcoat_gloss) table and the prefiltered map at the matching width. The table is
-computed from :func:`torchbrdf.principled` itself at first use and cached. Every prefiltered
-level and the irradiance map conserve the map's power exactly (area resampling with
-solid-angle overlaps, then a symmetrically normalised convolution), for any map size.
-Error: exact for a constant map (white furnace) and for the diffuse lobe under a constant
-map; Lambert is exact up to the irradiance map's bilinear lookup; otherwise a bias that grows
-with roughness × map contrast (the lobe's shape is not rotationally symmetric about the
-mirror direction away from normal incidence) and for anisotropic materials (treated as
-isotropic with the same mean width) — typically a few percent on smooth maps, up to tens of
-percent for rough lobes at grazing view over a high-contrast map (``docs/shading.md``).
+its first moment is right too); clearcoat uses a (n·v, clearcoat_gloss) table and the
+prefiltered map at the matching width along the mirror direction bent toward ``n``. The table
+is computed from :func:`torchbrdf.principled` itself at first use and cached. Every
+prefiltered level and the irradiance map conserve the map's power exactly (area resampling
+with solid-angle overlaps, then a symmetrically normalised convolution), for any map size.
+Error: exact for a constant map (white furnace) and, up to the levels' discretisation, for a
+map linear in ``l``; under a sky with a sun within about 0.1 % over a sphere for every lobe
+(0.2–0.5 % L1); a bias of a few percent remains for large, moderately bright regions with
+sharp edges (a window, a 20× patch: too wide to be a peak, too sharp for one symmetric
+kernel), at grazing view, and for anisotropic materials (treated as isotropic with the same
+mean width, except at the peaks) — see ``docs/shading.md``.
 """
 
 from __future__ import annotations
@@ -60,13 +65,13 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import cast
 
 import torch
 from torch import Tensor
 
-from torchbrdf._math import dot, lerp, luminance, safe_normalize, safe_sqrt
+from torchbrdf._math import compute_dtype, dot, lerp, luminance, safe_normalize, safe_sqrt
 from torchbrdf._types import BRDF, Device, Scalar
 from torchbrdf.brdf.frames import frame_from_normal, to_local, to_world
 from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
@@ -94,6 +99,7 @@ __all__ = [
     "integrate_environment_split_sum",
     "prefilter_environment",
     "irradiance_environment",
+    "extract_peaks",
     "split_sum_table",
     "SplitSumEnvironment",
     "PREFILTER_ROUGHNESS",
@@ -107,6 +113,18 @@ PREFILTER_ROUGHNESS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 PREFILTER_MAX_HEIGHT = 128
 #: Height of the irradiance (cosine-convolved) map.
 IRRADIANCE_HEIGHT = 64
+#: The split sum takes texels brighter than this multiple of the map's mean radiance out of
+#: the map and sums them exactly, as directional lights (:func:`extract_peaks`): its
+#: prefiltered lobe is symmetric about one lookup direction, which misplaces a small bright
+#: source's response at grazing view by a few percent; a smooth remainder it handles well.
+PEAK_CONTRAST = 64.0
+#: Most directional lights the peaks of one map become (texels × cells), the brightest first.
+PEAK_DIRECTIONS = 64
+#: Peak texels are split into cells no larger than a texel of a map this tall (1.4°), finer
+#: than a glossy lobe (a 2.8° texel taken as one direction aliases a roughness-0.2 highlight).
+PEAK_CELL_ROWS = 128
+# Points × directions the peaks are evaluated on at once (memory).
+_PEAK_ELEMENTS_PER_PASS = 1 << 20
 #: (n·v, roughness) table: resolution per axis and quasi-random samples per cell.
 SPLIT_SUM_RESOLUTION = 32
 SPLIT_SUM_SAMPLES = 1024
@@ -119,6 +137,10 @@ SPLIT_SUM_TABLE_CHANNELS = (
     "clearcoat",
     "diffuse_tilt",
     "diffuse_spread",
+    "specular_scale_bend",
+    "specular_scale_spread",
+    "specular_bias_bend",
+    "specular_bias_spread",
 )
 #: Lobe names understood by the MC mixture.
 SAMPLING_LOBES = ("diffuse", "specular", "clearcoat")
@@ -182,7 +204,9 @@ def _direction_angles(d: Tensor) -> tuple[Tensor, Tensor]:
     return theta, phi
 
 
-def latlong_bilinear(img: Tensor, d: Tensor, batch_index: Tensor | None = None) -> Tensor:
+def latlong_bilinear(
+    img: Tensor, d: Tensor, batch_index: Tensor | None = None, *, angles: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
     """Bilinear lookup in a channel-last lat-long image (wraps in φ, clamps in θ).
 
     Differentiable with respect to ``img`` and ``d``.
@@ -191,12 +215,14 @@ def latlong_bilinear(img: Tensor, d: Tensor, batch_index: Tensor | None = None) 
         img: ``(B, H, W, C)`` channel-last map.
         d: ``(*, 3)`` unit directions.
         batch_index: int64 ``(*)`` when ``B > 1``.
+        angles: ``d``'s ``(θ, φ)`` when already known (several maps read along the same
+            directions).
 
     Returns:
         ``(*, C)``.
     """
     b, h, w, c = img.shape
-    theta, phi = _direction_angles(d)
+    theta, phi = _direction_angles(d) if angles is None else angles
     fy = theta * (h / math.pi) - 0.5
     fx = (phi + math.pi) * (w / (2.0 * math.pi)) - 0.5
     y0 = torch.floor(fy.detach())
@@ -657,24 +683,10 @@ def integrate_environment_quadrature(
     """
     env = _as_bhwc(radiance.to(n.dtype))
     b, h, w, _ = env.shape
-    s = subdivisions
-    dt, dev = n.dtype, n.device
-    edges = torch.cos(torch.arange(h + 1, dtype=torch.float64, device=dev) * (math.pi / h))
-    t = (torch.arange(s, dtype=torch.float64, device=dev) + 0.5) / s
-    cos_t = (edges[:-1, None] + t[None, :] * (edges[1:, None] - edges[:-1, None])).reshape(-1)  # (h*s,)
-    phi = -math.pi + (torch.arange(w * s, dtype=torch.float64, device=dev) + 0.5) * (2.0 * math.pi / (w * s))
-    sin_t = torch.sqrt(torch.clamp(1.0 - cos_t * cos_t, min=0.0))
-    d = torch.stack(
-        (
-            sin_t[:, None] * torch.cos(phi)[None],
-            sin_t[:, None] * torch.sin(phi)[None],
-            cos_t[:, None].expand(-1, w * s),
-        ),
-        dim=-1,
-    ).reshape(-1, 3)
-    omega = (latlong_row_solid_angles(h, w, dtype=torch.float64, device=dev) / (s * s)).repeat_interleave(s)
-    omega = omega[:, None].expand(-1, w * s).reshape(-1, 1)
-    d, omega = d.to(dt), omega.to(dt)
+    dev = n.device
+    rows = torch.arange(h, device=dev).repeat_interleave(w)
+    cols = torch.arange(w, device=dev).repeat(h)
+    d, omega = _texel_cells(h, w, rows, cols, subdivisions, n.dtype)
     n1, v1 = n.unsqueeze(1), v.unsqueeze(1)
     x1 = None if x is None else x.unsqueeze(1)
     y1 = None if y is None else y.unsqueeze(1)
@@ -684,11 +696,48 @@ def integrate_environment_quadrature(
         dd = d[start : start + directions_per_pass].unsqueeze(0)  # (1, k, 3)
         ll = dd.expand(n.shape[0], -1, -1)
         bk = None if batch_index is None else batch_index[:, None].expand(ll.shape[:-1])
-        f = brdf(ll, v1, n1, x1, y1, **mat)
-        L = _lookup_cl(env, ll, bk)
-        cos = torch.clamp(dot(n1, ll), min=0.0)
-        out = out + (f * L * cos * omega[start : start + directions_per_pass].unsqueeze(0)).sum(1)
+        weight = _lookup_cl(env, ll, bk) * omega[start : start + directions_per_pass, None]
+        out = out + _directions_sum(brdf, n1, v1, x1, y1, mat, ll, weight)
     return out
+
+
+def _texel_cells(height: int, width: int, rows: Tensor, cols: Tensor, subdivisions: int,
+                 dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """Centres and solid angles of the cells of lat-long texels: ``((K·s², 3), (K·s²,))``.
+
+    Texel ``(rows[k], cols[k])`` (int64 ``(K,)``) is split into ``s × s`` cells of equal solid
+    angle (uniform in ``cos θ`` and ``φ``), ``s = subdivisions``; its cells are consecutive.
+    """
+    s, dev = subdivisions, rows.device
+    t = (torch.arange(s, dtype=torch.float64, device=dev) + 0.5) / s
+    r = rows.to(torch.float64)[:, None]
+    c0, c1 = torch.cos(r * (math.pi / height)), torch.cos((r + 1.0) * (math.pi / height))
+    cos_t = c0 + t[None] * (c1 - c0)  # (K, s)
+    phi = -math.pi + (cols.to(torch.float64)[:, None] + t[None]) * (2.0 * math.pi / width)  # (K, s)
+    sin_t = torch.sqrt(torch.clamp(1.0 - cos_t * cos_t, min=0.0))
+    d = torch.stack(
+        (
+            sin_t[:, :, None] * torch.cos(phi)[:, None, :],
+            sin_t[:, :, None] * torch.sin(phi)[:, None, :],
+            cos_t[:, :, None].expand(-1, -1, s),
+        ),
+        dim=-1,
+    ).reshape(-1, 3)
+    omega = latlong_row_solid_angles(height, width, dtype=torch.float64, device=dev)[rows] / (s * s)
+    return d.to(dtype), omega.repeat_interleave(s * s).to(dtype)
+
+
+def _directions_sum(
+    brdf: BRDF, n1: Tensor, v1: Tensor, x1, y1, mat: dict, ll: Tensor, weight: Tensor
+) -> Tensor:
+    """``Σ_k f(l_k, v) w_k max(n·l_k, 0)`` over a few directions per point, ``(P, 3)``.
+
+    ``ll`` ``(P, K, 3)`` are the directions, ``weight`` ``(P or 1, K, 3)`` their radiance ×
+    solid angle; ``n1``/``v1``/``x1``/``y1`` are ``(P, 1, 3)`` and ``mat`` the material with a
+    direction axis.
+    """
+    f = brdf(ll, v1, n1, x1, y1, **mat)
+    return (f * weight * torch.clamp(dot(n1, ll), min=0.0)).sum(1)
 
 
 # --------------------------------------------------------------------------------------
@@ -855,11 +904,69 @@ def irradiance_environment(radiance: Tensor, height: int = IRRADIANCE_HEIGHT) ->
     return _convolve(_downsample(img, hk, wk), None)
 
 
+def _peak_subdivisions(height: int) -> int:
+    """Cells per axis of a peak texel of a ``height``-row map (see :func:`extract_peaks`)."""
+    return min(4, max(1, math.ceil(PEAK_CELL_ROWS / height)))
+
+
+def extract_peaks(
+    radiance: Tensor, contrast: float = PEAK_CONTRAST, max_directions: int = PEAK_DIRECTIONS
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Take a map's concentrated sources (a sun, a lamp) out of it, as directional lights.
+
+    A texel is a peak when its luminance exceeds ``contrast`` × the map's mean radiance
+    (``Σ L Ω / 4π``); the brightest (by power) are taken, as many as ``max_directions``
+    allows. Each peak texel is split into ``s × s`` cells of equal solid angle, no larger than
+    a texel of a :data:`PEAK_CELL_ROWS`-row map (``s = ceil(PEAK_CELL_ROWS / H)``, at most 4),
+    and every cell becomes a directional light of irradiance ``L Ω_cell`` at its centre. The
+    peaks and the returned rest add up to the map exactly (its power is split, not changed).
+    Differentiable in ``radiance``; the choice of texels is not.
+
+    Args:
+        radiance: ``(3, H, W)`` or ``(B, 3, H, W)``.
+        contrast: a texel brighter than this multiple of the mean radiance is a peak.
+        max_directions: most cells per map (``0``: no peaks).
+
+    Returns:
+        ``(rest, directions, irradiance)``: the map without its peaks ``(B, 3, H, W)``, the
+        cells' unit directions ``(B, M, 3)`` and their irradiance ``(B, M, 3)`` (``M`` is the
+        largest count over the batch; unused entries have zero irradiance). ``M = 0`` when no
+        texel qualifies.
+    """
+    img = radiance.unsqueeze(0) if radiance.dim() == 3 else radiance
+    b, _, h, w = img.shape
+    s = _peak_subdivisions(h)
+    per_map = min(max_directions // (s * s), h * w)
+    dt, dev = img.dtype, img.device
+    none = img.new_zeros(b, 0, 3)
+    if per_map <= 0:
+        return img, none, none
+    with torch.no_grad():
+        sel = compute_dtype(dt)  # (a sun overflows float16's luminance × solid angle)
+        omega = latlong_row_solid_angles(h, w, dtype=sel, device=dev)[:, None]
+        lum = luminance(img.detach().to(sel).movedim(1, -1)).squeeze(-1)  # (B, H, W)
+        power = lum * omega
+        mean = power.sum((1, 2), keepdim=True) / (4.0 * math.pi)
+        score = torch.where((lum > contrast * mean) & (lum > 0), power, torch.zeros_like(power))
+        top = torch.topk(score.reshape(b, -1), per_map, dim=1)
+        count = int((top.values > 0).sum(1).max())  # the one host sync, once per map
+    if count == 0:
+        return img, none, none
+    idx, valid = top.indices[:, :count], top.values[:, :count] > 0  # (B, M)
+    keep = torch.ones(b, h * w, dtype=torch.bool, device=dev).scatter(1, idx, ~valid)
+    rest = img * keep.view(b, 1, h, w).to(dt)
+    cells, omega_c = _texel_cells(h, w, (idx // w).reshape(-1), (idx % w).reshape(-1), s, dt)
+    texel_l = img.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, 3))
+    texel_l = texel_l * valid[..., None].to(dt)  # (B, M, 3)
+    irradiance = texel_l.repeat_interleave(s * s, dim=1) * omega_c.view(b, -1, 1)
+    return rest, cells.view(b, -1, 3), irradiance
+
+
 _TABLE_CACHE: dict = {}
 
 
 def _compute_split_sum_table(res: int, samples: int) -> Tensor:
-    """The (n·v, roughness) table in float64 on the CPU, ``(8, res, res)``; see :func:`split_sum_table`."""
+    """The (n·v, roughness) table in float64 on the CPU, ``(12, res, res)``; see :func:`split_sum_table`."""
     from torchbrdf.brdf.principled import principled
 
     dt = torch.float64
@@ -871,7 +978,8 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
     table = torch.zeros(len(SPLIT_SUM_TABLE_CHANNELS), res, res, dtype=dt)
     rows = 8  # n·v nodes per batched evaluation: (rows, res, samples) points per call
     for i0 in range(0, res, rows):
-        nv = torch.clamp(nodes[i0 : i0 + rows], min=1e-4)  # grazing floor: n·v = 0 is degenerate
+        # Grazing floor: n·v = 0 is degenerate; the ceiling keeps the mirror angle non-zero.
+        nv = torch.clamp(nodes[i0 : i0 + rows], min=1e-4, max=1.0 - 1e-4)
         m = nv.shape[0]
         shape = (m, res, samples)
         v = torch.stack((torch.sqrt(1.0 - nv * nv), torch.zeros_like(nv), nv), dim=-1)[
@@ -903,6 +1011,16 @@ def _compute_split_sum_table(res: int, samples: int) -> Tensor:
         f_full = f(l, roughness=col, base_color=1.0, metallic=1.0)
         table[0, i0 : i0 + m] = mean((f_full - f_bias) * wgt)
         table[1, i0 : i0 + m] = mean(f_bias * wgt)
+        # Each part's centroid (its angle from n, on the mirror side, -x) and spread (mean
+        # cosine about the centroid): where and how wide the prefiltered map is read. The
+        # Fresnel part leans further toward the mirror at grazing view. The angle is stored as a
+        # fraction of the mirror direction's, smooth in n·v where the angle itself,
+        # ∝ sqrt(1 - n·v), is not (interpolated linearly it would lag near n·v = 1).
+        for c, part in ((8, f_full - f_bias), (10, f_bias)):
+            fs = part * wgt
+            mx, mz = mean(fs * l[..., 0:1]), mean(fs * l[..., 2:3])
+            table[c, i0 : i0 + m] = torch.atan2(-mx, mz) / torch.acos(nv)[:, None]
+            table[c + 1, i0 : i0 + m] = torch.hypot(mx, mz) / mean(fs)
         # Diffuse-like lobes: cosine sampling, weight π.
         l = sample_cosine_hemisphere(uu)
         f0 = f(l, roughness=col)
@@ -958,6 +1076,15 @@ def split_sum_table(
     7. ``diffuse_spread``: the mean cosine of Burley's diffuse lobe about that centroid,
        ``|∫ Fd cos l dω| / ∫ Fd cos dω`` (2/3 for a Lambertian lobe; more where the lobe is
        narrower than the cosine, as at roughness 0). See :meth:`SplitSumEnvironment.diffuse`.
+    8. ``specular_scale_bend``: the angle between ``n`` and the centroid of the lobe of
+       channel 0, ``Ds Gs (1 - FH) cos``, as a fraction of the mirror direction's angle
+       ``acos(n·v)``: the centroid is ``n cos a - t sin a`` with ``a = bend · acos(n·v)``.
+       Below 1: a rough lobe leans toward the normal, and at grazing view it is lifted above
+       the horizon.
+    9. ``specular_scale_spread``: that lobe's mean cosine about its centroid (1 for a mirror).
+    10. ``specular_bias_bend``, 11. ``specular_bias_spread``: the same for the lobe of channel
+        1, ``Ds Gs FH cos`` (closer to the mirror at grazing view). See
+        :meth:`SplitSumEnvironment.specular_lobe`.
 
     Computed with :func:`torchbrdf.principled` itself (so the table follows the model
     exactly) using ``samples`` Hammersley samples per cell, centred in their strata, with the
@@ -965,7 +1092,7 @@ def split_sum_table(
     the model's to about 1e-3 (tested against a brute-force quadrature).
 
     Returns:
-        ``(8, resolution, resolution)`` in ``dtype`` on ``device``.
+        ``(12, resolution, resolution)`` in ``dtype`` on ``device``.
     """
     device = torch.device("cpu") if device is None else torch.device(device)
     key64 = (resolution, samples)
@@ -999,16 +1126,37 @@ def _table_lookup(table: Tensor, nv: Tensor, r: Tensor) -> Tensor:
 class SplitSumEnvironment:
     """A map prepared for the split-sum approximation: irradiance + prefiltered levels.
 
+    The map's peaks (texels brighter than ``peak_contrast`` × its mean radiance, e.g. a sun)
+    are taken out first and summed exactly as directional lights (:func:`extract_peaks`);
+    the irradiance and the prefiltered levels hold the rest.
+
     Args:
         radiance: ``(3, H, W)`` or ``(B, 3, H, W)`` lat-long map (gradients flow through).
         dtype: compute dtype (default the map's).
+        peak_contrast: see :func:`extract_peaks`.
+        peak_directions: most directional lights the peaks become; ``0`` prefilters the whole
+            map (the plain split sum).
     """
 
-    def __init__(self, radiance: Tensor, dtype: torch.dtype | None = None) -> None:
+    def __init__(
+        self,
+        radiance: Tensor,
+        dtype: torch.dtype | None = None,
+        *,
+        peak_contrast: float = PEAK_CONTRAST,
+        peak_directions: int = PEAK_DIRECTIONS,
+    ) -> None:
         dtype = dtype or radiance.dtype
         rad = radiance.to(dtype)
-        self.irradiance = _as_bhwc(irradiance_environment(rad))
-        self.levels = [_as_bhwc(m) for m in prefilter_environment(rad)]
+        rest, self.peak_directions, self.peak_irradiance = extract_peaks(rad, peak_contrast, peak_directions)
+        # The peaks as a map (zero elsewhere), for lobes too sharp for their cells, and the
+        # cells' angular size (their rows' height, radians).
+        h = rad.shape[-2]
+        has_peaks = self.peak_directions.shape[1] > 0
+        self.peak_map = _as_bhwc(rad - rest[0] if rad.dim() == 3 else rad - rest) if has_peaks else None
+        self.peak_cell = math.pi / (h * _peak_subdivisions(h))
+        self.irradiance = _as_bhwc(irradiance_environment(rest))
+        self.levels = [_as_bhwc(m) for m in prefilter_environment(rest)]
         self.roughness = PREFILTER_ROUGHNESS
         self.batch = self.irradiance.shape[0]
         # The roughest level below 1: the lobe a diffuse lobe narrower than the cosine blends in.
@@ -1016,6 +1164,10 @@ class SplitSumEnvironment:
         self._sharp = self.levels[sharp]
         alpha_sharp = max(self.roughness[sharp] ** 2, ALPHA_MIN)
         self._kappa = (_kernel_mean_cosine(None), _kernel_mean_cosine(alpha_sharp))
+        # Mean cosine of each level's kernel (level 0, the map itself: 1), decreasing.
+        self._level_kappa = [
+            1.0 if r <= 0 else _kernel_mean_cosine(max(r * r, ALPHA_MIN)) for r in self.roughness
+        ]
 
     def specular(self, r_dir: Tensor, roughness: Scalar, batch_index: Tensor | None = None) -> Tensor:
         """Prefiltered radiance along ``r_dir`` ``(P, 3)`` at ``roughness`` (float or ``(P, 1)``)."""
@@ -1033,6 +1185,81 @@ class SplitSumEnvironment:
         out = latlong_bilinear(self.levels[i0], r_dir, batch_index) * (1.0 - a)
         if a > 0:
             out = out + latlong_bilinear(self.levels[i0 + 1], r_dir, batch_index) * a
+        return out
+
+    def specular_lobe(self, direction: Tensor, spread: Tensor, batch_index: Tensor | None = None) -> Tensor:
+        """Prefiltered radiance ``(P, 3)`` along ``direction`` ``(P, 3)``, at a lobe width.
+
+        ``spread`` ``(P, 1)`` is the lobe's mean cosine about ``direction``.
+
+        The two levels whose kernels' mean cosines bracket ``spread`` are blended linearly in
+        the mean cosine (level 0, the map itself, counts as 1), so the blend has the lobe's
+        mean cosine; read along the lobe's centroid, it has the lobe's first moment and is
+        exact for a map linear in ``l``. Spreads below the roughest level's read that level.
+        """
+        kappa = self._level_kappa
+        s = torch.clamp(spread, min=kappa[-1], max=kappa[0])
+        angles = _direction_angles(direction)
+        acc: Tensor | float = 0.0
+        for i, level in enumerate(self.levels):
+            # Hat function in κ: 1 at κ_i, 0 at the neighbouring levels' κ.
+            up = (s - kappa[i + 1]) / (kappa[i] - kappa[i + 1]) if i + 1 < len(kappa) else None
+            down = (kappa[i - 1] - s) / (kappa[i - 1] - kappa[i]) if i > 0 else None
+            if up is None:
+                wi = torch.clamp(down, 0.0, 1.0) if down is not None else torch.ones_like(s)
+            elif down is None:
+                wi = torch.clamp(up, 0.0, 1.0)
+            else:
+                wi = torch.clamp(torch.minimum(up, down), 0.0, 1.0)
+            if _may_be_nonzero(wi):  # (a material's roughness range reads two or three levels)
+                acc = acc + wi * latlong_bilinear(level, direction, batch_index, angles=angles)
+        return acc if isinstance(acc, Tensor) else torch.zeros_like(direction)
+
+    def unresolved(self, width: Tensor | float) -> Tensor | float:
+        """Share of a lobe of angular width ``width`` (radians) the peaks' cells cannot resolve.
+
+        1 for lobes narrower than half a cell, 0 for lobes wider than two cells, linear in
+        between. That share of a sharp lobe's response to the peaks is read from
+        :attr:`peak_map` along the lobe (exact as the lobe narrows to a mirror, where a texel is
+        constant across it) instead of summed over the cells (a cell is one direction: a lobe
+        narrower than the cells would fall between them).
+        """
+        if self.peak_map is None:
+            return 0.0
+        d = self.peak_cell
+        w = (2.0 * d - width) / (1.5 * d)
+        return torch.clamp(w, 0.0, 1.0) if isinstance(w, Tensor) else min(max(w, 0.0), 1.0)
+
+    def peaks(
+        self,
+        brdf: BRDF,
+        n: Tensor,
+        v: Tensor,
+        material: dict,
+        x: Tensor | None = None,
+        y: Tensor | None = None,
+        batch_index: Tensor | None = None,
+    ) -> Tensor | float:
+        """The peaks' exact contribution ``Σ f(l_k, v) E_k max(n·l_k, 0)``, ``(P, 3)``.
+
+        ``0.0`` when the map has none. Arguments as in :func:`integrate_environment_split_sum`.
+        """
+        dirs, irr = self.peak_directions, self.peak_irradiance
+        count = dirs.shape[1]
+        if count == 0:
+            return 0.0
+        n1, v1 = n.unsqueeze(1), v.unsqueeze(1)
+        x1 = None if x is None else x.unsqueeze(1)
+        y1 = None if y is None else y.unsqueeze(1)
+        mat = {k: _unsq(val, 1) for k, val in material.items()}
+        per_pass = max(1, _PEAK_ELEMENTS_PER_PASS // max(n.shape[0], 1))
+        out: Tensor | float = 0.0
+        for start in range(0, count, per_pass):
+            d, e = dirs[:, start : start + per_pass], irr[:, start : start + per_pass]
+            if batch_index is not None and self.batch > 1:
+                d, e = d[batch_index], e[batch_index]
+            ll = d.expand(n.shape[0], -1, -1)
+            out = out + _directions_sum(brdf, n1, v1, x1, y1, mat, ll, e)
         return out
 
     def diffuse(self, n: Tensor, batch_index: Tensor | None = None, spread: Tensor | None = None) -> Tensor:
@@ -1074,6 +1301,13 @@ def _dominant_direction(n: Tensor, r_dir: Tensor, alpha) -> Tensor:
     return safe_normalize(n + (r_dir - n) * f)
 
 
+def _principled_lobe(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, *, lobe: str, **material) -> Tensor:
+    """One lobe of :func:`torchbrdf.principled`, ``(..., 3)``."""
+    from torchbrdf.brdf.principled import principled
+
+    return principled(l, v, n, x, y, lobes=(lobe,), **material)
+
+
 def brdf_kind(brdf: BRDF) -> str:
     """``"lambert"``, ``"principled"`` or ``"custom"`` — what the split sum knows how to handle."""
     if getattr(brdf, "sampling_lobes", None) == ("diffuse",):
@@ -1092,13 +1326,16 @@ def integrate_environment_split_sum(
     env: SplitSumEnvironment,
     material: dict,
     *,
+    x: Tensor | None = None,
+    y: Tensor | None = None,
     batch_index: Tensor | None = None,
 ) -> Tensor:
     """Split-sum approximation of the environment integral at ``P`` points.
 
     Supports :func:`torchbrdf.principled` / :class:`~torchbrdf.PrincipledBRDF` (respecting
     its ``lobes``) and the Lambert BRDF; anisotropy is approximated by the isotropic lobe
-    of the same mean width ``roughness²``.
+    of the same mean width ``roughness²``. The map's peaks (:func:`extract_peaks`) are added
+    exactly, with ``brdf`` itself (anisotropy included).
 
     Args:
         brdf: the BRDF (its kind selects the formula; see :func:`brdf_kind`).
@@ -1106,6 +1343,8 @@ def integrate_environment_split_sum(
         v: ``(P, 3)`` unit view directions.
         env: a :class:`SplitSumEnvironment`.
         material: name -> float, 0-d tensor or ``(P, C)`` tensor.
+        x: optional ``(P, 3)`` tangents (for the peaks of an anisotropic material).
+        y: optional ``(P, 3)`` bitangents.
         batch_index: int64 ``(P,)`` when the map is batched.
 
     Returns:
@@ -1113,13 +1352,14 @@ def integrate_environment_split_sum(
     """
     kind = brdf_kind(brdf)
     base = _rgb(material.get("base_color", 1.0), n)
-    if kind == "lambert":
-        return env.diffuse(n, batch_index) * base
-    if kind != "principled":
+    if kind not in ("principled", "lambert"):
         raise ValueError(
             f"env_strategy='split_sum' supports the principled and Lambert BRDFs, not {brdf!r}; "
             "use env_strategy='mc'"
         )
+    peaks = env.peaks(brdf, n, v, material, x, y, batch_index)
+    if kind == "lambert":
+        return env.diffuse(n, batch_index) * base + peaks
     from torchbrdf.brdf.principled import active_lobes
 
     lobes = active_lobes(material, getattr(brdf, "lobes", None))
@@ -1134,7 +1374,7 @@ def integrate_environment_split_sum(
     ctint = torch.where(
         positive, base / torch.where(positive, lum, torch.ones_like(lum)), torch.ones_like(base)
     )
-    out = torch.zeros_like(n)
+    out = torch.zeros_like(n) + peaks
     dielectric = 1.0 - metal
     if "diffuse" in lobes:
         # Irradiance along the centroid of Burley's lobe, which leans toward v at grazing view
@@ -1152,10 +1392,22 @@ def integrate_environment_split_sum(
     r_dir = reflect(v, n)
     if "specular" in lobes:
         cspec0 = lerp(0.08 * p["specular"] * lerp(1.0, ctint, p["specular_tint"]), base, metal)
-        alpha = rough * rough
-        alpha = torch.clamp(alpha, min=ALPHA_MIN) if isinstance(alpha, Tensor) else max(alpha, ALPHA_MIN)
-        look = _dominant_direction(n, r_dir, alpha)
-        out = out + env.specular(look, rough, batch_index) * (cspec0 * tab[:, 0:1] + tab[:, 1:2])
+        # Each part of the lobe (scale on Cspec0, Fresnel bias) read along its centroid, at its
+        # width: its first moment is then right (exact for a map linear in l). The centroid is
+        # at a = bend·θ from n toward the mirror side (θ = acos(n·v), kept below 1 - 1e-6 in
+        # n·v: acos' is infinite at 1); v - (n·v) n has length sin θ.
+        theta = torch.acos(torch.clamp(nv, max=1.0 - 1e-6))
+        off_n = (v - nv * n) / torch.sin(theta)
+        # A lobe too sharp for the peaks' cells sees them through the peak map instead.
+        sharp = env.unresolved(torch.sqrt(2.0 * torch.clamp(1.0 - tab[:, 9:10], min=0.0)))
+        for c, weight in ((8, cspec0 * tab[:, 0:1]), (10, tab[:, 1:2])):
+            angle = tab[:, c : c + 1] * theta
+            look = safe_normalize(n * torch.cos(angle) - off_n * torch.sin(angle))
+            out = out + env.specular_lobe(look, tab[:, c + 1 : c + 2], batch_index) * weight
+            if _may_be_nonzero(sharp):
+                out = out + sharp * latlong_bilinear(cast(Tensor, env.peak_map), look, batch_index) * weight
+        if _may_be_nonzero(sharp):
+            out = out - _sharp_peaks(env, sharp, n, v, material, x, y, batch_index)
     if "clearcoat" in lobes:
         gloss = p["clearcoat_gloss"]
         g_t = _t(gloss, n) * torch.ones_like(nv)
@@ -1164,5 +1416,38 @@ def integrate_environment_split_sum(
         ac = torch.clamp(ac, min=ALPHA_MIN) if isinstance(ac, Tensor) else max(ac, ALPHA_MIN)
         r_cc = torch.sqrt(ac) if isinstance(ac, Tensor) else math.sqrt(ac)
         look = _dominant_direction(n, r_dir, ac)
+        # (No swap for the peaks here: GTR1's tails hold most of its energy, and the cells
+        # resolve them; at gloss 1 the cells are −4 % off over a sphere, the peak map −17 %.)
         out = out + env.specular(look, r_cc, batch_index) * (p["clearcoat"] * e_cc)
     return out
+
+
+#: The principled specular lobe on its own (the peaks it cannot resolve are swapped).
+_SPECULAR_ONLY = partial(_principled_lobe, lobe="specular")
+
+
+def _sharp_peaks(env: SplitSumEnvironment, sharp: Tensor | float, n: Tensor, v: Tensor, material: dict,
+                 x: Tensor | None, y: Tensor | None, batch_index: Tensor | None) -> Tensor:
+    """``sharp ×`` the specular lobe's response to the peaks, ``(P, 3)``.
+
+    On the CPU only at the points where ``sharp`` ``(P, 1)`` is non-zero (usually a few:
+    roughness ≲ 0.1); elsewhere everywhere (no host sync).
+    """
+    if not isinstance(sharp, Tensor) or sharp.device.type != "cpu" or n.shape[0] < 2:
+        return sharp * env.peaks(_SPECULAR_ONLY, n, v, material, x, y, batch_index) + torch.zeros_like(n)
+    idx = sharp[:, 0].nonzero()[:, 0]
+    count = n.shape[0]
+
+    def sub(t):
+        return t[idx] if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == count else t
+
+    part = env.peaks(_SPECULAR_ONLY, n[idx], v[idx], {k: sub(t) for k, t in material.items()},
+                     sub(x), sub(y), sub(batch_index))
+    return torch.zeros_like(n).index_add(0, idx, sharp[idx] * part)
+
+
+def _may_be_nonzero(w: Tensor | float) -> bool:
+    """Whether a weight may be non-zero anywhere (no host sync on an accelerator: then True)."""
+    if isinstance(w, Tensor):
+        return w.device.type != "cpu" or bool((w != 0).any())
+    return w != 0

@@ -743,6 +743,8 @@ def _prepare(
                         v_s,
                         env_data,
                         mat_s,
+                        x=x_s,
+                        y=y_s,
                         batch_index=eb,
                     )
                     acc.add_(term)
