@@ -1433,7 +1433,8 @@ def _sharp_peaks(env: SplitSumEnvironment, sharp: Tensor | float, n: Tensor, v: 
     On the CPU only at the points where ``sharp`` ``(P, 1)`` is non-zero (usually a few:
     roughness ≲ 0.1); elsewhere everywhere (no host sync).
     """
-    if not isinstance(sharp, Tensor) or sharp.device.type != "cpu" or n.shape[0] < 2:
+    if (not isinstance(sharp, Tensor) or sharp.device.type != "cpu" or n.shape[0] < 2
+            or torch.compiler.is_compiling()):
         return sharp * env.peaks(_SPECULAR_ONLY, n, v, material, x, y, batch_index) + torch.zeros_like(n)
     idx = sharp[:, 0].nonzero()[:, 0]
     count = n.shape[0]
@@ -1447,7 +1448,8 @@ def _sharp_peaks(env: SplitSumEnvironment, sharp: Tensor | float, n: Tensor, v: 
 
 
 def _may_be_nonzero(w: Tensor | float) -> bool:
-    """Whether a weight may be non-zero anywhere (no host sync on an accelerator: then True)."""
+    """Whether a weight may be non-zero anywhere (True without looking on an accelerator, which
+    would be a host sync, and under ``torch.compile``, where it would be a graph break)."""
     if isinstance(w, Tensor):
-        return w.device.type != "cpu" or bool((w != 0).any())
+        return w.device.type != "cpu" or torch.compiler.is_compiling() or bool((w != 0).any())
     return w != 0
