@@ -853,6 +853,48 @@ def environment_skies(log: _Log, side: int = 20, grazing: int = 64,
     return dict(side=side, pixels=npix, grazing=grazing, rows=rows)
 
 
+def split_sum_cost(log: _Log, points: int = 262144, repeats: int = 5) -> list[dict]:
+    """Time of one split-sum call (and forward+backward) with and without the map's peaks.
+
+    ``points`` random normals and views, float32, a principled material with random base
+    colour and metallic and roughness in [0.3, 1] or [0, 1] (the latter with lobes sharp
+    enough for the peaks' fine cells), under :func:`sky_with_sun`; medians of ``repeats``::
+
+        from torchbrdf.bench import brdf as bench
+        bench.split_sum_cost(print)
+    """
+    import torchbrdf
+    from torchbrdf.render.envmap import SplitSumEnvironment, integrate_environment_split_sum
+
+    g = torch.Generator().manual_seed(0)
+    up = torch.tensor([0, 0, 1.0])
+    n = torch.nn.functional.normalize(torch.randn(points, 3, generator=g) * 0.3 + up, dim=-1)
+    v = torch.nn.functional.normalize(torch.randn(points, 3, generator=g) * 0.3 + n, dim=-1)
+    radiance = sky_with_sun(64, dtype=torch.float32)
+    rows = []
+    for lo in (0.3, 0.0):
+        mat = dict(base_color=torch.rand(points, 3, generator=g), metallic=torch.rand(points, 1, generator=g),
+                   roughness=lo + (1.0 - lo) * torch.rand(points, 1, generator=g))
+        for peaks in (0, 64):
+            env = SplitSumEnvironment(radiance, peak_directions=peaks)
+
+            def fwd(env=env, mat=mat):
+                return integrate_environment_split_sum(torchbrdf.principled, n, v, env, mat)
+
+            def fwd_bwd(env=env, mat=mat):
+                m = {k: t.detach().requires_grad_() for k, t in mat.items()}
+                integrate_environment_split_sum(torchbrdf.principled, n, v, env, m).sum().backward()
+
+            t_f, _ = _median_time(fwd, repeats, 10.0)
+            t_b, _ = _median_time(fwd_bwd, repeats, 10.0)
+            row = dict(roughness_min=lo, peak_directions=int(env.peak_directions.shape[1]), seconds=t_f,
+                       seconds_fwd_bwd=t_b)
+            rows.append(row)
+            log(f"  roughness {lo:.1f}-1, {row['peak_directions']:3d} peak cells: {t_f * 1e3:7.1f} ms, "
+                f"forward+backward {t_b * 1e3:7.1f} ms")
+    return rows
+
+
 def environment_skies_section(res: dict | None) -> list:
     """Markdown table of :func:`environment_skies`."""
     if not res:

@@ -36,11 +36,13 @@ stratified and seeded the same way, only the variance differs:
 **Split sum** (:func:`integrate_environment_split_sum`, fast, biased). Karis 2013, with the
 map's concentrated sources taken out first: texels brighter than :data:`PEAK_CONTRAST` × the
 map's mean radiance (a sun, a lamp; at most :data:`PEAK_DIRECTIONS` cells of them) are summed
-exactly as directional lights through the BRDF itself (:func:`extract_peaks`), and only the
-smooth rest is prefiltered. The specular integral of the rest is split into a prefiltered map
+exactly as directional lights through the BRDF itself (:func:`extract_peaks`; a specular lobe
+too sharp for those cells sums them over finer cells, and a mirror reads them texel by texel),
+and only the smooth rest is prefiltered. The specular integral of the rest is split into a prefiltered map
 (the map convolved with the GGX lobe under the ``n = v = r`` assumption, at
 ``len(PREFILTER_ROUGHNESS)`` levels), read along the lobe's centroid and blended between the
-two levels whose kernels have the lobe's mean cosine — so the lobe's first moment is right,
+two levels whose kernels have the lobe's mean cosine (down to the hemisphere's mean, for lobes
+broader than the cosine) — so the lobe's first moment is right,
 and a map linear in ``l`` is exact — times a pre-integrated (n·v, roughness) table of the lobe
 with Schlick Fresnel split into a scale on ``Cspec0`` and a bias. Diffuse, subsurface and
 sheen use the cosine-convolved irradiance times their own tabulated directional albedo;
@@ -100,6 +102,7 @@ __all__ = [
     "prefilter_environment",
     "irradiance_environment",
     "extract_peaks",
+    "UNIFORM",
     "split_sum_table",
     "SplitSumEnvironment",
     "PREFILTER_ROUGHNESS",
@@ -120,8 +123,11 @@ IRRADIANCE_HEIGHT = 64
 PEAK_CONTRAST = 64.0
 #: Most directional lights the peaks of one map become (texels × cells), the brightest first.
 PEAK_DIRECTIONS = 64
+#: Most cells of the finer subdivision that lobes too sharp for the cells above are summed over.
+PEAK_FINE_DIRECTIONS = 512
 #: Peak texels are split into cells no larger than a texel of a map this tall (1.4°), finer
-#: than a glossy lobe (a 2.8° texel taken as one direction aliases a roughness-0.2 highlight).
+#: than a glossy lobe (2.8° cells aliased a roughness-0.2 highlight); lobes narrower than
+#: four of them (roughness ≲ 0.2) are summed over cells up to 8× finer (PEAK_FINE_DIRECTIONS).
 PEAK_CELL_ROWS = 128
 # Points × directions the peaks are evaluated on at once (memory).
 _PEAK_ELEMENTS_PER_PASS = 1 << 20
@@ -782,12 +788,21 @@ def _downsample(img: Tensor, h: int, w: int) -> Tensor:
     return torch.einsum("ki,bcij,lj->bckl", rw, img, cw)
 
 
-def _lobe_kernel(rl: Tensor, alpha: float | None) -> Tensor:
+#: Kernel of the broadest level: uniform over the hemisphere about ``r`` (mean cosine 1/2),
+#: for lobes broader than the cosine (a rough specular or diffuse lobe at grazing view).
+UNIFORM = "uniform"
+
+
+def _lobe_kernel(rl: Tensor, alpha: float | str | None) -> Tensor:
     """Unnormalised prefiltering kernel at ``rl = r·l`` (any shape): ``max(r·l, 0)`` for
-    ``alpha=None`` (the cosine lobe), else ``D_α(r·h) max(r·l, 0)`` with ``h = normalize(r + l)``."""
+    ``alpha=None`` (the cosine lobe), ``[r·l > 0]`` for :data:`UNIFORM`, else
+    ``D_α(r·h) max(r·l, 0)`` with ``h = normalize(r + l)``."""
     k = torch.clamp(rl, min=0.0)
     if alpha is None:
         return k
+    if alpha == UNIFORM:
+        return (rl > 0).to(rl.dtype)
+    assert isinstance(alpha, float)
     # With h = normalize(r + l): (r·h)² = (1 + r·l) / 2 and |r × h|² = (1 - r·l) / 2.
     a2 = alpha * alpha
     den = a2 * 0.5 * (1.0 + rl) + 0.5 * (1.0 - rl)
@@ -795,7 +810,7 @@ def _lobe_kernel(rl: Tensor, alpha: float | None) -> Tensor:
 
 
 @lru_cache(maxsize=32)
-def _kernel_mean_cosine(alpha: float | None) -> float:
+def _kernel_mean_cosine(alpha: float | str | None) -> float:
     """``∫ k (r·l) dω / ∫ k dω`` of :func:`_lobe_kernel`: how concentrated the lobe is about
     ``r`` (2/3 for the cosine lobe, → 1 as ``α`` → 0). A lobe symmetric about ``r`` with this
     mean cosine ``κ`` has first moment ``κ r``. Midpoint rule over the polar angle."""
@@ -806,7 +821,7 @@ def _kernel_mean_cosine(alpha: float | None) -> float:
 
 
 @lru_cache(maxsize=32)
-def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_str: str) -> Tensor:
+def _kernel_fft(h: int, w: int, alpha: float | str | None, dtype: torch.dtype, device_str: str) -> Tensor:
     """Conjugated rFFT along φ of the normalised lat-long convolution kernel, ``(h, h, w//2+1)``.
 
     Row ``i`` (output) against row ``i'`` and column offset ``j`` (input); the convolution
@@ -845,7 +860,7 @@ def _kernel_fft(h: int, w: int, alpha: float | None, dtype: torch.dtype, device_
     return kf.to(cdt).to(dev)
 
 
-def _convolve(img: Tensor, alpha: float | None) -> Tensor:
+def _convolve(img: Tensor, alpha: float | str | None) -> Tensor:
     """Convolve ``(B, 3, h, w)`` with the lat-long kernel (see :func:`_kernel_fft`)."""
     h, w = img.shape[-2:]
     kf = _kernel_fft(h, w, alpha, img.dtype, str(img.device))
@@ -891,17 +906,19 @@ def prefilter_environment(radiance: Tensor, roughness_levels: Sequence[float] = 
     return out
 
 
-def irradiance_environment(radiance: Tensor, height: int = IRRADIANCE_HEIGHT) -> Tensor:
+def irradiance_environment(radiance: Tensor, height: int = IRRADIANCE_HEIGHT,
+                           kernel: str | None = None) -> Tensor:
     """Normalised cosine convolution ``∫ L max(n·l, 0) dω / π`` of a map, ``(B, 3, h, 2h)``.
 
     Normalised so that a constant map maps to itself exactly and the power ``Σ L Ω`` is kept
-    (the map is first area-resampled to ``min(H, height)`` rows, which keeps it too).
+    (the map is first area-resampled to ``min(H, height)`` rows, which keeps it too). With
+    ``kernel=UNIFORM``: the mean radiance over each hemisphere, ``∫ L dω / 2π``.
     """
     img = radiance.unsqueeze(0) if radiance.dim() == 3 else radiance
     H, W = img.shape[-2:]
     hk = min(H, height)
     wk = max(1, round(W * hk / H))
-    return _convolve(_downsample(img, hk, wk), None)
+    return _convolve(_downsample(img, hk, wk), kernel)
 
 
 def _peak_subdivisions(height: int) -> int:
@@ -934,13 +951,26 @@ def extract_peaks(
         texel qualifies.
     """
     img = radiance.unsqueeze(0) if radiance.dim() == 3 else radiance
+    found = _select_peaks(img, contrast, max_directions)
+    if found is None:
+        none = img.new_zeros(img.shape[0], 0, 3)
+        return img, none, none
+    rest, idx, valid = found
+    return (rest, *_peak_cells(img, idx, valid, _peak_subdivisions(img.shape[-2])))
+
+
+def _select_peaks(img: Tensor, contrast: float, max_directions: int) -> tuple[Tensor, Tensor, Tensor] | None:
+    """The peak texels of ``(B, 3, H, W)`` (see :func:`extract_peaks`).
+
+    Returns ``(rest, idx, valid)`` with ``idx`` the flat texel indices ``(B, M)`` and ``valid``
+    which of them are peaks, or ``None`` when no texel is one.
+    """
     b, _, h, w = img.shape
     s = _peak_subdivisions(h)
     per_map = min(max_directions // (s * s), h * w)
     dt, dev = img.dtype, img.device
-    none = img.new_zeros(b, 0, 3)
     if per_map <= 0:
-        return img, none, none
+        return None
     with torch.no_grad():
         sel = compute_dtype(dt)  # (a sun overflows float16's luminance × solid angle)
         omega = latlong_row_solid_angles(h, w, dtype=sel, device=dev)[:, None]
@@ -951,15 +981,24 @@ def extract_peaks(
         top = torch.topk(score.reshape(b, -1), per_map, dim=1)
         count = int((top.values > 0).sum(1).max())  # the one host sync, once per map
     if count == 0:
-        return img, none, none
+        return None
     idx, valid = top.indices[:, :count], top.values[:, :count] > 0  # (B, M)
     keep = torch.ones(b, h * w, dtype=torch.bool, device=dev).scatter(1, idx, ~valid)
-    rest = img * keep.view(b, 1, h, w).to(dt)
-    cells, omega_c = _texel_cells(h, w, (idx // w).reshape(-1), (idx % w).reshape(-1), s, dt)
+    return img * keep.view(b, 1, h, w).to(dt), idx, valid
+
+
+def _peak_cells(img: Tensor, idx: Tensor, valid: Tensor, s: int) -> tuple[Tensor, Tensor]:
+    """Cells of some texels of ``img`` ``(B, 3, H, W)``, ``s × s`` per texel.
+
+    ``idx``: flat texel indices ``(B, M)``; ``valid``: which are real. Returns the cells'
+    directions and irradiance, ``(B, M·s², 3)`` each.
+    """
+    b, _, h, w = img.shape
+    cells, omega_c = _texel_cells(h, w, (idx // w).reshape(-1), (idx % w).reshape(-1), s, img.dtype)
     texel_l = img.flatten(2).transpose(1, 2).gather(1, idx[..., None].expand(-1, -1, 3))
-    texel_l = texel_l * valid[..., None].to(dt)  # (B, M, 3)
+    texel_l = texel_l * valid[..., None].to(img.dtype)  # (B, M, 3)
     irradiance = texel_l.repeat_interleave(s * s, dim=1) * omega_c.view(b, -1, 1)
-    return rest, cells.view(b, -1, 3), irradiance
+    return cells.view(b, -1, 3), irradiance
 
 
 _TABLE_CACHE: dict = {}
@@ -1147,16 +1186,32 @@ class SplitSumEnvironment:
         peak_directions: int = PEAK_DIRECTIONS,
     ) -> None:
         dtype = dtype or radiance.dtype
-        rad = radiance.to(dtype)
-        rest, self.peak_directions, self.peak_irradiance = extract_peaks(rad, peak_contrast, peak_directions)
-        # The peaks as a map (zero elsewhere), for lobes too sharp for their cells, and the
-        # cells' angular size (their rows' height, radians).
-        h = rad.shape[-2]
-        has_peaks = self.peak_directions.shape[1] > 0
-        self.peak_map = _as_bhwc(rad - rest[0] if rad.dim() == 3 else rad - rest) if has_peaks else None
-        self.peak_cell = math.pi / (h * _peak_subdivisions(h))
+        img = radiance.to(dtype)
+        img = img.unsqueeze(0) if img.dim() == 3 else img
+        h = img.shape[-2]
+        found = _select_peaks(img, peak_contrast, peak_directions)
+        s_coarse = _peak_subdivisions(h)
+        # The peaks' cells (radians: their rows' height), and the same texels in finer cells for
+        # sharp lobes: up to 8× finer, at most PEAK_FINE_DIRECTIONS cells, and as a map (zero
+        # elsewhere) for lobes sharper still.
+        self.peak_cell = math.pi / (h * s_coarse)
+        self.fine_cell = self.peak_cell
+        self.peak_map: Tensor | None = None
+        if found is None:
+            rest = img
+            self.peak_directions = self.peak_irradiance = img.new_zeros(img.shape[0], 0, 3)
+            self.fine_directions = self.fine_irradiance = self.peak_directions
+        else:
+            rest, idx, valid = found
+            self.peak_directions, self.peak_irradiance = _peak_cells(img, idx, valid, s_coarse)
+            s_fine = max(s_coarse, min(8 * s_coarse, math.isqrt(PEAK_FINE_DIRECTIONS // idx.shape[1])))
+            self.fine_directions, self.fine_irradiance = _peak_cells(img, idx, valid, s_fine)
+            self.fine_cell = math.pi / (h * s_fine)
+            self.peak_map = _as_bhwc(img - rest)
         self.irradiance = _as_bhwc(irradiance_environment(rest))
         self.levels = [_as_bhwc(m) for m in prefilter_environment(rest)]
+        # Broader than every level: the hemisphere's mean (32 rows: its kernel is smooth).
+        self.broad = _as_bhwc(irradiance_environment(rest, 32, UNIFORM))
         self.roughness = PREFILTER_ROUGHNESS
         self.batch = self.irradiance.shape[0]
         # The roughest level below 1: the lobe a diffuse lobe narrower than the cosine blends in.
@@ -1164,10 +1219,11 @@ class SplitSumEnvironment:
         self._sharp = self.levels[sharp]
         alpha_sharp = max(self.roughness[sharp] ** 2, ALPHA_MIN)
         self._kappa = (_kernel_mean_cosine(None), _kernel_mean_cosine(alpha_sharp))
-        # Mean cosine of each level's kernel (level 0, the map itself: 1), decreasing.
+        # Mean cosine of each level's kernel (level 0, the map itself: 1), decreasing, then the
+        # broad map's (1/2).
         self._level_kappa = [
             1.0 if r <= 0 else _kernel_mean_cosine(max(r * r, ALPHA_MIN)) for r in self.roughness
-        ]
+        ] + [_kernel_mean_cosine(UNIFORM)]
 
     def specular(self, r_dir: Tensor, roughness: Scalar, batch_index: Tensor | None = None) -> Tensor:
         """Prefiltered radiance along ``r_dir`` ``(P, 3)`` at ``roughness`` (float or ``(P, 1)``)."""
@@ -1195,13 +1251,14 @@ class SplitSumEnvironment:
         The two levels whose kernels' mean cosines bracket ``spread`` are blended linearly in
         the mean cosine (level 0, the map itself, counts as 1), so the blend has the lobe's
         mean cosine; read along the lobe's centroid, it has the lobe's first moment and is
-        exact for a map linear in ``l``. Spreads below the roughest level's read that level.
+        exact for a map linear in ``l``. Past the roughest level (the cosine lobe, 2/3) the blend
+        continues toward the hemisphere's mean (:attr:`broad`, 1/2).
         """
         kappa = self._level_kappa
         s = torch.clamp(spread, min=kappa[-1], max=kappa[0])
         angles = _direction_angles(direction)
         acc: Tensor | float = 0.0
-        for i, level in enumerate(self.levels):
+        for i, level in enumerate(self.levels + [self.broad]):
             # Hat function in κ: 1 at κ_i, 0 at the neighbouring levels' κ.
             up = (s - kappa[i + 1]) / (kappa[i] - kappa[i + 1]) if i + 1 < len(kappa) else None
             down = (kappa[i - 1] - s) / (kappa[i - 1] - kappa[i]) if i > 0 else None
@@ -1215,20 +1272,24 @@ class SplitSumEnvironment:
                 acc = acc + wi * latlong_bilinear(level, direction, batch_index, angles=angles)
         return acc if isinstance(acc, Tensor) else torch.zeros_like(direction)
 
-    def unresolved(self, width: Tensor | float) -> Tensor | float:
-        """Share of a lobe of angular width ``width`` (radians) the peaks' cells cannot resolve.
+    def sharpness(self, width: Tensor | float) -> tuple[Tensor | float, Tensor | float]:
+        """How a lobe of angular width ``width`` (radians) sees the peaks: ``(w_fine, w_map)``.
 
-        1 for lobes narrower than half a cell, 0 for lobes wider than two cells, linear in
-        between. That share of a sharp lobe's response to the peaks is read from
-        :attr:`peak_map` along the lobe (exact as the lobe narrows to a mirror, where a texel is
-        constant across it) instead of summed over the cells (a cell is one direction: a lobe
-        narrower than the cells would fall between them).
+        A cell is one direction, so a lobe not much wider than the cells falls between them.
+        ``w_fine``: the share summed over the finer cells instead (1 for lobes narrower than
+        4 cells, 0 for lobes wider than 6, linear between); ``w_map``: the share read from
+        :attr:`peak_map` along the lobe instead (1 for lobes narrower than 2 fine cells, 0 for
+        lobes wider than 4; exact as the lobe narrows to a mirror, where a texel is
+        constant across it). ``w_map ≤ w_fine``.
         """
         if self.peak_map is None:
-            return 0.0
-        d = self.peak_cell
-        w = (2.0 * d - width) / (1.5 * d)
-        return torch.clamp(w, 0.0, 1.0) if isinstance(w, Tensor) else min(max(w, 0.0), 1.0)
+            return 0.0, 0.0
+
+        def ramp(w):
+            return torch.clamp(w, 0.0, 1.0) if isinstance(w, Tensor) else min(max(w, 0.0), 1.0)
+
+        c, f = self.peak_cell, self.fine_cell
+        return ramp((6.0 * c - width) / (2.0 * c)), ramp((4.0 * f - width) / (2.0 * f))
 
     def peaks(
         self,
@@ -1239,12 +1300,17 @@ class SplitSumEnvironment:
         x: Tensor | None = None,
         y: Tensor | None = None,
         batch_index: Tensor | None = None,
+        fine: bool = False,
     ) -> Tensor | float:
         """The peaks' exact contribution ``Σ f(l_k, v) E_k max(n·l_k, 0)``, ``(P, 3)``.
 
-        ``0.0`` when the map has none. Arguments as in :func:`integrate_environment_split_sum`.
+        ``0.0`` when the map has none. Arguments as in :func:`integrate_environment_split_sum`;
+        ``fine``: over the finer cells.
         """
-        dirs, irr = self.peak_directions, self.peak_irradiance
+        if fine:
+            dirs, irr = self.fine_directions, self.fine_irradiance
+        else:
+            dirs, irr = self.peak_directions, self.peak_irradiance
         count = dirs.shape[1]
         if count == 0:
             return 0.0
@@ -1272,14 +1338,20 @@ class SplitSumEnvironment:
         cosine. A lobe centred on ``n`` with the right albedo and mean cosine has the right
         first moment: the split sum is then exact for a map linear in ``l`` (a sky gradient, or
         the far field of a small source), where the cosine lobe alone is off by the spread's
-        difference. Broader lobes than the cosine are read from the irradiance alone.
+        difference. A lobe broader than the cosine (``spread < 2/3``) is blended toward the
+        hemisphere's mean (:attr:`broad`, mean cosine 1/2) the same way.
         """
         irr = latlong_bilinear(self.irradiance, n, batch_index)
         if spread is None:
             return irr
         k_cos, k_sharp = self._kappa
         a = torch.clamp((spread - k_cos) / (k_sharp - k_cos), 0.0, 1.0)
-        return irr + a * (latlong_bilinear(self._sharp, n, batch_index) - irr)
+        out = irr + a * (latlong_bilinear(self._sharp, n, batch_index) - irr)
+        k_broad = self._level_kappa[-1]
+        b = torch.clamp((k_cos - spread) / (k_cos - k_broad), 0.0, 1.0)
+        if _may_be_nonzero(b):
+            out = out + b * (latlong_bilinear(self.broad, n, batch_index) - irr)
+        return out
 
 
 def _dominant_direction(n: Tensor, r_dir: Tensor, alpha) -> Tensor:
@@ -1398,16 +1470,17 @@ def integrate_environment_split_sum(
         # n·v: acos' is infinite at 1); v - (n·v) n has length sin θ.
         theta = torch.acos(torch.clamp(nv, max=1.0 - 1e-6))
         off_n = (v - nv * n) / torch.sin(theta)
-        # A lobe too sharp for the peaks' cells sees them through the peak map instead.
-        sharp = env.unresolved(torch.sqrt(2.0 * torch.clamp(1.0 - tab[:, 9:10], min=0.0)))
+        # A lobe too sharp for the peaks' cells sees them through finer cells, and sharper
+        # still through the peak map (SplitSumEnvironment.sharpness).
+        w_fine, w_map = env.sharpness(torch.sqrt(2.0 * torch.clamp(1.0 - tab[:, 9:10], min=0.0)))
         for c, weight in ((8, cspec0 * tab[:, 0:1]), (10, tab[:, 1:2])):
             angle = tab[:, c : c + 1] * theta
             look = safe_normalize(n * torch.cos(angle) - off_n * torch.sin(angle))
             out = out + env.specular_lobe(look, tab[:, c + 1 : c + 2], batch_index) * weight
-            if _may_be_nonzero(sharp):
-                out = out + sharp * latlong_bilinear(cast(Tensor, env.peak_map), look, batch_index) * weight
-        if _may_be_nonzero(sharp):
-            out = out - _sharp_peaks(env, sharp, n, v, material, x, y, batch_index)
+            if _may_be_nonzero(w_map):  # (texel-constant: a mirror sees one texel)
+                out = out + w_map * _lookup_cl(cast(Tensor, env.peak_map), look, batch_index) * weight
+        if _may_be_nonzero(w_fine):
+            out = out + _sharp_peaks(env, w_fine, w_map, n, v, material, x, y, batch_index)
     if "clearcoat" in lobes:
         gloss = p["clearcoat_gloss"]
         g_t = _t(gloss, n) * torch.ones_like(nv)
@@ -1426,30 +1499,42 @@ def integrate_environment_split_sum(
 _SPECULAR_ONLY = partial(_principled_lobe, lobe="specular")
 
 
-def _sharp_peaks(env: SplitSumEnvironment, sharp: Tensor | float, n: Tensor, v: Tensor, material: dict,
-                 x: Tensor | None, y: Tensor | None, batch_index: Tensor | None) -> Tensor:
-    """``sharp ×`` the specular lobe's response to the peaks, ``(P, 3)``.
+def _sharp_peaks(env: SplitSumEnvironment, w_fine: Tensor | float, w_map: Tensor | float, n: Tensor,
+                 v: Tensor, material: dict, x: Tensor | None, y: Tensor | None,
+                 batch_index: Tensor | None) -> Tensor:
+    """The specular lobe's response to the peaks moved between cells, ``(P, 3)``.
 
-    On the CPU only at the points where ``sharp`` ``(P, 1)`` is non-zero (usually a few:
-    roughness ≲ 0.1); elsewhere everywhere (no host sync).
+    From the cells to the fine cells (share ``w_fine``) and from those to the peak map (share
+    ``w_map``, added by the caller): ``(w_fine - w_map) F - w_fine C`` with ``F`` / ``C`` the
+    sums over the fine / coarse cells. On the CPU only at the points where ``w_fine``
+    ``(P, 1)`` is non-zero (roughness ≲ 0.2); elsewhere at every point (no host sync).
     """
-    if (not isinstance(sharp, Tensor) or sharp.device.type != "cpu" or n.shape[0] < 2
+
+    def shift(n, v, mat, x, y, bi, wf, wm):
+        fine = env.peaks(_SPECULAR_ONLY, n, v, mat, x, y, bi, fine=True)
+        coarse = env.peaks(_SPECULAR_ONLY, n, v, mat, x, y, bi)
+        return (wf - wm) * fine - wf * coarse + torch.zeros_like(n)
+
+    if (not isinstance(w_fine, Tensor) or w_fine.device.type != "cpu" or n.shape[0] < 2
             or torch.compiler.is_compiling()):
-        return sharp * env.peaks(_SPECULAR_ONLY, n, v, material, x, y, batch_index) + torch.zeros_like(n)
-    idx = sharp[:, 0].nonzero()[:, 0]
+        return shift(n, v, material, x, y, batch_index, w_fine, w_map)
+    idx = w_fine[:, 0].nonzero()[:, 0]
     count = n.shape[0]
 
     def sub(t):
         return t[idx] if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == count else t
 
-    part = env.peaks(_SPECULAR_ONLY, n[idx], v[idx], {k: sub(t) for k, t in material.items()},
-                     sub(x), sub(y), sub(batch_index))
-    return torch.zeros_like(n).index_add(0, idx, sharp[idx] * part)
+    part = shift(n[idx], v[idx], {k: sub(t) for k, t in material.items()}, sub(x), sub(y), sub(batch_index),
+                 w_fine[idx], sub(w_map))
+    return torch.zeros_like(n).index_add(0, idx, part)
 
 
 def _may_be_nonzero(w: Tensor | float) -> bool:
-    """Whether a weight may be non-zero anywhere (True without looking on an accelerator, which
-    would be a host sync, and under ``torch.compile``, where it would be a graph break)."""
+    """Whether a weight may be non-zero anywhere.
+
+    True without looking on an accelerator (a host sync) and under ``torch.compile`` (a graph
+    break).
+    """
     if isinstance(w, Tensor):
         return w.device.type != "cpu" or torch.compiler.is_compiling() or bool((w != 0).any())
     return w != 0
