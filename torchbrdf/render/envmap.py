@@ -67,7 +67,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from functools import lru_cache, partial
+from functools import lru_cache
 from typing import cast
 
 import torch
@@ -76,7 +76,7 @@ from torch import Tensor
 from torchbrdf._math import compute_dtype, dot, lerp, luminance, safe_normalize, safe_sqrt
 from torchbrdf._types import BRDF, Device, Scalar
 from torchbrdf.brdf.frames import frame_from_normal, to_local, to_world
-from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
+from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS, PrincipledBRDF
 from torchbrdf.render.sampling import (
     ALPHA_MIN,
     LatLongSampler,
@@ -937,7 +937,9 @@ def extract_peaks(
     a texel of a :data:`PEAK_CELL_ROWS`-row map (``s = ceil(PEAK_CELL_ROWS / H)``, at most 4),
     and every cell becomes a directional light of irradiance ``L Ω_cell`` at its centre. The
     peaks and the returned rest add up to the map exactly (its power is split, not changed).
-    Differentiable in ``radiance``; the choice of texels is not.
+    Differentiable in ``radiance``; the choice of texels is not. Outputs have ``radiance``'s
+    dtype and device (texels are chosen in float32 at least: a sun overflows float16's
+    luminance × solid angle); one host sync per call.
 
     Args:
         radiance: ``(3, H, W)`` or ``(B, 3, H, W)``.
@@ -1218,12 +1220,13 @@ class SplitSumEnvironment:
         sharp = max(i for i, r in enumerate(self.roughness) if 0 < r < 1)
         self._sharp = self.levels[sharp]
         alpha_sharp = max(self.roughness[sharp] ** 2, ALPHA_MIN)
-        self._kappa = (_kernel_mean_cosine(None), _kernel_mean_cosine(alpha_sharp))
         # Mean cosine of each level's kernel (level 0, the map itself: 1), decreasing, then the
-        # broad map's (1/2).
+        # broad map's (1/2); and of the maps a diffuse lobe blends (that level, the cosine, broad).
+        k_broad = _kernel_mean_cosine(UNIFORM)
         self._level_kappa = [
             1.0 if r <= 0 else _kernel_mean_cosine(max(r * r, ALPHA_MIN)) for r in self.roughness
-        ] + [_kernel_mean_cosine(UNIFORM)]
+        ] + [k_broad]
+        self._diffuse_kappa = [_kernel_mean_cosine(alpha_sharp), _kernel_mean_cosine(None), k_broad]
 
     def specular(self, r_dir: Tensor, roughness: Scalar, batch_index: Tensor | None = None) -> Tensor:
         """Prefiltered radiance along ``r_dir`` ``(P, 3)`` at ``roughness`` (float or ``(P, 1)``)."""
@@ -1254,23 +1257,7 @@ class SplitSumEnvironment:
         exact for a map linear in ``l``. Past the roughest level (the cosine lobe, 2/3) the blend
         continues toward the hemisphere's mean (:attr:`broad`, 1/2).
         """
-        kappa = self._level_kappa
-        s = torch.clamp(spread, min=kappa[-1], max=kappa[0])
-        angles = _direction_angles(direction)
-        acc: Tensor | float = 0.0
-        for i, level in enumerate(self.levels + [self.broad]):
-            # Hat function in κ: 1 at κ_i, 0 at the neighbouring levels' κ.
-            up = (s - kappa[i + 1]) / (kappa[i] - kappa[i + 1]) if i + 1 < len(kappa) else None
-            down = (kappa[i - 1] - s) / (kappa[i - 1] - kappa[i]) if i > 0 else None
-            if up is None:
-                wi = torch.clamp(down, 0.0, 1.0) if down is not None else torch.ones_like(s)
-            elif down is None:
-                wi = torch.clamp(up, 0.0, 1.0)
-            else:
-                wi = torch.clamp(torch.minimum(up, down), 0.0, 1.0)
-            if _may_be_nonzero(wi):  # (a material's roughness range reads two or three levels)
-                acc = acc + wi * latlong_bilinear(level, direction, batch_index, angles=angles)
-        return acc if isinstance(acc, Tensor) else torch.zeros_like(direction)
+        return _blend_by_mean_cosine(self.levels + [self.broad], self._level_kappa, spread, direction, batch_index)
 
     def sharpness(self, width: Tensor | float) -> tuple[Tensor | float, Tensor | float]:
         """How a lobe of angular width ``width`` (radians) sees the peaks: ``(w_fine, w_map)``.
@@ -1341,17 +1328,29 @@ class SplitSumEnvironment:
         difference. A lobe broader than the cosine (``spread < 2/3``) is blended toward the
         hemisphere's mean (:attr:`broad`, mean cosine 1/2) the same way.
         """
-        irr = latlong_bilinear(self.irradiance, n, batch_index)
         if spread is None:
-            return irr
-        k_cos, k_sharp = self._kappa
-        a = torch.clamp((spread - k_cos) / (k_sharp - k_cos), 0.0, 1.0)
-        out = irr + a * (latlong_bilinear(self._sharp, n, batch_index) - irr)
-        k_broad = self._level_kappa[-1]
-        b = torch.clamp((k_cos - spread) / (k_cos - k_broad), 0.0, 1.0)
-        if _may_be_nonzero(b):
-            out = out + b * (latlong_bilinear(self.broad, n, batch_index) - irr)
-        return out
+            return latlong_bilinear(self.irradiance, n, batch_index)
+        maps = [self._sharp, self.irradiance, self.broad]
+        return _blend_by_mean_cosine(maps, self._diffuse_kappa, spread, n, batch_index)
+
+
+def _blend_by_mean_cosine(maps: list[Tensor], kappa: list[float], spread: Tensor, direction: Tensor,
+                          batch_index: Tensor | None) -> Tensor:
+    """Maps ``(B, h, w, 3)`` blended linearly in their kernels' mean cosines ``kappa``
+    (decreasing) to a lobe's mean cosine ``spread`` ``(P, 1)``, read along ``direction``
+    ``(P, 3)``: ``(P, 3)``. A spread outside ``kappa``'s range reads the nearest end's map."""
+    s = torch.clamp(spread, min=kappa[-1], max=kappa[0])
+    angles = _direction_angles(direction)
+    acc = torch.zeros_like(direction)
+    for i, m in enumerate(maps):
+        # Hat function in κ: 1 at κ_i, 0 at the neighbouring maps' κ (flat past either end).
+        up = (s - kappa[i + 1]) / (kappa[i] - kappa[i + 1]) if i + 1 < len(kappa) else None
+        down = (kappa[i - 1] - s) / (kappa[i - 1] - kappa[i]) if i > 0 else None
+        hat = down if up is None else up if down is None else torch.minimum(up, down)
+        wi = torch.clamp(cast(Tensor, hat), 0.0, 1.0)
+        if _may_be_nonzero(wi):  # (a material's roughness range reads two or three maps)
+            acc = acc + wi * latlong_bilinear(m, direction, batch_index, angles=angles)
+    return acc
 
 
 def _dominant_direction(n: Tensor, r_dir: Tensor, alpha) -> Tensor:
@@ -1373,18 +1372,11 @@ def _dominant_direction(n: Tensor, r_dir: Tensor, alpha) -> Tensor:
     return safe_normalize(n + (r_dir - n) * f)
 
 
-def _principled_lobe(l: Tensor, v: Tensor, n: Tensor, x=None, y=None, *, lobe: str, **material) -> Tensor:
-    """One lobe of :func:`torchbrdf.principled`, ``(..., 3)``."""
-    from torchbrdf.brdf.principled import principled
-
-    return principled(l, v, n, x, y, lobes=(lobe,), **material)
-
-
 def brdf_kind(brdf: BRDF) -> str:
     """``"lambert"``, ``"principled"`` or ``"custom"`` — what the split sum knows how to handle."""
     if getattr(brdf, "sampling_lobes", None) == ("diffuse",):
         return "lambert"
-    from torchbrdf.brdf.principled import PrincipledBRDF, principled
+    from torchbrdf.brdf.principled import principled
 
     if brdf is principled or isinstance(brdf, PrincipledBRDF):
         return "principled"
@@ -1496,7 +1488,7 @@ def integrate_environment_split_sum(
 
 
 #: The principled specular lobe on its own (the peaks it cannot resolve are swapped).
-_SPECULAR_ONLY = partial(_principled_lobe, lobe="specular")
+_SPECULAR_ONLY = PrincipledBRDF(lobes=("specular",))
 
 
 def _sharp_peaks(env: SplitSumEnvironment, w_fine: Tensor | float, w_map: Tensor | float, n: Tensor,
