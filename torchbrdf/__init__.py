@@ -27,7 +27,7 @@ import sys as _sys
 if (_os.path.basename(getattr(_sys, "argv", [""])[0] or "").startswith("torchbrdf-recover")
         and "OMP_WAIT_POLICY" not in _os.environ and "GOMP_SPINCOUNT" not in _os.environ):
     _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
-    _os.environ["GOMP_SPINCOUNT"] = "1000"
+    _os.environ["GOMP_SPINCOUNT"] = "2000"
 
 from torchbrdf import analysis, io
 from torchbrdf.analysis import plots

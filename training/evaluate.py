@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from torchbrdf.capture.synthetic import RECIPES, generate_capture, make_material, random_lights, render_capture
-from torchbrdf.recovery.svbrdf import RecoveryConfig, map_errors, psnr, recover
+from torchbrdf.recovery.svbrdf import RecoveryConfig, keep_freed_memory, map_errors, psnr, recover
 
 THRESHOLDS = {"base_color_rmse": 0.02, "roughness_rmse": 0.06, "metallic_rmse": 0.05, "normal_mean_deg": 1.0}
 PHOTO_THRESHOLDS = {**THRESHOLDS, "roughness_rmse": 0.05}  # issue 13, photo-derived set
@@ -163,6 +163,7 @@ def main(argv=None) -> int:
     p.add_argument("--no-calibration-error", action="store_true", help="photo set: lights exactly as stated")
     p.add_argument("--both-calibrations", action="store_true", help="photo set: each capture with and without error")
     args = p.parse_args(argv)
+    keep_freed_memory()  # as torchbrdf-recover does, so the times are the command's
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     recipes = args.recipes.split(",")

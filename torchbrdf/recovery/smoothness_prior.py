@@ -9,6 +9,7 @@ weighted graph Laplacian ``L θ`` and its Hessian ``L``, which couples pixels �
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -135,7 +136,8 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     # One gather puts the eliminated channels first (blocks are then views); the per-pixel
     # algebra runs in float64: in float32 the elimination's cancellation stalls CG at 1e-2.
     perm = torch.tensor(u + a, device=hess.device)
-    hp = hess.index_select(1, perm).index_select(2, perm).double()
+    flat = (perm[:, None] * c + perm[None, :]).reshape(-1)  # one gather of the 49 entries: 3x faster
+    hp = hess.reshape(-1, c * c).index_select(1, flat).view(-1, c, c).double()
     bp = rhs.index_select(1, perm).double()
     s, b = hp[:, nu:, nu:], bp[:, nu:]
     if u:
@@ -144,7 +146,10 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
         s = s - bd @ hp[:, :nu, nu:]
         b = b - (bd @ bp[:, :nu, None])[..., 0]
     wxa, wya = wx.narrow(-1, lo, n), wy.narrow(-1, lo, n)
-    pre = torch.linalg.inv(s + torch.diag_embed(laplacian_diag(wxa, wya, size).double()))
+    # The Laplacian's diagonal joins the blocks: the operator is then one block product plus
+    # the four neighbour terms, and the preconditioner is the exact inverse of its blocks.
+    s = s + torch.diag_embed(laplacian_diag(wxa, wya, size).double())
+    pre = torch.linalg.inv(s)
     dt = rhs.dtype
     s_cf, pre = s.to(dt).permute(1, 2, 0).contiguous(), pre.to(dt).permute(1, 2, 0).contiguous()
     wxc, wyc = wxa.permute(2, 0, 1).contiguous(), wya.permute(2, 0, 1).contiguous()
@@ -155,26 +160,34 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
             out.addcmul_(m[:, j], v[j])
         return out
 
-    def apply(v):
-        return block(s_cf, v) + _laplacian_image(v.reshape(n, size, size), wxc, wyc, 1, 2).reshape(n, -1)
+    def apply(v):  # (blocks + diag L) v − Σ_q w_pq v_q: every product accumulates in place
+        out = block(s_cf, v)
+        o, w = out.view(n, size, size), v.view(n, size, size)
+        o[:, :, :-1].addcmul_(wxc, w[:, :, 1:], value=-1.0)
+        o[:, :, 1:].addcmul_(wxc, w[:, :, :-1], value=-1.0)
+        o[:, :-1].addcmul_(wyc, w[:, 1:], value=-1.0)
+        o[:, 1:].addcmul_(wyc, w[:, :-1], value=-1.0)
+        return out
+
+    def dot(a, b):
+        return float(torch.vdot(a.view(-1), b.view(-1)))
 
     rb = b.to(dt).T.contiguous()
     x = block(pre, rb)
     r = rb - apply(x)
-    z = block(pre, r)
-    d = z
-    rz = (r * z).sum()
+    d = block(pre, r)
+    rz = dot(r, d)
     for _ in range(iters):
         ad = apply(d)
-        dad = (d * ad).sum()
-        if not bool(torch.isfinite(dad)) or float(dad) <= 0:
+        dad = dot(d, ad)  # a host sync per iteration, which the step length needs anyway
+        if not math.isfinite(dad) or dad <= 0:
             break
         alpha = rz / dad
-        x = x + alpha * d
-        r = r - alpha * ad
+        x.add_(d, alpha=alpha)
+        r.add_(ad, alpha=-alpha)
         z = block(pre, r)
-        rz_new = (r * z).sum()
-        d = z + (rz_new / rz) * d
+        rz_new = dot(r, z)
+        d = z.add_(d, alpha=rz_new / rz) if rz != 0 else z
         rz = rz_new
     out = torch.empty_like(rhs)
     xa = x.T.double()

@@ -163,12 +163,11 @@ def _logit(x: Tensor, lo=0.0, hi=1.0, eps=1e-4) -> Tensor:
 
 def decode(theta: Tensor, metal: Tensor) -> dict:
     """Principled parameters ``(P, C)`` from unconstrained ``theta (P, 7)`` and ``metal (P, 1)``."""
-    base = torch.sigmoid(theta[:, 0:3])
-    spec = torch.sigmoid(theta[:, 3:4])
-    rough = _R_MIN + (_R_MAX - _R_MIN) * torch.sigmoid(theta[:, 4:5])
+    s = torch.sigmoid(theta[:, 0:5])  # one op for the five logits (decode runs ~700 times a fit)
+    rough = _R_MIN + (_R_MAX - _R_MIN) * s[:, 4:5]
     n = torch.cat((theta[:, 5:7], torch.ones_like(theta[:, 5:6])), -1)
     n = n * torch.rsqrt((n * n).sum(-1, keepdim=True))
-    return {"base_color": base, "specular": spec, "roughness": rough, "metallic": metal, "normal": n}
+    return {"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal, "normal": n}
 
 
 def encode(params: dict) -> Tensor:
