@@ -116,9 +116,11 @@ def test_console_script_sets_the_wait_before_torch_loads(tmp_path, user, expect)
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
 def test_keep_freed_memory_reuses_freed_blocks_instead_of_fresh_pages():
-    """After ``keep_freed_memory`` (what the recovery commands call), freed 20 MB blocks are
-    reused: a quarter or fewer of the page faults of a process without it (glibc maps such a
-    block fresh or trims it from the heap when freed, so each reuse page-faults it in again)."""
+    """After ``keep_freed_memory``, freed 20 MB blocks are reused.
+
+    A quarter or fewer of the page faults of a process without it (glibc maps such a block
+    fresh or trims it from the heap when freed, so each reuse page-faults it in again).
+    """
     code = """
         import resource, torch
         from torchbrdf.recovery.svbrdf import keep_freed_memory

@@ -167,7 +167,8 @@ def decode(theta: Tensor, metal: Tensor) -> dict:
     rough = _R_MIN + (_R_MAX - _R_MIN) * s[:, 4:5]
     n = torch.cat((theta[:, 5:7], torch.ones_like(theta[:, 5:6])), -1)
     n = n * torch.rsqrt((n * n).sum(-1, keepdim=True))
-    return {"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal, "normal": n}
+    return {"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal,
+            "normal": n}
 
 
 def encode(params: dict) -> Tensor:
