@@ -170,7 +170,7 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
         return out
 
     def dot(a, b):
-        return float(torch.vdot(a.view(-1), b.view(-1)))
+        return torch.vdot(a.view(-1), b.view(-1))
 
     rb = b.to(dt).T.contiguous()
     x = block(pre, rb)
@@ -179,15 +179,16 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     rz = dot(r, d)
     for _ in range(iters):
         ad = apply(d)
-        dad = dot(d, ad)  # a host sync per iteration, which the step length needs anyway
-        if not math.isfinite(dad) or dad <= 0:
+        dad = dot(d, ad)
+        dad_host = float(dad)  # one host sync per iteration (the stopping test needs it)
+        if not math.isfinite(dad_host) or dad_host <= 0:
             break
-        alpha = rz / dad
-        x.add_(d, alpha=alpha)
-        r.add_(ad, alpha=-alpha)
+        alpha = rz / dad  # 0-d tensors: the updates queue without another sync
+        x.addcmul_(d, alpha)
+        r.addcmul_(ad, alpha, value=-1.0)
         z = block(pre, r)
         rz_new = dot(r, z)
-        d = z.add_(d, alpha=rz_new / rz) if rz != 0 else z
+        d = z.addcmul_(d, torch.where(rz != 0, rz_new / rz, torch.zeros_like(rz)))
         rz = rz_new
     out = torch.empty_like(rhs)
     xa = x.T.double()

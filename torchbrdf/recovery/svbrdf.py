@@ -347,6 +347,8 @@ def clean_leftovers(out: Path, log: Callable[[str], None] = lambda m: None) -> l
 
 def _exchange(a: Path, b: Path) -> bool:
     """Atomically swap two folders (Linux ``renameat2(RENAME_EXCHANGE)``); False if unsupported."""
+    if not (isinstance(limit, int) and 0 < limit <= 32 << 20):  # glibc's largest mmap threshold on 64 bits
+        raise ValueError(f"keep_freed_memory: limit must be an integer in (0, 32 MiB], got {limit!r}")
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -1174,13 +1176,16 @@ def keep_freed_memory(limit: int = 32 << 20) -> bool:
     ``limit`` and keeping up to 8 × ``limit`` of freed memory in the heap avoids it. Returns
     whether it applied (False off glibc).
     """
-    try:
-        libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
+    if not (isinstance(limit, int) and 0 < limit <= 32 << 20):  # glibc's largest mmap threshold on 64 bits
+        raise ValueError(f"keep_freed_memory: limit must be an integer in (0, 32 MiB], got {limit!r}")
+    if not sys.platform.startswith("linux"):
         return False
-    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
-    return bool(mallopt(m_mmap_threshold, limit)) and bool(mallopt(m_trim_threshold, 8 * limit))
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+        m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
+        return bool(mallopt(m_mmap_threshold, limit)) and bool(mallopt(m_trim_threshold, 8 * limit))
+    except (OSError, AttributeError, TypeError, ctypes.ArgumentError):  # not glibc (musl, ...)
+        return False
 
 
 def cli() -> NoReturn:
