@@ -139,3 +139,11 @@ def test_keep_freed_memory_reuses_freed_blocks_instead_of_fresh_pages():
     if on[0] != "True":
         pytest.skip("mallopt not available (not glibc)")
     assert int(on[1]) * 4 < int(off[1]), (on, off)
+
+
+@pytest.mark.parametrize("limit", [0, -1, 1 << 40, 1.5])
+def test_keep_freed_memory_refuses_a_limit_glibc_cannot_take(limit):
+    from torchbrdf.recovery.svbrdf import keep_freed_memory
+
+    with pytest.raises(ValueError, match="limit must be an integer in"):
+        keep_freed_memory(limit)
