@@ -347,8 +347,6 @@ def clean_leftovers(out: Path, log: Callable[[str], None] = lambda m: None) -> l
 
 def _exchange(a: Path, b: Path) -> bool:
     """Atomically swap two folders (Linux ``renameat2(RENAME_EXCHANGE)``); False if unsupported."""
-    if not (isinstance(limit, int) and 0 < limit <= 32 << 20):  # glibc's largest mmap threshold on 64 bits
-        raise ValueError(f"keep_freed_memory: limit must be an integer in (0, 32 MiB], got {limit!r}")
     if not sys.platform.startswith("linux"):
         return False
     try:
