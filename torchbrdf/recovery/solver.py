@@ -603,9 +603,13 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
     jac = torch.stack(cols, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
     r = r.reshape(len(idx), -1)
     sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
+    # Huber weights: a residual beyond 3 noise deviations counts linearly, not quadratically, so
+    # the few pixels the maps do not fit yet (a material front, an unconverged rim) cannot move
+    # a light to explain them.
+    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0)
     eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    jtj = torch.einsum("lni,lnj->lij", jac, jac) + (sigma2 / prior_sigma**2) * eye
-    g = torch.einsum("lni,ln->li", jac, r) + (sigma2 / prior_sigma**2) * offset[idx]
+    jtj = torch.einsum("lni,lnj->lij", jac * w[..., None], jac) + (sigma2 / prior_sigma**2) * eye
+    g = torch.einsum("lni,ln->li", jac, w * r) + (sigma2 / prior_sigma**2) * offset[idx]
     step = torch.linalg.solve(jtj, -g[..., None])[..., 0]
     out = offset.clone()
     out[idx] = (offset[idx] + torch.nan_to_num(step)).clamp(-5 * prior_sigma, 5 * prior_sigma)
