@@ -57,7 +57,7 @@ def soft_metal_fields(rep: dict, metallic, gt_metallic) -> dict:
 
 
 def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, noise: float, test_lights: int,
-                   calibration: bool = True, cfg: RecoveryConfig | None = None) -> dict:
+                   calibration: bool = True, cfg: RecoveryConfig | None = None, diffuse: str = "lambert") -> dict:
     """One photo-derived capture (:mod:`training.photo_set`): recover, then errors and held-out PSNR.
 
     The held-out reference images are rendered by the photo set's own forward model (not the
@@ -66,9 +66,10 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
     """
     from training.photo_set import photo_capture, photo_material, render_other_model
 
-    cap_dir = folder / f"photo_{name}_s{seed}_L{lights}{'' if calibration else '_nocal'}"
+    suffix = ("" if calibration else "_nocal") + ("" if diffuse == "lambert" else f"_{diffuse}")
+    cap_dir = folder / f"photo_{name}_s{seed}_L{lights}{suffix}"
     if not (cap_dir / "capture.json").is_file():
-        photo_capture(cap_dir, name, seed, size, lights, noise, calibration)
+        photo_capture(cap_dir, name, seed, size, lights, noise, calibration, diffuse)
     t0 = time.perf_counter()
     rep = recover(cap_dir, None, cfg or RecoveryConfig(), progress=False)
     seconds = time.perf_counter() - t0
@@ -77,14 +78,14 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
     gt = photo_material(name, seed, size)
     pos, inten = random_lights(test_lights, seed=seed)
     with torch.no_grad():
-        ref = render_other_model(gt, (pos, inten))
+        ref = render_other_model(gt, (pos, inten), diffuse=diffuse)
         pred = render_capture(maps, (pos, inten), backend="compact")
     ps = [psnr(pred[k], ref[k]) for k in range(test_lights)]
     true = torch.load(cap_dir / "true_lights.pt")
     stated = torch.tensor([30.0] * lights + [15.0])
     true_scale = (true["true_intensity"][:, 0] / stated).tolist()
     est = list(rep.get("light_intensity_scale", {}).values())
-    row = {"recipe": f"photo:{name}", "seed": seed, "lights": lights, "size": size, "seconds": seconds, **err,
+    row = {"recipe": f"photo:{name}" + ("" if diffuse == "lambert" else f" ({diffuse} diffuse)"), "seed": seed, "lights": lights, "size": size, "seconds": seconds, **err,
            "heldout_psnr_mean": statistics.mean(ps), "heldout_psnr_min": min(ps), "heldout_psnr": ps,
            "calibration_error": calibration, "true_intensity_scale": true_scale, "estimated_intensity_scale": est,
            "validation_psnr": (rep.get("held_out_light") or {}).get("psnr"), "iterations": rep["iterations"],
@@ -162,6 +163,9 @@ def main(argv=None) -> int:
     p.add_argument("--photos", default="glazed_brick,coffee,coins,gravel,grass", help="photo materials to cycle")
     p.add_argument("--no-calibration-error", action="store_true", help="photo set: lights exactly as stated")
     p.add_argument("--both-calibrations", action="store_true", help="photo set: each capture with and without error")
+    p.add_argument("--photo-diffuse", choices=("lambert", "burley"), default="lambert",
+                   help="photo set: the forward model's diffuse lobe (burley: the fitted model's, which takes "
+                        "the roughness-diffuse coupling out of the mismatch)")
     args = p.parse_args(argv)
     keep_freed_memory()  # as torchbrdf-recover does, so the times are the command's
     torch.set_num_threads(args.threads)
@@ -176,7 +180,7 @@ def main(argv=None) -> int:
         for k in range(args.materials):
             for cal in cals:
                 rows.append(evaluate_photo(args.out, names[k % len(names)], args.seed0 + k, args.size, args.lights,
-                                           args.noise, args.test_lights, cal))
+                                           args.noise, args.test_lights, cal, diffuse=args.photo_diffuse))
                 print(table(rows[-1:]).splitlines()[-1], flush=True)
                 _save(args.out, rows, study)
         print(table(rows))

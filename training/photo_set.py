@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 import torchbrdf
+from torchbrdf.brdf.diffuse import diffuse_burley
 from torchbrdf.capture.format import pixel_points, write_capture
 from torchbrdf.capture.synthetic import DEFAULT_CAMERA, add_noise, light_layout, write_maps
 
@@ -135,13 +136,20 @@ def photo_material(name: str, seed: int, size: int = 256) -> dict[str, Tensor]:
             "normal": _normals(height)}
 
 
-def render_other_model(maps: dict, lights, camera=DEFAULT_CAMERA) -> Tensor:
+def render_other_model(maps: dict, lights, camera=DEFAULT_CAMERA, diffuse: str = "lambert") -> Tensor:
     """Images ``(L, 3, S, S)`` of ``maps`` under point lights, by a model other than the fitted one.
 
-    Lambertian diffuse ``base (1 − metallic) / π``; GGX (α = roughness²) with height-correlated
-    Smith masking; exact dielectric Fresnel with the index whose F0 is ``0.08 specular`` for
-    dielectrics, Schlick with F0 = base colour for metals.
+    Lambertian diffuse ``base (1 − metallic) / π`` (``diffuse="burley"``: Burley's, as the fitted
+    model has it); GGX (α = roughness²) with height-correlated Smith masking; exact dielectric
+    Fresnel with the index whose F0 is ``0.08 specular`` for dielectrics, Schlick with F0 = base
+    colour for metals.
+
+    Under Burley's diffuse, the principled model's roughness also shapes the diffuse lobe, so a
+    rough Lambertian material is not best fitted at its own roughness (docs/recovery.md, issue 13);
+    ``"burley"`` keeps the rest of the mismatch and takes that part out.
     """
+    if diffuse not in ("lambert", "burley"):
+        raise ValueError(f"render_other_model: diffuse must be 'lambert' or 'burley', got {diffuse!r}")
     pos, inten = lights
     s = maps["base_color"].shape[-1]
     p = pixel_points(s, s).reshape(-1, 3).double()
@@ -159,7 +167,12 @@ def render_other_model(maps: dict, lights, camera=DEFAULT_CAMERA) -> Tensor:
         d2 = (dl * dl).sum(-1, keepdim=True)
         l = dl / d2.sqrt()
         alpha = (rough * rough).clamp(min=1e-3)
-        fd = base * (1 - metal) / math.pi
+        if diffuse == "burley":
+            h = F.normalize(l + v, dim=-1)
+            dot = lambda a, b: (a * b).sum(-1, keepdim=True)  # noqa: E731
+            fd = diffuse_burley(dot(n, l).clamp(min=0), dot(n, v).clamp(min=0), dot(l, h), base, rough) * (1 - metal)
+        else:
+            fd = base * (1 - metal) / math.pi
         fs_d = torchbrdf.microfacet(l, v, n, alpha=alpha, fresnel="dielectric", ior=ior, masking="smith_correlated")
         fs_m = torchbrdf.microfacet(l, v, n, alpha=alpha, fresnel="schlick", f0=base, masking="smith_correlated")
         f = fd + (1 - metal) * fs_d + metal * fs_m
@@ -182,13 +195,15 @@ def calibrated_lights(seed: int, lights: int = 16, error: bool = True):
 
 
 def photo_capture(folder, name: str, seed: int, size: int = 256, lights: int = 16, noise: float = 0.01,
-                  calibration: bool = True) -> Path:
-    """Write a photo-derived capture folder (``capture.json`` states the nominal lights); returns it."""
+                  calibration: bool = True, diffuse: str = "lambert") -> Path:
+    """Write a photo-derived capture folder (``capture.json`` states the nominal lights); returns it.
+
+    ``diffuse``: the forward model's diffuse lobe (:func:`render_other_model`)."""
     folder = Path(folder)
     maps = photo_material(name, seed, size)
     nominal, true = calibrated_lights(seed, lights, calibration)
     with torch.no_grad():
-        img = render_other_model(maps, true)
+        img = render_other_model(maps, true, diffuse=diffuse)
         img = add_noise(img, noise, seed)
     write_maps(folder / "gt", maps, previews=False)
     write_capture(folder, img, nominal, DEFAULT_CAMERA)
