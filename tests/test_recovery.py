@@ -498,3 +498,35 @@ def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
         data.set_light_offset(off)
         off = R.light_position_step(data, theta, metal, off, "principled", stride=1)
     assert float(off.abs().max()) < 5e-3, off
+
+
+@pytest.mark.parametrize("dual_calibration", [True, False])
+def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_calibration):
+    """A training light 6 % brighter than stated: by the end of the full-resolution dual stage its
+    scale is found (each pixel's better hypothesis), before the single-class stages; without
+    ``dual_calibration`` it is still as stated there (the maps absorb it first)."""
+    import dataclasses as dc
+
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    cap = load_capture(tiny)
+    images = cap.images.clone()
+    images[3] *= 1.06
+    cap = dc.replace(cap, images=images)
+    cfg = RecoveryConfig(seed=0, soft_metal=False, dual_calibration=dual_calibration)
+    rec = Recovery(cap, cfg, log=lambda m: None)
+    full = rec.plan[-1][0]
+    dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < dual_end:
+            rec.tick()
+    scale = rec.light_log_scale()
+    rel = scale[3] - scale[rec.train_idx].mean()  # the overall scale is fixed by the stated ones
+    if dual_calibration:  # most of it already (the single-class stages continue the estimate)
+        assert 0.6 * math.log(1.06) < float(rel) < 1.2 * math.log(1.06), scale
+        others = [k for k in rec.train_idx if k != 3]
+        assert float((scale[others] - scale[rec.train_idx].mean()).abs().max()) < 0.02, scale
+    else:
+        assert float(scale.abs().max()) == 0.0

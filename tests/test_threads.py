@@ -118,11 +118,12 @@ def test_console_script_sets_the_wait_before_torch_loads(tmp_path, user, expect)
 def test_keep_freed_memory_reuses_freed_blocks_instead_of_fresh_pages():
     """After ``keep_freed_memory``, freed 20 MB blocks are reused.
 
-    A quarter or fewer of the page faults of a process without it (glibc maps such a block
-    fresh or trims it from the heap when freed, so each reuse page-faults it in again).
+    Ten passes of three 20 MB temporaries fault in at most about one block's pages (glibc
+    without it maps such a block fresh, or trims it from the heap when freed, so reuses
+    page-fault it in again: 4 to 21 blocks measured here, varying run to run).
     """
     code = """
-        import resource, torch
+        import mmap, resource, torch
         from torchbrdf.recovery.svbrdf import keep_freed_memory
         applied = {call} and keep_freed_memory()
         def touch():  # three 20 MB temporaries alive at once, then freed: a fit's pattern
@@ -130,15 +131,18 @@ def test_keep_freed_memory_reuses_freed_blocks_instead_of_fresh_pages():
             del xs
         touch()
         f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-        for _ in range(5):
+        for _ in range(10):
             touch()
-        print(applied, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+        block = (20 << 20) // mmap.PAGESIZE
+        print(applied, (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / block)
     """
-    off = _python(code.format(call=False)).split()
     on = _python(code.format(call=True)).split()
     if on[0] != "True":
         pytest.skip("mallopt not available (not glibc)")
-    assert int(on[1]) * 4 < int(off[1]), (on, off)
+    off = _python(code.format(call=False)).split()
+    if float(off[1]) < 3:
+        pytest.skip(f"this libc reuses the blocks without it ({off[1]} blocks faulted)")
+    assert float(on[1]) <= 1.5, (on, off)
 
 
 @pytest.mark.parametrize("limit", [0, -1, 1 << 40, 1.5])

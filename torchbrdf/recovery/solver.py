@@ -127,6 +127,7 @@ class RecoveryConfig:
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
     light_position: bool = True  # ... and a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate a per-light intensity scale jointly (calibration error)
+    dual_calibration: bool = True  # ... from the full-resolution dual stage on (each pixel's better hypothesis)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
     prior_nonlocal_base: float = 0.003  # precision of the non-local prior on a metal's base colour
@@ -1181,6 +1182,7 @@ class Recovery:
         hyps = [0, 1] if kind == "dual" else [0]
         unary = st.get("fill") if kind == "all" else None
         self.fit_cost = {}
+        residuals: dict[int, Tensor] = {}
         total = 0.0
         for h in hyps:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
@@ -1227,8 +1229,22 @@ class Recovery:
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite loss", "pixels": n_bad,
                                      "action": "step rejected, damping raised"})
             st["theta"][h], st["lam"][h] = theta, lam
+            residuals[h] = extra["residual"]
             if h == 0 or kind != "dual":
                 total = float(cost.mean()) / max(1, len(data.train_idx) * 3)
+        if kind == "dual" and self.cfg.light_scale and self.cfg.dual_calibration and size == self.plan[-1][0]:
+            # At full resolution the lights are estimated already in the dual stage, from each
+            # pixel's better hypothesis: the maps would otherwise absorb part of a light's
+            # error (normals tilt) before the single-hypothesis stages can see it.
+            better = (self.fit_cost[1] < self.fit_cost[0])[:, None]
+            st["light_log_scale"] = light_scale_step(torch.where(better, residuals[1], residuals[0]),
+                                                     data.train_idx, self.light_log_scale(), self.train_idx)
+            self._sync_light_scale()
+            if self.cfg.light_position:
+                st["light_offset"] = light_position_step(data, torch.where(better, st["theta"][1], st["theta"][0]),
+                                                         better.to(st["theta"][0].dtype), self.light_offset(),
+                                                         self.cfg.model)
+                self._sync_light_scale()
         if not math.isfinite(total):
             st["lr"] = max(st["lr"] * 0.5, 0.05)
         st["history"].append({"iteration": st["global_it"], "size": size, "stage": kind, "loss": total})
