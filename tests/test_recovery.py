@@ -502,9 +502,11 @@ def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
 
 @pytest.mark.parametrize("dual_calibration", [True, False])
 def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_calibration):
-    """A training light 6 % brighter than stated: by the end of the full-resolution dual stage its
-    scale is found (each pixel's better hypothesis), before the single-class stages; without
-    ``dual_calibration`` it is still as stated there (the maps absorb it first)."""
+    """A training light 6 % brighter than stated is found by the end of the full-resolution dual stage.
+
+    Each pixel's better hypothesis gives the residuals, before the single-class stages; without
+    ``dual_calibration`` the scale is still as stated there (the maps absorb it first).
+    """
     import dataclasses as dc
 
     from torchbrdf.capture.format import load_capture

@@ -127,7 +127,7 @@ class RecoveryConfig:
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
     light_position: bool = True  # ... and a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate a per-light intensity scale jointly (calibration error)
-    dual_calibration: bool = True  # ... from the full-resolution dual stage on (each pixel's better hypothesis)
+    dual_calibration: bool = True  # ... from the full-resolution dual stage on (better hypothesis)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
     prior_nonlocal_base: float = 0.003  # precision of the non-local prior on a metal's base colour
@@ -1241,9 +1241,9 @@ class Recovery:
                                                      data.train_idx, self.light_log_scale(), self.train_idx)
             self._sync_light_scale()
             if self.cfg.light_position:
-                st["light_offset"] = light_position_step(data, torch.where(better, st["theta"][1], st["theta"][0]),
-                                                         better.to(st["theta"][0].dtype), self.light_offset(),
-                                                         self.cfg.model)
+                theta = torch.where(better, st["theta"][1], st["theta"][0])
+                st["light_offset"] = light_position_step(data, theta, better.to(theta.dtype),
+                                                         self.light_offset(), self.cfg.model)
                 self._sync_light_scale()
         if not math.isfinite(total):
             st["lr"] = max(st["lr"] * 0.5, 0.05)
