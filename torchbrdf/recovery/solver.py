@@ -128,6 +128,7 @@ class RecoveryConfig:
     light_position: bool = True  # ... and a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate a per-light intensity scale jointly (calibration error)
     dual_calibration: bool = True  # ... from the full-resolution dual stage on (better hypothesis)
+    light_joint: bool = True  # lights stepped with the maps eliminated (light_joint_step)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
     prior_nonlocal_base: float = 0.003  # precision of the non-local prior on a metal's base colour
@@ -531,6 +532,27 @@ def nonlocal_fill(data: "LevelData", theta: Tensor, metal: Tensor, cfg: "Recover
     return torch.nan_to_num(tgt), torch.nan_to_num(prec)
 
 
+def prior_gradient(theta: Tensor, wx: Tensor, wy: Tensor, size: int,
+                   unary: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """Gradient ``(P, 7)`` of the maps' prior energy at ``theta``.
+
+    The smoothness prior's weighted Laplacian (:func:`edge_weights` ``wx``, ``wy``) plus the
+    unary fill's pull.
+    """
+    g = laplacian(theta, wx, wy, size)
+    if unary is not None:
+        g = g + unary[1] * (theta - unary[0])
+    return g
+
+
+def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig,
+                    unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """Gradient and Hessian diagonal ``(P, 7)`` each of the maps' prior energy at ``theta``."""
+    wx, wy = edge_weights(theta, metal, size, cfg)
+    hdiag = laplacian_diag(wx, wy, size)
+    return prior_gradient(theta, wx, wy, size, unary), hdiag if unary is None else hdiag + unary[1]
+
+
 def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float,
             extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None
             ) -> tuple[Tensor, Tensor, Tensor, int]:
@@ -546,9 +568,8 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     wx, wy = edge_weights(theta, metal, size, cfg)
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
     r0, jtj, jtr = gauss_newton(data, theta, metal, idx, cfg.model)
-    g = jtr + laplacian(theta, wx, wy, size)
+    g = jtr + prior_gradient(theta, wx, wy, size, unary)
     if unary is not None:
-        g = g + unary[1] * (theta - unary[0])
         jtj = jtj + torch.diag_embed(unary[1])
     hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + laplacian_diag(wx, wy, size)
     hess = jtj + torch.diag_embed(lam * (hd + 1e-6))  # per-pixel Marquardt damping
@@ -615,6 +636,166 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
     out = offset.clone()
     out[idx] = (offset[idx] + torch.nan_to_num(step)).clamp(-5 * prior_sigma, 5 * prior_sigma)
     return out
+
+
+def rig_free_directions(pos: Tensor, centre: Tensor) -> Tensor:
+    """``(3L, 3L - 7)`` orthonormal light-position changes that keep the rig's placement.
+
+    Moving every light together (a translation, a turn or a dilation about the surface's
+    ``centre``) changes the images almost as moving, tilting or scaling the surface would,
+    which the per-pixel maps absorb (normals take a tilt; a near-uniform material is unchanged
+    by a shift); with the maps eliminated these seven directions are barely constrained by the
+    data, and a little model mismatch ran them to the clamp (dusty_metal 2 without calibration
+    error: every light 8 cm inward). Like the overall intensity scale, the rig's placement is
+    the stated one. ``pos (L, 3)`` light positions; rows are light-major (light ``i``'s x, y,
+    z at ``3i .. 3i+2``).
+    """
+    n = pos.shape[0]
+    rel = pos - centre
+    eye = torch.eye(3, dtype=pos.dtype, device=pos.device)
+    turns = [torch.linalg.cross(e.expand_as(rel), rel).reshape(-1, 1) for e in eye]
+    modes = torch.cat((eye.repeat(n, 1), rel.reshape(-1, 1), *turns), 1)  # (3L, 7)
+    q, _ = torch.linalg.qr(modes, mode="complete")
+    return q[:, modes.shape[1]:]
+
+
+def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: Tensor, offset: Tensor,
+                     ref_idx: list[int], model: str, position: bool = True,
+                     map_prior: tuple[Tensor, Tensor] | None = None, scale_sigma: float = 0.1,
+                     position_sigma: float = 0.01, max_pixels: int = 8192,
+                     damping: float = 1e-3) -> tuple[Tensor, Tensor]:
+    """One Gauss–Newton step on the lights' log scales and offsets, the pixels' unknowns eliminated.
+
+    ``theta (P, 7)``, ``metal (P, 1)`` the maps; ``log_scale (L,)`` and ``offset (L, 3)`` the
+    current estimates; returns the updated pair (lights not in ``data.train_idx`` keep theirs).
+
+    Stepping the lights with the maps held fixed (:func:`light_scale_step`,
+    :func:`light_position_step`) sees only the part of a light's error the maps cannot absorb
+    (a tilted normal, a wider lobe), so alternating with the map steps creeps toward the joint
+    optimum. Here each pixel's 7 unknowns are eliminated (a Schur complement, as in bundle
+    adjustment): with ``A = JpᵀWJp + H``, ``B = JpᵀWJg`` and ``gp = JpᵀWr + g`` per pixel,
+    the reduced normal equations ``(Σ JgᵀWJg − Σ BᵀA⁻¹B) δg = −(Σ JgᵀWr − Σ BᵀA⁻¹ gp)`` give
+    the step the maps would follow. ``map_prior = (g, H)``, both ``(P, 7)``, are the gradient
+    and the Hessian's diagonal of the maps' prior energy at ``theta`` (:func:`map_prior_terms`;
+    block-Jacobi: the prior's coupling between pixels is left out): after an LM step the data
+    gradient balances the prior's rather than vanishing.
+
+    One forward-mode pass with 7 + 4 tangents over at most ``max_pixels`` evenly strided
+    pixels gives both Jacobians (a light's residuals depend only on its own 4 numbers); the
+    reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels ``Σ JgᵀWJg`` in the weak
+    directions). Huber weights ``W`` (3 noise deviations) as in :func:`light_position_step`;
+    pixels with a non-finite residual or derivative are left out. Gaussian priors of
+    ``scale_sigma`` (log) and ``position_sigma`` (world units). The step keeps the training
+    lights' (``ref_idx``) mean log scale and, with ``position``, moves no light rig as a whole
+    (:func:`rig_free_directions`): the maps absorb both, so the capture's stated values fix
+    them. With ``position=False``, or fewer than 3 lights, only the scales are stepped.
+    """
+    idx = data.train_idx
+    n_l = len(idx)
+    stride = max(1, math.ceil(theta.shape[0] / max_pixels))
+    rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
+    t0, m = theta[rows], metal[rows]
+    pts, cam = data.points[rows], data.camera
+    log_obs = data.log_obs[idx][:, rows].permute(1, 0, 2)  # (n, L, 3)
+    inten0 = data.inten_stated[idx]
+    pos0 = data.pos_stated[idx] + offset[idx]
+    s0 = log_scale[idx]
+
+    def res(t, pos, s):  # (n, L * 3)
+        p = decode(t, m)
+        inten = inten0 * torch.exp(s)[:, None]
+        if model == "principled":
+            r = log_residual_points(p["normal"], pts, cam, pos, inten, p, log_obs, data.eps)
+        else:
+            pred = _render_points(p, inten, model, light_geometry(pts, cam, pos))
+            r = torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)).permute(1, 0, 2) - log_obs
+        return r.reshape(t.shape[0], -1)
+
+    n = t0.shape[0]
+    eye7 = torch.eye(_N_PARAMS, dtype=theta.dtype, device=theta.device)
+    tt = torch.cat((eye7[:, None, :].expand(_N_PARAMS, n, _N_PARAMS), t0.new_zeros(4, n, _N_PARAMS)))
+    tp = pos0.new_zeros(_N_PARAMS + 4, *pos0.shape)
+    ts = s0.new_zeros(_N_PARAMS + 4, n_l)
+    for k in range(3):
+        tp[_N_PARAMS + k, :, k] = 1.0
+    ts[_N_PARAMS + 3] = 1.0
+    out_dims: Any = (None, 0)
+    pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
+                                out_dims=out_dims)(tt, tp, ts)
+    r, cols = pair  # (n, M), (11, n, M): M = L * 3, light-major
+    ok = torch.isfinite(r).all(1) & torch.isfinite(cols).all(2).all(0)  # (n,)
+    if not bool(ok.any()):
+        return log_scale, offset
+    f64 = torch.float64
+    r = torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
+    cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
+    jp = cols[:_N_PARAMS].permute(1, 0, 2)  # (n, 7, M)
+    position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
+    keep = slice(0, 4) if position else slice(3, 4)  # the light unknowns: offset xyz, log scale
+    jg = cols[_N_PARAMS:].permute(1, 2, 0).reshape(n, n_l, 3, 4)[..., keep]  # (n, L, 3, G)
+    n_g = jg.shape[-1]
+    sigma2 = float(r[ok].pow(2).median()) + 1e-12
+    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0) * ok[:, None]  # Huber, (n, M)
+    jpw = jp * w[:, None, :]
+    a = torch.bmm(jpw, jp.transpose(1, 2))
+    a = a + torch.diag_embed(damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9)
+    b = torch.einsum("nplc,nlcg->nplg", jpw.reshape(n, _N_PARAMS, n_l, 3), jg)
+    b = b.reshape(n, _N_PARAMS, n_l * n_g)  # light-major, G inner
+    gp = (jpw @ r[..., None])[..., 0]  # (n, 7)
+    if map_prior is not None:
+        gp = gp + torch.nan_to_num(map_prior[0][rows].to(f64)) * ok[:, None]
+        a = a + torch.diag_embed(torch.nan_to_num(map_prior[1][rows].to(f64)) * ok[:, None])
+    wr = (w * r).reshape(n, n_l, 3)
+    gg = torch.einsum("nlcg,nlc->lg", jg, wr).reshape(-1)  # (L G,)
+    c = torch.einsum("nlcg,nlc,nlch->lgh", jg, w.reshape(n, n_l, 3), jg)  # (L, G, G)
+    x = torch.linalg.solve(a, torch.cat((b, gp[..., None]), -1))  # A⁻¹ [B | gp]
+    schur = torch.block_diag(*c) - torch.einsum("npg,nph->gh", b, x[..., :-1])
+    rhs = gg - torch.einsum("npg,np->g", b, x[..., -1])
+    prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
+                         device=r.device)[keep].repeat(n_l) * sigma2
+    cur = torch.cat((offset[idx], s0[:, None]), -1)[:, keep].reshape(-1).to(f64)
+    basis = _light_step_basis(data, ref_idx, position)  # (L G, K): the directions a step may take
+    h = basis.T @ (schur + torch.diag(prior)) @ basis
+    step = (basis @ torch.linalg.solve(h, -(basis.T @ (rhs + prior * cur)))).reshape(n_l, n_g)
+    if not bool(torch.isfinite(step).all()):
+        return log_scale, offset
+    step = step.to(theta.dtype)
+    new_off, new_s = offset.clone(), log_scale.clone()
+    if position:
+        moved = (offset[idx] + step[:, :3]).clamp(-5 * position_sigma, 5 * position_sigma)
+        free = basis[:, : 3 * n_l - 7].reshape(n_l, n_g, -1)[:, :3].reshape(3 * n_l, -1).to(theta.dtype)
+        # the clamp may leave the subspace: project back
+        new_off[idx] = (free @ (free.T @ moved.reshape(-1))).reshape(n_l, 3)
+    new_s[idx] = log_scale[idx] + step[:, -1]
+    new_s[ref_idx] = new_s[ref_idx] - new_s[ref_idx].mean()
+    return new_s.clamp(-0.3, 0.3), new_off
+
+
+def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool) -> Tensor:
+    """Orthonormal directions ``(L G, K)`` a light step may take.
+
+    ``G`` = 4 with ``position`` (offset xyz, log scale per light, light-major), else 1: positions
+    that move no rig as a whole (:func:`rig_free_directions`, ``3L − 7``) and log scales that
+    keep the mean over ``ref_idx`` (``L − 1``, or ``L`` when none of ``data.train_idx`` is one).
+    """
+    idx = data.train_idx
+    n_l, n_g = len(idx), 4 if position else 1
+    dev, f64 = data.points.device, torch.float64
+    ref = torch.tensor([float(i in ref_idx) for i in idx], dtype=f64, device=dev)
+    if bool(ref.any()):
+        scales = torch.linalg.qr(ref[:, None], mode="complete")[0][:, 1:]  # ⟂ the reference mean
+    else:
+        scales = torch.eye(n_l, dtype=f64, device=dev)
+    parts = []
+    if position:
+        free = rig_free_directions(data.pos_stated[idx].to(f64), data.points.mean(0).to(f64))
+        pos_part = torch.zeros(n_l, n_g, free.shape[1], dtype=f64, device=dev)
+        pos_part[:, :3] = free.view(n_l, 3, -1)
+        parts.append(pos_part.reshape(n_l * n_g, -1))
+    scale_part = torch.zeros(n_l, n_g, scales.shape[1], dtype=f64, device=dev)
+    scale_part[:, -1] = scales
+    parts.append(scale_part.reshape(n_l * n_g, -1))
+    return torch.cat(parts, 1)
 
 
 def _unary_cost(theta: Tensor, unary: tuple[Tensor, Tensor] | None):
@@ -1217,7 +1398,13 @@ class Recovery:
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
                                               extra, unary)
             self.fit_cost[h] = self._training_fit(extra, data)
-            if calibrate:  # alternate: maps (LM step above), then each light's intensity scale
+            if calibrate and self.cfg.light_joint:
+                st["light_log_scale"], st["light_offset"] = light_joint_step(
+                    data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx,
+                    self.cfg.model, self.cfg.light_position,
+                    map_prior_terms(theta, metal, size, self.cfg, unary))
+                self._sync_light_scale()
+            elif calibrate:  # alternate: maps (LM step above), then each light's intensity scale
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
                 self._sync_light_scale()
@@ -1237,14 +1424,24 @@ class Recovery:
             # pixel's better hypothesis: the maps would otherwise absorb part of a light's
             # error (normals tilt) before the single-hypothesis stages can see it.
             better = (self.fit_cost[1] < self.fit_cost[0])[:, None]
-            st["light_log_scale"] = light_scale_step(torch.where(better, residuals[1], residuals[0]),
-                                                     data.train_idx, self.light_log_scale(), self.train_idx)
-            self._sync_light_scale()
-            if self.cfg.light_position:
+            if self.cfg.light_joint:
                 theta = torch.where(better, st["theta"][1], st["theta"][0])
-                st["light_offset"] = light_position_step(data, theta, better.to(theta.dtype),
-                                                         self.light_offset(), self.cfg.model)
+                metal = better.to(theta.dtype)
+                st["light_log_scale"], st["light_offset"] = light_joint_step(
+                    data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx,
+                    self.cfg.model, self.cfg.light_position, map_prior_terms(theta, metal, size,
+                                                                             self.cfg))
                 self._sync_light_scale()
+            else:
+                better_res = torch.where(better, residuals[1], residuals[0])
+                st["light_log_scale"] = light_scale_step(better_res, data.train_idx, self.light_log_scale(),
+                                                         self.train_idx)
+                self._sync_light_scale()
+                if self.cfg.light_position:
+                    theta = torch.where(better, st["theta"][1], st["theta"][0])
+                    st["light_offset"] = light_position_step(data, theta, better.to(theta.dtype),
+                                                             self.light_offset(), self.cfg.model)
+                    self._sync_light_scale()
         if not math.isfinite(total):
             st["lr"] = max(st["lr"] * 0.5, 0.05)
         st["history"].append({"iteration": st["global_it"], "size": size, "stage": kind, "loss": total})
