@@ -56,6 +56,25 @@ def test_cli_writes_every_contract_file(tiny, tmp_path, capsys):
     assert (out / "confidence.png").is_file() and len(rep["light_intensity_scale"]) == 9
 
 
+@pytest.mark.parametrize("flag", ["--no-light-calibration", "--no-light-position"])
+def test_cli_light_calibration_switches(tiny, tmp_path, flag):
+    """The CLI's light-calibration switches reach the recovery.
+
+    ``--no-light-calibration`` keeps every light as capture.json states it (scales 1, offsets
+    0 in report.json); ``--no-light-position`` estimates the scales only.
+    """
+    out = tmp_path / "out"
+    assert main(["--capture", str(tiny), "--out", str(out), "--iters", "6", "--quiet", flag]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    scales = list(rep["light_intensity_scale"].values())
+    offsets = [c for v in rep["light_position_offset"].values() for c in v]
+    assert all(o == 0.0 for o in offsets)
+    if flag == "--no-light-calibration":
+        assert all(s == 1.0 for s in scales)
+    else:
+        assert any(s != 1.0 for s in scales)
+
+
 def test_cli_bad_capture_is_a_clear_error(tmp_path, capsys):
     rc = main(["--capture", str(tmp_path / "missing"), "--out", str(tmp_path / "o"), "--quiet"])
     assert rc == 2

@@ -125,10 +125,10 @@ class RecoveryConfig:
     fill_candidates: int = 256  # random same-class candidates per pixel
     fill_min_similar: float = 2.0  # fewer similar candidates (summed similarity): no fill
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
-    light_position: bool = True  # ... and a per-light position offset (prior 1 cm)
-    light_scale: bool = True  # estimate a per-light intensity scale jointly (calibration error)
-    dual_calibration: bool = True  # ... from the full-resolution dual stage on (better hypothesis)
-    light_joint: bool = True  # lights stepped with the maps eliminated (light_joint_step)
+    light_position: bool = True  # with light_scale: also a per-light position offset (prior 1 cm)
+    light_scale: bool = True  # estimate each light's intensity scale (False: no light estimate at all)
+    dual_calibration: bool = True  # start the estimates in the full-resolution two-hypothesis stage
+    light_joint: bool = True  # step the lights with the maps eliminated (False: alternating steps)
     metal_margin: float = 0.5  # a pixel is metal when its metal cost < margin x dielectric cost
     prior_nonlocal: float = 0.0  # precision of the non-local roughness prior (0: off; measured worse)
     prior_nonlocal_base: float = 0.003  # precision of the non-local prior on a metal's base colour

@@ -1104,6 +1104,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="precision of the final non-local fusion of a metal's base colour (0: off)")
     p.add_argument("--no-soft-metal", action="store_true",
                    help="no final continuous-metallic step: every pixel's metallic is exactly 0 or 1")
+    p.add_argument("--no-light-calibration", action="store_true",
+                   help="trust capture.json's light intensities and positions as stated (default: estimate "
+                        "a per-light intensity scale and position offset with the maps)")
+    p.add_argument("--no-light-position", action="store_true",
+                   help="estimate only the per-light intensity scales, not the position offsets")
     p.add_argument("--holdout", type=int, default=None,
                    help="index of the validation light held out of the fit until the last stage "
                         "(default: light 0 with 5+ lights; -1: none)")
@@ -1129,7 +1134,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
             threads=args.threads, soft_metal=not args.no_soft_metal, converge_tol=args.converge_tol,
-            converge_min_iters=args.converge_min_iters,
+            converge_min_iters=args.converge_min_iters, light_scale=not args.no_light_calibration,
+            light_position=not args.no_light_position,
         )
         if cfg.holdout is not None and cfg.holdout < 0:
             cfg.holdout = 10**9  # out of range: no held-out light
