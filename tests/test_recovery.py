@@ -391,6 +391,24 @@ def test_ambiguous_pixels_take_their_neighbours_class():
     assert torch.equal(label[:, :2], torch.ones(size, 2)) and torch.equal(label[:, 4:], torch.zeros(size, 2))
 
 
+def test_a_metal_win_over_an_unconverged_dielectric_is_refitted_first():
+    """A metal win over a dielectric stuck well above the noise is no evidence: refit first.
+
+    Here 7× the median, as the README example's bottom-edge grout; not when the metal fits at
+    the noise level, nor for a dielectric near it.
+    """
+    import torchbrdf.recovery.solver as R
+
+    diel = torch.ones(100, 1)
+    metal = torch.full((100, 1), 5.0)  # dielectric clearly better everywhere ...
+    diel[0], metal[0] = 7.0, 2.5  # stuck dielectric, metal fits only at 2.5x the noise: refit
+    diel[1], metal[1] = 7.0, 1.5  # ... a metal at the noise level: a metal
+    diel[2], metal[2] = 3.0, 1.0  # ... a dielectric near the noise level: no refit needed
+    diel[3], metal[3] = 20.0, 4.0  # stuck far above the noise: refit
+    rows = R.unconverged_dielectric_rows(diel, metal, 0.5)
+    assert rows.tolist() == [0, 3]
+
+
 def test_edge_pixels_vote_with_the_neighbours_they_have():
     """Issue 13: an edge pixel has 5 neighbours (a corner 3), not copies of itself (replicate
     padding let an edge row outvote the rows inside and kept a frame of the wrong class)."""

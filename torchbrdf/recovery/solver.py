@@ -1196,6 +1196,22 @@ def _neighbour_count(label: Tensor, size: int) -> tuple[Tensor, Tensor]:
     return s.reshape(-1, 1), n.reshape(-1, 1)
 
 
+def unconverged_dielectric_rows(cost_diel: Tensor, cost_metal: Tensor, margin: float,
+                                factor: float = 5.0) -> Tensor:
+    """Pixels ``(N,)`` whose metal win is no evidence: the dielectric hypothesis never converged.
+
+    The metal wins (``cost_metal < margin × cost_diel``, data costs ``(P, 1)``), the dielectric
+    fits above ``factor`` × its median cost (the noise level) and the metal does not fit at the
+    noise level either (> 2× that median; a metal that does is a metal, and skipping it keeps
+    metal-heavy captures cheap — the border rims' metal fits were 2–10× it). ``factor`` 5: a
+    run of the README example's bottom-edge grout (tiles 7, row 252) had its dielectric stuck
+    at 7–11× the median and was called metal with 10.
+    """
+    med = float(cost_diel.median())
+    sus = (cost_metal < margin * cost_diel) & (cost_diel > factor * med) & (cost_metal > 2.0 * med)
+    return torch.nonzero(sus[:, 0]).flatten()
+
+
 def _choose_class(cost_diel: Tensor, cost_metal: Tensor, margin: float, size: int, sweeps: int = 8) -> Tensor:
     """Per-pixel metal (1) / dielectric (0) choice ``(P, 1)`` from the two hypotheses' data costs.
 
@@ -1551,7 +1567,7 @@ class Recovery:
         st["it"] = 0
 
     def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int],
-                                      factor: float = 10.0, max_pixels: int = 4096, iters: int = 8) -> Tensor:
+                                      factor: float = 5.0, max_pixels: int = 4096, iters: int = 8) -> Tensor:
         """Before the metal/dielectric choice: refit the dielectric hypothesis where the metal wins
         but the dielectric never converged (cost > ``factor`` × its median, the noise level) and
         the metal does not fit at the noise level either (> 2× the median).
@@ -1567,12 +1583,7 @@ class Recovery:
         better. Returns the dielectric's updated scores ``(P, 1)`` on ``lights``.
         """
         st = self.state
-        med = float(scores[0].median())
-        # A metal fitting at the noise level (< 2× the median) is a metal: no refit needed (cheap
-        # on metal-heavy captures); the border rims' metal fits were 3–10× it.
-        sus = ((scores[1] < self.cfg.metal_margin * scores[0]) & (scores[0] > factor * med)
-               & (scores[1] > 2.0 * med))[:, 0]
-        rows = torch.nonzero(sus).flatten()
+        rows = unconverged_dielectric_rows(scores[0], scores[1], self.cfg.metal_margin, factor)
         if rows.numel() == 0:
             return scores[0]
         if rows.numel() > max_pixels:
