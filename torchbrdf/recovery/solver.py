@@ -252,15 +252,28 @@ class LevelData:
         points = self.points
         if rows is not None:
             points, log_obs = points[rows], log_obs[rows]
-        if model == "principled":  # the whole residual in one fused evaluation
-            r = log_residual_points(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
-                                    log_obs, self.eps)
-            return r.reshape(theta.shape[0], -1)
-        if rows is not None:
+        if rows is not None and light is not None:
             light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
-        pred = _render_points(p, self.inten[idx], model, light)
-        r = torch.log(torch.clamp(pred + self.eps, min=0.5 * self.eps)) - log_obs.permute(1, 0, 2)
-        return r.permute(1, 0, 2).reshape(theta.shape[0], -1)
+        r = log_residual(p, points, self.camera, self.pos[idx], self.inten[idx], log_obs, self.eps, model,
+                         light)
+        return r.reshape(theta.shape[0], -1)
+
+
+def log_residual(p: dict, points: Tensor, camera: Tensor, pos: Tensor, inten: Tensor, log_obs: Tensor,
+                 eps: float, model: str = "principled", light: dict | None = None) -> Tensor:
+    """The fit's log residuals ``(N, L, 3)``: ``log(max(pred + ε, ε/2)) − log_obs``.
+
+    ``p`` the decoded maps of ``N`` pixels at ``points (N, 3)``, lights at ``pos (L, 3)`` with
+    ``inten (L, 3)``, ``log_obs (N, L, 3)``, all of one dtype and device (the result's). For
+    ``"principled"`` one fused evaluation (:func:`log_residual_points`); the other models
+    render through :func:`_render_points` with ``light`` (:func:`light_geometry`, computed
+    when None). Differentiable w.r.t. every tensor input, in reverse and forward mode.
+    """
+    if model == "principled":
+        return log_residual_points(p["normal"], points, camera, pos, inten, p, log_obs, eps)
+    light = light_geometry(points, camera, pos) if light is None else light
+    pred = _render_points(p, inten, model, light)
+    return torch.log(torch.clamp(pred + eps, min=0.5 * eps)).permute(1, 0, 2) - log_obs
 
 
 def _render_points(p, inten, model, light):
@@ -547,7 +560,11 @@ def prior_gradient(theta: Tensor, wx: Tensor, wy: Tensor, size: int,
 
 def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig,
                     unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
-    """Gradient and Hessian diagonal ``(P, 7)`` each of the maps' prior energy at ``theta``."""
+    """Gradient and Hessian diagonal ``(P, 7)`` each of the maps' prior energy at ``theta``.
+
+    ``theta (P, 7)``, ``metal (P, 1)`` of a ``size × size`` map; ``unary`` as in :func:`lm_step`.
+    The results have ``theta``'s dtype and device.
+    """
     wx, wy = edge_weights(theta, metal, size, cfg)
     hdiag = laplacian_diag(wx, wy, size)
     return prior_gradient(theta, wx, wy, size, unary), hdiag if unary is None else hdiag + unary[1]
@@ -609,12 +626,8 @@ def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: T
     base = data.pos_stated[idx] + offset[idx]
 
     def res(pos):  # (L, N, 3)
-        if model == "principled":
-            return log_residual_points(p["normal"], pts, cam, pos, inten, p, log_obs.permute(1, 0, 2),
-                                       data.eps).permute(1, 0, 2)
-        light = light_geometry(pts, cam, pos)
-        pred = _render_points(p, inten, model, light)
-        return torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)) - log_obs
+        r = log_residual(p, pts, cam, pos, inten, log_obs.permute(1, 0, 2), data.eps, model)
+        return r.permute(1, 0, 2)
 
     r = torch.nan_to_num(res(base))
     cols = []
@@ -647,8 +660,8 @@ def rig_free_directions(pos: Tensor, centre: Tensor) -> Tensor:
     by a shift); with the maps eliminated these seven directions are barely constrained by the
     data, and a little model mismatch ran them to the clamp (dusty_metal 2 without calibration
     error: every light 8 cm inward). Like the overall intensity scale, the rig's placement is
-    the stated one. ``pos (L, 3)`` light positions; rows are light-major (light ``i``'s x, y,
-    z at ``3i .. 3i+2``).
+    the stated one. ``pos (L, 3)`` light positions, ``centre (3,)``; rows are light-major
+    (light ``i``'s x, y, z at ``3i .. 3i+2``); ``pos``'s dtype and device.
     """
     n = pos.shape[0]
     rel = pos - centre
@@ -688,7 +701,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     ``scale_sigma`` (log) and ``position_sigma`` (world units). The step keeps the training
     lights' (``ref_idx``) mean log scale and, with ``position``, moves no light rig as a whole
     (:func:`rig_free_directions`): the maps absorb both, so the capture's stated values fix
-    them. With ``position=False``, or fewer than 3 lights, only the scales are stepped.
+    them. With ``position=False``, or fewer than 3 lights, only the scales are stepped. The
+    result has ``log_scale``'s and ``offset``'s dtype and device (CPU or CUDA alike).
     """
     idx = data.train_idx
     n_l = len(idx)
@@ -702,13 +716,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     s0 = log_scale[idx]
 
     def res(t, pos, s):  # (n, L * 3)
-        p = decode(t, m)
         inten = inten0 * torch.exp(s)[:, None]
-        if model == "principled":
-            r = log_residual_points(p["normal"], pts, cam, pos, inten, p, log_obs, data.eps)
-        else:
-            pred = _render_points(p, inten, model, light_geometry(pts, cam, pos))
-            r = torch.log(torch.clamp(pred + data.eps, min=0.5 * data.eps)).permute(1, 0, 2) - log_obs
+        r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
         return r.reshape(t.shape[0], -1)
 
     n = t0.shape[0]
@@ -1205,7 +1214,7 @@ def unconverged_dielectric_rows(cost_diel: Tensor, cost_metal: Tensor, margin: f
     noise level either (> 2× that median; a metal that does is a metal, and skipping it keeps
     metal-heavy captures cheap — the border rims' metal fits were 2–10× it). ``factor`` 5: a
     run of the README example's bottom-edge grout (tiles 7, row 252) had its dielectric stuck
-    at 7–11× the median and was called metal with 10.
+    at 7–11× the median and was called metal with 10. Returns int64 indices on the costs' device.
     """
     med = float(cost_diel.median())
     sus = (cost_metal < margin * cost_diel) & (cost_diel > factor * med) & (cost_metal > 2.0 * med)
