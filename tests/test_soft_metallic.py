@@ -107,9 +107,11 @@ def test_candidates_include_a_metals_colour_steps():
 
 
 def test_growth_extends_runs_of_fractional_pixels_only():
-    """Growth refits the untried pixels beside a ramp (two fractional 4-neighbours), never
-    beside an isolated fractional pixel (on a binary material, README example tiles 7, growth
-    from one such pixel had made five)."""
+    """Growth refits the untried pixels beside a ramp, never beside an isolated fractional pixel.
+
+    A ramp: two fractional 4-neighbours. On a binary material (README example tiles 7) growth
+    from one isolated fractional pixel had made five.
+    """
     size = 8
     metal = torch.zeros(size * size, 1)
     metal.view(size, size)[:, 5:] = 1.0
