@@ -751,17 +751,24 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     delta[:, 0:3] = 0.4  # F0 0.9 -> 0.93: what the fusion does to a dark tail pixel
     moved = torch.zeros_like(theta, dtype=torch.bool)
     moved[:, 0:3] = True
+    moved[5] = False  # a pixel the fusion leaves alone: no shift at all
+    moved[9, 0:3] = False  # one whose roughness was moved instead
+    moved[9, 4] = True
+    delta[9] = 0.0
+    delta[9, 4] = 0.05  # small: the F0 response is ~16x (the valley), inside the ±3 clamp
     shift = R.conditional_shift(jtj, delta, moved)
-    assert torch.equal(shift[:, 0:3], torch.zeros_like(shift[:, 0:3]))
+    assert torch.equal(shift[moved], torch.zeros_like(shift[moved]))
+    assert torch.equal(shift[5], torch.zeros_like(shift[5]))
     # Against a dense least-squares solve of the linearised residuals, pixel by pixel.
-    for k in (0, 27, 63):
+    for k in (0, 9, 27, 63):
         fn = lambda t: data.residual(t, metal[k:k + 1], idx, "principled", rows=slice(k, k + 1))[0]  # noqa: E731
         j = torch.func.jacfwd(fn)(theta[k:k + 1])[:, 0]  # (M, 7)
-        jo = j[:, 3:]
-        rhs = -(j[:, 0:3] @ delta[k, 0:3])
+        free = ~moved[k]
+        jo = j[:, free]
+        rhs = -(j[:, ~free] @ delta[k, ~free])
         keep = jo.abs().sum(0) > 0  # a metal's specular does not reach the image
         sol = torch.linalg.lstsq(jo[:, keep], rhs[:, None]).solution[:, 0]
-        assert torch.allclose(shift[k, 3:][keep], sol, rtol=1e-4, atol=1e-6), (shift[k], sol)
+        assert torch.allclose(shift[k, free][keep], sol, rtol=1e-4, atol=1e-6), (k, shift[k], sol)
 
     def cost(t):
         r = data.residual(t, metal, idx, "principled")
@@ -769,4 +776,5 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
 
     alone = cost(theta + delta)
     followed = cost(theta + delta + shift)
+    assert float(shift[9, 0:3].abs().max()) > 0  # F0 follows a moved roughness
     assert cost(theta) < 1e-8 and followed < 0.2 * alone, (alone, followed)

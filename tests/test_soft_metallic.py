@@ -104,6 +104,13 @@ def test_candidates_include_a_metals_colour_steps():
     assert rows == set(torch.nonzero(grown.reshape(-1)).flatten().tolist())
     dielectric = torch.zeros_like(metal)
     assert soft_metal_candidates(cost, dielectric, size, 8.0, 1.0, 1, base, edge=0.15).numel() == 0
+    # The threshold is the Euclidean RGB step: (0.1, 0.1, 0.1) is 0.17 (a step), (0.08, 0.08, 0)
+    # 0.11 (none).
+    for d, is_step in (((0.1, 0.1, 0.1), True), ((0.08, 0.08, 0.0), False)):
+        b = torch.tensor([0.9, 0.9, 0.9]).repeat(size * size, 1)
+        b[island.reshape(-1)] -= torch.tensor(d)
+        got = soft_metal_candidates(cost, metal, size, 8.0, 1.0, 1, b, edge=0.15).numel()
+        assert (got > 0) == is_step, (d, got)
 
 
 def test_growth_extends_runs_of_fractional_pixels_only():
@@ -118,6 +125,9 @@ def test_growth_extends_runs_of_fractional_pixels_only():
     metal.view(size, size)[1, 1] = 0.3  # isolated
     tried = torch.zeros(size * size, dtype=torch.bool)
     assert growth_front(metal, tried, size).numel() == 0
+    metal.view(size, size)[2, 2] = 0.4  # a diagonal neighbour only: still not a run
+    assert growth_front(metal, tried, size).numel() == 0
+    metal.view(size, size)[2, 2] = 0.0
     metal.view(size, size)[5, 3] = metal.view(size, size)[5, 4] = 0.6  # a run into the metal
     tried.view(size, size)[5, 4] = True
     front = set(growth_front(metal, tried, size).tolist())

@@ -141,9 +141,9 @@ class RecoveryConfig:
     soft_metal_well: float = 32.0  # double-well prior w m²(1−m)², w in per-residual noise variances σ²
     soft_metal_gain: float = 8.0  # keep a fractional value only if it lowers the cost by this × σ²
     soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic (× σ²)
-    soft_metal_band: int = 2  # ... and pixels within this many pixels of a metal/dielectric boundary
+    soft_metal_band: int = 2  # ... and pixels within this many pixels of a class boundary (or colour step)
     soft_metal_iters: int = 5  # per-pixel LM iterations
-    soft_metal_max: float = 0.35  # at most this fraction of the pixels (the worst fitting) is refitted
+    soft_metal_max: float = 0.35  # at most this fraction of the pixels (the worst fitting) are candidates
     soft_metal_edge: float = 0.15  # ... and metal pixels within the band of a base-colour step this large
     soft_metal_context: float = 0.25  # the gain, × this, beside a fractional pixel (second pass, growth)
     soft_metal_grow: int = 3  # rounds of refitting the untried pixels beside a run of fractional ones
@@ -429,6 +429,7 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
     average of same-class pixels of similar base colour (bilateral grid over k-means colour
     clusters) — off by default: rough pixels always carry little roughness information, so
     the average is pulled toward nearby glossy pixels (tiles' grout came out too smooth).
+    ``jtj (P, 7, 7)``: the normal matrices at ``theta`` when the caller has them (else computed).
     Returns ``(precisions (P, 7), targets (P, 7), information (P, 7))``; the caller fuses
     ``(info θ + w m) / (info + w)``: pixels the data pins down (information ≫ precision)
     keep their value, the under-determined ones take the average.
@@ -813,12 +814,15 @@ def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool) -> Te
 
 
 def conditional_shift(jtj: Tensor, delta: Tensor, moved: Tensor) -> Tensor:
-    """The other unknowns' Gauss–Newton response ``(P, 7)`` to moving some of a pixel's unknowns.
+    """The other unknowns' first-order response ``(P, 7)`` to moving some of a pixel's unknowns.
 
     ``jtj (P, 7, 7)`` each pixel's normal matrix, ``delta (P, 7)`` the change imposed on the
-    unknowns where ``moved (P, 7)`` is true. Returns the change of the others that keeps the
-    linearised data cost least, ``−H_oo⁻¹ H_om δ_m`` (zero on the moved ones): after a prior
-    moves a metal's F0 along the F0–roughness valley, its roughness and normal follow.
+    unknowns where ``moved (P, 7)`` is true (per pixel). Returns ``−H_oo⁻¹ H_om δ_m`` on the
+    others (zero on the moved ones): how the data optimum of the free unknowns moves with the
+    moved ones under the Gauss–Newton model — exactly the least-squares response where the
+    data gradient on the free unknowns is zero, as at a converged fit. After a prior moves a
+    metal's F0 along the F0–roughness valley, its roughness and normal follow. Steps are
+    clamped to ±3 (logit / slope units); callers keep a shift only where it helps.
     """
     free = (~moved).to(jtj.dtype)
     h = jtj.double() * free[:, :, None] * free[:, None, :]
@@ -1026,7 +1030,7 @@ def growth_front(metal: Tensor, tried: Tensor, size: int) -> Tensor:
 
     ``metal (P, 1)``, ``tried (P,)`` bool. A run: a fractional pixel with a fractional
     4-neighbour (an isolated one, on a binary material, is not a ramp and does not grow);
-    beside: its 8-neighbourhood.
+    beside: its 8-neighbourhood (the run's own untried pixels included).
     """
     fr = ((metal > 0) & (metal < 1)).to(metal.dtype)
     run = (fr[:, 0] > 0) & (_neighbour_mean(fr, size)[:, 0] > 0)
@@ -1103,6 +1107,8 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta rows (N, 7), metal rows (N, 1), changed (N,))``.
     """
+    if rows.numel() == 0:
+        return theta[rows], metal[rows], torch.zeros(0, dtype=torch.bool, device=theta.device)
     sub = data.subset(rows)
     t0, m0 = theta[rows], metal[rows]
     fn = lambda v: _soft_residual(sub, v, idx, model, well, target, smooth)  # noqa: E731
@@ -1622,7 +1628,12 @@ class Recovery:
             jtj = gauss_newton(d, th, st["metal"], d.train_idx, self.cfg.model)[1]
             w, m, info = nonlocal_prior(d, th, st["metal"], self.cfg, jtj)
             fused = torch.where(w > 0, (info * th + w * m) / (info + w).clamp(min=1e-12), th)
-            st["theta"][0] = fused + conditional_shift(jtj, fused - th, w > 0)
+            shifted = fused + conditional_shift(jtj, fused - th, w > 0)
+            # Kept per pixel only where it fits the data at least as well as the fused F0 alone
+            # (a weakly determined unknown can take a large linear response).
+            cost = [torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+                    for r in (d.residual(t, st["metal"], d.train_idx, self.cfg.model) for t in (fused, shifted))]
+            st["theta"][0] = torch.where(cost[1] <= cost[0], shifted, fused)
             st["info"] = info
         if nxt >= len(self.plan) and self.cfg.soft_metal and st.get("metal") is not None:
             self._soft_metal(size, kind)
@@ -1668,9 +1679,11 @@ class Recovery:
         return out
 
     def _soft_metal(self, size: int, kind: str) -> None:
-        """Final stage: continuous metallic where the binary choice fits poorly or at a class
-        boundary (:func:`soft_metal_candidates`, :func:`soft_metal_fit`); every other pixel
-        keeps exactly 0 or 1. Records ``state["soft_metal"]`` (pixels refitted, fractional, seconds)."""
+        """Final stage: continuous metallic where the binary choice fits poorly, at a class
+        boundary or at a metal's colour step (:func:`soft_metal_candidates`,
+        :func:`soft_metal_fit`), then along runs of fractional pixels (:func:`growth_front`);
+        every other pixel keeps exactly 0 or 1. Records ``state["soft_metal"]`` (pixels
+        refitted, growth included; fractional; seconds)."""
         import time
 
         t_start = time.perf_counter()

@@ -147,10 +147,12 @@ def check_config(cfg: RecoveryConfig) -> None:
     for name in ("prior_sigma", "nonlocal_range", "nonlocal_sigma"):
         _finite(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
     _finite("metal_margin", cfg.metal_margin, 0.0, 1.0, lo_open=True)
-    for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_gain", "soft_metal_smooth"):
+    for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_gain", "soft_metal_smooth",
+                 "soft_metal_edge", "soft_metal_context"):
         _finite(name, getattr(cfg, name), 0.0, 1e6)
     _finite("soft_metal_max", cfg.soft_metal_max, 0.0, 1.0)
     _integer("soft_metal_iters", cfg.soft_metal_iters, 0, 10_000)
+    _integer("soft_metal_grow", cfg.soft_metal_grow, 0, 10_000)
     _integer("soft_metal_band", cfg.soft_metal_band, 0, 10_000)  # a max-pool half width
     if cfg.holdout is not None and (not isinstance(cfg.holdout, int) or isinstance(cfg.holdout, bool)):
         raise RecoveryError(f"--holdout must be an integer light index, got {cfg.holdout!r}")
