@@ -757,6 +757,7 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     delta[9] = 0.0
     delta[9, 4] = 0.05  # small: the F0 response is ~16x (the valley), inside the ±3 clamp
     shift = R.conditional_shift(jtj, delta, moved)
+    assert torch.equal(R.conditional_shift(jtj, delta, moved, chunk=7), shift)  # blocks change nothing
     assert torch.equal(shift[moved], torch.zeros_like(shift[moved]))
     assert torch.equal(shift[5], torch.zeros_like(shift[5]))
     # Against a dense least-squares solve of the linearised residuals, pixel by pixel.

@@ -813,7 +813,7 @@ def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool) -> Te
     return torch.cat(parts, 1)
 
 
-def conditional_shift(jtj: Tensor, delta: Tensor, moved: Tensor) -> Tensor:
+def conditional_shift(jtj: Tensor, delta: Tensor, moved: Tensor, chunk: int = 65536) -> Tensor:
     """The other unknowns' first-order response ``(P, 7)`` to moving some of a pixel's unknowns.
 
     ``jtj (P, 7, 7)`` each pixel's normal matrix, ``delta (P, 7)`` the change imposed on the
@@ -822,15 +822,21 @@ def conditional_shift(jtj: Tensor, delta: Tensor, moved: Tensor) -> Tensor:
     moved ones under the Gauss–Newton model — exactly the least-squares response where the
     data gradient on the free unknowns is zero, as at a converged fit. After a prior moves a
     metal's F0 along the F0–roughness valley, its roughness and normal follow. Steps are
-    clamped to ±3 (logit / slope units); callers keep a shift only where it helps.
+    clamped to ±3 (logit / slope units); callers keep a shift only where it helps. The float64
+    algebra runs over blocks of ``chunk`` pixels (a 1024² map's 7×7 blocks are 0.4 GB each).
     """
-    free = (~moved).to(jtj.dtype)
-    h = jtj.double() * free[:, :, None] * free[:, None, :]
-    diag = torch.diagonal(h, dim1=-2, dim2=-1)
-    h = h + torch.diag_embed(1e-6 * diag + 1e-9 + (1 - free.double()))
-    rhs = -(free.double()[..., None] * (jtj.double() @ (delta * moved).double()[..., None]))
-    out = torch.linalg.solve(h, rhs)[..., 0] * free.double()
-    return torch.nan_to_num(out).clamp(-3, 3).to(delta.dtype)
+    out = torch.empty_like(delta)
+    for s0 in range(0, delta.shape[0], chunk):
+        rows = slice(s0, s0 + chunk)
+        j = jtj[rows].double()
+        free = (~moved[rows]).double()
+        h = j * free[:, :, None] * free[:, None, :]
+        diag = torch.diagonal(h, dim1=-2, dim2=-1)
+        h = h + torch.diag_embed(1e-6 * diag + 1e-9 + (1 - free))
+        rhs = -(free[..., None] * (j @ (delta[rows] * moved[rows]).double()[..., None]))
+        x = torch.linalg.solve(h, rhs)[..., 0] * free
+        out[rows] = torch.nan_to_num(x).clamp(-3, 3).to(delta.dtype)
+    return out
 
 
 def _unary_cost(theta: Tensor, unary: tuple[Tensor, Tensor] | None):
