@@ -823,7 +823,8 @@ def conditional_shift(jtj: Tensor, delta: Tensor, moved: Tensor, chunk: int = 65
     data gradient on the free unknowns is zero, as at a converged fit. After a prior moves a
     metal's F0 along the F0–roughness valley, its roughness and normal follow. Steps are
     clamped to ±3 (logit / slope units); callers keep a shift only where it helps. The float64
-    algebra runs over blocks of ``chunk`` pixels (a 1024² map's 7×7 blocks are 0.4 GB each).
+    algebra runs over blocks of ``chunk`` pixels (a 1024² map's 7×7 blocks are 0.4 GB each); the
+    result has ``delta``'s dtype and device.
     """
     out = torch.empty_like(delta)
     for s0 in range(0, delta.shape[0], chunk):
@@ -1003,7 +1004,8 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
     ``band`` pixels of a base-colour step larger than ``edge`` between 4-neighbours (a rust
     island called metal has no class boundary, and it fits as a rough dark metal).
 
-    ``metal (P, 1)`` in {0, 1}. At most ``max_frac`` × P pixels, the worst fitting first.
+    ``metal (P, 1)`` in {0, 1}. At most ``max_frac`` × P pixels, the worst fitting first;
+    int64 indices on ``cost``'s device.
     """
     img = (metal > 0.5).to(cost.dtype).T.reshape(1, 1, size, size)
     k = 2 * band + 1
@@ -1036,7 +1038,8 @@ def growth_front(metal: Tensor, tried: Tensor, size: int) -> Tensor:
 
     ``metal (P, 1)``, ``tried (P,)`` bool. A run: a fractional pixel with a fractional
     4-neighbour (an isolated one, on a binary material, is not a ramp and does not grow);
-    beside: its 8-neighbourhood (the run's own untried pixels included).
+    beside: its 8-neighbourhood (the run's own untried pixels included). int64 indices on
+    ``metal``'s device.
     """
     fr = ((metal > 0) & (metal < 1)).to(metal.dtype)
     run = (fr[:, 0] > 0) & (_neighbour_mean(fr, size)[:, 0] > 0)
@@ -1705,6 +1708,17 @@ class Recovery:
         rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
                                      cfg.soft_metal_band, torch.sigmoid(theta[:, 0:3]), cfg.soft_metal_edge)
         n_frac = n_grown = 0
+
+        def neighbour_fit(rows_: Tensor, gain: float | Tensor) -> tuple[Tensor, Tensor]:
+            # Pass 2 and growth: started from the 4-neighbours' mean parameters, metallic pulled
+            # toward theirs (the current theta / metal).
+            t, m, _ = soft_metal_fit(data, theta, metal, rows_, data.train_idx, cfg.model,
+                                     cfg.soft_metal_well * sigma2, gain, cfg.soft_metal_iters,
+                                     ((_neighbour_mean(theta, size)[rows_], "target"),),
+                                     _neighbour_mean(metal, size)[rows_], cfg.soft_metal_smooth * sigma2,
+                                     refit_reference=False)
+            return t, m
+
         if rows.numel() and sigma2 > 0:
             theta0, metal0 = theta, metal
             # One start, metallic ½: the own-class optimum is the reference fit's (metallic held),
@@ -1720,26 +1734,20 @@ class Recovery:
                 # dielectric's diffuse), the neighbours' metallic decides.
                 # Start: its 4-neighbours' mean parameters (a rust pixel that pass 1 left in the
                 # metal mode starts from the rust beside it), metallic = target; kept only if better.
-                target_all = _neighbour_mean(metal, size)[rows]
+                target = _neighbour_mean(metal, size)[rows]
                 m1 = metal[rows]
                 # Only where the neighbours say something the pixel does not (another metallic
                 # beside it, or itself fractional): inside a uniform binary region the pull and
                 # the start equal the pixel's own, and the fit would only repeat pass 1.
-                ctx = ((target_all - m1).abs() > 1e-6) | ((m1 > 0) & (m1 < 1))
+                ctx = ((target - m1).abs() > 1e-6) | ((m1 > 0) & (m1 < 1))
                 rows2 = rows[ctx[:, 0]]
-                target = target_all[ctx[:, 0]]
-                t_nb = _neighbour_mean(theta, size)[rows2]
                 # Beside a pixel pass 1 made fractional, a ramp is likely to go on: a smaller gain.
                 fr = ((metal > 0) & (metal < 1)).to(theta.dtype)
                 near = _neighbour_mean(fr, size)[rows2] > 0
                 ctx_scale = torch.where(near, cfg.soft_metal_context, 1.0).to(theta.dtype)
                 gain2 = cfg.soft_metal_gain * sigma2 * ctx_scale
                 if rows2.numel():
-                    t2, m2, _ = soft_metal_fit(data, theta, metal, rows2, data.train_idx, cfg.model,
-                                               cfg.soft_metal_well * sigma2, gain2,
-                                               cfg.soft_metal_iters, ((t_nb, "target"),), target,
-                                               cfg.soft_metal_smooth * sigma2, refit_reference=False)
-                    theta[rows2], metal[rows2] = t2, m2
+                    theta[rows2], metal[rows2] = neighbour_fit(rows2, gain2)
                 t_new, m_new = theta[rows], metal[rows]
             # Only a fractional answer is taken: a pixel that stays 0 or 1 keeps the fit it had,
             # with the priors' regularisation (a data-only refit of a metal's weakly observed F0
@@ -1759,13 +1767,7 @@ class Recovery:
                 if front.numel() == 0:
                     break
                 tried[front] = True
-                t_nb = _neighbour_mean(theta, size)[front]
-                t_f, m_f, _ = soft_metal_fit(data, theta, metal, front, data.train_idx, cfg.model,
-                                             cfg.soft_metal_well * sigma2,
-                                             cfg.soft_metal_gain * cfg.soft_metal_context * sigma2,
-                                             cfg.soft_metal_iters, ((t_nb, "target"),),
-                                             _neighbour_mean(metal, size)[front],
-                                             cfg.soft_metal_smooth * sigma2, refit_reference=False)
+                t_f, m_f = neighbour_fit(front, cfg.soft_metal_gain * cfg.soft_metal_context * sigma2)
                 ff = (m_f > 0) & (m_f < 1)
                 theta[front] = torch.where(ff, t_f, theta[front])
                 metal[front] = torch.where(ff, m_f, metal[front])
