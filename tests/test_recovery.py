@@ -216,6 +216,43 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     assert torch.equal(fused[: size * 4], theta[: size * 4])
 
 
+def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch):
+    """A metal pixel fitted k x above the median cost counts 1/k in the F0 average.
+
+    So a dark, badly fitted patch (a rust front called metal) does not pull its neighbours'
+    F0 down.
+    """
+    import types
+
+    import torchbrdf.recovery.solver as R
+
+    size = 16
+    p = size * size
+    theta = torch.zeros(p, 7, dtype=torch.float64)
+    theta[:, 0:3] = 1.0
+    metal = torch.ones(p, 1, dtype=torch.float64)
+    info = torch.full((p, 7), 10.0, dtype=torch.float64)
+    cost = torch.ones(p, 1, dtype=torch.float64)
+    bad = torch.zeros(size, size, dtype=torch.bool)
+    bad[:8, :4] = True
+    bad = bad.flatten()
+    theta[bad, 0:3] = -3.0
+    cost[bad] = 100.0  # fitted at 100x the noise level
+    monkeypatch.setattr(R, "marginal_information", lambda *a: info)
+    cfg = RecoveryConfig(nonlocal_sigma=10.0)  # a window far wider than the map: a plain weighted mean
+    w_bad = 1.0 / 100.0  # min(1, median / cost)
+    n_bad, n_good = int(bad.sum()), p - int(bad.sum())
+    shrink = 10.0 / (10.0 + cfg.prior_nonlocal_base)
+    want = (n_good * 1.0 + n_bad * w_bad * -3.0) / (n_good + n_bad * w_bad)
+    _, m, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg, cost=cost)
+    assert shrink > 0.99
+    assert torch.allclose(m[~bad, 0:3], torch.full_like(m[~bad, 0:3], want), atol=2e-3)
+    # without the fit weight the dark patch drags the average by half a logit unit
+    _, m0, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal,
+                                RecoveryConfig(nonlocal_sigma=10.0, nonlocal_fit_weight=0.0), cost=cost)
+    assert float(m0[~bad, 0].mean()) < want - 0.45
+
+
 # --------------------------------------------------------------------------------------
 # The coupled prior, propagation, normal search and the class choice
 # --------------------------------------------------------------------------------------

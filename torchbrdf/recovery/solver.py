@@ -46,8 +46,10 @@ Method (each choice measured, see ``docs/recovery.md``):
   grout at roughness 0.74 instead of 0.85).
 * **Non-local fusion of a metal's F0** (after the last iteration): each metal pixel's base
   colour is fused with the average of the metal pixels within a large Gaussian window
-  (weighted by their shrinkage ``info / (info + κ)``), by precisions — its own marginal
-  information ``info = 1/diag((JᵀJ)⁻¹)`` against a fixed ``κ = prior_nonlocal_base``;
+  (weighted by their shrinkage ``info / (info + κ)`` and by their fit, ``min(1, median
+  cost / cost)``: a pixel the model fits k× worse than the noise level is 1/k the evidence),
+  by precisions — its own marginal information ``info = 1/diag((JᵀJ)⁻¹)`` against a fixed
+  ``κ = prior_nonlocal_base``;
   pixels far from every highlight (low information) take the average, the well-observed
   ones keep their own value.
 * **Refit before the class choice**: where the metal hypothesis wins but the dielectric never
@@ -135,6 +137,9 @@ class RecoveryConfig:
     nonlocal_range: float = 0.02  # base-colour range sigma of the non-local roughness prior
     nonlocal_sigma: float = 0.25  # its spatial radius, as a fraction of the map size
     nonlocal_clusters: int = 12  # base-colour clusters per class guiding it
+    # A metal pixel's weight in the non-local F0 average, × min(1, this × median cost / its cost):
+    # a pixel the model fits k× worse than the noise level says 1/k as much (0: off)
+    nonlocal_fit_weight: float = 1.0
     # Final step: continuous metallic where the binary choice fits poorly (Recovery._soft_metal)
     soft_metal: bool = True
     soft_metal_factor: float = 8.0  # ... for pixels whose cost is above this × the median (and boundaries)
@@ -420,7 +425,7 @@ def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model:
 
 
 def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
-                   jtj: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                   jtj: Tensor | None = None, cost: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Confidence-weighted non-local estimate of a metal's base colour (and, optionally, roughness).
 
     A metal's base colour (F0, logit) gets the average of the metal pixels within a large
@@ -429,7 +434,9 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
     average of same-class pixels of similar base colour (bilateral grid over k-means colour
     clusters) — off by default: rough pixels always carry little roughness information, so
     the average is pulled toward nearby glossy pixels (tiles' grout came out too smooth).
-    ``jtj (P, 7, 7)``: the normal matrices at ``theta`` when the caller has them (else computed).
+    ``jtj (P, 7, 7)``: the normal matrices at ``theta`` when the caller has them (else computed);
+    ``cost (P, 1)``: each pixel's data cost there (its squared residuals' sum; None: not used),
+    which scales a metal's weight by ``min(1, cfg.nonlocal_fit_weight × median / cost)``.
     Returns ``(precisions (P, 7), targets (P, 7), information (P, 7))``; the caller fuses
     ``(info θ + w m) / (info + w)``: pixels the data pins down (information ≫ precision)
     keep their value, the under-determined ones take the average.
@@ -467,6 +474,13 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
         # a pixel wrongly called metal fits a dielectric's strong diffuse with very high
         # "information" and must not dominate the average (circuit seed 1: 180 such pixels).
         cb = info[:, 0:3] / (info[:, 0:3] + max(cfg.prior_nonlocal_base, 1e-12))
+        if cost is not None and cfg.nonlocal_fit_weight > 0:
+            # ... and by how well the model fits the pixel: one fitted far above the noise
+            # level (a rust front called metal, a blend of two materials) is no evidence of
+            # its neighbours' F0 (rusted_metal 1: the average came out dark; base RMSE
+            # 0.052 -> 0.046 on the tuning captures, see docs/recovery.md).
+            ref = cfg.nonlocal_fit_weight * cost[ism].median()
+            cb = cb * (ref / cost.clamp(min=1e-30)).clamp(max=1.0)
         num = _blur(torch.cat((mm * cb * theta[:, 0:3], mm * cb), -1), size, sig)
         mb = torch.where(num[:, 3:6] > 1e-9, num[:, 0:3] / num[:, 3:6].clamp(min=1e-12), theta[:, 0:3])
         m[:, 0:3] = torch.where(ism[:, None], mb, theta[:, 0:3])
@@ -1634,8 +1648,9 @@ class Recovery:
             # (dusty_metal 3: 8645 pixels then fitted at 10–100× the noise).
             d = self.data(size, all_lights=(kind == "all"))
             th = st["theta"][0]
-            jtj = gauss_newton(d, th, st["metal"], d.train_idx, self.cfg.model)[1]
-            w, m, info = nonlocal_prior(d, th, st["metal"], self.cfg, jtj)
+            r0, jtj, _ = gauss_newton(d, th, st["metal"], d.train_idx, self.cfg.model)
+            c0 = torch.nan_to_num((r0 * r0).sum(-1, keepdim=True), nan=float("inf"))
+            w, m, info = nonlocal_prior(d, th, st["metal"], self.cfg, jtj, c0)
             fused = torch.where(w > 0, (info * th + w * m) / (info + w).clamp(min=1e-12), th)
             shifted = fused + conditional_shift(jtj, fused - th, w > 0)
             # Kept per pixel only where it fits the data at least as well as the fused F0 alone

@@ -144,6 +144,7 @@ def check_config(cfg: RecoveryConfig) -> None:
               "prior_nonlocal")
     for name in priors:
         _finite(name, getattr(cfg, name), 0.0, 1e6)
+    _finite("nonlocal_fit_weight", cfg.nonlocal_fit_weight, 0.0, 1e6)
     for name in ("prior_sigma", "nonlocal_range", "nonlocal_sigma"):
         _finite(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
     _finite("metal_margin", cfg.metal_margin, 0.0, 1.0, lo_open=True)
