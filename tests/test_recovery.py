@@ -756,6 +756,38 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
         assert float(scale.abs().max()) == 0.0
 
 
+def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_held():
+    """The soft-metal stage's per-pixel LM reaches each pixel's least-squares solution.
+
+    Residuals linear in the 8 unknowns; with ``fix_metal`` the last unknown keeps its value (no
+    tangent) and the other 7 solve the reduced problem.
+    """
+    import torchbrdf.recovery.solver as R
+
+    gen = torch.Generator().manual_seed(3)
+    n, m = 5, 20
+    a = torch.randn(n, m, 8, generator=gen, dtype=torch.float64)
+    b = torch.randn(n, m, generator=gen, dtype=torch.float64)
+    fn = lambda x: torch.einsum("nmk,nk->nm", a, x) - b  # noqa: E731
+
+    def cost(x):
+        return (fn(x) ** 2).sum(-1, keepdim=True)
+
+    x0 = torch.zeros(n, 8, dtype=torch.float64)
+    x0[:, 7] = 0.5
+    x, c = R._soft_lm(fn, cost, x0, 30, fix_metal=True)
+    want = torch.linalg.lstsq(a[..., :7], (b - a[..., 7] * 0.5)[..., None]).solution[..., 0]
+    assert torch.equal(x[:, 7], x0[:, 7])
+    assert torch.allclose(x[:, :7], want, atol=1e-6)
+    assert torch.allclose(c, cost(x))
+    # metallic free: the full solution, its last unknown clamped to [0, 1] by the projected steps
+    x, _ = R._soft_lm(fn, cost, x0, 60)
+    full = torch.linalg.lstsq(a, b[..., None]).solution[..., 0]
+    inside = (full[:, 7] > 0) & (full[:, 7] < 1)
+    assert torch.allclose(x[inside], full[inside], atol=1e-5)
+    assert bool(((x[:, 7] >= 0) & (x[:, 7] <= 1)).all())
+
+
 def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     """After the non-local fusion moves a metal's F0, its other unknowns follow it.
 

@@ -151,6 +151,7 @@ class RecoveryConfig:
     soft_metal_max: float = 0.35  # at most this fraction of the pixels (the worst fitting) are candidates
     soft_metal_edge: float = 0.15  # ... and metal pixels within the band of a base-colour step this large
     soft_metal_context: float = 0.25  # the gain, × this, beside a fractional pixel (second pass, growth)
+    soft_metal_passes: int = 2  # second-pass rounds, each from the neighbours' metallic of the round before
     soft_metal_grow: int = 3  # rounds of refitting the untried pixels beside a run of fractional ones
     holdout: int | None = None  # index of the validation light (default: a ring light)
     checkpoint_every: int = 5
@@ -1076,29 +1077,25 @@ def _soft_residual(data: LevelData, x: Tensor, idx: list[int], model: str, well:
 def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x: Tensor, iters: int,
              fix_metal: bool = False) -> tuple[Tensor, Tensor]:
     """``iters`` per-pixel LM iterations on ``x (N, 8)`` (residuals ``fn``, metallic — the last
-    column — clamped to [0, 1] after each step; held fixed with ``fix_metal``). Returns
-    ``(x, cost (N, 1))``."""
-    n_x = x.shape[1]
-    eye = torch.eye(n_x, dtype=x.dtype, device=x.device)
+    column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which then has
+    no tangent: 7 instead of 8 per Jacobian). Returns ``(x, cost (N, 1))``."""
+    n_t = x.shape[1] - 1 if fix_metal else x.shape[1]  # the unknowns that move
+    eye = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)[:n_t]
     lam = torch.full((x.shape[0], 1), 1e-2, dtype=x.dtype, device=x.device)
     c = cost(x)
     out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the tangents
     for _ in range(iters):
         xc = x
-        tangents = eye[:, None, :].expand(n_x, *x.shape)
+        tangents = eye[:, None, :].expand(n_t, *x.shape)
         pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (xc,), (tg,)), out_dims=out_dims)(tangents)
         r, jac = pair
         r = torch.nan_to_num(r)
-        jac = torch.nan_to_num(jac).permute(1, 0, 2)  # (N, 8, M + 1)
-        if fix_metal:
-            jac[:, -1] = 0.0
+        jac = torch.nan_to_num(jac).permute(1, 0, 2)  # (N, n_t, M + 1)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
         g = torch.bmm(jac, r[..., None])[..., 0]
         h = jtj + torch.diag_embed(lam * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
-        if fix_metal:  # a zero column: unit pivot, zero step
-            h[:, -1, -1] = 1.0
         step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
-        cand = x + step
+        cand = x + torch.nn.functional.pad(step, (0, x.shape[1] - n_t))
         cand = torch.cat((cand[:, :-1], cand[:, -1:].clamp(0.0, 1.0)), -1)
         c1 = cost(cand)
         better = c1 < c
@@ -1126,7 +1123,8 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     noise variance) below the same fit with metallic held at its own value (with
     ``refit_reference``; else below ``theta``, ``metal`` as given): one more unknown always
     fits noise a little, and a clear pixel must stay exactly 0 or 1 (it then keeps the better
-    of its old and its refitted 7 unknowns); a metallic within ``snap`` of 0 or 1 is set to it.
+    of its old, its refitted and the free fit's 7 unknowns); a metallic within ``snap`` of 0 or
+    1 is set to it.
     ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta rows (N, 7), metal rows (N, 1), changed (N,))``.
     """
@@ -1140,14 +1138,6 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         r = fn(v)
         return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
 
-    c_ref = cost(torch.cat((t0, m0), -1))  # the solution so far (a binary one: no double-well cost)
-    # The reference a fractional value must beat: the same per-pixel fit with metallic held at
-    # the pixel's own value, so a fractional value wins by what it explains, not by the refit
-    # of the other unknowns (the main fit's priors leave some pixels off their data optimum).
-    ref = torch.cat((t0, m0), -1)
-    ref, c_fix = _soft_lm(fn, cost, ref, iters, fix_metal=True) if refit_reference else (ref, c_ref)
-    keep = c_fix < c_ref
-    ref, c_ref = torch.where(keep, ref, torch.cat((t0, m0), -1)), torch.where(keep, c_fix, c_ref)
     best, best_c = None, None
     for m_start in starts:
         # Several metallic starts: a pixel that is 30 % metal has another local optimum near
@@ -1164,6 +1154,30 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # apart, so it is set exactly (to the reference fit when that is its own class).
     m = best[:, 7:8]
     m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    ref = torch.cat((t0, m0), -1)  # the solution so far (a binary one: no double-well cost)
+    c_ref = cost(ref)
+    keep = torch.zeros_like(c_ref, dtype=torch.bool)
+    # The reference a fractional (or other-class) result must beat: the same per-pixel fit
+    # with metallic held at the pixel's own value, so it wins by what it explains, not by the
+    # refit of the other unknowns (the main fit's priors leave some pixels off their data
+    # optimum). Only where the free fit left the pixel's class: a pixel it returned to its own
+    # class has no fractional value to judge (the fit's decisions are unchanged by this; such
+    # a pixel keeps the better of its old unknowns and the free fit's).
+    away = torch.nonzero((m_snap != m0)[:, 0]).squeeze(1) if refit_reference else rows[:0]
+    if away.numel():
+        sub_a = sub.subset(away)
+        tgt_a = None if target is None else target[away]
+        fn_a = lambda v: _soft_residual(sub_a, v, idx, model, well, tgt_a, smooth)  # noqa: E731
+
+        def cost_a(v):
+            r = fn_a(v)
+            return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+
+        ref_a, c_fix = _soft_lm(fn_a, cost_a, ref[away], iters, fix_metal=True)
+        keep_a = c_fix < c_ref[away]
+        ref[away] = torch.where(keep_a, ref_a, ref[away])
+        c_ref[away] = torch.where(keep_a, c_fix, c_ref[away])
+        keep[away] = keep_a
     best = torch.where((m_snap != m) & (m_snap == ref[:, 7:8]), ref, torch.cat((best[:, :7], m_snap), -1))
     m = best[:, 7:8]
     newly_fractional = (m > 0) & (m < 1) & ((m0 == 0) | (m0 == 1))
@@ -1761,7 +1775,9 @@ class Recovery:
                 near = _neighbour_mean(fr, size)[rows2] > 0
                 ctx_scale = torch.where(near, cfg.soft_metal_context, 1.0).to(theta.dtype)
                 gain2 = cfg.soft_metal_gain * sigma2 * ctx_scale
-                if rows2.numel():
+                # Repeated, each round pulled toward the neighbours' metallic of the round
+                # before: a ramp's values settle from both of its ends (Jacobi smoothing).
+                for _ in range(cfg.soft_metal_passes if rows2.numel() else 0):
                     theta[rows2], metal[rows2] = neighbour_fit(rows2, gain2)
                 t_new, m_new = theta[rows], metal[rows]
             # Only a fractional answer is taken: a pixel that stays 0 or 1 keeps the fit it had,

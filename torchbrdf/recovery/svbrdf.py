@@ -154,6 +154,7 @@ def check_config(cfg: RecoveryConfig) -> None:
     _finite("soft_metal_max", cfg.soft_metal_max, 0.0, 1.0)
     _integer("soft_metal_iters", cfg.soft_metal_iters, 0, 10_000)
     _integer("soft_metal_grow", cfg.soft_metal_grow, 0, 10_000)
+    _integer("soft_metal_passes", cfg.soft_metal_passes, 0, 10_000)
     _integer("soft_metal_band", cfg.soft_metal_band, 0, 10_000)  # a max-pool half width
     if cfg.holdout is not None and (not isinstance(cfg.holdout, int) or isinstance(cfg.holdout, bool)):
         raise RecoveryError(f"--holdout must be an integer light index, got {cfg.holdout!r}")
