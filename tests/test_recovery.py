@@ -217,10 +217,11 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
 
 
 def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch):
-    """A metal pixel fitted k x above the median cost counts 1/k in the F0 average.
+    """A metal pixel fitted k x above w x the median metal pixel counts 1/k in the F0 average.
 
     So a dark, badly fitted patch (a rust front called metal) does not pull its neighbours'
-    F0 down.
+    F0 down; pixels fitted better than that count 1 (not more), the median is over the metal
+    pixels only, and a non-finite cost counts 0.
     """
     import types
 
@@ -228,29 +229,43 @@ def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch
 
     size = 16
     p = size * size
+    grid = torch.arange(p).reshape(size, size)
+    diel = (grid < 8 * size).flatten()  # rows 0-7: dielectric, fitted far better than the metal
+    bad = torch.zeros(size, size, dtype=torch.bool)
+    bad[8:12, :4] = True  # a dark metal patch fitted at 100x the median
+    bad = bad.flatten()
+    good = torch.zeros(size, size, dtype=torch.bool)
+    good[12:, 12:] = True  # metal fitted at a quarter of the median, a brighter F0
+    good = good.flatten()
+    nan_px = torch.zeros(size, size, dtype=torch.bool)
+    nan_px[8, 8] = True
+    nan_px = nan_px.flatten()
     theta = torch.zeros(p, 7, dtype=torch.float64)
     theta[:, 0:3] = 1.0
-    metal = torch.ones(p, 1, dtype=torch.float64)
+    theta[bad, 0:3], theta[good, 0:3], theta[diel, 0:3] = -3.0, 1.5, 5.0
+    metal = (~diel).to(torch.float64)[:, None]
     info = torch.full((p, 7), 10.0, dtype=torch.float64)
     cost = torch.ones(p, 1, dtype=torch.float64)
-    bad = torch.zeros(size, size, dtype=torch.bool)
-    bad[:8, :4] = True
-    bad = bad.flatten()
-    theta[bad, 0:3] = -3.0
-    cost[bad] = 100.0  # fitted at 100x the noise level
+    cost[bad], cost[good], cost[diel], cost[nan_px] = 100.0, 0.25, 0.01, float("nan")
     monkeypatch.setattr(R, "marginal_information", lambda *a: info)
-    cfg = RecoveryConfig(nonlocal_sigma=10.0)  # a window far wider than the map: a plain weighted mean
-    w_bad = 1.0 / 100.0  # min(1, median / cost)
-    n_bad, n_good = int(bad.sum()), p - int(bad.sum())
-    shrink = 10.0 / (10.0 + cfg.prior_nonlocal_base)
-    want = (n_good * 1.0 + n_bad * w_bad * -3.0) / (n_good + n_bad * w_bad)
-    _, m, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg, cost=cost)
-    assert shrink > 0.99
-    assert torch.allclose(m[~bad, 0:3], torch.full_like(m[~bad, 0:3], want), atol=2e-3)
-    # without the fit weight the dark patch drags the average by half a logit unit
+    rest = ~diel & ~bad & ~good & ~nan_px
+
+    def expected(w_fit):  # the median metal pixel costs 1
+        wt = torch.zeros(p, dtype=torch.float64)
+        wt[rest], wt[good], wt[bad] = min(1.0, w_fit), min(1.0, w_fit / 0.25), w_fit / 100.0
+        return float((wt * theta[:, 0]).sum() / wt.sum())
+
+    for w_fit in (1.0, 0.5):
+        cfg = RecoveryConfig(nonlocal_sigma=1000.0, nonlocal_fit_weight=w_fit)  # a flat window
+        _, m, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg, cost=cost)
+        want = expected(w_fit)
+        assert torch.allclose(m[rest, 0:3], torch.full_like(m[rest, 0:3], want), atol=1e-4), (w_fit, want)
+        assert torch.equal(m[diel], theta[diel])  # dielectrics keep their own values
+    assert abs(expected(1.0) - expected(0.5)) > 0.05  # the setting matters here
+    # without the fit weight the dark patch drags the average by most of a logit unit
     _, m0, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal,
-                                RecoveryConfig(nonlocal_sigma=10.0, nonlocal_fit_weight=0.0), cost=cost)
-    assert float(m0[~bad, 0].mean()) < want - 0.45
+                                RecoveryConfig(nonlocal_sigma=1000.0, nonlocal_fit_weight=0.0), cost=cost)
+    assert float(m0[rest, 0].mean()) < expected(1.0) - 0.4
 
 
 # --------------------------------------------------------------------------------------

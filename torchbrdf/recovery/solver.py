@@ -46,8 +46,9 @@ Method (each choice measured, see ``docs/recovery.md``):
   grout at roughness 0.74 instead of 0.85).
 * **Non-local fusion of a metal's F0** (after the last iteration): each metal pixel's base
   colour is fused with the average of the metal pixels within a large Gaussian window
-  (weighted by their shrinkage ``info / (info + κ)`` and by their fit, ``min(1, median
-  cost / cost)``: a pixel the model fits k× worse than the noise level is 1/k the evidence),
+  (weighted by their shrinkage ``info / (info + κ)`` and by their fit, ``min(1, w · median
+  cost / cost)`` with ``w = nonlocal_fit_weight`` and the median over the metal pixels: a
+  pixel the model fits k× worse is 1/k the evidence),
   by precisions — its own marginal information ``info = 1/diag((JᵀJ)⁻¹)`` against a fixed
   ``κ = prior_nonlocal_base``;
   pixels far from every highlight (low information) take the average, the well-observed
@@ -137,8 +138,8 @@ class RecoveryConfig:
     nonlocal_range: float = 0.02  # base-colour range sigma of the non-local roughness prior
     nonlocal_sigma: float = 0.25  # its spatial radius, as a fraction of the map size
     nonlocal_clusters: int = 12  # base-colour clusters per class guiding it
-    # A metal pixel's weight in the non-local F0 average, × min(1, this × median cost / its cost):
-    # a pixel the model fits k× worse than the noise level says 1/k as much (0: off)
+    # A metal pixel's weight in the non-local F0 average, × min(1, this × the median metal pixel's
+    # cost / its cost): a pixel the model fits k× worse than that says 1/k as much (0: off)
     nonlocal_fit_weight: float = 1.0
     # Final step: continuous metallic where the binary choice fits poorly (Recovery._soft_metal)
     soft_metal: bool = True
@@ -437,7 +438,8 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
     the average is pulled toward nearby glossy pixels (tiles' grout came out too smooth).
     ``jtj (P, 7, 7)``: the normal matrices at ``theta`` when the caller has them (else computed);
     ``cost (P, 1)``: each pixel's data cost there (its squared residuals' sum; None: not used),
-    which scales a metal's weight by ``min(1, cfg.nonlocal_fit_weight × median / cost)``.
+    which scales a metal's weight by ``min(1, cfg.nonlocal_fit_weight × median / cost)`` (the
+    median over the metal pixels with a finite cost; a non-finite cost weighs 0).
     Returns ``(precisions (P, 7), targets (P, 7), information (P, 7))``; the caller fuses
     ``(info θ + w m) / (info + w)``: pixels the data pins down (information ≫ precision)
     keep their value, the under-determined ones take the average.
@@ -475,13 +477,16 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
         # a pixel wrongly called metal fits a dielectric's strong diffuse with very high
         # "information" and must not dominate the average (circuit seed 1: 180 such pixels).
         cb = info[:, 0:3] / (info[:, 0:3] + max(cfg.prior_nonlocal_base, 1e-12))
-        if cost is not None and cfg.nonlocal_fit_weight > 0:
-            # ... and by how well the model fits the pixel: one fitted far above the noise
-            # level (a rust front called metal, a blend of two materials) is no evidence of
-            # its neighbours' F0 (rusted_metal 1: the average came out dark; base RMSE
-            # 0.052 -> 0.046 on the tuning captures, see docs/recovery.md).
-            ref = cfg.nonlocal_fit_weight * cost[ism].median()
-            cb = cb * (ref / cost.clamp(min=1e-30)).clamp(max=1.0)
+        finite = torch.isfinite(cost[:, 0]) & ism if cost is not None else ism[:0]
+        if cost is not None and cfg.nonlocal_fit_weight > 0 and bool(finite.any()):
+            # ... and by how well the model fits the pixel: one fitted far above the median
+            # metal pixel (a rust front called metal, a blend of two materials) is no evidence
+            # of its neighbours' F0 (rusted_metal 1: the average came out dark; base RMSE
+            # 0.052 -> 0.046 on the tuning captures, see docs/recovery.md). A non-finite
+            # cost weighs 0.
+            ref = cfg.nonlocal_fit_weight * cost[finite].median()
+            fit = torch.where(cost <= ref, torch.ones_like(cost), ref / cost)
+            cb = cb * torch.nan_to_num(fit, nan=0.0, posinf=0.0)
         num = _blur(torch.cat((mm * cb * theta[:, 0:3], mm * cb), -1), size, sig)
         mb = torch.where(num[:, 3:6] > 1e-9, num[:, 0:3] / num[:, 3:6].clamp(min=1e-12), theta[:, 0:3])
         m[:, 0:3] = torch.where(ism[:, None], mb, theta[:, 0:3])
@@ -1116,15 +1121,16 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     decides where the data cannot — a rough metal's broad lobe mimics a rough dielectric's
     diffuse]. Metallic is a bounded value, clamped to [0, 1] after each step (projected LM), so
     a pixel can land on exactly 0 or 1. The Jacobian is forward-mode (``torch.func.jvp``
-    vmapped over the 8 tangents). ``starts``: metallic start values, ``None`` = the pixel's
-    own, ``"target"`` = ``target``, or ``(theta start (N, 7), one of those)``; the lowest
+    vmapped over the 8 tangents, 7 with metallic held). ``starts``: metallic start values,
+    ``None`` = the pixel's own, ``"target"`` = ``target``, or ``(theta start (N, 7), one of
+    those)``; the lowest
     energy wins. A fractional result replaces a binary ``metal`` only where it lowers the
     energy by more than ``gain`` (a float, or ``(N, 1)`` per pixel; the caller scales it by the
     noise variance) below the same fit with metallic held at its own value (with
     ``refit_reference``; else below ``theta``, ``metal`` as given): one more unknown always
     fits noise a little, and a clear pixel must stay exactly 0 or 1 (it then keeps the better
-    of its old, its refitted and the free fit's 7 unknowns); a metallic within ``snap`` of 0 or
-    1 is set to it.
+    of its old and its refitted 7 unknowns, or of its old and the free fit's where the free fit
+    ended on its class); a metallic within ``snap`` of 0 or 1 is set to it (and judged there).
     ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta rows (N, 7), metal rows (N, 1), changed (N,))``.
     """
@@ -1151,7 +1157,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         best, best_c = _keep_better(best, best_c, x, c)
     assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
     # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
-    # apart, so it is set exactly (to the reference fit when that is its own class).
+    # apart, so it is set exactly.
     m = best[:, 7:8]
     m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
     ref = torch.cat((t0, m0), -1)  # the solution so far (a binary one: no double-well cost)
@@ -1160,9 +1166,9 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # The reference a fractional (or other-class) result must beat: the same per-pixel fit
     # with metallic held at the pixel's own value, so it wins by what it explains, not by the
     # refit of the other unknowns (the main fit's priors leave some pixels off their data
-    # optimum). Only where the free fit left the pixel's class: a pixel it returned to its own
-    # class has no fractional value to judge (the fit's decisions are unchanged by this; such
-    # a pixel keeps the better of its old unknowns and the free fit's).
+    # optimum). Only where the free fit left the pixel's class (about 40 % of pass 1's pixels):
+    # one it returned to its own class has nothing to judge, and keeps the better of its old
+    # unknowns and the free fit's (snapped to its class).
     away = torch.nonzero((m_snap != m0)[:, 0]).squeeze(1) if refit_reference else rows[:0]
     if away.numel():
         sub_a = sub.subset(away)
@@ -1178,7 +1184,10 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         ref[away] = torch.where(keep_a, ref_a, ref[away])
         c_ref[away] = torch.where(keep_a, c_fix, c_ref[away])
         keep[away] = keep_a
-    best = torch.where((m_snap != m) & (m_snap == ref[:, 7:8]), ref, torch.cat((best[:, :7], m_snap), -1))
+    snapped = m_snap != m
+    best = torch.cat((best[:, :7], m_snap), -1)
+    if bool(snapped.any()):  # judged by the energy of what is returned
+        best_c = torch.where(snapped, cost(best), best_c)
     m = best[:, 7:8]
     newly_fractional = (m > 0) & (m < 1) & ((m0 == 0) | (m0 == 1))
     accepted = (best_c < c_ref - torch.where(newly_fractional, gain, 0.0))[:, 0]
@@ -1663,7 +1672,8 @@ class Recovery:
             d = self.data(size, all_lights=(kind == "all"))
             th = st["theta"][0]
             r0, jtj, _ = gauss_newton(d, th, st["metal"], d.train_idx, self.cfg.model)
-            c0 = torch.nan_to_num((r0 * r0).sum(-1, keepdim=True), nan=float("inf"))
+            inf = float("inf")
+            c0 = torch.nan_to_num((r0 * r0).sum(-1, keepdim=True), nan=inf, posinf=inf)
             w, m, info = nonlocal_prior(d, th, st["metal"], self.cfg, jtj, c0)
             fused = torch.where(w > 0, (info * th + w * m) / (info + w).clamp(min=1e-12), th)
             shifted = fused + conditional_shift(jtj, fused - th, w > 0)
