@@ -1786,7 +1786,9 @@ class Recovery:
                 ctx_scale = torch.where(near, cfg.soft_metal_context, 1.0).to(theta.dtype)
                 gain2 = cfg.soft_metal_gain * sigma2 * ctx_scale
                 # Repeated, each round pulled toward the neighbours' metallic of the round
-                # before: a ramp's values settle from both of its ends (Jacobi smoothing).
+                # before: a ramp's values settle from both of its ends (Jacobi smoothing). A
+                # pixel an earlier round made fractional is no longer asked for the gain (it is
+                # not newly fractional): only its energy decides between its values.
                 for _ in range(cfg.soft_metal_passes if rows2.numel() else 0):
                     theta[rows2], metal[rows2] = neighbour_fit(rows2, gain2)
                 t_new, m_new = theta[rows], metal[rows]
