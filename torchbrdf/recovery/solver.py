@@ -973,6 +973,16 @@ def _keep_better(best: Tensor | None, best_c: Tensor | None, x: Tensor, c: Tenso
     return torch.where(better, x, best), torch.where(better, c, best_c)
 
 
+def _pixel_cost(r: Tensor) -> Tensor:
+    """Each pixel's data cost ``(N, 1)``: the sum of its squared residuals ``r (N, M)``.
+
+    A non-finite sum is +inf, so it never wins a comparison and drops out of finite medians;
+    ``r``'s dtype and device.
+    """
+    inf = float("inf")
+    return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=inf, posinf=inf)
+
+
 def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
                  idx: list[int], model: str, iters: int = 10) -> tuple[Tensor, Tensor]:
     """Per-pixel Levenberg–Marquardt (data term only) on the listed pixels from several starts.
@@ -985,8 +995,7 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
     sub = data.subset(rows)
 
     def cost(t):
-        r = sub.residual(t, m, idx, model)
-        return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+        return _pixel_cost(sub.residual(t, m, idx, model))
 
     best: Tensor | None = None
     best_c: Tensor | None = None
@@ -1138,11 +1147,12 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         return theta[rows], metal[rows], torch.zeros(0, dtype=torch.bool, device=theta.device)
     sub = data.subset(rows)
     t0, m0 = theta[rows], metal[rows]
-    fn = lambda v: _soft_residual(sub, v, idx, model, well, target, smooth)  # noqa: E731
 
-    def cost(v):
-        r = fn(v)
-        return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+    def energy(sub_: LevelData, target_: Tensor | None):  # residuals and cost of these pixels' x (n, 8)
+        fn_ = lambda v: _soft_residual(sub_, v, idx, model, well, target_, smooth)  # noqa: E731
+        return fn_, lambda v: _pixel_cost(fn_(v))
+
+    fn, cost = energy(sub, target)
 
     best, best_c = None, None
     for m_start in starts:
@@ -1171,14 +1181,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # unknowns and the free fit's (snapped to its class).
     away = torch.nonzero((m_snap != m0)[:, 0]).squeeze(1) if refit_reference else rows[:0]
     if away.numel():
-        sub_a = sub.subset(away)
-        tgt_a = None if target is None else target[away]
-        fn_a = lambda v: _soft_residual(sub_a, v, idx, model, well, tgt_a, smooth)  # noqa: E731
-
-        def cost_a(v):
-            r = fn_a(v)
-            return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
-
+        fn_a, cost_a = energy(sub.subset(away), None if target is None else target[away])
         ref_a, c_fix = _soft_lm(fn_a, cost_a, ref[away], iters, fix_metal=True)
         keep_a = c_fix < c_ref[away]
         ref[away] = torch.where(keep_a, ref_a, ref[away])
@@ -1672,15 +1675,13 @@ class Recovery:
             d = self.data(size, all_lights=(kind == "all"))
             th = st["theta"][0]
             r0, jtj, _ = gauss_newton(d, th, st["metal"], d.train_idx, self.cfg.model)
-            inf = float("inf")
-            c0 = torch.nan_to_num((r0 * r0).sum(-1, keepdim=True), nan=inf, posinf=inf)
-            w, m, info = nonlocal_prior(d, th, st["metal"], self.cfg, jtj, c0)
+            w, m, info = nonlocal_prior(d, th, st["metal"], self.cfg, jtj, _pixel_cost(r0))
             fused = torch.where(w > 0, (info * th + w * m) / (info + w).clamp(min=1e-12), th)
             shifted = fused + conditional_shift(jtj, fused - th, w > 0)
             # Kept per pixel only where it fits the data at least as well as the fused F0 alone
             # (a weakly determined unknown can take a large linear response).
-            cost = [torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
-                    for r in (d.residual(t, st["metal"], d.train_idx, self.cfg.model) for t in (fused, shifted))]
+            cost = [_pixel_cost(d.residual(t, st["metal"], d.train_idx, self.cfg.model))
+                    for t in (fused, shifted)]
             st["theta"][0] = torch.where(cost[1] <= cost[0], shifted, fused)
             st["info"] = info
         if nxt >= len(self.plan) and self.cfg.soft_metal and st.get("metal") is not None:
@@ -1718,7 +1719,7 @@ class Recovery:
         zero = torch.zeros_like(st["lam"][0])
         new, _ = refit_pixels(d, th0, zero, rows, [th0[rows], cross], self.train_idx, self.cfg.model, iters)
         r = d.subset(rows).residual(new, zero[rows], lights, self.cfg.model)
-        c = torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+        c = _pixel_cost(r)
         better = c < scores[0][rows]
         st["theta"][0] = th0.clone()
         st["theta"][0][rows] = torch.where(better, new, th0[rows])
@@ -1740,7 +1741,7 @@ class Recovery:
         theta, metal = st["theta"][0], st["metal"]
         with torch.no_grad():
             r = data.residual(theta, metal, data.train_idx, cfg.model)
-        cost = torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=float("inf"))
+        cost = _pixel_cost(r)
         # Noise variance of one residual: the median pixel's cost per residual.
         finite = torch.isfinite(cost)
         sigma2 = float(cost[finite].median()) / max(1, r.shape[1]) if bool(finite.any()) else 0.0
