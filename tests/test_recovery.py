@@ -295,6 +295,38 @@ def test_laplacian_is_the_gradient_of_the_prior_energy():
     assert math.isclose(float(R.laplacian(e, wx, wy, size)[7, 3]), float(R.laplacian_diag(wx, wy, size)[7, 3]))
 
 
+def test_metal_base_tie_is_guided_by_base_colour():
+    """Two metal pixels' base colours are tied only where they are alike (metal_base_guided).
+
+    A dark red rust island called metal inside a bright metal is cut loose from it, so its F0
+    does not pull the bright metal's down through the chain of ties. Unguided (as before
+    2026-12-02), the tie is class-only; a dielectric pair has no base-colour tie at all.
+    """
+    from torchbrdf.recovery.smoothness_prior import edge_weights
+    from torchbrdf.recovery.solver import RecoveryConfig, encode
+
+    size = 4
+    base = torch.tensor([0.95, 0.93, 0.88]).repeat(size, size, 1)
+    base[:, 2:] = torch.tensor([0.45, 0.2, 0.1])  # columns 2-3: the island
+    n = size * size
+    theta = encode({"base_color": base.reshape(n, 3), "specular": torch.full((n, 1), 0.5),
+                    "roughness": torch.full((n, 1), 0.3),
+                    "normal": torch.tensor([0.0, 0.0, 1.0]).repeat(n, 1)})
+    metal = torch.ones(n, 1)
+    for guided in (True, False):
+        cfg = RecoveryConfig(metal_base_guided=guided)
+        wx, wy = edge_weights(theta, metal, size, cfg)
+        w = cfg.prior_metal_base
+        assert torch.allclose(wx[:, 0, 0:3], torch.full((size, 3), w))  # alike: tied
+        assert torch.allclose(wy[..., 0:3], torch.full((size - 1, size, 3), w))
+        across = wx[:, 1, 0:3]  # between columns 1 and 2
+        assert torch.allclose(across, torch.full_like(across, w)) != guided
+        if guided:
+            assert float(across.max()) < 1e-6 * w
+    wx, _ = edge_weights(theta, torch.zeros(n, 1), size, RecoveryConfig())
+    assert float(wx[..., 0:3].abs().max()) == 0.0
+
+
 @pytest.mark.parametrize("joined", [range(7), range(3, 5), range(0, 5), range(0)])
 def test_pcg_solves_the_coupled_system(joined):
     """Every pattern of prior-joined channels (all; a dielectric's specular and roughness; with
@@ -801,6 +833,18 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     inside = (full[:, 7] > 0) & (full[:, 7] < 1)
     assert torch.allclose(x[inside], full[inside], atol=1e-5)
     assert bool(((x[:, 7] >= 0) & (x[:, 7] <= 1)).all())
+    # a metallic-only prior given with its derivative (not part of fn): the augmented problem's
+    # solution, one more row sqrt(s) (m - t) per pixel
+    s, t = 4.0, torch.full((n, 1), 0.4, dtype=torch.float64)
+    prior = lambda m: (math.sqrt(s) * (m - t), torch.full_like(m, math.sqrt(s)))  # noqa: E731
+    x, _ = R._soft_lm(fn, lambda v: cost(v) + prior(v[:, 7:8])[0] ** 2, x0, 60, prior=prior)
+    row = torch.zeros(n, 1, 8, dtype=torch.float64)
+    row[..., 7] = math.sqrt(s)
+    rhs = torch.cat((b, math.sqrt(s) * t), 1)
+    aug = torch.linalg.lstsq(torch.cat((a, row), 1), rhs[..., None]).solution[..., 0]
+    inside = (aug[:, 7] > 0) & (aug[:, 7] < 1)
+    assert bool(inside.any()) and not torch.allclose(aug[inside], full[inside], atol=1e-3)
+    assert torch.allclose(x[inside], aug[inside], atol=1e-5)
 
 
 def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():

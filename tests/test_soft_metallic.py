@@ -16,7 +16,15 @@ from torchbrdf.capture.synthetic import (
     render_capture,
     write_maps,
 )
-from torchbrdf.recovery.solver import LevelData, encode, growth_front, soft_metal_candidates, soft_metal_fit
+from torchbrdf.recovery.solver import (
+    LevelData,
+    decode,
+    encode,
+    growth_front,
+    soft_metal_candidates,
+    soft_metal_fit,
+    unmix_metallic,
+)
 from torchbrdf.recovery.svbrdf import RecoveryConfig, metallic_preview, recover
 
 
@@ -133,6 +141,64 @@ def test_growth_extends_runs_of_fractional_pixels_only():
     front = set(growth_front(metal, tried, size).tolist())
     near = {r * size + c for r in (4, 5, 6) for c in (2, 3, 4, 5)} - {5 * size + 4}
     assert front == near
+
+
+def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
+    """A blend's coverage is found from the clear pixels beside it, to within 0.025.
+
+    A stripe of texels blending a rough dielectric (left) and a glossy metal (right) —
+    base colour, roughness and metallic all mixed with one coverage t: explained along the
+    line between the clear pixels beside it, each column's t is found to within 0.025 (the
+    11-value grid alone is off by up to 0.05: the parabola between grid values), from a start
+    that knows nothing of it (the stripe fitted as a grey dielectric).
+
+    Fails if an end is taken from the stripe itself, if roughness or base colour is not
+    blended, if the metal end's specular (not observed) were used, or without the parabola.
+    """
+    size, cols = 24, {10: 0.25, 11: 0.43, 12: 0.67, 13: 0.85}
+    t = torch.zeros(size, size)
+    t[:, 14:] = 1.0
+    for c, v in cols.items():
+        t[:, c] = v
+    diel = {"base_color": torch.tensor([0.5, 0.4, 0.3]), "roughness": 0.8, "specular": 0.5}
+    met = {"base_color": torch.tensor([0.95, 0.9, 0.8]), "roughness": 0.3, "specular": 0.1}
+    lerp = lambda a, b: a * (1 - t) + b * t  # noqa: E731
+    base = lerp(diel["base_color"][:, None, None], met["base_color"][:, None, None])
+    maps = {"base_color": base, "roughness": lerp(0.8, 0.3)[None], "metallic": t[None],
+            "specular": torch.full((1, size, size), 0.5),
+            "normal": normals_from_height(torch.zeros(size, size))}
+    pos, inten = light_layout(12)
+    with torch.no_grad():
+        img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
+    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    cap = load_capture(tmp_path)
+    data = LevelData(cap, size, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    flat = lambda x: x.reshape(x.shape[0], -1).T  # noqa: E731
+    # The metal side's specular is wrong (unobserved under metallic 1), the stripe a grey
+    # dielectric: only the clear pixels' base colour and roughness are right.
+    stripe = (t > 0) & (t < 1)
+    start = dict(maps, metallic=(t == 1).float()[None])
+    start["specular"] = torch.where(t == 1, 0.1, 0.5)[None]
+    start["base_color"] = torch.where(stripe, 0.7, base)
+    start["roughness"] = torch.where(stripe, 0.55, start["roughness"])
+    theta = encode({k: flat(start[k]) for k in ("base_color", "specular", "roughness", "normal")})
+    metal = flat(start["metallic"])
+    rows = torch.nonzero(flat(stripe.float()[None])[:, 0]).flatten()
+    with torch.no_grad():
+        theta_b, t_b = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
+    truth = flat(t[None])[rows]
+    assert float((t_b - truth).abs().max()) < 0.025, (t_b - truth).abs().max()
+    p = decode(theta_b, t_b)  # the blend at the coverage found
+    assert torch.allclose(p["roughness"], 0.8 * (1 - t_b) + 0.3 * t_b, atol=1e-3)
+    want = diel["base_color"] * (1 - t_b) + met["base_color"] * t_b
+    assert torch.allclose(p["base_color"], want, atol=1e-3)
+    assert torch.allclose(p["specular"], torch.full_like(t_b, 0.5), atol=1e-3)
+    # No blend with a finite cost (a non-finite observation): no blend, NaN, not a guess.
+    data.log_obs[:, rows[:3]] = float("nan")
+    with torch.no_grad():
+        theta_n, t_n = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
+    assert bool(torch.isnan(t_n[:3]).all()) and bool(torch.isnan(theta_n[:3]).all())
+    assert bool(torch.isfinite(t_n[3:]).all())
 
 
 def test_blend_stripe_recovers_fractional_metallic(tmp_path):

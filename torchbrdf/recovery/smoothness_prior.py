@@ -27,8 +27,11 @@ def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Ten
     * roughness and specular: ``prior_* · exp(−|Δbase|²/σ²)`` between pixels of the same
       class (base-colour-guided, so edges between materials are cut);
     * a metal's base colour (its F0, seen only through the specular lobe, like roughness):
-      ``prior_metal_base`` between two metal pixels (class-only — guiding it by itself
-      would let an outlier cut itself loose);
+      ``prior_metal_base`` between two metal pixels, × the same base-colour guide with
+      ``metal_base_guided`` (else class-only). Unguided, a rust island the two-hypothesis
+      choice called metal (a dark, red F0 that fits its data) pulled the F0 of the bright
+      metal around it down through the chain of ties — the F0 along the GGX tail's valley
+      (F0·α² nearly constant) is weakly held by each pixel's own data;
     * a metal's specular does not affect the image at all: weight 1 between metal pixels,
       which keeps it defined.
     """
@@ -42,7 +45,7 @@ def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Ten
         both_metal = m0 * m1
         a = torch.exp(-((b1 - b0) ** 2).sum(-1, keepdim=True) / cfg.prior_sigma**2) * same
         w = torch.zeros(*a.shape[:-1], c, dtype=theta.dtype, device=theta.device)
-        w[..., 0:3] = cfg.prior_metal_base * both_metal
+        w[..., 0:3] = cfg.prior_metal_base * both_metal * (a if cfg.metal_base_guided else 1.0)
         w[..., 3:4] = cfg.prior_specular * a + 1.0 * both_metal
         w[..., 4:5] = cfg.prior_roughness * a
         return w

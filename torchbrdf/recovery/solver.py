@@ -111,6 +111,7 @@ class RecoveryConfig:
     prior_specular: float = 0.002
     prior_sigma: float = 0.1
     prior_metal_base: float = 0.02
+    metal_base_guided: bool = True  # ... × the base-colour guide (prior_sigma) of the other ties
     propagate: bool = True  # PatchMatch-style neighbour propagation (see propagate)
     propagate_passes: int = 6  # passes at the start of each stage (one pixel further per pass)
     propagate_every: bool = True  # and one pass before every LM iteration of the single-hypothesis stages
@@ -154,6 +155,9 @@ class RecoveryConfig:
     soft_metal_context: float = 0.25  # the gain, × this, beside a fractional pixel (second pass, growth)
     soft_metal_passes: int = 2  # second-pass rounds, each from the neighbours' metallic of the round before
     soft_metal_grow: int = 3  # rounds of refitting the untried pixels beside a run of fractional ones
+    # Pull (× σ²) toward the metallic that explains a candidate as a blend of the clear metal and
+    # the clear dielectric beside it (unmix_metallic), which also starts its fit; 0: off, start at ½
+    soft_metal_unmix: float = 128.0
     holdout: int | None = None  # index of the validation light (default: a ring light)
     checkpoint_every: int = 5
     model: str = "principled"
@@ -1062,6 +1066,68 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
     return rows
 
 
+def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
+                   size: int, steps: int = 11, sigmas: tuple = (2.0, 6.0)) -> tuple[Tensor, Tensor]:
+    """Pixels ``rows (N,)`` explained as blends of the clear metal and dielectric beside them.
+
+    Each pixel's coverage ``t``: the best fit to its data (lights ``idx``) of ``steps`` even
+    values of [0, 1], moved to the vertex of the parabola through it and its two neighbours.
+
+    A texel that straddles two materials (an anti-aliased edge, a rust front, a dust rim) has
+    base colour, roughness and metallic all blended with one weight, its coverage. Free, the
+    fit cannot tell a 15 %-metal rough pixel from a rough dielectric (its base colour and
+    roughness take up the difference); along the line between its neighbours' two materials
+    its base colour tells the coverage. The two ends are Gaussian-weighted means (width
+    ``sigmas[0]`` pixels, else the wider ``sigmas[1]``) of the ``metal (P, 1)`` == 0 and == 1
+    pixels not in ``rows`` (the candidates are the mixed ones), else the pixel's own parameters
+    (the core of a small dust speck is all candidates; where it is the *other* class that is
+    out of reach — a rust island inside a metal — the blend is a guess, but measured better
+    than none: docs/recovery.md, issue 18); the metal end takes the dielectric end's specular
+    (a metal's is not observed). The normal is the pixel's own. Where no blend has a finite
+    cost, ``t`` and its theta are NaN (no blend). ``theta (P, 7)``.
+    Returns ``(theta of the blend (N, 7), t (N, 1))``.
+    """
+    p = decode(theta, metal)
+    lin = torch.cat((p["base_color"], p["specular"], p["roughness"]), -1)  # (P, 5), blended linearly
+    clear = torch.ones(theta.shape[0], dtype=torch.bool, device=theta.device)
+    clear[rows] = False
+    ends = []
+    for cls in (0.0, 1.0):
+        w = (clear & (metal[:, 0] == cls)).to(theta.dtype)[:, None]
+        end, found = lin, torch.zeros_like(w, dtype=torch.bool)
+        for sigma in sigmas:  # the nearest scale that has any
+            bw = _blur(w, size, sigma)
+            ok = (bw > 1e-3) & ~found
+            end = torch.where(ok, _blur(lin * w, size, sigma) / bw.clamp(min=1e-12), end)
+            found = found | ok
+        ends.append(end[rows])
+    diel, met = ends
+    met = torch.cat((met[:, 0:3], diel[:, 3:4], met[:, 4:5]), -1)
+    normal, sub = p["normal"][rows], data.subset(rows)
+
+    def blend(t: Tensor) -> Tensor:  # theta of the blend at coverage t (N, 1)
+        v = diel * (1 - t) + met * t
+        return encode({"base_color": v[:, 0:3], "specular": v[:, 3:4], "roughness": v[:, 4:5],
+                       "normal": normal})
+
+    grid = torch.linspace(0, 1, steps, dtype=theta.dtype, device=theta.device)
+    grid = grid[:, None, None].expand(-1, len(rows), 1)
+    costs = torch.cat([_pixel_cost(sub.residual(blend(t), t, idx, model)) for t in grid], -1)  # (N, steps)
+    k = torch.nan_to_num(costs, nan=float("inf")).argmin(-1, keepdim=True)
+    t = k.to(theta.dtype) / (steps - 1)
+    # Between grid values: the vertex of the parabola through the best and its two neighbours
+    # (an end of [0, 1] stays exact: a clear pixel's blend is its own class).
+    inner = (k > 0) & (k < steps - 1)
+    km, kp = (k - 1).clamp(min=0), (k + 1).clamp(max=steps - 1)
+    cm, c0, cp = costs.gather(-1, km), costs.gather(-1, k), costs.gather(-1, kp)
+    curv = cm - 2 * c0 + cp
+    fit = inner & torch.isfinite(cm) & torch.isfinite(cp) & (curv > 0)
+    shift = torch.where(fit, 0.5 * (cm - cp) / torch.where(fit, curv, 1.0), 0.0)  # |shift| ≤ ½: c0 least
+    t = t + shift / (steps - 1)
+    t = torch.where(torch.isfinite(c0), t, float("nan"))
+    return torch.where(torch.isnan(t), float("nan"), blend(t)), t
+
+
 def growth_front(metal: Tensor, tried: Tensor, size: int) -> Tensor:
     """Pixels ``(N,)`` (indices) beside a run of fractional metallic that were not refitted yet.
 
@@ -1075,24 +1141,32 @@ def growth_front(metal: Tensor, tried: Tensor, size: int) -> Tensor:
     return torch.nonzero(_dilate(run, size) & ~tried).flatten()
 
 
-def _soft_residual(data: LevelData, x: Tensor, idx: list[int], model: str, well: float,
-                   target: Tensor | None = None, smooth: float = 0.0) -> Tensor:
-    """Residuals ``(N, M + 1 [+ 1])`` of ``x (N, 8)`` = (theta, metallic): the log residuals on
-    lights ``idx``, the double-well term ``√well · m (1 − m)`` (its square is ``well m² (1 − m)²``)
-    and, with ``target (N, 1)``, the pull ``√smooth · (m − target)`` toward the neighbours' metallic."""
-    m = x[:, 7:8]
-    r = data.residual(x[:, :7], m, idx, model)
-    out = [r, math.sqrt(well) * m * (1 - m)]
+def _soft_prior(m: Tensor, well: float, target: Tensor | None = None,
+                smooth: float | Tensor = 0.0) -> tuple[Tensor, Tensor]:
+    """The metallic-only residuals of ``m (N, 1)`` and their derivatives, each ``(N, 1 [+ 1])``.
+
+    The double-well term ``√well · m (1 − m)`` (its square is ``well m² (1 − m)²``) and, with
+    ``target (N, 1)``, the pull ``√smooth · (m − target)`` toward the metallic the neighbours
+    suggest (``smooth`` a float or ``(N, 1)``).
+    """
+    sw = math.sqrt(well)
+    res, d = [sw * m * (1 - m)], [sw * (1 - 2 * m)]
     if target is not None:
-        out.append(math.sqrt(smooth) * (m - target))
-    return torch.cat(out, -1)
+        ss = smooth.sqrt() if isinstance(smooth, Tensor) else torch.full_like(m, math.sqrt(smooth))
+        res.append(ss * (m - target))
+        d.append(ss)
+    return torch.cat(res, -1), torch.cat(d, -1)
 
 
 def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x: Tensor, iters: int,
-             fix_metal: bool = False) -> tuple[Tensor, Tensor]:
+             fix_metal: bool = False, prior: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None
+             ) -> tuple[Tensor, Tensor]:
     """``iters`` per-pixel LM iterations on ``x (N, 8)`` (residuals ``fn``, metallic — the last
     column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which then has
-    no tangent: 7 instead of 8 per Jacobian). Returns ``(x, cost (N, 1))``."""
+    no tangent: 7 instead of 8 per Jacobian). ``prior``: residuals of metallic alone and
+    their derivatives (``m (N, 1)`` → two ``(N, k)``), added to the normal equations by hand
+    (they are not part of ``fn``'s forward-mode Jacobian, which would copy them once per
+    tangent); ``cost`` must include them. Returns ``(x, cost (N, 1))``."""
     n_t = x.shape[1] - 1 if fix_metal else x.shape[1]  # the unknowns that move
     eye = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)[:n_t]
     lam = torch.full((x.shape[0], 1), 1e-2, dtype=x.dtype, device=x.device)
@@ -1107,6 +1181,10 @@ def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x
         jac = torch.nan_to_num(jac).permute(1, 0, 2)  # (N, n_t, M + 1)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
         g = torch.bmm(jac, r[..., None])[..., 0]
+        if prior is not None and not fix_metal:  # its Jacobian has one nonzero column, metallic's
+            pr, pd = prior(x[:, -1:])
+            jtj[:, -1, -1] += (pd * pd).sum(-1)
+            g[:, -1] += (pd * pr).sum(-1)
         h = jtj + torch.diag_embed(lam * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
         step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
         cand = x + torch.nn.functional.pad(step, (0, x.shape[1] - n_t))
@@ -1121,20 +1199,22 @@ def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x
 
 def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
                    well: float, gain: float | Tensor, iters: int = 8, starts: tuple = (None, 0.5),
-                   target: Tensor | None = None, smooth: float = 0.0, refit_reference: bool = True,
+                   target: Tensor | None = None, smooth: float | Tensor = 0.0, refit_reference: bool = True,
                    snap: float = 0.02) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pixel LM on 8 unknowns — theta (7) and a continuous metallic in [0, 1] — for ``rows (N,)``.
 
     Energy: data (lights ``idx``) + the double-well prior ``well · m²(1 − m)²`` (minima at exactly
-    0 and 1) [+ ``smooth · (m − target)²``, ``target (N, 1)``: the neighbours' metallic, which
-    decides where the data cannot — a rough metal's broad lobe mimics a rough dielectric's
-    diffuse]. Metallic is a bounded value, clamped to [0, 1] after each step (projected LM), so
+    0 and 1) [+ ``smooth · (m − target)²``, ``target (N, 1)``, ``smooth`` a float or ``(N, 1)``:
+    the metallic the neighbours suggest, which decides where the data cannot — a rough metal's
+    broad lobe mimics a rough dielectric's diffuse]. Metallic is a bounded value, clamped to
+    [0, 1] after each step (projected LM), so
     a pixel can land on exactly 0 or 1. The Jacobian is forward-mode (``torch.func.jvp``
     vmapped over the 8 tangents, 7 with metallic held). ``starts``: metallic start values,
-    ``None`` = the pixel's own, ``"target"`` = ``target``, or ``(theta start (N, 7), one of
-    those)``; the lowest
+    ``None`` = the pixel's own, ``"target"`` = ``target``, a float, or ``(theta start (N, 7),
+    one of those)``; the lowest
     energy wins. A fractional result replaces a binary ``metal`` only where it lowers the
-    energy by more than ``gain`` (a float, or ``(N, 1)`` per pixel; the caller scales it by the
+    energy — the pulls included: where the data cannot tell, the metallic they suggest is the
+    evidence — by more than ``gain`` (a float, or ``(N, 1)`` per pixel; the caller scales it by the
     noise variance) below the same fit with metallic held at its own value (with
     ``refit_reference``; else below ``theta``, ``metal`` as given): one more unknown always
     fits noise a little, and a clear pixel must stay exactly 0 or 1 (it then keeps the better
@@ -1148,11 +1228,13 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     sub = data.subset(rows)
     t0, m0 = theta[rows], metal[rows]
 
-    def energy(sub_: LevelData, target_: Tensor | None):  # residuals and cost of these pixels' x (n, 8)
-        fn_ = lambda v: _soft_residual(sub_, v, idx, model, well, target_, smooth)  # noqa: E731
-        return fn_, lambda v: _pixel_cost(fn_(v))
+    def energy(sub_: LevelData, target_: Tensor | None, smooth_: float | Tensor):
+        # data residuals, prior and cost of these pixels' x (n, 8)
+        fn_ = lambda v: sub_.residual(v[:, :7], v[:, 7:8], idx, model)  # noqa: E731
+        prior_ = lambda m: _soft_prior(m, well, target_, smooth_)  # noqa: E731
+        return fn_, prior_, lambda v: _pixel_cost(torch.cat((fn_(v), prior_(v[:, 7:8])[0]), -1))
 
-    fn, cost = energy(sub, target)
+    fn, prior, cost = energy(sub, target, smooth)
 
     best, best_c = None, None
     for m_start in starts:
@@ -1163,7 +1245,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
             t_init, m_start = m_start
         m_init = m0 if m_start is None else target if m_start == "target" else torch.full_like(m0, m_start)
         assert m_init is not None, "soft_metal_fit: a 'target' start needs `target`"
-        x, c = _soft_lm(fn, cost, torch.cat((t_init, m_init), -1), iters)
+        x, c = _soft_lm(fn, cost, torch.cat((t_init, m_init), -1), iters, prior=prior)
         best, best_c = _keep_better(best, best_c, x, c)
     assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
     # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
@@ -1181,7 +1263,8 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # unknowns and the free fit's (snapped to its class).
     away = torch.nonzero((m_snap != m0)[:, 0]).squeeze(1) if refit_reference else rows[:0]
     if away.numel():
-        fn_a, cost_a = energy(sub.subset(away), None if target is None else target[away])
+        fn_a, _, cost_a = energy(sub.subset(away), None if target is None else target[away],
+                                 smooth[away] if isinstance(smooth, Tensor) else smooth)
         ref_a, c_fix = _soft_lm(fn_a, cost_a, ref[away], iters, fix_metal=True)
         keep_a = c_fix < c_ref[away]
         ref[away] = torch.where(keep_a, ref_a, ref[away])
@@ -1748,14 +1831,21 @@ class Recovery:
         rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
                                      cfg.soft_metal_band, torch.sigmoid(theta[:, 0:3]), cfg.soft_metal_edge)
         n_frac = n_grown = 0
+        # The candidates' coverage as a blend of their clear neighbours (NaN elsewhere).
+        unmix = torch.full_like(metal, float("nan"))
+        w_nb, w_un = cfg.soft_metal_smooth * sigma2, cfg.soft_metal_unmix * sigma2
 
         def neighbour_fit(rows_: Tensor, gain: float | Tensor) -> tuple[Tensor, Tensor]:
             # Pass 2 and growth: started from the 4-neighbours' mean parameters, metallic pulled
-            # toward theirs (the current theta / metal).
+            # toward theirs (the current theta / metal) and, where known, toward the blend's:
+            # two quadratic pulls, one of their summed weight toward their weighted mean.
+            target, u = _neighbour_mean(metal, size)[rows_], unmix[rows_]
+            known = ~torch.isnan(u)
+            weight = torch.where(known, w_nb + w_un, w_nb).to(u.dtype)
+            target = torch.where(known, (w_nb * target + w_un * u) / (w_nb + w_un), target)
             t, m, _ = soft_metal_fit(data, theta, metal, rows_, data.train_idx, cfg.model,
                                      cfg.soft_metal_well * sigma2, gain, cfg.soft_metal_iters,
-                                     ((_neighbour_mean(theta, size)[rows_], "target"),),
-                                     _neighbour_mean(metal, size)[rows_], cfg.soft_metal_smooth * sigma2,
+                                     ((_neighbour_mean(theta, size)[rows_], "target"),), target, weight,
                                      refit_reference=False)
             return t, m
 
@@ -1763,10 +1853,19 @@ class Recovery:
             theta0, metal0 = theta, metal
             # One start, metallic ½: the own-class optimum is the reference fit's (metallic held),
             # and a start at the own class as well changed no map by more than 0.0013 RMSE on the
-            # tuning captures, at a third of this pass's time.
+            # tuning captures, at a third of this pass's time. With the blend of the clear
+            # neighbours known, the other unknowns start from it, and its coverage pulls.
+            start: tuple = (0.5,)
+            pull: dict = {}
+            if w_un > 0:
+                t_blend, u = unmix_metallic(data, theta, metal, rows, data.train_idx, cfg.model, size)
+                unmix[rows] = u
+                known = ~torch.isnan(u)  # else the pixel's own unknowns, metallic ½ and no pull
+                start = ((torch.where(known, t_blend, theta[rows]), 0.5),)
+                pull = {"target": torch.nan_to_num(u), "smooth": torch.where(known, w_un, 0.0).to(u.dtype)}
             t_new, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, cfg.model,
                                              cfg.soft_metal_well * sigma2, cfg.soft_metal_gain * sigma2,
-                                             cfg.soft_metal_iters, starts=(0.5,))
+                                             cfg.soft_metal_iters, starts=start, **pull)
             theta, metal = theta.clone(), metal.clone()
             theta[rows], metal[rows] = t_new, m_new
             if cfg.soft_metal_smooth > 0:
