@@ -52,6 +52,21 @@ def single(good, tmp_path_factory):
     return maps
 
 
+@pytest.fixture
+def ctrl_c_reaches_python():
+    """Ctrl-C handled as Python's default during the test.
+
+    A shell that starts a job in the background without job control (``bash .ci/run &``)
+    hands it SIGINT *ignored*, and then no simulated Ctrl-C (``_thread.interrupt_main``)
+    reaches the test at all.
+    """
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.fixture(scope="module")
 def ray_local(tmp_path_factory):
     """Ray with 2 CPUs, and the kill switch of the retry tests (armed by creating the file).
@@ -127,7 +142,7 @@ def test_worker_death_without_retries_is_reported(ray_local, good, tmp_path):
     assert rows[0]["status"] == "failed" and "task lost" in rows[0]["error"]
 
 
-def test_ctrl_c_cancels_ray_tasks_and_rerun_finishes(ray_local, good, tmp_path):
+def test_ctrl_c_cancels_ray_tasks_and_rerun_finishes(ray_local, good, tmp_path, ctrl_c_reaches_python):
     """Ctrl-C while tasks run: summary with interrupted rows, KeyboardInterrupt; the rerun finishes."""
     out = tmp_path / "out"
     # Every planned iteration (no early end of converged stages): the tasks must still be running
@@ -207,7 +222,8 @@ def test_find_captures(captures, tmp_path):
         find_captures([tmp_path / "empty"])
 
 
-def test_an_interrupt_during_the_first_imports_waits_until_they_are_complete(monkeypatch):
+def test_an_interrupt_during_the_first_imports_waits_until_they_are_complete(monkeypatch,
+                                                                             ctrl_c_reaches_python):
     """An interrupt that lands inside the first imports is raised after them.
 
     Ray cancels a task by interrupting its worker, then reuses the worker: a half-imported
