@@ -1085,7 +1085,7 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     than none: docs/recovery.md, issue 18); the metal end takes the dielectric end's specular
     (a metal's is not observed). The normal is the pixel's own. Where no blend has a finite
     cost, ``t`` and its theta are NaN (no blend). ``theta (P, 7)``.
-    Returns ``(theta of the blend (N, 7), t (N, 1))``.
+    Returns ``(theta of the blend (N, 7), t (N, 1))``, on ``theta``'s device and in its dtype.
     """
     p = decode(theta, metal)
     lin = torch.cat((p["base_color"], p["specular"], p["roughness"]), -1)  # (P, 5), blended linearly
@@ -1113,7 +1113,7 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     grid = torch.linspace(0, 1, steps, dtype=theta.dtype, device=theta.device)
     grid = grid[:, None, None].expand(-1, len(rows), 1)
     costs = torch.cat([_pixel_cost(sub.residual(blend(t), t, idx, model)) for t in grid], -1)  # (N, steps)
-    k = torch.nan_to_num(costs, nan=float("inf")).argmin(-1, keepdim=True)
+    k = costs.argmin(-1, keepdim=True)  # _pixel_cost: a NaN cost is already +inf
     t = k.to(theta.dtype) / (steps - 1)
     # Between grid values: the vertex of the parabola through the best and its two neighbours
     # (an end of [0, 1] stays exact: a clear pixel's blend is its own class).
@@ -1178,7 +1178,7 @@ def _soft_lm(fn: Callable[[Tensor], Tensor], cost: Callable[[Tensor], Tensor], x
         pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (xc,), (tg,)), out_dims=out_dims)(tangents)
         r, jac = pair
         r = torch.nan_to_num(r)
-        jac = torch.nan_to_num(jac).permute(1, 0, 2)  # (N, n_t, M + 1)
+        jac = torch.nan_to_num(jac).permute(1, 0, 2)  # (N, n_t, M)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
         g = torch.bmm(jac, r[..., None])[..., 0]
         if prior is not None and not fix_metal:  # its Jacobian has one nonzero column, metallic's
