@@ -833,18 +833,70 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     inside = (full[:, 7] > 0) & (full[:, 7] < 1)
     assert torch.allclose(x[inside], full[inside], atol=1e-5)
     assert bool(((x[:, 7] >= 0) & (x[:, 7] <= 1)).all())
-    # a metallic-only prior given with its derivative (not part of fn): the augmented problem's
-    # solution, one more row sqrt(s) (m - t) per pixel
+    # priors given with their Jacobian (not part of fn): the augmented problem's solution, more
+    # rows per pixel — one on metallic alone, sqrt(s) (m - t), and one coupling an unknown to
+    # metallic, sqrt(s) (x0 - 0.3 - 0.5 m) (as the blend line couples base colour and metallic)
     s, t = 4.0, torch.full((n, 1), 0.4, dtype=torch.float64)
-    prior = lambda m: (math.sqrt(s) * (m - t), torch.full_like(m, math.sqrt(s)))  # noqa: E731
-    x, _ = R._soft_lm(fn, lambda v: cost(v) + prior(v[:, 7:8])[0] ** 2, x0, 60, prior=prior)
-    row = torch.zeros(n, 1, 8, dtype=torch.float64)
-    row[..., 7] = math.sqrt(s)
-    rhs = torch.cat((b, math.sqrt(s) * t), 1)
+    row = torch.zeros(n, 2, 8, dtype=torch.float64)
+    row[:, 0, 7] = math.sqrt(s)
+    row[:, 1, 0], row[:, 1, 7] = math.sqrt(s), -0.5 * math.sqrt(s)
+    rhs = torch.cat((b, math.sqrt(s) * t, torch.full_like(t, 0.3 * math.sqrt(s))), 1)
+
+    def prior(v):
+        return torch.einsum("nkj,nj->nk", row, v) - rhs[:, m:], row
+
+    x, _ = R._soft_lm(fn, lambda v: cost(v) + (prior(v)[0] ** 2).sum(-1, keepdim=True), x0, 60, prior=prior)
     aug = torch.linalg.lstsq(torch.cat((a, row), 1), rhs[..., None]).solution[..., 0]
     inside = (aug[:, 7] > 0) & (aug[:, 7] < 1)
     assert bool(inside.any()) and not torch.allclose(aug[inside], full[inside], atol=1e-3)
     assert torch.allclose(x[inside], aug[inside], atol=1e-5)
+    # ... and with metallic held, the prior's other columns still act (the coupled row)
+    x, _ = R._soft_lm(fn, lambda v: cost(v) + (prior(v)[0] ** 2).sum(-1, keepdim=True), x0, 30,
+                      fix_metal=True, prior=prior)
+    rhs_h = rhs - torch.cat((a, row), 1)[..., 7] * 0.5
+    held = torch.linalg.lstsq(torch.cat((a, row), 1)[..., :7], rhs_h[..., None]).solution[..., 0]
+    assert torch.allclose(x[:, :7], held, atol=1e-6)
+
+
+def test_soft_prior_residuals_and_jacobian():
+    """The soft-metal priors' residuals, and their Jacobian against ``torch.func.jacrev``.
+
+    The double well is 0 at metallic 0 and 1; the pull is 0 at its target; the blend line is 0
+    where the base colour is the blend of its two ends at the pixel's own metallic, and moves by
+    −√w (metal − dielectric) per unit of metallic. Per-pixel weights too.
+    """
+    import torchbrdf.recovery.solver as R
+
+    gen = torch.Generator().manual_seed(4)
+    n = 6
+    x = torch.randn(n, 8, generator=gen, dtype=torch.float64)
+    x[:, 7] = torch.rand(n, generator=gen, dtype=torch.float64)
+    d = torch.rand(n, 3, generator=gen, dtype=torch.float64) * 0.5
+    e = 0.5 + torch.rand(n, 3, generator=gen, dtype=torch.float64) * 0.5
+    target = torch.rand(n, 1, generator=gen, dtype=torch.float64)
+    smooth = torch.rand(n, 1, generator=gen, dtype=torch.float64) + 0.5
+    lw = torch.rand(n, 1, generator=gen, dtype=torch.float64) + 1.0
+    res, jac = R._soft_prior(x, 3.0, target, smooth, (d, e), lw)
+    assert res.shape == (n, 5) and jac.shape == (n, 5, 8)
+    want = torch.func.vmap(torch.func.jacrev(
+        lambda xi, ti, si, di, ei, wi: R._soft_prior(xi[None], 3.0, ti[None], si[None], (di[None], ei[None]),
+                                                     wi[None])[0][0]))(x, target, smooth, d, e, lw)
+    assert torch.allclose(jac, want, atol=1e-12)
+    m = x[:, 7:8]
+    assert torch.allclose(res[:, 0:1], math.sqrt(3.0) * m * (1 - m))
+    assert torch.allclose(res[:, 1:2], smooth.sqrt() * (m - target))
+    on_line = x.clone()
+    on_line[:, 0:3] = torch.logit(d + m * (e - d))
+    r_on = R._soft_prior(on_line, 3.0, None, 0.0, (d, e), lw)[0]
+    assert r_on.shape == (n, 4) and float(r_on[:, 1:].abs().max()) < 1e-12
+    moved = on_line.clone()
+    moved[:, 7] += 0.01
+    r_mv = R._soft_prior(moved, 3.0, None, 0.0, (d, e), lw)[0]
+    assert torch.allclose(r_mv[:, 1:], -lw.sqrt() * (e - d) * 0.01, atol=1e-12)
+    # a float weight is the same as a constant per-pixel one; no line, no line rows
+    r_f = R._soft_prior(x, 3.0, target, 2.0, (d, e), 1.5)[0]
+    r_t = R._soft_prior(x, 3.0, target, torch.full_like(m, 2.0), (d, e), torch.full_like(m, 1.5))[0]
+    assert torch.allclose(r_f, r_t) and R._soft_prior(x, 3.0)[0].shape == (n, 1)
 
 
 def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
