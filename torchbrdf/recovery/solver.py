@@ -1227,8 +1227,9 @@ def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Row
         pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(lambda v: fn(v, rows), (xa,), (tg,)),
                                     out_dims=out_dims)(tangents)
         r, jac = pair
-        r = torch.nan_to_num(r)
-        jac = torch.nan_to_num(jac).permute(1, 0, 2)  # (n, n_t, M)
+        # (both fresh tensors of the jvp: cleaned in place)
+        r = r.nan_to_num_()
+        jac = jac.nan_to_num_().permute(1, 0, 2)  # (n, n_t, M)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
         g = torch.bmm(jac, r[..., None])[..., 0]
         if prior is not None:
