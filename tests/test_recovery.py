@@ -809,7 +809,8 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     Residuals linear in the 8 unknowns; with ``fix_metal`` the last unknown keeps its value (no
     tangent) and the other 7 solve the reduced problem. With ``tol`` a pixel whose accepted step
     gained less than that fraction of its cost stops (the others go on, evaluated on their rows
-    alone): its cost is then within that fraction of the optimum's.
+    alone); on these linear problems its cost is then within about that fraction of the optimum's.
+    A pixel whose cost starts infinite does not stop on its first finite one.
     """
     import torchbrdf.recovery.solver as R
 
@@ -867,6 +868,23 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     inside = (aug[:, 7] > 0) & (aug[:, 7] < 1)
     assert bool(inside.any()) and not torch.allclose(aug[inside], full[inside], atol=1e-3)
     assert torch.allclose(x[inside], aug[inside], atol=1e-5)
+    # ... also when the converged pixels leave (the prior evaluated on row subsets)
+    calls.clear()
+    logged_p = lambda v, r=None: calls.append(r) or prior(v, r)  # noqa: E731
+    x, c = R._soft_lm(fn, cost_p, torch.cat((aug[:, :7] + near, x0[:, 7:]), -1), 60, prior=logged_p, tol=1e-2)
+    assert any(r is not None and 0 < len(r) < n for r in calls)
+    assert bool((c <= cost_p(aug) * 1.02 + 1e-9).all()) and torch.allclose(c, cost_p(x))
+    # a cost that starts infinite (a residual undefined at the start, NaN): its first finite
+    # step is not convergence
+    def fn_inf(v, r=None):  # its first residual undefined while the first unknown is below -5
+        f = fn(v, r)
+        return torch.cat((torch.where(v[:, :1] < -5.0, float("nan"), f[:, :1]), f[:, 1:]), -1)
+
+    cost_inf = lambda v, r=None: R._pixel_cost(fn_inf(v, r))  # noqa: E731
+    start_inf = torch.cat((want, x0[:, 7:]), -1)
+    start_inf[:, 0] = -6.0
+    x, c = R._soft_lm(fn_inf, cost_inf, start_inf, 60, fix_metal=True, tol=1e-2)
+    assert bool((c <= best * 1.02 + 1e-9).all()), (c, best)
     # ... and with metallic held, the prior's other columns still act (the coupled row)
     x, _ = R._soft_lm(fn, cost_p, x0, 30, fix_metal=True, prior=prior, tol=0.0)
     rhs_h = rhs - torch.cat((a, row), 1)[..., 7] * 0.5

@@ -1207,15 +1207,18 @@ def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Row
     per tangent); ``cost`` must include them. ``fn``, ``cost`` and ``prior`` take the unknowns
     of some of the pixels and their indices (``None``: all N, in order).
 
-    A pixel whose accepted step lowered its cost by less than ``tol`` of it has converged and
-    leaves the iterations (0: every pixel runs every iteration): most of a warm-started refit's
+    A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
+    less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
+    iteration): most of a warm-started refit's
     pixels settle in two or three (soft-metal stage: 40–60 % of its LM work saved, maps within
     measurement noise, docs/recovery.md). Returns ``(x, cost (N, 1))``."""
     n_t = x.shape[1] - 1 if fix_metal else x.shape[1]  # the unknowns that move
     eye = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)[:n_t]
-    lam = torch.full((x.shape[0], 1), 1e-2, dtype=x.dtype, device=x.device)
+    lam0 = 1e-2  # the starting damping
+    lam = torch.full((x.shape[0], 1), lam0, dtype=x.dtype, device=x.device)
     c = cost(x, None)
-    x = x.clone()
+    # (the first iteration runs on every pixel and replaces x, c, lam with new tensors: the
+    # caller's x is never written to)
     active = torch.arange(x.shape[0], device=x.device)
     out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the tangents
     for _ in range(iters):
@@ -1249,8 +1252,10 @@ def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Row
             x, c, lam = new_x, new_c, new_l
         else:
             x[rows], c[rows], lam[rows] = new_x, new_c, new_l
-        # (a rejected step is not convergence: a larger damping may still find a better one)
-        done = (better & (ca - c1 <= tol * ca.abs()))[:, 0]
+        # Converged: an accepted step that gained less than tol of a finite cost, taken at no more
+        # than the starting damping (after rejected steps a step is short because of the
+        # damping, not because the pixel is done; a rejected step is not convergence either).
+        done = (better & (la <= lam0) & torch.isfinite(ca) & (ca - c1 <= tol * ca))[:, 0]
         active = active[~done]
     return x, c
 
