@@ -51,6 +51,29 @@ def _stripe(size: int = 24) -> torch.Tensor:
     return m
 
 
+def _ramp_capture(folder, cols: dict, diel: tuple, met: tuple, size: int = 24):
+    """A flat capture of a dielectric, a metal and a ramp of blends between them.
+
+    The metal from column 14 on; columns ``cols`` ({column: coverage t}) with base colour,
+    roughness and metallic blended by t. ``diel`` / ``met``: (base colour (3,), roughness) of
+    the two ends. Returns ``(maps, t (S, S))``.
+    """
+    t = torch.zeros(size, size)
+    t[:, 14:] = 1.0
+    for c, v in cols.items():
+        t[:, c] = v
+    lerp = lambda a, b: a * (1 - t) + b * t  # noqa: E731
+    base = lerp(diel[0][:, None, None], met[0][:, None, None])
+    maps = {"base_color": base, "roughness": lerp(diel[1], met[1])[None], "metallic": t[None],
+            "specular": torch.full((1, size, size), 0.5),
+            "normal": normals_from_height(torch.zeros(size, size))}
+    pos, inten = light_layout(12)
+    with torch.no_grad():
+        img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
+    write_capture(folder, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    return maps, t
+
+
 def test_double_well_keeps_clear_pixels_binary(tmp_path):
     """At the true parameters of a binary material, refitting every pixel with a free metallic
     (data + double well, the acceptance margin) leaves every pixel exactly 0 or 1."""
@@ -155,22 +178,13 @@ def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
     Fails if an end is taken from the stripe itself, if roughness or base colour is not
     blended, if the metal end's specular (not observed) were used, or without the parabola.
     """
-    size, cols = 24, {10: 0.25, 11: 0.43, 12: 0.67, 13: 0.85}
-    t = torch.zeros(size, size)
-    t[:, 14:] = 1.0
-    for c, v in cols.items():
-        t[:, c] = v
+    size = 24
     diel = {"base_color": torch.tensor([0.5, 0.4, 0.3]), "roughness": 0.8, "specular": 0.5}
     met = {"base_color": torch.tensor([0.95, 0.9, 0.8]), "roughness": 0.3, "specular": 0.1}
-    lerp = lambda a, b: a * (1 - t) + b * t  # noqa: E731
-    base = lerp(diel["base_color"][:, None, None], met["base_color"][:, None, None])
-    maps = {"base_color": base, "roughness": lerp(0.8, 0.3)[None], "metallic": t[None],
-            "specular": torch.full((1, size, size), 0.5),
-            "normal": normals_from_height(torch.zeros(size, size))}
-    pos, inten = light_layout(12)
-    with torch.no_grad():
-        img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
-    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    maps, t = _ramp_capture(tmp_path, {10: 0.25, 11: 0.43, 12: 0.67, 13: 0.85},
+                            (diel["base_color"], diel["roughness"]), (met["base_color"], met["roughness"]),
+                            size)
+    base = maps["base_color"]
     cap = load_capture(tmp_path)
     data = LevelData(cap, size, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
     flat = lambda x: x.reshape(x.shape[0], -1).T  # noqa: E731
@@ -230,20 +244,9 @@ def test_blend_line_holds_a_ramps_metallic_and_base_colour(tmp_path):
     at its own metallic (``RecoveryConfig.soft_metal_line``); without that tie the data trade
     metallic for base colour along the ramp (mean metallic error 0.049, measured; 0.023 with it).
     """
-    size = 24
-    t = torch.zeros(size, size)
-    t[:, 14:] = 1.0
-    for c, v in {9: 0.15, 10: 0.3, 11: 0.5, 12: 0.7, 13: 0.88}.items():
-        t[:, c] = v
-    lerp = lambda a, b: a * (1 - t) + b * t  # noqa: E731
-    base = lerp(torch.tensor([0.5, 0.3, 0.2])[:, None, None], torch.tensor([0.95, 0.93, 0.88])[:, None, None])
-    maps = {"base_color": base, "roughness": lerp(0.8, 0.25)[None], "metallic": t[None],
-            "specular": torch.full((1, size, size), 0.5),
-            "normal": normals_from_height(torch.zeros(size, size))}
-    pos, inten = light_layout(12)
-    with torch.no_grad():
-        img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
-    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    maps, t = _ramp_capture(tmp_path, {9: 0.15, 10: 0.3, 11: 0.5, 12: 0.7, 13: 0.88},
+                            (torch.tensor([0.5, 0.3, 0.2]), 0.8), (torch.tensor([0.95, 0.93, 0.88]), 0.25))
+    base = maps["base_color"]
     res = recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, progress=False)
     ramp = (t > 0) & (t < 1)
     m, b = res.maps["metallic"][0], res.maps["base_color"]

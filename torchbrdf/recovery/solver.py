@@ -1078,7 +1078,8 @@ def blend_ends(theta: Tensor, metal: Tensor, rows: Tensor, size: int, sigmas: tu
     linearly), the Gaussian-weighted mean (width ``sigmas[0]`` pixels, else the wider
     ``sigmas[1]``) of the ``metal (P, 1)`` == 0, resp. == 1, pixels not in ``rows``; where neither
     width reaches one, the pixel's own values. ``theta (P, 7)``.
-    Returns ``((dielectric end, metal end), found (N, 2) bool)``.
+    Returns ``((dielectric end, metal end), found (N, 2) bool)``, on ``theta``'s device (the
+    ends in its dtype).
     """
     p = decode(theta, metal)
     lin = torch.cat((p["base_color"], p["specular"], p["roughness"]), -1)  # (P, 5)
@@ -1114,9 +1115,8 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     else the pixel's own parameters (the core of a small dust speck is all candidates; where
     it is the *other* class that is out of reach — a rust island inside a metal — the blend is
     a guess, but measured better than none: docs/recovery.md, issue 18); the metal end takes
-    the dielectric end's specular
-    (a metal's is not observed). The normal is the pixel's own. Where no blend has a finite
-    cost, ``t`` and its theta are NaN (no blend). ``theta (P, 7)``.
+    the dielectric end's specular (a metal's is not observed). The normal is the pixel's own.
+    Where no blend has a finite cost, ``t`` and its theta are NaN (no blend). ``theta (P, 7)``.
     Returns ``(theta of the blend (N, 7), t (N, 1))``, on ``theta``'s device and in its dtype.
     """
     (diel, met), _ = blend_ends(theta, metal, rows, size, sigmas)
@@ -1170,7 +1170,8 @@ def _soft_prior(x: Tensor, well: float, target: Tensor | None = None, smooth: fl
     each, ``√line_weight · (base − ((1 − m) dielectric + m metal))`` per channel (base =
     sigmoid of ``x[:, 0:3]``): the base colour a blend of the two at the pixel's own metallic
     would have. ``smooth``, ``line_weight``: a float or ``(N, 1)``.
-    Returns ``(residuals (N, k), Jacobian (N, k, 8))``, k = 1 [+ 1] [+ 3].
+    Returns ``(residuals (N, k), Jacobian (N, k, 8))``, k = 1 [+ 1] [+ 3], on ``x``'s device
+    and in its dtype.
     """
     m = x[:, 7:8]
     cols = torch.arange(x.shape[1], device=x.device)
@@ -1195,6 +1196,13 @@ def _soft_prior(x: Tensor, well: float, target: Tensor | None = None, smooth: fl
 _Rows = Tensor | None  # pixel indices into an LM call's N pixels; None: all of them
 
 
+def _at(v: Any, r: _Rows) -> Any:
+    """A per-pixel tensor (or a tuple of them) at rows ``r``; ``None`` rows or a float: as is."""
+    if isinstance(v, tuple):
+        return tuple(_at(x, r) for x in v)
+    return v[r] if isinstance(v, Tensor) and r is not None else v
+
+
 def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Rows], Tensor], x: Tensor,
              iters: int, fix_metal: bool = False,
              prior: Callable[[Tensor, _Rows], tuple[Tensor, Tensor]] | None = None, tol: float = 1e-3
@@ -1209,9 +1217,9 @@ def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Row
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
-    iteration): most of a warm-started refit's
-    pixels settle in two or three (soft-metal stage: 40–60 % of its LM work saved, maps within
-    measurement noise, docs/recovery.md). Returns ``(x, cost (N, 1))``."""
+    iteration): most of a warm-started refit's pixels settle in two or three (soft-metal stage:
+    40–60 % of its LM work saved, maps within measurement noise, docs/recovery.md).
+    Returns ``(x, cost (N, 1))``, on ``x``'s device and in its dtype."""
     n_t = x.shape[1] - 1 if fix_metal else x.shape[1]  # the unknowns that move
     eye = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)[:n_t]
     lam0 = 1e-2  # the starting damping
@@ -1298,15 +1306,12 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     def energy(sub_: LevelData, target_: Tensor | None, smooth_: float | Tensor,
                line_: tuple[Tensor, Tensor] | None, line_weight_: float | Tensor):
         # data residuals, prior and cost of some of these pixels' x (n, 8), by their indices
-        def at(v: Any, r: _Rows) -> Any:  # a per-pixel tensor at rows r (None: all; a float stays)
-            return v[r] if isinstance(v, Tensor) and r is not None else v
-
         def fn_(v: Tensor, r: _Rows) -> Tensor:
             return sub_.residual(v[:, :7], v[:, 7:8], idx, model, rows=r)
 
         def prior_(v: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
-            ln = None if line_ is None else (at(line_[0], r), at(line_[1], r))
-            return _soft_prior(v, well, at(target_, r), at(smooth_, r), ln, at(line_weight_, r))
+            return _soft_prior(v, well, _at(target_, r), _at(smooth_, r), _at(line_, r),
+                               _at(line_weight_, r))
 
         return fn_, prior_, lambda v, r: _pixel_cost(torch.cat((fn_(v, r), prior_(v, r)[0]), -1))
 
@@ -1339,10 +1344,8 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # unknowns and the free fit's (snapped to its class).
     away = torch.nonzero((m_snap != m0)[:, 0]).squeeze(1) if refit_reference else rows[:0]
     if away.numel():
-        sel = lambda v: v[away] if isinstance(v, Tensor) else v  # noqa: E731
-        fn_a, prior_a, cost_a = energy(sub.subset(away), sel(target), sel(smooth),
-                                       None if line is None else (line[0][away], line[1][away]),
-                                       sel(line_weight))
+        fn_a, prior_a, cost_a = energy(sub.subset(away), _at(target, away), _at(smooth, away),
+                                       _at(line, away), _at(line_weight, away))
         ref_a, c_fix = _soft_lm(fn_a, cost_a, ref[away], iters, fix_metal=True, prior=prior_a)
         keep_a = c_fix < c_ref[away]
         ref[away] = torch.where(keep_a, ref_a, ref[away])
