@@ -933,6 +933,30 @@ def test_soft_prior_residuals_and_jacobian():
     assert torch.allclose(r_f, r_t) and R._soft_prior(x, 3.0)[0].shape == (n, 1)
 
 
+def _silver_level(size=8, lights=8):
+    """A noise-free flat silver metal (F0 0.9 / 0.85 / 0.8, roughness 0.25), float64.
+
+    Returns ``(LevelData, theta (P, 7) at the truth, metal (P, 1))``.
+    """
+    import torchbrdf.recovery.solver as R
+    from torchbrdf.capture.format import Capture
+    from torchbrdf.capture.synthetic import light_layout, render_capture
+
+    maps = {"base_color": torch.tensor([0.9, 0.85, 0.8])[:, None, None].expand(3, size, size),
+            "roughness": torch.full((1, size, size), 0.25), "metallic": torch.ones(1, size, size),
+            "specular": torch.full((1, size, size), 0.5),
+            "normal": torch.tensor([0.0, 0.0, 1.0])[:, None, None].expand(3, size, size)}
+    pos, inten = light_layout(lights)
+    imgs = render_capture(maps, (pos, inten), backend="compact").double()
+    cap = Capture(images=imgs, light_positions=pos.double(), light_intensities=inten.double(),
+                  camera_position=torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), width=size, height=size,
+                  files=tuple(f"{k}.exr" for k in range(len(pos))))
+    data = R.LevelData(cap, size, list(range(len(pos))), float(0.01 * imgs.mean()))
+    p = {k: v.reshape(v.shape[0], -1).T.contiguous().double() for k, v in maps.items()}
+    metal = p.pop("metallic")
+    return data, R.encode(p), metal
+
+
 def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     """After the non-local fusion moves a metal's F0, its other unknowns follow it.
 
@@ -942,23 +966,9 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     and it takes back most of the cost the F0 move alone adds.
     """
     import torchbrdf.recovery.solver as R
-    from torchbrdf.capture.format import Capture
-    from torchbrdf.capture.synthetic import light_layout, render_capture
 
     size = 8
-    maps = {"base_color": torch.tensor([0.9, 0.85, 0.8])[:, None, None].expand(3, size, size),
-            "roughness": torch.full((1, size, size), 0.25), "metallic": torch.ones(1, size, size),
-            "specular": torch.full((1, size, size), 0.5),
-            "normal": torch.tensor([0.0, 0.0, 1.0])[:, None, None].expand(3, size, size)}
-    pos, inten = light_layout(8)
-    imgs = render_capture(maps, (pos, inten), backend="compact").double()
-    cap = Capture(images=imgs, light_positions=pos.double(), light_intensities=inten.double(),
-                  camera_position=torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), width=size, height=size,
-                  files=tuple(f"{k}.exr" for k in range(len(pos))))
-    data = R.LevelData(cap, size, list(range(len(pos))), float(0.01 * imgs.mean()))
-    p = {k: v.reshape(v.shape[0], -1).T.contiguous().double() for k, v in maps.items()}
-    metal = p.pop("metallic")
-    theta = R.encode(p)
+    data, theta, metal = _silver_level(size)
     idx = data.train_idx
     _, jtj, _ = R.gauss_newton(data, theta, metal, idx, "principled")
     delta = torch.zeros_like(theta)
@@ -993,3 +1003,82 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     followed = cost(theta + delta + shift)
     assert float(shift[9, 0:3].abs().max()) > 0  # F0 follows a moved roughness
     assert cost(theta) < 1e-8 and followed < 0.2 * alone, (alone, followed)
+
+
+def test_a_held_refit_takes_the_free_unknowns_to_their_conditional_optimum():
+    """``refit_pixels(held=...)`` takes the free unknowns to the data optimum given the held.
+
+    The held unknowns keep their start exactly; the others go further than the linear
+    response where the valley bends.
+
+    This is how a fused metal's roughness and normal follow its fused F0 when
+    ``conditional_shift`` falls short (rusted_metal 68's corners: 10³–10⁴ noise variances).
+    """
+    import torchbrdf.recovery.solver as R
+
+    data, theta, metal = _silver_level()
+    idx, n = data.train_idx, theta.shape[0]
+    rows = torch.arange(n)
+    held = torch.zeros(n, 7, dtype=torch.bool)
+    held[:, 0:3] = True
+    # F0 0.9 -> 0.96 (held), roughness left at the truth: off the valley of the moved F0
+    start = theta.clone()
+    start[:, 0:3] += 1.0
+
+    def cost(t):
+        return R._pixel_cost(data.residual(t, metal, idx, "principled"))[:, 0]
+
+    out, c = R.refit_pixels(data, theta, metal, rows, [start], idx, "principled", iters=10, held=held)
+    assert torch.equal(out[:, 0:3], start[:, 0:3])  # held exactly
+    assert torch.allclose(c[:, 0], cost(out))
+    _, jtj, _ = R.gauss_newton(data, theta, metal, idx, "principled")
+    linear = start + R.conditional_shift(jtj, start - theta, held)
+    # the F0 rise is paid back by a smoother lobe; the refit fits better than the linear
+    # response from the truth, and far better than the move alone
+    assert float((out[:, 4] - theta[:, 4]).mean()) < -0.02
+    assert float(cost(out).sum()) < 0.5 * float(cost(linear).sum()) < 0.5 * float(cost(start).sum())
+    free = R.refit_pixels(data, theta, metal, rows, [start], idx, "principled", iters=10)[0]
+    assert float((free[:, 0:3] - start[:, 0:3]).abs().max()) > 0.1  # without held, F0 moves
+
+
+def test_fusion_averages_each_metals_own_data_optimum_not_where_its_fit_stopped():
+    """With the data gradients, the non-local F0 average takes each pixel at its own optimum.
+
+    ``nonlocal_prior(jtr=...)``: where one Gauss–Newton step predicts it.
+
+    A metal fit left part-way along the F0–roughness valley (its F0 dark, its roughness
+    compensating, as from the dark metal start) otherwise drags the average toward where it
+    stopped: rusted_metal's bright silver came out 1–2 % dark.
+    """
+    import types
+
+    import torchbrdf.recovery.solver as R
+
+    size = 8
+    data, theta, metal = _silver_level(size)
+    idx = data.train_idx
+    _, jtj, _ = R.gauss_newton(data, theta, metal, idx, "principled")
+    # Half the pixels stopped along the valley: F0 darker by 0.3 logit, the others following.
+    stopped = (torch.arange(theta.shape[0]) % 2 == 0)[:, None]
+    delta = torch.zeros_like(theta)
+    delta[:, 0:3] = -0.3
+    moved = torch.zeros_like(theta, dtype=torch.bool)
+    moved[:, 0:3] = True
+    off = theta + delta + R.conditional_shift(jtj, delta, moved)
+    off = torch.where(stopped, off, theta)
+    _, jtj_off, jtr_off = R.gauss_newton(data, off, metal, idx, "principled")
+    cfg = RecoveryConfig(nonlocal_sigma=1000.0)  # one flat window
+    lvl = types.SimpleNamespace(size=size, train_idx=idx)
+    # (no fit weights: noise-free, the stopped pixels would weigh ~0 against the exact ones)
+    _, m_stop, _ = R.nonlocal_prior(lvl, off, metal, cfg, jtj_off)
+    _, m_opt, _ = R.nonlocal_prior(lvl, off, metal, cfg, jtj_off, jtr=jtr_off)
+    err_stop = float((m_stop[:, 0:3] - theta[:, 0:3]).abs().mean())
+    err_opt = float((m_opt[:, 0:3] - theta[:, 0:3]).abs().mean())
+    assert err_stop > 0.05  # the stopped pixels' share of the weights × 0.3
+    assert err_opt < 0.2 * err_stop, (err_stop, err_opt)
+    # the Newton step itself: zero at the truth, and it leaves held unknowns alone
+    assert float(R.newton_step(jtj, torch.zeros_like(theta)).abs().max()) == 0.0
+    g = torch.randn(theta.shape, generator=torch.Generator().manual_seed(0), dtype=theta.dtype)
+    held = torch.zeros_like(moved)
+    held[:, 4] = True
+    assert float(R.newton_step(jtj, g, held)[:, 4].abs().max()) == 0.0
