@@ -154,6 +154,7 @@ def check_config(cfg: RecoveryConfig) -> None:
     _finite("soft_metal_max", cfg.soft_metal_max, 0.0, 1.0)
     _integer("soft_metal_iters", cfg.soft_metal_iters, 0, 10_000)
     _integer("fuse_refit_iters", cfg.fuse_refit_iters, 0, 10_000)
+    _integer("fuse_rounds", cfg.fuse_rounds, 1, 10_000)
     _integer("soft_metal_grow", cfg.soft_metal_grow, 0, 10_000)
     _integer("soft_metal_passes", cfg.soft_metal_passes, 0, 10_000)
     _integer("soft_metal_band", cfg.soft_metal_band, 0, 10_000)  # a max-pool half width
