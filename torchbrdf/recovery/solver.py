@@ -892,7 +892,11 @@ def conditional_shift(jtj: Tensor, delta: Tensor, moved: Tensor, chunk: int = 65
     shift only where it helps (a curved valley bends away from the linear response). ``chunk``:
     as in :func:`newton_step`.
     """
-    g = (jtj @ (delta * moved).to(jtj.dtype)[..., None])[..., 0].to(delta.dtype)
+    g = torch.empty_like(delta)
+    for s0 in range(0, delta.shape[0], chunk):  # H δ_m in float64, block by block (as the solve)
+        rows = slice(s0, s0 + chunk)
+        dm = (delta[rows] * moved[rows]).double()
+        g[rows] = (jtj[rows].double() @ dm[..., None])[..., 0].to(delta.dtype)
     return newton_step(jtj, g, moved, chunk)
 
 
@@ -1873,6 +1877,11 @@ class Recovery:
             d = self.data(size, all_lights=(kind == "all"))
             metal, model = st["metal"], self.cfg.model
             r0, jtj, jtr = gauss_newton(d, st["theta"][0], metal, d.train_idx, model)
+            # Each round's fused value combines the *same* own value (before the fusion) with
+            # that round's average, so rounds refine the average without compounding the pull;
+            # fit weights and the refit test use the costs before the fusion too.
+            th0, c0 = st["theta"][0].clone(), _pixel_cost(r0)
+            info0: Tensor | None = None
             moved: Tensor | None = None  # the pixels the last round moved
             for _ in range(self.cfg.fuse_rounds):
                 th = st["theta"][0]
@@ -1880,13 +1889,14 @@ class Recovery:
                     rows = moved.nonzero()[:, 0]
                     r0[rows], jtj[rows], jtr[rows] = gauss_newton(d.subset(rows), th[rows], metal[rows],
                                                                   d.train_idx, model)
-                w, m, info = nonlocal_prior(d, th, metal, self.cfg, jtj, _pixel_cost(r0), jtr)
+                w, m, info = nonlocal_prior(d, th, metal, self.cfg, jtj, c0, jtr)
+                info0 = info if info0 is None else info0
                 moved = (w > 0).any(-1)
                 rows = moved.nonzero()[:, 0]  # the rest keep their values: only these are evaluated
                 if rows.numel() == 0:  # no metal pixel (and no roughness fusion): nothing to fuse
                     break
-                t, wr, ir = th[rows], w[rows], info[rows]
-                fused = torch.where(wr > 0, (ir * t + wr * m[rows]) / (ir + wr).clamp(min=1e-12), t)
+                t, wr, ir, t0 = th[rows], w[rows], info0[rows], th0[rows]
+                fused = torch.where(wr > 0, (ir * t0 + wr * m[rows]) / (ir + wr).clamp(min=1e-12), t)
                 shifted = fused + conditional_shift(jtj[rows], fused - t, wr > 0)
                 # Kept per pixel only where it fits the data at least as well as the fused F0
                 # alone (a weakly determined unknown can take a large linear response).
@@ -1898,7 +1908,7 @@ class Recovery:
                 # from every highlight at 10³–10⁴ noise variances): a few data-only LM
                 # iterations with the fused unknowns held take the others to their
                 # conditional optimum.
-                bent = torch.minimum(cost[0], cost[1])[:, 0] > 1.5 * _pixel_cost(r0[rows])[:, 0]
+                bent = torch.minimum(cost[0], cost[1])[:, 0] > 1.5 * c0[rows, 0]
                 b_rows = rows[bent]
                 if b_rows.numel() and self.cfg.fuse_refit_iters > 0:
                     th[b_rows] = refit_pixels(d, th, metal, b_rows, [th[b_rows]], d.train_idx, model,
