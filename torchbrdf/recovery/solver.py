@@ -143,9 +143,10 @@ class RecoveryConfig:
     # cost / its cost): a pixel the model fits k× worse than that says 1/k as much (0: off)
     nonlocal_fit_weight: float = 1.0
     fuse_refit_iters: int = 3  # LM iterations taking a fused metal's other unknowns to the fused F0 (0: off)
-    # Rounds of the fusion, each from the last one's result: a pixel's one-step estimate of its
-    # own F0 optimum is better from a point nearer it (rusted_metal 1 / 6 / 7 base colour
-    # 0.0206 / 0.0204 / 0.0179 with 1 round, 0.0156 / 0.0141 / 0.0126 with 3; docs)
+    # Rounds of the fusion, each round's average from the last one's result (each combined with
+    # the same own value): a pixel's one-step estimate of its own F0 optimum is better from a
+    # point nearer it (rusted_metal 1 / 6 / 7 base colour 0.0206 / 0.0204 / 0.0179 with 1 round,
+    # 0.0170 / 0.0156 / 0.0148 with 3; docs)
     fuse_rounds: int = 3
     # Final step: continuous metallic where the binary choice fits poorly (Recovery._soft_metal)
     soft_metal: bool = True
