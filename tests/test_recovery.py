@@ -591,6 +591,36 @@ def test_light_position_step_finds_a_moved_light():
     assert torch.allclose(off, true, atol=2e-3)
 
 
+def test_light_beside_the_camera_keeps_its_stated_position():
+    """With ``at_camera=False`` the flash's position is held as capture.json states it.
+
+    It is the lights' least determined position and took up what the two-hypothesis maps had
+    not yet fitted (docs/recovery.md, issue 18: the recovery holds it in that stage); by
+    default both steps move it toward where it is.
+    """
+    from torchbrdf.capture.synthetic import render_capture
+
+    R, data, theta, metal = _flat_level(size=24)
+    n_l = data.pos.shape[0]
+    true = torch.zeros(n_l, 3)
+    true[-1] = torch.tensor([0.01, -0.01, -0.02])  # the flash (last light of light_layout)
+    maps = {k: v.T.reshape(-1, 24, 24) for k, v in R.decode(theta, metal).items()}
+    with torch.no_grad():
+        img = render_capture(maps, (data.pos_stated + true, data.inten_stated), backend="compact")
+    data.log_obs = torch.log(torch.clamp(img.permute(0, 2, 3, 1).reshape(n_l, -1, 3) + data.eps,
+                                         min=0.5 * data.eps))
+    data._light = {}
+    zero, idx = torch.zeros(n_l, 3), list(range(n_l))
+    held = R.light_position_step(data, theta, metal, zero, "principled", stride=1, at_camera=False)
+    moved = R.light_position_step(data, theta, metal, zero, "principled", stride=1)
+    assert torch.equal(held[-1], torch.zeros(3))
+    assert float(torch.nn.functional.cosine_similarity(moved[-1], true[-1], dim=0)) > 0.5
+    _, held = R.light_joint_step(data, theta, metal, torch.zeros(n_l), zero, idx, "principled",
+                                 at_camera=False)
+    _, moved = R.light_joint_step(data, theta, metal, torch.zeros(n_l), zero, idx, "principled")
+    assert torch.equal(held[-1], torch.zeros(3)) and float(moved[-1].norm()) > 2e-3
+
+
 def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
     """Lights where capture.json says, 1 % noise, and 4 % of the pixels rendered from another
     material (a front the maps have not fitted yet): the offsets stay within 5 mm (the noise
@@ -693,7 +723,7 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     grad = 1e-3 * torch.randn(theta.shape, generator=g, dtype=f64)
     curv = 0.5 * torch.rand(theta.shape, generator=g, dtype=f64)
     s1, off1 = R.light_joint_step(data, theta, metal, s0, off0, ref, "principled", map_prior=(grad, curv),
-                                  scale_sigma=0.05, position_sigma=0.02, damping=1e-3)
+                                  scale_sigma=0.05, position_sigma=0.02, damping=1e-3, at_camera=False)
 
     def residual(x):  # all unknowns -> (P * L * 3,)
         t = x[: n_px * 7].reshape(n_px, 7)
@@ -717,8 +747,11 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     prior = torch.cat((torch.full((3 * n_l,), 1 / 0.02**2), torch.full((n_l,), 1 / 0.05**2))).to(f64) * sigma2
     hess[n_p:, n_p:] += torch.diag(prior)
     grad_all[n_p:] += prior * x0[n_p:]
-    # Constraints: no move of the whole rig, the reference lights' mean log scale kept.
-    free = R.rig_free_directions(data.pos_stated, data.points.mean(0))
+    # Constraints: no move of the whole rig nor (at_camera=False) of the light beside the
+    # camera, the reference lights' mean log scale kept.
+    flash = R.camera_lights(data.pos_stated, data.camera, data.points.mean(0))
+    assert flash.tolist() == [False] * (n_l - 1) + [True]
+    free = R.rig_free_directions(data.pos_stated, data.points.mean(0), flash)
     is_ref = torch.tensor([float(i in ref) for i in idx], dtype=f64)
     keep_mean = torch.linalg.qr(is_ref[:, None], mode="complete")[0][:, 1:]
     t = torch.block_diag(torch.eye(n_p, dtype=f64), free, keep_mean)
@@ -756,6 +789,88 @@ def test_rig_free_directions_exclude_every_move_of_the_whole_rig():
     one = torch.zeros_like(rel)
     one[3, 0] = 1.0
     assert float((free.T @ one.reshape(-1)).norm()) > 0.8
+    # Held lights: no component on their coordinates, three directions fewer each, still
+    # orthonormal and free of every rig move; the others still move.
+    held = torch.zeros(n, dtype=torch.bool)
+    held[[1, 5]] = True
+    part = R.rig_free_directions(pos.to(f64), centre, held)
+    assert part.shape == (3 * n, 3 * n - 13)
+    assert torch.allclose(part.T @ part, torch.eye(3 * n - 13, dtype=f64), atol=1e-12)
+    assert float(part.reshape(n, 3, -1)[held].abs().max()) < 1e-12
+    for d in moves:
+        assert float((part.T @ d.reshape(-1)).abs().max()) < 1e-12
+    assert float((part.T @ one.reshape(-1)).norm()) > 0.8
+
+
+@pytest.mark.parametrize("at_camera", [True, False])
+def test_flash_position_in_the_dual_stage_is_a_choice(tiny, at_camera):
+    """``dual_calibration_at_camera=False`` holds the flash through the two-hypothesis stage.
+
+    The light beside the camera keeps its stated position through the full-resolution
+    two-hypothesis stage (the ring lights move already) and is estimated from the single-class
+    stages on; by default it moves there too.
+    """
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery, camera_lights
+
+    cap = load_capture(tiny)
+    rec = Recovery(cap, RecoveryConfig(seed=0, soft_metal=False, dual_calibration_at_camera=at_camera),
+                   log=lambda m: None)
+    full = rec.plan[-1][0]
+    dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
+    flash = camera_lights(cap.light_positions, cap.camera_position, rec.data(full).points.mean(0))
+    assert int(flash.sum()) == 1
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < dual_end:
+            rec.tick()
+        assert float(rec.light_offset()[~flash].abs().max()) > 0
+        assert bool((rec.light_offset()[flash] != 0).any()) == at_camera
+        while rec.state["stage"] < len(rec.plan):
+            rec.tick()
+    assert bool((rec.light_offset()[flash] != 0).any())
+
+
+@pytest.mark.parametrize("tie", [True, False])
+def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
+    """From the polish stage on, the metals' non-local F0 average is a unary prior of the fit.
+
+    Set at the stage's start: precision ``prior_nonlocal_base`` on exactly the metal pixels'
+    base colour, zero elsewhere; without ``fit_nonlocal_tie`` there is none.
+    """
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    cfg = RecoveryConfig(seed=0, soft_metal=False, fit_nonlocal_tie=tie)
+    rec = Recovery(load_capture(tiny), cfg, log=lambda m: None)
+    polish = next(i for i, (_, k, _) in enumerate(rec.plan) if k == "polish")
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < polish:
+            rec.tick()
+    if not tie:
+        assert "tie" not in rec.state
+        return
+    target, prec = rec.state["tie"]
+    ism = rec.state["metal"][:, 0] > 0.5
+    assert bool(ism.any()) and bool((~ism).any())
+    assert torch.all(prec[ism, :3] == cfg.prior_nonlocal_base) and torch.all(prec[~ism] == 0)
+    assert torch.all(prec[:, 3:] == 0)
+
+
+def test_two_unary_priors_sum_to_one():
+    """``_sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
+    from torchbrdf.recovery.solver import _sum_unary, _unary_cost
+
+    g = torch.Generator().manual_seed(0)
+    a = (torch.randn(5, 7, generator=g), torch.rand(5, 7, generator=g))
+    b = (torch.randn(5, 7, generator=g), torch.rand(5, 7, generator=g))
+    b[1][0] = 0.0  # absent on one pixel
+    s = _sum_unary(a, b)
+    x, y = torch.randn(5, 7, generator=g), torch.randn(5, 7, generator=g)
+    both = lambda t: _unary_cost(t, a) + _unary_cost(t, b)  # noqa: E731
+    assert torch.allclose(both(x) - both(y), _unary_cost(x, s) - _unary_cost(y, s), atol=1e-5)
+    assert _sum_unary(a, None) is a and _sum_unary(None, b) is b
 
 
 @pytest.mark.parametrize("dual_calibration", [True, False])
