@@ -836,8 +836,10 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     """From the polish stage on, the metals' non-local F0 average is a unary prior of the fit.
 
     Set at the stage's start: precision ``prior_nonlocal_base`` on exactly the metal pixels'
-    base colour, zero elsewhere; without ``fit_nonlocal_tie`` there is none.
+    base colour, zero elsewhere, the target :func:`nonlocal_prior`'s average at that state; the
+    stage's LM steps are given it. Without ``fit_nonlocal_tie`` there is none.
     """
+    import torchbrdf.recovery.solver as R
     from torchbrdf.capture.format import load_capture
     from torchbrdf.recovery.solver import Recovery
 
@@ -856,6 +858,26 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     assert bool(ism.any()) and bool((~ism).any())
     assert torch.all(prec[ism, :3] == cfg.prior_nonlocal_base) and torch.all(prec[~ism] == 0)
     assert torch.all(prec[:, 3:] == 0)
+    d = rec.data(rec.plan[polish][0])
+    th, mt = rec.state["theta"][0], rec.state["metal"]
+    r0, jtj, jtr = R.gauss_newton(d, th, mt, d.train_idx, cfg.model)
+    avg = R.nonlocal_prior(d, th, mt, cfg, jtj, R._pixel_cost(r0), jtr)[1]
+    assert torch.allclose(target[ism, :3], avg[ism, :3], atol=1e-5)
+    assert float((target[ism, :3] - th[ism, :3]).abs().max()) > 1e-3  # not the pixel's own value
+    seen = []
+    step = R.lm_step
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("unary", args[7] if len(args) > 7 else None))
+        return step(*args, **kwargs)
+
+    R.lm_step = spy
+    try:
+        with torch.no_grad():
+            rec.tick()
+    finally:
+        R.lm_step = step
+    assert seen and seen[0] is not None and torch.equal(seen[0][1], prec)
 
 
 def test_two_unary_priors_sum_to_one():

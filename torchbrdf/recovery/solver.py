@@ -722,7 +722,7 @@ def camera_lights(pos: Tensor, camera: Tensor, centre: Tensor, frac: float = 0.1
     """``(L,)`` bool: the lights beside the camera (a flash).
 
     Within ``frac`` × the camera's distance to the surface ``centre (3,)`` of ``camera (3,)``;
-    ``pos (L, 3)``.
+    ``pos (L, 3)``; the mask is on ``pos``'s device (any float dtype).
 
     Such a light lights every pixel from near the viewing direction, so a small move of it
     changes the images much as its intensity scale and a slow variation of the maps do: the
