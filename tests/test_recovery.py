@@ -943,17 +943,20 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
 def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_held():
     """The soft-metal stage's per-pixel LM reaches each pixel's least-squares solution.
 
-    Residuals linear in the 8 unknowns; with ``fix_metal`` the last unknown keeps its value (no
-    tangent) and the other 7 solve the reduced problem. With ``tol`` a pixel whose accepted step
-    gained less than that fraction of its cost stops (the others go on, evaluated on their rows
-    alone); on these linear problems its cost is then within about that fraction of the optimum's.
+    Residuals linear in the 8 unknowns (each base-colour unknown acting on its own channel's
+    residuals, every third: :func:`fit_jacobian`'s premise); with ``fix_metal`` the last
+    unknown keeps its value (no tangent) and the other 7 solve the reduced problem. With
+    ``tol`` a pixel whose accepted step gained less than that fraction of its cost stops (the
+    others go on, evaluated on their rows alone); on these linear problems its cost is then
+    within about that fraction of the optimum's.
     A pixel whose cost starts infinite does not stop on its first finite one.
     """
     import torchbrdf.recovery.solver as R
 
     gen = torch.Generator().manual_seed(3)
-    n, m = 5, 20
+    n, m = 5, 21
     a = torch.randn(n, m, 8, generator=gen, dtype=torch.float64)
+    a[..., :3] *= (torch.arange(m)[:, None] % 3 == torch.arange(3)).to(a.dtype)  # channel c: base c only
     b = torch.randn(n, m, generator=gen, dtype=torch.float64)
     at = lambda v, r: v if r is None else v[r]  # noqa: E731
     fn = lambda x, r=None: torch.einsum("nmk,nk->nm", at(a, r), x) - at(b, r)  # noqa: E731
@@ -1010,7 +1013,8 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     logged_p = lambda v, r=None: calls.append(r) or prior(v, r)  # noqa: E731
     x, c = R._soft_lm(fn, cost_p, torch.cat((aug[:, :7] + near, x0[:, 7:]), -1), 60, prior=logged_p, tol=1e-2)
     assert any(r is not None and 0 < len(r) < n for r in calls)
-    assert bool((c <= cost_p(aug) * 1.02 + 1e-9).all()) and torch.allclose(c, cost_p(x))
+    # (where the optimum's metallic is in [0, 1]: elsewhere the clamped fit cannot reach it)
+    assert bool((c[inside] <= cost_p(aug)[inside] * 1.02 + 1e-9).all()) and torch.allclose(c, cost_p(x))
     # a cost that starts infinite (a residual undefined at the start, NaN): its first finite
     # step is not convergence
     def fn_inf(v, r=None):  # its first residual undefined while the first unknown is below -5
@@ -1262,3 +1266,58 @@ def test_fusion_rounds_refine_the_average_without_compounding_the_pull():
         pull[rounds] = float((st["theta"][0][well, 0:3] - start[well, 0:3]).abs().mean())
     assert pull[1] > 1e-3  # the fusion does move them
     assert pull[3] < 1.3 * pull[1], pull  # compounding: about 2.5x here
+
+
+@pytest.mark.parametrize("n_t", [7, 8])
+def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t):
+    """``fit_jacobian`` equals one forward-mode pass per unknown, column by column.
+
+    The base colour's three columns come from one pass; checked for the seven map unknowns and
+    with metallic as an eighth (the soft-metal fit's). Fails if a base-colour column took
+    another channel's residuals, or if a channel leaked into another (a tint would couple them).
+    """
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import LevelData, fit_jacobian
+
+    cap = load_capture(tiny)
+    data = LevelData(cap, 32, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(32 * 32, 8, generator=g) * 0.4
+    x[:, 7] = torch.rand(32 * 32, generator=g)  # a fractional metallic
+
+    def fn(v):
+        return data.residual(v[:, :7], v[:, 7:8] if n_t == 8 else x[:, 7:8], data.train_idx)
+
+    xs = x if n_t == 8 else x[:, :7]
+    r, jac = fit_jacobian(fn, xs, n_t)
+    assert jac.shape == (32 * 32, n_t, 3 * len(data.train_idx))
+    assert torch.equal(r, fn(xs))
+    for k in range(n_t):
+        col = torch.func.jvp(fn, (xs,), (torch.eye(xs.shape[1])[k].expand_as(xs),))[1]
+        assert torch.allclose(jac[:, k], col, rtol=1e-5, atol=1e-6), k
+
+
+def test_blur_is_the_truncated_normalised_gaussian():
+    """``_blur`` is the truncated, normalised Gaussian, against a direct double sum.
+
+    Σ over the pixels within 3σ (and the map) of g(dx) g(dy) x, g the Gaussian normalised over
+    its 2r + 1 taps, zero outside the map.
+    """
+    from torchbrdf.recovery.solver import _blur
+
+    size = 9
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(size * size, 2, generator=g, dtype=torch.float64)
+    img = x.T.reshape(2, size, size)
+    for sigma in (0.8, 2.0, 5.0):  # r = 2, 6 and (capped at the map) 8
+        r = int(min(3 * sigma, size - 1))
+        taps = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float64) / sigma) ** 2)
+        k = lambda d: math.exp(-0.5 * (d / sigma) ** 2) / float(taps.sum()) if abs(d) <= r else 0.0  # noqa: E731
+        want = torch.zeros(2, size, size, dtype=torch.float64)
+        for i in range(size):
+            for j in range(size):
+                for a in range(size):
+                    for b in range(size):
+                        want[:, i, j] += k(a - i) * k(b - j) * img[:, a, b]
+        got = _blur(x, size, sigma).T.reshape(2, size, size)
+        assert torch.allclose(got, want, atol=1e-12), sigma

@@ -275,3 +275,38 @@ def test_soft_recipes_have_5_to_15_percent_soft_pixels_and_leave_the_default_cyc
         a, b = make_material(None, seed, 16), make_material(RECIPES[seed % len(RECIPES)], seed, 16)
         assert all(torch.equal(a[k], b[k]) for k in a)
         assert bool(((a["metallic"] == 0) | (a["metallic"] == 1)).all())
+
+
+def test_reference_refit_only_where_the_result_can_win(tmp_path, monkeypatch):
+    """The metallic-held reference fit runs only where the free result can win.
+
+    That is, where it beats the unrefitted reference by the gain (a refit only lowers the
+    reference): with a gain no pixel can reach, there is no reference fit at all and every
+    pixel keeps its class; with no gain, the pixels the stripe made fractional are refitted.
+    """
+    import torchbrdf.recovery.solver as R
+
+    gm = _stripe(16)
+    maps = _capture(tmp_path, gm)
+    cap = load_capture(tmp_path)
+    data = LevelData(cap, 16, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    flat = lambda t: t.reshape(t.shape[0], -1).T  # noqa: E731
+    theta = encode({k: flat(maps[k]) for k in ("base_color", "specular", "roughness", "normal")})
+    metal = (flat(maps["metallic"]) > 0.25).float()  # the stripe called metal
+    rows = torch.arange(256)
+    held = []
+    lm = R._soft_lm
+
+    def spy(fn, cost, x, iters, fix_metal=False, **kw):
+        if fix_metal:
+            held.append(x.shape[0])
+        return lm(fn, cost, x, iters, fix_metal=fix_metal, **kw)
+
+    monkeypatch.setattr(R, "_soft_lm", spy)
+    with torch.no_grad():
+        _, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, "principled", 0.0, 1e30, 5)
+    assert held == [] and torch.equal(m_new, metal)
+    with torch.no_grad():
+        _, m_free, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, "principled", 0.0, 0.0, 5)
+    assert len(held) == 1 and 0 < held[0] < 256
+    assert bool(((m_free > 0) & (m_free < 1)).any())

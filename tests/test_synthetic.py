@@ -94,6 +94,34 @@ def test_fit_residual_is_the_log_of_the_rendered_capture(fast):
     assert torch.allclose(r, want, atol=2e-5)
 
 
+def test_fit_residual_on_a_few_pixels_runs_fused_with_any_size(monkeypatch):
+    """``any_size``: a call below the fused path's lane threshold runs on the fused kernels.
+
+    As the fit's refits of a few pixels do, with the eager path's values; without it, eagerly.
+    """
+    import torchbrdf.kernels.ops as ops
+    from torchbrdf.brdf.principled import FAST_PATH_MIN_LANES
+    from torchbrdf.capture.synthetic import log_residual_points, pixel_points
+
+    maps = make_material("metal_inlay", seed=2, size=6)
+    pos, inten = light_layout(4)
+    assert 36 * pos.shape[0] < FAST_PATH_MIN_LANES
+    flat = {k: v.permute(1, 2, 0).reshape(-1, v.shape[0]) for k, v in maps.items() if k != "normal"}
+    n = maps["normal"].permute(1, 2, 0).reshape(-1, 3)
+    n = n / n.norm(dim=-1, keepdim=True)
+    pts = pixel_points(6, 6).reshape(-1, 3)
+    log_obs = torch.full((36, pos.shape[0], 3), -1.0)
+    cam = torch.as_tensor(DEFAULT_CAMERA, dtype=torch.float32)
+    calls = []
+    fast = ops.capture_fast
+    monkeypatch.setattr(ops, "capture_fast", lambda *a, **k: calls.append(1) or fast(*a, **k))
+    eager = log_residual_points(n, pts, cam, pos, inten, flat, log_obs, 0.01)
+    assert calls == []
+    fused = log_residual_points(n, pts, cam, pos, inten, flat, log_obs, 0.01, any_size=True)
+    assert calls == [1]
+    assert torch.allclose(fused, eager, atol=2e-5)
+
+
 def test_compact_renderer_is_the_library_formula_for_every_parameter():
     # The fit renders through torchbrdf.principled, so it takes every principled parameter (the
     # old hand-written diffuse + GGX copy refused them) and keeps the capture format's frame:

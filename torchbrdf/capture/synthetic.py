@@ -564,7 +564,7 @@ def _fit_frame(normal: Tensor, params: Mapping) -> tuple[Tensor | None, Tensor |
 
 def log_residual_points(
     normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: Mapping,
-    log_obs: Tensor, eps: float,
+    log_obs: Tensor, eps: float, any_size: bool = False,
 ) -> Tensor:
     """Log residuals of a flat list of pixels under every light, ``(P, L, 3)``: what a fit minimises.
 
@@ -578,7 +578,10 @@ def log_residual_points(
     Differentiable (reverse and forward mode) w.r.t. every tensor input. Every tensor must
     share ``log_obs``'s floating dtype and device (the fused kernels read raw memory in one
     dtype: a float32 ``points`` beside a float64 ``log_obs`` would be misread); the result is
-    in that dtype, on that device.
+    in that dtype, on that device. ``any_size``: in the automatic mode, the fused kernels at
+    every lane count, not only from :data:`~torchbrdf.brdf.principled.FAST_PATH_MIN_LANES` — a
+    fit's first full-size call compiles them, and its later calls on a few pixels (refits,
+    converged pixels left out) then cost half as much fused as eager.
     """
     from torchbrdf import _checks
     from torchbrdf.brdf import formula
@@ -600,7 +603,8 @@ def log_residual_points(
     need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
     tensors = [t for t in c.values() if isinstance(t, Tensor)]
     lanes = log_obs.shape[0] * log_obs.shape[1]
-    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors, lambda: lanes)
+    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors,
+                                lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
     if backend is not None:
         from torchbrdf.kernels.ops import capture_fast
 
