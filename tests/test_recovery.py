@@ -1321,3 +1321,44 @@ def test_blur_is_the_truncated_normalised_gaussian():
                         want[:, i, j] += k(a - i) * k(b - j) * img[:, a, b]
         got = _blur(x, size, sigma).T.reshape(2, size, size)
         assert torch.allclose(got, want, atol=1e-12), sigma
+
+
+def test_the_polish_stage_first_step_reuses_the_ties_linearisation(tiny):
+    """The polish stage's first LM step is handed the Gauss–Newton pass of its F0 tie.
+
+    Made at the stage's start and re-linearised where propagation and the normal search moved
+    pixels since: equal to the step's own pass (so the step is the same), handed on once only.
+    """
+    import torchbrdf.recovery.solver as R
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    cfg = RecoveryConfig(seed=0, soft_metal=False)
+    rec = Recovery(load_capture(tiny), cfg, log=lambda m: None)
+    polish = next(i for i, (_, k, _) in enumerate(rec.plan) if k == "polish")
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < polish:
+            rec.tick()
+    assert rec._stage_gn is not None
+    th0 = rec._stage_gn[0]
+    seen = []
+    step = R.lm_step
+
+    def spy(data, theta, metal, lam, cfg_, lr, extra=None, unary=None, gn=None):
+        own = R.gauss_newton(data, theta, metal, data.train_idx, cfg_.model)
+        seen.append((gn, own, bool((theta != th0).any())))
+        return step(data, theta, metal, lam, cfg_, lr, extra, unary, gn)
+
+    R.lm_step = spy
+    try:
+        with torch.no_grad():
+            rec.tick()
+            rec.tick()
+    finally:
+        R.lm_step = step
+    (gn, own, moved), (gn2, _, _) = seen
+    assert moved  # propagation / normal search moved some pixels: they were re-linearised
+    assert gn is not None and gn2 is None and rec._stage_gn is None
+    for a, b in zip(gn, own):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)

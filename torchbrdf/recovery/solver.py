@@ -667,8 +667,8 @@ def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig
 
 
 def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float,
-            extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None
-            ) -> tuple[Tensor, Tensor, Tensor, int]:
+            extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None,
+            gn: tuple[Tensor, Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor, int]:
     """One Levenberg–Marquardt iteration with the coupled smoothness prior.
 
     ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
@@ -676,12 +676,13 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Rec
     (a dict) is given, ``extra["residual"]`` receives the residuals ``(P, M)`` at the returned
     ``theta`` (for the light-scale update and the fit loss, without another render). ``unary = (target, precision)``
     ``(P, 7)`` each adds ``½ Σ precision (θ − target)²`` (the non-local fill, :func:`nonlocal_fill`,
-    and the metals' F0 tie, :func:`nonlocal_prior`).
+    and the metals' F0 tie, :func:`nonlocal_prior`). ``gn``: :func:`gauss_newton`'s result at
+    ``theta`` on these lights when the caller has it (else computed).
     """
     idx, size = data.train_idx, data.size
     wx, wy = edge_weights(theta, metal, size, cfg)
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
-    r0, jtj, jtr = gauss_newton(data, theta, metal, idx, cfg.model)
+    r0, jtj, jtr = gn if gn is not None else gauss_newton(data, theta, metal, idx, cfg.model)
     g = jtr + prior_gradient(theta, wx, wy, size, unary)
     if unary is not None:
         jtj = jtj + torch.diag_embed(unary[1])
@@ -1678,6 +1679,11 @@ class Recovery:
         # (before that iteration's light-calibration update), per light and channel: the fit loss
         # the progress bar shows. Not state: every iteration sets it anew.
         self.fit_cost: dict[int, Tensor] = {}
+        # The Gauss–Newton pass made at a single-class stage's start for its F0 tie, with the
+        # theta and metal it was made at: the stage's first LM step re-linearises only the
+        # pixels that moved since (its propagation moves 1–5 %). Not state: a resumed run
+        # computes the step's own.
+        self._stage_gn: tuple[Tensor, Tensor, tuple[Tensor, Tensor, Tensor]] | None = None
         self.state: dict[str, Any] = {}  # filled by init_state / load_checkpoint
 
     def data(self, size: int, all_lights: bool = False) -> LevelData:
@@ -1824,7 +1830,7 @@ class Recovery:
             calibrate = self.cfg.light_scale and kind != "dual"
             extra: dict[str, Any] = {}
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
-                                              extra, unary)
+                                              extra, unary, self._take_stage_gn(data, theta, metal))
             self.fit_cost[h] = self._training_fit(extra, data)
             if calibrate and self.cfg.light_joint:
                 st["light_log_scale"], st["light_offset"] = light_joint_step(
@@ -1883,6 +1889,25 @@ class Recovery:
             st["it"] = n_it
         if st["it"] >= n_it:
             self.end_stage()
+
+    def _take_stage_gn(self, data: LevelData, theta: Tensor, metal: Tensor
+                       ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The stage-start Gauss–Newton pass (:attr:`_stage_gn`) at ``theta``, ``metal``, or None.
+
+        Re-linearised on the pixels of ``theta (P, 7)``, ``metal (P, 1)`` that differ from where
+        it was made; None when there is none. Used once: it is cleared.
+        """
+        if self._stage_gn is None:
+            return None
+        th0, mt0, (r0, jtj, jtr) = self._stage_gn
+        self._stage_gn = None
+        if th0.shape != theta.shape:
+            return None
+        rows = ((theta != th0).any(-1) | (metal != mt0).any(-1)).nonzero()[:, 0]
+        if rows.numel():
+            r0[rows], jtj[rows], jtr[rows] = gauss_newton(data.subset(rows), theta[rows], metal[rows],
+                                                          data.train_idx, self.cfg.model)
+        return r0, jtj, jtr
 
     def fit_summary(self) -> dict[str, float]:
         """The fit loss of the last iteration, from :attr:`fit_cost` (empty before the first).
@@ -1965,11 +1990,15 @@ class Recovery:
             if kind1 != "dual" and st["metal"] is not None and self.cfg.fit_nonlocal_tie \
                     and self.cfg.prior_nonlocal_base > 0:
                 # The fusion's non-local average, renewed at the stage's start, as a prior of the fit.
+                # (A level's data made here has the stated lights until the next tick syncs the
+                # estimates: then its pass is not the first LM step's and is not handed on.)
+                synced = (s1, kind1 == "all") in self._data
                 d = self.data(s1, all_lights=(kind1 == "all"))
                 th, mt = st["theta"][0], st["metal"]
                 r0, jtj, jtr = gauss_newton(d, th, mt, d.train_idx, self.cfg.model)
                 w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr)
                 st["tie"] = (m, w)
+                self._stage_gn = (th.clone(), mt.clone(), (r0, jtj, jtr)) if synced else None
             if kind1 == "all":
                 st["validation"] = self.validation()
                 if self.cfg.fill and kind == "polish":
