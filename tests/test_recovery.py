@@ -1268,13 +1268,15 @@ def test_fusion_rounds_refine_the_average_without_compounding_the_pull():
     assert pull[3] < 1.3 * pull[1], pull  # compounding: about 2.5x here
 
 
+@pytest.mark.parametrize("model", ["principled", "svbrdf_ggx"])
 @pytest.mark.parametrize("n_t", [7, 8])
-def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t):
+def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t, model):
     """``fit_jacobian`` equals one forward-mode pass per unknown, column by column.
 
     The base colour's three columns come from one pass; checked for the seven map unknowns and
     with metallic as an eighth (the soft-metal fit's). Fails if a base-colour column took
-    another channel's residuals, or if a channel leaked into another (a tint would couple them).
+    another channel's residuals, or if a channel leaked into another (a tint would couple them);
+    for both of the fit's models.
     """
     from torchbrdf.capture.format import load_capture
     from torchbrdf.recovery.solver import LevelData, fit_jacobian
@@ -1286,7 +1288,7 @@ def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t):
     x[:, 7] = torch.rand(32 * 32, generator=g)  # a fractional metallic
 
     def fn(v):
-        return data.residual(v[:, :7], v[:, 7:8] if n_t == 8 else x[:, 7:8], data.train_idx)
+        return data.residual(v[:, :7], v[:, 7:8] if n_t == 8 else x[:, 7:8], data.train_idx, model)
 
     xs = x if n_t == 8 else x[:, :7]
     r, jac = fit_jacobian(fn, xs, n_t)
