@@ -160,7 +160,7 @@ class RecoveryConfig:
     # point nearer it (rusted_metal 1 / 6 / 7 base colour 0.0206 / 0.0204 / 0.0179 with 1 round,
     # 0.0170 / 0.0156 / 0.0148 with 3; docs). With the tie in the fit (fit_nonlocal_tie) a third
     # round moves no unknown by more than 3e-5 and changes no tuning capture's maps by more than
-    # 0.0002 RMSE: two.
+    # 0.0003 RMSE: two.
     fuse_rounds: int = 2
     # Final step: continuous metallic where the binary choice fits poorly (Recovery._soft_metal)
     soft_metal: bool = True
