@@ -831,6 +831,20 @@ def test_flash_position_in_the_dual_stage_is_a_choice(tiny, at_camera):
     assert bool((rec.light_offset()[flash] != 0).any())
 
 
+def _recovery_at_polish(capture, cfg):
+    """A :class:`Recovery` of ``capture`` run up to the start of its polish stage, and that stage's index."""
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    rec = Recovery(load_capture(capture), cfg, log=lambda m: None)
+    polish = next(i for i, (_, k, _) in enumerate(rec.plan) if k == "polish")
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < polish:
+            rec.tick()
+    return rec, polish
+
+
 @pytest.mark.parametrize("tie", [True, False])
 def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     """From the polish stage on, the metals' non-local F0 average is a unary prior of the fit.
@@ -840,16 +854,9 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     stage's LM steps are given it. Without ``fit_nonlocal_tie`` there is none.
     """
     import torchbrdf.recovery.solver as R
-    from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
 
     cfg = RecoveryConfig(seed=0, soft_metal=False, fit_nonlocal_tie=tie)
-    rec = Recovery(load_capture(tiny), cfg, log=lambda m: None)
-    polish = next(i for i, (_, k, _) in enumerate(rec.plan) if k == "polish")
-    with torch.no_grad():
-        rec.init_state()
-        while rec.state["stage"] < polish:
-            rec.tick()
+    rec, polish = _recovery_at_polish(tiny, cfg)
     if not tie:
         assert "tie" not in rec.state
         return
@@ -1332,16 +1339,8 @@ def test_the_polish_stage_first_step_reuses_the_ties_linearisation(tiny):
     pixels since: equal to the step's own pass (so the step is the same), handed on once only.
     """
     import torchbrdf.recovery.solver as R
-    from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
 
-    cfg = RecoveryConfig(seed=0, soft_metal=False)
-    rec = Recovery(load_capture(tiny), cfg, log=lambda m: None)
-    polish = next(i for i, (_, k, _) in enumerate(rec.plan) if k == "polish")
-    with torch.no_grad():
-        rec.init_state()
-        while rec.state["stage"] < polish:
-            rec.tick()
+    rec, _ = _recovery_at_polish(tiny, RecoveryConfig(seed=0, soft_metal=False))
     assert rec._stage_gn is not None
     th0 = rec._stage_gn[0]
     seen = []

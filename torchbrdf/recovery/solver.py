@@ -1342,11 +1342,11 @@ def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Row
     column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which then has
     no tangent: 5 instead of 6 per Jacobian, :func:`fit_jacobian`). ``prior``: the prior
     residuals and their Jacobian (``x`` → ``(N, k)``, ``(N, k, 8)``, as :func:`_soft_prior`),
-    added to the normal equations
-    by hand (they are not part of ``fn``'s forward-mode Jacobian, which would copy them once
-    per tangent); ``cost`` must include them. ``fn``, ``cost`` and ``prior`` take the unknowns
-    of some of the pixels and their indices (``None``: all N, in order); ``fn``'s base-colour
-    unknowns act each on its own channel's residuals (:func:`fit_jacobian`).
+    added to the normal equations by hand (they are not part of ``fn``'s forward-mode
+    Jacobian, which would copy them once per tangent); ``cost`` must include them. ``fn``,
+    ``cost`` and ``prior`` take the unknowns of some of the pixels and their indices (``None``:
+    all N, in order); ``fn``'s base-colour unknowns act each on its own channel's residuals
+    (:func:`fit_jacobian`).
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
@@ -1901,8 +1901,6 @@ class Recovery:
             return None
         th0, mt0, (r0, jtj, jtr) = self._stage_gn
         self._stage_gn = None
-        if th0.shape != theta.shape:
-            return None
         rows = ((theta != th0).any(-1) | (metal != mt0).any(-1)).nonzero()[:, 0]
         if rows.numel():
             r0[rows], jtj[rows], jtr[rows] = gauss_newton(data.subset(rows), theta[rows], metal[rows],
