@@ -21,6 +21,7 @@ from torchbrdf.recovery.solver import (
     decode,
     encode,
     growth_front,
+    may_be_mixed,
     soft_metal_candidates,
     soft_metal_fit,
     unmix_metallic,
@@ -310,3 +311,31 @@ def test_reference_refit_only_where_the_result_can_win(tmp_path, monkeypatch):
         _, m_free, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, "principled", 0.0, 0.0, 5)
     assert len(held) == 1 and 0 < held[0] < 256
     assert bool(((m_free > 0) & (m_free < 1)).any())
+
+
+def test_the_free_fit_skips_clear_candidates_that_fit_at_the_noise_level(tmp_path, monkeypatch):
+    """Clear candidates that fit at the noise level are not given the free fit.
+
+    Those whose best blend of their clear neighbours is their own class and whose cost is at most
+    the median pixel's; every other candidate is.
+    """
+    coverage = torch.tensor([[0.0], [1.0], [0.0], [0.4], [float("nan")], [1.0]])
+    metal = torch.tensor([[0.0], [1.0], [0.0], [0.0], [0.0], [0.0]])
+    cost = torch.tensor([[1.0], [0.5], [1.5], [0.5], [0.5], [0.5]])
+    assert may_be_mixed(coverage, metal, cost, 1.0).tolist() == [False, False, True, True, True, True]
+
+    # In the recovery: a binary boundary's band is all candidates; about half of them fit below
+    # the median, unmix to their own class and are left out of the free fit.
+    import torchbrdf.recovery.solver as R
+
+    m = torch.zeros(16, 16)
+    m[:, 8:] = 1.0
+    _capture(tmp_path, m)
+    seen: dict = {}
+    cand, fit = R.soft_metal_candidates, R.soft_metal_fit
+    monkeypatch.setattr(R, "soft_metal_candidates", lambda *a, **k: seen.setdefault("cand", cand(*a, **k)))
+    monkeypatch.setattr(R, "soft_metal_fit", lambda d, t, mt, rows, *a, **k: (seen.setdefault("fit", rows),
+                                                                             fit(d, t, mt, rows, *a, **k))[1])
+    recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, progress=False)
+    rows, free = set(seen["cand"].tolist()), set(seen["fit"].tolist())
+    assert free < rows and len(free) < 0.8 * len(rows), (len(free), len(rows))
