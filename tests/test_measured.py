@@ -457,3 +457,15 @@ def test_non_finite_samples_refused_unless_allowed(tmp_path, lambert_brdf, bad):
     assert int((~torch.isfinite(brdf.stored)).sum()) == 1
     with pytest.raises(ValueError, match="non-finite"):  # and it is not written back
         write_merl(tmp_path / "again.binary", brdf)
+
+
+def test_from_brdf_takes_float32_parameters():
+    """A float32 parameter (torch's default) is cast to the tabulation dtype.
+
+    The principled BRDF wants one dtype and named the mismatch with the internal directions before.
+    """
+    from torchbrdf import principled
+
+    f32 = MERLBRDF.from_brdf(principled, base_color=torch.tensor([0.7, 0.2, 0.1]), roughness=0.35)
+    f64 = MERLBRDF.from_brdf(principled, base_color=torch.tensor([0.7, 0.2, 0.1]).double(), roughness=0.35)
+    assert torch.equal(f32.stored, f64.stored)

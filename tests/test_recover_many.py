@@ -193,9 +193,11 @@ def test_interrupted_capture_is_resumed(good, single, tmp_path):
 def test_cli_options_and_exit_status(captures, tmp_path):
     """The single CLI's recovery flags pass through; exit status 1 when a capture failed."""
     args = _parser().parse_args(["--captures", "x", "--out", "o", "--iters", "7", "--seed", "4", "--model",
-                                 "svbrdf_ggx", "--holdout", "-1", "--size", "12"])
+                                 "svbrdf_ggx", "--holdout", "-1", "--size", "12", "--no-soft-metal",
+                                 "--no-light-position"])
     cfg = config_from_args(args)
-    assert (cfg.iters, cfg.seed, cfg.model, cfg.size, cfg.holdout) == (7, 4, "svbrdf_ggx", 12, 10**9)
+    assert (cfg.iters, cfg.seed, cfg.model, cfg.size, cfg.holdout) == (7, 4, "svbrdf_ggx", 12, -1)
+    assert (cfg.soft_metal, cfg.light_scale, cfg.light_position) == (False, True, False)
     assert cfg.threads is None  # --threads-per-task sets it per task
     with pytest.raises(SystemExit):
         _parser().parse_args(["--captures", "x", "--out", "o", "--threads", "2"])

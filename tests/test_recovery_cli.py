@@ -230,6 +230,7 @@ def test_other_files_in_out_are_kept_and_mode_is_not_0700(done, cap, tmp_path):
     (["--prior-metal-base", "inf"], "--prior-metal-base"),
     (["--prior-nonlocal-base", "-0.1"], "--prior-nonlocal-base"),
     (["--seed", "-1"], "--seed"), (["--threads", "0"], "--threads"), (["--force"], "--force"),
+    (["--holdout", "99"], "--holdout 99: the capture has"), (["--holdout", "-2"], "--holdout -2"),
 ])
 def test_bad_option_is_one_line_rc2_and_no_folder(cap, tmp_path, capsys, extra, words):
     out = tmp_path / "o"
@@ -438,3 +439,12 @@ def test_command_line_exit_status_and_output_reach_the_caller(cap, tmp_path):
             "from torchbrdf.recovery.svbrdf import cli; cli()")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, env=env)
     assert run.returncode == 2 and "exit handler ran" in run.stdout
+
+
+def test_holdout_minus_one_holds_no_light_out(cap):
+    """``holdout=-1``: every light trains the fit and no validation PSNR is reported."""
+    from torchbrdf.recovery.svbrdf import recover
+
+    cfg = RecoveryConfig(iters=2, threads=1, seed=0, holdout=-1)
+    res = recover(cap, cfg, progress=False, log=lambda m: None)
+    assert res.report["held_out_light"] is None

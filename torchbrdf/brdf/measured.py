@@ -457,7 +457,8 @@ class MERLBRDF(nn.Module):
             dtype: dtype of the directions handed to ``brdf``; the table is stored in float64.
             name: optional label.
             **params: material parameters forwarded to ``brdf`` (tensors must broadcast
-                against ``(batch, 3)`` / ``(batch, 1)``, i.e. be per-material constants).
+                against ``(batch, 3)`` / ``(batch, 1)``, i.e. be per-material constants;
+                floating ones are cast to ``dtype``, so float32 parameters tabulate as given).
 
         Returns:
             A :class:`MERLBRDF` on ``device``.
@@ -465,6 +466,8 @@ class MERLBRDF(nn.Module):
         Raises:
             ValueError: if ``brdf`` returns the wrong shape or non-finite values.
         """
+        params = {k: p.to(dtype) if isinstance(p, Tensor) and p.is_floating_point() else p
+                  for k, p in params.items()}
         theta_h, theta_d, phi_d = merl_grid(dtype=dtype, device=device)
         th, td, tp = torch.meshgrid(theta_h, theta_d, phi_d, indexing="ij")
         th, td, tp = th.reshape(-1), td.reshape(-1), tp.reshape(-1)

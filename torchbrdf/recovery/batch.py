@@ -35,6 +35,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON
@@ -480,9 +481,10 @@ def write_overview(path: PathLike, rows: list[dict], max_rows: int = 24, thumb: 
 
 
 def _parser() -> argparse.ArgumentParser:
+    from torchbrdf.recovery.svbrdf import OFF_SWITCHES
     from torchbrdf.recovery.svbrdf import _parser as single_parser
 
-    p = argparse.ArgumentParser(prog="python -m training.recover_many", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="torchbrdf-recover-many", description=__doc__.split("\n\n")[0],
                                 allow_abbrev=False)  # --threads must not pass for --threads-per-task
     p.add_argument("--captures", nargs="+", required=True, metavar="DIR_OR_GLOB",
                    help="capture folders, glob patterns, or folders of capture folders")
@@ -502,18 +504,18 @@ def _parser() -> argparse.ArgumentParser:
     rec = p.add_argument_group("recovery options (as python -m training.recover_svbrdf)")
     fields = {f.name for f in dataclasses.fields(RecoveryConfig)} - _NOT_PASSED
     for action in single_parser()._actions:
-        if action.dest in fields:
+        if action.dest in fields or action.dest in OFF_SWITCHES:
             rec._add_action(action)
     return p
 
 
 def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
     """The :class:`RecoveryConfig` of the recovery flags in ``args``."""
+    from torchbrdf.recovery.svbrdf import OFF_SWITCHES
+
     fields = {f.name for f in dataclasses.fields(RecoveryConfig)} - _NOT_PASSED
-    cfg = RecoveryConfig(**{k: v for k, v in vars(args).items() if k in fields})
-    if cfg.holdout is not None and cfg.holdout < 0:
-        cfg.holdout = 10**9  # as the single CLI: out of range = no held-out light
-    return cfg
+    off: dict[str, Any] = {field: not getattr(args, flag) for flag, field in OFF_SWITCHES.items()}
+    return RecoveryConfig(**{k: v for k, v in vars(args).items() if k in fields}, **off)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -352,7 +352,7 @@ def _frozen(model: PrincipledFit):
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
-    ap = argparse.ArgumentParser(prog="python -m training.fit_measured", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="torchbrdf-fit-merl", description=__doc__.split("\n\n")[0])
     ap.add_argument("--merl", required=True, help="MERL .binary file")
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--two-lobes", action="store_true", help="add a second GGX specular lobe")

@@ -182,7 +182,7 @@ class RecoveryConfig:
     # ends beside them at their own metallic (soft_metal_fit's ``line``); 0: off. 2500 = 1/0.02²:
     # the ends are local means of clear pixels, known to about 0.02.
     soft_metal_line: float = 2500.0
-    holdout: int | None = None  # index of the validation light (default: a ring light)
+    holdout: int | None = None  # index of the validation light (default: light 0 with 5+ lights; -1: none)
     checkpoint_every: int = 5
     model: str = "principled"
     threads: int | None = None
@@ -1682,7 +1682,7 @@ class Recovery:
         self.size = cfg.size or max(cap.width, cap.height)
         n_l = len(cap)
         if cfg.holdout is not None:
-            self.holdout = cfg.holdout if 0 <= cfg.holdout < n_l else None
+            self.holdout = cfg.holdout if cfg.holdout >= 0 else None  # -1: none (recover checks the range)
         else:
             self.holdout = 0 if n_l >= 5 else None
         self.train_idx = [k for k in range(n_l) if k != self.holdout]

@@ -857,6 +857,9 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
     except (OSError, ValueError) as e:
         raise RecoveryError(str(e)) from e
     cap = cap.to(device=cfg.device, dtype=torch.float32)
+    if cfg.holdout is not None and not -1 <= cfg.holdout < len(cap):
+        raise RecoveryError(f"--holdout {cfg.holdout}: the capture has {len(cap)} lights "
+                            f"(0-{len(cap) - 1}, or -1 for none)")
     fingerprint = {"capture": capture_fingerprint(capture, cap), "settings": settings_fingerprint(cfg)}
     if resume and out is None:
         raise RecoveryError("--resume needs --out (the folder holding checkpoint.pt)")
@@ -1127,6 +1130,11 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+# The command line's switches that turn a default-on setting off: flag dest -> RecoveryConfig field.
+OFF_SWITCHES = {"no_soft_metal": "soft_metal", "no_light_calibration": "light_scale",
+                "no_light_position": "light_position"}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``torchbrdf-recover`` / ``python -m training.recover_svbrdf``; returns the exit status."""
     try:
@@ -1134,17 +1142,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # --help (0) or a malformed option (2, one line already printed)
         return int(e.code or 0)
     try:
+        off: dict[str, Any] = {field: not getattr(args, flag) for flag, field in OFF_SWITCHES.items()}
         cfg = RecoveryConfig(
             iters=args.iters, lr=args.lr, size=args.size, seed=args.seed, device=args.device,
             levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
-            threads=args.threads, soft_metal=not args.no_soft_metal, converge_tol=args.converge_tol,
-            converge_min_iters=args.converge_min_iters, light_scale=not args.no_light_calibration,
-            light_position=not args.no_light_position,
+            threads=args.threads, converge_tol=args.converge_tol, converge_min_iters=args.converge_min_iters,
+            **off,
         )
-        if cfg.holdout is not None and cfg.holdout < 0:
-            cfg.holdout = 10**9  # out of range: no held-out light
         check_config(cfg)
         check_out(args.out)
         if args.force and not args.resume:
