@@ -269,7 +269,7 @@ def test_read_only_out_is_one_line(cap, tmp_path, monkeypatch, capsys):
 
 
 def test_lr_nan_never_runs_from_the_api(cap):
-    with pytest.raises(svbrdf.RecoveryError, match="--lr"):
+    with pytest.raises(svbrdf.RecoveryError, match=r"lr \(--lr\) must be"):  # the field and its flag
         recover(cap, RecoveryConfig(lr=float("nan")))
 
 
@@ -282,7 +282,7 @@ def test_soft_metal_and_fusion_settings_are_checked(kw):
     # A NaN smooth weight made every second-pass residual NaN (sqrt(nan)); a negative band
     # reached max_pool2d as a kernel size <= 0. Both are refused up front, naming the setting.
     name = next(iter(kw))
-    with pytest.raises(svbrdf.RecoveryError, match=name.replace("_", "-")):
+    with pytest.raises(svbrdf.RecoveryError, match=f"RecoveryConfig.{name}"):  # no command-line flag
         svbrdf.check_config(RecoveryConfig(**kw))
 
 

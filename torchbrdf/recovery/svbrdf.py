@@ -111,8 +111,18 @@ class RecoveryResult:
 # --------------------------------------------------------------------------------------
 
 
-def _finite(name: str, v, lo: float, hi: float, lo_open: bool = False) -> None:
+def _setting(name: str) -> str:
+    """How an error names a :class:`RecoveryConfig` field.
+
+    ``lr (--lr)`` when the command line has the flag, else ``RecoveryConfig.name`` (a setting of
+    the Python API only).
+    """
     flag = f"--{name.replace('_', '-')}"
+    return f"{name} ({flag})" if flag in _parser()._option_string_actions else f"RecoveryConfig.{name}"
+
+
+def _finite(name: str, v, lo: float, hi: float, lo_open: bool = False) -> None:
+    flag = _setting(name)
     ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
     ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
     if not ok:
@@ -124,7 +134,7 @@ def _integer(name: str, v, lo: int, hi: int, allow_none: bool = False) -> None:
     if v is None and allow_none:
         return
     if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
-        raise RecoveryError(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")
+        raise RecoveryError(f"{_setting(name)} must be an integer in [{lo}, {hi}], got {v!r}")
 
 
 def check_config(cfg: RecoveryConfig) -> None:
