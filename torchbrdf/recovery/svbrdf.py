@@ -122,12 +122,11 @@ def _setting(name: str) -> str:
 
 
 def _finite(name: str, v, lo: float, hi: float, lo_open: bool = False) -> None:
-    flag = _setting(name)
     ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
     ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
-    if not ok:
+    if not ok:  # (the name is looked up in the parser only here: building it costs ~1 ms)
         rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
-        raise RecoveryError(f"{flag} must be a finite number in {rng}, got {v!r}")
+        raise RecoveryError(f"{_setting(name)} must be a finite number in {rng}, got {v!r}")
 
 
 def _integer(name: str, v, lo: int, hi: int, allow_none: bool = False) -> None:
