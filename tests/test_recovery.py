@@ -971,15 +971,18 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     def cost(x, r=None):
         return (fn(x, r) ** 2).sum(-1, keepdim=True)
 
+    def jvp(f):  # the residuals and their derivatives along K directions, as LevelData.residual_jvp
+        return lambda v, tg, r: R._vmapped_jvp(lambda u: f(u, r))(v, tg)
+
     x0 = torch.zeros(n, 8, dtype=torch.float64)
     x0[:, 7] = 0.5
-    x, c = R._soft_lm(fn, cost, x0, 30, fix_metal=True, tol=0.0)
+    x, c = R._soft_lm(jvp(fn), cost, x0, 30, fix_metal=True, tol=0.0)
     want = torch.linalg.lstsq(a[..., :7], (b - a[..., 7] * 0.5)[..., None]).solution[..., 0]
     assert torch.equal(x[:, 7], x0[:, 7])
     assert torch.allclose(x[:, :7], want, atol=1e-6)
     assert torch.allclose(c, cost(x))
     # metallic free: the full solution, its last unknown clamped to [0, 1] by the projected steps
-    x, _ = R._soft_lm(fn, cost, x0, 60, tol=0.0)
+    x, _ = R._soft_lm(jvp(fn), cost, x0, 60, tol=0.0)
     full = torch.linalg.lstsq(a, b[..., None]).solution[..., 0]
     inside = (full[:, 7] > 0) & (full[:, 7] < 1)
     assert torch.allclose(x[inside], full[inside], atol=1e-5)
@@ -991,7 +994,7 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     near = torch.tensor([0.01, 0.01, 20.0, 20.0, 20.0], dtype=torch.float64)[:, None]
     start = torch.cat((want + near, x0[:, 7:]), -1)
     logged = lambda v, r=None: calls.append(r) or fn(v, r)  # noqa: E731
-    x, c = R._soft_lm(logged, cost, start, 60, fix_metal=True, tol=1e-2)
+    x, c = R._soft_lm(jvp(logged), cost, start, 60, fix_metal=True, tol=1e-2)
     best = cost(torch.cat((want, x0[:, 7:]), -1))
     assert bool((c <= best * 1.02 + 1e-9).all()) and torch.allclose(c, cost(x))
     assert any(r is not None and 0 < len(r) < n for r in calls)
@@ -1010,7 +1013,7 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     def cost_p(v, r=None):
         return cost(v, r) + (prior(v, r)[0] ** 2).sum(-1, keepdim=True)
 
-    x, _ = R._soft_lm(fn, cost_p, x0, 60, prior=prior, tol=0.0)
+    x, _ = R._soft_lm(jvp(fn), cost_p, x0, 60, prior=prior, tol=0.0)
     aug = torch.linalg.lstsq(torch.cat((a, row), 1), rhs[..., None]).solution[..., 0]
     inside = (aug[:, 7] > 0) & (aug[:, 7] < 1)
     assert bool(inside.any()) and not torch.allclose(aug[inside], full[inside], atol=1e-3)
@@ -1018,7 +1021,8 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     # ... also when the converged pixels leave (the prior evaluated on row subsets)
     calls.clear()
     logged_p = lambda v, r=None: calls.append(r) or prior(v, r)  # noqa: E731
-    x, c = R._soft_lm(fn, cost_p, torch.cat((aug[:, :7] + near, x0[:, 7:]), -1), 60, prior=logged_p, tol=1e-2)
+    x, c = R._soft_lm(jvp(fn), cost_p, torch.cat((aug[:, :7] + near, x0[:, 7:]), -1), 60, prior=logged_p,
+                      tol=1e-2)
     assert any(r is not None and 0 < len(r) < n for r in calls)
     # (where the optimum's metallic is in [0, 1]: elsewhere the clamped fit cannot reach it)
     assert bool((c[inside] <= cost_p(aug)[inside] * 1.02 + 1e-9).all()) and torch.allclose(c, cost_p(x))
@@ -1031,10 +1035,10 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     cost_inf = lambda v, r=None: R._pixel_cost(fn_inf(v, r))  # noqa: E731
     start_inf = torch.cat((want, x0[:, 7:]), -1)
     start_inf[:, 0] = -6.0
-    x, c = R._soft_lm(fn_inf, cost_inf, start_inf, 60, fix_metal=True, tol=1e-2)
+    x, c = R._soft_lm(jvp(fn_inf), cost_inf, start_inf, 60, fix_metal=True, tol=1e-2)
     assert bool((c <= best * 1.02 + 1e-9).all()), (c, best)
     # ... and with metallic held, the prior's other columns still act (the coupled row)
-    x, _ = R._soft_lm(fn, cost_p, x0, 30, fix_metal=True, prior=prior, tol=0.0)
+    x, _ = R._soft_lm(jvp(fn), cost_p, x0, 30, fix_metal=True, prior=prior, tol=0.0)
     rhs_h = rhs - torch.cat((a, row), 1)[..., 7] * 0.5
     held = torch.linalg.lstsq(torch.cat((a, row), 1)[..., :7], rhs_h[..., None]).solution[..., 0]
     assert torch.allclose(x[:, :7], held, atol=1e-6)
@@ -1286,7 +1290,7 @@ def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t, model)
     for both of the fit's models.
     """
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import LevelData, fit_jacobian
+    from torchbrdf.recovery.solver import LevelData, _vmapped_jvp, fit_jacobian
 
     cap = load_capture(tiny)
     data = LevelData(cap, 32, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
@@ -1298,12 +1302,24 @@ def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t, model)
         return data.residual(v[:, :7], v[:, 7:8] if n_t == 8 else x[:, 7:8], data.train_idx, model)
 
     xs = x if n_t == 8 else x[:, :7]
-    r, jac = fit_jacobian(fn, xs, n_t)
-    assert jac.shape == (32 * 32, n_t, 3 * len(data.train_idx))
-    assert torch.equal(r, fn(xs))
-    for k in range(n_t):
-        col = torch.func.jvp(fn, (xs,), (torch.eye(xs.shape[1])[k].expand_as(xs),))[1]
-        assert torch.allclose(jac[:, k], col, rtol=1e-5, atol=1e-6), k
+    for jvp in (lambda v, tg: data.residual_jvp(v, x[:, 7:8], data.train_idx, model, tg), _vmapped_jvp(fn)):
+        r, jac = fit_jacobian(jvp, xs, n_t)
+        assert jac.shape == (32 * 32, n_t, 3 * len(data.train_idx))
+        assert torch.allclose(r, fn(xs), rtol=1e-6, atol=1e-6)
+        for k in range(n_t):
+            col = torch.func.jvp(fn, (xs,), (torch.eye(xs.shape[1])[k].expand_as(xs),))[1]
+            assert torch.allclose(jac[:, k], col, rtol=1e-5, atol=1e-6), k
+
+
+def test_fit_jacobian_benchmark_times_both_ways(tiny):
+    """``python -m torchbrdf.bench.jvp --fit``: the direct and the vmapped Jacobian, side by side."""
+    from torchbrdf.bench.jvp import fit_jacobian_times
+
+    threads = torch.get_num_threads()
+    res = fit_jacobian_times(sizes=(16, 64), threads=1, reps=1, capture=str(tiny))
+    assert set(res) == {(16, "direct"), (16, "vmap"), (64, "direct"), (64, "vmap")}
+    assert all(t > 0 for t in res.values())
+    assert torch.get_num_threads() == threads  # restored
 
 
 def test_blur_is_the_truncated_normalised_gaussian():

@@ -122,6 +122,71 @@ def test_fit_residual_on_a_few_pixels_runs_fused_with_any_size(monkeypatch):
     assert torch.allclose(fused, eager, atol=2e-5)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fit_residual_jvp_is_the_vmapped_jvp_of_the_residual(monkeypatch, dtype):
+    """``log_residual_points_jvp``: the residual and its derivatives along K directions at once.
+
+    K = 5 directions, each moving some of base colour, roughness, metallic and the normal (one
+    all of them, one none), against ``torch.func.jvp`` of :func:`log_residual_points` one
+    direction at a time, on the eager formula. The fused path is one call of each operator
+    (``capture_jvp``); inputs that need a gradient, or no fused kernel, take the transforms. A
+    tangent of an input that is not there is refused by name.
+    """
+    import torchbrdf
+    import torchbrdf.kernels.ops as ops
+    from torchbrdf.capture.synthetic import log_residual_points, log_residual_points_jvp, pixel_points
+
+    maps = make_material("rusted_metal", seed=4, size=12)
+    pos, inten = light_layout(5)
+    pos, inten = pos.to(dtype), inten.to(dtype)
+    gen = torch.Generator().manual_seed(2)
+    flat = {k: v.permute(1, 2, 0).reshape(-1, v.shape[0]).to(dtype) for k, v in maps.items() if k != "normal"}
+    flat["metallic"] = torch.rand(144, 1, generator=gen, dtype=dtype)  # fractional: both lobes count
+    n = maps["normal"].permute(1, 2, 0).reshape(-1, 3).to(dtype)
+    n = n / n.norm(dim=-1, keepdim=True)
+    pts, cam = pixel_points(12, 12, dtype=dtype).reshape(-1, 3), torch.as_tensor(DEFAULT_CAMERA, dtype=dtype)
+    log_obs = torch.randn(144, pos.shape[0], 3, generator=gen, dtype=dtype) * 0.3 - 1.0
+    K, moved = 5, ("base_color", "roughness", "metallic", "normal")
+    tangents = {k: torch.zeros(K, 144, 3 if k in ("base_color", "normal") else 1, dtype=dtype) for k in moved}
+    tangents["base_color"][0] = torch.rand(144, 3, generator=gen, dtype=dtype)
+    tangents["roughness"][1] = 1.0
+    tangents["normal"][2] = torch.randn(144, 3, generator=gen, dtype=dtype)
+    for k in moved:
+        tangents[k][3] = torch.randn(tangents[k][3].shape, generator=gen, dtype=dtype)
+    #                                   direction 4: nothing moves
+
+    def res(b, r, m, nn):
+        mat = {**flat, "base_color": b, "roughness": r, "metallic": m}
+        return log_residual_points(nn, pts, cam, pos, inten, mat, log_obs, 0.01, any_size=True)
+
+    primals = tuple(n if k == "normal" else flat[k] for k in moved)
+    torchbrdf.set_fast_path(False)
+    try:
+        want_r = res(*primals)
+        want = torch.stack([torch.func.jvp(res, primals, tuple(tangents[k][j] for k in moved))[1]
+                            for j in range(K)])
+    finally:
+        torchbrdf.set_fast_path(None)
+    calls = []
+    direct = ops.capture_jvp
+    monkeypatch.setattr(ops, "capture_jvp", lambda *a, **k: calls.append(1) or direct(*a, **k))
+    tol = {"rtol": 1e-9, "atol": 1e-10} if dtype == torch.float64 else {"rtol": 2e-4, "atol": 2e-4}
+    r, dr = log_residual_points_jvp(n, pts, cam, pos, inten, flat, log_obs, 0.01, tangents, any_size=True)
+    assert calls == [1] and dr.shape == (K, 144, pos.shape[0], 3)
+    torch.testing.assert_close(r, want_r, **tol)
+    torch.testing.assert_close(dr, want, **tol)
+    assert float(dr[4].abs().max()) == 0.0
+    # an input that needs a gradient: the transforms (capture_jvp is not differentiable)
+    needs_grad = {**flat, "specular": flat["specular"].requires_grad_()}
+    r2, dr2 = log_residual_points_jvp(n, pts, cam, pos, inten, needs_grad, log_obs, 0.01, tangents,
+                                      any_size=True)
+    assert calls == [1]
+    torch.testing.assert_close(dr2.detach(), want, **tol)
+    with pytest.raises(ValueError, match="sheen"):
+        log_residual_points_jvp(n, pts, cam, pos, inten, flat, log_obs, 0.01,
+                                {"sheen": tangents["roughness"]})
+
+
 def test_compact_renderer_is_the_library_formula_for_every_parameter():
     # The fit renders through torchbrdf.principled, so it takes every principled parameter (the
     # old hand-written diffuse + GGX copy refused them) and keeps the capture format's frame:

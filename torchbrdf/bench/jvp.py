@@ -10,6 +10,12 @@ every principled parameter a per-lane tensor (float32, CPU):
 Each fused time includes the forward evaluation that ``torch.func.jvp`` also returns. The
 first call of each (kernel build or load, warm-up) is not timed; the best of a few runs is
 reported.
+
+``python -m torchbrdf.bench.jvp --fit [--threads 2]`` times the SVBRDF recovery's Jacobian
+(:func:`torchbrdf.recovery.solver.fit_jacobian`, the soft-metal fit's 8 unknowns: 6 directions)
+on the demo capture (128², 16 lights and the flash) for a few pixel counts: the fused operators
+called directly (:meth:`~torchbrdf.recovery.solver.LevelData.residual_jvp`) against
+``torch.func.vmap`` over ``torch.func.jvp`` of the residual, side by side; medians of ``reps``.
 """
 
 from __future__ import annotations
@@ -72,14 +78,65 @@ def run(log2n: int = 20, threads: int = 1, reps: int = 3) -> dict:
     return res
 
 
+def fit_jacobian_times(sizes: Sequence[int] = (16, 256, 4096, 16384), threads: int = 1, reps: int = 7,
+                       capture: str | None = None) -> dict:
+    """Median seconds of the recovery's 6-direction Jacobian, ``{(pixels, "direct" | "vmap"): s}``.
+
+    On the capture folder ``capture`` (default: the demo capture). Prints a table; see the
+    module docstring.
+    """
+    from torchbrdf.capture import default_capture, load_capture
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        return _fit_jacobian_times(load_capture(capture or default_capture()), sizes, threads, reps)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _fit_jacobian_times(cap, sizes: Sequence[int], threads: int, reps: int) -> dict:
+    """:func:`fit_jacobian_times` on a loaded capture ``cap``."""
+    import statistics
+
+    from torchbrdf.recovery.solver import LevelData, _vmapped_jvp, fit_jacobian
+
+    data = LevelData(cap, cap.width, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    g = torch.Generator().manual_seed(0)
+    x_all = torch.cat((torch.randn(data.points.shape[0], 7, generator=g) * 0.5,
+                       torch.rand(data.points.shape[0], 1, generator=g)), -1)
+    idx, res = data.train_idx, {}
+    print(f"fit_jacobian, 6 directions, {len(idx)} lights, float32, {threads} thread(s), median of {reps}")
+    print("  pixels     direct      vmap(jvp)")
+    for n in sizes:
+        n = min(n, x_all.shape[0])
+        sub, x = data.subset(torch.arange(n)), x_all[:n]
+        ways = {"direct": lambda v, tg: sub.residual_jvp(v, v[:, 7:8], idx, "principled", tg),  # noqa: B023
+                "vmap": _vmapped_jvp(lambda v: sub.residual(v[:, :7], v[:, 7:8], idx, "principled"))}  # noqa: B023
+        for name, jvp in ways.items():
+            fit_jacobian(jvp, x, 8)  # kernel build or load, warm-up
+            ts = []
+            for _ in range(reps):
+                t0 = time.perf_counter()
+                fit_jacobian(jvp, x, 8)
+                ts.append(time.perf_counter() - t0)
+            res[(n, name)] = statistics.median(ts)
+        print(f"  {n:6d} {res[(n, 'direct')] * 1e3:9.1f} ms {res[(n, 'vmap')] * 1e3:9.1f} ms")
+    return res
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--log2n", type=int, default=20)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--fit", action="store_true", help="time the recovery's Jacobian instead")
     a = ap.parse_args(argv)
-    run(a.log2n, a.threads, a.reps)
+    if a.fit:
+        fit_jacobian_times(threads=a.threads, reps=max(a.reps, 7))
+    else:
+        run(a.log2n, a.threads, a.reps)
 
 
 if __name__ == "__main__":

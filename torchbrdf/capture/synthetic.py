@@ -583,8 +583,71 @@ def log_residual_points(
     fit's first full-size call compiles them, and its later calls on a few pixels (refits,
     converged pixels left out) then cost half as much fused as eager.
     """
-    from torchbrdf import _checks
     from torchbrdf.brdf import formula
+
+    c, active, need_tint, frame, backend = _capture_inputs(normal, points, camera, light_pos, light_int,
+                                                           params, log_obs, eps, any_size)
+    if backend is not None:
+        from torchbrdf.kernels.ops import capture_fast
+
+        return capture_fast(c, active, need_tint, frame, backend)
+    ops = formula.TorchOps(log_obs.dtype, log_obs.device)
+    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+
+
+def log_residual_points_jvp(
+    normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: Mapping,
+    log_obs: Tensor, eps: float, tangents: Mapping[str, Tensor], any_size: bool = False,
+) -> tuple[Tensor, Tensor]:
+    """:func:`log_residual_points` and its derivatives along ``K`` directions at once.
+
+    ``tangents``: ``{name: (K, P, C)}``, the directions' tangents of ``"normal"`` and of
+    entries of ``params`` (each the shape of its input with a leading ``K``); every other input
+    is held. The other arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3),
+    dr (K, P, L, 3))``, ``dr[k]`` what ``torch.func.jvp`` of :func:`log_residual_points` along
+    direction ``k`` gives. On the fused kernels, one forward and one JVP call of the operators
+    (:func:`torchbrdf.kernels.ops.capture_jvp`), which prunes each direction to its own
+    tangents: a fit's Gauss–Newton Jacobian without the ``vmap``-of-``jvp`` transforms' work
+    per call; otherwise (no kernel, or inputs that need a gradient) that ``vmap`` of ``jvp``.
+    """
+    unknown = set(tangents) - {"normal", *params}
+    if unknown:
+        raise ValueError(f"log_residual_points_jvp: tangents for {sorted(unknown)}: expected 'normal' or "
+                         f"keys of params ({sorted(params)})")
+    c, active, need_tint, frame, backend = _capture_inputs(normal, points, camera, light_pos, light_int,
+                                                           params, log_obs, eps, any_size)
+    needs_grad = torch.is_grad_enabled() and any(
+        isinstance(t, Tensor) and t.requires_grad for t in c.values())
+    if backend is not None and not needs_grad and not frame:
+        from torchbrdf.kernels.ops import capture_jvp
+
+        # the inputs' per-pixel (P, 1, C) layout, as _capture_inputs gives them
+        tans = {"n" if k == "normal" else k: t[:, :, None] for k, t in tangents.items()}
+        return capture_jvp(c, tans, active, need_tint, frame, backend)
+    names = list(tangents)
+
+    def res(*vals: Tensor) -> Tensor:
+        given = dict(zip(names, vals))
+        p = {k: given.get(k, v) for k, v in params.items()}
+        return log_residual_points(given.get("normal", normal), points, camera, light_pos, light_int, p,
+                                   log_obs, eps, any_size)
+
+    primals = tuple(normal if k == "normal" else params[k] for k in names)
+    out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the directions
+    pair: Any = torch.func.vmap(lambda *tg: torch.func.jvp(res, primals, tg), out_dims=out_dims)(
+        *(tangents[k] for k in names))
+    return pair
+
+
+def _capture_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+                    params: Mapping, log_obs: Tensor, eps: float, any_size: bool
+                    ) -> tuple[dict[str, Any], tuple, bool, bool, str | None]:
+    """The checked inputs of :func:`~torchbrdf.brdf.formula.capture_log_residual` and how to run it.
+
+    Returns ``(c, active lobes, need_tint, frame, backend)``: ``c`` with the per-pixel values as
+    ``(P, 1, C)`` (broadcast over the lights), and the fused backend (None: eager).
+    """
+    from torchbrdf import _checks
     from torchbrdf.brdf import principled as _p
 
     _checks.check_same_dtype_device({"log_obs": log_obs, "normal": normal, "points": points, "camera": camera,
@@ -605,12 +668,7 @@ def log_residual_points(
     lanes = log_obs.shape[0] * log_obs.shape[1]
     backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors,
                                 lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
-    if backend is not None:
-        from torchbrdf.kernels.ops import capture_fast
-
-        return capture_fast(c, active, need_tint, frame, backend)
-    ops = formula.TorchOps(log_obs.dtype, log_obs.device)
-    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+    return c, active, need_tint, frame, backend
 
 
 def render_capture(

@@ -12,7 +12,8 @@ Python floats):
   ``spec.go_strides``), ``gout[k]`` a lane-dense ``(n, C_k)`` gradient of input ``k``;
 * ``tb_jvp(n, in, P, tin, tout, nthreads)``: ``tin[j * T + i]`` the tangent ``j`` of the
   ``i``-th input of ``spec.tangent_inputs`` (``T`` of them), ``tout[j]`` its ``(n, 3)`` output
-  tangent: several tangents in one pass over the primal computation.
+  tangent: several tangents in one pass over the primal computation (a slot whose tangent
+  mode is ``"zero"`` is never read: that input has no tangent in that direction).
 """
 
 from __future__ import annotations
@@ -257,7 +258,8 @@ def generate(spec: _KernelSpec, kind: str) -> str:
     else:
         T = len(spec.tangent_inputs)
         for j in range(spec.ntan):
-            decl += [f"const R* __restrict t{j}_{i} = (const R*)tin[{j * T + i}];" for i in range(T)]
+            decl += [f"const R* __restrict t{j}_{i} = (const R*)tin[{j * T + i}];" for i in range(T)
+                     if spec.tangent_modes[j * T + i] != "zero"]  # "zero": pruned, never read
             decl.append(f"R* __restrict to{j} = (R*)tout[{j}];")
         sig = "void tb_jvp(long n, void** in, const double* P, void** tin, void** tout, int nthreads)"
     stores = [(_store_expr(t, spec), val) for t, val in kg.stores]

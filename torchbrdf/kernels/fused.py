@@ -76,7 +76,8 @@ class _KernelSpec:
     ``tensors``: ``(name, mode, C)`` per tensor input; ``floats``: names of the runtime
     Python floats; backward: ``go_strides`` and ``grad_mask`` (indices needing gradients);
     JVP: ``tangent_inputs`` (indices with tangents), ``tangent_modes`` (one per tangent slot,
-    ``ntan`` × ``len(tangent_inputs)``) and ``ntan`` (tangents per pass); ``family``: the
+    ``ntan`` × ``len(tangent_inputs)``; ``"zero"``: that input has no tangent in that
+    direction, pruned from the kernel) and ``ntan`` (tangents per pass); ``family``: the
     formula (:data:`torchbrdf.brdf.formula.FAMILIES`).
     """
 

@@ -97,6 +97,8 @@ def build(spec: _KernelSpec, kind: str) -> KernelGraph:
                 tseeds: dict[int, Node] = {}
                 for i, k in enumerate(spec.tangent_inputs):
                     mode, C = spec.tangent_modes[j * T + i], spec.tensors[k][2]
+                    if mode == "zero":  # no tangent on this input in direction j: pruned
+                        continue
                     for nd in loads:
                         if nd.attr["k"] == k:
                             attr = {"role": "t", "j": j, "i": i, "k": k, "c": nd.attr["c"], "mode": mode,

@@ -35,7 +35,7 @@ from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels import graphs
 from torchbrdf.kernels.fused import _KernelSpec, _load, _pool
 
-__all__ = ["principled_fast", "capture_fast", "CAPTURE_INPUTS"]
+__all__ = ["principled_fast", "capture_fast", "capture_jvp", "CAPTURE_INPUTS"]
 
 SCALAR_NAMES = SCALAR_PARAMS
 
@@ -287,60 +287,66 @@ def _run_bwd(plan: _Plan, tensors, grad_out: Tensor, need) -> list:
     return grads
 
 
-def _tangent_groups(tangents: list[Tensor], ntan: int, K: int) -> list[tuple[list[int], list[int]]]:
-    """The passes of a JVP: ``(directions js, tangent positions ks)``, ≤ ``TANGENTS_PER_PASS`` js.
+def _directions_per_tangent(tangents: list[Tensor], ntan: int, K: int) -> list[list[bool]]:
+    """``nz[j][k]``: whether tangent ``k`` is nonzero in direction ``j``.
 
-    With ``ntan = K`` directions on the CPU, directions are grouped by which inputs' tangents
-    are nonzero in them, and each pass carries only those: the pruning then drops the
-    forward-mode work of the others. A Gauss–Newton Jacobian's directions are unit vectors in
-    one unknown each (a base colour channel, the roughness, a normal slope), so this turns one
-    pass over every input's tangent into a few narrow ones: the recovery's 7 directions run in
-    the same time (0.11 s at 256², 16 lights) from four kernels that compile in 0.3-0.5 s each,
-    instead of one that took 3.3 s. On CUDA the scan would be a host sync: one group.
+    ``K`` directions (``ntan = 0``: one). A scan on the CPU; on CUDA every nonempty tangent
+    counts as nonzero in every direction (the scan would be a host sync per tangent).
     """
-    everything = list(range(len(tangents)))
-    if ntan == 0 or any(t.device.type != "cpu" for t in tangents):
-        sig_of = {j: tuple(everything) for j in range(K)}
-    else:
-        nz = torch.stack([t.ne(0).reshape(K, -1).any(1) for t in tangents]).T.tolist()  # (K, T)
-        sig_of = {j: tuple(k for k in everything if nz[j][k]) for j in range(K)}
-    by_sig: dict[tuple, list[int]] = {}
-    for j in range(K):
-        by_sig.setdefault(sig_of[j], []).append(j)
-    return [(js[a:a + TANGENTS_PER_PASS], list(sig)) for sig, js in by_sig.items()
-            for a in range(0, len(js), TANGENTS_PER_PASS)]
+    if not tangents:
+        return [[] for _ in range(K)]
+    if any(t.device.type != "cpu" for t in tangents):
+        return [[bool(t.numel()) for t in tangents] for _ in range(K)]
+    if ntan == 0:  # one direction
+        return [[bool(t.numel()) and bool(t.ne(0).any()) for t in tangents]]
+    return torch.stack([t.reshape(K, -1).ne(0).any(1) for t in tangents], 1).tolist()
 
 
 def _run_jvp(plan: _Plan, tensors, tangents, tidx, ntan: int) -> Tensor:
-    """Output tangents: ``(*batch, 3)``, or ``(ntan, *batch, 3)`` when ``ntan > 0``."""
+    """Output tangents: ``(*batch, 3)``, or ``(ntan, *batch, 3)`` when ``ntan > 0``.
+
+    The ``K`` directions run in passes of up to :data:`TANGENTS_PER_PASS`, the primal computed
+    once per pass. Each direction carries only the tangents that are nonzero in it (the others
+    are pruned from the kernel, tangent mode ``"zero"``): a Gauss–Newton Jacobian's directions
+    are unit vectors in one unknown each (a base colour, the roughness, a normal slope), so its
+    six directions cost one primal and six narrow tangent chains — 14 ms at 16384 pixels ×
+    16 lights, where one pass per tangent input took 32 ms and one pass with every tangent in
+    every direction 45 ms (float32, 2 threads). A tangent that is zero in every direction (one
+    a caller passes explicitly; torch.func's own arrive as None, see
+    :meth:`_PrincipledFunction.setup_context`) is dropped altogether.
+    """
     K = max(1, ntan)
     N, dtype = plan.N, plan.dtype
     shape = (*plan.batch, 3) if ntan == 0 else (ntan, *plan.batch, 3)
-    # An all-zero tangent (one a caller passes explicitly; torch.func's own arrive as None, see
-    # _PrincipledFunction.setup_context) is dropped, which prunes its forward-mode work from the
-    # kernel. Only on the CPU: on CUDA the scan would be a host sync per tangent.
-    nonzero = [k for k, t in enumerate(tangents)
-               if t.numel() and (t.device.type != "cpu" or bool(t.ne(0).any()))]
-    tidx, tangents = [tidx[k] for k in nonzero], [tangents[k] for k in nonzero]
+    nz = _directions_per_tangent(tangents, ntan, K)  # (K, T)
+    used = [k for k in range(len(tangents)) if any(row[k] for row in nz)]
+    tidx, tangents = [tidx[k] for k in used], [tangents[k] for k in used]
+    nz = [[row[k] for k in used] for row in nz]
     if N == 0 or not tidx:
         return torch.zeros(shape, dtype=dtype, device=plan.device)
     if plan.backend == "triton":
         return _triton_jvp(plan, tensors, tangents, tidx, ntan)
     flat, modes = plan.flat(tensors, s2=True)
     out = torch.empty((K, N, 3), dtype=dtype)
-    for js, ks in _tangent_groups(tangents, ntan, K):
+    for j0 in range(0, K, TANGENTS_PER_PASS):
+        js = range(j0, min(K, j0 + TANGENTS_PER_PASS))
+        ks = [k for k in range(len(tangents)) if any(nz[j][k] for j in js)]
         if not ks:  # every input's tangent is zero in these directions
             out[list(js)] = 0
             continue
-        g_tidx = [tidx[k] for k in ks]
         tflat, tmodes = [], []
         for j in js:
             for k in ks:
+                if not nz[j][k]:  # pruned: no load, no tangent chain (the pointer is not read)
+                    tflat.append(flat[0])
+                    tmodes.append("zero")
+                    continue
                 t = tangents[k]
                 f, m = _flatten((t[j] if ntan else t).to(dtype), plan.C[tidx[k]], plan.batch, N, s2=True)
                 tflat.append(f)
                 tmodes.append(m)
-        spec = plan.spec(modes, tangent_inputs=tuple(g_tidx), tangent_modes=tuple(tmodes), ntan=len(js))
+        spec = plan.spec(modes, tangent_inputs=tuple(tidx[k] for k in ks), tangent_modes=tuple(tmodes),
+                         ntan=len(js))
         lib = _load(spec, backward="jvp")
         if lib is None:  # no kernel: forward-mode AD of the same formula, eagerly
             primals = tuple(t.detach() for t in tensors)
@@ -798,8 +804,40 @@ def capture_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, fram
     return _fused(c, CAPTURE_INPUTS, active, need_tint, frame, backend, "capture")
 
 
-def _fused(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need_tint: bool, frame: bool,
-           backend: str, family: str) -> Tensor:
+def capture_jvp(c: dict[str, Any], tangents: dict[str, Tensor], active: Iterable[str], need_tint: bool,
+                frame: bool, backend: str = "c") -> tuple[Tensor, Tensor]:
+    """:func:`capture_fast` and its derivatives along ``K`` directions, from one call of each operator.
+
+    ``tangents``: ``{name: (K, *c[name].shape)}`` for some tensor inputs of ``c`` (the others
+    are held). Returns ``(out (*, 3), out tangents (K, *, 3))``. The same operators that
+    ``torch.func.vmap`` over ``torch.func.jvp`` reaches (``principled_fwd`` and
+    ``principled_jvp`` with ``ntan = K``), called directly: without the transforms' work per
+    call on the whole ``(K, *, 3)`` tangent (wrapping, batching rules, concatenations), which
+    took longer than the kernels themselves (a fit's 6-direction Jacobian of 16384 pixels ×
+    16 lights: 50 ms through the transforms, of which 14 ms kernel). Not differentiable: for a
+    fit's Jacobian, whose inputs need no gradient.
+    """
+    tensor_names, tensors, floats, cfg = _operator_args(c, CAPTURE_INPUTS, active, need_tint, frame, backend,
+                                                        "capture")
+    if any(t.requires_grad for t in tensors) and torch.is_grad_enabled():
+        raise RuntimeError("capture_jvp: inputs that require grad (it is not differentiable)")
+    unknown = set(tangents) - set(tensor_names)
+    if unknown:
+        raise ValueError(f"capture_jvp: tangents for {sorted(unknown)}, which are not tensor inputs")
+    tidx = [i for i, k in enumerate(tensor_names) if k in tangents]
+    K = next(iter(tangents.values())).shape[0] if tangents else 0
+    # (K, *shape) with the operators' (1,) for a 0-d input
+    tans = [tangents[tensor_names[i]].reshape(K, *tensors[i].shape) for i in tidx]
+    out = principled_fwd(tensors, floats, cfg)
+    if K == 0:
+        return out, out.new_zeros(0, *out.shape)
+    return out, principled_jvp(tensors, floats, cfg, tans, tidx, K)
+
+
+def _operator_args(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need_tint: bool,
+                   frame: bool, backend: str, family: str
+                   ) -> tuple[list[str], list[Tensor], list[float], str]:
+    """The operators' ``(tensor names, tensors, floats, cfg)`` for inputs ``c``."""
     names = [k for k in lead + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
     tensor_names = [k for k in names if isinstance(c.get(k), Tensor)]
     float_names = [k for k in names if k not in tensor_names]
@@ -807,6 +845,12 @@ def _fused(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
     cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, backend, family)
+    return tensor_names, tensors, floats, cfg
+
+
+def _fused(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need_tint: bool, frame: bool,
+           backend: str, family: str) -> Tensor:
+    _, tensors, floats, cfg = _operator_args(c, lead, active, need_tint, frame, backend, family)
     if torch.compiler.is_compiling():
         return principled_fwd(tensors, floats, cfg)
     return _PrincipledFunction.apply(cfg, _Floats(floats), *tensors)

@@ -86,7 +86,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import light_geometry, log_residual_points, render_capture
+from torchbrdf.capture.synthetic import (light_geometry, log_residual_points, log_residual_points_jvp,
+                                         render_capture)
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, local_prior, pcg, prior_energy
 
@@ -280,7 +281,44 @@ class LevelData:
         ``theta (N, 7)`` and ``metal (N, 1)`` are every pixel's (``N = P``), or, with
         ``rows`` (pixel indices ``(N,)``, repeats allowed, or a slice), those of the listed pixels.
         """
-        p = decode(theta, metal)
+        points, log_obs, light = self._targets(idx, model, rows)
+        r = log_residual(decode(theta, metal), points, self.camera, self.pos[idx], self.inten[idx], log_obs,
+                         self.eps, model, light)
+        return r.reshape(theta.shape[0], -1)
+
+    def residual_jvp(self, x: Tensor, metal: Tensor, idx: list[int], model: str, tangents: Tensor,
+                     rows: Tensor | slice | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`residual` and its derivatives along ``K`` directions of the unknowns at once.
+
+        ``x (N, 7)``: theta; or ``(N, 8)``: theta and a continuous metallic (``metal`` is then
+        unused); ``tangents (K, N, x's columns)``; ``metal``, ``idx``, ``model``, ``rows`` as for
+        :meth:`residual`. Returns ``(r (N, M), dr (K, N, M))``, ``M = 3 len(idx)``, ``dr[k]``
+        = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``. The principled model
+        evaluates them in one call of the fused operators (:func:`log_residual_points_jvp`,
+        :func:`decode`'s own tangents by ``torch.func``); the others through ``torch.func``.
+        """
+        def unknowns(v: Tensor) -> tuple[Tensor, Tensor]:
+            return (v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal)
+
+        if model != "principled":
+            return _vmapped_jvp(lambda v: self.residual(*unknowns(v), idx, model, rows))(x, tangents)
+        points, log_obs, _ = self._targets(idx, model, rows)
+        out_dims: Any = (None, 0)  # the primal is not batched over the directions
+        pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(lambda v: decode(*unknowns(v)), (x,), (tg,)),
+                                    out_dims=out_dims)(tangents)
+        p, dp = pair
+        moved = {k: t for k, t in dp.items() if k != "metallic" or x.shape[1] == 8}
+        r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
+                                        log_obs, self.eps, moved, any_size=True)
+        return r.reshape(x.shape[0], -1), dr.reshape(tangents.shape[0], x.shape[0], -1)
+
+    def _targets(self, idx: list[int], model: str, rows: Tensor | slice | None
+                 ) -> tuple[Tensor, Tensor, dict | None]:
+        """The pixels' points ``(N, 3)``, log targets ``(N, L, 3)`` and light geometry.
+
+        On lights ``idx``; the geometry only for models other than the principled (else None);
+        ``rows`` as for :meth:`residual`.
+        """
         key = (model, tuple(idx))
         if key not in self._light:  # per light set, once: the targets (and the geometry a model needs)
             log_obs_pl = self.log_obs[idx].permute(1, 0, 2).contiguous()  # (P, L, 3)
@@ -292,9 +330,7 @@ class LevelData:
             points, log_obs = points[rows], log_obs[rows]
         if rows is not None and light is not None:
             light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
-        r = log_residual(p, points, self.camera, self.pos[idx], self.inten[idx], log_obs, self.eps, model,
-                         light)
-        return r.reshape(theta.shape[0], -1)
+        return points, log_obs, light
 
 
 def log_residual(p: dict, points: Tensor, camera: Tensor, pos: Tensor, inten: Tensor, log_obs: Tensor,
@@ -413,29 +449,41 @@ def _kmeans(x: Tensor, k: int, iters: int = 8, return_centres: bool = False) -> 
     return c if return_centres else torch.cdist(x, c).argmin(-1)
 
 
-def fit_jacobian(fn: Callable[[Tensor], Tensor], x: Tensor, n_t: int) -> tuple[Tensor, Tensor]:
-    """Residuals and their per-pixel Jacobian by forward mode, the base colour in one pass.
+def _vmapped_jvp(fn: Callable[[Tensor], Tensor]) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+    """``torch.func.jvp`` of ``fn`` vmapped over the directions (the primal computed once).
 
-    ``fn(x) (N, M)`` and its Jacobian ``(N, n_t, M)`` w.r.t. the first ``n_t`` (≥ 3) columns of
-    ``x (N, K)`` — the unknowns of :func:`decode`, base-colour logits first — by
-    ``torch.func.jvp`` vmapped over the tangents, whose primal output is the residual (no
-    extra render).
+    Returns ``jvp(x, tangents (K, *x.shape)) -> (fn(x), derivatives (K, *fn(x).shape))``.
+    """
+    out_dims: Any = (None, 0)  # the primal is not batched over the directions
+
+    def jvp(x: Tensor, tangents: Tensor) -> tuple[Tensor, Tensor]:
+        pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (x,), (tg,)), out_dims=out_dims)(tangents)
+        return pair
+
+    return jvp
+
+
+def fit_jacobian(jvp: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tensor, n_t: int
+                 ) -> tuple[Tensor, Tensor]:
+    """Residuals and their per-pixel Jacobian by forward mode, the base colour in one direction.
+
+    ``jvp(x, tangents (K, N, K')) -> (r (N, M), derivatives (K, N, M))``: the residuals at
+    ``x (N, K')`` and their derivatives along ``K`` directions of ``x`` at once
+    (:meth:`LevelData.residual_jvp`, or :func:`_vmapped_jvp` of a residual function). Returns
+    ``r`` and its Jacobian ``(N, n_t, M)`` w.r.t. the first ``n_t`` (≥ 3) columns of ``x`` —
+    the unknowns of :func:`decode`, base-colour logits first.
 
     The fit's models act on each colour channel with that channel's base colour alone (no tint:
     :func:`decode` sets none), and ``M`` interleaves the channels (light-major, ``3 l + c``), so
-    one tangent along all three base-colour logits gives their three columns at once, each on
-    its own channel's residuals: ``n_t − 2`` forward passes instead of ``n_t`` (the Gauss–Newton
-    Jacobian ~14 % faster). Non-finite Jacobian entries are 0; the residuals are as they come.
-    Both on ``x``'s device, in its dtype.
+    one direction along all three base-colour logits gives their three columns at once, each on
+    its own channel's residuals: ``n_t − 2`` directions instead of ``n_t``. Non-finite Jacobian
+    entries are 0; the residuals are as they come. Both on ``x``'s device, in its dtype.
     """
     k = n_t - 2
     tan = torch.zeros(k, x.shape[1], dtype=x.dtype, device=x.device)
     tan[0, 0:3] = 1.0
     tan[1:, 3:n_t] = torch.eye(n_t - 3, dtype=x.dtype, device=x.device)
-    tangents = tan[:, None, :].expand(k, *x.shape)
-    out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the tangents
-    pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (x,), (tg,)), out_dims=out_dims)(tangents)
-    r, cols = pair
+    r, cols = jvp(x, tan[:, None, :].expand(k, *x.shape))
     cols = cols.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)  # (k, N, M), a fresh tensor: in place
     channel = torch.arange(cols.shape[-1], device=x.device) % 3
     own = (channel == torch.arange(3, device=x.device)[:, None]).to(cols.dtype)  # (3, M)
@@ -449,8 +497,8 @@ def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int]
     Returns ``r (P, M)`` (the residuals at ``theta``, non-finite entries as they come),
     ``JᵀJ (P, 7, 7)`` and ``Jᵀr (P, 7)`` w.r.t. each pixel's 7 unknowns (non-finite Jacobian
     entries and residuals count as 0 there). Pixels are independent, so forward mode
-    (:func:`fit_jacobian`: five passes for the seven unknowns, the residual as their primal
-    output) gives every pixel's Jacobian. It runs over blocks of
+    (:func:`fit_jacobian`: five directions for the seven unknowns, in one call of the fused
+    operators, the residual as their primal output) gives every pixel's Jacobian. It runs over blocks of
     ``chunk`` pixels and reduces each block to its 7×7 products at once, so the
     ``7 × lights × pixels`` Jacobian never exists whole: its blocks stay in cache and below
     the allocator's mmap threshold (a whole 256² Jacobian is 88 MB, and every fresh
@@ -463,7 +511,8 @@ def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int]
     for s0 in range(0, P, chunk):
         rows = slice(s0, min(s0 + chunk, P))
         t, m = theta[rows], metal[rows]
-        r, jt = fit_jacobian(lambda x: data.residual(x, m, idx, model, rows=rows), t, _N_PARAMS)  # noqa: B023
+        r, jt = fit_jacobian(lambda x, tg: data.residual_jvp(x, m, idx, model, tg, rows=rows),  # noqa: B023
+                             t, _N_PARAMS)
         r_out[rows] = r
         torch.bmm(jt, jt.transpose(1, 2), out=jtj[rows])
         torch.bmm(jt, torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0)[..., None], out=jtr[rows, :, None])
@@ -1349,19 +1398,20 @@ def _at(v: Any, r: _Rows) -> Any:
     return v[r] if isinstance(v, Tensor) and r is not None else v
 
 
-def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Rows], Tensor], x: Tensor,
-             iters: int, fix_metal: bool = False,
+def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
+             cost: Callable[[Tensor, _Rows], Tensor], x: Tensor, iters: int, fix_metal: bool = False,
              prior: Callable[[Tensor, _Rows], tuple[Tensor, Tensor]] | None = None, tol: float = 1e-3
              ) -> tuple[Tensor, Tensor]:
-    """``iters`` per-pixel LM iterations on ``x (N, 8)`` (residuals ``fn``, metallic — the last
-    column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which then has
-    no tangent: 5 instead of 6 per Jacobian, :func:`fit_jacobian`). ``prior``: the prior
-    residuals and their Jacobian (``x`` → ``(N, k)``, ``(N, k, 8)``, as :func:`_soft_prior`),
-    added to the normal equations by hand (they are not part of ``fn``'s forward-mode
-    Jacobian, which would copy them once per tangent); ``cost`` must include them. ``fn``,
-    ``cost`` and ``prior`` take the unknowns of some of the pixels and their indices (``None``:
-    all N, in order); ``fn``'s base-colour unknowns act each on its own channel's residuals
-    (:func:`fit_jacobian`).
+    """``iters`` per-pixel LM iterations on ``x (N, 8)`` (the data residuals and their
+    derivatives along K directions from ``jvp``, as :meth:`LevelData.residual_jvp`; metallic —
+    the last column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which
+    then has no tangent: 5 instead of 6 per Jacobian, :func:`fit_jacobian`). ``prior``: the
+    prior residuals and their Jacobian (``x`` → ``(N, k)``, ``(N, k, 8)``, as
+    :func:`_soft_prior`), added to the normal equations by hand (they are not part of the data
+    residuals' forward-mode Jacobian, which would copy them once per tangent); ``cost`` must
+    include them. ``jvp``, ``cost`` and ``prior`` take the unknowns of some of the pixels and
+    their indices (``None``: all N, in order); the base-colour unknowns act each on its own
+    channel's residuals (:func:`fit_jacobian`).
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
@@ -1380,7 +1430,7 @@ def _soft_lm(fn: Callable[[Tensor, _Rows], Tensor], cost: Callable[[Tensor, _Row
             break
         rows: _Rows = None if active.numel() == x.shape[0] else active
         xa, ca, la = (x, c, lam) if rows is None else (x[rows], c[rows], lam[rows])
-        r, jac = fit_jacobian(lambda v: fn(v, rows), xa, n_t)  # noqa: B023  (n, M), (n, n_t, M)
+        r, jac = fit_jacobian(lambda v, tg: jvp(v, tg, rows), xa, n_t)  # noqa: B023  (n, M), (n, n_t, M)
         r = r.nan_to_num_()  # (a fresh tensor of the jvp: cleaned in place)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
         g = torch.bmm(jac, r[..., None])[..., 0]
@@ -1452,13 +1502,16 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         def fn_(v: Tensor, r: _Rows) -> Tensor:
             return sub_.residual(v[:, :7], v[:, 7:8], idx, model, rows=r)
 
+        def jvp_(v: Tensor, tg: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
+            return sub_.residual_jvp(v, v[:, 7:8], idx, model, tg, rows=r)
+
         def prior_(v: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
             return _soft_prior(v, well, _at(target_, r), _at(smooth_, r), _at(line_, r),
                                _at(line_weight_, r))
 
-        return fn_, prior_, lambda v, r: _pixel_cost(torch.cat((fn_(v, r), prior_(v, r)[0]), -1))
+        return jvp_, prior_, lambda v, r: _pixel_cost(torch.cat((fn_(v, r), prior_(v, r)[0]), -1))
 
-    fn, prior, cost = energy(sub, target, smooth, line, line_weight)
+    jvp, prior, cost = energy(sub, target, smooth, line, line_weight)
 
     best, best_c = None, None
     for m_start in starts:
@@ -1469,7 +1522,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
             t_init, m_start = m_start
         m_init = m0 if m_start is None else target if m_start == "target" else torch.full_like(m0, m_start)
         assert m_init is not None, "soft_metal_fit: a 'target' start needs `target`"
-        x, c = _soft_lm(fn, cost, torch.cat((t_init, m_init), -1), iters, prior=prior)
+        x, c = _soft_lm(jvp, cost, torch.cat((t_init, m_init), -1), iters, prior=prior)
         best, best_c = _keep_better(best, best_c, x, c)
     assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
     # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
@@ -1498,9 +1551,9 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     away = torch.nonzero(((m_snap != m0) & (best_c < c_ref - margin))[:, 0]).squeeze(1) if refit_reference \
         else rows[:0]
     if away.numel():
-        fn_a, prior_a, cost_a = energy(sub.subset(away), _at(target, away), _at(smooth, away),
-                                       _at(line, away), _at(line_weight, away))
-        ref_a, c_fix = _soft_lm(fn_a, cost_a, ref[away], iters, fix_metal=True, prior=prior_a)
+        jvp_a, prior_a, cost_a = energy(sub.subset(away), _at(target, away), _at(smooth, away),
+                                        _at(line, away), _at(line_weight, away))
+        ref_a, c_fix = _soft_lm(jvp_a, cost_a, ref[away], iters, fix_metal=True, prior=prior_a)
         keep_a = c_fix < c_ref[away]
         ref[away] = torch.where(keep_a, ref_a, ref[away])
         c_ref[away] = torch.where(keep_a, c_fix, c_ref[away])
