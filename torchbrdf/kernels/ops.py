@@ -809,7 +809,8 @@ def capture_jvp(c: dict[str, Any], tangents: dict[str, Tensor], active: Iterable
     """:func:`capture_fast` and its derivatives along ``K`` directions, from one call of each operator.
 
     ``tangents``: ``{name: (K, *c[name].shape)}`` for some tensor inputs of ``c`` (the others
-    are held). Returns ``(out (*, 3), out tangents (K, *, 3))``. The same operators that
+    are held). Returns ``(out (*, 3), out tangents (K, *, 3))`` in the inputs' dtype, on their
+    device (the operators' rules: one dtype and device for all). The same operators that
     ``torch.func.vmap`` over ``torch.func.jvp`` reaches (``principled_fwd`` and
     ``principled_jvp`` with ``ntan = K``), called directly: without the transforms' work per
     call on the whole ``(K, *, 3)`` tangent (wrapping, batching rules, concatenations), which

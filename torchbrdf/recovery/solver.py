@@ -293,7 +293,8 @@ class LevelData:
         ``x (N, 7)``: theta; or ``(N, 8)``: theta and a continuous metallic (``metal`` is then
         unused); ``tangents (K, N, x's columns)``; ``metal``, ``idx``, ``model``, ``rows`` as for
         :meth:`residual`. Returns ``(r (N, M), dr (K, N, M))``, ``M = 3 len(idx)``, ``dr[k]``
-        = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``. The principled model
+        = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``, in ``x``'s dtype, on its
+        device. The principled model
         evaluates them in one call of the fused operators (:func:`log_residual_points_jvp`,
         :func:`decode`'s own tangents by ``torch.func``); the others through ``torch.func``.
         """
@@ -303,13 +304,10 @@ class LevelData:
         if model != "principled":
             return _vmapped_jvp(lambda v: self.residual(*unknowns(v), idx, model, rows))(x, tangents)
         points, log_obs, _ = self._targets(idx, model, rows)
-        out_dims: Any = (None, 0)  # the primal is not batched over the directions
-        pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(lambda v: decode(*unknowns(v)), (x,), (tg,)),
-                                    out_dims=out_dims)(tangents)
-        p, dp = pair
-        moved = {k: t for k, t in dp.items() if k != "metallic" or x.shape[1] == 8}
+        # (a parameter the directions do not move has a zero tangent: the kernel drops it)
+        p, dp = _vmapped_jvp(lambda v: decode(*unknowns(v)))(x, tangents)
         r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
-                                        log_obs, self.eps, moved, any_size=True)
+                                        log_obs, self.eps, dp, any_size=True)
         return r.reshape(x.shape[0], -1), dr.reshape(tangents.shape[0], x.shape[0], -1)
 
     def _targets(self, idx: list[int], model: str, rows: Tensor | slice | None
@@ -449,14 +447,15 @@ def _kmeans(x: Tensor, k: int, iters: int = 8, return_centres: bool = False) -> 
     return c if return_centres else torch.cdist(x, c).argmin(-1)
 
 
-def _vmapped_jvp(fn: Callable[[Tensor], Tensor]) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+def _vmapped_jvp(fn: Callable[[Tensor], Any]) -> Callable[[Tensor, Tensor], tuple[Any, Any]]:
     """``torch.func.jvp`` of ``fn`` vmapped over the directions (the primal computed once).
 
-    Returns ``jvp(x, tangents (K, *x.shape)) -> (fn(x), derivatives (K, *fn(x).shape))``.
+    Returns ``jvp(x, tangents (K, *x.shape)) -> (fn(x), derivatives (K, *fn(x).shape))`` (for
+    an ``fn`` returning a dict of tensors, dicts of them).
     """
     out_dims: Any = (None, 0)  # the primal is not batched over the directions
 
-    def jvp(x: Tensor, tangents: Tensor) -> tuple[Tensor, Tensor]:
+    def jvp(x: Tensor, tangents: Tensor) -> tuple[Any, Any]:
         pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (x,), (tg,)), out_dims=out_dims)(tangents)
         return pair
 
