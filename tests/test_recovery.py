@@ -907,10 +907,12 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
     """A training light 6 % brighter than stated is found by the end of the full-resolution dual stage.
 
     Each pixel's better hypothesis gives the residuals, before the single-class stages; without
-    ``dual_calibration`` the scale is still as stated there (the maps absorb it first). By the
-    end of the fit every light's scale is found to 1 % (0.3 % here; the alternating steps of
-    ``light_joint=False`` end 1.2 % off on this capture, and move its correctly stated lights by
-    0.9–1.8 cm, against 0.2–0.7 cm).
+    ``dual_calibration`` the scale is still as stated there (the maps absorb it first). By
+    default the intensity scales start at the coarsest level (the positions at full
+    resolution); ``dual_calibration_coarse=False`` waits for the full-resolution level for
+    both. By the end of the fit every light's scale is found to 1 % (0.3 % here; the
+    alternating steps of ``light_joint=False`` end 1.2 % off on this capture, and move its
+    correctly stated lights by 0.9–1.8 cm, against 0.2–0.7 cm).
     """
     import dataclasses as dc
 
@@ -925,8 +927,16 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
     rec = Recovery(cap, cfg, log=lambda m: None)
     full = rec.plan[-1][0]
     dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
+    assert rec.plan[0][0] < full and rec.plan[0][1] == "dual"  # a coarse dual level to look at
     with torch.no_grad():
         rec.init_state()
+        while rec.state["stage"] < 1:
+            rec.tick()
+        coarse = float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean())
+        # the coarsest level moves it already, only with dual_calibration (and its coarse default),
+        # and no position: the coarse maps' blended pixels would move them
+        assert (coarse > 0.3 * math.log(1.06)) == dual_calibration, coarse
+        assert float(rec.light_offset().abs().max()) == 0.0
         while rec.state["stage"] < dual_end:
             rec.tick()
     scale = rec.light_log_scale()
@@ -945,6 +955,35 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
         assert float(((scale - scale.mean()) - (true - true.mean())).abs().max()) < 0.01, scale
     else:
         assert float(scale.abs().max()) == 0.0
+
+
+def test_coarse_dual_calibration_can_be_left_to_full_resolution(tiny):
+    """``dual_calibration_coarse=False``: the coarse two-hypothesis levels keep the stated lights.
+
+    The full-resolution one estimates the intensity scales and positions from its first iteration.
+    """
+    import dataclasses as dc
+
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    cap = load_capture(tiny)
+    images = cap.images.clone()
+    images[3] *= 1.06
+    rec = Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False,
+                                                                   dual_calibration_coarse=False),
+                   log=lambda m: None)
+    full = rec.plan[-1][0]
+    first_full = min(i for i, (s, _, _) in enumerate(rec.plan) if s == full)
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < first_full:
+            rec.tick()
+        assert float(rec.light_log_scale().abs().max()) == 0.0
+        assert float(rec.light_offset().abs().max()) == 0.0
+        rec.tick()  # the full-resolution dual stage's first iteration estimates them
+    assert float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean()) > 0.01
+    assert float(rec.light_offset().abs().max()) > 0.0
 
 
 def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_held():

@@ -132,7 +132,12 @@ class RecoveryConfig:
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
     light_position: bool = True  # with light_scale: also a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate each light's intensity scale (False: no light estimate at all)
-    dual_calibration: bool = True  # start the estimates in the full-resolution two-hypothesis stage
+    dual_calibration: bool = True  # start the estimates in the two-hypothesis stages (False: single-class)
+    # ... the intensity scales from the coarsest two-hypothesis level on (False: from the
+    # full-resolution one). Coarse levels fitted under the stated intensities put a light's error
+    # into the maps, and a rough region taken into the low-specular, glossy valley there stays in
+    # it (photo gravel 1 with calibration error: roughness RMSE 0.062 -> 0.023; docs, issue 13)
+    dual_calibration_coarse: bool = True
     # ... there also the position of a light beside the camera (a flash, camera_lights; False: from
     # the single-class stages on). The least determined position (10x the ring lights' posterior
     # deviation), it took up what the two-hypothesis maps had not yet fitted on a capture without
@@ -1920,18 +1925,22 @@ class Recovery:
             residuals[h] = extra["residual"]
             if h == 0 or kind != "dual":
                 total = float(cost.mean()) / max(1, len(data.train_idx) * 3)
-        if kind == "dual" and self.cfg.light_scale and self.cfg.dual_calibration and size == self.plan[-1][0]:
-            # At full resolution the lights are estimated already in the dual stage, from each
-            # pixel's better hypothesis: the maps would otherwise absorb part of a light's
-            # error (normals tilt) before the single-hypothesis stages can see it.
+        full = size == self.plan[-1][0]
+        if kind == "dual" and self.cfg.light_scale and self.cfg.dual_calibration \
+                and (full or self.cfg.dual_calibration_coarse):
+            # The lights are estimated already in the dual stages, from each pixel's better
+            # hypothesis: the maps would otherwise absorb part of a light's error (normals tilt,
+            # a rough region slides into the glossy low-specular valley) before the
+            # single-hypothesis stages can see it. Below full resolution only the intensity
+            # scales: the coarse maps' blended pixels moved the positions (docs, issue 13).
             better = (self.fit_cost[1] < self.fit_cost[0])[:, None]
             if self.cfg.light_joint:
                 theta = torch.where(better, st["theta"][1], st["theta"][0])
                 metal = better.to(theta.dtype)
                 st["light_log_scale"], st["light_offset"] = light_joint_step(
                     data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx,
-                    self.cfg.model, self.cfg.light_position, map_prior_terms(theta, metal, size,
-                                                                             self.cfg),
+                    self.cfg.model, self.cfg.light_position and full,
+                    map_prior_terms(theta, metal, size, self.cfg),
                     at_camera=self.cfg.dual_calibration_at_camera)
                 self._sync_light_scale()
             else:
@@ -1939,7 +1948,7 @@ class Recovery:
                 st["light_log_scale"] = light_scale_step(better_res, data.train_idx, self.light_log_scale(),
                                                          self.train_idx)
                 self._sync_light_scale()
-                if self.cfg.light_position:
+                if self.cfg.light_position and full:
                     theta = torch.where(better, st["theta"][1], st["theta"][0])
                     st["light_offset"] = light_position_step(data, theta, better.to(theta.dtype),
                                                              self.light_offset(), self.cfg.model,
