@@ -903,7 +903,7 @@ def test_two_unary_priors_sum_to_one():
 
 
 @pytest.mark.parametrize("dual_calibration", [True, False])
-def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_calibration):
+def test_lights_are_estimated_from_the_dual_stages_on(tiny, dual_calibration):
     """A training light 6 % brighter than stated is found by the end of the full-resolution dual stage.
 
     Each pixel's better hypothesis gives the residuals, before the single-class stages; without
@@ -927,16 +927,8 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
     rec = Recovery(cap, cfg, log=lambda m: None)
     full = rec.plan[-1][0]
     dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
-    assert rec.plan[0][0] < full and rec.plan[0][1] == "dual"  # a coarse dual level to look at
     with torch.no_grad():
         rec.init_state()
-        while rec.state["stage"] < 1:
-            rec.tick()
-        coarse = float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean())
-        # the coarsest level moves it already, only with dual_calibration (and its coarse default),
-        # and no position: the coarse maps' blended pixels would move them
-        assert (coarse > 0.3 * math.log(1.06)) == dual_calibration, coarse
-        assert float(rec.light_offset().abs().max()) == 0.0
         while rec.state["stage"] < dual_end:
             rec.tick()
     scale = rec.light_log_scale()
@@ -955,6 +947,34 @@ def test_lights_are_estimated_from_the_full_resolution_dual_stage_on(tiny, dual_
         assert float(((scale - scale.mean()) - (true - true.mean())).abs().max()) < 0.01, scale
     else:
         assert float(scale.abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("light_joint", [True, False])
+def test_coarse_dual_levels_estimate_the_intensity_scales_not_the_positions(tiny, light_joint):
+    """The coarsest two-hypothesis level moves a light stated 6 % too dim, and no light's position.
+
+    Both light steps (the joint one and the alternating ``light_joint=False``): a coarse level's
+    blended pixels would move the positions, which start at full resolution.
+    """
+    import dataclasses as dc
+
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    cap = load_capture(tiny)
+    images = cap.images.clone()
+    images[3] *= 1.06
+    rec = Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False,
+                                                                   light_joint=light_joint),
+                   log=lambda m: None)
+    assert rec.plan[0][0] < rec.plan[-1][0] and rec.plan[0][1] == "dual"  # a coarse dual level
+    with torch.no_grad():
+        rec.init_state()
+        while rec.state["stage"] < 1:
+            rec.tick()
+    coarse = float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean())
+    assert coarse > 0.3 * math.log(1.06), rec.light_log_scale()
+    assert float(rec.light_offset().abs().max()) == 0.0
 
 
 def test_coarse_dual_calibration_can_be_left_to_full_resolution(tiny):

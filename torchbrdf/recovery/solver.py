@@ -132,14 +132,16 @@ class RecoveryConfig:
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
     light_position: bool = True  # with light_scale: also a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate each light's intensity scale (False: no light estimate at all)
-    dual_calibration: bool = True  # start the estimates in the two-hypothesis stages (False: single-class)
+    # Start the estimates in the two-hypothesis stages (positions: the full-resolution one; False:
+    # both from the single-class stages on)
+    dual_calibration: bool = True
     # ... the intensity scales from the coarsest two-hypothesis level on (False: from the
     # full-resolution one). Coarse levels fitted under the stated intensities put a light's error
     # into the maps, and a rough region taken into the low-specular, glossy valley there stays in
     # it (photo gravel 1 with calibration error: roughness RMSE 0.062 -> 0.023; docs, issue 13)
     dual_calibration_coarse: bool = True
-    # ... there also the position of a light beside the camera (a flash, camera_lights; False: from
-    # the single-class stages on). The least determined position (10x the ring lights' posterior
+    # ... in the full-resolution two-hypothesis stage also the position of a light beside the camera
+    # (a flash, camera_lights; False: from the single-class stages on). The least determined position (10x the ring lights' posterior
     # deviation), it took up what the two-hypothesis maps had not yet fitted on a capture without
     # calibration error (rusted_metal 4: 2.1 cm off, base RMSE 0.0215; 0.0176 held there) but
     # held, a real error of it stays (held-out photo coffee 101: roughness 0.049 -> 0.065):
