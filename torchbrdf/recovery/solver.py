@@ -141,10 +141,11 @@ class RecoveryConfig:
     # it (photo gravel 1 with calibration error: roughness RMSE 0.062 -> 0.023; docs, issue 13)
     dual_calibration_coarse: bool = True
     # ... in the full-resolution two-hypothesis stage also the position of a light beside the camera
-    # (a flash, camera_lights; False: from the single-class stages on). The least determined position (10x the ring lights' posterior
-    # deviation), it took up what the two-hypothesis maps had not yet fitted on a capture without
-    # calibration error (rusted_metal 4: 2.1 cm off, base RMSE 0.0215; 0.0176 held there) but
-    # held, a real error of it stays (held-out photo coffee 101: roughness 0.049 -> 0.065):
+    # (a flash, camera_lights; False: from the single-class stages on). The least determined
+    # position (10x the ring lights' posterior deviation), it took up what the two-hypothesis maps
+    # had not yet fitted on a capture without calibration error (rusted_metal 4: 2.1 cm off, base
+    # RMSE 0.0215; 0.0176 held there) but held, a real error of it stays (held-out photo coffee
+    # 101: roughness 0.049 -> 0.065):
     # measured, not kept (docs/recovery.md, issue 18, "The flash's position")
     dual_calibration_at_camera: bool = True
     # The non-local F0 average (nonlocal_prior) as a unary prior of the fit itself from the polish
