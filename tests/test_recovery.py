@@ -902,6 +902,20 @@ def test_two_unary_priors_sum_to_one():
     assert _sum_unary(a, None) is a and _sum_unary(None, b) is b
 
 
+def _recovery_with_a_brighter_light(tiny, **settings):
+    """A :class:`Recovery` of ``tiny`` whose training light 3 is 6 % brighter than capture.json states."""
+    import dataclasses as dc
+
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import Recovery
+
+    cap = load_capture(tiny)
+    images = cap.images.clone()
+    images[3] *= 1.06
+    return Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False, **settings),
+                    log=lambda m: None)
+
+
 @pytest.mark.parametrize("dual_calibration", [True, False])
 def test_lights_are_estimated_from_the_dual_stages_on(tiny, dual_calibration):
     """A training light 6 % brighter than stated is found by the end of the full-resolution dual stage.
@@ -914,17 +928,7 @@ def test_lights_are_estimated_from_the_dual_stages_on(tiny, dual_calibration):
     alternating steps of ``light_joint=False`` end 1.2 % off on this capture, and move its
     correctly stated lights by 0.9–1.8 cm, against 0.2–0.7 cm).
     """
-    import dataclasses as dc
-
-    from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
-
-    cap = load_capture(tiny)
-    images = cap.images.clone()
-    images[3] *= 1.06
-    cap = dc.replace(cap, images=images)
-    cfg = RecoveryConfig(seed=0, soft_metal=False, dual_calibration=dual_calibration)
-    rec = Recovery(cap, cfg, log=lambda m: None)
+    rec = _recovery_with_a_brighter_light(tiny, dual_calibration=dual_calibration)
     full = rec.plan[-1][0]
     dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
     with torch.no_grad():
@@ -951,22 +955,12 @@ def test_lights_are_estimated_from_the_dual_stages_on(tiny, dual_calibration):
 
 @pytest.mark.parametrize("light_joint", [True, False])
 def test_coarse_dual_levels_estimate_the_intensity_scales_not_the_positions(tiny, light_joint):
-    """The coarsest two-hypothesis level moves a light stated 6 % too dim, and no light's position.
+    """The coarsest two-hypothesis level moves a light 6 % brighter than stated, and no light's position.
 
     Both light steps (the joint one and the alternating ``light_joint=False``): a coarse level's
     blended pixels would move the positions, which start at full resolution.
     """
-    import dataclasses as dc
-
-    from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
-
-    cap = load_capture(tiny)
-    images = cap.images.clone()
-    images[3] *= 1.06
-    rec = Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False,
-                                                                   light_joint=light_joint),
-                   log=lambda m: None)
+    rec = _recovery_with_a_brighter_light(tiny, light_joint=light_joint)
     assert rec.plan[0][0] < rec.plan[-1][0] and rec.plan[0][1] == "dual"  # a coarse dual level
     with torch.no_grad():
         rec.init_state()
@@ -982,17 +976,7 @@ def test_coarse_dual_calibration_can_be_left_to_full_resolution(tiny):
 
     The full-resolution one estimates the intensity scales and positions from its first iteration.
     """
-    import dataclasses as dc
-
-    from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
-
-    cap = load_capture(tiny)
-    images = cap.images.clone()
-    images[3] *= 1.06
-    rec = Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False,
-                                                                   dual_calibration_coarse=False),
-                   log=lambda m: None)
+    rec = _recovery_with_a_brighter_light(tiny, dual_calibration_coarse=False)
     full = rec.plan[-1][0]
     first_full = min(i for i, (s, _, _) in enumerate(rec.plan) if s == full)
     with torch.no_grad():

@@ -145,8 +145,8 @@ class RecoveryConfig:
     # position (10x the ring lights' posterior deviation), it took up what the two-hypothesis maps
     # had not yet fitted on a capture without calibration error (rusted_metal 4: 2.1 cm off, base
     # RMSE 0.0215; 0.0176 held there) but held, a real error of it stays (held-out photo coffee
-    # 101: roughness 0.049 -> 0.065):
-    # measured, not kept (docs/recovery.md, issue 18, "The flash's position")
+    # 101: roughness 0.049 -> 0.065): measured, not kept (docs/recovery.md, issue 18, "The flash's
+    # position")
     dual_calibration_at_camera: bool = True
     # The non-local F0 average (nonlocal_prior) as a unary prior of the fit itself from the polish
     # stage on (renewed at each single-class stage's start), not only fused at the end: the joint
@@ -302,9 +302,9 @@ class LevelData:
         unused); ``tangents (K, N, x's columns)``; ``metal``, ``idx``, ``model``, ``rows`` as for
         :meth:`residual`. Returns ``(r (N, M), dr (K, N, M))``, ``M = 3 len(idx)``, ``dr[k]``
         = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``, in ``x``'s dtype, on its
-        device. The principled model
-        evaluates them in one call of the fused operators (:func:`log_residual_points_jvp`,
-        :func:`decode`'s own tangents by ``torch.func``); the others through ``torch.func``.
+        device. The principled model evaluates them in one call of the fused operators
+        (:func:`log_residual_points_jvp`, :func:`decode`'s own tangents by ``torch.func``); the
+        others through ``torch.func``.
         """
         def unknowns(v: Tensor) -> tuple[Tensor, Tensor]:
             return (v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal)
