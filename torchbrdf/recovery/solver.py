@@ -2196,17 +2196,19 @@ class Recovery:
         unmix = torch.full_like(metal, float("nan"))
         w_nb, w_un = cfg.soft_metal_smooth * sigma2, cfg.soft_metal_unmix * sigma2
 
-        def neighbour_fit(rows_: Tensor, gain: float | Tensor) -> tuple[Tensor, Tensor]:
-            # Pass 2 and growth: started from the 4-neighbours' mean parameters, metallic pulled
-            # toward theirs (the current theta / metal) and, where known, toward the blend's:
-            # two quadratic pulls, one of their summed weight toward their weighted mean.
+        def neighbour_fit(rows_: Tensor, gain: float | Tensor, warm: bool = False) -> tuple[Tensor, Tensor]:
+            # Pass 2 and growth: started from the 4-neighbours' mean parameters (with ``warm``:
+            # from the pixels' own), metallic pulled toward theirs (the current theta / metal)
+            # and, where known, toward the blend's: two quadratic pulls, one of their summed
+            # weight toward their weighted mean.
             target, u = _neighbour_mean(metal, size)[rows_], unmix[rows_]
             known = ~torch.isnan(u)
             weight = torch.where(known, w_nb + w_un, w_nb).to(u.dtype)
             target = torch.where(known, (w_nb * target + w_un * u) / (w_nb + w_un), target)
             t, m, _ = soft_metal_fit(data, theta, metal, rows_, data.train_idx, cfg.model,
                                      cfg.soft_metal_well * sigma2, gain, cfg.soft_metal_iters,
-                                     ((_neighbour_mean(theta, size)[rows_], "target"),), target, weight,
+                                     (None,) if warm else ((_neighbour_mean(theta, size)[rows_], "target"),),
+                                     target, weight,
                                      refit_reference=False)
             return t, m
 
@@ -2254,9 +2256,12 @@ class Recovery:
                 # Repeated, each round pulled toward the neighbours' metallic of the round
                 # before: a ramp's values settle from both of its ends (Jacobi smoothing). A
                 # pixel an earlier round made fractional is no longer asked for the gain (it is
-                # not newly fractional): only its energy decides between its values.
-                for _ in range(cfg.soft_metal_passes if rows2.numel() else 0):
-                    theta[rows2], metal[rows2] = neighbour_fit(rows2, gain2)
+                # not newly fractional): only its energy decides between its values. Rounds
+                # after the first go on from the round before's answers (the neighbours' start
+                # was tried there): most pixels are settled and leave the LM early, and the
+                # others continue where they were instead of starting over.
+                for k in range(cfg.soft_metal_passes if rows2.numel() else 0):
+                    theta[rows2], metal[rows2] = neighbour_fit(rows2, gain2, warm=k > 0)
                 t_new, m_new = theta[rows], metal[rows]
             # Only a fractional answer is taken: a pixel that stays 0 or 1 keeps the fit it had,
             # with the priors' regularisation (a data-only refit of a metal's weakly observed F0
