@@ -349,8 +349,7 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
     """
     import torchbrdf.recovery.solver as R
 
-    maps, _ = _ramp_capture(tmp_path, {10: 0.3, 11: 0.5, 12: 0.7}, (torch.tensor([0.5, 0.3, 0.2]), 0.8),
-                            (torch.tensor([0.95, 0.93, 0.88]), 0.25))
+    _capture(tmp_path, _stripe(16))
     calls = []
     fit = R.soft_metal_fit
 
@@ -362,7 +361,7 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
         return out
 
     monkeypatch.setattr(R, "soft_metal_fit", spy)
-    recover(tmp_path, RecoveryConfig(iters=16, threads=2, soft_metal_passes=2, soft_metal_grow=0), None,
+    recover(tmp_path, RecoveryConfig(iters=8, threads=2, soft_metal_passes=2, soft_metal_grow=0), None,
             progress=False)
     assert len(calls) == 2, len(calls)
     (rows1, starts1, _, _, out1), (rows2, starts2, theta2, metal2, _) = calls
