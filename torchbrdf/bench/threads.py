@@ -47,7 +47,17 @@ print("SECONDS", time.perf_counter() - t0)
 """
 
 
-def _run(cmd, env, busy: bool) -> float:
+#: The line a timed workload prints: ``SECONDS <its own seconds>``.
+SECONDS = "SECONDS"
+
+
+def run_timed(cmd: Sequence[str], env: dict | None, busy: bool, require_seconds: bool = False) -> float:
+    """Run ``cmd`` in a fresh process (beside one busy process with ``busy``) and return its time.
+
+    The time is the workload's own, the number on its ``SECONDS`` line (without the
+    interpreter's start); a workload that prints none gets its wall time, or, with
+    ``require_seconds``, an error. A failing command raises with the end of its stderr.
+    """
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
     try:
         if hog is not None:
@@ -62,8 +72,10 @@ def _run(cmd, env, busy: bool) -> float:
     if res.returncode != 0:
         raise RuntimeError(f"{cmd} failed:\n{res.stderr[-3000:]}")
     for line in res.stdout.splitlines():
-        if line.startswith("SECONDS"):
-            return float(line.split()[1])  # the workload's own timing (without interpreter start)
+        if line.startswith(SECONDS):
+            return float(line.split()[1])
+    if require_seconds:
+        raise RuntimeError(f"{cmd} printed no {SECONDS} line:\n{res.stdout[-2000:]}")
     return wall
 
 
@@ -96,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         times: dict[bool, list[float]] = {False: [], True: []}
         for _ in range(args.repeat):
             for busy in (False, True):
-                times[busy].append(_run(cmd, env, busy))
+                times[busy].append(run_timed(cmd, env, busy))
         q, b = statistics.median(times[False]), statistics.median(times[True])
         print(f"OMP_WAIT_POLICY={pol:8s} quiet {q:8.2f} s  busy {b:8.2f} s  busy/quiet {b / q:5.2f}  "
               f"(runs: quiet {[round(t, 2) for t in times[False]]}, "

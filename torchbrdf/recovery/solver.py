@@ -2257,9 +2257,10 @@ class Recovery:
                 # before: a ramp's values settle from both of its ends (Jacobi smoothing). A
                 # pixel an earlier round made fractional is no longer asked for the gain (it is
                 # not newly fractional): only its energy decides between its values. Rounds
-                # after the first go on from the round before's answers (the neighbours' start
-                # was tried there): most pixels are settled and leave the LM early, and the
-                # others continue where they were instead of starting over.
+                # after the first go on from the round before's answers: most pixels are settled
+                # and leave the LM early, and the others continue where they were instead of
+                # starting over from their neighbours' (moved) mean; a pixel the round before
+                # refused gets no new neighbour start (tuning maps better without it, docs).
                 for k in range(cfg.soft_metal_passes if rows2.numel() else 0):
                     theta[rows2], metal[rows2] = neighbour_fit(rows2, gain2, warm=k > 0)
                 t_new, m_new = theta[rows], metal[rows]
