@@ -65,12 +65,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m torchbrdf.bench.additions", description=__doc__,
                                 formatter_class=_Help)
     p.add_argument("--captures", default="rusted_metal:101,dusty_metal:102",
-                   help="recipe:seed list, comma-separated (the default: the held-out soft materials)")
+                   help="recipe:seed list, comma-separated (by default the held-out soft materials)")
     p.add_argument("--rounds", type=int, default=3, help="on/off/off/on rounds per capture (2 pairs each)")
     p.add_argument("--threads", type=int, default=2, help="torch threads of each recovery")
     p.add_argument("--busy", action="store_true", help="one competing busy process beside every run")
     p.add_argument("--folder", default=None,
-                   help="where the captures are generated (default: a new temporary folder, printed)")
+                   help="where the captures are generated (None: a new temporary folder, printed)")
     args = p.parse_args(argv)
     if args.rounds < 1 or args.threads < 1:
         p.error("--rounds and --threads must be at least 1")
