@@ -60,19 +60,9 @@ def test_runs_go_on_off_off_on_and_pair_neighbours(tmp_path, monkeypatch, capsys
 
 def test_a_timed_run_prints_the_recoverys_own_seconds(tmp_path):
     """The command of one run recovers a capture and prints report.json's seconds."""
-    import torch
+    from torchbrdf.capture.synthetic import generate_capture
 
-    from torchbrdf.capture.format import write_capture
-    from torchbrdf.capture.synthetic import light_layout, normals_from_height, render_capture
-
-    s = 12
-    maps = {"base_color": torch.full((3, s, s), 0.5), "roughness": torch.full((1, s, s), 0.4),
-            "metallic": torch.zeros(1, s, s), "specular": torch.full((1, s, s), 0.5),
-            "normal": normals_from_height(torch.zeros(s, s))}
-    pos, inten = light_layout(8)
-    with torch.no_grad():
-        img = render_capture(maps, (pos, inten), noise=0.01, seed=1)
-    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    generate_capture(tmp_path, recipe="metal_inlay", seed=2, size=12, lights=6, noise=0.01)
     cmd = additions.recover_command(tmp_path, {**additions.OFF, "iters": 4}, 1)
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]

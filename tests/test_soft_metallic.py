@@ -347,11 +347,11 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
     Its first round starts from the neighbours' mean; round 2 from the pixels' own theta and
     metallic, which are round 1's answers, on the same pixels.
     """
+    import inspect
+
     import torchbrdf.recovery.solver as R
 
     _capture(tmp_path, _stripe(16))
-    import inspect
-
     calls = []
     fit = R.soft_metal_fit
     sig = inspect.signature(fit)

@@ -49,7 +49,7 @@ def recover_command(capture: str | os.PathLike, overrides: dict, threads: int) -
 
 
 def pair_ratios(on: Sequence[float], off: Sequence[float]) -> list[float]:
-    """``on[i] / off[i] − 1`` for each pair (wall seconds of the same round)."""
+    """``on[i] / off[i] − 1`` for each pair (the seconds of one round's on and off runs)."""
     if len(on) != len(off) or not on:
         raise ValueError(f"pair_ratios: expected as many on as off times (≥ 1), "
                          f"got {len(on)} and {len(off)}")
