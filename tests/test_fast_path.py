@@ -322,6 +322,69 @@ def test_a_channel_strided_per_pixel_input_is_not_copied_to_every_lane():
     torch.testing.assert_close(flat.reshape(4, 5, 3), one.expand(4, 5, 3))
 
 
+def _layouts():
+    """Tensors of many layouts: sliced, transposed, expanded, zero-size, one-element dims."""
+    g = torch.Generator().manual_seed(0)
+
+    def randint(lo, hi):
+        return int(torch.randint(lo, hi, (1,), generator=g))
+
+    out = []
+    for _ in range(300):
+        shape = [randint(0, 5) for _ in range(randint(1, 5))]
+        t = torch.rand([s + 2 for s in shape], generator=g)
+        t = t[tuple(slice(randint(0, 2), None, randint(1, 3)) for _ in shape)]
+        t = t.permute(*torch.randperm(t.dim(), generator=g).tolist())
+        if bool(torch.rand(1, generator=g) < 0.4):  # one dim broadcast (stride 0)
+            d = randint(0, t.dim())
+            t = t.narrow(d, 0, min(1, t.size(d))).expand(*t.shape[:d], 3, *t.shape[d + 1:])
+        out.append(t)
+    return out
+
+
+def test_merge_check_agrees_with_view():
+    """``_merges`` (asked instead of a view that may raise) says exactly when ``view`` works."""
+    from torchbrdf.kernels.ops import _merges
+
+    seen = set()
+    for t in _layouts():
+        for dims in range(1, t.dim() + 1):
+            try:
+                t.view(-1 if t.numel() else 0, *t.shape[dims:])
+                ok = True
+            except RuntimeError:
+                ok = False
+            seen.add(ok)
+            assert _merges(t, dims) == ok, (t.shape, t.stride(), dims)
+    assert seen == {True, False}
+
+
+def test_fast_broadcast_shapes_match_torch():
+    """``_checks.broadcast_shapes`` gives torch's result, and raises where torch's raises."""
+    from torchbrdf._checks import broadcast_shapes
+
+    g = torch.Generator().manual_seed(1)
+
+    def randint(lo, hi):
+        return int(torch.randint(lo, hi, (1,), generator=g))
+
+    results = set()
+    for _ in range(500):
+        shapes = [tuple(randint(0, 4) for _ in range(randint(0, 4))) for _ in range(randint(1, 4))]
+        try:
+            want = torch.broadcast_shapes(*shapes)
+        except RuntimeError:
+            want = None
+        try:
+            got = broadcast_shapes(*shapes)
+        except RuntimeError:
+            got = None
+        results.add(want is None)
+        assert got == want, shapes
+    assert results == {True, False}
+    assert broadcast_shapes() == torch.Size([])
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_types_round_trip(dtype):
     inputs = _case(4, 512, dtype, min_cos=0.05)

@@ -221,7 +221,7 @@ def _fast_backend(c: dict) -> str | None:
     def lanes() -> int | None:
         shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
         try:
-            return math.prod(torch.broadcast_shapes(*shapes))
+            return math.prod(_checks.broadcast_shapes(*shapes))
         except RuntimeError:
             return None
 

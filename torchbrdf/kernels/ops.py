@@ -31,6 +31,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchbrdf._checks import broadcast_shapes
 from torchbrdf.brdf.principled import SCALAR_PARAMS
 from torchbrdf.kernels import graphs
 from torchbrdf.kernels.fused import _KernelSpec, _load, _pool
@@ -51,6 +52,25 @@ TANGENTS_PER_PASS = 8
 # Layout of one call
 # ---------------------------------------------------------------------------------------------
 
+def _merges(t: Tensor, dims: int) -> bool:
+    """Whether ``t``'s first ``dims`` dimensions merge into one without a copy (``view`` works).
+
+    They do when each one that is not 1 long steps over the next such one whole. Asked
+    instead of trying ``view``: a failed view raises, and building that error cost 40 µs a
+    time, 8700 times in a recovery (0.35 s).
+    """
+    if t.numel() == 0:
+        return True
+    step = None  # the stride the next dimension that is not 1 long must have
+    for i in range(dims - 1, -1, -1):
+        if t.size(i) == 1:
+            continue
+        if step is not None and t.stride(i) != step:
+            return False
+        step = t.stride(i) * t.size(i)
+    return True
+
+
 def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
     """View ``t`` as ``(N, C)`` lanes: mode 'full' (lane-dense), 'b1'/'b0' (same for all lanes).
 
@@ -60,10 +80,7 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
     and lane ``(q, r)`` reads row ``q·sA + r·sB`` (:meth:`_Plan.params` passes the strides).
     """
     e = t.expand(*batch, C) if t.dim() > 0 else t.reshape(1).expand(*batch, C)
-    try:
-        f = e.view(N, C)
-    except RuntimeError:
-        f = None
+    f = e.view(N, C) if _merges(e, len(batch)) else None
     if f is not None:
         ls, cs = f.stride()
         if N > 1 and ls == 0:
@@ -77,11 +94,9 @@ def _flatten(t: Tensor, C: int, batch: tuple, N: int, s2: bool = False):
         # Channels not adjacent (a slice of a transposed tensor): make the small tensor dense,
         # not its broadcast to every lane (that also kept a second kernel variant).
         return _flatten(t.contiguous(), C, batch, N, s2)
-    if s2 and len(batch) >= 2 and batch[-1] > 1 and N > batch[-1] and (C == 1 or e.stride(-1) == 1):
-        try:
-            return e.view(N // batch[-1], batch[-1], C), "s2"
-        except RuntimeError:  # the leading batch dims do not collapse: copy
-            pass
+    if s2 and len(batch) >= 2 and batch[-1] > 1 and N > batch[-1] and (C == 1 or e.stride(-1) == 1) \
+            and _merges(e, len(batch) - 1):  # (else the leading batch dims do not collapse: copy)
+        return e.view(N // batch[-1], batch[-1], C), "s2"
     return (f if f is not None else e).reshape(N, C).contiguous(), "full"
 
 
@@ -115,7 +130,7 @@ class _Plan:
         self.need_tint, self.frame = tint == "1", frame == "1"
         self.C = [1 if k in _ONE_CHANNEL else 3 for k in self.tensor_names]
         shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
-        self.batch = tuple(torch.broadcast_shapes(*shapes))
+        self.batch = tuple(broadcast_shapes(*shapes))
         self.N = math.prod(self.batch)
         self.dtype = tensors[0].dtype
         self.device = tensors[0].device
