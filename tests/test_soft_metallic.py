@@ -376,4 +376,3 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
     assert isinstance(starts1[0], tuple) and starts1[0][1] == "target"  # the neighbours' mean
     assert starts2 == (None,) and torch.equal(rows1, rows2)  # the pixels' own ...
     assert torch.equal(theta2, out1[0]) and torch.equal(metal2, out1[1])  # ... = round 1's answers
-
