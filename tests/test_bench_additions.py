@@ -36,19 +36,25 @@ def test_bad_arguments_exit_2(bad):
 
 
 def test_runs_go_on_off_off_on_and_pair_neighbours(tmp_path, monkeypatch, capsys):
-    """Each round runs on / off / off / on; run 1 pairs with run 2 and run 4 with run 3."""
+    """Each round runs on / off / off / on; pairs are runs 1 and 2, 4 and 3: whole runs and stages.
+
+    Pair by pair, as the summary line and the per-stage line print them.
+    """
     cap = tmp_path / "rusted_metal_s1"
     cap.mkdir()
     (cap / "capture.json").write_text("{}")  # present: the benchmark does not generate it again
     seen, clock = [], iter([20.0, 10.0, 10.0, 11.0, 30.0, 20.0, 20.0, 30.0])
+    last = iter([5.0, 1.0, 2.0, 4.0, 6.0, 3.0, 3.0, 6.0])  # the "all 8²" stage of each run
 
-    def fake(cmd, env, busy, require_seconds=False):
-        assert require_seconds and busy is False
+    def fake(cmd, busy):
+        assert busy is False
         assert cmd == additions.recover_command(cap, json.loads(cmd[4]), 1)
         seen.append(json.loads(cmd[4]))
-        return next(clock)
+        stages = [{"size": 4, "stage": "dual", "iterations": 3, "seconds": 1.0},
+                  {"size": 8, "stage": "all", "iterations": 2, "seconds": next(last)}]
+        return next(clock), stages
 
-    monkeypatch.setattr(additions, "run_timed", fake)
+    monkeypatch.setattr(additions, "run_recovery", fake)
     assert additions.main(["--captures", " rusted_metal:1", "--rounds", "2", "--threads", "1",
                            "--folder", str(tmp_path)]) == 0
     off = additions.OFF
@@ -56,10 +62,21 @@ def test_runs_go_on_off_off_on_and_pair_neighbours(tmp_path, monkeypatch, capsys
     out = capsys.readouterr().out
     # pairs: 20/10, 11/10, 30/20, 30/20 -> +100 +10 +50 +50 %, median +50 %
     assert "pairs +100% +10% +50% +50%  median +50.0%" in out, out
+    # the last stage: 5-1, 4-2, 6-3, 6-3 -> median 3 s; the first: 0 in every pair
+    assert "dual 4² +0.00 s, all 8² +3.00 s" in out, out
+
+
+def test_stage_differences_match_stages_by_kind_and_size():
+    """A stage missing from one run of a pair, or without a time, leaves that pair out for it."""
+    a = [{"size": 4, "stage": "dual", "seconds": 2.0}, {"size": 8, "stage": "all", "seconds": 5.0}]
+    b = [{"size": 8, "stage": "all", "seconds": 1.0}]
+    c = [{"size": 4, "stage": "dual", "seconds": None}, {"size": 8, "stage": "all", "seconds": 2.0}]
+    assert additions.stage_differences([a, a], [b, c]) == {"all 8²": 3.5}
+    assert additions.stage_differences([], []) == {}
 
 
 def test_a_timed_run_prints_the_recoverys_own_seconds(tmp_path):
-    """The command of one run recovers a capture and prints report.json's seconds."""
+    """The command of one run recovers a capture and prints report.json's seconds and stage_seconds."""
     from torchbrdf.capture.synthetic import generate_capture
 
     generate_capture(tmp_path, recipe="metal_inlay", seed=2, size=12, lights=6, noise=0.01)
@@ -68,3 +85,7 @@ def test_a_timed_run_prints_the_recoverys_own_seconds(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     line = [x for x in out.stdout.splitlines() if x.startswith("SECONDS ")]
     assert len(line) == 1 and 0 < float(line[0].split()[1]) < 300
+    stages = [json.loads(x.split(" ", 1)[1]) for x in out.stdout.splitlines() if x.startswith("STAGES ")]
+    assert len(stages) == 1 and stages[0] and all(e["seconds"] > 0 for e in stages[0])
+    # the stages' times are parts of the run's (iterations only: no checkpoint or plot)
+    assert sum(e["seconds"] for e in stages[0]) <= float(line[0].split()[1])

@@ -127,6 +127,35 @@ def test_full_resolution_stages_end_once_converged(tiny):
     assert loose["iterations"] == len(loose["loss_history"]) < exact["iterations"]
 
 
+def test_report_says_where_the_time_went(tiny_result):
+    """Each iteration has its own seconds, and ``stage_seconds`` sums them per stage run, in order.
+
+    Together they are part of the run's ``seconds``.
+    """
+    hist, stages = tiny_result["loss_history"], tiny_result["stage_seconds"]
+    assert all(h["seconds"] > 0 for h in hist)
+    plan = tiny_result["schedule"]
+    assert [(e["size"], e["stage"]) for e in stages] == [(p["size"], p["stage"]) for p in plan]
+    assert sum(e["iterations"] for e in stages) == len(hist) == tiny_result["iterations"]
+    for e in stages:
+        mine = [h["seconds"] for h in hist if (h["size"], h["stage"]) == (e["size"], e["stage"])]
+        assert e["seconds"] == pytest.approx(sum(mine)) and len(mine) == e["iterations"]
+    assert sum(e["seconds"] for e in stages) <= tiny_result["seconds"]
+
+
+def test_stage_seconds_group_runs_of_one_stage():
+    """Consecutive iterations of one (size, stage) form an entry; a time missing anywhere makes it None."""
+    from torchbrdf.recovery.svbrdf import stage_seconds
+
+    h = [{"size": 4, "stage": "dual", "seconds": 1.0}, {"size": 4, "stage": "dual", "seconds": 2.0},
+         {"size": 8, "stage": "dual", "seconds": 0.5}, {"size": 8, "stage": "polish"},
+         {"size": 8, "stage": "polish", "seconds": 1.0}]
+    assert stage_seconds(h) == [{"size": 4, "stage": "dual", "iterations": 2, "seconds": 3.0},
+                                {"size": 8, "stage": "dual", "iterations": 1, "seconds": 0.5},
+                                {"size": 8, "stage": "polish", "iterations": 2, "seconds": None}]
+    assert stage_seconds([]) == []
+
+
 def test_resume_after_a_converged_stage_equals_uninterrupted(tiny, tmp_path):
     """Stopped just before the iteration that ends a stage early, a resumed run ends it there too."""
     cfg = dict(seed=1, checkpoint_every=1, threads=2, converge_tol=0.05)

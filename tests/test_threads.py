@@ -151,3 +151,22 @@ def test_keep_freed_memory_refuses_a_limit_glibc_cannot_take(limit):
 
     with pytest.raises(ValueError, match="limit must be an integer in"):
         keep_freed_memory(limit)
+
+
+def test_a_workloads_time_is_its_seconds_line_else_its_wall_time():
+    """``run_timed`` takes a workload's own ``SECONDS`` line, else its wall time.
+
+    Without the line, ``require_seconds`` makes it an error; a failing command raises with its stderr.
+    """
+    from torchbrdf.bench import threads
+
+    said = [sys.executable, "-c", "print('noise'); print('SECONDS 123.5')"]
+    silent = [sys.executable, "-c", "print('no time here')"]
+    assert threads.run_timed(said, None, False, require_seconds=True) == 123.5
+    assert 0 < threads.run_timed(silent, None, False) < 60
+    with pytest.raises(RuntimeError, match="printed no SECONDS line"):
+        threads.run_timed(silent, None, False, require_seconds=True)
+    with pytest.raises(RuntimeError, match="boom"):
+        threads.run_timed([sys.executable, "-c", "raise SystemExit('boom')"], None, False)
+    wall, out = threads.run_workload(said, None, False)
+    assert out.splitlines() == ["noise", "SECONDS 123.5"] and wall > 0

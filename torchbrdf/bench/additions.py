@@ -8,9 +8,12 @@ lights + the flash, 1 % noise). Each run is a fresh process; its time is the rec
 clock (report.json's "seconds": the fit, without the interpreter's start, the imports, loading
 the capture or writing outputs). Runs go on / off / off / on per round, so that a drift of the
 machine's speed falls on both, and the printed ratio is the median over the rounds' on/off
-pairs. With --busy every run has one competing `python -c "while True: pass"` beside it, as on
-a machine shared with a data loader. Results: docs/recovery.md (issue 18, "Time, with the new
-benchmark").
+pairs. Below it, per stage (report.json's "stage_seconds"), the median of the pairs' on − off
+seconds: where the additions' time goes (the single-class stages' starts and the last stage's
+end), and, from the two-hypothesis stages below full size, which run the same code on and off,
+how much the machine's noise moves a stage. With --busy every run has one competing
+`python -c "while True: pass"` beside it, as on a machine shared with a data loader. Results:
+docs/recovery.md (issue 18, "Time, with the new benchmark" and "Per-stage clocks").
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from torchbrdf.bench.threads import SECONDS, run_timed
+from torchbrdf.bench.threads import SECONDS, run_workload, workload_seconds
 
 #: The settings that turn issue 18's additions off.
 OFF = {"soft_metal": False, "fuse_rounds": 1, "fit_nonlocal_tie": False}
@@ -37,15 +40,56 @@ keep_freed_memory()  # as the recovery's command does
 cfg = RecoveryConfig(threads=int(sys.argv[3]), **json.loads(sys.argv[2]))
 rec = recover(sys.argv[1], cfg, progress=False, log=lambda m: None)
 print(sys.argv[4], rec.report["seconds"])
+print(sys.argv[5], json.dumps(rec.report["stage_seconds"]))
 """
+
+#: The line of a run's per-stage seconds (report.json's ``stage_seconds``, as JSON).
+STAGES = "STAGES"
 
 
 def recover_command(capture: str | os.PathLike, overrides: dict, threads: int) -> list[str]:
     """The command of one timed run: ``recover(capture)`` with ``RecoveryConfig(**overrides)``.
 
-    On ``threads`` threads; it prints ``SECONDS <the recovery's own seconds>``.
+    On ``threads`` threads; it prints ``SECONDS <the recovery's own seconds>`` and ``STAGES <its
+    stage_seconds as JSON>``.
     """
-    return [sys.executable, "-c", _RECOVER, str(capture), json.dumps(overrides), str(threads), SECONDS]
+    return [sys.executable, "-c", _RECOVER, str(capture), json.dumps(overrides), str(threads),
+            SECONDS, STAGES]
+
+
+def run_recovery(cmd: Sequence[str], busy: bool) -> tuple[float, list[dict]]:
+    """Run one :func:`recover_command` (beside a busy process with ``busy``).
+
+    Returns ``(the recovery's own seconds, its stage_seconds)``; a run that does not print both
+    lines is an error.
+    """
+    _, out = run_workload(cmd, None, busy)
+    seconds = workload_seconds(cmd, out, None)
+    for line in out.splitlines():
+        if line.startswith(STAGES + " "):
+            return seconds, json.loads(line.split(" ", 1)[1])
+    raise RuntimeError(f"{cmd} printed no {STAGES} line:\n{out[-2000:]}")
+
+
+def stage_differences(on: Sequence[list[dict]], off: Sequence[list[dict]]) -> dict[str, float]:
+    """Per stage, the median over the pairs of its on − off seconds.
+
+    ``on[i]``, ``off[i]``: the ``stage_seconds`` of one pair's runs. Stages are matched by kind
+    and size (``"polish 256²"``), in the order of the first on run; one missing from a run of a
+    pair, or without a time, leaves that pair out for it.
+    """
+    out: dict[str, float] = {}
+    names = [f"{e['stage']} {e['size']}²" for e in on[0]] if on else []
+    for name in names:
+        diffs = []
+        for a, b in zip(on, off):
+            ta = {f"{e['stage']} {e['size']}²": e["seconds"] for e in a}.get(name)
+            tb = {f"{e['stage']} {e['size']}²": e["seconds"] for e in b}.get(name)
+            if ta is not None and tb is not None:
+                diffs.append(ta - tb)
+        if diffs:
+            out[name] = statistics.median(diffs)
+    return out
 
 
 def pair_ratios(on: Sequence[float], off: Sequence[float]) -> list[float]:
@@ -92,15 +136,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not (cap / "capture.json").is_file():
             generate_capture(cap, recipe=recipe, seed=seed)
         times: dict[str, list[float]] = {"on": [], "off": []}
+        stages: dict[str, list[list[dict]]] = {"on": [], "off": []}
         for _ in range(args.rounds):
             for mode in ("on", "off", "off", "on"):
                 cmd = recover_command(cap, {} if mode == "on" else OFF, args.threads)
-                times[mode].append(run_timed(cmd, None, args.busy, require_seconds=True))
+                seconds, per_stage = run_recovery(cmd, args.busy)
+                times[mode].append(seconds)
+                stages[mode].append(per_stage)
         pairs = pair_ratios(times["on"], times["off"])
         on, off = statistics.median(times["on"]), statistics.median(times["off"])
         shown = " ".join(f"{100 * r:+.0f}%" for r in pairs)
         print(f"{recipe} {seed}: on {on:.2f} s  off {off:.2f} s  pairs {shown}  "
               f"median {100 * statistics.median(pairs):+.1f}%", flush=True)
+        # Where the difference lies: the additions run at the single-class stages' starts and
+        # the last stage's end; the two-hypothesis stages below full size run the same code
+        # on and off, so their differences show the machine's noise.
+        diff = stage_differences(stages["on"], stages["off"])
+        print("  per stage, on − off (median of the pairs): "
+              + ", ".join(f"{k} {v:+.2f} s" for k, v in diff.items()), flush=True)
     print(f"load average after: {os.getloadavg()}")
     return 0
 

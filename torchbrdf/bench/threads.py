@@ -51,12 +51,11 @@ print("SECONDS", time.perf_counter() - t0)
 SECONDS = "SECONDS"
 
 
-def run_timed(cmd: Sequence[str], env: dict | None, busy: bool, require_seconds: bool = False) -> float:
-    """Run ``cmd`` in a fresh process (beside one busy process with ``busy``) and return its time.
+def run_workload(cmd: Sequence[str], env: dict | None, busy: bool) -> tuple[float, str]:
+    """Run ``cmd`` in a fresh process (beside one busy process with ``busy``).
 
-    The time is the workload's own, the number on its ``SECONDS`` line (without the
-    interpreter's start); a workload that prints none gets its wall time, or, with
-    ``require_seconds``, an error. A failing command raises with the end of its stderr.
+    Returns ``(wall seconds, its standard output)``; a failing command raises with the end of
+    its stderr.
     """
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
     try:
@@ -71,12 +70,30 @@ def run_timed(cmd: Sequence[str], env: dict | None, busy: bool, require_seconds:
             hog.wait()
     if res.returncode != 0:
         raise RuntimeError(f"{cmd} failed:\n{res.stderr[-3000:]}")
-    for line in res.stdout.splitlines():
+    return wall, res.stdout
+
+
+def workload_seconds(cmd: Sequence[str], stdout: str, wall: float | None) -> float:
+    """The workload's own time: the number on its ``SECONDS`` line.
+
+    That is its time without the interpreter's start; without the line, ``wall``, or an error
+    where ``wall`` is None.
+    """
+    for line in stdout.splitlines():
         if line.startswith(SECONDS):
             return float(line.split()[1])
-    if require_seconds:
-        raise RuntimeError(f"{cmd} printed no {SECONDS} line:\n{res.stdout[-2000:]}")
+    if wall is None:
+        raise RuntimeError(f"{cmd} printed no {SECONDS} line:\n{stdout[-2000:]}")
     return wall
+
+
+def run_timed(cmd: Sequence[str], env: dict | None, busy: bool, require_seconds: bool = False) -> float:
+    """Run ``cmd`` as :func:`run_workload` and return its time (:func:`workload_seconds`).
+
+    With ``require_seconds`` a missing ``SECONDS`` line is an error instead of the wall time.
+    """
+    wall, stdout = run_workload(cmd, env, busy)
+    return workload_seconds(cmd, stdout, None if require_seconds else wall)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

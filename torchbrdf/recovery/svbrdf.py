@@ -956,8 +956,9 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         "events": st["events"],
         "seed": cfg.seed,
         "per_image_psnr": {f: psnr(pred[k], cap.images[k]) for k, f in enumerate(cap.files)},
-        "loss_history": [{k: h[k] for k in ("iteration", "stage", "size", "loss", "fit", "skipped") if k in h}
-                         for h in st["history"]],
+        "loss_history": [{k: h[k] for k in ("iteration", "stage", "size", "loss", "fit", "skipped", "seconds")
+                          if k in h} for h in st["history"]],
+        "stage_seconds": stage_seconds(st["history"]),
         "fingerprint": {"capture_sha256": _digest(fingerprint["capture"]),
                         "settings": fingerprint["settings"]},
         "light_intensity_scale": rec.light_corrections(),  # estimated / stated, per image (calibration)
@@ -978,6 +979,25 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
                 "rerun with --resume to continue")
         log(f"outputs written to {out}")
     return RecoveryResult(maps=fin, report=report, confidence=confidence, out=out)
+
+
+def stage_seconds(history: list) -> list[dict]:
+    """Where a run's time went: one entry per stage run, in order.
+
+    ``history``: the solver's per-iteration records (``size``, ``stage`` and, from runs that
+    time their iterations, ``seconds``: the iteration with its stage's end work). Returns
+    ``[{"size", "stage", "iterations", "seconds"}]``; a stage whose iterations carry no time
+    (a checkpoint of an older version) has ``seconds`` None.
+    """
+    out: list[dict] = []
+    for h in history:
+        if not out or (out[-1]["size"], out[-1]["stage"]) != (h["size"], h["stage"]):
+            out.append({"size": h["size"], "stage": h["stage"], "iterations": 0, "seconds": 0.0})
+        e = out[-1]
+        e["iterations"] += 1
+        t = h.get("seconds")
+        e["seconds"] = None if t is None or e["seconds"] is None else e["seconds"] + t
+    return out
 
 
 def _last_fit(history: list) -> float | None:
@@ -1033,6 +1053,7 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
         with torch.no_grad():
             while not rec.finished() and not rec.stop_requested:
                 bar.stage_start(_state(rec)["stage"], rec)
+                t_it = time.perf_counter()
                 snapshot = (copy.deepcopy(_state(rec)), torch.get_rng_state())
                 pending.clear()
                 try:
@@ -1042,6 +1063,8 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
                     rec.tick()
                     in_tick[0] = False
                     _state(rec)["history"][-1]["fit"] = pending.get("fit") or _fit_losses(rec)
+                    # the iteration's own time, a stage's end (class choice, fusion, soft metal) included
+                    _state(rec)["history"][-1]["seconds"] = time.perf_counter() - t_it
                 except _Interrupt:
                     rec.state = snapshot[0]
                     torch.set_rng_state(snapshot[1])
