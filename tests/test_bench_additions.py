@@ -73,6 +73,11 @@ def test_stage_differences_match_stages_by_kind_and_size():
     c = [{"size": 4, "stage": "dual", "seconds": None}, {"size": 8, "stage": "all", "seconds": 2.0}]
     assert additions.stage_differences([a, a], [b, c]) == {"all 8²": 3.5}
     assert additions.stage_differences([], []) == {}
+    # one stage met twice: each occurrence its own entry
+    d, p = {"size": 4, "stage": "dual", "seconds": 3.0}, {"size": 8, "stage": "polish", "seconds": 1.0}
+    twice = [d, p, {**d, "seconds": 5.0}]
+    assert additions.stage_differences([twice], [[{**d, "seconds": 1.0}, p, d]]) == \
+        {"dual 4²": 2.0, "polish 8²": 0.0, "dual 4² (2)": 2.0}
 
 
 def test_a_timed_run_prints_the_recoverys_own_seconds(tmp_path):

@@ -2,6 +2,7 @@
 
 import json
 import math
+import time
 
 import pytest
 import torch
@@ -154,6 +155,30 @@ def test_stage_seconds_group_runs_of_one_stage():
                                 {"size": 8, "stage": "dual", "iterations": 1, "seconds": 0.5},
                                 {"size": 8, "stage": "polish", "iterations": 2, "seconds": None}]
     assert stage_seconds([]) == []
+    # a stage met again after another is a new entry
+    again = stage_seconds([{"size": 4, "stage": "dual", "seconds": 1.0},
+                           {"size": 8, "stage": "dual", "seconds": 1.0},
+                           {"size": 4, "stage": "dual", "seconds": 2.0}])
+    assert [(e["size"], e["seconds"]) for e in again] == [(4, 1.0), (8, 1.0), (4, 2.0)]
+
+
+def test_a_stages_end_work_counts_in_its_last_iteration(tiny, monkeypatch):
+    """The work at a stage's end (here a 0.2 s sleep added to it) is in its last iteration's seconds."""
+    from torchbrdf.recovery.solver import Recovery
+
+    plain = Recovery.end_stage
+
+    def slow_end(self):
+        time.sleep(0.2)
+        plain(self)
+
+    monkeypatch.setattr(Recovery, "end_stage", slow_end)
+    rep = recover(tiny, RecoveryConfig(seed=0, threads=2, iters=6), None, progress=False).report
+    hist = rep["loss_history"]
+    key = [(h["size"], h["stage"]) for h in hist]
+    last = {len(hist) - 1} | {k for k in range(len(hist) - 1) if key[k] != key[k + 1]}
+    assert len(last) == len(rep["stage_seconds"])
+    assert all(hist[k]["seconds"] >= 0.2 for k in last)
 
 
 def test_resume_after_a_converged_stage_equals_uninterrupted(tiny, tmp_path):
@@ -166,6 +191,10 @@ def test_resume_after_a_converged_stage_equals_uninterrupted(tiny, tmp_path):
     resumed = recover(tiny, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
     assert resumed["iterations"] == full["iterations"]
     assert [h.get("skipped") for h in resumed["loss_history"]] == [h.get("skipped") for h in full["loss_history"]]
+    # the iterations before the stop keep their times through the checkpoint
+    counts = [e["iterations"] for e in full["stage_seconds"]]
+    assert [e["iterations"] for e in resumed["stage_seconds"]] == counts
+    assert all(e["seconds"] > 0 for e in resumed["stage_seconds"])
     for k in full["maps"]:
         torch.testing.assert_close(resumed["maps"][k], full["maps"][k], rtol=1e-5, atol=1e-6)
 

@@ -9,9 +9,12 @@ clock (report.json's "seconds": the fit, without the interpreter's start, the im
 the capture or writing outputs). Runs go on / off / off / on per round, so that a drift of the
 machine's speed falls on both, and the printed ratio is the median over the rounds' on/off
 pairs. Below it, per stage (report.json's "stage_seconds"), the median of the pairs' on − off
-seconds: where the additions' time goes (the single-class stages' starts and the last stage's
-end), and, from the two-hypothesis stages below full size, which run the same code on and off,
-how much the machine's noise moves a stage. With --busy every run has one competing
+seconds. The ties are made at the end of the stage before a single-class stage (the 256²
+two-hypothesis and the polish stage), and the first one's pass is reused by the polish
+stage's first step, so work moves between those two stages and only their sum says what the
+ties cost; the last stage's end holds the second fusion round and the final stage; the
+two-hypothesis stages below full size run the same code on and off, so their differences
+show how much the machine's noise moves a stage. With --busy every run has one competing
 `python -c "while True: pass"` beside it, as on a machine shared with a data loader. Results:
 docs/recovery.md (issue 18, "Time, with the new benchmark" and "Per-stage clocks").
 """
@@ -71,24 +74,34 @@ def run_recovery(cmd: Sequence[str], busy: bool) -> tuple[float, list[dict]]:
     raise RuntimeError(f"{cmd} printed no {STAGES} line:\n{out[-2000:]}")
 
 
+def _stage_times(stages: list[dict]) -> dict[tuple[str, int], float | None]:
+    """A run's stage seconds by (name, occurrence): ``("polish 256²", 0)`` for its first polish stage."""
+    out: dict[tuple[str, int], float | None] = {}
+    for e in stages:
+        name = f"{e['stage']} {e['size']}²"
+        k = sum(1 for n, _ in out if n == name)
+        out[(name, k)] = e["seconds"]
+    return out
+
+
 def stage_differences(on: Sequence[list[dict]], off: Sequence[list[dict]]) -> dict[str, float]:
     """Per stage, the median over the pairs of its on − off seconds.
 
-    ``on[i]``, ``off[i]``: the ``stage_seconds`` of one pair's runs. Stages are matched by kind
-    and size (``"polish 256²"``), in the order of the first on run; one missing from a run of a
-    pair, or without a time, leaves that pair out for it.
+    ``on[i]``, ``off[i]``: the ``stage_seconds`` of one pair's runs. Stages are matched by name
+    (``"polish 256²"``) and occurrence (a stage met again after another is its own entry,
+    ``"dual 64² (2)"``), in the order of the first on run; a stage missing from a run of a pair,
+    or without a time, leaves that pair out for it.
     """
     out: dict[str, float] = {}
-    names = [f"{e['stage']} {e['size']}²" for e in on[0]] if on else []
-    for name in names:
+    runs = [(_stage_times(a), _stage_times(b)) for a, b in zip(on, off)]
+    for name, k in _stage_times(on[0]) if on else {}:
         diffs = []
-        for a, b in zip(on, off):
-            ta = {f"{e['stage']} {e['size']}²": e["seconds"] for e in a}.get(name)
-            tb = {f"{e['stage']} {e['size']}²": e["seconds"] for e in b}.get(name)
+        for a, b in runs:
+            ta, tb = a.get((name, k)), b.get((name, k))
             if ta is not None and tb is not None:
                 diffs.append(ta - tb)
         if diffs:
-            out[name] = statistics.median(diffs)
+            out[name if k == 0 else f"{name} ({k + 1})"] = statistics.median(diffs)
     return out
 
 
@@ -148,12 +161,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         shown = " ".join(f"{100 * r:+.0f}%" for r in pairs)
         print(f"{recipe} {seed}: on {on:.2f} s  off {off:.2f} s  pairs {shown}  "
               f"median {100 * statistics.median(pairs):+.1f}%", flush=True)
-        # Where the difference lies: the additions run at the single-class stages' starts and
-        # the last stage's end; the two-hypothesis stages below full size run the same code
-        # on and off, so their differences show the machine's noise.
+        # Where the difference lies (see the module's docstring)
         diff = stage_differences(stages["on"], stages["off"])
         print("  per stage, on − off (median of the pairs): "
-              + ", ".join(f"{k} {v:+.2f} s" for k, v in diff.items()), flush=True)
+              + (", ".join(f"{k} {v:+.2f} s" for k, v in diff.items()) or "no stage times"), flush=True)
     print(f"load average after: {os.getloadavg()}")
     return 0
 

@@ -985,9 +985,10 @@ def stage_seconds(history: list) -> list[dict]:
     """Where a run's time went: one entry per stage run, in order.
 
     ``history``: the solver's per-iteration records (``size``, ``stage`` and, from runs that
-    time their iterations, ``seconds``: the iteration with its stage's end work). Returns
-    ``[{"size", "stage", "iterations", "seconds"}]``; a stage whose iterations carry no time
-    (a checkpoint of an older version) has ``seconds`` None.
+    time their iterations, ``seconds``: the iteration with its stage's end work and the next
+    stage's setup). Consecutive records of one (size, stage) form an entry. Returns
+    ``[{"size", "stage", "iterations", "seconds"}]``; a stage with any iteration without a time
+    (one run before a resume from a checkpoint of an older version) has ``seconds`` None.
     """
     out: list[dict] = []
     for h in history:
@@ -1053,9 +1054,9 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
         with torch.no_grad():
             while not rec.finished() and not rec.stop_requested:
                 bar.stage_start(_state(rec)["stage"], rec)
-                t_it = time.perf_counter()
                 snapshot = (copy.deepcopy(_state(rec)), torch.get_rng_state())
                 pending.clear()
+                t_it = time.perf_counter()  # after the rollback snapshot: the run's bookkeeping
                 try:
                     in_tick[0] = True
                     if rec.stop_requested:  # the signal came between two iterations
@@ -1063,7 +1064,8 @@ def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, lo
                     rec.tick()
                     in_tick[0] = False
                     _state(rec)["history"][-1]["fit"] = pending.get("fit") or _fit_losses(rec)
-                    # the iteration's own time, a stage's end (class choice, fusion, soft metal) included
+                    # the iteration's own time; a stage's end work (class choice, fusion, soft metal,
+                    # the next stage's setup: its level, tie, validation) is in its last iteration
                     _state(rec)["history"][-1]["seconds"] = time.perf_counter() - t_it
                 except _Interrupt:
                     rec.state = snapshot[0]
