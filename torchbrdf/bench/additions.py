@@ -30,7 +30,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from torchbrdf.bench.threads import SECONDS, run_workload, workload_seconds
+from torchbrdf.bench.threads import SECONDS, run_workload, tagged_line, workload_seconds
 
 #: The settings that turn issue 18's additions off.
 OFF = {"soft_metal": False, "fuse_rounds": 1, "fit_nonlocal_tie": False}
@@ -67,10 +67,9 @@ def run_recovery(cmd: Sequence[str], busy: bool) -> tuple[float, list[dict]]:
     lines is an error.
     """
     _, out = run_workload(cmd, None, busy)
-    seconds = workload_seconds(cmd, out, None)
-    for line in out.splitlines():
-        if line.startswith(STAGES + " "):
-            return seconds, json.loads(line.split(" ", 1)[1])
+    seconds, stages = workload_seconds(cmd, out, None), tagged_line(out, STAGES)
+    if stages is not None:
+        return seconds, json.loads(stages)
     raise RuntimeError(f"{cmd} printed no {STAGES} line:\n{out[-2000:]}")
 
 

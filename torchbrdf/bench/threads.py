@@ -73,15 +73,23 @@ def run_workload(cmd: Sequence[str], env: dict | None, busy: bool) -> tuple[floa
     return wall, res.stdout
 
 
+def tagged_line(stdout: str, tag: str) -> str | None:
+    """What follows ``tag`` on the first line of ``stdout`` that starts with it (None: no such line)."""
+    for line in stdout.splitlines():
+        if line.startswith(tag + " "):
+            return line[len(tag) + 1:]
+    return None
+
+
 def workload_seconds(cmd: Sequence[str], stdout: str, wall: float | None) -> float:
     """The workload's own time: the number on its ``SECONDS`` line.
 
     That is its time without the interpreter's start; without the line, ``wall``, or an error
     where ``wall`` is None.
     """
-    for line in stdout.splitlines():
-        if line.startswith(SECONDS):
-            return float(line.split()[1])
+    seconds = tagged_line(stdout, SECONDS)
+    if seconds is not None:
+        return float(seconds)
     if wall is None:
         raise RuntimeError(f"{cmd} printed no {SECONDS} line:\n{stdout[-2000:]}")
     return wall

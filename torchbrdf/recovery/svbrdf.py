@@ -674,15 +674,13 @@ def _loss_plot(path: Path, history: list) -> None:
     ax.semilogy(it, best, "-o", ms=2.5, color="black",
                 label="each pixel's better hypothesis (dual) / its chosen class (after)")
     finite = [v for v in series("dielectric") + series("metal") + best if math.isfinite(v) and v > 0]
-    for k in range(len(history)):
-        new_stage = k == 0 or (history[k]["size"], history[k]["stage"]) != (history[k - 1]["size"],
-                                                                            history[k - 1]["stage"])
-        if new_stage:
-            if k:
-                ax.axvline(it[k] - 0.5, color="grey", lw=0.6)
-            ax.text(it[k] - 0.3, 0.97, f"{history[k]['stage']} {history[k]['size']}²", fontsize=7,
-                    rotation=90,
-                    va="top", ha="left", transform=ax.get_xaxis_transform(), color="dimgrey", clip_on=True)
+    k = 0  # the first iteration of each stage run
+    for run in stage_seconds(history):
+        if k:
+            ax.axvline(it[k] - 0.5, color="grey", lw=0.6)
+        ax.text(it[k] - 0.3, 0.97, f"{run['stage']} {run['size']}²", fontsize=7, rotation=90,
+                va="top", ha="left", transform=ax.get_xaxis_transform(), color="dimgrey", clip_on=True)
+        k += run["iterations"]
     if it:
         ax.set_xlim(min(it) - 0.6, max(it) + 0.6)
     if finite:
