@@ -130,6 +130,15 @@ class RecoveryConfig:
     fill_candidates: int = 256  # random same-class candidates per pixel
     fill_min_similar: float = 2.0  # fewer similar candidates (summed similarity): no fill
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
+    # Full resolution, after the class choice: a dielectric at the glossy end (roughness below
+    # rough_tie_glossy) is moved to the rough basin (a refit from rough_tie_start) where that fits
+    # its data within rough_tie noise variances of the glossy fit (rough_basin_tie; 0: off).
+    # The images cannot tell a glossy dielectric whose highlights fall between the lights from a
+    # rough one (dust specks: two basins at the same cost); the rough basin is the wider one
+    # (dusty_metal 3 roughness RMSE 0.0762 -> 0.0443; docs/recovery.md, issue 18)
+    rough_tie: float = 2.0
+    rough_tie_glossy: float = 0.1
+    rough_tie_start: float = 0.85
     light_position: bool = True  # with light_scale: also a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate each light's intensity scale (False: no light estimate at all)
     # Start the estimates in the two-hypothesis stages (positions: the full-resolution one; False:
@@ -1213,6 +1222,51 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
     return best, best_c
 
 
+def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], model: str, margin: float,
+                    glossy: float = 0.1, rough: float = 0.85, iters: int = 8) -> tuple[Tensor, Tensor]:
+    """Move glossy dielectrics to the rough basin where that fits their data as well.
+
+    A dielectric whose highlights all fall between the lights fits its images as a glossy
+    surface (the lobe unseen) and as a rough one (the lobe broad and dim) at the same cost: the
+    dust specks of dusty_metal, roughness 0.9, come out 0.05 where the coarse levels blended them
+    with a glossier metal, and with specular held the cost profile over roughness has two
+    basins at the same height with a barrier of hundreds of noise variances between them
+    (docs/recovery.md, issue 18). The fit's path decides, and the confidence, linearised in the
+    glossy basin, calls the answer measured. Between basins that fit equally well the wider
+    one is the likelier (its posterior mass): the rough one, where a small change of roughness
+    changes nothing. A glossy surface whose highlight is seen fits far worse rough and stays;
+    one seen nowhere is left to the non-local fill, which takes the roughness of its material
+    where a highlight was measured.
+
+    The pixels tested: ``metal (P, 1)`` < ½ with roughness below ``glossy``. Each is refitted
+    (:func:`refit_pixels`, data only, lights ``idx``, ``iters`` iterations) with its roughness
+    held twice — at its own value and at ``rough`` — and takes the rough fit where its cost is
+    at most the glossy fit's plus ``margin`` noise variances (the median dielectric pixel's cost
+    per residual). ``theta (P, 7)``.
+    Returns ``(theta (P, 7), moved (P,) bool)``, on ``theta``'s device and in its dtype.
+    """
+    moved = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
+    diel = metal[:, 0] < 0.5
+    zero = torch.zeros_like(metal)
+    rows = torch.nonzero(diel & (decode(theta, zero)["roughness"][:, 0] < glossy)).flatten()
+    if rows.numel() == 0:
+        return theta, moved
+    cost = _pixel_cost(data.residual(theta, zero, idx, model))[diel]
+    finite = torch.isfinite(cost)
+    sigma2 = float(cost[finite].median()) / (3 * len(idx)) if bool(finite.any()) else 0.0
+    held = torch.zeros(rows.numel(), _N_PARAMS, dtype=torch.bool, device=theta.device)
+    held[:, 4] = True  # the roughness logit
+    _, c_glossy = refit_pixels(data, theta, zero, rows, [theta[rows]], idx, model, iters, held=held)
+    start = theta[rows].clone()
+    start[:, 4] = _logit(torch.full_like(start[:, 4], rough), _R_MIN, _R_MAX)
+    t_rough, c_rough = refit_pixels(data, theta, zero, rows, [start], idx, model, iters, held=held)
+    take = c_rough <= c_glossy + margin * sigma2  # (a non-finite rough cost is never taken)
+    theta = theta.clone()
+    theta[rows] = torch.where(take, t_rough, theta[rows])
+    moved[rows] = take[:, 0]
+    return theta, moved
+
+
 # --------------------------------------------------------------------------------------
 # Continuous metallic (final stage)
 # --------------------------------------------------------------------------------------
@@ -2052,6 +2106,12 @@ class Recovery:
             # of its 8 neighbours agreeing), which keeps one-pixel edges.
             st["metal"] = _majority(metal, size) if size < self.plan[-1][0] else _despeckle(metal, size)
             st.pop("costs", None)
+            if self.cfg.rough_tie > 0 and size == self.plan[-1][0]:
+                # (the dielectric hypothesis: the next stage takes it where the pixel is dielectric)
+                cfg = self.cfg
+                st["theta"][0], _ = rough_basin_tie(self.data(size), st["theta"][0], st["metal"],
+                                                    self.train_idx, cfg.model, cfg.rough_tie,
+                                                    cfg.rough_tie_glossy, cfg.rough_tie_start)
         nxt = st["stage"] + 1
         if nxt < len(self.plan):
             s1, kind1, _ = self.plan[nxt]
