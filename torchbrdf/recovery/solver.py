@@ -131,11 +131,12 @@ class RecoveryConfig:
     fill_min_similar: float = 2.0  # fewer similar candidates (summed similarity): no fill
     refit_before_choice: bool = True  # refit unconverged dielectric pixels before calling them metal
     # Full resolution, after the class choice: a dielectric at the glossy end (roughness below
-    # rough_tie_glossy) is moved to the rough basin (a refit from rough_tie_start) where that fits
-    # its data within rough_tie noise variances of the glossy fit (rough_basin_tie; 0: off).
-    # The images cannot tell a glossy dielectric whose highlights fall between the lights from a
-    # rough one (dust specks: two basins at the same cost); the rough basin is the wider one
-    # (dusty_metal 3 roughness RMSE 0.0762 -> 0.0443; docs/recovery.md, issue 18)
+    # rough_tie_glossy) is moved to the rough basin (refitted with its roughness held at
+    # rough_tie_start) where that fits its data within rough_tie noise variances of the glossy fit
+    # (rough_basin_tie; 0: off). The images cannot tell a glossy dielectric whose highlights fall
+    # between the lights from a rough one (dust specks: two basins at the same cost); the rough
+    # basin is the wider one (dusty_metal 3 roughness RMSE 0.0762 -> 0.0443; docs/recovery.md,
+    # issue 18)
     rough_tie: float = 2.0
     rough_tie_glossy: float = 0.1
     rough_tie_start: float = 0.85
@@ -1223,7 +1224,8 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
 
 
 def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], model: str, margin: float,
-                    glossy: float = 0.1, rough: float = 0.85, iters: int = 8) -> tuple[Tensor, Tensor]:
+                    glossy: float = 0.1, rough: float = 0.85, iters: int = 8, max_pixels: int = 4096
+                    ) -> tuple[Tensor, Tensor]:
     """Move glossy dielectrics to the rough basin where that fits their data as well.
 
     A dielectric whose highlights all fall between the lights fits its images as a glossy
@@ -1234,11 +1236,12 @@ def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int
     (docs/recovery.md, issue 18). The fit's path decides, and the confidence, linearised in the
     glossy basin, calls the answer measured. Between basins that fit equally well the wider
     one is the likelier (its posterior mass): the rough one, where a small change of roughness
-    changes nothing. A glossy surface whose highlight is seen fits far worse rough and stays;
-    one seen nowhere is left to the non-local fill, which takes the roughness of its material
-    where a highlight was measured.
+    changes nothing. A glossy surface whose highlight is seen fits far worse rough and stays.
+    The price: a truly glossy dielectric whose highlight no light shows anywhere comes out
+    rough (the images do not tell it; docs/recovery.md, Known limits).
 
-    The pixels tested: ``metal (P, 1)`` < ½ with roughness below ``glossy``. Each is refitted
+    The pixels tested: ``metal (P, 1)`` < ½ with roughness below ``glossy``, at most
+    ``max_pixels`` of them (the glossiest first: each costs two small refits). Each is refitted
     (:func:`refit_pixels`, data only, lights ``idx``, ``iters`` iterations) with its roughness
     held twice — at its own value and at ``rough`` — and takes the rough fit where its cost is
     at most the glossy fit's plus ``margin`` noise variances (the median dielectric pixel's cost
@@ -1248,9 +1251,12 @@ def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int
     moved = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
     diel = metal[:, 0] < 0.5
     zero = torch.zeros_like(metal)
-    rows = torch.nonzero(diel & (decode(theta, zero)["roughness"][:, 0] < glossy)).flatten()
+    rough_now = decode(theta, zero)["roughness"][:, 0]
+    rows = torch.nonzero(diel & (rough_now < glossy)).flatten()
     if rows.numel() == 0:
         return theta, moved
+    if rows.numel() > max_pixels:
+        rows = rows[torch.topk(rough_now[rows], max_pixels, largest=False).indices]
     cost = _pixel_cost(data.residual(theta, zero, idx, model))[diel]
     finite = torch.isfinite(cost)
     sigma2 = float(cost[finite].median()) / (3 * len(idx)) if bool(finite.any()) else 0.0
@@ -1260,7 +1266,7 @@ def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int
     start = theta[rows].clone()
     start[:, 4] = _logit(torch.full_like(start[:, 4], rough), _R_MIN, _R_MAX)
     t_rough, c_rough = refit_pixels(data, theta, zero, rows, [start], idx, model, iters, held=held)
-    take = c_rough <= c_glossy + margin * sigma2  # (a non-finite rough cost is never taken)
+    take = c_rough <= c_glossy + margin * sigma2  # (a non-finite rough cost only where the glossy's is too)
     theta = theta.clone()
     theta[rows] = torch.where(take, t_rough, theta[rows])
     moved[rows] = take[:, 0]
@@ -2109,6 +2115,8 @@ class Recovery:
             if self.cfg.rough_tie > 0 and size == self.plan[-1][0]:
                 # (the dielectric hypothesis: the next stage takes it where the pixel is dielectric)
                 cfg = self.cfg
+                # (a moved pixel keeps its LM damping: restarting it there changed the tuning maps
+                # by at most 0.0005, dusty_metal 3's metallic 0.0155 -> 0.0160)
                 st["theta"][0], _ = rough_basin_tie(self.data(size), st["theta"][0], st["metal"],
                                                     self.train_idx, cfg.model, cfg.rough_tie,
                                                     cfg.rough_tie_glossy, cfg.rough_tie_start)

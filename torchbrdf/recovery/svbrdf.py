@@ -167,6 +167,9 @@ def check_config(cfg: RecoveryConfig) -> None:
     _integer("soft_metal_grow", cfg.soft_metal_grow, 0, 10_000)
     _integer("soft_metal_passes", cfg.soft_metal_passes, 0, 10_000)
     _integer("soft_metal_band", cfg.soft_metal_band, 0, 10_000)  # a max-pool half width
+    _finite("rough_tie", cfg.rough_tie, 0.0, 1e6)
+    _finite("rough_tie_glossy", cfg.rough_tie_glossy, 0.0, 1.0)
+    _finite("rough_tie_start", cfg.rough_tie_start, 0.03, 1.0)
     if cfg.holdout is not None and (not isinstance(cfg.holdout, int) or isinstance(cfg.holdout, bool)):
         raise RecoveryError(f"--holdout must be an integer light index, got {cfg.holdout!r}")
     if cfg.model not in ("principled", "svbrdf_ggx"):
