@@ -1,7 +1,10 @@
-"""The glossy/rough tie of dielectrics (issue 18's wider held-out check): ``rough_basin_tie``.
+"""The glossy/rough ties of issue 18's wider held-out check.
 
-A rough dielectric whose fit landed in the glossy basin is moved to the rough one; a glossy
-dielectric whose highlight the images show stays glossy.
+``rough_basin_tie`` runs after the class choice, ``soft_rough_tie`` in the final stage (metallic
+free).
+
+A rough dielectric (or rough, partly metal rim) whose fit landed in the glossy basin is moved to
+the rough one; a glossy dielectric whose highlight the images show stays glossy.
 """
 
 import pytest
@@ -9,7 +12,7 @@ import torch
 
 from torchbrdf.capture.format import load_capture, write_capture
 from torchbrdf.capture.synthetic import light_layout, normals_from_height, render_capture
-from torchbrdf.recovery.solver import LevelData, decode, encode, rough_basin_tie
+from torchbrdf.recovery.solver import LevelData, decode, encode, rough_basin_tie, soft_rough_tie
 from torchbrdf.recovery.svbrdf import RecoveryConfig, RecoveryError, check_config
 
 
@@ -21,6 +24,28 @@ def _maps(size: int, left: float, right: float, specular: float = 0.5) -> dict:
             "roughness": rough, "metallic": torch.zeros(1, size, size),
             "specular": torch.full((1, size, size), specular),
             "normal": normals_from_height(torch.zeros(size, size))}
+
+
+def _flat(x):
+    """``(C, S, S)`` maps as ``(S², C)`` rows."""
+    return x.reshape(x.shape[0], -1).T
+
+
+def _capture(tmp_path, truth: dict, left: float, right: float, seed: int):
+    """``truth`` rendered under 12 ring lights with 1 % noise and written as a capture.
+
+    Returns ``(images, the same without the specular lobe, LevelData of all lights)``; ``left``
+    and ``right`` are the halves' roughness (for the diffuse-only images).
+    """
+    size = truth["roughness"].shape[-1]
+    pos, inten = light_layout(12)
+    with torch.no_grad():
+        img = render_capture(truth, (pos, inten), noise=0.01, seed=seed)
+        diffuse_only = render_capture(_maps(size, left, right, specular=0.0), (pos, inten))
+    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    cap = load_capture(tmp_path)
+    eps = float(0.01 * cap.images.clamp(min=0).mean())
+    return img, diffuse_only, LevelData(cap, size, list(range(len(cap))), eps)
 
 
 def test_a_glossy_fit_of_a_rough_dielectric_moves_and_a_seen_highlight_stays(tmp_path):
@@ -36,22 +61,13 @@ def test_a_glossy_fit_of_a_rough_dielectric_moves_and_a_seen_highlight_stays(tmp
     """
     size = 16
     truth = _maps(size, 0.9, 0.06)
-    pos, inten = light_layout(12)
-    with torch.no_grad():
-        img = render_capture(truth, (pos, inten), noise=0.01, seed=4)
-        diffuse_only = render_capture(_maps(size, 0.9, 0.06, specular=0.0), (pos, inten))
-    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
-    cap = load_capture(tmp_path)
-    data = LevelData(cap, size, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
-
-    def flat(x):
-        return x.reshape(x.shape[0], -1).T
+    img, diffuse_only, data = _capture(tmp_path, truth, 0.9, 0.06, seed=4)
 
     start = dict(truth)
     start["roughness"] = torch.full_like(truth["roughness"], 0.05)  # the glossy basin
     start["roughness"][..., size // 2:] = 0.06
     start["roughness"][:, 0, : size // 2] = 0.3  # above the glossy end: left alone
-    theta = encode({k: flat(start[k]) for k in ("base_color", "specular", "roughness", "normal")})
+    theta = encode({k: _flat(start[k]) for k in ("base_color", "specular", "roughness", "normal")})
     metal = torch.zeros(size * size, 1)
     with torch.no_grad():
         out, moved = rough_basin_tie(data, theta, metal, data.train_idx, "principled", 2.0)
@@ -73,7 +89,64 @@ def test_a_glossy_fit_of_a_rough_dielectric_moves_and_a_seen_highlight_stays(tmp
 
 
 def test_the_tie_settings_are_checked():
-    """A NaN margin, a glossy threshold above 1 or a rough start below the roughness floor is refused."""
-    for bad in ({"rough_tie": float("nan")}, {"rough_tie_glossy": 1.5}, {"rough_tie_start": 0.0}):
+    """Bad tie settings are refused.
+
+    A NaN margin, a glossy threshold above 1 (the final stage's: above ½, where no fit could stay
+    rough above twice it) or a rough start below the roughness floor.
+    """
+    for bad in ({"rough_tie": float("nan")}, {"rough_tie_glossy": 1.5}, {"rough_tie_start": 0.0},
+                {"soft_rough_tie": float("nan")}, {"soft_rough_tie_glossy": 0.6}):
         with pytest.raises(RecoveryError, match=next(iter(bad))):
             check_config(RecoveryConfig(**bad))
+
+
+def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_path):
+    """``soft_rough_tie`` moves a glossy fit of a rough, partly metal region to the rough basin.
+
+    A rough, 20 %-metal region started as a glossy dielectric (the final stage's firefly on
+    dusty_metal 162) moves to a rough fit with a fractional metallic; a glossy
+    dielectric whose highlight the images show stays; metals, pixels above the glossy threshold
+    and pixels not listed are untouched.
+
+    Fails with the tie always taking or inverted, with metallic held at 0 on the rough side (a
+    dielectric's F0 cannot reach the blend's), or with the rough fit's roughness left unchecked
+    (a rough start that slid back to glossy would count as moved).
+    """
+    size = 16
+    truth = _maps(size, 0.8, 0.06)
+    truth["metallic"][..., : size // 2] = 0.2
+    img, diffuse_only, data = _capture(tmp_path, truth, 0.8, 0.06, seed=5)
+
+    start = dict(truth)
+    start["roughness"] = torch.full_like(truth["roughness"], 0.08)  # the glossy basin...
+    start["specular"] = torch.full_like(truth["specular"], 0.95)  # ... with a strong lobe
+    start["specular"][..., size // 2:] = 0.5
+    start["roughness"][..., size // 2:] = 0.06
+    start["roughness"][:, 0, : size // 2] = 0.4  # above the glossy end: left alone
+    theta = encode({k: _flat(start[k]) for k in ("base_color", "specular", "roughness", "normal")})
+    metal = torch.zeros(size * size, 1)
+    metal.view(size, size)[1, : size // 2] = 1.0  # a metal row: not tested
+    rows = torch.arange(size * size)
+    rows = rows[rows % size != 1]  # column 1 is not listed
+    names = ("base_color", "specular", "roughness", "normal")
+    with torch.no_grad():
+        theta_true = encode({k: _flat(truth[k]) for k in names})
+        r_true = data.residual(theta_true, _flat(truth["metallic"]), data.train_idx)
+        sigma2 = float(r_true.pow(2).mean())  # the noise variance of one residual
+        out, m_out, moved = soft_rough_tie(data, theta, metal, rows, data.train_idx, "principled",
+                                           32 * sigma2, 2 * sigma2)
+    moved = moved.reshape(size, size)
+    rough = decode(out, m_out)["roughness"][:, 0].reshape(size, size)
+    mo = m_out[:, 0].reshape(size, size)
+    left = torch.zeros(size, size, dtype=torch.bool)
+    left[2:, : size // 2] = True
+    left[:, 1] = False
+    assert float(moved[left].float().mean()) > 0.9
+    # fractional, not a dielectric (metallic trades against base colour along a valley: 0.3 here)
+    assert float(rough[left].median()) > 0.6 and 0.05 < float(mo[left].median()) < 0.6
+    assert not bool(moved[0:2, : size // 2].any()) and not bool(moved[:, 1].any())
+    seen = ((img / diffuse_only.clamp(min=1e-6)).amax(dim=(0, 1)) > 1.3)[:, size // 2:]
+    assert int(seen.sum()) >= 4, "the test needs glossy pixels whose highlight is seen"
+    assert not bool(moved[:, size // 2:][seen].any())
+    keep = ~moved.reshape(-1)
+    assert torch.equal(out[keep], theta[keep]) and torch.equal(m_out[keep], metal[keep])

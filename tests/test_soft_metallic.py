@@ -235,6 +235,7 @@ def test_blend_stripe_recovers_fractional_metallic(tmp_path):
     frac = float(((m > 0) & (m < 1)).float().mean())
     assert res.report["fractional_metallic_fraction"] == frac and frac > 0.05
     assert res.report["soft_metal"]["pixels_refitted"] > 0
+    assert res.report["soft_metal"]["glossy_to_rough"] >= 0  # the final stage's glossy/rough tie
 
 
 def test_blend_line_holds_a_ramps_metallic_and_base_colour(tmp_path):

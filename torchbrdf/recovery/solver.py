@@ -140,6 +140,13 @@ class RecoveryConfig:
     rough_tie: float = 2.0
     rough_tie_glossy: float = 0.1
     rough_tie_start: float = 0.85
+    # The same in the final stage (soft_rough_tie), with metallic free: a glossy (roughness below
+    # soft_rough_tie_glossy) dielectric or fractional pixel among its refitted ones takes a rough
+    # fit within soft_rough_tie noise variances (0: off). A rough rim, partly metal, fits as well
+    # as a glossy dielectric whose lobe falls between the lights, and shows as a firefly under
+    # another light (dusty_metal 162: worst held-out light 24.6 -> 45.4 dB; docs, issue 18)
+    soft_rough_tie: float = 2.0
+    soft_rough_tie_glossy: float = 0.2
     light_position: bool = True  # with light_scale: also a per-light position offset (prior 1 cm)
     light_scale: bool = True  # estimate each light's intensity scale (False: no light estimate at all)
     # Start the estimates in the two-hypothesis stages (positions: the full-resolution one; False:
@@ -1467,8 +1474,8 @@ def _at(v: Any, r: _Rows) -> Any:
 
 def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
              cost: Callable[[Tensor, _Rows], Tensor], x: Tensor, iters: int, fix_metal: bool = False,
-             prior: Callable[[Tensor, _Rows], tuple[Tensor, Tensor]] | None = None, tol: float = 1e-3
-             ) -> tuple[Tensor, Tensor]:
+             prior: Callable[[Tensor, _Rows], tuple[Tensor, Tensor]] | None = None, tol: float = 1e-3,
+             held: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``iters`` per-pixel LM iterations on ``x (N, 8)`` (the data residuals and their
     derivatives along K directions from ``jvp``, as :meth:`LevelData.residual_jvp`; metallic —
     the last column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which
@@ -1478,7 +1485,8 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
     residuals' forward-mode Jacobian, which would copy them once per tangent); ``cost`` must
     include them. ``jvp``, ``cost`` and ``prior`` take the unknowns of some of the pixels and
     their indices (``None``: all N, in order); the base-colour unknowns act each on its own
-    channel's residuals (:func:`fit_jacobian`).
+    channel's residuals (:func:`fit_jacobian`). ``held (N, 8)``: unknowns kept at their start
+    (None: none held but metallic with ``fix_metal``).
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
@@ -1506,6 +1514,10 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
             pj = pj[..., :n_t]  # (n, k, n_t)
             jtj = jtj + torch.bmm(pj.transpose(1, 2), pj)
             g = g + torch.bmm(pj.transpose(1, 2), pr[..., None])[..., 0]
+        if held is not None:  # a held unknown: decoupled, no gradient, so its step is 0
+            free = (~_at(held, rows)[:, :n_t]).to(x.dtype)
+            jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1 - free)
+            g = g * free
         h = jtj + torch.diag_embed(la * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
         step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
         cand = xa + torch.nn.functional.pad(step, (0, x.shape[1] - n_t))
@@ -1524,6 +1536,28 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
         done = (better & (la <= lam0) & torch.isfinite(ca) & (ca - c1 <= tol * ca))[:, 0]
         active = active[~done]
     return x, c
+
+
+def _soft_energy(sub: LevelData, idx: list[int], model: str, well: float, target: Tensor | None = None,
+                 smooth: float | Tensor = 0.0, line: tuple[Tensor, Tensor] | None = None,
+                 line_weight: float | Tensor = 0.0) -> tuple[Callable, Callable, Callable]:
+    """The final stage's energy of ``sub``'s pixels, as :func:`_soft_lm` takes it.
+
+    Returns ``(jvp, prior, cost)`` of some of the pixels' unknowns ``x (n, 8)`` by their
+    indices: the data residuals on lights ``idx`` and their derivatives, the prior residuals
+    (:func:`_soft_prior`; ``target``, ``smooth``, ``line``, ``line_weight`` per pixel of ``sub``
+    or floats) and their Jacobian, and the summed cost ``(n, 1)`` of both.
+    """
+    def residual(v: Tensor, r: _Rows) -> Tensor:
+        return sub.residual(v[:, :7], v[:, 7:8], idx, model, rows=r)
+
+    def jvp(v: Tensor, tg: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
+        return sub.residual_jvp(v, v[:, 7:8], idx, model, tg, rows=r)
+
+    def prior(v: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
+        return _soft_prior(v, well, _at(target, r), _at(smooth, r), _at(line, r), _at(line_weight, r))
+
+    return jvp, prior, lambda v, r: _pixel_cost(torch.cat((residual(v, r), prior(v, r)[0]), -1))
 
 
 def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
@@ -1565,18 +1599,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
 
     def energy(sub_: LevelData, target_: Tensor | None, smooth_: float | Tensor,
                line_: tuple[Tensor, Tensor] | None, line_weight_: float | Tensor):
-        # data residuals, prior and cost of some of these pixels' x (n, 8), by their indices
-        def fn_(v: Tensor, r: _Rows) -> Tensor:
-            return sub_.residual(v[:, :7], v[:, 7:8], idx, model, rows=r)
-
-        def jvp_(v: Tensor, tg: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
-            return sub_.residual_jvp(v, v[:, 7:8], idx, model, tg, rows=r)
-
-        def prior_(v: Tensor, r: _Rows) -> tuple[Tensor, Tensor]:
-            return _soft_prior(v, well, _at(target_, r), _at(smooth_, r), _at(line_, r),
-                               _at(line_weight_, r))
-
-        return jvp_, prior_, lambda v, r: _pixel_cost(torch.cat((fn_(v, r), prior_(v, r)[0]), -1))
+        return _soft_energy(sub_, idx, model, well, target_, smooth_, line_, line_weight_)
 
     jvp, prior, cost = energy(sub, target, smooth, line, line_weight)
 
@@ -1629,6 +1652,50 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     best = torch.where(accepted[:, None], best, ref)
     accepted = accepted | keep[:, 0]
     return best[:, :7], best[:, 7:8], accepted
+
+
+def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
+                   well: float, margin: float, glossy: float = 0.2, rough: float = 0.85, iters: int = 8,
+                   coverage: Tensor | None = None, snap: float = 0.02) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`rough_basin_tie` in the final stage, where a blend of metal and dielectric is an answer.
+
+    At a metal's edge a rough, partly metal rim (dusty_metal 162: 15-25 % metal, roughness 0.8)
+    fits its images as well as a glossy dielectric with a strong specular whose lobe falls
+    between the lights: the binary tie cannot tell them apart (a dielectric's F0 stops at 0.08)
+    and the final stage's free fit stays in the glossy basin, which a held-out light then shows
+    as a firefly. Here each of ``rows (N,)`` with metallic below 1 and roughness below ``glossy``
+    is refitted twice on 8 unknowns (:func:`_soft_energy`: data on lights ``idx`` and the
+    double-well ``well``; ``iters`` LM iterations) — with its roughness held at its own value,
+    and free from ``rough`` with metallic from ``coverage (P, 1)`` (the blend of its clear
+    neighbours, :func:`unmix_metallic`; ½ where NaN or None) — and takes the second where that
+    stayed rough (above ``2 × glossy``) at a cost at most ``margin`` (in the energy's units: the
+    caller scales it by the noise variance) above the first. Roughness is free on the rough side:
+    held at one value, a rough metal's lobe misses (the rim's truth is 0.76-0.82). A metallic
+    within ``snap`` of 0 or 1 is set to it. ``theta (P, 7)``, ``metal (P, 1)``.
+    Returns ``(theta (P, 7), metal (P, 1), moved (P,) bool)`` on ``theta``'s device, in its dtype.
+    """
+    moved = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
+    test = rows[(decode(theta[rows], metal[rows])["roughness"][:, 0] < glossy) & (metal[rows, 0] < 1)]
+    if test.numel() == 0:
+        return theta, metal, moved
+    jvp, prior, cost = _soft_energy(data.subset(test), idx, model, well)
+    x0 = torch.cat((theta[test], metal[test]), -1)
+    held = torch.zeros_like(x0, dtype=torch.bool)
+    held[:, 4] = True  # the roughness logit
+    _, c_glossy = _soft_lm(jvp, cost, x0, iters, prior=prior, held=held)
+    start = x0.clone()
+    start[:, 4] = _logit(torch.full_like(start[:, 4], rough), _R_MIN, _R_MAX)
+    u = torch.full_like(start[:, 7], 0.5) if coverage is None else coverage[test, 0]
+    start[:, 7] = torch.nan_to_num(u, nan=0.5).clamp(snap, 1 - snap)
+    x, c_rough = _soft_lm(jvp, cost, start, iters, prior=prior)
+    stayed_rough = decode(x[:, :7], x[:, 7:8])["roughness"][:, 0] > 2 * glossy
+    take = (c_rough <= c_glossy + margin)[:, 0] & stayed_rough
+    m = x[:, 7:8]
+    m = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    theta, metal = theta.clone(), metal.clone()
+    theta[test[take]], metal[test[take]] = x[take, :7], m[take]
+    moved[test[take]] = True
+    return theta, metal, moved
 
 
 def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
@@ -2259,7 +2326,7 @@ class Recovery:
         sigma2 = typical / max(1, r.shape[1])
         rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
                                      cfg.soft_metal_band, torch.sigmoid(theta[:, 0:3]), cfg.soft_metal_edge)
-        n_frac = n_grown = 0
+        n_frac = n_grown = n_rough = 0
         # The candidates' coverage as a blend of their clear neighbours (NaN elsewhere).
         unmix = torch.full_like(metal, float("nan"))
         w_nb, w_un = cfg.soft_metal_smooth * sigma2, cfg.soft_metal_unmix * sigma2
@@ -2355,6 +2422,15 @@ class Recovery:
                 theta[front] = torch.where(ff, t_f, theta[front])
                 metal[front] = torch.where(ff, m_f, metal[front])
                 n_grown += int(front.numel())
+            if cfg.soft_rough_tie > 0:
+                # Glossy or rough, now with a blend as an answer (a rim's glossy fit is a firefly
+                # under an unseen light), before the blend line, which then holds the moved
+                # pixels' base colour too.
+                theta, metal, moved = soft_rough_tie(
+                    data, theta, metal, torch.nonzero(tried).flatten(), data.train_idx, cfg.model,
+                    cfg.soft_metal_well * sigma2, cfg.soft_rough_tie * sigma2, cfg.soft_rough_tie_glossy,
+                    cfg.rough_tie_start, coverage=unmix)
+                n_rough = int(moved.sum())
             frac_rows = torch.nonzero(((metal > 0) & (metal < 1))[:, 0]).flatten()
             if cfg.soft_metal_line > 0 and frac_rows.numel():
                 # Last: the fractional pixels refitted with their base colour tied to the blend of
@@ -2376,7 +2452,7 @@ class Recovery:
             st["theta"][0], st["metal"] = theta, metal
             n_frac = int(((metal > 0) & (metal < 1)).sum())
         st["soft_metal"] = {"pixels_refitted": int(rows.numel()) + n_grown, "fractional_pixels": n_frac,
-                            "seconds": time.perf_counter() - t_start}
+                            "glossy_to_rough": n_rough, "seconds": time.perf_counter() - t_start}
 
     def finished(self) -> bool:
         return self.state["stage"] >= len(self.plan)

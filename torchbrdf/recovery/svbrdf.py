@@ -170,6 +170,8 @@ def check_config(cfg: RecoveryConfig) -> None:
     _finite("rough_tie", cfg.rough_tie, 0.0, 1e6)
     _finite("rough_tie_glossy", cfg.rough_tie_glossy, 0.0, 1.0)
     _finite("rough_tie_start", cfg.rough_tie_start, 0.03, 1.0)
+    _finite("soft_rough_tie", cfg.soft_rough_tie, 0.0, 1e6)
+    _finite("soft_rough_tie_glossy", cfg.soft_rough_tie_glossy, 0.0, 0.5)
     if cfg.holdout is not None and (not isinstance(cfg.holdout, int) or isinstance(cfg.holdout, bool)):
         raise RecoveryError(f"--holdout must be an integer light index, got {cfg.holdout!r}")
     if cfg.model not in ("principled", "svbrdf_ggx"):
