@@ -1057,7 +1057,8 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     ``tol`` a pixel whose accepted step gained less than that fraction of its cost stops (the
     others go on, evaluated on their rows alone); on these linear problems its cost is then
     within about that fraction of the optimum's.
-    A pixel whose cost starts infinite does not stop on its first finite one.
+    A pixel whose cost starts infinite does not stop on its first finite one. Per-pixel
+    ``held`` unknowns keep their start and the others solve the reduced problem.
     """
     import torchbrdf.recovery.solver as R
 
@@ -1143,6 +1144,23 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     rhs_h = rhs - torch.cat((a, row), 1)[..., 7] * 0.5
     held = torch.linalg.lstsq(torch.cat((a, row), 1)[..., :7], rhs_h[..., None]).solution[..., 0]
     assert torch.allclose(x[:, :7], held, atol=1e-6)
+    # per-pixel held unknowns (``held``, as the glossy/rough tie holds roughness): a held entry
+    # keeps its start exactly and the others solve the reduced problem, also when converged
+    # pixels leave and the mask is taken on their rows
+    hold = torch.zeros(n, 8, dtype=torch.bool)
+    for i in range(n - 1):  # the last pixel holds nothing
+        hold[i, 3 + i % 4] = True
+    calls.clear()
+    x, _ = R._soft_lm(jvp(logged), cost, start, 60, fix_metal=True, tol=1e-2, held=hold)
+    assert any(r is not None and 0 < len(r) < n for r in calls)
+    assert torch.equal(x[hold], start[hold])
+    x, _ = R._soft_lm(jvp(fn), cost, start, 60, fix_metal=True, tol=0.0, held=hold)
+    assert torch.equal(x[hold], start[hold])
+    for i in range(n):
+        f = (~hold[i, :7]).nonzero()[:, 0]
+        rhs_i = b[i] - a[i, :, 7] * 0.5 - a[i][:, hold[i]] @ start[i][hold[i]]
+        want_i = torch.linalg.lstsq(a[i][:, f], rhs_i[:, None]).solution[:, 0]
+        assert torch.allclose(x[i, f], want_i, atol=1e-6), i
 
 
 def test_soft_prior_residuals_and_jacobian():

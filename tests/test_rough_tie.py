@@ -95,26 +95,33 @@ def test_the_tie_settings_are_checked():
     rough above twice it) or a rough start below the roughness floor.
     """
     for bad in ({"rough_tie": float("nan")}, {"rough_tie_glossy": 1.5}, {"rough_tie_start": 0.0},
-                {"soft_rough_tie": float("nan")}, {"soft_rough_tie_glossy": 0.6}):
-        with pytest.raises(RecoveryError, match=next(iter(bad))):
+                {"soft_rough_tie": float("nan")}, {"soft_rough_tie_glossy": 0.5},
+                {"soft_rough_tie_glossy": 0.45, "rough_tie_start": 0.85}):
+        with pytest.raises(RecoveryError, match=list(bad)[-1]):
             check_config(RecoveryConfig(**bad))
 
 
-def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_path):
+def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_path, monkeypatch):
     """``soft_rough_tie`` moves a glossy fit of a rough, partly metal region to the rough basin.
 
     A rough, 20 %-metal region started as a glossy dielectric (the final stage's firefly on
-    dusty_metal 162) moves to a rough fit with a fractional metallic; a glossy
-    dielectric whose highlight the images show stays; metals, pixels above the glossy threshold
-    and pixels not listed are untouched.
+    dusty_metal 162) moves to a rough fit with a fractional metallic, and a rough dielectric
+    started the same way to a rough fit with metallic snapped to exactly 0; a glossy dielectric
+    whose highlight the images show stays; metals, pixels above the glossy threshold and pixels
+    not listed are untouched. The rough side starts from the blend's coverage where known (½
+    where NaN).
 
     Fails with the tie always taking or inverted, with metallic held at 0 on the rough side (a
-    dielectric's F0 cannot reach the blend's), or with the rough fit's roughness left unchecked
-    (a rough start that slid back to glossy would count as moved).
+    dielectric's F0 cannot reach the blend's), with the rough fit's roughness left unchecked
+    (a rough start that slid back to glossy would count as moved), without the snap, or with the
+    coverage ignored.
     """
+    import torchbrdf.recovery.solver as R
+
     size = 16
     truth = _maps(size, 0.8, 0.06)
     truth["metallic"][..., : size // 2] = 0.2
+    truth["metallic"][:, 12:, : size // 2] = 0.0  # a rough dielectric below the rim
     img, diffuse_only, data = _capture(tmp_path, truth, 0.8, 0.06, seed=5)
 
     start = dict(truth)
@@ -128,25 +135,50 @@ def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_
     metal.view(size, size)[1, : size // 2] = 1.0  # a metal row: not tested
     rows = torch.arange(size * size)
     rows = rows[rows % size != 1]  # column 1 is not listed
+    coverage = torch.full((size * size, 1), float("nan"))
+    coverage.view(size, size)[2:8, : size // 2] = 0.3  # the blend known on part of the rim
+    starts: list = []
+    lm = R._soft_lm
+
+    def spy(jvp, cost, x, iters, **kw):
+        starts.append(x.clone())
+        return lm(jvp, cost, x, iters, **kw)
+
+    monkeypatch.setattr(R, "_soft_lm", spy)
     names = ("base_color", "specular", "roughness", "normal")
     with torch.no_grad():
         theta_true = encode({k: _flat(truth[k]) for k in names})
         r_true = data.residual(theta_true, _flat(truth["metallic"]), data.train_idx)
         sigma2 = float(r_true.pow(2).mean())  # the noise variance of one residual
         out, m_out, moved = soft_rough_tie(data, theta, metal, rows, data.train_idx, "principled",
-                                           32 * sigma2, 2 * sigma2)
+                                           32 * sigma2, 2 * sigma2, coverage=coverage)
+    tested = rows[(decode(theta[rows], metal[rows])["roughness"][:, 0] < 0.2) & (metal[rows, 0] < 1)]
+    u = coverage[tested, 0]
+    # (a third call refits the pixels whose metallic was snapped, metallic held)
+    assert len(starts) >= 2 and torch.equal(starts[1][:, 7], torch.where(torch.isnan(u), 0.5, u))
+    assert bool((u == 0.3).any()) and bool(torch.isnan(u).any())
     moved = moved.reshape(size, size)
     rough = decode(out, m_out)["roughness"][:, 0].reshape(size, size)
     mo = m_out[:, 0].reshape(size, size)
     left = torch.zeros(size, size, dtype=torch.bool)
     left[2:, : size // 2] = True
     left[:, 1] = False
-    assert float(moved[left].float().mean()) > 0.9
-    # fractional, not a dielectric (metallic trades against base colour along a valley: 0.3 here)
-    assert float(rough[left].median()) > 0.6 and 0.05 < float(mo[left].median()) < 0.6
+    rim, below = left.clone(), left.clone()
+    rim[12:], below[:12] = False, False
+    assert float(moved[left].float().mean()) > 0.9 and float(rough[left].median()) > 0.6
+    assert bool((rough[moved] > 0.4).all())  # every move is to the rough basin
+    # the rim fractional, not a dielectric (metallic trades against base colour along a valley:
+    # 0.3 here); the dielectric below it lower (0.2: the same valley)
+    assert 0.05 < float(mo[rim].median()) < 0.6 and float(mo[below].median()) < float(mo[rim].median())
     assert not bool(moved[0:2, : size // 2].any()) and not bool(moved[:, 1].any())
     seen = ((img / diffuse_only.clamp(min=1e-6)).amax(dim=(0, 1)) > 1.3)[:, size // 2:]
     assert int(seen.sum()) >= 4, "the test needs glossy pixels whose highlight is seen"
     assert not bool(moved[:, size // 2:][seen].any())
     keep = ~moved.reshape(-1)
     assert torch.equal(out[keep], theta[keep]) and torch.equal(m_out[keep], metal[keep])
+    # A metallic within ``snap`` of 0 or 1 is set to it (a wide snap here, so that it matters).
+    with torch.no_grad():
+        _, m_snap, moved_s = soft_rough_tie(data, theta, metal, rows, data.train_idx, "principled",
+                                            32 * sigma2, 2 * sigma2, coverage=coverage, snap=0.3)
+    ms = m_snap[moved_s, 0]
+    assert bool(moved_s.any()) and bool(((ms == 0) | (ms == 1) | ((ms >= 0.3) & (ms <= 0.7))).all())

@@ -4,6 +4,7 @@ Each test fails on the code before the stage: it had no soft-metal functions, no
 no ``fractional_metallic_fraction`` in the report, and its metallic map was only ever 0 or 1.
 """
 
+import pytest
 import torch
 
 from torchbrdf.capture.format import load_capture, write_capture
@@ -216,13 +217,42 @@ def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
     assert bool(torch.isfinite(t_n[3:]).all())
 
 
-def test_blend_stripe_recovers_fractional_metallic(tmp_path):
+def test_blend_stripe_recovers_fractional_metallic(tmp_path, monkeypatch):
     """A stripe of 50/50 metal/dielectric between a dielectric and a metal region: the old
     recovery could only answer 0 or 1 there (error 0.5); the soft stage recovers ~0.5, and
-    the clear pixels away from the stripe stay exactly 0 or 1."""
+    the clear pixels away from the stripe stay exactly 0 or 1.
+
+    The stage's glossy/rough tie (``soft_rough_tie``) gets the stage's settings: its candidates
+    and grown pixels, the double-well and margin in noise variances, the thresholds, and the
+    blend's coverage (NaN off the candidates); with ``soft_rough_tie = 0`` it is not called.
+    """
+    import torchbrdf.recovery.solver as R
+
+    calls: list = []
+    tie = R.soft_rough_tie
+
+    def spy(*a, **kw):
+        calls.append((a, kw))
+        return tie(*a, **kw)
+
+    monkeypatch.setattr(R, "soft_rough_tie", spy)
     gm = _stripe(24)
     _capture(tmp_path, gm)
-    res = recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, gt=tmp_path / "gt", progress=False)
+    cfg = RecoveryConfig(iters=16, threads=2)
+    res = recover(tmp_path, cfg, None, gt=tmp_path / "gt", progress=False)
+    assert len(calls) == 1
+    (data, theta, metal, rows, idx, model, well, margin, glossy, rough), kw = calls[0]
+    assert data.size == 24 and theta.shape == (24 * 24, 7) and rows.dtype == torch.int64
+    assert 0 < rows.numel() < 24 * 24
+    assert well / margin == pytest.approx(cfg.soft_metal_well / cfg.soft_rough_tie)
+    assert (glossy, rough) == (cfg.soft_rough_tie_glossy, cfg.rough_tie_start)
+    cov = kw["coverage"]
+    assert cov.shape == (24 * 24, 1) and bool(torch.isnan(cov).any())
+    assert bool(torch.isfinite(cov[rows]).any())
+    calls.clear()
+    off = RecoveryConfig(iters=16, threads=2, soft_rough_tie=0.0)
+    recover(tmp_path, off, tmp_path / "off", progress=False)
+    assert calls == []
     m = res.maps["metallic"][0]
     stripe = gm == 0.5
     assert float((m[stripe] - 0.5).abs().mean()) < 0.15, m[stripe]
@@ -235,7 +265,7 @@ def test_blend_stripe_recovers_fractional_metallic(tmp_path):
     frac = float(((m > 0) & (m < 1)).float().mean())
     assert res.report["fractional_metallic_fraction"] == frac and frac > 0.05
     assert res.report["soft_metal"]["pixels_refitted"] > 0
-    assert res.report["soft_metal"]["glossy_to_rough"] >= 0  # the final stage's glossy/rough tie
+    assert res.report["soft_metal"]["glossy_to_rough"] == 0  # no glossy pixel here
 
 
 def test_blend_line_holds_a_ramps_metallic_and_base_colour(tmp_path):

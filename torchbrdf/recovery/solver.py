@@ -141,10 +141,11 @@ class RecoveryConfig:
     rough_tie_glossy: float = 0.1
     rough_tie_start: float = 0.85
     # The same in the final stage (soft_rough_tie), with metallic free: a glossy (roughness below
-    # soft_rough_tie_glossy) dielectric or fractional pixel among its refitted ones takes a rough
-    # fit within soft_rough_tie noise variances (0: off). A rough rim, partly metal, fits as well
-    # as a glossy dielectric whose lobe falls between the lights, and shows as a firefly under
-    # another light (dusty_metal 162: worst held-out light 24.6 -> 45.4 dB; docs, issue 18)
+    # soft_rough_tie_glossy) dielectric or fractional pixel among its candidates and grown pixels
+    # takes a rough fit (started at rough_tie_start) within soft_rough_tie noise variances (0: off).
+    # A rough rim, partly metal, fits as well as a glossy dielectric whose lobe falls between the
+    # lights, and shows as a firefly under another light (dusty_metal 162: worst held-out light 24.6
+    # -> 45.4 dB; docs, issue 18)
     soft_rough_tie: float = 2.0
     soft_rough_tie_glossy: float = 0.2
     light_position: bool = True  # with light_scale: also a per-light position offset (prior 1 cm)
@@ -1485,8 +1486,9 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
     residuals' forward-mode Jacobian, which would copy them once per tangent); ``cost`` must
     include them. ``jvp``, ``cost`` and ``prior`` take the unknowns of some of the pixels and
     their indices (``None``: all N, in order); the base-colour unknowns act each on its own
-    channel's residuals (:func:`fit_jacobian`). ``held (N, 8)``: unknowns kept at their start
-    (None: none held but metallic with ``fix_metal``).
+    channel's residuals (:func:`fit_jacobian`). ``held (N, 8)`` bool: unknowns kept at their
+    start (None: none held but metallic with ``fix_metal``, which ignores its column 7; a held
+    metallic is still clamped to [0, 1]).
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
@@ -1546,7 +1548,8 @@ def _soft_energy(sub: LevelData, idx: list[int], model: str, well: float, target
     Returns ``(jvp, prior, cost)`` of some of the pixels' unknowns ``x (n, 8)`` by their
     indices: the data residuals on lights ``idx`` and their derivatives, the prior residuals
     (:func:`_soft_prior`; ``target``, ``smooth``, ``line``, ``line_weight`` per pixel of ``sub``
-    or floats) and their Jacobian, and the summed cost ``(n, 1)`` of both.
+    or floats) and their Jacobian, and the summed cost ``(n, 1)`` of both, on ``sub``'s device
+    and in its dtype.
     """
     def residual(v: Tensor, r: _Rows) -> Tensor:
         return sub.residual(v[:, :7], v[:, 7:8], idx, model, rows=r)
@@ -1659,19 +1662,21 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
                    coverage: Tensor | None = None, snap: float = 0.02) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`rough_basin_tie` in the final stage, where a blend of metal and dielectric is an answer.
 
-    At a metal's edge a rough, partly metal rim (dusty_metal 162: 15-25 % metal, roughness 0.8)
-    fits its images as well as a glossy dielectric with a strong specular whose lobe falls
-    between the lights: the binary tie cannot tell them apart (a dielectric's F0 stops at 0.08)
-    and the final stage's free fit stays in the glossy basin, which a held-out light then shows
-    as a firefly. Here each of ``rows (N,)`` with metallic below 1 and roughness below ``glossy``
-    is refitted twice on 8 unknowns (:func:`_soft_energy`: data on lights ``idx`` and the
-    double-well ``well``; ``iters`` LM iterations) — with its roughness held at its own value,
-    and free from ``rough`` with metallic from ``coverage (P, 1)`` (the blend of its clear
-    neighbours, :func:`unmix_metallic`; ½ where NaN or None) — and takes the second where that
-    stayed rough (above ``2 × glossy``) at a cost at most ``margin`` (in the energy's units: the
-    caller scales it by the noise variance) above the first. Roughness is free on the rough side:
-    held at one value, a rough metal's lobe misses (the rim's truth is 0.76-0.82). A metallic
-    within ``snap`` of 0 or 1 is set to it. ``theta (P, 7)``, ``metal (P, 1)``.
+    At a metal's edge a rough, partly metal rim (dusty_metal 162: 15-25 % metal, roughness 0.8) fits its
+    images as well as a glossy dielectric with a strong specular whose lobe falls between the lights:
+    the binary tie cannot tell them apart (a dielectric's F0 stops at 0.08) and the final stage's free
+    fit stays in the glossy basin, which a held-out light then shows as a firefly. Here each of
+    ``rows (N,)`` (int64 indices into the P pixels) with metallic below 1 and roughness below
+    ``glossy`` is refitted twice on 8 unknowns (:func:`_soft_energy`: data on lights ``idx`` and the
+    double-well ``well`` only, none of the stage's pulls; ``iters`` LM iterations, as the binary
+    tie's) — with its roughness held at its own value, and free from ``rough`` with metallic from
+    ``coverage (P, 1)`` (the blend of its clear neighbours, :func:`unmix_metallic`; ½ where NaN or
+    None; clamped to ``[snap, 1 − snap]``) — and takes the second where that stayed rough (above
+    ``2 × glossy``) at a finite energy at most ``margin`` (in the energy's units: the caller scales
+    it by the noise variance) above the first. A metallic within ``snap`` of 0 or 1 is set to it
+    before that comparison (the other unknowns refitted with it held) and judged there. Roughness is
+    free on the rough side: held at one value, a rough metal's lobe misses (the rim's truth is
+    0.76-0.82). ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta (P, 7), metal (P, 1), moved (P,) bool)`` on ``theta``'s device, in its dtype.
     """
     moved = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
@@ -1688,12 +1693,22 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     u = torch.full_like(start[:, 7], 0.5) if coverage is None else coverage[test, 0]
     start[:, 7] = torch.nan_to_num(u, nan=0.5).clamp(snap, 1 - snap)
     x, c_rough = _soft_lm(jvp, cost, start, iters, prior=prior)
-    stayed_rough = decode(x[:, :7], x[:, 7:8])["roughness"][:, 0] > 2 * glossy
-    take = (c_rough <= c_glossy + margin)[:, 0] & stayed_rough
     m = x[:, 7:8]
-    m = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    snapped = (m_snap != m)[:, 0]
+    x = torch.cat((x[:, :7], m_snap), -1)
+    if bool(snapped.any()):
+        # Judged at the value returned (a 0.985 would become a full metal), after a refit of the
+        # others with it held: a rough dielectric left at metallic 0.01 fits a little worse at 0
+        # until its base colour follows.
+        s_rows = snapped.nonzero()[:, 0]
+        jvp_s, prior_s, cost_s = _soft_energy(data.subset(test[s_rows]), idx, model, well)
+        x_s, c_s = _soft_lm(jvp_s, cost_s, x[s_rows], iters, fix_metal=True, prior=prior_s)
+        x[s_rows], c_rough[s_rows] = x_s, c_s
+    stayed_rough = decode(x[:, :7], x[:, 7:8])["roughness"][:, 0] > 2 * glossy
+    take = (torch.isfinite(c_rough) & (c_rough <= c_glossy + margin))[:, 0] & stayed_rough
     theta, metal = theta.clone(), metal.clone()
-    theta[test[take]], metal[test[take]] = x[take, :7], m[take]
+    theta[test[take]], metal[test[take]] = x[take, :7], x[take, 7:8]
     moved[test[take]] = True
     return theta, metal, moved
 

@@ -171,7 +171,12 @@ def check_config(cfg: RecoveryConfig) -> None:
     _finite("rough_tie_glossy", cfg.rough_tie_glossy, 0.0, 1.0)
     _finite("rough_tie_start", cfg.rough_tie_start, 0.03, 1.0)
     _finite("soft_rough_tie", cfg.soft_rough_tie, 0.0, 1e6)
-    _finite("soft_rough_tie_glossy", cfg.soft_rough_tie_glossy, 0.0, 0.5)
+    # (a fit must stay above twice the threshold to count as rough, and start above that)
+    _finite("soft_rough_tie_glossy", cfg.soft_rough_tie_glossy, 0.0, 0.45)
+    if cfg.soft_rough_tie > 0 and cfg.rough_tie_start <= 2 * cfg.soft_rough_tie_glossy:
+        raise RecoveryError(f"{_setting('rough_tie_start')} must be above twice "
+                            f"{_setting('soft_rough_tie_glossy')} (the final stage's rough start), got "
+                            f"{cfg.rough_tie_start!r} and {cfg.soft_rough_tie_glossy!r}")
     if cfg.holdout is not None and (not isinstance(cfg.holdout, int) or isinstance(cfg.holdout, bool)):
         raise RecoveryError(f"--holdout must be an integer light index, got {cfg.holdout!r}")
     if cfg.model not in ("principled", "svbrdf_ggx"):
