@@ -1540,6 +1540,14 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
     return x, c
 
 
+def _snap_metallic(m: Tensor, snap: float) -> Tensor:
+    """Metallic ``m (N, 1)`` with values within ``snap`` of 0 or 1 set to them.
+
+    A 1 % lobe is below what the noise can tell apart: a clear pixel. ``m``'s dtype and device.
+    """
+    return torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+
+
 def _soft_energy(sub: LevelData, idx: list[int], model: str, well: float, target: Tensor | None = None,
                  smooth: float | Tensor = 0.0, line: tuple[Tensor, Tensor] | None = None,
                  line_weight: float | Tensor = 0.0) -> tuple[Callable, Callable, Callable]:
@@ -1600,11 +1608,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     sub = data.subset(rows)
     t0, m0 = theta[rows], metal[rows]
 
-    def energy(sub_: LevelData, target_: Tensor | None, smooth_: float | Tensor,
-               line_: tuple[Tensor, Tensor] | None, line_weight_: float | Tensor):
-        return _soft_energy(sub_, idx, model, well, target_, smooth_, line_, line_weight_)
-
-    jvp, prior, cost = energy(sub, target, smooth, line, line_weight)
+    jvp, prior, cost = _soft_energy(sub, idx, model, well, target, smooth, line, line_weight)
 
     best, best_c = None, None
     for m_start in starts:
@@ -1621,7 +1625,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
     # apart, so it is set exactly.
     m = best[:, 7:8]
-    m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    m_snap = _snap_metallic(m, snap)
     snapped = m_snap != m
     best = torch.cat((best[:, :7], m_snap), -1)
     if bool(snapped.any()):  # judged by the energy of what is returned
@@ -1644,8 +1648,8 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     away = torch.nonzero(((m_snap != m0) & (best_c < c_ref - margin))[:, 0]).squeeze(1) if refit_reference \
         else rows[:0]
     if away.numel():
-        jvp_a, prior_a, cost_a = energy(sub.subset(away), _at(target, away), _at(smooth, away),
-                                        _at(line, away), _at(line_weight, away))
+        jvp_a, prior_a, cost_a = _soft_energy(sub.subset(away), idx, model, well, _at(target, away),
+                                              _at(smooth, away), _at(line, away), _at(line_weight, away))
         ref_a, c_fix = _soft_lm(jvp_a, cost_a, ref[away], iters, fix_metal=True, prior=prior_a)
         keep_a = c_fix < c_ref[away]
         ref[away] = torch.where(keep_a, ref_a, ref[away])
@@ -1694,7 +1698,7 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     start[:, 7] = torch.nan_to_num(u, nan=0.5).clamp(snap, 1 - snap)
     x, c_rough = _soft_lm(jvp, cost, start, iters, prior=prior)
     m = x[:, 7:8]
-    m_snap = torch.where(m < snap, torch.zeros_like(m), torch.where(m > 1 - snap, torch.ones_like(m), m))
+    m_snap = _snap_metallic(m, snap)
     snapped = (m_snap != m)[:, 0]
     x = torch.cat((x[:, :7], m_snap), -1)
     if bool(snapped.any()):
