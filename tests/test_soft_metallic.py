@@ -18,7 +18,9 @@ from torchbrdf.capture.synthetic import (
     write_maps,
 )
 from torchbrdf.recovery.solver import (
+    BLEND_SIGMAS,
     LevelData,
+    blend_ends,
     decode,
     encode,
     growth_front,
@@ -407,3 +409,108 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
     assert isinstance(starts1[0], tuple) and starts1[0][1] == "target"  # the neighbours' mean
     assert starts2 == (None,) and torch.equal(rows1, rows2)  # the pixels' own ...
     assert torch.equal(theta2, out1[0]) and torch.equal(metal2, out1[1])  # ... = round 1's answers
+
+
+def test_blend_ends_reach_the_same_class_further_off():
+    """With no clear dielectric beside a speck, its dielectric end is the clear one further off.
+
+    A metal with a dielectric strip along its left edge and a 3×3 speck of candidates 30
+    pixels away (beyond the 2- and 6-pixel widths' reach): the speck's dielectric end is the
+    strip's values, exactly (they are uniform), and found; with the narrow widths alone it is
+    not found and falls back to the pixel's own values (a metal's: the blend a guess). The
+    metal end, beside the speck, is the metal's.
+    """
+    size = 48
+    metal = torch.ones(size * size, 1)
+    metal.view(size, size)[:, :4] = 0.0
+    diel = {"base_color": torch.tensor([0.5, 0.4, 0.3]), "specular": torch.tensor([0.5]),
+            "roughness": torch.tensor([0.9])}
+    met = {"base_color": torch.tensor([0.9, 0.8, 0.6]), "specular": torch.tensor([0.3]),
+           "roughness": torch.tensor([0.3])}
+    params = {k: torch.where(metal.bool(), met[k], diel[k]) for k in diel}
+    params["normal"] = torch.tensor([0.0, 0.0, 1.0]).expand(size * size, 3)
+    theta = encode(params)
+    rows = torch.tensor([r * size + c for r in (20, 21, 22) for c in (34, 35, 36)])
+    (d, m), found = blend_ends(theta, metal, rows, size)
+    want = lambda e: torch.cat((e["base_color"], e["specular"], e["roughness"]))  # noqa: E731
+    assert bool(found.all())
+    assert torch.allclose(d, want(diel).expand_as(d), atol=1e-4)
+    assert torch.allclose(m, want(met).expand_as(m), atol=1e-4)
+    (d2, _), found2 = blend_ends(theta, metal, rows, size, sigmas=(2.0, 6.0))
+    assert not bool(found2[:, 0].any()) and bool(found2[:, 1].all())
+    assert torch.allclose(d2, want(met).expand_as(d2), atol=1e-4)  # its own values: a metal's
+    assert BLEND_SIGMAS[-1] >= 20  # the speck is 30 pixels from the strip
+
+
+def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
+    """The growth rounds' pixels are unmixed too, as the candidates are.
+
+    So the blend's coverage pulls them as it pulls the candidates (the core of a speck is
+    reached by growth from its rim); with ``soft_metal_unmix = 0`` no pixel is unmixed.
+    """
+    import torchbrdf.recovery.solver as R
+
+    _capture(tmp_path, _stripe(16))
+    fronts: list = []
+    unmixed: list = []
+    calls = {"n": 0}
+
+    def front(metal, tried, size):  # one fixed front, then none
+        calls["n"] += 1
+        f = torch.tensor([0, 1, 2, 16]) if calls["n"] == 1 else torch.zeros(0, dtype=torch.int64)
+        fronts.append(f)
+        return f[~tried[f]]
+
+    un = R.unmix_metallic
+
+    def spy(data, theta, metal, rows, *a, **k):
+        unmixed.append(rows.clone())
+        return un(data, theta, metal, rows, *a, **k)
+
+    monkeypatch.setattr(R, "growth_front", front)
+    monkeypatch.setattr(R, "unmix_metallic", spy)
+    cfg = RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False)
+    recover(tmp_path, cfg, None, progress=False)
+    assert len(unmixed) == 2 and torch.equal(unmixed[1], fronts[0])
+    unmixed.clear()
+    calls["n"] = 0
+    recover(tmp_path, RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False,
+                                     soft_metal_unmix=0.0), None, progress=False)
+    assert unmixed == []
+
+
+def test_an_answer_of_the_other_class_is_taken(tmp_path, monkeypatch):
+    """A candidate the stage's passes move to the other class takes it, as a fractional one does.
+
+    One that stays its class keeps the fit it had. (A thin dielectric scratch the binary choice
+    called metal: scratched_metal 5's metallic RMSE 0.0136 -> 0.0009, docs.) The passes are
+    replaced by one that answers the other class for the first candidate, its own class with
+    another base colour for the second, a fraction for the third.
+    """
+    import torchbrdf.recovery.solver as R
+
+    _capture(tmp_path, _stripe(16))
+    seen: dict = {}
+
+    def fit(data, theta, metal, rows, *a, **k):
+        t, m = theta[rows].clone(), metal[rows].clone()
+        if "rows" not in seen:  # the first pass
+            seen["rows"], seen["metal"] = rows.clone(), metal[rows].clone()
+            seen["theta"] = theta[rows].clone()
+            m[0] = 1.0 - m[0]
+            t[1, 0] += 1.0
+            m[2] = 0.4
+            seen["new"] = t.clone(), m.clone()
+        return t, m, torch.ones(rows.numel(), dtype=torch.bool)
+
+    monkeypatch.setattr(R, "soft_metal_fit", fit)
+    cfg = RecoveryConfig(iters=8, threads=2, soft_metal_passes=0, soft_metal_grow=0, soft_rough_tie=0.0,
+                         soft_metal_line=0.0, soft_metal_unmix=0.0)
+    res = recover(tmp_path, cfg, None, progress=False)
+    rows = seen["rows"]
+    m = res.maps["metallic"][0].flatten()
+    assert float(m[rows[0]]) == 1.0 - float(seen["metal"][0])
+    assert float(m[rows[2]]) == pytest.approx(0.4)
+    red = res.maps["base_color"][0].flatten()
+    kept = decode(seen["theta"][1:2], seen["metal"][1:2])["base_color"][0, 0]
+    assert float(red[rows[1]]) == pytest.approx(float(kept), abs=1e-5)
