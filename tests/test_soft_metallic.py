@@ -148,6 +148,37 @@ def test_candidates_include_a_metals_colour_steps():
         assert (got > 0) == is_step, (d, got)
 
 
+def test_candidates_include_a_metal_unlike_the_metal_around_it():
+    """The inside of a plateau called metal whose colour differs from the metal around it.
+
+    A partly rusted plateau (rusted_metal 122: 186 pixels, 40 % metal, called metal) has a
+    colour step only at its rim; with ``context`` its inside is a candidate too, so it is not
+    taken as its rim's clear metal end. Bright metal around it, and dielectric pixels, are not.
+    """
+    size = 32
+    metal = torch.ones(size * size, 1)
+    base = torch.tensor([0.9, 0.9, 0.88]).repeat(size * size, 1)
+    plateau = torch.zeros(size, size, dtype=torch.bool)
+    plateau[10:20, 10:20] = True
+    base[plateau.reshape(-1)] = torch.tensor([0.6, 0.45, 0.35])
+    cost = torch.ones(size * size, 1)
+    inside = plateau.clone()
+    inside[:13] = inside[17:] = False
+    inside[:, :13] = inside[:, 17:] = False  # 3 pixels or more from its rim
+    args = (cost, metal, size, 8.0, 1.0, 1, base)
+    rim = set(soft_metal_candidates(*args, edge=0.15).tolist())
+    assert not rim & set(torch.nonzero(inside.reshape(-1)).flatten().tolist())
+    rows = set(soft_metal_candidates(*args, edge=0.15, context=8.0).tolist())
+    assert rows == rim | set(torch.nonzero(plateau.reshape(-1)).flatten().tolist())
+    uniform = torch.tensor([0.9, 0.9, 0.88]).repeat(size * size, 1)
+    assert soft_metal_candidates(cost, metal, size, 8.0, 1.0, 1, uniform, edge=0.15, context=8.0).numel() == 0
+    diel_plateau = metal.clone()
+    diel_plateau[plateau.reshape(-1)] = 0.0  # a dielectric plateau: a class boundary, not this rule
+    rows_d = set(soft_metal_candidates(cost, diel_plateau, size, 8.0, 1.0, 1, base, edge=0.15,
+                                       context=8.0).tolist())
+    assert not rows_d & set(torch.nonzero(inside.reshape(-1)).flatten().tolist())
+
+
 def test_growth_extends_runs_of_fractional_pixels_only():
     """Growth refits the untried pixels beside a ramp, never beside an isolated fractional pixel.
 

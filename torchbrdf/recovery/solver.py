@@ -1288,14 +1288,19 @@ def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int
 
 
 def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float, max_frac: float,
-                          band: int = 1, base: Tensor | None = None, edge: float = 0.0) -> Tensor:
+                          band: int = 1, base: Tensor | None = None, edge: float = 0.0,
+                          context: float = 0.0) -> Tensor:
     """Pixels ``(N,)`` (indices) where metallic may become continuous: the binary choice fits
     poorly (data ``cost (P, 1)`` above ``factor`` × its median, the noise level) or the pixel
     lies within ``band`` pixels of a metal/dielectric boundary (band 1: one of its 8 neighbours
     is of the other class; a soft ramp is several pixels wide, and the binary choice puts its
     boundary anywhere on it), or, with ``base (P, 3)`` and ``edge > 0``, it is a metal within
     ``band`` pixels of a base-colour step larger than ``edge`` between 4-neighbours (a rust
-    island called metal has no class boundary, and it fits as a rough dark metal).
+    island called metal has no class boundary, and it fits as a rough dark metal), or, with
+    ``context > 0`` as well, a metal whose base colour differs by more than ``edge`` from the
+    Gaussian-weighted mean (``context`` pixels wide) of the metal around it: the inside of a
+    partly rusted plateau called metal has no step, and as a clear metal it would be its own
+    rim's metal end (:func:`blend_ends`; rusted_metal 122).
 
     ``metal (P, 1)`` in {0, 1}. At most ``max_frac`` × P pixels, the worst fitting first;
     int64 indices on ``cost``'s device.
@@ -1316,6 +1321,12 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
         e[..., :-1, :] += dy
         e = F.max_pool2d((e > 0).to(cost.dtype), k, 1, band) * img  # within the band of a metal's colour edge
         boundary = boundary | (e > 0).reshape(-1, 1)
+        if context > 0:  # a metal unlike the metal around it
+            w = (metal > 0.5).to(base.dtype)
+            around = _blur(torch.cat((w, base * w), -1), size, context)
+            mean = around[:, 1:] / around[:, :1].clamp(min=1e-12)
+            unlike = ((base - mean) ** 2).sum(-1, keepdim=True) > edge**2
+            boundary = boundary | (unlike & (w > 0))
     finite = torch.isfinite(cost)
     med = float(cost[finite].median()) if bool(finite.any()) else 0.0
     sel = ((cost > factor * med) | boundary)[:, 0]
@@ -1330,7 +1341,8 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
 #: else the same class further off. A small dust speck on a metal, or a partly rusted plateau, is
 #: mixed throughout, with no clear dielectric within the narrow widths' reach; the pixel's own
 #: values (a metal) made its blend a guess, and such specks came out 85-90 % metal for 15-35 %
-#: (dusty_metal 162 / 188, rusted_metal 122; docs/recovery.md, issue 18, "Far ends").
+#: (dusty_metal 162 / 188, rusted_metal 122; docs/recovery.md, issue 18, "Far ends"). The widest
+#: is also the context in which soft_metal_candidates finds a metal unlike the metal around it.
 BLEND_SIGMAS = (2.0, 6.0, 24.0)
 
 
@@ -2357,7 +2369,8 @@ class Recovery:
         typical = float(cost[finite].median()) if bool(finite.any()) else 0.0
         sigma2 = typical / max(1, r.shape[1])
         rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
-                                     cfg.soft_metal_band, torch.sigmoid(theta[:, 0:3]), cfg.soft_metal_edge)
+                                     cfg.soft_metal_band, torch.sigmoid(theta[:, 0:3]), cfg.soft_metal_edge,
+                                     context=BLEND_SIGMAS[-1])
         n_frac = n_grown = n_rough = 0
         # The candidates' coverage as a blend of their clear neighbours (NaN elsewhere).
         unmix = torch.full_like(metal, float("nan"))
@@ -2434,13 +2447,13 @@ class Recovery:
             # Only a fractional or other-class answer is taken: a pixel that stays its class
             # keeps the fit it had, with the priors' regularisation (a data-only refit of a
             # metal's weakly observed F0 doubled scratched_metal 103's base-colour RMSE, 0.015 ->
-            # 0.027). One that changed class beat its own class's refit (soft_metal_fit): a thin
-            # dielectric scratch the binary choice called metal (scratched_metal 5: metallic
+            # 0.027). One that changed class beat its own class in soft_metal_fit's judgement: a
+            # thin dielectric scratch the binary choice called metal (scratched_metal 5: metallic
             # RMSE 0.0136 -> 0.0005 with the far ends).
-            frac = ((metal[rows] > 0) & (metal[rows] < 1)) | (metal[rows] != metal0[rows])
+            take = ((metal[rows] > 0) & (metal[rows] < 1)) | (metal[rows] != metal0[rows])
             theta, metal = theta0.clone(), metal0.clone()
-            theta[rows] = torch.where(frac, t_new, theta0[rows])
-            metal[rows] = torch.where(frac, m_new, metal0[rows])
+            theta[rows] = torch.where(take, t_new, theta0[rows])
+            metal[rows] = torch.where(take, m_new, metal0[rows])
             # Growth: a ramp runs on past the candidates (a dust speck's soft rim, wider than
             # the band on its dielectric side). The untried pixels beside a run of fractional
             # ones (a fractional pixel with a fractional 4-neighbour; an isolated one on a
