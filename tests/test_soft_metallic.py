@@ -18,7 +18,6 @@ from torchbrdf.capture.synthetic import (
     write_maps,
 )
 from torchbrdf.recovery.solver import (
-    BLEND_SIGMAS,
     LevelData,
     blend_ends,
     decode,
@@ -445,13 +444,15 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
 def test_blend_ends_reach_the_same_class_further_off():
     """With no clear dielectric beside a speck, its dielectric end is the clear one further off.
 
-    A metal with a dielectric strip along its left edge and a 3×3 speck of candidates 30
-    pixels away (beyond the 2- and 6-pixel widths' reach): the speck's dielectric end is the
-    strip's values, exactly (they are uniform), and found; with the narrow widths alone it is
-    not found and falls back to the pixel's own values (a metal's: the blend a guess). The
-    metal end, beside the speck, is the metal's.
+    A metal with a dielectric strip along its left edge and a 3×3 speck of candidates 47
+    pixels away (beyond the reach, 3σ, of widths up to 12 pixels): the speck's dielectric end is
+    the strip's values, exactly (they are uniform), and found; with narrower widths alone it is
+    not found and falls back to the pixel's own values (a metal's: the blend a guess). The metal
+    end, beside the speck, is the metal's. And the nearest width wins: a speck 2 pixels from a
+    small dielectric patch of another colour takes the patch's values, not the strip's, also
+    when another pixel of the call needs the far width.
     """
-    size = 48
+    size = 64
     metal = torch.ones(size * size, 1)
     metal.view(size, size)[:, :4] = 0.0
     diel = {"base_color": torch.tensor([0.5, 0.4, 0.3]), "specular": torch.tensor([0.5]),
@@ -461,29 +462,44 @@ def test_blend_ends_reach_the_same_class_further_off():
     params = {k: torch.where(metal.bool(), met[k], diel[k]) for k in diel}
     params["normal"] = torch.tensor([0.0, 0.0, 1.0]).expand(size * size, 3)
     theta = encode(params)
-    rows = torch.tensor([r * size + c for r in (20, 21, 22) for c in (34, 35, 36)])
+    rows = torch.tensor([r * size + c for r in (20, 21, 22) for c in (50, 51, 52)])
     (d, m), found = blend_ends(theta, metal, rows, size)
     want = lambda e: torch.cat((e["base_color"], e["specular"], e["roughness"]))  # noqa: E731
     assert bool(found.all())
     assert torch.allclose(d, want(diel).expand_as(d), atol=1e-4)
     assert torch.allclose(m, want(met).expand_as(m), atol=1e-4)
-    (d2, _), found2 = blend_ends(theta, metal, rows, size, sigmas=(2.0, 6.0))
+    (d2, _), found2 = blend_ends(theta, metal, rows, size, sigmas=(2.0, 6.0, 12.0))
     assert not bool(found2[:, 0].any()) and bool(found2[:, 1].all())
     assert torch.allclose(d2, want(met).expand_as(d2), atol=1e-4)  # its own values: a metal's
-    assert BLEND_SIGMAS[-1] >= 20  # the speck is 30 pixels from the strip
+    # The nearest width wins: a patch of another dielectric 2 pixels from a second speck.
+    patch = torch.zeros(size, size, dtype=torch.bool)
+    patch[40:43, 30:33] = True
+    other = {"base_color": torch.tensor([0.2, 0.6, 0.3]), "specular": torch.tensor([0.4]),
+             "roughness": torch.tensor([0.6])}
+    metal.view(size, size)[patch] = 0.0
+    params = {k: torch.where(patch.reshape(-1, 1), other[k], params[k]) for k in other} | {
+        "normal": params["normal"]}
+    near = torch.tensor([r * size + c for r in (40, 41, 42) for c in (35, 36, 37)] + [10 * size + 60])
+    (d3, _), found3 = blend_ends(encode(params), metal, near, size)  # (the last row needs the far width)
+    assert bool(found3.all()) and torch.allclose(d3[:9], want(other).expand_as(d3[:9]), atol=1e-4)
 
 
 def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
     """The growth rounds' pixels are unmixed too, as the candidates are.
 
     So the blend's coverage pulls them as it pulls the candidates (the core of a speck is
-    reached by growth from its rim); with ``soft_metal_unmix = 0`` no pixel is unmixed.
+    reached by growth from its rim): the growth fit's metallic target is the weighted mean of
+    the neighbours' metallic (``soft_metal_smooth``) and the front's coverage
+    (``soft_metal_unmix``). With ``soft_metal_unmix = 0`` no pixel is unmixed.
     """
+    import inspect
+
     import torchbrdf.recovery.solver as R
 
     _capture(tmp_path, _stripe(16))
     fronts: list = []
     unmixed: list = []
+    grown: list = []
     calls = {"n": 0}
 
     def front(metal, tried, size):  # one fixed front, then none
@@ -492,17 +508,29 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
         fronts.append(f)
         return f[~tried[f]]
 
-    un = R.unmix_metallic
+    un, fit = R.unmix_metallic, R.soft_metal_fit
+    sig = inspect.signature(fit)
 
     def spy(data, theta, metal, rows, *a, **k):
         unmixed.append(rows.clone())
-        return un(data, theta, metal, rows, *a, **k)
+        t, u = un(data, theta, metal, rows, *a, **k)
+        return (t, torch.full_like(u, 0.37)) if len(unmixed) > 1 else (t, u)  # the front's: 0.37
+
+    def spy_fit(*a, **k):
+        g = sig.bind(*a, **k).arguments
+        if len(fronts) == 1 and len(unmixed) == 2 and torch.equal(g["rows"], fronts[0]):
+            grown.append((R._neighbour_mean(g["metal"], 16)[g["rows"]], g["target"]))
+        return fit(*a, **k)
 
     monkeypatch.setattr(R, "growth_front", front)
     monkeypatch.setattr(R, "unmix_metallic", spy)
+    monkeypatch.setattr(R, "soft_metal_fit", spy_fit)
     cfg = RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False)
     recover(tmp_path, cfg, None, progress=False)
     assert len(unmixed) == 2 and torch.equal(unmixed[1], fronts[0])
+    (nb, target), = grown
+    w_nb, w_un = cfg.soft_metal_smooth, cfg.soft_metal_unmix
+    assert torch.allclose(target, (w_nb * nb + w_un * 0.37) / (w_nb + w_un), atol=1e-5)
     unmixed.clear()
     calls["n"] = 0
     recover(tmp_path, RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False,
@@ -514,7 +542,7 @@ def test_an_answer_of_the_other_class_is_taken(tmp_path, monkeypatch):
     """A candidate the stage's passes move to the other class takes it, as a fractional one does.
 
     One that stays its class keeps the fit it had. (A thin dielectric scratch the binary choice
-    called metal: scratched_metal 5's metallic RMSE 0.0136 -> 0.0009, docs.) The passes are
+    called metal: scratched_metal 5's metallic RMSE 0.0136 -> 0.0005 with the far ends, docs.) The passes are
     replaced by one that answers the other class for the first candidate, its own class with
     another base colour for the second, a fraction for the third.
     """
@@ -545,3 +573,39 @@ def test_an_answer_of_the_other_class_is_taken(tmp_path, monkeypatch):
     red = res.maps["base_color"][0].flatten()
     kept = decode(seen["theta"][1:2], seen["metal"][1:2])["base_color"][0, 0]
     assert float(red[rows[1]]) == pytest.approx(float(kept), abs=1e-5)
+
+
+def test_a_metal_of_another_colour_stays_a_clear_metal(tmp_path, monkeypatch):
+    """A brass disc inside silver, wood beside them: the disc is a candidate, and stays metal.
+
+    The disc is a metal unlike the metal around it, but stays exactly metallic 1, as does every
+    metal pixel. The candidate rule looks for a partly rusted plateau called metal; a clear metal of another
+    colour fits its own class at the noise level, its best blend is its own class, and no
+    fractional value wins the gain.
+    """
+    import torchbrdf.recovery.solver as R
+
+    size = 48
+    yy, xx = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    disc = ((yy - 24) ** 2 + (xx - 32) ** 2) <= 64
+    wood = xx < 12
+    base = torch.tensor([0.95, 0.93, 0.88])[:, None, None].expand(3, size, size).clone()
+    base[:, disc] = torch.tensor([0.9, 0.72, 0.38])[:, None]
+    base[:, wood] = torch.tensor([0.5, 0.35, 0.2])[:, None]
+    rough = torch.full((1, size, size), 0.3)
+    rough[0, wood] = 0.7
+    metal = (~wood).float()[None]
+    maps = {"base_color": base, "roughness": rough, "metallic": metal,
+            "specular": torch.full((1, size, size), 0.5),
+            "normal": normals_from_height(torch.zeros(size, size))}
+    pos, inten = light_layout(12)
+    with torch.no_grad():
+        img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
+    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    seen: dict = {}
+    cand = R.soft_metal_candidates
+    monkeypatch.setattr(R, "soft_metal_candidates", lambda *a, **k: seen.setdefault("rows", cand(*a, **k)))
+    res = recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, progress=False)
+    assert 24 * size + 32 in set(seen["rows"].tolist())  # the disc's centre, 8 pixels from its rim
+    m = res.maps["metallic"][0]
+    assert bool((m[~wood] == 1).all()) and bool((m[wood] == 0).all())

@@ -198,7 +198,9 @@ class RecoveryConfig:
     soft_metal_band: int = 2  # ... and pixels within this many pixels of a class boundary (or colour step)
     soft_metal_iters: int = 5  # per-pixel LM iterations
     soft_metal_max: float = 0.35  # at most this fraction of the pixels (the worst fitting) are candidates
-    soft_metal_edge: float = 0.15  # ... and metal pixels within the band of a base-colour step this large
+    # ... and metal pixels within the band of a base-colour step this large, or this far from
+    # the mean colour of the metal around them (σ = the far blend width, BLEND_SIGMAS)
+    soft_metal_edge: float = 0.15
     soft_metal_context: float = 0.25  # the gain, × this, beside a fractional pixel (second pass, growth)
     soft_metal_passes: int = 2  # second-pass rounds, each from the neighbours' metallic of the round before
     soft_metal_grow: int = 3  # rounds of refitting the untried pixels beside a run of fractional ones
@@ -1298,7 +1300,7 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
     ``band`` pixels of a base-colour step larger than ``edge`` between 4-neighbours (a rust
     island called metal has no class boundary, and it fits as a rough dark metal), or, with
     ``context > 0`` as well, a metal whose base colour differs by more than ``edge`` from the
-    Gaussian-weighted mean (``context`` pixels wide) of the metal around it: the inside of a
+    Gaussian-weighted mean (σ = ``context`` pixels, truncated at 3σ) of the metal around it: the inside of a
     partly rusted plateau called metal has no step, and as a clear metal it would be its own
     rim's metal end (:func:`blend_ends`; rusted_metal 122).
 
@@ -1340,7 +1342,7 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
 #: :func:`blend_ends`' Gaussian widths in pixels, nearest first: the clear pixels beside a texel,
 #: else the same class further off. A small dust speck on a metal, or a partly rusted plateau, is
 #: mixed throughout, with no clear dielectric within the narrow widths' reach; the pixel's own
-#: values (a metal) made its blend a guess, and such specks came out 85-90 % metal for 15-35 %
+#: values (a metal) made its blend a guess, and such specks came out 80-93 % metal for 10-40 %
 #: (dusty_metal 162 / 188, rusted_metal 122; docs/recovery.md, issue 18, "Far ends"). The widest
 #: is also the context in which soft_metal_candidates finds a metal unlike the metal around it.
 BLEND_SIGMAS = (2.0, 6.0, 24.0)
@@ -2352,8 +2354,8 @@ class Recovery:
         boundary or at a metal's colour step (:func:`soft_metal_candidates`,
         :func:`soft_metal_fit`), then along runs of fractional pixels (:func:`growth_front`),
         and last the fractional pixels once more with their base colour tied to the blend of
-        their clear neighbours (``cfg.soft_metal_line``); a candidate may also change class, and
-        every other pixel keeps its 0 or 1.
+        their clear neighbours (``cfg.soft_metal_line``); a candidate (a metal unlike the metal
+        around it is one too) may also change class, and every other pixel keeps its 0 or 1.
         Records ``state["soft_metal"]`` (pixels refitted, growth included; fractional; seconds)."""
         import time
 
@@ -2447,9 +2449,10 @@ class Recovery:
             # Only a fractional or other-class answer is taken: a pixel that stays its class
             # keeps the fit it had, with the priors' regularisation (a data-only refit of a
             # metal's weakly observed F0 doubled scratched_metal 103's base-colour RMSE, 0.015 ->
-            # 0.027). One that changed class beat its own class in soft_metal_fit's judgement: a
-            # thin dielectric scratch the binary choice called metal (scratched_metal 5: metallic
-            # RMSE 0.0136 -> 0.0005 with the far ends).
+            # 0.027). One that changed class beat its own class in soft_metal_fit's judgement (in
+            # pass 1 its own class's refit; in the second pass its answer before, the neighbours'
+            # pull included): a thin dielectric scratch the binary choice called metal
+            # (scratched_metal 5: metallic RMSE 0.0136 -> 0.0005 with the far ends).
             take = ((metal[rows] > 0) & (metal[rows] < 1)) | (metal[rows] != metal0[rows])
             theta, metal = theta0.clone(), metal0.clone()
             theta[rows] = torch.where(take, t_new, theta0[rows])
