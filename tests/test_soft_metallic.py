@@ -67,14 +67,23 @@ def _ramp_capture(folder, cols: dict, diel: tuple, met: tuple, size: int = 24):
         t[:, c] = v
     lerp = lambda a, b: a * (1 - t) + b * t  # noqa: E731
     base = lerp(diel[0][:, None, None], met[0][:, None, None])
-    maps = {"base_color": base, "roughness": lerp(diel[1], met[1])[None], "metallic": t[None],
+    return _flat_capture(folder, base, lerp(diel[1], met[1])[None], t[None]), t
+
+
+def _flat_capture(folder, base, rough, metallic):
+    """A flat capture (12 ring lights and the flash, 1 % noise) of maps ``(C, S, S)``.
+
+    Specular 0.5, normals straight up. Returns the maps.
+    """
+    size = base.shape[-1]
+    maps = {"base_color": base, "roughness": rough, "metallic": metallic,
             "specular": torch.full((1, size, size), 0.5),
             "normal": normals_from_height(torch.zeros(size, size))}
     pos, inten = light_layout(12)
     with torch.no_grad():
         img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
     write_capture(folder, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
-    return maps, t
+    return maps
 
 
 def test_double_well_keeps_clear_pixels_binary(tmp_path):
@@ -114,6 +123,19 @@ def test_candidates_are_poor_fits_and_class_boundaries():
     assert rows == expect
 
 
+def _metal_patch(size: int, span: slice, colour: tuple, patch: tuple):
+    """A metal of base ``colour`` with a square patch (rows and columns ``span``) of ``patch``.
+
+    Returns ``(metal (P, 1) all 1, base (P, 3), the patch (S, S) bool, cost (P, 1) all 1)``.
+    """
+    metal = torch.ones(size * size, 1)
+    base = torch.tensor(colour).repeat(size * size, 1)
+    mask = torch.zeros(size, size, dtype=torch.bool)
+    mask[span, span] = True
+    base[mask.reshape(-1)] = torch.tensor(patch)
+    return metal, base, mask, torch.ones(size * size, 1)
+
+
 def test_candidates_include_a_metals_colour_steps():
     """A metal's base-colour step makes candidates; a dielectric's does not.
 
@@ -123,12 +145,7 @@ def test_candidates_include_a_metals_colour_steps():
     69 % of the metallic error).
     """
     size = 10
-    metal = torch.ones(size * size, 1)
-    base = torch.tensor([0.95, 0.93, 0.88]).repeat(size * size, 1)
-    island = torch.zeros(size, size, dtype=torch.bool)
-    island[4:6, 4:6] = True
-    base[island.reshape(-1)] = torch.tensor([0.45, 0.2, 0.1])
-    cost = torch.ones(size * size, 1)
+    metal, base, island, cost = _metal_patch(size, slice(4, 6), (0.95, 0.93, 0.88), (0.45, 0.2, 0.1))
     assert soft_metal_candidates(cost, metal, size, 8.0, 1.0, 1).numel() == 0
     rows = set(soft_metal_candidates(cost, metal, size, 8.0, 1.0, 1, base, edge=0.15).tolist())
     # Each side of every step, grown by the band (1 pixel, 8-neighbourhood).
@@ -155,12 +172,7 @@ def test_candidates_include_a_metal_unlike_the_metal_around_it():
     taken as its rim's clear metal end. Bright metal around it, and dielectric pixels, are not.
     """
     size = 32
-    metal = torch.ones(size * size, 1)
-    base = torch.tensor([0.9, 0.9, 0.88]).repeat(size * size, 1)
-    plateau = torch.zeros(size, size, dtype=torch.bool)
-    plateau[10:20, 10:20] = True
-    base[plateau.reshape(-1)] = torch.tensor([0.6, 0.45, 0.35])
-    cost = torch.ones(size * size, 1)
+    metal, base, plateau, cost = _metal_patch(size, slice(10, 20), (0.9, 0.9, 0.88), (0.6, 0.45, 0.35))
     inside = plateau.clone()
     inside[:13] = inside[17:] = False
     inside[:, :13] = inside[:, 17:] = False  # 3 pixels or more from its rim
@@ -594,14 +606,7 @@ def test_a_metal_of_another_colour_stays_a_clear_metal(tmp_path, monkeypatch):
     base[:, wood] = torch.tensor([0.5, 0.35, 0.2])[:, None]
     rough = torch.full((1, size, size), 0.3)
     rough[0, wood] = 0.7
-    metal = (~wood).float()[None]
-    maps = {"base_color": base, "roughness": rough, "metallic": metal,
-            "specular": torch.full((1, size, size), 0.5),
-            "normal": normals_from_height(torch.zeros(size, size))}
-    pos, inten = light_layout(12)
-    with torch.no_grad():
-        img = render_capture(maps, (pos, inten), noise=0.01, seed=5)
-    write_capture(tmp_path, img, (pos, inten), torch.tensor([0.0, 0.0, 3.0]))
+    _flat_capture(tmp_path, base, rough, (~wood).float()[None])
     seen: dict = {}
     cand = R.soft_metal_candidates
     monkeypatch.setattr(R, "soft_metal_candidates", lambda *a, **k: seen.setdefault("rows", cand(*a, **k)))
