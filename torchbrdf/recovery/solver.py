@@ -1193,6 +1193,16 @@ def _pixel_cost(r: Tensor) -> Tensor:
     return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=inf, posinf=inf)
 
 
+def _hold(jtj: Tensor, g: Tensor, held: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-pixel normal equations ``jtj (N, K, K)``, ``g (N, K)`` with ``held (N, K)`` unknowns decoupled.
+
+    A held unknown's row and column are the identity's and its gradient is 0, so an LM step leaves
+    it at its value. Returns ``(jtj, g)`` in ``jtj``'s dtype, on its device.
+    """
+    free = (~held).to(jtj.dtype)
+    return jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1 - free), g * free
+
+
 def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
                  idx: list[int], model: str, iters: int = 10, held: Tensor | None = None
                  ) -> tuple[Tensor, Tensor]:
@@ -1217,10 +1227,8 @@ def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, st
         c = cost(t)
         for _ in range(iters):
             _, jtj, g = gauss_newton(sub, t, m, idx, model)
-            if held is not None:  # a held unknown: decoupled, no gradient, so its step is 0
-                free = (~held).to(t.dtype)
-                jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1 - free)
-                g = g * free
+            if held is not None:
+                jtj, g = _hold(jtj, g, held)
             h = jtj + torch.diag_embed(lam * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
             step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
             cand = t + step
@@ -1300,9 +1308,9 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
     ``band`` pixels of a base-colour step larger than ``edge`` between 4-neighbours (a rust
     island called metal has no class boundary, and it fits as a rough dark metal), or, with
     ``context > 0`` as well, a metal whose base colour differs by more than ``edge`` from the
-    Gaussian-weighted mean (σ = ``context`` pixels, truncated at 3σ) of the metal around it: the inside of a
-    partly rusted plateau called metal has no step, and as a clear metal it would be its own
-    rim's metal end (:func:`blend_ends`; rusted_metal 122).
+    Gaussian-weighted mean (σ = ``context`` pixels, truncated at 3σ) of the metal around it:
+    the inside of a partly rusted plateau called metal has no step, and as a clear metal it
+    would be its own rim's metal end (:func:`blend_ends`; rusted_metal 122).
 
     ``metal (P, 1)`` in {0, 1}. At most ``max_frac`` × P pixels, the worst fitting first;
     int64 indices on ``cost``'s device.
@@ -1542,10 +1550,8 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
             pj = pj[..., :n_t]  # (n, k, n_t)
             jtj = jtj + torch.bmm(pj.transpose(1, 2), pj)
             g = g + torch.bmm(pj.transpose(1, 2), pr[..., None])[..., 0]
-        if held is not None:  # a held unknown: decoupled, no gradient, so its step is 0
-            free = (~_at(held, rows)[:, :n_t]).to(x.dtype)
-            jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1 - free)
-            g = g * free
+        if held is not None:
+            jtj, g = _hold(jtj, g, _at(held, rows)[:, :n_t])
         h = jtj + torch.diag_embed(la * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
         step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
         cand = xa + torch.nn.functional.pad(step, (0, x.shape[1] - n_t))
