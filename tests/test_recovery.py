@@ -1364,6 +1364,47 @@ def test_fusion_averages_each_metals_own_data_optimum_not_where_its_fit_stopped(
 
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_newton_step_solves_the_damped_normal_equations_on_the_free_unknowns(dtype):
+    """``newton_step`` is ``−(H_ff + diag(1e-6 diag(H_ff) + 1e-9))⁻¹ g_f``, 0 on the held unknowns.
+
+    An independent float64 solve per pixel, with and without held unknowns (a singular ``H``
+    whose held direction is the null one included); neither input is written to (the float64
+    algebra works in place on copies, and a float64 input is no copy by ``.double()``).
+    """
+    from torchbrdf.recovery import solver as R
+
+    gen = torch.Generator().manual_seed(3)
+    P = 40
+    j = torch.randn(P, 7, 12, generator=gen, dtype=torch.float64)
+    jtj = (j @ j.transpose(1, 2)).to(dtype)
+    jtj[:5, 4, :] = 0.0  # singular along roughness: held below, so the free block is regular
+    jtj[:5, :, 4] = 0.0
+    g = (0.1 * torch.randn(P, 7, generator=gen, dtype=torch.float64)).to(dtype)
+    held = torch.zeros(P, 7, dtype=torch.bool)
+    held[:5, 4] = True
+    held[10:20, 0:3] = True
+    jtj0, g0 = jtj.clone(), g.clone()
+
+    def reference(h_all, g_all, hd):
+        out = torch.zeros(P, 7, dtype=torch.float64)
+        for p in range(P):
+            f = ~hd[p]
+            h = h_all[p].double()[f][:, f]
+            h = h + torch.diag(1e-6 * torch.diagonal(h) + 1e-9)
+            out[p, f] = torch.linalg.solve(h, -g_all[p].double()[f]).clamp(-3, 3)
+        return out
+
+    tol = 1e-9 if dtype == torch.float64 else 1e-5
+    no_held = torch.zeros_like(held)
+    for hd, arg in ((no_held, None), (held, held)):
+        step = R.newton_step(jtj[5:] if arg is None else jtj, g[5:] if arg is None else g,
+                             None if arg is None else arg)
+        want = reference(jtj, g, hd)[5:] if arg is None else reference(jtj, g, hd)
+        assert step.dtype == dtype
+        torch.testing.assert_close(step.double(), want, rtol=tol, atol=tol)
+    assert torch.equal(jtj, jtj0) and torch.equal(g, g0)  # the inputs are the caller's, unchanged
+
 def test_fusion_rounds_refine_the_average_without_compounding_the_pull():
     """``fuse_rounds``: every round combines the same own value with its round's average.
 

@@ -515,7 +515,11 @@ def fit_jacobian(jvp: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tens
     cols = cols.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)  # (k, N, M), a fresh tensor: in place
     channel = torch.arange(cols.shape[-1], device=x.device) % 3
     own = (channel == torch.arange(3, device=x.device)[:, None]).to(cols.dtype)  # (3, M)
-    return r, torch.cat((cols[0][:, None, :] * own, cols[1:].transpose(0, 1)), 1)
+    # (written into one buffer: torch.cat of the transposed directions copies element by element)
+    jac = cols.new_empty(x.shape[0], n_t, cols.shape[-1])
+    torch.mul(cols[0][:, None, :], own, out=jac[:, :3])
+    jac[:, 3:] = cols[1:].transpose(0, 1)
+    return r, jac
 
 
 def gauss_newton(data: "LevelData", theta: Tensor, metal: Tensor, idx: list[int], model: str,
@@ -1029,12 +1033,15 @@ def newton_step(jtj: Tensor, g: Tensor, held: Tensor | None = None, chunk: int =
     out = torch.empty_like(g)
     for s0 in range(0, g.shape[0], chunk):
         rows = slice(s0, s0 + chunk)
-        j = jtj[rows].double()
-        free = torch.ones_like(g[rows], dtype=torch.float64) if held is None else (~held[rows]).double()
-        h = j * free[:, :, None] * free[:, None, :]
+        # float64 copies, written in place (copy=True: a float64 caller's own blocks stay as they are)
+        h, rhs = jtj[rows].to(torch.float64, copy=True), -g[rows].double()
+        if held is not None:
+            free = (~held[rows]).double()
+            h.mul_(free[:, :, None] * free[:, None, :])
+            rhs.mul_(free)
         diag = torch.diagonal(h, dim1=-2, dim2=-1)
-        h = h + torch.diag_embed(1e-6 * diag + 1e-9 + (1 - free))
-        x = torch.linalg.solve(h, -(free * g[rows].double())[..., None])[..., 0] * free
+        diag.add_(1e-6 * diag + 1e-9 + (0.0 if held is None else 1 - free))
+        x = torch.linalg.solve(h, rhs[..., None])[..., 0]  # (a held row is the identity's, its rhs 0)
         out[rows] = torch.nan_to_num(x).clamp(-3, 3).to(g.dtype)
     return out
 
@@ -1719,16 +1726,19 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     test = rows[(decode(theta[rows], metal[rows])["roughness"][:, 0] < glossy) & (metal[rows, 0] < 1)]
     if test.numel() == 0:
         return theta, metal, moved
-    jvp, prior, cost = _soft_energy(data.subset(test), idx, model, well)
     x0 = torch.cat((theta[test], metal[test]), -1)
-    held = torch.zeros_like(x0, dtype=torch.bool)
-    held[:, 4] = True  # the roughness logit
-    _, c_glossy = _soft_lm(jvp, cost, x0, iters, prior=prior, held=held)
     start = x0.clone()
     start[:, 4] = _logit(torch.full_like(start[:, 4], rough), _R_MIN, _R_MAX)
     u = torch.full_like(start[:, 7], 0.5) if coverage is None else coverage[test, 0]
     start[:, 7] = torch.nan_to_num(u, nan=0.5).clamp(snap, 1 - snap)
-    x, c_rough = _soft_lm(jvp, cost, start, iters, prior=prior)
+    # Both fits in one LM call (each pixel twice: glossy held, then rough free; the pixels'
+    # iterations are independent, so this only saves the calls' fixed cost)
+    n = test.numel()
+    jvp, prior, cost = _soft_energy(data.subset(torch.cat((test, test))), idx, model, well)
+    held = torch.zeros(2 * n, x0.shape[1], dtype=torch.bool, device=x0.device)
+    held[:n, 4] = True  # the glossy fit's roughness logit
+    x, c = _soft_lm(jvp, cost, torch.cat((x0, start)), iters, prior=prior, held=held)
+    c_glossy, x, c_rough = c[:n], x[n:], c[n:]
     m = x[:, 7:8]
     m_snap = _snap_metallic(m, snap)
     snapped = (m_snap != m)[:, 0]
