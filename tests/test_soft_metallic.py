@@ -388,32 +388,55 @@ def test_reference_refit_only_where_the_result_can_win(tmp_path, monkeypatch):
     assert bool(((m_free > 0) & (m_free < 1)).any())
 
 
-def test_the_free_fit_skips_clear_candidates_that_fit_at_the_noise_level(tmp_path, monkeypatch):
-    """Clear candidates that fit at the noise level are not given the free fit.
+def test_clear_candidates_that_fit_at_the_noise_level_leave_the_stage(tmp_path, monkeypatch):
+    """Clear candidates that fit at the noise level leave the final stage as they are.
 
     Those whose best blend of their clear neighbours is their own class and whose cost is at most
-    the median pixel's; every other candidate is.
+    ``soft_metal_quiet`` × the median pixel's: no fit of the stage (first pass, second pass,
+    growth, blend line) is given them; every other candidate gets the first pass. With
+    ``soft_metal_quiet = 0`` none leaves.
     """
     coverage = torch.tensor([[0.0], [1.0], [0.0], [0.4], [float("nan")], [1.0]])
     metal = torch.tensor([[0.0], [1.0], [0.0], [0.0], [0.0], [0.0]])
     cost = torch.tensor([[1.0], [0.5], [1.5], [0.5], [0.5], [0.5]])
     assert may_be_mixed(coverage, metal, cost, 1.0).tolist() == [False, False, True, True, True, True]
+    assert may_be_mixed(coverage, metal, cost, 1.5).tolist() == [False, False, False, True, True, True]
 
-    # In the recovery: a binary boundary's band is all candidates; about half of them fit below
-    # the median, unmix to their own class and are left out of the free fit.
+    # In the recovery: a binary boundary's band is all candidates; about half of them fit near
+    # the noise level and unmix to their own class (and their neighbours across the boundary
+    # would otherwise give them the second pass).
     import torchbrdf.recovery.solver as R
 
     m = torch.zeros(16, 16)
     m[:, 8:] = 1.0
     _capture(tmp_path, m)
-    seen: dict = {}
     cand, fit = R.soft_metal_candidates, R.soft_metal_fit
-    monkeypatch.setattr(R, "soft_metal_candidates", lambda *a, **k: seen.setdefault("cand", cand(*a, **k)))
-    monkeypatch.setattr(R, "soft_metal_fit", lambda d, t, mt, rows, *a, **k: (seen.setdefault("fit", rows),
-                                                                             fit(d, t, mt, rows, *a, **k))[1])
-    recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, progress=False)
-    rows, free = set(seen["cand"].tolist()), set(seen["fit"].tolist())
-    assert free < rows and len(free) < 0.8 * len(rows), (len(free), len(rows))
+
+    grow = R.growth_front
+
+    def run(**over):
+        seen: dict = {"fits": [], "tried": []}
+        monkeypatch.setattr(R, "soft_metal_candidates",
+                            lambda *a, **k: seen.setdefault("cand", cand(*a, **k)))
+        monkeypatch.setattr(R, "growth_front", lambda mt, tried, size: (seen["tried"].append(tried.clone()),
+                                                                       grow(mt, tried, size))[1])
+
+        def spy(d, t, mt, rows, *a, **k):
+            seen["fits"].append(rows.clone())
+            return fit(d, t, mt, rows, *a, **k)
+
+        monkeypatch.setattr(R, "soft_metal_fit", spy)
+        recover(tmp_path, RecoveryConfig(iters=16, threads=2, **over), None, progress=False)
+        tried = [set(t.nonzero()[:, 0].tolist()) for t in seen["tried"]]
+        return set(seen["cand"].tolist()), [set(f.tolist()) for f in seen["fits"]], tried
+
+    rows, fits, tried = run()
+    first, quiet = fits[0], rows - fits[0]
+    assert first < rows and len(first) < 0.8 * len(rows), (len(first), len(rows))
+    assert len(fits) > 1 and not any(f & quiet for f in fits[1:])  # no later fit takes them up
+    assert tried and all(quiet <= t for t in tried)  # nor does growth (they count as tried)
+    rows0, fits0, _ = run(soft_metal_quiet=0.0)
+    assert rows0 == rows and fits0[0] == rows
 
 
 def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path, monkeypatch):

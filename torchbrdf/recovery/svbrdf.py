@@ -158,7 +158,8 @@ def check_config(cfg: RecoveryConfig) -> None:
         _finite(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
     _finite("metal_margin", cfg.metal_margin, 0.0, 1.0, lo_open=True)
     for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_gain", "soft_metal_smooth",
-                 "soft_metal_edge", "soft_metal_context", "soft_metal_unmix", "soft_metal_line"):
+                 "soft_metal_edge", "soft_metal_context", "soft_metal_unmix", "soft_metal_line",
+                 "soft_metal_quiet"):
         _finite(name, getattr(cfg, name), 0.0, 1e6)
     _finite("soft_metal_max", cfg.soft_metal_max, 0.0, 1.0)
     _integer("soft_metal_iters", cfg.soft_metal_iters, 0, 10_000)
