@@ -1363,7 +1363,6 @@ def test_fusion_averages_each_metals_own_data_optimum_not_where_its_fit_stopped(
     assert float(R.newton_step(jtj, g, held)[:, 4].abs().max()) == 0.0
 
 
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_newton_step_solves_the_damped_normal_equations_on_the_free_unknowns(dtype):
     """``newton_step`` is ``−(H_ff + diag(1e-6 diag(H_ff) + 1e-9))⁻¹ g_f``, 0 on the held unknowns.
@@ -1404,6 +1403,7 @@ def test_newton_step_solves_the_damped_normal_equations_on_the_free_unknowns(dty
         assert step.dtype == dtype
         torch.testing.assert_close(step.double(), want, rtol=tol, atol=tol)
     assert torch.equal(jtj, jtj0) and torch.equal(g, g0)  # the inputs are the caller's, unchanged
+
 
 def test_fusion_rounds_refine_the_average_without_compounding_the_pull():
     """``fuse_rounds``: every round combines the same own value with its round's average.

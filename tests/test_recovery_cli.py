@@ -277,7 +277,8 @@ def test_lr_nan_never_runs_from_the_api(cap):
                                 {"soft_metal_band": -1}, {"soft_metal_edge": float("nan")},
                                 {"soft_metal_context": -0.5}, {"soft_metal_grow": 2.5},
                                 {"nonlocal_fit_weight": -1.0}, {"soft_metal_passes": 1.5},
-                                {"fuse_rounds": 0}, {"fuse_refit_iters": -1}])
+                                {"fuse_rounds": 0}, {"fuse_refit_iters": -1},
+                                {"soft_metal_quiet": float("nan")}, {"soft_metal_quiet": -1.0}])
 def test_soft_metal_and_fusion_settings_are_checked(kw):
     # A NaN smooth weight made every second-pass residual NaN (sqrt(nan)); a negative band
     # reached max_pool2d as a kernel size <= 0. Both are refused up front, naming the setting.

@@ -389,12 +389,12 @@ def test_reference_refit_only_where_the_result_can_win(tmp_path, monkeypatch):
 
 
 def test_clear_candidates_that_fit_at_the_noise_level_leave_the_stage(tmp_path, monkeypatch):
-    """Clear candidates that fit at the noise level leave the final stage as they are.
+    """Clear candidates that fit at the noise level are left out of the final stage's metallic fits.
 
     Those whose best blend of their clear neighbours is their own class and whose cost is at most
-    ``soft_metal_quiet`` × the median pixel's: no fit of the stage (first pass, second pass,
-    growth, blend line) is given them; every other candidate gets the first pass. With
-    ``soft_metal_quiet = 0`` none leaves.
+    ``soft_metal_quiet`` × the median pixel's: no metallic fit of the stage (first pass, second
+    pass, growth, blend line) is given them, and growth counts them as tried; every other
+    candidate gets the first pass. With ``soft_metal_quiet = 0`` (off) none is left out.
     """
     coverage = torch.tensor([[0.0], [1.0], [0.0], [0.4], [float("nan")], [1.0]])
     metal = torch.tensor([[0.0], [1.0], [0.0], [0.0], [0.0], [0.0]])

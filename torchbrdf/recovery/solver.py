@@ -209,8 +209,9 @@ class RecoveryConfig:
     # fit; 0: off, start at ½
     soft_metal_unmix: float = 128.0
     # A candidate whose blend is its own class and whose data cost is at most this × the median
-    # pixel's (the noise level; 1.5: the 98.5th percentile of 51 residuals' noise) leaves the
-    # stage as it is: nothing in its data asks for a mixture (may_be_mixed; with unmixing only)
+    # pixel's (the noise level; 1.5: the 98.5th percentile of 51 residuals' noise) is left out of
+    # the stage's metallic fits and growth: nothing in its data asks for a mixture (may_be_mixed;
+    # with unmixing only; 0: off). The glossy/rough tie still tests it.
     soft_metal_quiet: float = 1.5
     # Last, the fractional pixels' base colour is tied (× σ² per unit²) to the blend of the clear
     # ends beside them at their own metallic (soft_metal_fit's ``line``); 0: off. 2500 = 1/0.02²:
@@ -519,9 +520,9 @@ def fit_jacobian(jvp: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tens
     cols = cols.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)  # (k, N, M), a fresh tensor: in place
     channel = torch.arange(cols.shape[-1], device=x.device) % 3
     own = (channel == torch.arange(3, device=x.device)[:, None]).to(cols.dtype)  # (3, M)
-    # (written into one buffer: torch.cat of the transposed directions copies element by element)
+    # (one buffer: torch.cat of the transposed directions copied element by element)
     jac = cols.new_empty(x.shape[0], n_t, cols.shape[-1])
-    torch.mul(cols[0][:, None, :], own, out=jac[:, :3])
+    jac[:, :3] = cols[0][:, None, :] * own  # (an assignment, not out=: autograd may run through it)
     jac[:, 3:] = cols[1:].transpose(0, 1)
     return r, jac
 
@@ -1456,9 +1457,9 @@ def may_be_mixed(coverage: Tensor, metal: Tensor, cost: Tensor, quiet: float) ->
     unknown would only fit noise: at the median, 1 of 2813 such pixels (rusted_metal 4) and 1 of
     7088 (dusty_metal 3) left their class in the free fit; up to 1.5 × it, 2-3 % of them end
     fractional, their mean metallic error after the stage 0.0018 against 0.0015 as they were
-    (dusty_metal 102) and 0.0020 against 0.0027 (rusted_metal 101), and leaving them out takes a third (dusty_metal 102) to an eighth
-    (rusted_metal 101) of the stage's time (docs/recovery.md, issue 18). A candidate with no
-    blend (NaN coverage) stays.
+    (dusty_metal 102) and 0.0020 against 0.0027 (rusted_metal 101), and leaving them out takes
+    a third (dusty_metal 102) to an eighth (rusted_metal 101) of the stage's time
+    (docs/recovery.md, issue 18). A candidate with no blend (NaN coverage) stays.
     """
     return ~((coverage == metal) & (cost <= quiet))[:, 0]
 
@@ -2379,7 +2380,9 @@ class Recovery:
         :func:`soft_metal_fit`), then along runs of fractional pixels (:func:`growth_front`),
         and last the fractional pixels once more with their base colour tied to the blend of
         their clear neighbours (``cfg.soft_metal_line``); a candidate (a metal unlike the metal
-        around it is one too) may also change class, and every other pixel keeps its 0 or 1.
+        around it is one too) may also change class, and every other pixel keeps its 0 or 1 (a
+        candidate whose blend is its own class and that fits at the noise level among them:
+        :func:`may_be_mixed`, ``cfg.soft_metal_quiet``).
         Records ``state["soft_metal"]`` (pixels refitted, growth included; fractional; seconds)."""
         import time
 
@@ -2426,14 +2429,15 @@ class Recovery:
             # neighbours known, the other unknowns start from it, and its coverage pulls.
             start: tuple = (0.5,)
             pull: dict = {}
-            quiet = rows[:0]  # the candidates that leave the stage as they are
+            quiet = rows[:0]  # the candidates left out of the metallic fits and growth
             if w_un > 0:
                 t_blend, u = unmix_metallic(data, theta, metal, rows, data.train_idx, cfg.model, size)
                 unmix[rows] = u
                 # Not the clear pixels that fit at the noise level (dusty_metal 102: 10 113 of
                 # 19 678 candidates, rusted_metal 101: 3 989 of 14 121).
-                keep = may_be_mixed(u, metal[rows], cost[rows], cfg.soft_metal_quiet * typical)
-                quiet, rows, t_blend, u = rows[~keep], rows[keep], t_blend[keep], u[keep]
+                if cfg.soft_metal_quiet > 0:
+                    keep = may_be_mixed(u, metal[rows], cost[rows], cfg.soft_metal_quiet * typical)
+                    quiet, rows, t_blend, u = rows[~keep], rows[keep], t_blend[keep], u[keep]
                 known = ~torch.isnan(u)  # else the pixel's own unknowns, metallic ½ and no pull
                 start = ((torch.where(known, t_blend, theta[rows]), 0.5),)
                 pull = {"target": torch.nan_to_num(u), "smooth": torch.where(known, w_un, 0.0).to(u.dtype)}
@@ -2487,7 +2491,7 @@ class Recovery:
             # binary material is not a ramp) get the second pass's fit, a few rounds.
             tried = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
             tried[rows] = True
-            tried[quiet] = True  # (and not grown into: they fit as they are)
+            tried[quiet] = True  # not grown into (the glossy/rough tie below still tests them)
             for _ in range(cfg.soft_metal_grow):
                 front = growth_front(metal, tried, size)
                 if front.numel() == 0:
