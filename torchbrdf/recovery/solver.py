@@ -1448,7 +1448,7 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
 
 
 def may_be_mixed(coverage: Tensor, metal: Tensor, cost: Tensor, quiet: float) -> Tensor:
-    """The soft-metal candidates ``(N,)`` bool that stay in the final stage.
+    """The soft-metal candidates ``(N,)`` bool that stay in the final stage's metallic fits.
 
     Left out: a candidate whose best blend of its clear neighbours (``coverage (N, 1)``,
     :func:`unmix_metallic`) is its own class ``metal (N, 1)`` and whose data ``cost (N, 1)``
@@ -2381,8 +2381,8 @@ class Recovery:
         and last the fractional pixels once more with their base colour tied to the blend of
         their clear neighbours (``cfg.soft_metal_line``); a candidate (a metal unlike the metal
         around it is one too) may also change class, and every other pixel keeps its 0 or 1 (a
-        candidate whose blend is its own class and that fits at the noise level among them:
-        :func:`may_be_mixed`, ``cfg.soft_metal_quiet``).
+        candidate whose blend is its own class and that fits at the noise level too,
+        :func:`may_be_mixed`, ``cfg.soft_metal_quiet``; only the glossy/rough tie may move it).
         Records ``state["soft_metal"]`` (pixels refitted, growth included; fractional; seconds)."""
         import time
 
