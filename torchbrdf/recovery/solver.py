@@ -1038,15 +1038,13 @@ def newton_step(jtj: Tensor, g: Tensor, held: Tensor | None = None, chunk: int =
     out = torch.empty_like(g)
     for s0 in range(0, g.shape[0], chunk):
         rows = slice(s0, s0 + chunk)
-        # float64 copies, written in place (copy=True: a float64 caller's own blocks stay as they are)
+        # float64 copies, damped in place (copy=True: a float64 caller's own blocks stay as they are)
         h, rhs = jtj[rows].to(torch.float64, copy=True), -g[rows].double()
-        if held is not None:
-            free = (~held[rows]).double()
-            h.mul_(free[:, :, None] * free[:, None, :])
-            rhs.mul_(free)
+        if held is not None:  # (a held row becomes the identity's, its rhs 0: its step is 0)
+            _hold(h, rhs, held[rows])
         diag = torch.diagonal(h, dim1=-2, dim2=-1)
-        diag.add_(1e-6 * diag + 1e-9 + (0.0 if held is None else 1 - free))
-        x = torch.linalg.solve(h, rhs[..., None])[..., 0]  # (a held row is the identity's, its rhs 0)
+        diag.add_(1e-6 * diag + 1e-9)
+        x = torch.linalg.solve(h, rhs[..., None])[..., 0]
         out[rows] = torch.nan_to_num(x).clamp(-3, 3).to(g.dtype)
     return out
 
@@ -1209,10 +1207,13 @@ def _hold(jtj: Tensor, g: Tensor, held: Tensor) -> tuple[Tensor, Tensor]:
     """Per-pixel normal equations ``jtj (N, K, K)``, ``g (N, K)`` with ``held (N, K)`` unknowns decoupled.
 
     A held unknown's row and column are the identity's and its gradient is 0, so an LM step leaves
-    it at its value. Returns ``(jtj, g)`` in ``jtj``'s dtype, on its device.
+    it at its value. In place: ``jtj`` and ``g`` must be the caller's own (fresh) tensors.
+    Returns them, in their dtype, on their device.
     """
     free = (~held).to(jtj.dtype)
-    return jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1 - free), g * free
+    jtj.mul_(free[:, :, None] * free[:, None, :])
+    torch.diagonal(jtj, dim1=-2, dim2=-1).add_(1 - free)
+    return jtj, g.mul_(free)
 
 
 def refit_pixels(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, starts: list[Tensor],
