@@ -945,6 +945,74 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     assert seen and seen[0] is not None and torch.equal(seen[0][1], prec)
 
 
+def test_a_tie_pass_on_the_metal_pixels_alone_gives_the_full_passs_average(tiny):
+    """The stage-start tie's pass on the metal pixels alone (``nonlocal_prior(rows=...)``).
+
+    Without the roughness average only the metal pixels' normal equations enter the F0
+    average, so the pass nobody takes up (the last stage's) is made on them alone: the same
+    precisions and targets on every pixel as the full pass, the metal pixels' information, 0
+    elsewhere. Fails if the rows are mixed up (a pixel given another's normal equations); with
+    the roughness average, which needs every pixel, it is refused.
+    """
+    import torchbrdf.recovery.solver as R
+
+    cfg = RecoveryConfig(seed=0, soft_metal=False)
+    rec, polish = _recovery_at_polish(tiny, cfg)
+    d = rec.data(rec.plan[polish][0])
+    th, mt = rec.state["theta"][0], rec.state["metal"]
+    ism = mt[:, 0] > 0.5
+    assert bool(ism.any()) and bool((~ism).any())
+    r0, jtj, jtr = R.gauss_newton(d, th, mt, d.train_idx, cfg.model)
+    w, m, info = R.nonlocal_prior(d, th, mt, cfg, jtj, R._pixel_cost(r0), jtr)
+    rows = torch.nonzero(ism)[:, 0]
+    r_m, jtj_m, jtr_m = R.gauss_newton(d.subset(rows), th[rows], mt[rows], d.train_idx, cfg.model)
+    w_m, m_m, info_m = R.nonlocal_prior(d, th, mt, cfg, jtj_m, R._pixel_cost(r_m), jtr_m, rows=rows)
+    assert torch.equal(w_m, w)
+    assert torch.allclose(m_m, m, atol=1e-5, rtol=0)
+    assert torch.allclose(info_m[ism], info[ism], rtol=1e-4) and torch.all(info_m[~ism] == 0)
+    with pytest.raises(ValueError, match="prior_nonlocal"):
+        R.nonlocal_prior(d, th, mt, RecoveryConfig(prior_nonlocal=1.0), jtj_m, R._pixel_cost(r_m), jtr_m,
+                         rows=rows)
+
+
+def test_a_pixel_subset_gathers_its_levels_targets(tiny):
+    """``LevelData.subset``: a pixel list whose observations, log targets and residuals are the level's.
+
+    Rows may repeat, come as a mask, or index a subset again; the targets are gathered from
+    the level's when first used, and new targets set on the level reach the subsets made after.
+    """
+    import dataclasses
+
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.solver import LevelData, encode
+
+    cap = load_capture(tiny)
+    data = LevelData(cap, 32, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    g = torch.Generator().manual_seed(0)
+    p = data.points.shape[0]
+    theta = encode({"base_color": torch.rand(p, 3, generator=g), "specular": torch.full((p, 1), 0.5),
+                    "roughness": torch.rand(p, 1, generator=g) * 0.8 + 0.1,
+                    "normal": torch.nn.functional.normalize(torch.randn(p, 3, generator=g) * 0.1
+                                                            + torch.tensor([0.0, 0.0, 1.0]), dim=-1)})
+    metal = (torch.rand(p, 1, generator=g) > 0.5).to(theta.dtype)
+    idx = data.train_idx[:5]
+    full = data.residual(theta, metal, idx)
+    rows = torch.tensor([7, 3, 3, 900, 0])
+    mask = torch.zeros(p, dtype=torch.bool)
+    mask[[5, 40, 41]] = True
+    for sub, at in ((data.subset(rows), rows), (data.subset(mask), mask.nonzero()[:, 0]),
+                    (data.subset(rows).subset(torch.tensor([4, 1])), rows[[4, 1]])):
+        assert torch.equal(sub.residual(theta[at], metal[at], idx), full[at])
+        assert torch.equal(sub.obs, data.obs[:, at]) and torch.equal(sub.log_obs, data.log_obs[:, at])
+        assert torch.equal(sub.points, data.points[at]) and sub.size == 0 and sub.images is None
+    # a subset made before its level's first residual on a light set gathers them as well
+    fresh = LevelData(dataclasses.replace(cap), 32, data.train_idx, data.eps).subset(rows)
+    assert torch.equal(fresh.residual(theta[rows], metal[rows], idx), full[rows])
+    # new targets on the level: the cached ones go
+    data.log_obs = data.log_obs + 1.0
+    assert torch.allclose(data.subset(rows).residual(theta[rows], metal[rows], idx), full[rows] - 1.0)
+
+
 def test_two_unary_priors_sum_to_one():
     """``_sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
     from torchbrdf.recovery.solver import _sum_unary, _unary_cost
@@ -1046,6 +1114,48 @@ def test_coarse_dual_calibration_can_be_left_to_full_resolution(tiny):
         rec.tick()  # the full-resolution dual stage's first iteration estimates them
     assert float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean()) > 0.01
     assert float(rec.light_offset().abs().max()) > 0.0
+
+
+def test_soft_lm_judges_each_candidate_by_its_linearisation():
+    """One residual evaluation per LM iteration: a candidate's cost comes with its Jacobian.
+
+    The start and each iteration's candidates but the last are linearised (the accepted ones'
+    normal equations are the next iteration's; a rejected pixel keeps its own), the last
+    iteration's candidates are only costed; the returned cost is ``cost`` at the returned
+    unknowns, the priors' residuals included. Fails if a candidate were costed and then
+    linearised anew, or if the cost left out the prior.
+    """
+    import torchbrdf.recovery.solver as R
+
+    gen = torch.Generator().manual_seed(4)
+    n, m = 6, 15
+    a = torch.randn(n, m, 8, generator=gen, dtype=torch.float64)
+    a[..., :3] *= (torch.arange(m)[:, None] % 3 == torch.arange(3)).to(a.dtype)
+    b = torch.randn(n, m, generator=gen, dtype=torch.float64)
+    at = lambda v, r: v if r is None else v[r]  # noqa: E731
+    fn = lambda x, r=None: torch.einsum("nmk,nk->nm", at(a, r), x) - at(b, r)  # noqa: E731
+
+    def prior(x, r=None):  # 2 (m - 0.3): metallic pulled toward 0.3
+        row = torch.zeros(x.shape[0], 1, 8, dtype=x.dtype)
+        row[:, 0, 7] = 2.0
+        return 2.0 * (x[:, 7:8] - 0.3), row
+
+    counts = {"jvp": 0, "cost": 0}
+
+    def cost(x, r=None):
+        counts["cost"] += 1
+        return (torch.cat((fn(x, r), prior(x, r)[0]), -1) ** 2).sum(-1, keepdim=True)
+
+    def jvp(v, tg, r):
+        counts["jvp"] += 1
+        return R._vmapped_jvp(lambda u: fn(u, r))(v, tg)
+
+    x0 = torch.zeros(n, 8, dtype=torch.float64)
+    x, c = R._soft_lm(jvp, cost, x0, 4, prior=prior, tol=0.0)
+    assert counts == {"jvp": 4, "cost": 1}
+    counts["cost"] = 0
+    assert torch.allclose(c, cost(x), rtol=1e-12)
+    assert float(c.sum()) < float(cost(x0).sum())
 
 
 def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_held():

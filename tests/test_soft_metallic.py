@@ -4,6 +4,8 @@ Each test fails on the code before the stage: it had no soft-metal functions, no
 no ``fractional_metallic_fraction`` in the report, and its metallic map was only ever 0 or 1.
 """
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -254,7 +256,9 @@ def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
     assert torch.allclose(p["base_color"], want, atol=1e-3)
     assert torch.allclose(p["specular"], torch.full_like(t_b, 0.5), atol=1e-3)
     # No blend with a finite cost (a non-finite observation): no blend, NaN, not a guess.
-    data.log_obs[:, rows[:3]] = float("nan")
+    images = cap.images.clone()
+    images[:, :, rows[:3] // size, rows[:3] % size] = float("nan")  # pixel p: row p // size, column p % size
+    data = LevelData(dataclasses.replace(cap, images=images), size, data.train_idx, data.eps)
     with torch.no_grad():
         theta_n, t_n = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
     assert bool(torch.isnan(t_n[:3]).all()) and bool(torch.isnan(theta_n[:3]).all())

@@ -239,8 +239,11 @@ def _logit(x: Tensor, lo=0.0, hi=1.0, eps=1e-4) -> Tensor:
 def decode(theta: Tensor, metal: Tensor) -> dict:
     """Principled parameters ``(P, C)`` from unconstrained ``theta (P, 7)`` and ``metal (P, 1)``."""
     s = torch.sigmoid(theta[:, 0:5])  # one op for the five logits (decode runs ~700 times a fit)
-    rough = _R_MIN + (_R_MAX - _R_MIN) * s[:, 4:5]
-    n = torch.cat((theta[:, 5:7], torch.ones_like(theta[:, 5:6])), -1)
+    # (no arithmetic with Python numbers: under vmap of jvp, as the fit's Jacobian runs it, each
+    # such op takes a decomposition's slow path; this form halves that call's fixed cost)
+    ends = torch.tensor((_R_MIN, _R_MAX), dtype=theta.dtype, device=theta.device)
+    rough = torch.lerp(ends[0:1], ends[1:2], s[:, 4:5])
+    n = F.pad(theta[:, 5:7], (0, 1), value=1.0)
     n = n * torch.rsqrt((n * n).sum(-1, keepdim=True))
     return {"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal,
             "normal": n}
@@ -276,24 +279,65 @@ class LevelData:
             img = F.interpolate(img, size=(size, size), mode="area")
         self.size: int = size  # (a pixel subset, see subset, has no image layout: size 0)
         self.images: Tensor | None = img  # (L, 3, S, S); None on a pixel subset
-        self.obs = img.permute(0, 2, 3, 1).reshape(img.shape[0], -1, 3)  # (L, P, 3)
+        self._obs: Tensor | None = img.permute(0, 2, 3, 1).reshape(img.shape[0], -1, 3)  # (L, P, 3)
         self.points = pixel_points(size, size, device=img.device, dtype=img.dtype).reshape(-1, 3)
+        # A pixel subset's level and its pixels there (subset): its targets are gathered from
+        # the level's, its observations only when asked for.
+        self._level: LevelData | None = None
+        self._rows: Tensor | None = None
         self.camera = cap.camera_position
         self.pos, self.inten = cap.light_positions, cap.light_intensities
         self.inten_stated = cap.light_intensities  # capture.json's; self.inten carries the estimated scales
         self.pos_stated = cap.light_positions  # capture.json's; self.pos carries the estimated offsets
         self.eps = eps
-        self.log_obs = torch.log(torch.clamp(self.obs + eps, min=0.5 * eps))
+        self._log_obs: Tensor | None = torch.log(torch.clamp(self._obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
-        self._light: dict[tuple, tuple] = {}  # light-set tuple -> (log targets, light_geometry)
+        self._log_targets: dict[tuple, Tensor] = {}  # light-set tuple -> log targets (P, L, 3)
+        self._light: dict[tuple, dict] = {}  # light-set tuple -> light_geometry (not the principled's)
+
+    @property
+    def obs(self) -> Tensor:
+        """Observed radiance ``(L, N, 3)`` under every light (N = P on a full level)."""
+        if self._obs is None:
+            assert self._level is not None and self._rows is not None
+            self._obs = self._level.obs.index_select(1, self._rows)
+        return self._obs
+
+    @obs.setter
+    def obs(self, value: Tensor) -> None:
+        self._obs = value
+
+    @property
+    def log_obs(self) -> Tensor:
+        """``log(max(obs + eps, eps / 2))``, ``(L, N, 3)``: the targets of the log residuals."""
+        if self._log_obs is None:
+            assert self._level is not None and self._rows is not None
+            self._log_obs = self._level.log_obs.index_select(1, self._rows)
+        return self._log_obs
+
+    @log_obs.setter
+    def log_obs(self, value: Tensor) -> None:  # (new targets: the cached ones go)
+        self._log_obs = value
+        self._log_targets = {}
 
     def subset(self, rows: Tensor) -> "LevelData":
-        """The same capture restricted to pixels ``rows (N,)`` (its own light-geometry cache)."""
+        """The same capture restricted to pixels ``rows (N,)`` (its own light-geometry cache).
+
+        Nothing of the images is copied here: a light set's targets are gathered from the
+        level's when first used (``(N, L, 3)`` rows of its cached ``(P, L, 3)``, a tenth of the
+        time of gathering every light's observations and transposing them: 0.3 against 11 ms
+        at 8600 pixels), the observations only when asked for.
+        """
         sub = LevelData.__new__(LevelData)
         sub.__dict__.update(self.__dict__)
         sub.size, sub.images = 0, None  # no image layout: a pixel list
-        sub.obs, sub.log_obs, sub.points = self.obs[:, rows], self.log_obs[:, rows], self.points[rows]
-        sub._light = {}
+        level = self if self._level is None else self._level
+        if rows.dtype == torch.bool:
+            rows = rows.nonzero()[:, 0]
+        sub._level, sub._rows = level, rows if self._rows is None else self._rows[rows]
+        sub._obs = sub._log_obs = None
+        sub.points = self.points[rows]
+        sub._log_targets, sub._light = {}, {}
         return sub
 
     def set_light_scale(self, log_scale: Tensor | None) -> None:
@@ -351,12 +395,20 @@ class LevelData:
         On lights ``idx``; the geometry only for models other than the principled (else None);
         ``rows`` as for :meth:`residual`.
         """
-        key = (model, tuple(idx))
-        if key not in self._light:  # per light set, once: the targets (and the geometry a model needs)
-            log_obs_pl = self.log_obs[idx].permute(1, 0, 2).contiguous()  # (P, L, 3)
-            geo = light_geometry(self.points, self.camera, self.pos[idx]) if model != "principled" else None
-            self._light[key] = (log_obs_pl, geo)
-        log_obs, light = self._light[key]
+        key = tuple(idx)
+        log_obs = self._log_targets.get(key)
+        if log_obs is None:  # per light set, once
+            if self._log_obs is None and self._level is not None and self._rows is not None:
+                # a subset: its level's, gathered (asked for as the principled model's: no geometry)
+                log_obs = self._level._targets(idx, "principled", None)[1][self._rows]
+            else:
+                log_obs = self.log_obs[idx].permute(1, 0, 2).contiguous()  # (P, L, 3)
+            self._log_targets[key] = log_obs
+        light = None
+        if model != "principled":  # the geometry the other models render with, per light set once
+            if key not in self._light:
+                self._light[key] = light_geometry(self.points, self.camera, self.pos[idx])
+            light = self._light[key]
         points = self.points
         if rows is not None:
             points, log_obs = points[rows], log_obs[rows]
@@ -572,8 +624,8 @@ def marginal_information(data: "LevelData", theta: Tensor, metal: Tensor, model:
 
 
 def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
-                   jtj: Tensor | None = None, cost: Tensor | None = None, jtr: Tensor | None = None
-                   ) -> tuple[Tensor, Tensor, Tensor]:
+                   jtj: Tensor | None = None, cost: Tensor | None = None, jtr: Tensor | None = None,
+                   rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Confidence-weighted non-local estimate of a metal's base colour (and, optionally, roughness).
 
     A metal's base colour (F0, logit) gets the average of the metal pixels within a large
@@ -590,12 +642,28 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
     at its own data optimum as one Gauss–Newton step predicts it (:func:`newton_step`), not
     where its fit stopped: in the GGX tail a metal's data pin F0·α², not F0, and the fit
     slides along that valley slowly from its dark start (None: where the fit stopped).
+    ``rows (N,)`` (int64): the pixels that ``jtj``, ``cost`` and ``jtr`` (all three given) are
+    of, ``(N, 7, 7)``, ``(N, 1)``, ``(N, 7)``; it must hold every metal pixel, and the
+    information is then 0 elsewhere. Only without the roughness average, which needs every
+    pixel's (None: all P pixels).
     Returns ``(precisions (P, 7), targets (P, 7), information (P, 7))``; the caller fuses
     ``(info θ + w m) / (info + w)``: pixels the data pins down (information ≫ precision)
     keep their value, the under-determined ones take the average.
     """
     size = data.size
-    info = marginal_information(data, theta, metal, cfg.model, jtj)
+    if rows is None:
+        info = marginal_information(data, theta, metal, cfg.model, jtj)
+    else:
+        if cfg.prior_nonlocal > 0 or jtj is None or cost is None or jtr is None:
+            raise ValueError("nonlocal_prior: `rows` needs jtj, cost and jtr, and prior_nonlocal = 0")
+
+        def spread(x: Tensor, fill: float) -> Tensor:  # (N, ...) at rows -> (P, ...), fill elsewhere
+            out = x.new_full((theta.shape[0], *x.shape[1:]), fill)
+            out[rows] = x
+            return out
+
+        info = spread(marginal_information(data, theta[rows], metal[rows], cfg.model, jtj), 0.0)
+        jtj, cost, jtr = spread(jtj, 0.0), spread(cost, float("inf")), spread(jtr, 0.0)
     sig = cfg.nonlocal_sigma * size
     base = torch.sigmoid(theta[:, 0:3])
     w = torch.zeros_like(theta)
@@ -1425,14 +1493,18 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     met = torch.cat((met[:, 0:3], diel[:, 3:4], met[:, 4:5]), -1)
     normal, sub = decode(theta[rows], metal[rows])["normal"], data.subset(rows)
 
-    def blend(t: Tensor) -> Tensor:  # theta of the blend at coverage t (N, 1)
-        v = diel * (1 - t) + met * t
+    def blend(t: Tensor) -> Tensor:  # theta of the blend at coverages t (k N, 1): k per pixel, value-major
+        k = t.shape[0] // n
+        v = diel.repeat(k, 1) * (1 - t) + met.repeat(k, 1) * t
         return encode({"base_color": v[:, 0:3], "specular": v[:, 3:4], "roughness": v[:, 4:5],
-                       "normal": normal})
+                       "normal": normal.repeat(k, 1)})
 
-    grid = torch.linspace(0, 1, steps, dtype=theta.dtype, device=theta.device)
-    grid = grid[:, None, None].expand(-1, len(rows), 1)
-    costs = torch.cat([_pixel_cost(sub.residual(blend(t), t, idx, model)) for t in grid], -1)  # (N, steps)
+    # Every grid value of every pixel in one evaluation (steps N lanes; one call's fixed cost).
+    n = rows.shape[0]
+    grid = torch.linspace(0, 1, steps, dtype=theta.dtype, device=theta.device).repeat_interleave(n)[:, None]
+    each = torch.arange(n, device=theta.device).repeat(steps)
+    r = sub.residual(blend(grid), grid, idx, model, rows=each)
+    costs = _pixel_cost(r).view(steps, n).T  # (N, steps)
     k = costs.argmin(-1, keepdim=True)  # _pixel_cost: a NaN cost is already +inf
     t = k.to(theta.dtype) / (steps - 1)
     # Between grid values: the vertex of the parabola through the best and its two neighbours
@@ -1535,8 +1607,10 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
     prior residuals and their Jacobian (``x`` → ``(N, k)``, ``(N, k, 8)``, as
     :func:`_soft_prior`), added to the normal equations by hand (they are not part of the data
     residuals' forward-mode Jacobian, which would copy them once per tangent); ``cost`` must
-    include them. ``jvp``, ``cost`` and ``prior`` take the unknowns of some of the pixels and
-    their indices (``None``: all N, in order); the base-colour unknowns act each on its own
+    be the summed squares of both (a linearised candidate's cost is taken from them: only the
+    last iteration's candidates are costed by ``cost``). ``jvp``, ``cost`` and ``prior`` take
+    the unknowns of some of the pixels and their indices (``None``: all N, in order); the
+    base-colour unknowns act each on its own
     channel's residuals (:func:`fit_jacobian`). ``held (N, 8)`` bool: unknowns kept at their
     start (None: none held but metallic with ``fix_metal``, which ignores its column 7; a held
     metallic is still clamped to [0, 1]).
@@ -1549,31 +1623,49 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
     n_t = x.shape[1] - 1 if fix_metal else x.shape[1]  # the unknowns that move
     lam0 = 1e-2  # the starting damping
     lam = torch.full((x.shape[0], 1), lam0, dtype=x.dtype, device=x.device)
-    c = cost(x, None)
-    # (the first iteration runs on every pixel and replaces x, c, lam with new tensors: the
-    # caller's x is never written to)
-    active = torch.arange(x.shape[0], device=x.device)
-    for _ in range(iters):
-        if active.numel() == 0:
-            break
-        rows: _Rows = None if active.numel() == x.shape[0] else active
-        xa, ca, la = (x, c, lam) if rows is None else (x[rows], c[rows], lam[rows])
-        r, jac = fit_jacobian(lambda v, tg: jvp(v, tg, rows), xa, n_t)  # noqa: B023  (n, M), (n, n_t, M)
+
+    def linearise(v: Tensor, rows: _Rows) -> tuple[Tensor, Tensor, Tensor]:
+        # The cost (n, 1) at v and its normal equations (n, n_t, n_t), (n, n_t): the residuals
+        # come with the Jacobian (the same values `cost` gives).
+        r, jac = fit_jacobian(lambda u, tg: jvp(u, tg, rows), v, n_t)  # (n, M), (n, n_t, M)
+        pr, pj = prior(v, rows) if prior is not None else (r[:, :0], None)
+        c = _pixel_cost(torch.cat((r, pr), -1))
         r = r.nan_to_num_()  # (a fresh tensor of the jvp: cleaned in place)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
         g = torch.bmm(jac, r[..., None])[..., 0]
-        if prior is not None:
-            pr, pj = prior(xa, rows)
+        if pj is not None:
             pj = pj[..., :n_t]  # (n, k, n_t)
             jtj = jtj + torch.bmm(pj.transpose(1, 2), pj)
             g = g + torch.bmm(pj.transpose(1, 2), pr[..., None])[..., 0]
         if held is not None:
             jtj, g = _hold(jtj, g, _at(held, rows)[:, :n_t])
-        h = jtj + torch.diag_embed(la * (torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-6))
-        step = torch.nan_to_num(torch.linalg.solve(h, -g[..., None])[..., 0]).clamp(-3, 3)
+        return c, jtj, g
+
+    # Each candidate step is judged by its cost, which its linearisation gives too: an accepted
+    # step's normal equations are the next iteration's, a rejected one keeps the pixel's own,
+    # and only the last iteration's candidates are evaluated without their Jacobian (one
+    # residual evaluation per iteration less than linearising each accepted point anew).
+    # (the first iteration runs on every pixel and replaces x, c, lam, jtj, g with new tensors:
+    # the caller's x is never written to)
+    c, jtj, g = linearise(x, None)
+    active = torch.arange(x.shape[0], device=x.device)
+    for it in range(iters):
+        if active.numel() == 0:
+            break
+        rows: _Rows = None if active.numel() == x.shape[0] else active
+        if rows is None:
+            xa, ca, la, ja, ga = x, c, lam, jtj, g
+        else:
+            xa, ca, la, ja, ga = x[rows], c[rows], lam[rows], jtj[rows], g[rows]
+        h = ja + torch.diag_embed(la * (torch.diagonal(ja, dim1=-2, dim2=-1) + 1e-6))
+        step = torch.nan_to_num(torch.linalg.solve(h, -ga[..., None])[..., 0]).clamp(-3, 3)
         cand = xa + torch.nn.functional.pad(step, (0, x.shape[1] - n_t))
         cand = torch.cat((cand[:, :-1], cand[:, -1:].clamp(0.0, 1.0)), -1)
-        c1 = cost(cand, rows)
+        last = it == iters - 1
+        if last:
+            c1 = cost(cand, rows)
+        else:
+            c1, j1, g1 = linearise(cand, rows)
         better = c1 < ca
         new_x, new_c = torch.where(better, cand, xa), torch.where(better, c1, ca)
         new_l = torch.where(better, (la * 0.3).clamp(min=1e-5), (la * 10).clamp(max=1e6))
@@ -1581,6 +1673,12 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
             x, c, lam = new_x, new_c, new_l
         else:
             x[rows], c[rows], lam[rows] = new_x, new_c, new_l
+        if not last:
+            new_j, new_g = torch.where(better[..., None], j1, ja), torch.where(better, g1, ga)
+            if rows is None:
+                jtj, g = new_j, new_g
+            else:
+                jtj[rows], g[rows] = new_j, new_g
         # Converged: an accepted step that gained less than tol of a finite cost, taken at no more
         # than the starting damping (after rejected steps a step is short because of the
         # damping, not because the pixel is done; a rejected step is not convergence either).
@@ -2278,8 +2376,14 @@ class Recovery:
                 synced = (s1, kind1 == "all") in self._data
                 d = self.data(s1, all_lights=(kind1 == "all"))
                 th, mt = st["theta"][0], st["metal"]
-                r0, jtj, jtr = gauss_newton(d, th, mt, d.train_idx, self.cfg.model)
-                w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr)
+                if synced or self.cfg.prior_nonlocal > 0:
+                    r0, jtj, jtr = gauss_newton(d, th, mt, d.train_idx, self.cfg.model)
+                    w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr)
+                else:  # a pass nobody takes up: only the metal pixels', which the average needs
+                    rows = torch.nonzero(mt[:, 0] > 0.5)[:, 0]
+                    r0, jtj, jtr = gauss_newton(d.subset(rows), th[rows], mt[rows], d.train_idx,
+                                                self.cfg.model)
+                    w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr, rows=rows)
                 st["tie"] = (m, w)
                 self._stage_gn = (th.clone(), mt.clone(), (r0, jtj, jtr)) if synced else None
             if kind1 == "all":
