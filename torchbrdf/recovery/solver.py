@@ -295,13 +295,19 @@ class LevelData:
         self._log_targets: dict[tuple, Tensor] = {}  # light-set tuple -> log targets (P, L, 3)
         self._light: dict[tuple, dict] = {}  # light-set tuple -> light_geometry (not the principled's)
 
+    def _gathered(self, name: str) -> Tensor:
+        """``obs`` or ``log_obs``: a subset's are its level's at its pixels, gathered when first asked for."""
+        value = getattr(self, "_" + name)
+        if value is None:
+            assert self._level is not None and self._rows is not None
+            value = getattr(self._level, name).index_select(1, self._rows)
+            setattr(self, "_" + name, value)
+        return value
+
     @property
     def obs(self) -> Tensor:
         """Observed radiance ``(L, N, 3)`` under every light (N = P on a full level)."""
-        if self._obs is None:
-            assert self._level is not None and self._rows is not None
-            self._obs = self._level.obs.index_select(1, self._rows)
-        return self._obs
+        return self._gathered("obs")
 
     @obs.setter
     def obs(self, value: Tensor) -> None:
@@ -310,10 +316,7 @@ class LevelData:
     @property
     def log_obs(self) -> Tensor:
         """``log(max(obs + eps, eps / 2))``, ``(L, N, 3)``: the targets of the log residuals."""
-        if self._log_obs is None:
-            assert self._level is not None and self._rows is not None
-            self._log_obs = self._level.log_obs.index_select(1, self._rows)
-        return self._log_obs
+        return self._gathered("log_obs")
 
     @log_obs.setter
     def log_obs(self, value: Tensor) -> None:  # (new targets: the cached ones go)
