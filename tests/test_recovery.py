@@ -951,8 +951,9 @@ def test_a_tie_pass_on_the_metal_pixels_alone_gives_the_full_passs_average(tiny)
     Without the roughness average only the metal pixels' normal equations enter the F0
     average, so the pass nobody takes up (the last stage's) is made on them alone: the same
     precisions and targets on every pixel as the full pass, the metal pixels' information, 0
-    elsewhere. Fails if the rows are mixed up (a pixel given another's normal equations); with
-    the roughness average, which needs every pixel, it is refused.
+    elsewhere. Fails if the rows are mixed up (a pixel given another's normal equations); rows
+    without every metal pixel, or with the roughness average (which needs every pixel), are
+    refused.
     """
     import torchbrdf.recovery.solver as R
 
@@ -973,13 +974,16 @@ def test_a_tie_pass_on_the_metal_pixels_alone_gives_the_full_passs_average(tiny)
     with pytest.raises(ValueError, match="prior_nonlocal"):
         R.nonlocal_prior(d, th, mt, RecoveryConfig(prior_nonlocal=1.0), jtj_m, R._pixel_cost(r_m), jtr_m,
                          rows=rows)
+    with pytest.raises(ValueError, match="every metal pixel"):  # a metal pixel left out
+        R.nonlocal_prior(d, th, mt, cfg, jtj_m[1:], R._pixel_cost(r_m[1:]), jtr_m[1:], rows=rows[1:])
 
 
 def test_a_pixel_subset_gathers_its_levels_targets(tiny):
     """``LevelData.subset``: a pixel list whose observations, log targets and residuals are the level's.
 
     Rows may repeat, come as a mask, or index a subset again; the targets are gathered from
-    the level's when first used, and new targets set on the level reach the subsets made after.
+    the level's when first used, and new targets set on the level reach the subsets made after;
+    a subset given targets of its own is its subsets' level. A mask must cover every pixel.
     """
     import dataclasses
 
@@ -1008,6 +1012,14 @@ def test_a_pixel_subset_gathers_its_levels_targets(tiny):
     # a subset made before its level's first residual on a light set gathers them as well
     fresh = LevelData(dataclasses.replace(cap), 32, data.train_idx, data.eps).subset(rows)
     assert torch.equal(fresh.residual(theta[rows], metal[rows], idx), full[rows])
+    # a subset with targets of its own is the level of its subsets
+    own = data.subset(rows)
+    own.log_obs = own.log_obs - 2.0
+    at = rows[[4, 1]]
+    nested = own.subset(torch.tensor([4, 1]))
+    assert torch.allclose(nested.residual(theta[at], metal[at], idx), full[at] + 2.0)
+    with pytest.raises(IndexError, match="mask"):
+        data.subset(mask[:-1])
     # new targets on the level: the cached ones go
     data.log_obs = data.log_obs + 1.0
     assert torch.allclose(data.subset(rows).residual(theta[rows], metal[rows], idx), full[rows] - 1.0)
@@ -1122,8 +1134,9 @@ def test_soft_lm_judges_each_candidate_by_its_linearisation():
     The start and each iteration's candidates but the last are linearised (the accepted ones'
     normal equations are the next iteration's; a rejected pixel keeps its own), the last
     iteration's candidates are only costed; the returned cost is ``cost`` at the returned
-    unknowns, the priors' residuals included. Fails if a candidate were costed and then
-    linearised anew, or if the cost left out the prior.
+    unknowns, the priors' residuals included, and a candidate with non-finite residuals costs
+    +inf. Fails if a candidate were costed and then linearised anew, if the cost left out the
+    prior, or if it were taken from the cleaned residuals.
     """
     import torchbrdf.recovery.solver as R
 
@@ -1156,6 +1169,19 @@ def test_soft_lm_judges_each_candidate_by_its_linearisation():
     counts["cost"] = 0
     assert torch.allclose(c, cost(x), rtol=1e-12)
     assert float(c.sum()) < float(cost(x0).sum())
+    # a candidate whose residuals are not finite costs +inf and is refused: pixel 0's optimum
+    # lies at x[3] = 2, behind a wall at 0.5
+    b[0] = a[0] @ torch.tensor([0.0, 0, 0, 2, 0, 0, 0, 0], dtype=torch.float64)
+
+    def walled(x, r=None):
+        out = fn(x, r)
+        first = (torch.arange(n) if r is None else r) == 0
+        return torch.where((first & (x[:, 3] > 0.5))[:, None], float("nan"), out)
+
+    x, c = R._soft_lm(lambda v, tg, r: R._vmapped_jvp(lambda u: walled(u, r))(v, tg),
+                      lambda v, r=None: R._pixel_cost(walled(v, r)), x0, 6, tol=0.0)
+    assert bool(torch.isfinite(c).all()) and float(x[0, 3]) <= 0.5
+    assert torch.equal(c, R._pixel_cost(walled(x)))
 
 
 def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_held():

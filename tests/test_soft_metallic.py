@@ -214,7 +214,7 @@ def test_growth_extends_runs_of_fractional_pixels_only():
     assert front == near
 
 
-def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
+def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path, monkeypatch):
     """A blend's coverage is found from the clear pixels beside it, to within 0.025.
 
     A stripe of texels blending a rough dielectric (left) and a glossy metal (right) —
@@ -225,6 +225,7 @@ def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
 
     Fails if an end is taken from the stripe itself, if roughness or base colour is not
     blended, if the metal end's specular (not observed) were used, or without the parabola.
+    Evaluated one coverage per call, the answer is the same.
     """
     size = 24
     diel = {"base_color": torch.tensor([0.5, 0.4, 0.3]), "roughness": 0.8, "specular": 0.5}
@@ -250,6 +251,12 @@ def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path):
         theta_b, t_b = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
     truth = flat(t[None])[rows]
     assert float((t_b - truth).abs().max()) < 0.025, (t_b - truth).abs().max()
+    import torchbrdf.recovery.solver as R
+
+    monkeypatch.setattr(R, "UNMIX_PIXELS", 1)  # one coverage per call: the same answer
+    with torch.no_grad():
+        _, t_1 = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
+    assert torch.equal(t_1, t_b)
     p = decode(theta_b, t_b)  # the blend at the coverage found
     assert torch.allclose(p["roughness"], 0.8 * (1 - t_b) + 0.3 * t_b, atol=1e-3)
     want = diel["base_color"] * (1 - t_b) + met["base_color"] * t_b

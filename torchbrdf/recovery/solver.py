@@ -241,8 +241,8 @@ def decode(theta: Tensor, metal: Tensor) -> dict:
     s = torch.sigmoid(theta[:, 0:5])  # one op for the five logits (decode runs ~700 times a fit)
     # (no arithmetic with Python numbers: under vmap of jvp, as the fit's Jacobian runs it, each
     # such op takes a decomposition's slow path; this form halves that call's fixed cost)
-    ends = torch.tensor((_R_MIN, _R_MAX), dtype=theta.dtype, device=theta.device)
-    rough = torch.lerp(ends[0:1], ends[1:2], s[:, 4:5])
+    lo, hi = (torch.full((1,), v, dtype=theta.dtype, device=theta.device) for v in (_R_MIN, _R_MAX))
+    rough = torch.lerp(lo, hi, s[:, 4:5])  # (filled on the device: no copy from the host, no sync)
     n = F.pad(theta[:, 5:7], (0, 1), value=1.0)
     n = n * torch.rsqrt((n * n).sum(-1, keepdim=True))
     return {"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal,
@@ -300,7 +300,7 @@ class LevelData:
         value = getattr(self, "_" + name)
         if value is None:
             assert self._level is not None and self._rows is not None
-            value = getattr(self._level, name).index_select(1, self._rows)
+            value = getattr(self._level, name)[:, self._rows]
             setattr(self, "_" + name, value)
         return value
 
@@ -326,18 +326,29 @@ class LevelData:
     def subset(self, rows: Tensor) -> "LevelData":
         """The same capture restricted to pixels ``rows (N,)`` (its own light-geometry cache).
 
+        ``rows``: int64 indices (repeats allowed) or a bool mask of this data's pixels.
         Nothing of the images is copied here: a light set's targets are gathered from the
         level's when first used (``(N, L, 3)`` rows of its cached ``(P, L, 3)``, a tenth of the
         time of gathering every light's observations and transposing them: 0.3 against 11 ms
-        at 8600 pixels), the observations only when asked for.
+        at 8600 pixels), the observations only when asked for. A subset is a view of its level
+        as the level is when the subset first uses it: targets set on the level afterwards
+        (``level.log_obs = ...``) reach the subsets made after, and writes into a level's
+        ``obs`` or ``log_obs`` in place are not seen by its subsets (nothing here writes them).
         """
+        rows = torch.as_tensor(rows, device=self.points.device)
+        if rows.dtype == torch.bool:
+            if rows.shape != self.points.shape[:1]:
+                raise IndexError(f"LevelData.subset: a mask of shape {tuple(rows.shape)} for "
+                                 f"{self.points.shape[0]} pixels")
+            rows = rows.nonzero()[:, 0]
         sub = LevelData.__new__(LevelData)
         sub.__dict__.update(self.__dict__)
         sub.size, sub.images = 0, None  # no image layout: a pixel list
-        level = self if self._level is None else self._level
-        if rows.dtype == torch.bool:
-            rows = rows.nonzero()[:, 0]
-        sub._level, sub._rows = level, rows if self._rows is None else self._rows[rows]
+        # (a subset of a subset gathers from the level too, unless it has observations of its own)
+        if self._level is None or self._rows is None or self._obs is not None or self._log_obs is not None:
+            sub._level, sub._rows = self, rows
+        else:
+            sub._level, sub._rows = self._level, self._rows[rows]
         sub._obs = sub._log_obs = None
         sub.points = self.points[rows]
         sub._log_targets, sub._light = {}, {}
@@ -665,6 +676,10 @@ def nonlocal_prior(data: "LevelData", theta: Tensor, metal: Tensor, cfg: Recover
             out[rows] = x
             return out
 
+        covered = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
+        covered[rows] = True
+        if bool(((metal[:, 0] > 0.5) & ~covered).any()):
+            raise ValueError("nonlocal_prior: `rows` must hold every metal pixel")
         info = spread(marginal_information(data, theta[rows], metal[rows], cfg.model, jtj), 0.0)
         jtj, cost, jtr = spread(jtj, 0.0), spread(cost, float("inf")), spread(jtr, 0.0)
     sig = cfg.nonlocal_sigma * size
@@ -1471,6 +1486,10 @@ def blend_ends(theta: Tensor, metal: Tensor, rows: Tensor, size: int, sigmas: tu
     return (ends[0], ends[1]), torch.cat(founds, -1)
 
 
+#: :func:`unmix_metallic`'s batch: pixel-values of its coverage grid evaluated per call.
+UNMIX_PIXELS = 1 << 17
+
+
 def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
                    size: int, steps: int = 11, sigmas: tuple = BLEND_SIGMAS) -> tuple[Tensor, Tensor]:
     """Pixels ``rows (N,)`` explained as blends of the clear metal and dielectric beside them.
@@ -1492,6 +1511,9 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     Where no blend has a finite cost, ``t`` and its theta are NaN (no blend). ``theta (P, 7)``.
     Returns ``(theta of the blend (N, 7), t (N, 1))``, on ``theta``'s device and in its dtype.
     """
+    n = rows.shape[0]
+    if n == 0:
+        return theta.new_empty(0, theta.shape[1]), theta.new_empty(0, 1)
     (diel, met), _ = blend_ends(theta, metal, rows, size, sigmas)
     met = torch.cat((met[:, 0:3], diel[:, 3:4], met[:, 4:5]), -1)
     normal, sub = decode(theta[rows], metal[rows])["normal"], data.subset(rows)
@@ -1502,12 +1524,15 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         return encode({"base_color": v[:, 0:3], "specular": v[:, 3:4], "roughness": v[:, 4:5],
                        "normal": normal.repeat(k, 1)})
 
-    # Every grid value of every pixel in one evaluation (steps N lanes; one call's fixed cost).
-    n = rows.shape[0]
-    grid = torch.linspace(0, 1, steps, dtype=theta.dtype, device=theta.device).repeat_interleave(n)[:, None]
-    each = torch.arange(n, device=theta.device).repeat(steps)
-    r = sub.residual(blend(grid), grid, idx, model, rows=each)
-    costs = _pixel_cost(r).view(steps, n).T  # (N, steps)
+    # Several grid values of every pixel per evaluation: fewer calls' fixed cost, at most
+    # UNMIX_PIXELS pixel-values per call (a bounded batch at any size).
+    parts = []
+    grid = torch.linspace(0, 1, steps, dtype=theta.dtype, device=theta.device)
+    for values in grid.split(max(1, UNMIX_PIXELS // n)):
+        t_k = values.repeat_interleave(n)[:, None]
+        each = torch.arange(n, device=theta.device).repeat(values.shape[0])
+        parts.append(_pixel_cost(sub.residual(blend(t_k), t_k, idx, model, rows=each)).view(-1, n))
+    costs = torch.cat(parts).T  # (N, steps)
     k = costs.argmin(-1, keepdim=True)  # _pixel_cost: a NaN cost is already +inf
     t = k.to(theta.dtype) / (steps - 1)
     # Between grid values: the vertex of the parabola through the best and its two neighbours
@@ -1613,10 +1638,9 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
     be the summed squares of both (a linearised candidate's cost is taken from them: only the
     last iteration's candidates are costed by ``cost``). ``jvp``, ``cost`` and ``prior`` take
     the unknowns of some of the pixels and their indices (``None``: all N, in order); the
-    base-colour unknowns act each on its own
-    channel's residuals (:func:`fit_jacobian`). ``held (N, 8)`` bool: unknowns kept at their
-    start (None: none held but metallic with ``fix_metal``, which ignores its column 7; a held
-    metallic is still clamped to [0, 1]).
+    base-colour unknowns act each on its own channel's residuals (:func:`fit_jacobian`).
+    ``held (N, 8)`` bool: unknowns kept at their start (None: none held but metallic with
+    ``fix_metal``, which ignores its column 7; a held metallic is still clamped to [0, 1]).
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
@@ -1634,12 +1658,14 @@ def _soft_lm(jvp: Callable[[Tensor, Tensor, _Rows], tuple[Tensor, Tensor]],
         pr, pj = prior(v, rows) if prior is not None else (r[:, :0], None)
         c = _pixel_cost(torch.cat((r, pr), -1))
         r = r.nan_to_num_()  # (a fresh tensor of the jvp: cleaned in place)
+        # (the gradients, and the priors' few rows, as products and sums: a batch of small
+        # matrix-vector products is slower, 4.4 against 3.3 ms at 8500 pixels)
         jtj = torch.bmm(jac, jac.transpose(1, 2))
-        g = torch.bmm(jac, r[..., None])[..., 0]
+        g = (jac * r[:, None, :]).sum(-1)
         if pj is not None:
             pj = pj[..., :n_t]  # (n, k, n_t)
-            jtj = jtj + torch.bmm(pj.transpose(1, 2), pj)
-            g = g + torch.bmm(pj.transpose(1, 2), pr[..., None])[..., 0]
+            jtj = jtj + (pj[..., :, None] * pj[..., None, :]).sum(1)
+            g = g + (pj * pr[..., None]).sum(1)
         if held is not None:
             jtj, g = _hold(jtj, g, _at(held, rows)[:, :n_t])
         return c, jtj, g
@@ -2378,17 +2404,21 @@ class Recovery:
                 # estimates: then its pass is not the first LM step's and is not handed on.)
                 synced = (s1, kind1 == "all") in self._data
                 d = self.data(s1, all_lights=(kind1 == "all"))
-                th, mt = st["theta"][0], st["metal"]
-                if synced or self.cfg.prior_nonlocal > 0:
-                    r0, jtj, jtr = gauss_newton(d, th, mt, d.train_idx, self.cfg.model)
-                    w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr)
-                else:  # a pass nobody takes up: only the metal pixels', which the average needs
-                    rows = torch.nonzero(mt[:, 0] > 0.5)[:, 0]
-                    r0, jtj, jtr = gauss_newton(d.subset(rows), th[rows], mt[rows], d.train_idx,
-                                                self.cfg.model)
-                    w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr, rows=rows)
+                th, mt, model = st["theta"][0], st["metal"], self.cfg.model
+                # The F0 average needs the metal pixels' pass only (the roughness average every
+                # pixel's): a pass nobody takes up runs on them alone.
+                rows = None if self.cfg.prior_nonlocal > 0 else torch.nonzero(mt[:, 0] > 0.5)[:, 0]
+                self._stage_gn = None
+                if synced or rows is None:
+                    r0, jtj, jtr = gauss_newton(d, th, mt, d.train_idx, model)
+                    if synced:  # handed on to the stage's first LM step
+                        self._stage_gn = (th.clone(), mt.clone(), (r0, jtj, jtr))
+                    if rows is not None:
+                        r0, jtj, jtr = r0[rows], jtj[rows], jtr[rows]
+                else:
+                    r0, jtj, jtr = gauss_newton(d.subset(rows), th[rows], mt[rows], d.train_idx, model)
+                w, m, _ = nonlocal_prior(d, th, mt, self.cfg, jtj, _pixel_cost(r0), jtr, rows=rows)
                 st["tie"] = (m, w)
-                self._stage_gn = (th.clone(), mt.clone(), (r0, jtj, jtr)) if synced else None
             if kind1 == "all":
                 st["validation"] = self.validation()
                 if self.cfg.fill and kind == "polish":
