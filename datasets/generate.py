@@ -1,8 +1,8 @@
-"""``python -m datasets.generate``: write synthetic multi-light captures with ground-truth maps.
+"""``python datasets/generate.py``: write synthetic multi-light captures with ground-truth maps.
 
 Example::
 
-    python -m datasets.generate --out cap --recipe tiles --seed 7
+    python datasets/generate.py --out cap --recipe tiles --seed 7
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from torchbrdf.capture.synthetic import RECIPES, SOFT_RECIPES, generate_capture
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, generate one capture folder, print where it went."""
-    ap = argparse.ArgumentParser(prog="python -m datasets.generate", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python datasets/generate.py", description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True, help="capture folder to create (capture.json, img_*.exr, gt/)")
     ap.add_argument("--recipe", choices=RECIPES + SOFT_RECIPES, default=None, help="procedural material (default: chosen by --seed)")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the material and the noise")

@@ -20,13 +20,15 @@ def test_readme_python_blocks_run_verbatim(tmp_path, monkeypatch):
         exec(compile(block, "README.md", "exec"), {"__name__": "__readme__"})  # no names given: imports must be there
 
 
-def _readme_modules() -> list[str]:
+def _readme_commands() -> list[tuple[str, ...]]:
     text = "\n".join(re.findall(r"```bash\n(.*?)```", README.read_text(), re.S))
-    return sorted(set(re.findall(r"python -m ((?:torchbrdf|training|datasets)[\w.]*)", text)))
+    modules = [["-m", m] for m in re.findall(r"python -m ((?:torchbrdf|training)[\w.]*)", text)]
+    files = [[f] for f in re.findall(r"python ((?:datasets|training)/\w+\.py)", text)]
+    return sorted({tuple(c) for c in modules + files})
 
 
-@pytest.mark.parametrize("module", _readme_modules())
-def test_readme_commands_exist(module):
-    res = subprocess.run([sys.executable, "-m", module, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+@pytest.mark.parametrize("command", _readme_commands(), ids=" ".join)
+def test_readme_commands_exist(command):
+    res = subprocess.run([sys.executable, *command, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "usage" in res.stdout.lower()

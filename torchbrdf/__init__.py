@@ -19,15 +19,20 @@ the normal, ``x``/``y`` tangent and bitangent); material parameters are channel-
 import os as _os
 import sys as _sys
 
-# The `torchbrdf-recover` command owns its process, so it chooses how OpenMP threads wait: a
-# short poll, then sleep (docs/fast_path.md, "Threads"). libgomp reads this once, when torch
-# loads it, which the first line below does; the console script gets here before anything else
-# imports torch (python -m training.<script> sets the same in training/__init__.py). A value the
-# user set is kept, and an import in any other process leaves the environment alone.
-if (_os.path.basename(getattr(_sys, "argv", [""])[0] or "").startswith("torchbrdf-recover")
+# The recovery commands own their process, so they choose how OpenMP threads wait: a short
+# poll, then sleep (docs/fast_path.md, "Threads"). libgomp reads this once, when torch loads it,
+# which the first import below does; a console script or a script of the checkout's training/
+# folder (run as a file or with python -m) gets here before anything else imports torch. A
+# value the user set is kept, and an import in any other process leaves the environment alone.
+_argv0 = getattr(_sys, "argv", [""])[0] or ""
+_script = _os.path.basename(_argv0)
+if ((_script.startswith("torchbrdf-recover")
+     or (_os.path.basename(_os.path.dirname(_os.path.abspath(_argv0))) == "training"
+         and _script in ("recover_svbrdf.py", "recover_many.py")))
         and "OMP_WAIT_POLICY" not in _os.environ and "GOMP_SPINCOUNT" not in _os.environ):
     _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     _os.environ["GOMP_SPINCOUNT"] = "2000"
+del _argv0, _script
 
 from torchbrdf import analysis, io
 from torchbrdf.analysis import plots

@@ -64,7 +64,10 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
     fitted one) from the true maps, under the ``test_lights`` random lights at their true
     positions; the recovered maps are rendered by the fitted model.
     """
-    from training.photo_set import photo_capture, photo_material, render_other_model
+    if __package__:  # python -m training.evaluate
+        from training.photo_set import photo_capture, photo_material, render_other_model
+    else:  # run as a file: its folder is sys.path[0]
+        from photo_set import photo_capture, photo_material, render_other_model
 
     suffix = ("" if calibration else "_nocal") + ("" if diffuse == "lambert" else f"_{diffuse}")
     cap_dir = folder / f"photo_{name}_s{seed}_L{lights}{suffix}"

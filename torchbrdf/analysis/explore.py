@@ -326,7 +326,7 @@ error estimate; dotted: R, G, B).</p>
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
-    ap = argparse.ArgumentParser(prog="python -m torchbrdf.analysis.explore", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="torchbrdf-explore", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="explore_report", help="output folder (default: explore_report)")
     ap.add_argument("--brdf", action="append", default=[], metavar="SPEC", help="MODEL[:key=value,...]; repeat to compare")
     ap.add_argument("--preset", choices=sorted(PRESETS), help="a named comparison (added before any --brdf)")
