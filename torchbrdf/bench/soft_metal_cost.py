@@ -1,22 +1,20 @@
-"""``python -m torchbrdf.bench.additions``: what continuous metallic costs a recovery in wall time.
+"""``python -m torchbrdf.bench.soft_metal_cost``: what the metal refinements cost a recovery in wall time.
 
-Issue 18 allows its additions at most +15 % of the recovery's wall time. *on* is the default
-RecoveryConfig; *off* leaves out all three additions: soft_metal=False (the final soft-metal
-stage), fuse_rounds=1 (the second fusion round) and fit_nonlocal_tie=False (the metal tie inside
-the fit). Each capture is generated once (generate_capture: a recipe, a seed, 256², 16 ring
-lights + the flash, 1 % noise). Each run is a fresh process; its time is the recovery's own
-clock (report.json's "seconds": the fit, without the interpreter's start, the imports, loading
-the capture or writing outputs). Runs go on / off / off / on per round, so that a drift of the
-machine's speed falls on both, and the printed ratio is the median over the rounds' on/off
-pairs. Below it, per stage (report.json's "stage_seconds"), the median of the pairs' on − off
-seconds. The ties are made at the end of the stage before a single-class stage (the 256²
-two-hypothesis and the polish stage), and the first one's pass is reused by the polish
-stage's first step, so work moves between those two stages and only their sum says what the
-ties cost; the last stage's end holds the second fusion round and the final stage; the
-two-hypothesis stages below full size run the same code on and off, so their differences
-show how much the machine's noise moves a stage. With --busy every run has one competing
-`python -c "while True: pass"` beside it, as on a machine shared with a data loader. Results:
-docs/recovery.md (issue 18, "Time, with the new benchmark" and "Per-stage clocks").
+The refinements are the final continuous-metallic stage, the second round of the non-local F0
+fusion and the F0 tie inside the fit. *on* is the default RecoveryConfig; *off* leaves out all
+three: soft_metal=False, fuse_rounds=1 and fit_nonlocal_tie=False. Each capture is generated
+once (generate_capture: a recipe, a seed, 256², 16 ring lights + the flash, 1 % noise). Each run
+is a fresh process; its time is the recovery's own clock (report.json's "seconds": the fit,
+without the interpreter's start, the imports, loading the capture or writing outputs). Runs go
+on / off / off / on per round, so that a drift of the machine's speed falls on both, and the
+printed ratio is the median over the rounds' on/off pairs. Below it, per stage (report.json's
+"stage_seconds"), the median of the pairs' on − off seconds. The ties are made at the end of the
+stage before a single-class stage (the 256² two-hypothesis and the polish stage), and the first
+one's pass is reused by the polish stage's first step, so work moves between those two stages
+and only their sum says what the ties cost; the last stage's end holds the second fusion round
+and the final stage; the two-hypothesis stages below full size run the same code on and off, so
+their differences show how much the machine's noise moves a stage. With --busy every run has one
+competing `python -c "while True: pass"` beside it, as on a machine shared with a data loader.
 """
 
 from __future__ import annotations
@@ -32,7 +30,7 @@ from pathlib import Path
 
 from torchbrdf.bench.threads import SECONDS, run_workload, tagged_line, workload_seconds
 
-#: The settings that turn issue 18's additions off.
+#: The settings that turn the metal refinements off.
 OFF = {"soft_metal": False, "fuse_rounds": 1, "fit_nonlocal_tie": False}
 
 _RECOVER = r"""
@@ -118,7 +116,7 @@ class _Help(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpF
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; prints one line per capture: median on / off seconds, the pairs and their median."""
-    p = argparse.ArgumentParser(prog="python -m torchbrdf.bench.additions", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m torchbrdf.bench.soft_metal_cost", description=__doc__,
                                 formatter_class=_Help)
     p.add_argument("--captures", default="rusted_metal:101,dusty_metal:102",
                    help="recipe:seed list, comma-separated (by default the held-out soft materials)")
@@ -139,7 +137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if recipe not in names or not seed.isdecimal() or not seed.isascii():
             p.error(f"--captures: expected recipe:seed with a recipe of {names}, got {it!r}")
         items.append((recipe, int(seed)))
-    folder = Path(args.folder or tempfile.mkdtemp(prefix="tb-additions-"))
+    folder = Path(args.folder or tempfile.mkdtemp(prefix="tb-soft-metal-cost-"))
     omp = {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     print(f"cores: {os.cpu_count()}  threads: {args.threads}  busy: {args.busy}  {omp}  "
           f"load average: {os.getloadavg()}  captures in: {folder}")

@@ -1,4 +1,4 @@
-"""``python -m torchbrdf.bench.additions``: the on/off timing of issue 18's additions.
+"""``python -m torchbrdf.bench.soft_metal_cost``: the on/off timing of the metal refinements.
 
 Timings are in docs/recovery.md, not here: these tests check what is run, in which order, how
 the pairs are formed, and that bad arguments are refused.
@@ -9,21 +9,21 @@ import subprocess
 
 import pytest
 
-from torchbrdf.bench import additions
+from torchbrdf.bench import soft_metal_cost
 from torchbrdf.recovery.svbrdf import RecoveryConfig
 
 
 def test_off_turns_each_addition_away_from_its_default():
     """*off* changes every addition's setting from its default."""
     d = RecoveryConfig()
-    assert additions.OFF and all(getattr(d, k) != v for k, v in additions.OFF.items())
+    assert soft_metal_cost.OFF and all(getattr(d, k) != v for k, v in soft_metal_cost.OFF.items())
 
 
 def test_pairs_are_on_over_off_of_the_same_round():
     """A pair is on / off − 1; unequal lists are refused."""
-    assert additions.pair_ratios([11.0, 9.0], [10.0, 10.0]) == pytest.approx([0.1, -0.1])
+    assert soft_metal_cost.pair_ratios([11.0, 9.0], [10.0, 10.0]) == pytest.approx([0.1, -0.1])
     with pytest.raises(ValueError, match="as many on as off"):
-        additions.pair_ratios([1.0], [])
+        soft_metal_cost.pair_ratios([1.0], [])
 
 
 @pytest.mark.parametrize("bad", [["--captures", "marble:1"], ["--captures", "rusted_metal"],
@@ -31,7 +31,7 @@ def test_pairs_are_on_over_off_of_the_same_round():
 def test_bad_arguments_exit_2(bad):
     """An unknown recipe, a missing or non-ASCII seed, or no rounds or threads: exit 2."""
     with pytest.raises(SystemExit) as e:
-        additions.main(bad)
+        soft_metal_cost.main(bad)
     assert e.value.code == 2
 
 
@@ -48,16 +48,16 @@ def test_runs_go_on_off_off_on_and_pair_neighbours(tmp_path, monkeypatch, capsys
 
     def fake(cmd, busy):
         assert busy is False
-        assert cmd == additions.recover_command(cap, json.loads(cmd[4]), 1)
+        assert cmd == soft_metal_cost.recover_command(cap, json.loads(cmd[4]), 1)
         seen.append(json.loads(cmd[4]))
         stages = [{"size": 4, "stage": "dual", "iterations": 3, "seconds": 1.0},
                   {"size": 8, "stage": "all", "iterations": 2, "seconds": next(last)}]
         return next(clock), stages
 
-    monkeypatch.setattr(additions, "run_recovery", fake)
-    assert additions.main(["--captures", " rusted_metal:1", "--rounds", "2", "--threads", "1",
+    monkeypatch.setattr(soft_metal_cost, "run_recovery", fake)
+    assert soft_metal_cost.main(["--captures", " rusted_metal:1", "--rounds", "2", "--threads", "1",
                            "--folder", str(tmp_path)]) == 0
-    off = additions.OFF
+    off = soft_metal_cost.OFF
     assert seen == [{}, off, off, {}] * 2
     out = capsys.readouterr().out
     # pairs: 20/10, 11/10, 30/20, 30/20 -> +100 +10 +50 +50 %, median +50 %
@@ -71,12 +71,12 @@ def test_stage_differences_match_stages_by_kind_and_size():
     a = [{"size": 4, "stage": "dual", "seconds": 2.0}, {"size": 8, "stage": "all", "seconds": 5.0}]
     b = [{"size": 8, "stage": "all", "seconds": 1.0}]
     c = [{"size": 4, "stage": "dual", "seconds": None}, {"size": 8, "stage": "all", "seconds": 2.0}]
-    assert additions.stage_differences([a, a], [b, c]) == {"all 8²": 3.5}
-    assert additions.stage_differences([], []) == {}
+    assert soft_metal_cost.stage_differences([a, a], [b, c]) == {"all 8²": 3.5}
+    assert soft_metal_cost.stage_differences([], []) == {}
     # one stage met twice: each occurrence its own entry
     d, p = {"size": 4, "stage": "dual", "seconds": 3.0}, {"size": 8, "stage": "polish", "seconds": 1.0}
     twice = [d, p, {**d, "seconds": 5.0}]
-    assert additions.stage_differences([twice], [[{**d, "seconds": 1.0}, p, d]]) == \
+    assert soft_metal_cost.stage_differences([twice], [[{**d, "seconds": 1.0}, p, d]]) == \
         {"dual 4²": 2.0, "polish 8²": 0.0, "dual 4² (2)": 2.0}
 
 
@@ -85,7 +85,7 @@ def test_a_timed_run_prints_the_recoverys_own_seconds(tmp_path):
     from torchbrdf.capture.synthetic import generate_capture
 
     generate_capture(tmp_path, recipe="metal_inlay", seed=2, size=12, lights=6, noise=0.01)
-    cmd = additions.recover_command(tmp_path, {**additions.OFF, "iters": 4}, 1)
+    cmd = soft_metal_cost.recover_command(tmp_path, {**soft_metal_cost.OFF, "iters": 4}, 1)
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     line = [x for x in out.stdout.splitlines() if x.startswith("SECONDS ")]
