@@ -32,3 +32,65 @@ def test_readme_commands_exist(command):
     res = subprocess.run([sys.executable, *command, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "usage" in res.stdout.lower()
+
+
+def _table_rows(text: str, header_start: str) -> dict[str, list[str]]:
+    """The rows of the first Markdown table whose header starts with ``header_start``, by first cell + seed."""
+    lines = text.splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith(header_start))
+    rows = {}
+    for line in lines[i + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows[" ".join(cells[:2])] = cells[2:]
+    return rows
+
+
+def test_readme_accuracy_table_is_the_recovery_docs_table():
+    """The README's recovery accuracy figures are the reference page's, cell for cell."""
+    header = "| material | seed | base RMSE"
+    readme = _table_rows(README.read_text(), header)
+    docs = _table_rows((ROOT / "docs" / "recovery.md").read_text(), header)
+    assert len(readme) == 5
+    assert readme == docs
+
+
+def test_readme_states_each_demo_time_once():
+    """Every time of the ``--demo`` recovery is in the one table, and no sentence restates one."""
+    text = README.read_text()
+    table = _table_rows(text, "| load on the 2 cores |")
+    assert len(table) == 4 and all(len(r) == 2 for r in table.values())
+    times = re.compile(r"\d+(?:\.\d+)?\s?s\b")
+    for line in text.splitlines():
+        if line.startswith("|"):
+            continue
+        if "demo" in line.lower():
+            assert not times.search(line.replace("the fit alone", "")) or "2.6–2.7 s" in line, line
+    # busier machines never look faster for the default thread count
+    default = [float(r[0].split()[0]) for r in table.values()]
+    assert default == sorted(default)
+
+
+def test_readme_names_every_console_script():
+    import tomllib
+
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    text = README.read_text()
+    assert [s for s in scripts if f"`{s}`" not in text] == []
+
+
+def test_readme_layout_lists_every_script_and_folder():
+    layout = README.read_text().split("## Layout", 1)[1]
+    for folder in ("training", "datasets", "tools"):
+        for f in sorted((ROOT / folder).glob("*.py")):
+            assert f.name in layout, f"{folder}/{f.name} missing from the README's layout"
+
+
+def test_docs_have_no_work_log():
+    """Reference pages, not a lab notebook: no issue numbers, clock times or dated narration."""
+    pattern = re.compile(r"issue[ -]\d+|\d{2}:\d{2} UTC|\bsession\b|latest round|previous round", re.I)
+    pages = [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("recovery*.md"))]
+    hits = [f"{p.name}: {m.group(0)}" for p in pages if p.exists() for m in pattern.finditer(p.read_text())]
+    assert hits == []
+    assert len((ROOT / "docs" / "recovery.md").read_text().splitlines()) <= 800
