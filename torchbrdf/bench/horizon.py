@@ -96,8 +96,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--side", type=int, default=32, help="sphere picture side in pixels")
     p.add_argument("--height", type=int, default=128, help="environment map rows (width = 2 × rows)")
     p.add_argument("--samples", type=int, default=16384, help="Monte Carlo samples per point of the reference")
+    p.add_argument("--roughness", type=float, nargs="+", default=[0.2, 0.5, 0.9], help="GGX roughness values")
     a = p.parse_args(argv)
-    print(horizon_table(horizon_errors(print, a.side, a.height, a.samples)))
+    print(horizon_table(horizon_errors(print, a.side, a.height, a.samples, a.roughness)))
     return 0
 
 
