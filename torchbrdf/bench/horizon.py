@@ -98,6 +98,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=16384, help="Monte Carlo samples per point of the reference")
     p.add_argument("--roughness", type=float, nargs="+", default=[0.2, 0.5, 0.9], help="GGX roughness values")
     a = p.parse_args(argv)
+    for name in ("side", "height", "samples"):
+        if getattr(a, name) < 2:
+            p.error(f"--{name} must be an integer >= 2, got {getattr(a, name)}")
     print(horizon_table(horizon_errors(print, a.side, a.height, a.samples, a.roughness)))
     return 0
 
