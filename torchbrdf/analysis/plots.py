@@ -82,21 +82,66 @@ def plot_image_slices(
     """Burley's image slices (Figure 3) of each BRDF at ``φd``, θd drawn upward as in the notes.
 
     The left edge is the specular peak, the bottom edge retro-reflection (``l = v``), the top
-    edge the Fresnel peak; black where ``l`` or ``v`` is below the horizon (``φd < 90°``).
+    edge the Fresnel peak. Where ``l`` or ``v`` is below the surface (``φd < 90°``, large θh
+    and θd) there is no value: those pixels are grey, and a note under the figure says so.
     """
     k = len(entries)
-    fig = _figure(2.6 * k + 0.4, 2.9)
+    below = _below_horizon(resolution, phi_d)
+    fig = _figure(2.6 * k + 0.4, 3.1 if below.any() else 2.9)
     axes = fig.subplots(1, k, squeeze=False)[0]
     for ax, (label, f) in zip(axes, entries):
         img = A.image_slice(f, resolution, phi_d) * math.pi
-        ax.imshow(display_image(img, exposure), origin="lower", extent=(0, 90, 0, 90))
+        shown = display_image(img, exposure)
+        shown[below] = _HORIZON_GREY
+        ax.imshow(shown, origin="lower", extent=(0, 90, 0, 90))
         ax.set_title(_panel_title(label), fontsize=9)
         ax.set_xlabel("θh (deg)")
         ax.set_xticks([0, 30, 60, 90])
         ax.set_yticks([0, 30, 60, 90])
     axes[0].set_ylabel("θd (deg)")
-    fig.suptitle(f"Image slices, φd = {math.degrees(phi_d):.0f}° (π·f, EV {exposure:+g})", fontsize=10)
+    note = "\ngrey: l or v below the surface (no value; f is 0 there by definition)" if below.any() else ""
+    fig.suptitle(f"Image slices, φd = {math.degrees(phi_d):.0f}° (π·f, EV {exposure:+g}){note}", fontsize=10)
     return fig
+
+
+_HORIZON_GREY = (0.55, 0.55, 0.6)  # a bluish grey no BRDF value is shown as
+
+
+def _below_horizon(resolution: int, phi_d: float) -> np.ndarray:
+    """``(resolution, resolution)`` bool: the slice's (θd row, θh column) pixels where ``l`` or ``v`` is below the surface."""
+    from torchbrdf.analysis.slices import half_diff_to_lv
+
+    t = (torch.arange(resolution, dtype=torch.float64) + 0.5) * (math.pi / 2) / resolution
+    td, th = torch.meshgrid(t, t, indexing="ij")
+    l, v = half_diff_to_lv(th, td, phi_d)
+    return ((l[..., 2] <= 0) | (v[..., 2] <= 0)).numpy()
+
+
+def _coincidence_note(curves: Sequence[tuple[str, np.ndarray, np.ndarray]], unit: str = "°",
+                      tolerance: float = 0.03) -> str:
+    """A line for each pair of curves that agree within ``tolerance`` (relative) over at least half their range.
+
+    ``curves``: ``(label, x, y)`` on the same ``x``. Such curves are drawn on top of each other,
+    so the figure says where they coincide instead of leaving a legend entry without a visible line.
+    """
+    notes = []
+    for i in range(len(curves)):
+        for j in range(i + 1, len(curves)):
+            (a, x, ya), (b, _, yb) = curves[i], curves[j]
+            if len(ya) != len(yb) or len(ya) < 2:
+                continue
+            scale = np.maximum(np.maximum(np.abs(ya), np.abs(yb)), 1e-12)
+            agree = np.concatenate(([False], np.abs(ya - yb) / scale <= tolerance, [False]))
+            edges = np.flatnonzero(np.diff(agree.astype(np.int8)))  # run starts and ends, paired
+            if len(edges) == 0:
+                continue
+            runs = edges.reshape(-1, 2)
+            lo, hi = max(runs, key=lambda r: r[1] - r[0])
+            if x[hi - 1] - x[lo] < 0.5 * (x[-1] - x[0]):
+                continue
+            where = "everywhere" if lo == 0 and hi == len(x) else f"from {x[lo]:.0f}{unit} to {x[hi - 1]:.0f}{unit}"
+            notes.append(f"'{a}' and '{b}' coincide within {tolerance:.0%} {where}")
+    return "\n".join(notes)
 
 
 def plot_spheres(
@@ -156,14 +201,17 @@ def _log_curves(
 ) -> Figure:
     fig = _figure(6.0, 3.6)
     ax = fig.subplots()
+    curves = []
     for i, (label, f) in enumerate(entries):
         th, val = fn(f)
         y = np.maximum(luminance(val), 1e-6)
-        ax.semilogy(np.degrees(th.numpy()), y, label=label, lw=1.6, **_style(i))
+        curves.append((label, np.degrees(th.numpy()), y))
+        ax.semilogy(curves[-1][1], y, label=label, lw=1.6, **_style(i))
     ax.set_xlabel(xlabel)
     ax.set_ylabel("f (luminance, 1/sr)")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    note = _coincidence_note(curves)
+    ax.legend(fontsize=8, title=note or None, title_fontsize=7)
     ax.set_title(title, fontsize=10)
     return fig
 
@@ -197,11 +245,14 @@ def plot_polar_lobes(
     k = len(thetas_i)
     fig = _figure(3.3 * k, 6.2)
     axes = fig.subplots(2, k, subplot_kw={"projection": "polar"}, squeeze=False)
+    notes_per_column = []
     for col, ti in enumerate(thetas_i):
         curves = []
         for i, (label, f) in enumerate(entries):
             theta_o, val = A.polar_lobe(f, ti, cosine=cosine)
             curves.append((label, theta_o.numpy(), luminance(val)))
+        note = _coincidence_note([(a, np.degrees(x), y) for a, x, y in curves])
+        notes_per_column += [f"θi = {math.degrees(ti):.0f}°: {line}" for line in note.splitlines()]
         top = max(float(c[2].max()) for c in curves)
         top = top if top > 0 else 1.0
         decades = 4.0
@@ -223,7 +274,8 @@ def plot_polar_lobes(
                 ax.set_yticklabels([f"{top * 10 ** (t - decades):.1g}" for t in ticks])
             ax.set_title(f"θi = {math.degrees(ti):.0f}°, {'linear' if row == 0 else 'log'} radius", fontsize=9)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(entries), 3), fontsize=7)
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(entries), 3), fontsize=7,
+               title="\n".join(notes_per_column) or None, title_fontsize=7)
     what = "f · cos θl" if cosine else "f"
     fig.suptitle(f"Lobes in the plane of incidence ({what}, luminance)", fontsize=10)
     return fig
