@@ -284,7 +284,7 @@ def test_module_equals_functional_shapes_and_dtypes():
 
 
 # --------------------------------------------------------------------------------------
-# Roughness floor conventions (issue 15)
+# Roughness floor conventions
 # --------------------------------------------------------------------------------------
 
 CODES = np.arange(0, 12)  # 8-bit roughness codes; 1..8 give alpha = 1.5e-5 .. 9.8e-4

@@ -72,7 +72,7 @@ def test_gradcheck_and_finite_at_edges():
 
 
 # --------------------------------------------------------------------------------------
-# Conductor Fresnel against pbrt-v4's FrComplex, everywhere (issue 15)
+# Conductor Fresnel against pbrt-v4's FrComplex, everywhere
 # --------------------------------------------------------------------------------------
 
 

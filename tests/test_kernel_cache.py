@@ -1,7 +1,7 @@
 """Faults of the fused kernels' build cache (torchbrdf/kernels/build.py): each leaves ``principled`` working.
 
 Every test gets a fresh cache folder (``$TORCHBRDF_CACHE_DIR``) and fresh in-process state, and
-forces the fused path at a small lane count. The kernels are compiled once per session into a
+forces the fused path at a small lane count. The kernels are compiled once per test run into a
 "golden" folder and copied in where a test only needs a cached kernel.
 """
 

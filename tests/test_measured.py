@@ -319,7 +319,7 @@ def test_ggx_lobe_is_reproduced_to_interpolation_error(ggx_brdf):
 
 
 def test_principled_file_round_trip(tmp_path):
-    # Issue 7: a MERL file written from a known principled material evaluates back to it.
+    # A MERL file written from a known principled material evaluates back to it.
     torchbrdf = pytest.importorskip("torchbrdf")
     params = {"base_color": torch.tensor([0.6, 0.3, 0.1], dtype=F64), "roughness": 0.5, "metallic": 0.0}
     path = tmp_path / "principled.binary"

@@ -1,4 +1,4 @@
-"""Every model of the library renders through the one shader interface (issue 6 item 4)."""
+"""Every model of the library renders through the one shader interface."""
 
 import pytest
 import torch

@@ -1,4 +1,4 @@
-"""The photo-derived evaluation set's forward model (training/photo_set.py, issue 13)."""
+"""The photo-derived evaluation set's forward model (training/photo_set.py)."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""Issue 14: the package ships ``py.typed``, every public callable is annotated, mypy passes.
+"""The package ships ``py.typed``, every public callable is annotated, mypy passes.
 
 The annotation check is AST-based (``tools/check_annotations.py``); see that file for what
 "public" and "fully annotated" mean.

@@ -1,4 +1,4 @@
-"""List the public callables of torchbrdf that are not fully annotated (issue 14).
+"""List the public callables of torchbrdf that are not fully annotated.
 
 Public means: a module-level ``def`` whose name does not start with ``_``, and the methods
 of module-level public classes whose names do not start with ``_`` (dunder methods other

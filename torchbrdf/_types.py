@@ -1,4 +1,4 @@
-"""Type aliases shared by the annotations of the public API (issue 14).
+"""Type aliases shared by the annotations of the public API.
 
 These are for readers and for mypy; nothing checks them at run time. They are real
 objects (not strings), so ``typing.get_type_hints`` resolves annotations that use them.

@@ -31,7 +31,7 @@ from torchbrdf.capture.synthetic import RECIPES, generate_capture, make_material
 from torchbrdf.recovery.svbrdf import RecoveryConfig, keep_freed_memory, map_errors, psnr, recover
 
 THRESHOLDS = {"base_color_rmse": 0.02, "roughness_rmse": 0.06, "metallic_rmse": 0.05, "normal_mean_deg": 1.0}
-PHOTO_THRESHOLDS = {**THRESHOLDS, "roughness_rmse": 0.05}  # issue 13, photo-derived set
+PHOTO_THRESHOLDS = {**THRESHOLDS, "roughness_rmse": 0.05}  # the photo-derived set
 MIN_PSNR = {"heldout_psnr_min": 30.0}  # worst single held-out light
 
 

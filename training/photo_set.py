@@ -1,4 +1,4 @@
-"""An evaluation set built differently from :mod:`torchbrdf.capture.synthetic` (issue 13).
+"""An evaluation set built differently from :mod:`torchbrdf.capture.synthetic`.
 
 ``photo_capture(folder, name, seed, size)`` writes a capture folder (``capture.json`` + EXRs +
 ``gt/``) whose material maps come from scikit-image's bundled photographs, rendered by a forward
@@ -145,7 +145,7 @@ def render_other_model(maps: dict, lights, camera=DEFAULT_CAMERA, diffuse: str =
     colour for metals.
 
     Under Burley's diffuse, the principled model's roughness also shapes the diffuse lobe, so a
-    rough Lambertian material is not best fitted at its own roughness (docs/recovery.md, issue 13);
+    rough Lambertian material is not best fitted at its own roughness (docs/recovery.md, Known limits);
     ``"burley"`` keeps the rest of the mismatch and takes that part out.
     """
     if diffuse not in ("lambert", "burley"):

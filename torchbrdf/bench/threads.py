@@ -1,6 +1,6 @@
 """``python -m torchbrdf.bench.threads``: wall time quiet vs with one competing busy process.
 
-Why: OpenMP threads that spin-wait collapse on a shared machine (issue 12: the demo recovery
+Why: OpenMP threads that spin-wait collapse on a shared machine (an earlier demo recovery
 took 97 s quiet, 507 s next to one busy process). This runs a workload in a fresh process,
 alternately on its own and next to ``python -c "while True: pass"``, for each OpenMP wait
 policy asked for, and prints the median wall times and their ratio. Results: docs/fast_path.md.
