@@ -94,3 +94,25 @@ def test_docs_have_no_work_log():
     hits = [f"{p.name}: {m.group(0)}" for p in pages if p.exists() for m in pattern.finditer(p.read_text())]
     assert hits == []
     assert len((ROOT / "docs" / "recovery.md").read_text().splitlines()) <= 800
+
+
+def test_recovery_options_table_matches_the_config_and_the_cli(capsys):
+    """docs/recovery.md's options table: every RecoveryConfig field with its true default, every flag."""
+    import dataclasses
+
+    from torchbrdf.recovery import RecoveryConfig
+    from torchbrdf.recovery.svbrdf import main
+
+    text = (ROOT / "docs" / "recovery.md").read_text()
+    rows = _table_rows(text, "| option | default | CLI flag | effect |")
+    table = {k.split(" ", 1)[0].strip("`"): k.split(" ", 1)[1] for k in rows}  # option -> stated default
+    testing_only = {"fault_at", "signal_at", "schedule"}
+    fields = {f.name: f for f in dataclasses.fields(RecoveryConfig) if f.name not in testing_only}
+    assert sorted(table) == sorted(fields)
+    defaults = RecoveryConfig()
+    for name, stated in table.items():
+        assert stated == f"`{getattr(defaults, name)!r}`", name
+    assert main(["--help"]) == 0
+    flags = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
+    stated = set(re.findall(r"`(--[a-z][a-z-]*)`", text))
+    assert flags - {"--help"} <= stated
