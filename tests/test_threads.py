@@ -67,29 +67,30 @@ def test_library_import_leaves_the_openmp_environment_alone():
     assert out.strip() == "None"
 
 
+# Python code that records the OpenMP wait settings at torch's first import into ``seen``.
+_SPY_ON_TORCH_IMPORT = """
+import os, sys
+seen = []
+
+class Spy:  # records the environment at torch's first import
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" and not seen:
+            seen.append((os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT")))
+
+sys.meta_path.insert(0, Spy())
+"""
+
+
 @pytest.mark.parametrize("how", ["module", "file"])
 @pytest.mark.parametrize("user, expect", [(None, ["PASSIVE", "2000"]), ("ACTIVE", ["ACTIVE", "None"])])
 def test_recovery_cli_sleeps_instead_of_spinning(user, expect, how):
     """``python -m training.recover_svbrdf`` and ``python training/recover_svbrdf.py`` set a short
     poll, then sleep (OMP_WAIT_POLICY=PASSIVE, GOMP_SPINCOUNT=2000) before torch loads libgomp; a
     policy the user set is kept."""
-    out = _python(f"""
-        import os, runpy, sys
-        seen = []
-
-        class Spy:  # records the environment at torch's first import
-            def find_spec(self, name, path=None, target=None):
-                if name == "torch" and not seen:
-                    seen.append((os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT")))
-
-        sys.meta_path.insert(0, Spy())
-        if {how!r} == "module":
-            runpy.run_module("training.recover_svbrdf", alter_sys=True)  # sets sys.argv[0] as python -m does
-        else:
-            sys.argv[0] = "training/recover_svbrdf.py"
-            runpy.run_path(sys.argv[0])
-        print(*seen[0])
-    """, {"OMP_WAIT_POLICY": user} if user else None)
+    run = ("runpy.run_module('training.recover_svbrdf', alter_sys=True)" if how == "module"  # argv[0] as -m sets it
+           else "sys.argv[0] = 'training/recover_svbrdf.py'; runpy.run_path(sys.argv[0])")
+    out = _python(_SPY_ON_TORCH_IMPORT + f"import runpy\n{run}\nprint(*seen[0])\n",
+                  {"OMP_WAIT_POLICY": user} if user else None)
     assert out.split() == expect
 
 
@@ -101,16 +102,7 @@ def test_console_script_sets_the_wait_before_torch_loads(tmp_path, user, expect)
     user set is kept.
     """
     script = tmp_path / "torchbrdf-recover"
-    script.write_text(textwrap.dedent("""
-        import os, sys
-        seen = []
-
-        class Spy:  # records the environment at torch's first import
-            def find_spec(self, name, path=None, target=None):
-                if name == "torch" and not seen:
-                    seen.append((os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT")))
-
-        sys.meta_path.insert(0, Spy())
+    script.write_text(_SPY_ON_TORCH_IMPORT + textwrap.dedent("""
         from torchbrdf.recovery.svbrdf import cli
         print("POLICY", *seen[0], flush=True)
         cli()
