@@ -21,13 +21,22 @@ def test_readme_python_blocks_run_verbatim(tmp_path, monkeypatch):
 
 
 def _readme_commands() -> list[tuple[str, ...]]:
-    text = "\n".join(re.findall(r"```bash\n(.*?)```", README.read_text(), re.S))
+    """Every command of the README's and docs/recovery.md's bash blocks, as arguments after ``python``."""
+    pages = (README, ROOT / "docs" / "recovery.md")
+    text = "\n".join(b for p in pages for b in re.findall(r"```bash\n(.*?)```", p.read_text(), re.S))
     modules = [["-m", m] for m in re.findall(r"python -m ((?:torchbrdf|training)[\w.]*)", text)]
     files = [[f] for f in re.findall(r"python ((?:datasets|training)/\w+\.py)", text)]
-    return sorted({tuple(c) for c in modules + files})
+    scripts = [["-c", f"import sys; sys.argv[0] = {s!r}; from {t.split(':')[0]} import main; sys.exit(main())"]
+               for s, t in _SCRIPTS.items() if re.search(rf"(?m)^{s}\b", text)]
+    return sorted({tuple(c) for c in modules + files + scripts})
 
 
-@pytest.mark.parametrize("command", _readme_commands(), ids=" ".join)
+_SCRIPTS = {"torchbrdf-recover-many": "torchbrdf.recovery.batch:main", "torchbrdf-recover": "torchbrdf.recovery.svbrdf:main",
+            "torchbrdf-fit-merl": "torchbrdf.recovery.fit_measured:main", "torchbrdf-explore": "torchbrdf.analysis.explore:main",
+            "torchbrdf-bench": "torchbrdf.bench.brdf:main"}
+
+
+@pytest.mark.parametrize("command", _readme_commands(), ids=lambda c: " ".join(c)[:60])
 def test_readme_commands_exist(command):
     res = subprocess.run([sys.executable, *command, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
@@ -116,3 +125,23 @@ def test_recovery_options_table_matches_the_config_and_the_cli(capsys):
     flags = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
     stated = set(re.findall(r"`(--[a-z][a-z-]*)`", text))
     assert flags - {"--help"} <= stated
+
+
+@pytest.mark.parametrize("script, target", [
+    ("torchbrdf-recover", "torchbrdf.recovery.svbrdf:main"),
+    ("torchbrdf-recover-many", "torchbrdf.recovery.batch:main"),
+    ("torchbrdf-fit-merl", "torchbrdf.recovery.fit_measured:main"),
+    ("torchbrdf-explore", "torchbrdf.analysis.explore:main"),
+    ("torchbrdf-bench", "torchbrdf.bench.brdf:main"),
+])
+def test_console_script_help_names_the_command(script, target, capsys):
+    """``--help`` starts with the command a user typed, not ``python -m ...``."""
+    import importlib
+
+    module, func = target.split(":")
+    try:
+        rc = getattr(importlib.import_module(module), func)(["--help"])
+    except SystemExit as e:
+        rc = e.code
+    assert rc in (0, None)
+    assert capsys.readouterr().out.startswith(f"usage: {script} ")
