@@ -8,14 +8,15 @@ import os
 import torch
 
 
-BACKGROUND = 0.05  # linear grey behind the spheres: their unlit side stays visible against it
+BACKGROUND = 0.18  # linear mid grey behind the spheres: dark sides and smooth metals stand out from it
 
 
 def sphere_grid(resolution: int = 96) -> torch.Tensor:
     """A figure of principled spheres, roughness across × metallic down, under a point light.
 
     A dim fill light from the lower left keeps the shadow side readable; the background is a
-    mid-dark grey (:data:`BACKGROUND`), so each sphere's silhouette shows.
+    mid grey (:data:`BACKGROUND`), so each sphere's silhouette shows, a smooth metal's too (it
+    reflects only the two lights).
 
     Returns:
         ``(3, rows * resolution, cols * resolution)`` linear radiance.
@@ -63,12 +64,13 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
 
-    img = sphere_grid()
+    res = 128
+    img = sphere_grid(res)
     srgb = torch.where(img <= 0.0031308, 12.92 * img, 1.055 * torch.clamp(img, min=1e-8) ** (1 / 2.4) - 0.055)
     fig, ax = plt.subplots(figsize=(8, 5))
     ax.imshow(torch.clamp(srgb, 0, 1).permute(1, 2, 0).numpy())
-    ax.set_xticks([48 + 96 * i for i in range(5)], ["0.05", "0.25", "0.5", "0.75", "1.0"])
-    ax.set_yticks([48 + 96 * i for i in range(3)], ["0", "0.5", "1"])
+    ax.set_xticks([res // 2 + res * i for i in range(5)], ["0.05", "0.25", "0.5", "0.75", "1.0"])
+    ax.set_yticks([res // 2 + res * i for i in range(3)], ["0", "0.5", "1"])
     ax.set_xlabel("roughness")
     ax.set_ylabel("metallic")
     ax.set_title("Disney principled BRDF: base colour (0.8, 0.3, 0.1), key + fill point lights")
