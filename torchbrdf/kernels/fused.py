@@ -32,8 +32,9 @@ milliseconds. No compiler, or any build/cache failure → eager (one warning). T
 run on PyTorch's own OpenMP runtime and thread count (see ``build``).
 
 Limits: CPU float32/float64 only (CUDA tensors use the Triton kernels printed from the same
-graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-order kernels (a
-``create_graph=True`` backward re-runs the eager formula to build a differentiable graph).
+graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-order kernels (the
+backward kernel also runs under ``create_graph=True`` and ``torch.func.grad``; differentiating
+it again runs the eager formula's second-order vjp).
 """
 
 from __future__ import annotations

@@ -623,6 +623,65 @@ torch.library.register_vmap("torchbrdf::principled_bwd", _vmap_bwd)
 torch.library.register_vmap("torchbrdf::principled_jvp", _vmap_jvp)
 
 
+# The same rules under the legacy vmap (``torch._vmap_internals``, what ``gradcheck``'s
+# batched-gradient checks use): its fallback cannot loop over an operator with a tensor list.
+
+_LEGACY_BATCHED = torch._C._parse_dispatch_key("Batched")
+
+
+class _LegacyVmapInfo:
+    randomness = "error"
+
+    def __init__(self, batch_size: int):
+        self.batch_size = batch_size
+
+
+def _legacy_level() -> int:
+    """The innermost legacy vmap level (the counter returns the level it opens)."""
+    level = torch._C._vmapmode_increment_nesting()
+    torch._C._vmapmode_decrement_nesting()
+    return level - 1
+
+
+def _legacy_kernel(rule, op):
+    """A ``Batched``-key kernel of ``op`` that unwraps the legacy batched tensors and runs ``rule``."""
+
+    def kernel(*args):
+        level = _legacy_level()
+        sizes = []
+
+        def unwrap(t):
+            if isinstance(t, Tensor) and torch._C._dispatch_keys(t).has(_LEGACY_BATCHED):
+                u = torch._remove_batch_dim(t, level, 0, 0)
+                sizes.append(u.shape[0])
+                return u, 0
+            return t, None
+
+        plain, in_dims = [], []
+        for a in args:
+            if isinstance(a, (list, tuple)) and any(isinstance(t, Tensor) for t in a):
+                pairs = [unwrap(t) for t in a]
+                plain.append([u for u, _ in pairs])
+                in_dims.append([d for _, d in pairs])
+            else:
+                u, d = unwrap(a)
+                plain.append(u)
+                in_dims.append(d)
+        if not sizes:
+            return op(*plain)
+        out, out_dims = rule(_LegacyVmapInfo(sizes[0]), tuple(in_dims), *plain)
+        if isinstance(out, Tensor):
+            return torch._add_batch_dim(out, out_dims, level)
+        return [torch._add_batch_dim(o, d, level) for o, d in zip(out, out_dims)]
+
+    return kernel
+
+
+for _name, _rule, _op in (("principled_fwd", _vmap_fwd, principled_fwd), ("principled_bwd", _vmap_bwd, principled_bwd),
+                          ("principled_jvp", _vmap_jvp, principled_jvp)):
+    torch.library.impl(f"torchbrdf::{_name}", "Batched")(_legacy_kernel(_rule, _op))
+
+
 # ---------------------------------------------------------------------------------------------
 # Autograd
 # ---------------------------------------------------------------------------------------------
@@ -639,18 +698,6 @@ def _backward(tensors, floats, cfg, needs, grad_out):
         _, vjp_fn = torch.func.vjp(lambda *ts: _formula_eager(plan, ts, floats), *tensors)
         gs = vjp_fn(grad_out.expand(*plan.batch, 3))
         return [g if i in need else None for i, g in enumerate(gs)]
-    if torch.is_grad_enabled() and all(tensors[i].requires_grad for i in need):
-        # create_graph=True: a differentiable backward, eagerly (under torch.func transforms the
-        # inputs seen here are not differentiable at this level and the kernels run).
-        with torch.enable_grad():
-            out = _formula_eager(plan, tensors, floats)
-            if out.requires_grad:
-                gs = torch.autograd.grad(out, [tensors[i] for i in need], grad_out, create_graph=True,
-                                         allow_unused=True)
-                grads = [None] * len(tensors)
-                for i, g in zip(need, gs):
-                    grads[i] = g
-                return grads
     ctype = "float" if plan.dtype == torch.float32 else "double"
     modes = tuple((k, "full", C) for k, C in zip(plan.tensor_names, plan.C))
     written = set(_written((ctype, modes, tuple(plan.float_names), plan.active, plan.need_tint, plan.frame,
@@ -658,7 +705,7 @@ def _backward(tensors, floats, cfg, needs, grad_out):
     need = [i for i in need if i in written]
     grads = [None] * len(tensors)
     if need:
-        for i, g in zip(need, principled_bwd(list(tensors), list(floats), cfg, grad_out, need)):
+        for i, g in zip(need, _principled_bwd_differentiable(tensors, floats, cfg, grad_out, need)):
             grads[i] = g
     return grads
 
@@ -694,6 +741,79 @@ def _op_backward(ctx, grad_out):
 
 
 principled_fwd.register_autograd(_op_backward, setup_context=_setup_context)
+
+
+# Double backward. The first backward always runs the kernel (``principled_bwd``), also when
+# autograd records it (``create_graph=True``, and every ``torch.func.grad``, which records in
+# case a transform around it differentiates again); differentiating that backward is the vjp
+# of the formula's eager vjp (in the output gradient it is linear: the same thing).
+
+def _second_order(tensors, grad_out, floats, cfg, need, grads_of_grads):
+    """The vjp of ``principled_bwd``: gradients of ``tensors`` and of ``grad_out``."""
+    plan = _Plan(cfg, tensors, floats)
+
+    def first_backward(*args):
+        ts, go = list(args[:-1]), args[-1]
+
+        def f(*wrt):
+            full = list(ts)
+            for i, t in zip(need, wrt):
+                full[i] = t
+            return _formula_eager(plan, full, floats)
+
+        _, vjp_fn = torch.func.vjp(f, *[ts[i] for i in need])
+        return vjp_fn(go.to(plan.dtype).expand(*plan.batch, 3))
+
+    outs, vjp_fn = torch.func.vjp(first_backward, *tensors, grad_out)
+    ggs = tuple(torch.zeros_like(o) if g is None else g for o, g in zip(outs, grads_of_grads))
+    *g_tensors, g_grad_out = vjp_fn(ggs)
+    return list(g_tensors), g_grad_out
+
+
+def _bwd_setup_context(ctx, inputs, output):
+    tensors, floats, cfg, grad_out, need = inputs
+    ctx.save_for_backward(*tensors, grad_out)
+    ctx.floats, ctx.cfg, ctx.need = floats, cfg, list(need)
+
+
+def _bwd_op_backward(ctx, grads_of_grads):
+    *tensors, grad_out = ctx.saved_tensors
+    g_tensors, g_grad_out = _second_order(tensors, grad_out, ctx.floats, ctx.cfg, ctx.need, grads_of_grads)
+    return g_tensors, (None if ctx.floats else []), None, g_grad_out, None
+
+
+class _PrincipledBwdFunction(torch.autograd.Function):
+    """``principled_bwd`` with its vjp, for eager calls and ``torch.func`` (as :class:`_PrincipledFunction`)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(cfg, consts, *tensors_and_grad_out):
+        floats, need = consts.values
+        return tuple(principled_bwd(list(tensors_and_grad_out[:-1]), floats, cfg, tensors_and_grad_out[-1], need))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        cfg, consts, *rest = inputs
+        ctx.save_for_backward(*rest)
+        ctx.cfg, ctx.consts = cfg, consts.values
+
+    @staticmethod
+    def backward(ctx, *grads_of_grads):
+        *tensors, grad_out = ctx.saved_tensors
+        floats, need = ctx.consts
+        g_tensors, g_grad_out = _second_order(tensors, grad_out, floats, ctx.cfg, need, grads_of_grads)
+        return (None, None, *g_tensors, g_grad_out)
+
+
+def _principled_bwd_differentiable(tensors, floats, cfg, grad_out, need) -> list[Tensor]:
+    """``principled_bwd``, recorded by autograd when grad mode is on (a differentiable backward)."""
+    if torch.compiler.is_compiling() or not torch.is_grad_enabled():
+        return principled_bwd(list(tensors), list(floats), cfg, grad_out, need)
+    return list(_PrincipledBwdFunction.apply(cfg, _Floats((list(floats), list(need))), *tensors, grad_out))
+
+
+principled_bwd.register_autograd(_bwd_op_backward, setup_context=_bwd_setup_context)
 
 
 def _jvp_vjp(tensors, tangents, floats, cfg, tidx, ntan, grad):
