@@ -975,6 +975,13 @@ def _operator_args(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[st
                    ) -> tuple[list[str], list[Tensor], list[float], str]:
     """The operators' ``(tensor names, tensors, floats, cfg)`` for inputs ``c``."""
     names = [k for k in lead + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
+    if torch.compiler.is_compiling():
+        # Python floats enter as one-element tensors: once torch.compile makes a float symbolic
+        # (a value that changed between calls), a float argument of an operator would
+        # specialise it again, one recompile per value.
+        like = c[lead[0]]
+        c = {k: torch.full((1,), v, dtype=like.dtype, device=like.device)
+             if k in SCALAR_NAMES and not isinstance(v, Tensor) else v for k, v in c.items()}
     tensor_names = [k for k in names if isinstance(c.get(k), Tensor)]
     float_names = [k for k in names if k not in tensor_names]
     # 0-d tensors become (1,) so that every tensor has its channel dimension (vmap rules).
