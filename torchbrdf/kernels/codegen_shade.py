@@ -46,7 +46,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from torchbrdf.brdf import formula
-from torchbrdf.brdf.principled import SCALAR_PARAMS
+from torchbrdf.brdf.formula import SCALAR_PARAMS
 from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index, _lit
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from torchbrdf.brdf import formula
-from torchbrdf.brdf.principled import SCALAR_PARAMS
+from torchbrdf.brdf.formula import SCALAR_PARAMS
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse, tangents
 
 if TYPE_CHECKING:  # fused imports this module (through codegen_c) at run time

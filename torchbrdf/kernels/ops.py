@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._checks import broadcast_shapes
-from torchbrdf.brdf.principled import SCALAR_PARAMS
+from torchbrdf.brdf.formula import SCALAR_PARAMS
 from torchbrdf.kernels import graphs
 from torchbrdf.kernels.fused import _KernelSpec, _load, _pool
 
