@@ -15,7 +15,7 @@ from torchbrdf.kernels import fused as _fast
 from ..test_principled import random_case, to_t
 
 P = importlib.import_module("torchbrdf.brdf.principled")
-_ops = importlib.import_module("torchbrdf.kernels.ops")
+c_runner = importlib.import_module("torchbrdf.kernels.c_runner")
 
 pytestmark = pytest.mark.skipif(not _fast.available(), reason="no C compiler: the fused path is unavailable")
 
@@ -38,13 +38,13 @@ def _inputs(seed, count):
 def backward_kernel_calls(monkeypatch):
     """How many times the fused backward kernel runs."""
     calls = []
-    run = _ops._run_bwd
+    run = c_runner.run_bwd
 
     def counted(*args, **kw):
         calls.append(1)
         return run(*args, **kw)
 
-    monkeypatch.setattr(_ops, "_run_bwd", counted)
+    monkeypatch.setattr(c_runner, "run_bwd", counted)
     return calls
 
 

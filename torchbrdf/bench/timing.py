@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 __all__ = ["Spread", "time_alternating", "overlaps", "ratio_text", "spread_text"]
+
+_Key = TypeVar("_Key", bound=Hashable)
 
 
 @dataclass(frozen=True)
@@ -41,8 +44,8 @@ class Spread:
         return {"min_s": self.min, "median_s": self.median, "max_s": self.max, "repeats": self.repeats}
 
 
-def time_alternating(variants: Mapping[str, Callable[[], object]], repeats: int,
-                     budget: float = float("inf")) -> dict[str, Spread]:
+def time_alternating(variants: Mapping[_Key, Callable[[], object]], repeats: int,
+                     budget: float = float("inf")) -> dict[_Key, Spread]:
     """Time each of ``variants`` ``repeats`` times, one call of each per round.
 
     One untimed warm-up call of each first (kernel build, page-in); fewer rounds when the
@@ -57,7 +60,7 @@ def time_alternating(variants: Mapping[str, Callable[[], object]], repeats: int,
         variants[name]()
     per_round = time.perf_counter() - t0
     rounds = repeats if per_round * repeats <= budget else max(1, int(budget / max(per_round, 1e-9)))
-    times: dict[str, list[float]] = {name: [] for name in names}
+    times: dict[_Key, list[float]] = {name: [] for name in names}
     for r in range(rounds):
         for name in (names if r % 2 == 0 else names[::-1]):
             t0 = time.perf_counter()
