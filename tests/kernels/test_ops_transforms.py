@@ -10,22 +10,12 @@ import torch
 from torch.autograd import gradcheck, gradgradcheck
 
 import torchbrdf
-from torchbrdf.kernels import fused as _fast
 
+from ..test_fast_path import fast, pytestmark  # noqa: F401  (the fused-path fixture and skip mark)
 from ..test_principled import random_case, to_t
 
 P = importlib.import_module("torchbrdf.brdf.principled")
 c_runner = importlib.import_module("torchbrdf.kernels.c_runner")
-
-pytestmark = pytest.mark.skipif(not _fast.available(), reason="no C compiler: the fused path is unavailable")
-
-
-@pytest.fixture
-def fast():
-    old = P.fast_path_enabled()
-    P.set_fast_path(True)
-    yield
-    P.set_fast_path(old)
 
 
 def _inputs(seed, count):
