@@ -161,7 +161,8 @@ torch.library.register_vmap("torchbrdf::principled_jvp", _vmap_jvp)
 # The same rules under the legacy vmap (``torch._vmap_internals``, what ``gradcheck``'s
 # batched-gradient checks use): its fallback cannot loop over an operator with a tensor list.
 
-_LEGACY_BATCHED = torch._C._parse_dispatch_key("Batched")
+# (None where this torch has no legacy vmap: nothing to register then)
+_LEGACY_BATCHED = getattr(torch._C, "_parse_dispatch_key", lambda key: None)("Batched")
 
 
 class _LegacyVmapInfo:
@@ -212,6 +213,8 @@ def _legacy_kernel(rule, op):
     return kernel
 
 
-for _name, _rule, _op in (("principled_fwd", _vmap_fwd, principled_fwd), ("principled_bwd", _vmap_bwd, principled_bwd),
-                          ("principled_jvp", _vmap_jvp, principled_jvp)):
-    torch.library.impl(f"torchbrdf::{_name}", "Batched")(_legacy_kernel(_rule, _op))
+if _LEGACY_BATCHED is not None:
+    for _name, _rule, _op in (("principled_fwd", _vmap_fwd, principled_fwd),
+                              ("principled_bwd", _vmap_bwd, principled_bwd),
+                              ("principled_jvp", _vmap_jvp, principled_jvp)):
+        torch.library.impl(f"torchbrdf::{_name}", "Batched")(_legacy_kernel(_rule, _op))
