@@ -193,7 +193,7 @@ def _gather_buf(attr: dict) -> str:
 def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
     """Code for the inputs in mode 's2': ``(declarations, per-block buffers, pre-loop body)``.
 
-    Mode 's2' is a value broadcast over one of two batch dims (see ``ops._flatten``).
+    Mode 's2' is a value broadcast over one of two batch dims (see :func:`torchbrdf.kernels.layout.flatten`).
 
     Lane ``i`` is ``(q, r) = (i / B, i % B)`` and reads element ``q·sA + r·sB + c``; ``B`` and
     each input's ``(sA, sB)`` follow the runtime floats in ``P``, in slot order (the tensor

@@ -123,8 +123,6 @@ _libs: dict = {}  # spec key -> (cdll, fn, written)
 _failed: set = set()
 kernel_cache_dir = _build.kernel_cache_dir
 available = _build.available
-_compiler = _build._compiler
-_machine_tag = _build._machine_tag
 
 _FWD_ARGS = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
 _BWD_ARGS = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
