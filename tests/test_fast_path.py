@@ -193,11 +193,11 @@ def test_values_broadcast_over_one_of_two_batch_dims_are_read_in_place(pixels_fi
     # Per-pixel material under every light, a per-light direction at every pixel: the kernels
     # read them through two lane strides (mode 's2', no (P, L) copies). Values, gradients
     # and forward-mode tangents must equal eager's.
-    from torchbrdf.kernels import ops as ops_mod
+    from torchbrdf.kernels import layout as ops_mod
 
     modes = []
-    real = ops_mod._flatten
-    monkeypatch.setattr(ops_mod, "_flatten", lambda *a, **k: (lambda r: modes.append(r[1]) or r)(real(*a, **k)))
+    real = ops_mod.flatten
+    monkeypatch.setattr(ops_mod, "flatten", lambda *a, **k: (lambda r: modes.append(r[1]) or r)(real(*a, **k)))
     g = torch.Generator().manual_seed(11)
     P, L = 700, 6
     px = (lambda t: t[:, None]) if pixels_first else (lambda t: t[None])
@@ -236,11 +236,11 @@ def test_values_broadcast_over_one_of_two_batch_dims_are_read_in_place(pixels_fi
 def test_jvp_kernel_carries_only_the_differentiated_inputs(monkeypatch):
     # torch.func.jvp passes zero tangents for every other tensor input; the kernel must not
     # propagate them (its spec lists only base_color), and the result still equals eager.
-    from torchbrdf.kernels import ops as ops_mod
+    from torchbrdf.kernels import c_runner as ops_mod
 
     specs = []
-    real = ops_mod._load
-    monkeypatch.setattr(ops_mod, "_load", lambda spec, backward: (specs.append(spec), real(spec, backward))[1])
+    real = ops_mod.load
+    monkeypatch.setattr(ops_mod, "load", lambda spec, backward: (specs.append(spec), real(spec, backward))[1])
     inputs = _case(5, 9000, torch.float64)
     base = inputs.pop("base_color")
 
@@ -264,16 +264,16 @@ def test_jvp_directions_pass_only_their_nonzero_inputs(monkeypatch):
     # A Gauss-Newton Jacobian's directions are unit vectors in one unknown each: one pass
     # computes the primal once, and each direction carries only the tangents it moves (the
     # others' tangent mode "zero": pruned from the kernel).
-    from torchbrdf.kernels import ops as ops_mod
+    from torchbrdf.kernels import c_runner as ops_mod
 
     specs = []
-    real = ops_mod._load
+    real = ops_mod.load
 
     def load(spec, backward):
         specs.append(spec)
         return real(spec, backward)
 
-    monkeypatch.setattr(ops_mod, "_load", load)
+    monkeypatch.setattr(ops_mod, "load", load)
     inputs = _case(31, 9000, torch.float64, min_cos=0.05)
     base, rough = inputs.pop("base_color"), inputs.pop("roughness")
     K = 6
@@ -309,7 +309,7 @@ def test_jvp_directions_pass_only_their_nonzero_inputs(monkeypatch):
 def test_a_channel_strided_per_pixel_input_is_not_copied_to_every_lane():
     # A per-pixel (P, 1, 3) value broadcast over lights whose channels are not adjacent (a slice
     # of a transposed tensor) is made dense at its own size, and read broadcast ('s2').
-    from torchbrdf.kernels.ops import _flatten
+    from torchbrdf.kernels.layout import flatten as _flatten
 
     P_, L = 50, 4
     strided = torch.rand(3, P_).T[:, None]  # (P, 1, 3), channel stride P
@@ -345,7 +345,7 @@ def _layouts():
 
 def test_merge_check_agrees_with_view():
     """``_merges`` (asked instead of a view that may raise) says exactly when ``view`` works."""
-    from torchbrdf.kernels.ops import _merges
+    from torchbrdf.kernels.layout import merges as _merges
 
     seen = set()
     for t in _layouts():
@@ -539,14 +539,16 @@ def test_eager_and_kernels_come_from_one_definition(monkeypatch):
 
 
 def _count_calls(monkeypatch, name):
+    from torchbrdf.kernels import c_runner
+
     calls = []
-    real = getattr(_ops, name)
+    real = getattr(c_runner, name)
 
     def spy(*a, **k):
         calls.append(a)
         return real(*a, **k)
 
-    monkeypatch.setattr(_ops, name, spy)
+    monkeypatch.setattr(c_runner, name, spy)
     return calls
 
 
@@ -558,7 +560,7 @@ def test_func_jvp_jacfwd_vmap_run_fused_and_match_eager(monkeypatch):
     def f(r):
         return torchbrdf.principled(**inputs, roughness=r)
 
-    calls = _count_calls(monkeypatch, "_run_jvp")
+    calls = _count_calls(monkeypatch, "run_jvp")
     out_f, jvp_f = torch.func.jvp(f, (rough,), (tangent,))
     assert len(calls) == 1
     P.set_fast_path(False)
@@ -576,7 +578,7 @@ def test_func_jvp_jacfwd_vmap_run_fused_and_match_eager(monkeypatch):
     p = torch.tensor([0.6, 0.4, 0.2, 0.3, 0.5])
     calls.clear()
     jac_f = torch.func.jacfwd(g)(p)
-    assert len(calls) == 1 and calls[0][-1] == 5  # ntan = 5
+    assert len(calls) == 1 and calls[0][4] == 5  # ntan = 5
     P.set_fast_path(False)
     jac_e = torch.func.jacfwd(g)(p)
     P.set_fast_path(None)
@@ -586,7 +588,7 @@ def test_func_jvp_jacfwd_vmap_run_fused_and_match_eager(monkeypatch):
     # vmap over a leading batch of light directions (folded into the lanes).
     ls = torch.stack([inputs["l"], inputs["l"].flip(0)])
     rest = {k: t for k, t in inputs.items() if k != "l"}
-    calls = _count_calls(monkeypatch, "_run_fwd")
+    calls = _count_calls(monkeypatch, "run_fwd")
     vm_f = torch.func.vmap(lambda l: torchbrdf.principled(l, roughness=rough, **rest))(ls)
     assert len(calls) == 1
     P.set_fast_path(False)
@@ -697,7 +699,9 @@ def test_forward_mode_inside_torch_compile_matches_eager(mode):
 
 def test_jacfwd_over_many_parameters_runs_in_passes_of_a_few_tangents(fast, monkeypatch):
     # jacfwd w.r.t. a per-lane map: K = lanes tangents, split into passes of TANGENTS_PER_PASS.
-    monkeypatch.setattr(_ops, "TANGENTS_PER_PASS", 4)
+    from torchbrdf.kernels import c_runner
+
+    monkeypatch.setattr(c_runner, "TANGENTS_PER_PASS", 4)
     inputs = _case(29, 10, torch.float64, min_cos=0.05)
     rough = inputs.pop("roughness")
 

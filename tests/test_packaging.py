@@ -71,3 +71,32 @@ def test_installs_beside_a_datasets_package(wheel, tmp_path, order):
                          env={"PYTHONPATH": str(target), "PATH": "/usr/bin:/bin"})
     assert res.returncode == 0, res.stderr[-2000:]
     assert str(target) in res.stdout
+
+
+def test_editable_install_is_visible_to_mypy(tmp_path):
+    # setuptools' default editable install is an import hook, which static tools do not run:
+    # mypy then types every torchbrdf name as Any. A plain path entry in the .pth they read.
+    wheels = tmp_path / "wheels"
+    wheels.mkdir()
+    res = subprocess.run([sys.executable, "-c", "import sys, setuptools.build_meta as b; "
+                          f"print(b.build_editable({str(wheels)!r}))"], cwd=ROOT, capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot build an editable wheel here: {res.stderr[-500:]}")
+    (whl,) = wheels.glob("torchbrdf-*.whl")
+    zf = zipfile.ZipFile(whl)
+    (pth,) = [n for n in zf.namelist() if n.endswith(".pth")]
+    lines = zf.read(pth).decode().split()
+    assert [pathlib.Path(x).resolve() for x in lines] == [ROOT], lines  # a path, not an "import ..." hook
+    # mypy on a user's script, against a bare environment holding only that .pth
+    pytest.importorskip("mypy")
+    env_dir = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(env_dir)], check=True)
+    (site,) = env_dir.glob("lib/python*/site-packages")
+    (site / pth).write_bytes(zf.read(pth))
+    script = tmp_path / "user.py"
+    script.write_text("import torchbrdf\nreveal_type(torchbrdf.principled)\n")
+    res = subprocess.run([sys.executable, "-m", "mypy", "--python-executable", str(env_dir / "bin" / "python"),
+                          "--follow-imports=silent", "--no-incremental", "--cache-dir", str(tmp_path / "cache"),
+                          str(script)], cwd=tmp_path, capture_output=True, text=True)
+    assert "Cannot find implementation or library stub" not in res.stdout, res.stdout[-2000:]
+    assert 'Revealed type is "def (l:' in res.stdout, res.stdout[-2000:]

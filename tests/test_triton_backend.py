@@ -26,6 +26,7 @@ P = importlib.import_module("torchbrdf.brdf.principled")
 formula = importlib.import_module("torchbrdf.brdf.formula")
 ct = importlib.import_module("torchbrdf.kernels.codegen_triton")
 ops_mod = importlib.import_module("torchbrdf.kernels.ops")
+triton_runner = importlib.import_module("torchbrdf.kernels.triton_runner")
 backend_mod = importlib.import_module("torchbrdf.kernels.backend")
 
 
@@ -193,7 +194,7 @@ def test_broadcasting_matches_eager():
 def test_expanded_inputs_and_chunked_reductions_match_eager(monkeypatch):
     # An expanded leaf keeps per-lane gradients (summed by autograd); a (1,)-shaped shared
     # parameter is reduced over the lanes in chunks (made small here to cover the chunk loop).
-    monkeypatch.setattr(ops_mod, "TRITON_BWD_CHUNK", 1000)
+    monkeypatch.setattr(triton_runner, "TRITON_BWD_CHUNK", 1000)
     inputs = _case(5, 2500, torch.float32)
     r = torch.tensor([[0.35]])
     go = torch.randn(2500, 3, generator=torch.Generator().manual_seed(5))
@@ -373,7 +374,7 @@ def test_kernels_compile_for_a_gpu_without_one():
 def test_jacfwd_and_vmap_run_the_triton_kernels(launches, monkeypatch):
     # jacfwd over a shared 3-number material: 3 tangents, here 2 per pass of the JVP kernel
     # (2 launches); vmap folds the vmapped dimension into the lanes.
-    monkeypatch.setattr(ops_mod, "TRITON_TANGENTS_PER_PASS", 2)
+    monkeypatch.setattr(triton_runner, "TRITON_TANGENTS_PER_PASS", 2)
     drop = ("metallic", "roughness", "sheen")
     inputs = {k: t for k, t in _case(10, 256, torch.float64).items() if k not in drop}
     p = torch.tensor([0.3, 0.6, 0.2], dtype=torch.float64)
@@ -416,7 +417,7 @@ def test_triton_operators_pass_opcheck(launches):
 
 def test_64_bit_lane_indices(monkeypatch):
     # From 3 N >= 2^31 lanes the kernels index in int64; forced here on a small batch.
-    monkeypatch.setattr(ops_mod, "_wide", lambda N: True)
+    monkeypatch.setattr(triton_runner, "needs_64bit_index", lambda N: True)
     inputs = _case(11, 300, torch.float64)
     ot, _ = _run("triton", inputs)
     oe, _ = _run("eager", inputs)

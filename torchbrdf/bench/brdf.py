@@ -44,6 +44,7 @@ from typing import Any
 import torch
 
 import torchbrdf
+from torchbrdf.bench.timing import Spread, ratio_text, spread_text, time_alternating
 
 _P = importlib.import_module("torchbrdf.brdf.principled")
 
@@ -99,16 +100,16 @@ def _cast(inputs: dict, dtype) -> dict:
 
 def _median_time(fn, repeats: int, budget: float) -> tuple[float, int]:
     """Median wall time of ``fn()`` after one warm-up call; fewer repeats when slow."""
-    t0 = time.perf_counter()
-    fn()  # warm-up (kernel build/load, page-in)
-    first = time.perf_counter() - t0
-    n = repeats if first * repeats <= budget else max(1, min(repeats, int(budget / max(first, 1e-9))))
-    ts = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts), n
+    s = time_alternating({"fn": fn}, repeats, budget)["fn"]
+    return s.median, s.repeats
+
+
+def _on_path(fast: bool, fn: Callable[[], object]) -> Callable[[], object]:
+    """``fn`` run with the fused path on (``fast``) or off, so that both paths alternate in one loop."""
+    def run():
+        with _Path(fast):
+            return fn()
+    return run
 
 
 class _Path:
@@ -150,16 +151,21 @@ def throughput(sizes: Sequence[int], dtypes: Sequence[str], paths: Sequence[str]
             x = _cast(base, dt)
             xg = {k: t.clone().requires_grad_() for k, t in x.items()}
             del base
-            for path in paths:
-                if path == "eager" and N > eager_max:
-                    continue
-                with _Path(path == "fast"):
-                    tf, nf = _median_time(_fwd(x), repeats, budget)
-                    tb, nb = _median_time(_fwdbwd(xg), repeats, budget)
-                row = dict(dtype=dname, N=N, path=path, fwd_s=tf, fwdbwd_s=tb, fwd_rate=N / tf,
-                           fwdbwd_rate=N / tb, repeats=[nf, nb])
+            run = [p for p in paths if not (p == "eager" and N > eager_max)]
+            # the paths alternate call by call, so both see the same load
+            fwd = time_alternating({p: _on_path(p == "fast", _fwd(x)) for p in run}, repeats, budget)
+            fb = time_alternating({p: _on_path(p == "fast", _fwdbwd(xg)) for p in run}, repeats, budget)
+            for path in run:
+                tf, tb = fwd[path], fb[path]
+                row = dict(dtype=dname, N=N, path=path, fwd_s=tf.median, fwdbwd_s=tb.median,
+                           fwd_rate=N / tf.median, fwdbwd_rate=N / tb.median, repeats=[tf.repeats, tb.repeats],
+                           fwd_spread=tf.as_dict(), fwdbwd_spread=tb.as_dict())
+                if path == "fast" and "eager" in run:
+                    row["fwd_vs_eager"] = ratio_text(fwd["eager"], tf)
+                    row["fwdbwd_vs_eager"] = ratio_text(fb["eager"], tb)
                 rows.append(row)
-                log(f"  {dname:8s} N=2^{int(math.log2(N)):<2d} {path:5s} fwd {N / tf:10.3e}/s  fwd+bwd {N / tb:10.3e}/s")
+                log(f"  {dname:8s} N=2^{int(math.log2(N)):<2d} {path:5s} fwd {spread_text(tf, N, '.3e')}/s  "
+                    f"fwd+bwd {spread_text(tb, N, '.3e')}/s")
             del x, xg
     return rows
 
@@ -318,26 +324,31 @@ def pruned_lobes(N: int, paths: Sequence[str], repeats: int, budget: float, log:
                                                       "clearcoat_gloss")}
     zeros = dict(subsurface=0.0, sheen=0.0, clearcoat=0.0)
     for path in paths:
-        with _Path(path == "fast"):
-            full_f, _ = _median_time(_fwd(x), repeats, budget)
-            full_b, _ = _median_time(_fwdbwd({k: t.clone().requires_grad_() for k, t in x.items()}), repeats, budget)
-            pr = {k: t.clone().requires_grad_() for k, t in pruned.items()}
+        fast = path == "fast"
+        pr = {k: t.clone().requires_grad_() for k, t in pruned.items()}
 
-            def pf():
-                with torch.no_grad():
-                    torchbrdf.principled(**pruned, **zeros)
+        def pf():
+            with torch.no_grad():
+                torchbrdf.principled(**pruned, **zeros)
 
-            def pb():
-                for t in pr.values():
-                    t.grad = None
-                torchbrdf.principled(**pr, **zeros).sum().backward()
+        def pb():
+            for t in pr.values():
+                t.grad = None
+            torchbrdf.principled(**pr, **zeros).sum().backward()
 
-            pr_f, _ = _median_time(pf, repeats, budget)
-            pr_b, _ = _median_time(pb, repeats, budget)
-        rows.append(dict(path=path, N=N, full_fwd_rate=N / full_f, full_fwdbwd_rate=N / full_b,
-                         pruned_fwd_rate=N / pr_f, pruned_fwdbwd_rate=N / pr_b,
-                         speedup_fwd=full_f / pr_f, speedup_fwdbwd=full_b / pr_b))
-        log(f"  {path:5s} diffuse+specular only vs all lobes: fwd x{full_f / pr_f:.2f}, fwd+bwd x{full_b / pr_b:.2f}")
+        # full and pruned alternate call by call: the speed-up is not the load's drift
+        f = time_alternating({"full": _on_path(fast, _fwd(x)), "pruned": _on_path(fast, pf)}, repeats, budget)
+        b = time_alternating({"full": _on_path(fast, _fwdbwd({k: t.clone().requires_grad_() for k, t in x.items()})),
+                              "pruned": _on_path(fast, pb)}, repeats, budget)
+        rows.append(dict(path=path, N=N, full_fwd_rate=N / f["full"].median, full_fwdbwd_rate=N / b["full"].median,
+                         pruned_fwd_rate=N / f["pruned"].median, pruned_fwdbwd_rate=N / b["pruned"].median,
+                         speedup_fwd=f["full"].median / f["pruned"].median,
+                         speedup_fwdbwd=b["full"].median / b["pruned"].median,
+                         speedup_fwd_text=ratio_text(f["full"], f["pruned"]),
+                         speedup_fwdbwd_text=ratio_text(b["full"], b["pruned"]),
+                         spreads={f"{k}_{w}": s.as_dict() for w, d in (("fwd", f), ("fwdbwd", b)) for k, s in d.items()}))
+        log(f"  {path:5s} diffuse+specular only vs all lobes: fwd {rows[-1]['speedup_fwd_text']}, "
+            f"fwd+bwd {rows[-1]['speedup_fwdbwd_text']}")
     return rows
 
 
@@ -609,15 +620,15 @@ def environment(points: int, log: _Log, sample_counts: Sequence[int] = (1, 4, 16
             return float((est - ref).abs().sum() / ref.abs().sum())
 
         ref_check = err(coarse)
-        for sampling, label in ENV_METHODS:
-            if sampling not in samplings:
-                continue
-            for s in sample_counts:
-                def run(s=s, sampling=sampling):
-                    return mc(torchbrdf.principled, n, v, radiance, material, samples=s, seed=11, sampling=sampling)
-
-                t, _ = _median_time(run, repeats, 2.0)
-                rows.append(dict(method=label, sampling=sampling, samples=s, seconds=t, mean_rel_err=err(run())))
+        configs = {(label, sampling, s): (lambda s=s, sampling=sampling: mc(
+                       torchbrdf.principled, n, v, radiance, material, samples=s, seed=11, sampling=sampling))
+                   for sampling, label in ENV_METHODS if sampling in samplings for s in sample_counts}
+        # every configuration once per round: the comparisons between them see the same load
+        times = time_alternating(configs, repeats)
+        for (label, sampling, s), run in configs.items():
+            t = times[(label, sampling, s)]
+            rows.append(dict(method=label, sampling=sampling, samples=s, seconds=t.median, spread=t.as_dict(),
+                             mean_rel_err=err(run())))
         t0 = time.perf_counter()
         env = SplitEnv(radiance)
         t_pre = time.perf_counter() - t0
@@ -938,6 +949,19 @@ def environment_lobes_section(res: dict | None) -> list:
     return L + [""]
 
 
+def _env_flag(row: dict, rows: list[dict]) -> str:
+    """`` ≈`` when ``row``'s time spread overlaps that of the same method at the next smaller
+    sample count: the load moved more than the extra samples cost, the order is not measured."""
+    if not row.get("spread"):
+        return ""
+    same = [r for r in rows if r["method"] == row["method"] and r.get("spread") and r["samples"] < row["samples"]]
+    if not same:
+        return ""
+    prev = max(same, key=lambda r: r["samples"])
+    a, b = row["spread"], prev["spread"]
+    return " ≈" if a["min_s"] <= b["max_s"] and b["min_s"] <= a["max_s"] else ""
+
+
 def environment_section(env: dict | None) -> list:
     """Markdown lines of the report's environment-lighting section (heading included)."""
     L = ["## Environment lighting: error vs time", ""]
@@ -952,10 +976,14 @@ def environment_section(env: dict | None) -> list:
           "(Σ|estimate − reference| / Σ|reference|), one estimate at a fixed seed; time = median of "
           f"{env.get('repeats', 1)} call(s) after a warm-up"
           + (f", {env['threads']} torch thread(s)" if env.get("threads") else "") + ".", "",
-          "| method | samples | time (ms) | rel. L1 error |", "|---|---|---|---|"]
+          "| method | samples | time (ms), median (min–max) | rel. L1 error |", "|---|---|---|---|"]
     for r in env["rows"]:
         extra = f" (+ {r['prefilter_seconds'] * 1e3:.0f} ms prefiltering, once per map)" if "prefilter_seconds" in r else ""
-        L.append(f"| {r['method']}{extra} | {r['samples'] or '—'} | {r['seconds'] * 1e3:.1f} | {r['mean_rel_err']:.3e} |")
+        sp = r.get("spread")
+        t = (f"{sp['median_s'] * 1e3:.1f} ({sp['min_s'] * 1e3:.1f}–{sp['max_s'] * 1e3:.1f})" if sp
+             else f"{r['seconds'] * 1e3:.1f}")
+        L.append(f"| {r['method']}{extra} | {r['samples'] or '—'} | {t}{_env_flag(r, env['rows'])} | "
+                 f"{r['mean_rel_err']:.3e} |")
     mc = [r for r in env["rows"] if r["samples"]]
     methods = list(dict.fromkeys(r["method"] for r in mc))
     counts = sorted({r["samples"] for r in mc})
@@ -1002,6 +1030,16 @@ def _machine() -> dict:
 
 def _fmt(x, spec=".3g"):
     return "—" if x is None else format(x, spec)
+
+
+def _rate_cell(row: dict | None, kind: str) -> str:
+    """A throughput table cell: ``median (slowest–fastest)`` evaluations/s, ``—`` when not run."""
+    if row is None:
+        return "—"
+    sp = row.get(f"{kind}_spread")
+    if sp is None:
+        return _fmt(row[f"{kind}_rate"], ".3e")
+    return spread_text(Spread(sp["min_s"], sp["median_s"], sp["max_s"], int(sp["repeats"])), row["N"], ".3e")
 
 
 def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
@@ -1060,14 +1098,18 @@ def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
         L += ["", "The inputs (16 tensors, 28 floats per lane) take 448 MiB at 2^22 and their gradients as much "
               "again; the fused path holds no intermediates (the backward recomputes the forward lane by lane).", ""]
     if res.get("throughput"):
-        L += ["## Throughput (evaluations / s)", "", "| dtype | N | eager fwd | fused fwd | eager fwd+bwd | fused fwd+bwd |",
-              "|---|---|---|---|---|---|"]
+        L += ["## Throughput (evaluations / s)", "",
+              "Median (slowest–fastest call); eager and fused alternate call by call. A speed-up is printed "
+              "only where the two spreads are apart, else flagged ≈.", "",
+              "| dtype | N | eager fwd | fused fwd | speed-up fwd | eager fwd+bwd | fused fwd+bwd | speed-up fwd+bwd |",
+              "|---|---|---|---|---|---|---|---|"]
         t = {(r["dtype"], r["N"], r["path"]): r for r in res["throughput"]}
         for d in res["config"]["dtypes"]:
             for N in res["config"]["sizes"]:
                 e, f = t.get((d, N, "eager")), t.get((d, N, "fast"))
-                L.append(f"| {d} | 2^{int(math.log2(N))} | {_fmt(e and e['fwd_rate'], '.3e')} | {_fmt(f and f['fwd_rate'], '.3e')} | "
-                         f"{_fmt(e and e['fwdbwd_rate'], '.3e')} | {_fmt(f and f['fwdbwd_rate'], '.3e')} |")
+                L.append(f"| {d} | 2^{int(math.log2(N))} | {_rate_cell(e, 'fwd')} | {_rate_cell(f, 'fwd')} | "
+                         f"{(f or {}).get('fwd_vs_eager', '—')} | {_rate_cell(e, 'fwdbwd')} | {_rate_cell(f, 'fwdbwd')} | "
+                         f"{(f or {}).get('fwdbwd_vs_eager', '—')} |")
         L += ["", f"Eager is run up to N = 2^{int(math.log2(res['config']['eager_max']))} (above that one call takes "
               "tens of seconds and several GiB).", ""]
     if res.get("accuracy"):
@@ -1097,8 +1139,10 @@ def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
               "| path | all lobes fwd / s | diffuse+specular fwd / s | speed-up fwd | all lobes fwd+bwd / s | diffuse+specular fwd+bwd / s | speed-up fwd+bwd |",
               "|---|---|---|---|---|---|---|"]
         for r in res["pruned"]:
-            L.append(f"| {r['path']} | {r['full_fwd_rate']:.3e} | {r['pruned_fwd_rate']:.3e} | ×{r['speedup_fwd']:.2f} | "
-                     f"{r['full_fwdbwd_rate']:.3e} | {r['pruned_fwdbwd_rate']:.3e} | ×{r['speedup_fwdbwd']:.2f} |")
+            sf = r.get("speedup_fwd_text", f"×{r['speedup_fwd']:.2f}")
+            sb = r.get("speedup_fwdbwd_text", f"×{r['speedup_fwdbwd']:.2f}")
+            L.append(f"| {r['path']} | {r['full_fwd_rate']:.3e} | {r['pruned_fwd_rate']:.3e} | {sf} | "
+                     f"{r['full_fwdbwd_rate']:.3e} | {r['pruned_fwdbwd_rate']:.3e} | {sb} |")
         L += ["", "Pruned = `subsurface`, `sheen`, `clearcoat` passed as Python `0.0` (exactly the same values as "
               "tensors of zeros; the lobes are skipped).", ""]
     L += environment_section(res.get("environment"))

@@ -71,6 +71,26 @@ class Ops(Protocol):
     def to_compute(self, x: Value, /) -> Value: ...
     def mask(self, valid: Value, f: Value | None, /) -> Value: ...
 
+
+#: The principled BRDF's scalar parameters and their defaults (Burley 2012), in the order the
+#: kernels and the shader take them.
+PRINCIPLED_DEFAULTS = {
+    "metallic": 0.0,
+    "subsurface": 0.0,
+    "specular": 0.5,
+    "roughness": 0.5,
+    "specular_tint": 0.0,
+    "anisotropic": 0.0,
+    "sheen": 0.0,
+    "sheen_tint": 0.5,
+    "clearcoat": 0.0,
+    "clearcoat_gloss": 1.0,
+}
+#: The scalar parameter names (``(*, 1)`` channels each).
+SCALAR_PARAMS = tuple(PRINCIPLED_DEFAULTS)
+#: The lobes, in evaluation order.
+LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
+
 INV_PI = 1.0 / math.pi
 # Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine
 # the library promises finite values for (1/(NL+NV) stays below 1e7).

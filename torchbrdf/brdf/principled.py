@@ -35,25 +35,12 @@ from torchbrdf._math import cast_back, cast_in, compute_dtype
 from torchbrdf._types import Color, Scalar
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.formula import ASPECT2_MIN, COS_EPS, INV_PI  # noqa: F401  (re-exported constants)
+from torchbrdf.brdf.formula import LOBES, PRINCIPLED_DEFAULTS, SCALAR_PARAMS  # noqa: F401  (defined with the formula)
 from torchbrdf.brdf.frames import frame_from_normal
 
 __all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES", "set_fast_path", "fast_path_enabled",
            "FAST_PATH_MIN_LANES"]
 
-PRINCIPLED_DEFAULTS = {
-    "metallic": 0.0,
-    "subsurface": 0.0,
-    "specular": 0.5,
-    "roughness": 0.5,
-    "specular_tint": 0.0,
-    "anisotropic": 0.0,
-    "sheen": 0.0,
-    "sheen_tint": 0.5,
-    "clearcoat": 0.0,
-    "clearcoat_gloss": 1.0,
-}
-SCALAR_PARAMS = tuple(PRINCIPLED_DEFAULTS)
-LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
 
 
 def _is_const(p, value: float) -> bool:

@@ -1,8 +1,10 @@
 """Fused kernels generated from the BRDF formulas: tracing, code generation, build and cache.
 
 ``fused`` traces the principled formula into a small expression graph, emits C for the
-forward and the recompute-backward, builds it once per kernel family into a per-user cache
-and wraps it as an autograd function. ``codegen_triton`` prints the same graphs as Triton
+forward and the recompute-backward and builds it once per kernel family into a per-user cache;
+``ops`` is the entry point of the operators (``layout``: one call's memory layout;
+``c_runner``/``triton_runner``: the kernels' calls; ``registration``: the custom operators and
+their vmap rules; ``autograd``: their derivatives). ``codegen_triton`` prints the same graphs as Triton
 kernels for CUDA tensors; ``backend`` chooses between them (``torchbrdf.set_backend``).
 
 May import: ``torchbrdf._math``, ``torchbrdf._checks`` and ``torchbrdf.brdf`` (the formulas it

@@ -169,9 +169,13 @@ def _kernel_dir() -> str | None:
 def _compiler() -> str | None:
     """Path of the C compiler (``$CC``, ``gcc`` or ``cc``), or None."""
     if not _state.compiler_checked:
-        _state.compiler_checked = True
-        cc = os.environ.get("CC") or "gcc"
-        _state.compiler = shutil.which(cc) or shutil.which("gcc") or shutil.which("cc")
+        # Under the lock, and marked checked only once found: a thread that arrives while
+        # another one looks must wait for the answer, not read "no compiler" (and run eager).
+        with _state.lock:
+            if not _state.compiler_checked:
+                cc = os.environ.get("CC") or "gcc"
+                _state.compiler = shutil.which(cc) or shutil.which("gcc") or shutil.which("cc")
+                _state.compiler_checked = True
     return _state.compiler
 
 

@@ -19,15 +19,15 @@ Python floats):
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from torchbrdf.kernels.graphs import build
 from torchbrdf.kernels.trace import Graph, Node, live_order
 
 if TYPE_CHECKING:  # fused imports this module at run time
-    from torchbrdf.kernels.fused import _KernelSpec
+    from torchbrdf.kernels.fused import KernelSpec
 
-_PRELUDE = r"""
+PRELUDE = r"""
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -85,7 +85,7 @@ static inline float tb_log1pf(float t) {
 """
 
 
-def _lit(x: float) -> str:
+def lit(x: float) -> str:
     r = repr(float(x))
     if r in ("inf", "-inf", "nan"):
         raise ValueError(x)
@@ -97,17 +97,17 @@ _BINOP = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
 _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 
 
-class _Emitter:
+class Emitter:
     """Prints nodes as C for compute type ``ctype``; ``load(attr)`` prints an ``in`` node's load."""
 
     def __init__(self, ctype: str, load: Callable[[dict], str]) -> None:
         self.R = ctype
         self.load = load
 
-    def t(self, kind):
+    def t(self, kind: str) -> str:
         return "R" if kind == "r" else _CTYPE[kind]
 
-    def sel(self, c: Node, x: str, y: str, v) -> str:
+    def sel(self, c: Node, x: str, y: str, v: Callable[[Any], str]) -> str:
         """``c ? x : y`` with ``and`` masks expanded into nested selects.
 
         A ``&&`` becomes a boolean phi that gcc 12 cannot vectorise.
@@ -117,12 +117,12 @@ class _Emitter:
             return self.sel(cast(Node, c.args[0]), self.sel(cast(Node, c.args[1]), x, y, v), y, v)
         return f"({v(c)} ? {x} : {y})"
 
-    def expr(self, nd: Node, v) -> str:
+    def expr(self, nd: Node, v: Callable[[Any], str]) -> str:
         a = [v(x) for x in nd.args]
         op = nd.op
         T = self.t(nd.kind)
         if op == "const":
-            return f"(({T}){_lit(nd.attr)})" if nd.kind == "r" else _lit(nd.attr)
+            return f"(({T}){lit(nd.attr)})" if nd.kind == "r" else lit(nd.attr)
         if op == "in":
             return self.load(nd.attr)
         if op == "P":
@@ -162,10 +162,10 @@ class _Emitter:
 
 
 _BLOCK = 512  # lanes per block of the kernels' loops (stack buffers of the pre-loop)
-_CHUNK_BLOCKS = 8  # blocks per OpenMP work item (dynamic schedule: a core slowed by other load takes fewer)
+CHUNK_BLOCKS = 8  # blocks per OpenMP work item (dynamic schedule: a core slowed by other load takes fewer)
 
 
-def _index(mode: str, C: int, c: int) -> str:
+def lane_index(mode: str, C: int, c: int) -> str:
     if mode == "full":
         return f"i * {C} + {c}" if C > 1 else "i"
     return f"{c}" if mode == "b1" else "0"
@@ -177,11 +177,11 @@ def _load_expr(attr: dict, spec) -> str:
     if attr.get("mode") == "s2":  # gathered per block by the pre-loop (see _gathers)
         return f"{_gather_buf(attr)}[i - b0]"
     if role == "x":
-        return f"p{attr['k']}[{_index(attr['mode'], attr['C'], attr['c'])}]"
+        return f"p{attr['k']}[{lane_index(attr['mode'], attr['C'], attr['c'])}]"
     if role == "go":
         gsl, gsc = spec.go_strides
         return f"go[i * {gsl} + {attr['c'] * gsc}]"
-    return f"t{attr['j']}_{attr['i']}[{_index(attr['mode'], attr['C'], attr['c'])}]"
+    return f"t{attr['j']}_{attr['i']}[{lane_index(attr['mode'], attr['C'], attr['c'])}]"
 
 
 def _gather_buf(attr: dict) -> str:
@@ -193,7 +193,7 @@ def _gather_buf(attr: dict) -> str:
 def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
     """Code for the inputs in mode 's2': ``(declarations, per-block buffers, pre-loop body)``.
 
-    Mode 's2' is a value broadcast over one of two batch dims (see ``ops._flatten``).
+    Mode 's2' is a value broadcast over one of two batch dims (see :func:`torchbrdf.kernels.layout.flatten`).
 
     Lane ``i`` is ``(q, r) = (i / B, i % B)`` and reads element ``q·sA + r·sB + c``; ``B`` and
     each input's ``(sA, sB)`` follow the runtime floats in ``P``, in slot order (the tensor
@@ -241,7 +241,7 @@ def _store_expr(target: tuple, spec) -> str:
     return f"to{j}[i * 3 + {c}]"
 
 
-def generate(spec: _KernelSpec, kind: str) -> str:
+def generate(spec: KernelSpec, kind: str) -> str:
     """C source of one kernel (``kind`` = ``"fwd"``, ``"bwd"`` or ``"jvp"``) of a kernel family.
 
     For ``"bwd"`` it sets ``spec.written``: the inputs whose gradient the kernel writes.
@@ -267,11 +267,11 @@ def generate(spec: _KernelSpec, kind: str) -> str:
 
 
 def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
-    em = _Emitter(spec.ctype, lambda attr: _load_expr(attr, spec))
+    em = Emitter(spec.ctype, lambda attr: _load_expr(attr, spec))
     names: dict[int, str] = {}
 
     def v(nd):
-        return names[nd.id] if isinstance(nd, Node) else (f"((R){_lit(nd)})")
+        return names[nd.id] if isinstance(nd, Node) else (f"((R){lit(nd)})")
 
     order = live_order(g, [s for _, s in stores])
     gdecl, gbufs, gbody = _gathers(spec, order)
@@ -303,7 +303,7 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
     body += [f"{ptr} = {v(val)};" for ptr, val in stores]
 
     src = [
-        _PRELUDE,
+        PRELUDE,
         f"typedef {spec.ctype} R;",
         "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
         sig + " {",
@@ -311,8 +311,8 @@ def _print(spec, g: Graph, stores, decl, sig, planar_out: bool) -> str:
         # with gathers: one heap block of gather buffers per thread (see _gathers)
         *([f"  #pragma omp parallel num_threads(nthreads)", "  {",
            f"  R* const gs = (R*)malloc(sizeof(R) * {len(gbufs)} * {_BLOCK});",
-           f"  #pragma omp for schedule(dynamic, {_CHUNK_BLOCKS})"] if gbufs else
-          [f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)"]),
+           f"  #pragma omp for schedule(dynamic, {CHUNK_BLOCKS})"] if gbufs else
+          [f"  #pragma omp parallel for schedule(dynamic, {CHUNK_BLOCKS}) num_threads(nthreads)"]),
         f"  for (long b0 = 0; b0 < n; b0 += {_BLOCK}) {{",
         f"    const long b1 = b0 + {_BLOCK} < n ? b0 + {_BLOCK} : n;",
         *("    " + b for b in gbufs),

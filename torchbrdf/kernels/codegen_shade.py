@@ -46,8 +46,8 @@ from collections.abc import Iterable
 from typing import Any
 
 from torchbrdf.brdf import formula
-from torchbrdf.brdf.principled import SCALAR_PARAMS
-from torchbrdf.kernels.codegen_c import _CHUNK_BLOCKS, _PRELUDE, _Emitter, _index, _lit
+from torchbrdf.brdf.formula import SCALAR_PARAMS
+from torchbrdf.kernels.codegen_c import CHUNK_BLOCKS, PRELUDE, Emitter, lane_index, lit
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse
 
 __all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "LIGHT_KINDS", "LIGHT_STRIDE"]
@@ -319,9 +319,9 @@ def _load_expr(spec: ShadeSpec, nd: Node) -> str:
     role = a["role"]
     if role == "px":
         _, mode, C = spec.tensors[a["k"]]
-        return f"p{a['k']}[{_index(mode, C, a['c'])}]"
+        return f"p{a['k']}[{lane_index(mode, C, a['c'])}]"
     if role == "go":
-        return f"go[{_index(spec.go_mode, 3, a['c'])}]"
+        return f"go[{lane_index(spec.go_mode, 3, a['c'])}]"
     if role == "cam":
         return f"U[{a['c']}]"
     if role == "light":
@@ -339,7 +339,7 @@ def _store_expr(spec: ShadeSpec, store) -> str:
 def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
     """Print a schedule as C: pre-loop, light loops, post-loop over each block of pixels."""
     g, accs = sch.graph, sch.accs
-    em = _Emitter(spec.ctype, lambda attr: attr["load"])  # the loads are set on the nodes below
+    em = Emitter(spec.ctype, lambda attr: attr["load"])  # the loads are set on the nodes below
     lit, px = _flags(g)
     byid = {nd.id: nd for nd in g.nodes}
     for nd in g.nodes:
@@ -413,12 +413,12 @@ def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
         return f"    {kind_c} {name}[{BLOCK}];"
 
     src = [
-        _PRELUDE,
+        PRELUDE,
         f"typedef {spec.ctype} R;",
         "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
         sig + " {",
         *("  " + d for d in decl),
-        f"  #pragma omp parallel for schedule(dynamic, {_CHUNK_BLOCKS}) num_threads(nthreads)",
+        f"  #pragma omp parallel for schedule(dynamic, {CHUNK_BLOCKS}) num_threads(nthreads)",
         f"  for (long b0 = 0; b0 < n; b0 += {BLOCK}) {{",
         f"    const long b1 = b0 + {BLOCK} < n ? b0 + {BLOCK} : n;",
         *(arr("R" if byid[b].kind == "r" else "double", f"bd{b}") for b in bnd_sorted),
@@ -443,6 +443,6 @@ def _namer(names):
     """Name of a node (or a literal for a Python number) in the current loop."""
 
     def v(nd):
-        return names[nd.id] if isinstance(nd, Node) else f"((R){_lit(nd)})"
+        return names[nd.id] if isinstance(nd, Node) else f"((R){lit(nd)})"
 
     return v

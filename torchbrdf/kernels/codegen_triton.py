@@ -59,7 +59,7 @@ from torchbrdf.kernels.trace import Graph, Node, live_order
 if TYPE_CHECKING:  # fused imports the kernels package at run time
     from torch import Tensor
 
-    from torchbrdf.kernels.fused import _KernelSpec
+    from torchbrdf.kernels.fused import KernelSpec
 
 __all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "interpret_mode", "available",
            "block_size"]
@@ -177,11 +177,11 @@ def _family_target(spec, t) -> tuple:
     raise ValueError(f"unknown store target {t!r}")
 
 
-def generate(spec: _KernelSpec, kind: str, wide: bool = False) -> tuple[str, tuple[int, ...]]:
+def generate(spec: KernelSpec, kind: str, wide: bool = False) -> tuple[str, tuple[int, ...]]:
     """Triton source of one kernel (``kind`` = ``"fwd"``, ``"bwd"`` or ``"jvp"``) of a family.
 
     Args:
-        spec: the kernel family (:class:`torchbrdf.kernels.fused._KernelSpec`).
+        spec: the kernel family (:class:`torchbrdf.kernels.fused.KernelSpec`).
         kind: which kernel.
         wide: 64-bit lane indices (needed from ``n * 3 >= 2**31``).
 
@@ -294,7 +294,7 @@ def _cache_dir() -> str:
     return d
 
 
-def load(spec: _KernelSpec, kind: str, wide: bool = False) -> tuple[Any, tuple[int, ...]] | None:
+def load(spec: KernelSpec, kind: str, wide: bool = False) -> tuple[Any, tuple[int, ...]] | None:
     """The ``@triton.jit`` kernel of a family, or ``None`` when it cannot be built.
 
     Returns:
@@ -365,7 +365,7 @@ def launch(kernel: Any, kind: str, n: int, P: Tensor, args: Sequence[Tensor]) ->
         kernel[grid](n, P, *args, BLOCK=block, num_warps=max(1, block // 32), enable_fp_fusion=False)
 
 
-def failed(spec: _KernelSpec, kind: str, wide: bool = False) -> None:
+def failed(spec: KernelSpec, kind: str, wide: bool = False) -> None:
     """Mark a family as failed (its first launch raised): later calls run eagerly."""
     key = (spec.key("jvp" if kind == "jvp" else kind == "bwd"), kind, wide, interpret_mode())
     with _lock:

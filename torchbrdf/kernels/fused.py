@@ -17,9 +17,12 @@ How (the kernels package):
 * :mod:`torchbrdf.kernels.codegen_c` — prints the graph as one C lane loop (forward,
   recompute-backward, several-tangent JVP);
 * this module — the kernel spec, build and on-disk cache, and the buffer pool;
-* :mod:`torchbrdf.kernels.ops` — the kernels as ``torch.library`` custom operators with
-  fake implementations, autograd (reverse and forward mode) and vmap rules, so that
-  ``torch.compile`` and ``torch.func`` see them.
+* :mod:`torchbrdf.kernels.layout`, :mod:`~torchbrdf.kernels.c_runner`,
+  :mod:`~torchbrdf.kernels.triton_runner` — one call's memory layout and the kernels' calls;
+* :mod:`torchbrdf.kernels.registration` and :mod:`~torchbrdf.kernels.autograd` — the kernels
+  as ``torch.library`` custom operators with fake implementations, vmap rules and autograd
+  (reverse, forward and second order), so that ``torch.compile`` and ``torch.func`` see them;
+  :mod:`torchbrdf.kernels.ops` is the entry point.
 
 Compilation: ``gcc -O3 -march=native -fopenmp -ffp-contract=off`` (no ``-ffast-math``: the
 kernels keep IEEE semantics so values match eager), once per *kernel family* — dtype,
@@ -32,8 +35,9 @@ milliseconds. No compiler, or any build/cache failure → eager (one warning). T
 run on PyTorch's own OpenMP runtime and thread count (see ``build``).
 
 Limits: CPU float32/float64 only (CUDA tensors use the Triton kernels printed from the same
-graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-order kernels (a
-``create_graph=True`` backward re-runs the eager formula to build a differentiable graph).
+graphs, :mod:`torchbrdf.kernels.codegen_triton`; other devices eager), first-order kernels (the
+backward kernel also runs under ``create_graph=True`` and ``torch.func.grad``; differentiating
+it again runs the eager formula's second-order vjp).
 """
 
 from __future__ import annotations
@@ -56,10 +60,10 @@ from torchbrdf.kernels import codegen_c
 if TYPE_CHECKING:  # codegen_shade's kernels are loaded here too; it is imported lazily by callers
     from torchbrdf.kernels.codegen_shade import ShadeSpec
 
-__all__ = ["available", "kernel_cache_dir", "compiled_kernels", "empty_cache"]
+__all__ = ["available", "kernel_cache_dir", "compiled_kernels", "empty_cache", "KernelSpec", "load", "buffer_pool"]
 
 
-def _generate(spec: _KernelSpec | ShadeSpec, backward: bool | str) -> str:
+def _generate(spec: KernelSpec | ShadeSpec, backward: bool | str) -> str:
     """C source of the forward (``backward=False``), backward (``True``) or JVP (``"jvp"``) kernel."""
     if hasattr(spec, "generate"):  # other kernel families (fused shading) print themselves
         return spec.generate("jvp" if backward == "jvp" else ("bwd" if backward else "fwd"))
@@ -70,7 +74,7 @@ def _generate(spec: _KernelSpec | ShadeSpec, backward: bool | str) -> str:
 # Compilation and caching
 # ---------------------------------------------------------------------------------------------
 
-class _KernelSpec:
+class KernelSpec:
     """Everything that changes the generated code (and nothing else).
 
     ``tensors``: ``(name, mode, C)`` per tensor input; ``floats``: names of the runtime
@@ -119,8 +123,6 @@ _libs: dict = {}  # spec key -> (cdll, fn, written)
 _failed: set = set()
 kernel_cache_dir = _build.kernel_cache_dir
 available = _build.available
-_compiler = _build._compiler
-_machine_tag = _build._machine_tag
 
 _FWD_ARGS = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
 _BWD_ARGS = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
@@ -131,7 +133,7 @@ def compiled_kernels() -> int:
     return len(_libs)
 
 
-def _load(spec: _KernelSpec | ShadeSpec, backward: bool | str) -> tuple[Any, Any, tuple[int, ...]] | None:
+def load(spec: KernelSpec | ShadeSpec, backward: bool | str) -> tuple[Any, Any, tuple[int, ...]] | None:
     """``(cdll, fn, written)`` for the kernel of ``spec`` (``backward``: False forward, True
     backward, ``"jvp"``), or None (then run eager)."""
     key = spec.key(backward)
@@ -218,11 +220,13 @@ class _BufferPool:
                 mm.close()
 
 
-_pool = _BufferPool()
+buffer_pool = _BufferPool()
 
 
 def empty_cache() -> None:
     """Release the fused path's cached output/gradient buffers to the OS."""
-    _pool.clear()
+    buffer_pool.clear()
 
 
+# The earlier private names, for code written against them.
+_KernelSpec, _load, _pool = KernelSpec, load, buffer_pool

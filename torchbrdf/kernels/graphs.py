@@ -3,7 +3,7 @@
 :func:`build` traces the family's formula (:data:`torchbrdf.brdf.formula.FAMILIES`:
 :func:`~torchbrdf.brdf.formula.principled`, or the recovery's
 :func:`~torchbrdf.brdf.formula.capture_log_residual`) for a kernel spec
-(``torchbrdf.kernels.fused._KernelSpec``) and applies the derivative transform a kernel needs.
+(``torchbrdf.kernels.fused.KernelSpec``) and applies the derivative transform a kernel needs.
 The result names its loads and stores abstractly, so a C printer (:mod:`.codegen_c`) and a
 Triton printer can print the same graph:
 
@@ -23,11 +23,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from torchbrdf.brdf import formula
-from torchbrdf.brdf.principled import SCALAR_PARAMS
+from torchbrdf.brdf.formula import SCALAR_PARAMS
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse, tangents
 
 if TYPE_CHECKING:  # fused imports this module (through codegen_c) at run time
-    from torchbrdf.kernels.fused import _KernelSpec
+    from torchbrdf.kernels.fused import KernelSpec
 
 __all__ = ["KernelGraph", "build"]
 
@@ -59,7 +59,7 @@ def _inputs(spec):
     return inp, loads
 
 
-def build(spec: _KernelSpec, kind: str) -> KernelGraph:
+def build(spec: KernelSpec, kind: str) -> KernelGraph:
     """The graph of one kernel of a kernel family.
 
     ``kind``: ``"fwd"``, ``"bwd"`` (reverse transform) or ``"jvp"`` (forward transform,

@@ -30,8 +30,8 @@ import torch
 from torch import Tensor
 
 from torchbrdf.kernels.codegen_shade import CAMERA, LIGHT_STRIDE, ShadeSpec
-from torchbrdf.kernels.fused import _load, _pool
-from torchbrdf.kernels.ops import SCALAR_NAMES, _dparams, _flatten, _ptrs, _to_shape
+from torchbrdf.kernels.fused import buffer_pool, load
+from torchbrdf.kernels.layout import SCALAR_NAMES, dparams, flatten, ptrs, to_shape
 
 __all__ = ["shade_lights", "make_cfg", "TENSOR_ORDER"]
 
@@ -70,7 +70,7 @@ class _Plan:
         self.floats = [float(x) for x in floats]
 
     def flat(self, tensors):
-        out = [_flatten(t, C, (self.N,), self.N) for t, C in zip(tensors, self.C)]
+        out = [flatten(t, C, (self.N,), self.N) for t, C in zip(tensors, self.C)]
         modes = tuple((k, m, C) for k, (_, m), C in zip(self.tensor_names, out, self.C))
         return [f for f, _ in out], modes
 
@@ -91,7 +91,7 @@ class _Plan:
         )
 
     def params(self):
-        return _dparams(self.floats + [float(self.n_point), float(self.n_dir)])
+        return dparams(self.floats + [float(self.n_point), float(self.n_dir)])
 
 
 def _segments(seg):
@@ -138,19 +138,19 @@ def _run_fwd(plan: _Plan, tensors, uniforms: Tensor, seg) -> Tensor:
     if N == 0:
         return torch.zeros(0, 3, dtype=plan.dtype)
     flat, modes = plan.flat(tensors)
-    lib = _load(plan.spec(modes), backward=False)
+    lib = load(plan.spec(modes), backward=False)
     if lib is None:
         with torch.no_grad():
             return _formula_eager(plan, tensors, plan.floats, uniforms, seg)
     uniforms = uniforms.contiguous()
-    out = _pool.empty((N, 3), plan.dtype)
+    out = buffer_pool.empty((N, 3), plan.dtype)
     item = out.element_size()
     P = plan.params()
     nt = torch.get_num_threads()
     for r, s, e in _segments(seg):
         ins = [f.data_ptr() + (s * C * item if mode == "full" else 0) for f, (_, mode, C) in zip(flat, modes)]
         ins.append(uniforms[r].data_ptr())
-        lib[1](e - s, _ptrs(ins), P, out.data_ptr() + s * 3 * item, nt)
+        lib[1](e - s, ptrs(ins), P, out.data_ptr() + s * 3 * item, nt)
     return out
 
 
@@ -166,8 +166,8 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
     flat, modes = plan.flat(tensors)
     # The output gradient as lanes too: the gradient of a sum is one value for all pixels ('b0'),
     # read in place instead of being materialised.
-    go, go_mode = _flatten(grad_out.to(plan.dtype), 3, (N,), N)
-    lib = _load(plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode), backward=True)
+    go, go_mode = flatten(grad_out.to(plan.dtype), 3, (N,), N)
+    lib = load(plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode), backward=True)
     if lib is None:
         with torch.enable_grad():
             ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
@@ -177,7 +177,7 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
     written = lib[2]
     uniforms = uniforms.contiguous()
     item = go.element_size()
-    full = {i: _pool.empty((N, plan.C[i]), plan.dtype) for i in need if i in written}
+    full = {i: buffer_pool.empty((N, plan.C[i]), plan.dtype) for i in need if i in written}
     P = plan.params()
     nt = torch.get_num_threads()
     for r, s, e in _segments(seg):
@@ -187,8 +187,8 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
             full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))
         ]
         go_ptr = go.data_ptr() + (s * 3 * item if go_mode == "full" else 0)
-        lib[1](e - s, _ptrs(ins), P, go_ptr, _ptrs(gouts), nt)
-    return [_to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
+        lib[1](e - s, ptrs(ins), P, go_ptr, ptrs(gouts), nt)
+    return [to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
 
 
 @torch.library.custom_op("torchbrdf::shade_lights_fwd", mutates_args=())

@@ -1,0 +1,39 @@
+"""``torch.compile`` of ``principled`` with Python-float parameters (torchbrdf/kernels/ops.py)."""
+
+import importlib
+
+import pytest
+import torch
+
+import torchbrdf
+from torchbrdf.kernels import fused as _fast
+
+from ..test_principled import random_case, to_t
+
+P = importlib.import_module("torchbrdf.brdf.principled")
+
+pytestmark = pytest.mark.skipif(not _fast.available(), reason="no C compiler: the fused path is unavailable")
+
+
+@pytest.mark.parametrize("dynamic", [True, None])
+def test_compiled_principled_does_not_recompile_per_float_value(dynamic):
+    from torch._dynamo.testing import CompileCounter
+
+    torch._dynamo.reset()
+    vec, base, _ = random_case(51, count=64, min_cos=0.05)
+    t = to_t(vec, torch.float32)
+    base = torch.as_tensor(base, dtype=torch.float32)
+    counter = CompileCounter()
+
+    def user(l, v, n, rough, metal):
+        return torchbrdf.principled(l, v, n, base_color=base, roughness=rough, metallic=metal)
+
+    f = torch.compile(user, backend=counter, fullgraph=True, dynamic=dynamic)
+    values = [(0.3, 0.2), (0.4, 0.25), (0.5, 0.3), (0.6, 0.35)]
+    for rough, metal in values:
+        got = f(t["l"], t["v"], t["n"], rough, metal)
+        want = user(t["l"], t["v"], t["n"], rough, metal)
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+    # dynamic=True: symbolic from the first call; by default torch.compile specialises a float
+    # once, then makes it symbolic when it changes (one recompile), and never again.
+    assert counter.frame_count == (1 if dynamic else 2)
