@@ -379,3 +379,12 @@ def _store_block(ctype: str) -> list:
     return lines
 
 
+
+
+# Public names of the printing pieces that other generated kernels (the light loops of
+# :mod:`.light_loop`) print with.
+PRELUDE = _PRELUDE
+Emitter = _Emitter
+CHUNK_BLOCKS = _CHUNK_BLOCKS
+literal = _lit
+lane_index = _index

@@ -371,3 +371,10 @@ def failed(spec: _KernelSpec, kind: str, wide: bool = False) -> None:
     with _lock:
         _failed.add(key)
         _kernels.pop(key, None)
+
+
+# Public names of the printing pieces that other generated kernels (the light loops of
+# :mod:`.light_loop`) print with.
+PRELUDE = _PRELUDE
+Printer = _Printer
+literal = _lit
