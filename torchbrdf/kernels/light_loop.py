@@ -314,7 +314,9 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
     pre: list[str] = []
     emit(live_order(g, [byid[b] for b in sorted(bnd_all)]), names, pre)
     loops: list[str] = []
-    inits = [f"{_acc_name(key)} = tl.zeros([BLOCK], {pr.ty(k)})" for key, k in sch.acc_kind.items()]
+    # (tl.full, a builtin: tl.zeros is a jit function of the standard library, which the
+    # interpreter runs only if it was imported under TRITON_INTERPRET)
+    inits = [f"{_acc_name(key)} = tl.full([BLOCK], 0.0, {pr.ty(k)})" for key, k in sch.acc_kind.items()]
     for lp in lay.loops:
         if lp.name not in sch.accs:
             continue
@@ -332,7 +334,7 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
     post: list[str] = []
     emit(live_order(g, [nd for _, nd in sch.post if isinstance(nd, Node)]), pnames, post)
     for store, val in sch.post:
-        value = pnames[val.id] if isinstance(val, Node) else f"tl.zeros([BLOCK], {pr.DT})"
+        value = pnames[val.id] if isinstance(val, Node) else f"tl.full([BLOCK], 0.0, {pr.DT})"
         post.append(f"tl.store({store_t(store)}, tl.broadcast_to({value}, [BLOCK]), mask=m)")
     pid = "tl.program_id(0).to(tl.int64)" if wide else "tl.program_id(0)"
     src = [
