@@ -158,3 +158,24 @@ def test_triton_kernel_matches_jacfwd_under_the_interpreter(monkeypatch, tmp_pat
     torch.testing.assert_close(cost, rc, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(unpack_jtj(jtj, 7), rjtj, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(jtr, rjtr, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+def test_shared_tangent_slots_give_the_same_sums():
+    # the decode's three tangents (the five one-channel unknowns share one) as the recovery's
+    # bench passes them: the same sums as seven separate directions, and as jacfwd
+    from torchbrdf.bench.recovery import DECODE_PATTERN, DECODE_SLOTS
+
+    case = _capture(20, 4, torch.float64, seed=5)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    dirs = torch.zeros(3, 7, dtype=torch.float64)
+    for s, cols in enumerate(DECODE_SLOTS):
+        dirs[s, list(cols)] = 1.0
+    p, dp = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
+                            out_dims=(None, 0))(dirs[:, None].expand(-1, *theta.shape))
+    got = normal_equations(p, {k: v for k, v in dp.items() if k in DECODE_PATTERN}, points, cam, lpos, lint,
+                           log_obs, EPS, DECODE_PATTERN, unknowns=7)
+    rc, rjtj, rjtr = _reference(*case)
+    torch.testing.assert_close(got[0], rc, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(unpack_jtj(got[1], 7), rjtj, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(got[2], rjtr, rtol=1e-10, atol=1e-10)

@@ -25,12 +25,16 @@ from typing import Any
 
 import torch
 
-__all__ = ["main", "synthetic_level", "normal_equations_before", "normal_equations_after", "DECODE_PATTERN"]
+__all__ = ["main", "synthetic_level", "normal_equations_before", "normal_equations_after", "DECODE_PATTERN",
+           "DECODE_SLOTS"]
 
-#: The non-zero ``(direction, channel)`` tangents of the decode's parameters along the seven
-#: unknowns (base-colour logits, specular, roughness, the two normal slopes).
-DECODE_PATTERN = {"base_color": [(0, 0), (1, 1), (2, 2)], "specular": [(3, 0)], "roughness": [(4, 0)],
-                  "normal": [(j, c) for j in (5, 6) for c in range(3)]}
+#: The non-zero ``(direction, channel, slot)`` tangents of the decode's parameters along the
+#: seven unknowns (base-colour logits, specular, roughness, the two normal slopes). The first
+#: five each move one channel of their own, so one tangent (slot 0, along all five) holds them;
+#: each normal slope moves the whole normal (slots 1 and 2).
+DECODE_PATTERN = {"base_color": [(0, 0, 0), (1, 1, 0), (2, 2, 0)], "specular": [(3, 0, 0)],
+                  "roughness": [(4, 0, 0)], "normal": [(j, c, j - 4) for j in (5, 6) for c in range(3)]}
+DECODE_SLOTS = ((0, 1, 2, 3, 4), (5,), (6,))  # the unknowns each slot's tangent moves
 
 
 def synthetic_level(size: int, lights: int, seed: int = 0, dtype: torch.dtype = torch.float32
@@ -68,14 +72,16 @@ def normal_equations_after(level, theta, metal):
     from torchbrdf.recovery.solver import decode
 
     K = theta.shape[1]
-    eye = torch.eye(K, dtype=theta.dtype, device=theta.device)[:, None].expand(K, *theta.shape)
+    dirs = torch.zeros(len(DECODE_SLOTS), K, dtype=theta.dtype, device=theta.device)
+    for s, cols in enumerate(DECODE_SLOTS):
+        dirs[s, list(cols)] = 1.0
     p, dp = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
-                            out_dims=(None, 0))(eye)
+                            out_dims=(None, 0))(dirs[:, None].expand(-1, *theta.shape))
     idx = level.train_idx
     log_obs = level.log_obs[idx].permute(1, 0, 2).contiguous()
     cost, jtj, jtr = normal_equations(p, {k: v for k, v in dp.items() if k in DECODE_PATTERN}, level.points,
                                       level.camera, level.pos[idx], level.inten[idx], log_obs, level.eps,
-                                      DECODE_PATTERN)
+                                      DECODE_PATTERN, unknowns=K)
     return cost, unpack_jtj(jtj, K), jtr
 
 

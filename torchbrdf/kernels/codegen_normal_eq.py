@@ -56,12 +56,14 @@ class NormalEqSpec:
     maps; lane-dense ``(n, C)``); ``floats``: names of the material parameters passed as
     runtime floats (then ``eps``, then the light count); ``K``: the unknowns per pixel;
     ``pattern``: per tensor input, the ``(direction, channel)`` pairs whose tangent is not
-    zero (an input with none has no tangent tensor).
+    zero, optionally ``(direction, channel, slot)``: the tangent tensor's row ``slot`` holds it
+    (default the direction; directions that move disjoint channels can share a row, so the
+    caller computes fewer tangents). An input with none has no tangent tensor.
     """
 
     def __init__(self, ctype: str, tensors: Iterable[tuple[str, int]], floats: Iterable[str],
                  active: Iterable[str], need_tint: bool, K: int,
-                 pattern: Iterable[Iterable[tuple[int, int]]]) -> None:
+                 pattern: Iterable[Iterable[tuple[int, ...]]]) -> None:
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
@@ -69,7 +71,8 @@ class NormalEqSpec:
         self.active = tuple(active)
         self.need_tint = bool(need_tint)
         self.K = int(K)
-        self.pattern = tuple(tuple(sorted(p)) for p in pattern)
+        # (direction, channel, slot): slot = the tangent tensor's row holding it (default the direction)
+        self.pattern = tuple(tuple(sorted((e[0], e[1], e[2] if len(e) > 2 else e[0]) for e in p)) for p in pattern)
         if len(self.pattern) != len(self.tensors):
             raise ValueError("NormalEqSpec: one pattern per tensor input")
         # the inputs with a tangent tensor, in tensor order: tangent argument m is tensor tan_inputs[m]
@@ -113,8 +116,9 @@ def schedule(spec: NormalEqSpec) -> LoopSchedule:
             seeds = {}
             for nd in loads:
                 k, c = nd.attr["k"], nd.attr["c"]
-                if (a, c) in spec.pattern[k]:
-                    seeds[nd.id] = _in("tan", k=k, c=c, j=a, m=spec.tan_inputs.index(k))
+                for a2, c2, slot in spec.pattern[k]:
+                    if (a2, c2) == (a, c):
+                        seeds[nd.id] = _in("tan", k=k, c=c, j=slot, m=spec.tan_inputs.index(k))
             J.append(tangents(g, r, seeds) if seeds else [None, None, None])
 
         def dot(xs, ys):
@@ -172,7 +176,7 @@ def _layout(spec: NormalEqSpec) -> Layout:
 def generate(spec: NormalEqSpec) -> str:
     """C source of ``tb_ne(n, in, P, out, nthreads)``.
 
-    ``in``: the per-pixel inputs ``(n, C)`` (``spec.tensors``), then one ``(K, n, C)`` tangent
+    ``in``: the per-pixel inputs ``(n, C)`` (``spec.tensors``), then one ``(S, n, C)`` tangent
     per input in ``spec.tan_inputs``, then ``log_obs`` ``(n, L, 3)``, then the uniform row
     ``[camera (3), (q, I) per light]``; ``P``: the runtime floats, ``eps``, the light count;
     ``out`` ``(n, W)`` (:func:`width`).

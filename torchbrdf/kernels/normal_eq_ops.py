@@ -37,10 +37,11 @@ _failed: set = set()
 
 
 def make_cfg(tensor_names: Sequence[str], float_names: Sequence[str], active: Sequence[str], need_tint: bool,
-             K: int, pattern: Sequence[Sequence[tuple[int, int]]], backend: str = "c") -> str:
+             K: int, pattern: Sequence[Sequence[tuple[int, ...]]], backend: str = "c") -> str:
     """The ``cfg`` string of the operator; ``pattern[k]``: input ``k``'s non-zero ``(direction,
-    channel)`` tangent pairs; ``backend`` ``"c"`` or ``"triton"``."""
-    pat = ";".join(",".join(f"{j}.{c}" for j, c in p) for p in pattern)
+    channel[, slot])`` tangents (:class:`~.codegen_normal_eq.NormalEqSpec`); ``backend`` ``"c"``
+    or ``"triton"``."""
+    pat = ";".join(",".join(".".join(str(int(x)) for x in e) for e in p) for p in pattern)
     return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
                      str(int(K)), pat, backend])
 
@@ -124,9 +125,9 @@ def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> 
         dirs = []
         for k, t in enumerate(tensors):
             d = torch.zeros_like(t)
-            chans = [c for j, c in spec.pattern[k] if j == a]
-            if chans:
-                d[:, chans] = tan_of[k][a][:, chans]
+            for j, c, slot in spec.pattern[k]:
+                if j == a:
+                    d[:, c] = tan_of[k][slot][:, c]
             dirs.append(d)
         J.append(torch.func.jvp(res, tuple(tensors), tuple(dirs))[1])
     Jm = torch.stack(J, -1)  # (N, M, K)
@@ -185,7 +186,7 @@ def _(tensors, tangents, floats, uniforms, log_obs, cfg):
     return log_obs.new_empty((log_obs.shape[0], width(K)))
 
 
-def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int, int]]]:
+def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int, ...]]]:
     """The ``(direction, channel)`` pairs of each ``(K, N, C)`` tangent that are not zero at
     every pixel (one reduction and a host read: pass a known pattern to avoid it)."""
     out = {}
@@ -197,7 +198,7 @@ def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int,
 
 def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor, camera: Tensor,
                      light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
-                     pattern: Mapping[str, Sequence[tuple[int, int]]] | None = None
+                     pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None, unknowns: int | None = None,
                      ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pixel Gauss–Newton terms of the capture's log residuals, in one fused pass.
 
@@ -211,11 +212,14 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
             keep their defaults.
         tangents: ``{name: (K, N, C)}``: each direction's tangent of an entry of ``params``
             (``∂p/∂x_j``, e.g. from ``torch.func.jvp`` of the decode); absent entries are held.
+            With slots in ``pattern``, ``(S, N, C)``: row ``slot`` holds the tangents of the
+            directions mapped to it (directions moving disjoint channels share a row).
         points ``(N, 3)``, camera ``(3,)``, light_pos, light_int ``(L, 3)``, log_obs
         ``(N, L, 3)``, eps: as for ``log_residual_points``; one floating dtype and device.
-        pattern: ``{name: [(direction, channel), ...]}``, the tangents' non-zero entries
-            (default :func:`tangent_pattern`, which reads the tangents; a known pattern keeps
-            the call free of host synchronisation).
+        pattern: ``{name: [(direction, channel[, slot]), ...]}``, the tangents' non-zero
+            entries (default :func:`tangent_pattern`, which reads the tangents; a known pattern
+            keeps the call free of host synchronisation).
+        unknowns: ``K`` (default: the tangents' leading size; needed with slots).
 
     Returns:
         ``(cost (N,), jtj (N, K (K + 1) / 2), jtr (N, K))``: ``Σ r²``, the upper triangle of
@@ -230,9 +234,9 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
     if params.get("anisotropic", 0.0) != 0.0 or "specular_tint" in params or "sheen_tint" in params:
         raise ValueError("normal_equations: anisotropic, specular_tint and sheen_tint must keep their defaults")
     Ks = {t.shape[0] for t in tangents.values()}
-    if len(Ks) != 1:
+    if unknowns is None and len(Ks) != 1:
         raise ValueError(f"normal_equations: every tangent needs the same number of directions, got {sorted(Ks)}")
-    K = Ks.pop()
+    K = int(unknowns) if unknowns is not None else Ks.pop()
     dtype, dev = log_obs.dtype, log_obs.device
     c = {"pos": points, "n": params["normal"], **{k: v for k, v in params.items() if k != "normal"}}
     tan = {("n" if k == "normal" else k): v for k, v in tangents.items()}
