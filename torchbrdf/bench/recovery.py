@@ -11,8 +11,9 @@ data cost, ``JᵀJ (7, 7)`` and ``Jᵀr (7,)`` w.r.t. the recovery's seven unkno
 
 Both run alternately on the same synthetic capture (``--size``² pixels, ``--lights`` lights,
 float32 as the recovery runs), ``--reps`` times each, and the table gives pixel-lights per
-second (min / median / max over the repetitions) and the largest difference of ``JᵀJ``
-between the two, relative to its largest entry.
+second of wall time and per second of the process's CPU time (all its threads; less
+sensitive to other processes' load), min / median / max over the repetitions, and the largest
+difference of ``JᵀJ`` between the two, relative to its largest entry.
 """
 
 from __future__ import annotations
@@ -107,16 +108,19 @@ def main(argv: list[str] | None = None) -> int:
     diff = (res["before"][1] - res["after"][1]).abs().amax().item() / max(scale, 1e-30)
     work = args.size * args.size * args.lights
     rates: dict[str, list[float]] = {k: [] for k in variants}
+    cpu: dict[str, list[float]] = {k: [] for k in variants}
     for _ in range(args.reps):
         for k, f in variants.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             f(level, theta, metal)
             rates[k].append(work / (time.perf_counter() - t0))
+            cpu[k].append(work / max(time.process_time() - c0, 1e-9))
     print(f"normal equations, {args.size}² pixels × {args.lights} lights, float32, "
           f"{torch.get_num_threads()} threads, {args.reps} alternating repetitions")
-    print(f"{'path':8s} {'pixel-lights/s: min':>20s} {'median':>9s} {'max':>9s}")
+    print(f"{'path':8s} {'pixel-lights/s: min':>20s} {'median':>9s} {'max':>9s}   "
+          f"{'per CPU-second: min':>20s} {'median':>9s} {'max':>9s}")
     for k in variants:
-        print(f"{k:8s} {'':10s} {_stats(rates[k])}")
+        print(f"{k:8s} {'':10s} {_stats(rates[k])}   {'':10s} {_stats(cpu[k])}")
     print(f"after / before (medians): {statistics.median(rates['after']) / statistics.median(rates['before']):.2f}×;"
           f"  max |JᵀJ difference| / max |JᵀJ|: {diff:.2e}")
     return 0
