@@ -59,7 +59,8 @@ def synthetic_level(size: int, lights: int, seed: int = 0, dtype: torch.dtype = 
     return level, theta, metal
 
 
-def normal_equations_before(level, theta, metal):
+def normal_equations_before(level: Any, theta: torch.Tensor, metal: torch.Tensor
+                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(cost (P,), JᵀJ (P, 7, 7), Jᵀr (P, 7))`` by the solver's :func:`gauss_newton`."""
     from torchbrdf.recovery.solver import gauss_newton
 
@@ -67,7 +68,8 @@ def normal_equations_before(level, theta, metal):
     return (r * r).sum(-1), jtj, jtr
 
 
-def normal_equations_after(level, theta, metal):
+def normal_equations_after(level: Any, theta: torch.Tensor, metal: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The same by the fused kernel (:func:`torchbrdf.kernels.normal_eq_ops.normal_equations`)."""
     from torchbrdf.kernels.normal_eq_ops import normal_equations, unpack_jtj
     from torchbrdf.recovery.solver import decode
@@ -76,8 +78,10 @@ def normal_equations_after(level, theta, metal):
     dirs = torch.zeros(len(DECODE_SLOTS), K, dtype=theta.dtype, device=theta.device)
     for s, cols in enumerate(DECODE_SLOTS):
         dirs[s, list(cols)] = 1.0
-    p, dp = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
-                            out_dims=(None, 0))(dirs[:, None].expand(-1, *theta.shape))
+    out_dims: Any = (None, 0)  # the decoded maps once, their tangents per direction
+    pair: Any = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
+                                out_dims=out_dims)(dirs[:, None].expand(-1, *theta.shape))
+    p, dp = pair
     idx = level.train_idx
     log_obs = level.log_obs[idx].permute(1, 0, 2).contiguous()
     cost, jtj, jtr = normal_equations(p, {k: v for k, v in dp.items() if k in DECODE_PATTERN}, level.points,

@@ -126,7 +126,7 @@ def _is_boundary(nd: Node, lit, px) -> bool:
     return nd.id in px and nd.id not in lit and nd.op != "in" and nd.kind != "b"
 
 
-def loop_nodes(roots, lit, px) -> tuple[set[int], set[int]]:
+def loop_nodes(roots: Iterable[Node | float | None], lit: set[int], px: set[int]) -> tuple[set[int], set[int]]:
     """Nodes of a light-loop body (ids) and the boundary nodes it reads (ids)."""
     body: set[int] = set()
     bnd: set[int] = set()

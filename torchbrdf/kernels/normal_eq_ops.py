@@ -159,9 +159,9 @@ def _run(spec: NormalEqSpec, backend: str, tensors, tangents, floats, uniforms, 
         hit = _c_kernel(spec)
         if hit is not None:
             ptrs = [t.data_ptr() for t in (*tensors, *tangents, log_obs, uniforms)]
-            P = list(floats) + [float(L)]
-            hit[1](N, (ctypes.c_void_p * len(ptrs))(*ptrs), (ctypes.c_double * len(P))(*P), out.data_ptr(),
-                   torch.get_num_threads())
+            params = list(floats) + [float(L)]
+            hit[1](N, (ctypes.c_void_p * len(ptrs))(*ptrs), (ctypes.c_double * len(params))(*params),
+                   out.data_ptr(), torch.get_num_threads())
             return out
     with torch.no_grad():
         return _eager(spec, tensors, tangents, floats, uniforms, log_obs)
@@ -189,7 +189,7 @@ def _(tensors, tangents, floats, uniforms, log_obs, cfg):
 def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int, ...]]]:
     """The ``(direction, channel)`` pairs of each ``(K, N, C)`` tangent that are not zero at
     every pixel (one reduction and a host read: pass a known pattern to avoid it)."""
-    out = {}
+    out: dict[str, list[tuple[int, ...]]] = {}
     for k, t in tangents.items():
         nz = (t != 0).any(dim=1).cpu()  # (K, C)
         out[k] = [(int(j), int(c)) for j, c in nz.nonzero().tolist()]

@@ -149,9 +149,9 @@ def _run_fwd(plan: _Plan, tensors, uniforms: Tensor, seg) -> Tensor:
         return torch.zeros(0, 3, dtype=plan.dtype, device=tensors[0].device)
     flat, modes = plan.flat(tensors)
     if plan.backend == "triton":
-        out = _run_triton(plan, plan.spec(modes), "fwd", flat, modes, uniforms, seg)
-        if out is not None:
-            return out[0][0]
+        res = _run_triton(plan, plan.spec(modes), "fwd", flat, modes, uniforms, seg)
+        if res is not None:
+            return res[0][0]
         with torch.no_grad():
             return _formula_eager(plan, tensors, plan.floats, uniforms, seg)
     lib = _load(plan.spec(modes), backward=False)
