@@ -83,3 +83,14 @@ def test_default_threads_without_a_load_average():
 def test_default_threads_real_machine_is_in_range():
     n = parallel.default_threads()
     assert 1 <= n <= parallel.available_cpus()
+
+
+def test_thread_bench_passes_the_cli_its_thread_choice(monkeypatch):
+    from torchbrdf.bench import threads
+
+    cmd = ["python", "-m", "training.recover_svbrdf", "--demo"]
+    assert threads._with_threads(cmd, "torch", False) == cmd
+    assert threads._with_threads(cmd, "1", True) == cmd + ["--threads", "1"]
+    monkeypatch.setattr(parallel, "available_cpus", lambda *a, **k: 4)
+    monkeypatch.setattr(os, "getloadavg", lambda: (3.0, 0.0, 0.0))
+    assert threads._with_threads(cmd, "auto", True) == cmd + ["--threads", "1"]  # 3 others busy of 4
