@@ -15,7 +15,7 @@ from __future__ import annotations
 import ctypes
 import threading
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -58,29 +58,8 @@ def _parse(cfg: str, dtype: torch.dtype) -> tuple[NormalEqSpec, str]:
     return spec, backend
 
 
-def _c_kernel(spec: NormalEqSpec):
-    key = ("c", spec.key())
-    fn = _kernels.get(key)
-    if fn is not None or key in _failed:
-        return fn
-    with _lock:
-        fn = _kernels.get(key)
-        if fn is not None or key in _failed:
-            return fn
-        args = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
-        lib = build.load_kernel(generate(spec), "normal_eq", {"tb_ne": (args, None)})
-        if lib is None:
-            _failed.add(key)
-            return None
-        fn = lib.tb_ne
-        _kernels[key] = (lib, fn)  # keep the library alive with its function
-        return _kernels[key]
-
-
-def _triton_kernel(spec: NormalEqSpec, wide: bool):
-    from torchbrdf.kernels import codegen_triton
-
-    key = ("triton", spec.key(), wide, codegen_triton.interpret_mode())
+def _cached(key: tuple, make: Callable[[], Any]) -> Any:
+    """The kernel under ``key``, made once by ``make()`` (None: it cannot be made; not retried)."""
     hit = _kernels.get(key)
     if hit is not None or key in _failed:
         return hit
@@ -88,17 +67,37 @@ def _triton_kernel(spec: NormalEqSpec, wide: bool):
         hit = _kernels.get(key)
         if hit is not None or key in _failed:
             return hit
+        hit = make()
+        if hit is None:
+            _failed.add(key)
+        else:
+            _kernels[key] = hit
+        return hit
+
+
+def _c_kernel(spec: NormalEqSpec):
+    def make():
+        args = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+        lib = build.load_kernel(generate(spec), "normal_eq", {"tb_ne": (args, None)})
+        return None if lib is None else (lib, lib.tb_ne)  # the library stays alive with its function
+
+    return _cached(("c", spec.key()), make)
+
+
+def _triton_kernel(spec: NormalEqSpec, wide: bool):
+    from torchbrdf.kernels import codegen_triton
+
+    def make():
         try:
             if not codegen_triton.available():
                 raise ImportError("triton does not import")
-            hit = codegen_triton.compile_source(generate_triton(spec, wide), "tb_ne")
+            return codegen_triton.compile_source(generate_triton(spec, wide), "tb_ne")
         except Exception as e:  # noqa: BLE001 - any failure: evaluated eagerly
-            _failed.add(key)
             warnings.warn(f"torchbrdf: building the Triton normal-equations kernel failed; using eager.\n{e!r}"
-                          [:2000], RuntimeWarning, stacklevel=3)
+                          [:2000], RuntimeWarning, stacklevel=4)
             return None
-        _kernels[key] = hit
-        return hit
+
+    return _cached(("triton", spec.key(), wide, codegen_triton.interpret_mode()), make)
 
 
 def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> Tensor:
