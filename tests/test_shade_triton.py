@@ -111,3 +111,45 @@ def test_triton_light_loop_source_loops_over_lights():
     assert src.count("tl.load(u + 0)") == 2
     head = src.split("for j in range(0")[0]
     assert "tl.load(U + 0)" in head  # the camera (view vector) before the light loops
+
+
+def test_light_loop_kernels_compile_for_a_gpu_without_one(monkeypatch):
+    # The interpreter accepts some things the compiler does not: compile the shading forward and
+    # backward and the normal-equations kernel to PTX for sm_90 (no GPU needed).
+    try:
+        from triton.backends.compiler import GPUTarget
+        from triton.compiler import ASTSource
+    except ImportError:
+        pytest.skip("this Triton has no compiler API")
+    import inspect
+
+    from torchbrdf.brdf.principled import SCALAR_PARAMS
+    from torchbrdf.kernels import codegen_normal_eq
+
+    monkeypatch.delenv("TRITON_INTERPRET")
+    fl = [k for k in SCALAR_PARAMS if k != "roughness"]
+    spec = codegen_shade.ShadeSpec("float", [("pos", "full", 3), ("n", "full", 3), ("base_color", "full", 3),
+                                             ("roughness", "full", 1)], fl, ("diffuse", "specular", "clearcoat"),
+                                   False, False, ("point", "directional"), grad_mask=(2, 3))
+    names = [("pos", 3), ("n", 3), ("base_color", 3), ("metallic", 1), ("specular", 1), ("roughness", 1)]
+    pat = [[], [(j, c, j - 4) for j in (5, 6) for c in range(3)], [(0, 0, 0), (1, 1, 0), (2, 2, 0)], [],
+           [(3, 0, 0)], [(4, 0, 0)]]
+    ne = codegen_normal_eq.NormalEqSpec("float", names, [k for k in SCALAR_PARAMS if k not in
+                                                         ("metallic", "specular", "roughness")],
+                                        ("diffuse", "specular"), False, 7, pat)
+    sources = [(codegen_shade.generate_triton(spec, "fwd"), "tb_fwd"), (codegen_shade.generate_triton(spec, "bwd"),
+                                                                        "tb_bwd"),
+               (codegen_normal_eq.generate_triton(ne), "tb_ne")]
+    for src, name in sources:
+        kern = ct.compile_source(src, name)
+        sig = {a: "constexpr" if a == "BLOCK" else "i32" if a in ("n", "Lp", "Ld", "L") else
+               "*fp64" if a == "P" else "*fp32" for a in inspect.signature(kern.fn).parameters}
+        try:
+            cc = triton.compile(ASTSource(fn=kern, signature=sig, constexprs={"BLOCK": 128}),
+                                target=GPUTarget("cuda", 90, 32), options={"enable_fp_fusion": False, "num_warps": 4})
+        except (RuntimeError, FileNotFoundError) as e:  # e.g. no ptxas for this platform
+            if "ptxas" in str(e):
+                pytest.skip(str(e))
+            raise
+        ptx = cc.asm["ptx"]
+        assert "div.rn.f32" in ptx and "fma.rn.f32" not in ptx
