@@ -1,4 +1,4 @@
-"""The fused normal-equations pass (kernels/codegen_normal_eq.py) against torch.func.jacfwd of the torch residual.
+"""The fused normal-equations pass (kernels/codegen_normal_eq.py) against jacfwd of the torch residual.
 
 Per pixel the kernel sums, over the lights, the data cost Σ r², JᵀJ and Jᵀr of the recovery's
 log residuals in the recovery's parametrisation (the decode's Jacobian given as tangents).

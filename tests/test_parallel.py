@@ -1,4 +1,4 @@
-"""torchbrdf.parallel: the thread count from affinity, the cgroup quota and the load (fake files and calls)."""
+"""torchbrdf.parallel: the thread count from affinity, the cgroup quota and the load (fake files, calls)."""
 
 import os
 

@@ -66,7 +66,8 @@ def _shade(backend, dtype, batch=1, size=12):
     base = torch.rand(batch, 3, size, size, generator=g, dtype=dtype).requires_grad_()
     metal = torch.rand(batch, 1, size, size, generator=g, dtype=dtype).requires_grad_()
     gb = sphere_gbuffer(size, size, dtype=dtype)
-    gb = torchbrdf.GBuffer(position=gb.position.expand(batch, -1, -1, -1), normal=gb.normal.expand(batch, -1, -1, -1),
+    gb = torchbrdf.GBuffer(position=gb.position.expand(batch, -1, -1, -1),
+                           normal=gb.normal.expand(batch, -1, -1, -1),
                            camera_position=gb.camera_position,
                            material={"roughness": rough, "base_color": base, "metallic": metal,
                                      "clearcoat": 0.3, "sheen": 0.2})
@@ -104,8 +105,9 @@ def test_triton_light_loop_source_loops_over_lights():
     # uniforms inside it, and the pixel-level terms (view vector, ...) before the loops.
     from torchbrdf.brdf.principled import SCALAR_PARAMS
 
-    spec = codegen_shade.ShadeSpec("float", [("pos", "full", 3), ("n", "full", 3), ("base_color", "b1", 3)],
-                                   SCALAR_PARAMS, ("diffuse", "specular"), False, False, ("point", "directional"))
+    tensors = [("pos", "full", 3), ("n", "full", 3), ("base_color", "b1", 3)]
+    spec = codegen_shade.ShadeSpec("float", tensors, SCALAR_PARAMS, ("diffuse", "specular"), False, False,
+                                   ("point", "directional"))
     src = codegen_shade.generate_triton(spec, "fwd")
     assert "for j in range(0, 0 + Lp):" in src and "for j in range(Lp, Lp + Ld):" in src
     assert src.count("tl.load(u + 0)") == 2
@@ -128,17 +130,17 @@ def test_light_loop_kernels_compile_for_a_gpu_without_one(monkeypatch):
 
     monkeypatch.delenv("TRITON_INTERPRET")
     fl = [k for k in SCALAR_PARAMS if k != "roughness"]
-    spec = codegen_shade.ShadeSpec("float", [("pos", "full", 3), ("n", "full", 3), ("base_color", "full", 3),
-                                             ("roughness", "full", 1)], fl, ("diffuse", "specular", "clearcoat"),
-                                   False, False, ("point", "directional"), grad_mask=(2, 3))
+    tensors = [("pos", "full", 3), ("n", "full", 3), ("base_color", "full", 3), ("roughness", "full", 1)]
+    spec = codegen_shade.ShadeSpec("float", tensors, fl, ("diffuse", "specular", "clearcoat"), False, False,
+                                   ("point", "directional"), grad_mask=(2, 3))
     names = [("pos", 3), ("n", 3), ("base_color", 3), ("metallic", 1), ("specular", 1), ("roughness", 1)]
     pat = [[], [(j, c, j - 4) for j in (5, 6) for c in range(3)], [(0, 0, 0), (1, 1, 0), (2, 2, 0)], [],
            [(3, 0, 0)], [(4, 0, 0)]]
     ne = codegen_normal_eq.NormalEqSpec("float", names, [k for k in SCALAR_PARAMS if k not in
                                                          ("metallic", "specular", "roughness")],
                                         ("diffuse", "specular"), False, 7, pat)
-    sources = [(codegen_shade.generate_triton(spec, "fwd"), "tb_fwd"), (codegen_shade.generate_triton(spec, "bwd"),
-                                                                        "tb_bwd"),
+    sources = [(codegen_shade.generate_triton(spec, "fwd"), "tb_fwd"),
+               (codegen_shade.generate_triton(spec, "bwd"), "tb_bwd"),
                (codegen_normal_eq.generate_triton(ne), "tb_ne")]
     for src, name in sources:
         kern = ct.compile_source(src, name)
@@ -146,7 +148,8 @@ def test_light_loop_kernels_compile_for_a_gpu_without_one(monkeypatch):
                "*fp64" if a == "P" else "*fp32" for a in inspect.signature(kern.fn).parameters}
         try:
             cc = triton.compile(ASTSource(fn=kern, signature=sig, constexprs={"BLOCK": 128}),
-                                target=GPUTarget("cuda", 90, 32), options={"enable_fp_fusion": False, "num_warps": 4})
+                                target=GPUTarget("cuda", 90, 32),
+                                options={"enable_fp_fusion": False, "num_warps": 4})
         except (RuntimeError, FileNotFoundError) as e:  # e.g. no ptxas for this platform
             if "ptxas" in str(e):
                 pytest.skip(str(e))

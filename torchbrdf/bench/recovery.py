@@ -95,7 +95,8 @@ def _stats(xs: list[float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m torchbrdf.bench.recovery", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m torchbrdf.bench.recovery",
+                                 description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=128, help="capture side in pixels (default 128)")
     ap.add_argument("--lights", type=int, default=17, help="lights (default 17)")
     ap.add_argument("--reps", type=int, default=5, help="alternating repetitions (default 5)")
@@ -125,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{'per CPU-second: min':>20s} {'median':>9s} {'max':>9s}")
     for k in variants:
         print(f"{k:8s} {'':10s} {_stats(rates[k])}   {'':10s} {_stats(cpu[k])}")
-    print(f"after / before (medians): {statistics.median(rates['after']) / statistics.median(rates['before']):.2f}×;"
+    gain = statistics.median(rates["after"]) / statistics.median(rates["before"])
+    print(f"after / before (medians): {gain:.2f}×;"
           f"  max |JᵀJ difference| / max |JᵀJ|: {diff:.2e}")
     return 0
 

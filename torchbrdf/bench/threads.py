@@ -131,7 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--lanes", type=int, default=1 << 20)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--repeat", type=int, default=3, help="alternating quiet/busy runs per policy")
-    p.add_argument("--policies", default="default,PASSIVE", help="OMP_WAIT_POLICY values ('default': libgomp's spinning; 'cli': "
+    p.add_argument("--policies", default="default,PASSIVE",
+                   help="OMP_WAIT_POLICY values ('default': libgomp's spinning; 'cli': "
                         "unset, as the recovery CLI chooses)")
     p.add_argument("--cli", default="", help="extra options of the recovery CLI, e.g. '--iters 6'")
     p.add_argument("--threads", default="torch",

@@ -72,7 +72,8 @@ class NormalEqSpec:
         self.need_tint = bool(need_tint)
         self.K = int(K)
         # (direction, channel, slot): slot = the tangent tensor's row holding it (default the direction)
-        self.pattern = tuple(tuple(sorted((e[0], e[1], e[2] if len(e) > 2 else e[0]) for e in p)) for p in pattern)
+        self.pattern = tuple(tuple(sorted((e[0], e[1], e[2] if len(e) > 2 else e[0]) for e in p))
+                             for p in pattern)
         if len(self.pattern) != len(self.tensors):
             raise ValueError("NormalEqSpec: one pattern per tensor input")
         # the inputs with a tangent tensor, in tensor order: tangent argument m is tensor tan_inputs[m]

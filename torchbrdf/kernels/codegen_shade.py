@@ -1,4 +1,7 @@
-"""C code generation for fused shading: geometry, principled BRDF and the sum over lights in one loop.
+"""Code generation for fused shading: geometry, principled BRDF and the sum over lights in one loop.
+
+C (:func:`generate`) and Triton (:func:`generate_triton`) print the same light-loop schedule
+(:func:`schedule`, printed by :mod:`.light_loop`).
 
 :func:`generate` traces :func:`torchbrdf.brdf.formula.view_direction` and the per-light terms
 :func:`~torchbrdf.brdf.formula.point_light` / :func:`~torchbrdf.brdf.formula.directional_light`
@@ -51,7 +54,8 @@ from torchbrdf.kernels.codegen_c import lane_index
 from torchbrdf.kernels.light_loop import Layout, LightLoop, LoopSchedule, flags, print_c, print_triton
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse
 
-__all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "generate_triton", "LIGHT_KINDS", "LIGHT_STRIDE"]
+__all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "generate_triton", "LIGHT_KINDS",
+           "LIGHT_STRIDE"]
 
 LIGHT_KINDS = ("point", "directional")
 LIGHT_STRIDE = 6  # uniforms per light: position/direction (3), intensity/irradiance (3)

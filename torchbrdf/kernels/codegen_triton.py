@@ -24,16 +24,12 @@ Rounding choices that keep IEEE semantics (as the C kernels' ``-ffp-contract=off
 ``tl.sqrt`` are approximate on NVIDIA GPUs), FMA contraction is disabled at launch, and the
 single ``log`` / ``log1p`` of the clearcoat lobe is evaluated in float64 and rounded once.
 
-Other fused kernels (the hook for the fused ``shade`` point/directional passes, which are not
-on this branch yet): a single-phase graph (built with :class:`.trace.TraceOps`,
+Other fused kernels: a single-phase graph (built with :class:`.trace.TraceOps`,
 :func:`.trace.reverse` / :func:`.trace.tangents`) prints with :func:`print_kernel`, imports with
 :func:`compile_source` and runs with :func:`launch`; register it in the same ``torch.library``
 operator as the C kernel, choosing by ``cfg``'s backend field as :mod:`.ops` does for
-``principled``. A light-loop schedule (pixel-level nodes once, light-dependent nodes inside
-``for j in range(L)``, accumulators across lights, then the pixel-level reverse pass) needs one
-more printer here: the pre/post parts print as below, the loop body as a Triton ``for`` loop
-whose accumulators are loop-carried ``[BLOCK]`` tensors and whose light uniforms are scalar
-``tl.load`` s from the uniform table.
+``principled``. Light-loop kernels (fused shading, the recovery's normal equations) print with
+:func:`torchbrdf.kernels.light_loop.print_triton`, which reuses this module's node printer.
 
 Compilation: the source is written to ``<kernel cache dir>/triton/`` (Triton's ``@jit`` reads
 its function's source file) and imported; Triton then compiles it on first launch and keeps

@@ -27,7 +27,8 @@ from typing import Any
 from torchbrdf.kernels.codegen_c import CHUNK_BLOCKS, PRELUDE, Emitter, literal
 from torchbrdf.kernels.trace import Graph, Node, live_order
 
-__all__ = ["LoopSchedule", "Layout", "LightLoop", "flags", "loop_nodes", "acc_input", "print_c", "print_triton"]
+__all__ = ["LoopSchedule", "Layout", "LightLoop", "flags", "loop_nodes", "acc_input", "print_c",
+           "print_triton"]
 
 
 class LoopSchedule:
@@ -126,7 +127,8 @@ def _is_boundary(nd: Node, lit, px) -> bool:
     return nd.id in px and nd.id not in lit and nd.op != "in" and nd.kind != "b"
 
 
-def loop_nodes(roots: Iterable[Node | float | None], lit: set[int], px: set[int]) -> tuple[set[int], set[int]]:
+def loop_nodes(roots: Iterable[Node | float | None], lit: set[int], px: set[int]
+               ) -> tuple[set[int], set[int]]:
     """Nodes of a light-loop body (ids) and the boundary nodes it reads (ids)."""
     body: set[int] = set()
     bnd: set[int] = set()

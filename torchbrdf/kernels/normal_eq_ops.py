@@ -93,8 +93,8 @@ def _triton_kernel(spec: NormalEqSpec, wide: bool):
                 raise ImportError("triton does not import")
             return codegen_triton.compile_source(generate_triton(spec, wide), "tb_ne")
         except Exception as e:  # noqa: BLE001 - any failure: evaluated eagerly
-            warnings.warn(f"torchbrdf: building the Triton normal-equations kernel failed; using eager.\n{e!r}"
-                          [:2000], RuntimeWarning, stacklevel=4)
+            msg = f"torchbrdf: building the Triton normal-equations kernel failed; using eager.\n{e!r}"
+            warnings.warn(msg[:2000], RuntimeWarning, stacklevel=4)
             return None
 
     return _cached(("triton", spec.key(), wide, codegen_triton.interpret_mode()), make)
@@ -195,10 +195,10 @@ def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int,
     return out
 
 
-def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor, camera: Tensor,
-                     light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
-                     pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None, unknowns: int | None = None,
-                     ) -> tuple[Tensor, Tensor, Tensor]:
+def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
+                     camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
+                     pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
+                     unknowns: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pixel Gauss–Newton terms of the capture's log residuals, in one fused pass.
 
     The residuals are :func:`torchbrdf.capture.synthetic.log_residual_points`'s
@@ -231,10 +231,12 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
     if unknown:
         raise ValueError(f"normal_equations: tangents for {sorted(unknown)}, which params does not hold")
     if params.get("anisotropic", 0.0) != 0.0 or "specular_tint" in params or "sheen_tint" in params:
-        raise ValueError("normal_equations: anisotropic, specular_tint and sheen_tint must keep their defaults")
+        raise ValueError("normal_equations: anisotropic, specular_tint and sheen_tint must keep their "
+                         "defaults")
     Ks = {t.shape[0] for t in tangents.values()}
     if unknowns is None and len(Ks) != 1:
-        raise ValueError(f"normal_equations: every tangent needs the same number of directions, got {sorted(Ks)}")
+        raise ValueError(f"normal_equations: every tangent needs the same number of directions, got "
+                         f"{sorted(Ks)}")
     K = int(unknowns) if unknowns is not None else Ks.pop()
     dtype, dev = log_obs.dtype, log_obs.device
     c = {"pos": points, "n": params["normal"], **{k: v for k, v in params.items() if k != "normal"}}

@@ -189,7 +189,8 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
         res = _run_triton(plan, spec, "bwd", flat, modes, uniforms, seg, go, go_mode)
         if res is not None:
             full = dict(zip(res[1], res[0]))
-            return [_to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
+            return [_to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i])
+                    for i in need]
     else:
         lib = _load(spec, backward=True)
     if lib is None:

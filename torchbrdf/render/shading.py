@@ -20,11 +20,11 @@ How it works, in order:
    wrapped in ``torch.utils.checkpoint`` (non-reentrant): its intermediates are dropped after
    the forward pass and recomputed during backward, so forward+backward peak memory is that of
    one pass, whatever the number of lights (measured in ``docs/shading.md``).
-   With the principled BRDF on CPU, all point and directional lights instead go through ONE
-   fused kernel per chunk, forward and recompute-backward (the ``torchbrdf::shade_lights_fwd``
-   operator), generated from the same per-light formula the eager passes run
-   (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``); gradients w.r.t.
-   light parameters or the camera keep the eager passes.
+   With the principled BRDF (the C kernels on CPU, Triton on CUDA), all point and directional
+   lights instead go through ONE fused kernel per chunk, forward and recompute-backward (the
+   ``torchbrdf::shade_lights_fwd`` operator), generated from the same per-light formula the
+   eager passes run (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``);
+   gradients w.r.t. light parameters or the camera keep the eager passes.
 
 Gradients reach every tensor input: material maps, normals, positions, camera position,
 tangents, light positions/directions/intensities and environment maps. Masked and
