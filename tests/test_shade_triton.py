@@ -156,3 +156,29 @@ def test_light_loop_kernels_compile_for_a_gpu_without_one(monkeypatch):
             raise
         ptx = cc.asm["ptx"]
         assert "div.rn.f32" in ptx and "fma.rn.f32" not in ptx
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_shade_runs_the_triton_light_loop(monkeypatch, light_loop_kernels):
+    from torchbrdf.render.geometry import sphere_gbuffer
+
+    monkeypatch.delenv("TRITON_INTERPRET")
+    res = {}
+    for dev in ("cuda", "cpu"):
+        g = sphere_gbuffer(64, 64, dtype=torch.float32)
+        rough = torch.full((1, 1, 64, 64), 0.4, device=dev, requires_grad=True)
+        gb = torchbrdf.GBuffer(position=g.position.to(dev), normal=g.normal.to(dev),
+                               camera_position=g.camera_position.to(dev),
+                               material={"roughness": rough, "base_color": 0.6, "clearcoat": 0.3})
+        torchbrdf.set_backend("auto" if dev == "cuda" else "eager")
+        try:
+            light = torchbrdf.PointLight(position=torch.tensor([1.0, 2.0, 3.0], device=dev),
+                                         intensity=torch.tensor([5.0, 4.0, 3.0], device=dev))
+            img = torchbrdf.shade(gb, [light])
+            img.sum().backward()
+        finally:
+            torchbrdf.set_backend(None)
+        res[dev] = (img.detach().cpu(), rough.grad.cpu())
+    assert "fwd" in light_loop_kernels and "bwd" in light_loop_kernels
+    for a, b in zip(res["cuda"], res["cpu"]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
