@@ -7,7 +7,8 @@ policy asked for, and prints the median wall times and their ratio. Results: doc
 
 Workloads:
     brdf      ``principled`` forward+backward on the fused kernels, 2^20 lanes, float32, repeated.
-    recovery  ``python -m training.recover_svbrdf --demo --quiet`` (more options with ``--cli``).
+    recovery  ``python -m training.recover_svbrdf --demo --quiet`` (more options with ``--cli``;
+              ``--threads torch,1,auto`` alternates the CLI's thread choices).
 """
 
 from __future__ import annotations
@@ -104,6 +105,24 @@ def run_timed(cmd: Sequence[str], env: dict | None, busy: bool, require_seconds:
     return workload_seconds(cmd, stdout, None if require_seconds else wall)
 
 
+def _mmm(xs: list[float]) -> str:
+    """min / median / max."""
+    return f"{min(xs):7.2f} / {statistics.median(xs):7.2f} / {max(xs):7.2f}"
+
+
+def _with_threads(cmd: list[str], choice: str, busy: bool) -> list[str]:
+    """``cmd`` with the recovery CLI's ``--threads`` for ``choice`` ('torch': none; 'auto':
+    :func:`torchbrdf.parallel.default_threads`, read as the run starts)."""
+    if choice == "torch":
+        return cmd
+    if choice == "auto":
+        from torchbrdf.parallel import default_threads
+
+        # (this process is idle while it waits: its own share of the load is 0)
+        return cmd + ["--threads", str(default_threads(own_load=0.0))]
+    return cmd + ["--threads", str(int(choice))]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; prints one line per (policy, quiet/busy) and the busy/quiet ratio."""
     p = argparse.ArgumentParser(prog="python -m torchbrdf.bench.threads",
@@ -112,8 +131,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--lanes", type=int, default=1 << 20)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--repeat", type=int, default=3, help="alternating quiet/busy runs per policy")
-    p.add_argument("--policies", default="default,PASSIVE", help="OMP_WAIT_POLICY values ('default' = unset)")
+    p.add_argument("--policies", default="default,PASSIVE",
+                   help="OMP_WAIT_POLICY values ('default': libgomp's spinning; 'cli': "
+                        "unset, as the recovery CLI chooses)")
     p.add_argument("--cli", default="", help="extra options of the recovery CLI, e.g. '--iters 6'")
+    p.add_argument("--threads", default="torch",
+                   help="recovery: comma-separated thread choices, alternated: 'torch' (the CLI's default), "
+                        "'auto' (torchbrdf.parallel.default_threads() when the run starts) or a number")
     args = p.parse_args(argv)
     out = tempfile.mkdtemp(prefix="tb-threads-")
     if args.workload == "brdf":
@@ -122,22 +146,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         extra = shlex.split(args.cli)
         cmd = [sys.executable, "-m", "training.recover_svbrdf", "--demo", "--out", out, "--quiet", *extra]
     print(f"workload: {args.workload}  cores: {os.cpu_count()}  load average: {os.getloadavg()}")
+    choices = args.threads.split(",") if args.workload == "recovery" else ["torch"]
     for pol in args.policies.split(","):
         env = dict(os.environ)
         env.pop("OMP_WAIT_POLICY", None)
         env.pop("GOMP_SPINCOUNT", None)
-        if pol != "default":
-            env["OMP_WAIT_POLICY"] = pol
-        else:
+        if pol == "default":
             env["GOMP_SPINCOUNT"] = "300000"  # libgomp's default, set so the recovery CLI keeps it
-        times: dict[bool, list[float]] = {False: [], True: []}
+        elif pol != "cli":  # 'cli': neither set, the recovery CLI's own choice
+            env["OMP_WAIT_POLICY"] = pol
+        times: dict[tuple[str, bool], list[float]] = {(c, b): [] for c in choices for b in (False, True)}
         for _ in range(args.repeat):
-            for busy in (False, True):
-                times[busy].append(run_timed(cmd, env, busy))
-        q, b = statistics.median(times[False]), statistics.median(times[True])
-        print(f"OMP_WAIT_POLICY={pol:8s} quiet {q:8.2f} s  busy {b:8.2f} s  busy/quiet {b / q:5.2f}  "
-              f"(runs: quiet {[round(t, 2) for t in times[False]]}, "
-              f"busy {[round(t, 2) for t in times[True]]})")
+            for choice in choices:
+                for busy in (False, True):
+                    times[choice, busy].append(run_timed(_with_threads(cmd, choice, busy), env, busy))
+        for choice in choices:
+            q, b = times[choice, False], times[choice, True]
+            mq, mb = statistics.median(q), statistics.median(b)
+            print(f"OMP_WAIT_POLICY={pol:8s} threads={choice:5s} quiet {_mmm(q)} s  busy {_mmm(b)} s  "
+                  f"busy/quiet (medians) {mb / mq:5.2f}")
     print(f"load average after: {os.getloadavg()}")
     return 0
 

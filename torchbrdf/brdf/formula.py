@@ -37,7 +37,8 @@ are not known until run time as runtime-float nodes, which fold in double like P
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import numbers
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol, TypeAlias
 
 import torch
@@ -90,6 +91,33 @@ PRINCIPLED_DEFAULTS = {
 SCALAR_PARAMS = tuple(PRINCIPLED_DEFAULTS)
 #: The lobes, in evaluation order.
 LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
+
+
+def is_const(p, value: float) -> bool:
+    """True when ``p`` is a Python number equal to ``value`` (a tensor is never assumed constant)."""
+    return isinstance(p, numbers.Real) and float(p) == value
+
+
+def active_lobes(params: dict, lobes: Iterable[str] | None = None) -> tuple[str, ...]:
+    """Lobes ``principled`` evaluates for these parameters.
+
+    A lobe is skipped when its weight is a Python number equal to 0 (exactly the same result,
+    since the skipped term would be multiplied by 0) or when ``lobes`` leaves it out.
+    """
+    p = {**PRINCIPLED_DEFAULTS, **params}
+    wanted = LOBES if lobes is None else tuple(lobes)
+    unknown = set(wanted) - set(LOBES)
+    if unknown:
+        raise ValueError(f"lobes: unknown lobe(s) {sorted(unknown)}; expected a subset of {LOBES}")
+    metal = is_const(p["metallic"], 1.0)
+    skip = {
+        "diffuse": metal or is_const(p["subsurface"], 1.0),
+        "subsurface": metal or is_const(p["subsurface"], 0.0),
+        "specular": False,
+        "sheen": metal or is_const(p["sheen"], 0.0),
+        "clearcoat": is_const(p["clearcoat"], 0.0),
+    }
+    return tuple(lobe for lobe in LOBES if lobe in wanted and not skip[lobe])
 
 INV_PI = 1.0 / math.pi
 # Cosine floor for the masked-out lanes and for grazing inputs: 1e-7 is the smallest cosine

@@ -36,38 +36,12 @@ from torchbrdf._types import Color, Scalar
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.formula import ASPECT2_MIN, COS_EPS, INV_PI  # noqa: F401  (re-exported constants)
 from torchbrdf.brdf.formula import LOBES, PRINCIPLED_DEFAULTS, SCALAR_PARAMS  # noqa: F401  (defined with the formula)
+from torchbrdf.brdf.formula import active_lobes, is_const
 from torchbrdf.brdf.frames import frame_from_normal
 
 __all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES", "set_fast_path", "fast_path_enabled",
            "FAST_PATH_MIN_LANES"]
 
-
-
-def _is_const(p, value: float) -> bool:
-    """True when ``p`` is a Python number equal to ``value`` (a tensor is never assumed constant)."""
-    return isinstance(p, numbers.Real) and float(p) == value
-
-
-def active_lobes(params: dict, lobes: Iterable[str] | None = None) -> tuple[str, ...]:
-    """Lobes ``principled`` evaluates for these parameters.
-
-    A lobe is skipped when its weight is a Python number equal to 0 (exactly the same result,
-    since the skipped term would be multiplied by 0) or when ``lobes`` leaves it out.
-    """
-    p = {**PRINCIPLED_DEFAULTS, **params}
-    wanted = LOBES if lobes is None else tuple(lobes)
-    unknown = set(wanted) - set(LOBES)
-    if unknown:
-        raise ValueError(f"lobes: unknown lobe(s) {sorted(unknown)}; expected a subset of {LOBES}")
-    metal = _is_const(p["metallic"], 1.0)
-    skip = {
-        "diffuse": metal or _is_const(p["subsurface"], 1.0),
-        "subsurface": metal or _is_const(p["subsurface"], 0.0),
-        "specular": False,
-        "sheen": metal or _is_const(p["sheen"], 0.0),
-        "clearcoat": _is_const(p["clearcoat"], 0.0),
-    }
-    return tuple(lobe for lobe in LOBES if lobe in wanted and not skip[lobe])
 
 
 def _prepare(l, v, n, x, y, params, base_color):
@@ -327,12 +301,12 @@ def _principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
 
 
 def _need_tint(c: dict, active) -> bool:
-    tinted_sheen = "sheen" in active and not _is_const(c["sheen_tint"], 0.0)
-    return not _is_const(c["specular_tint"], 0.0) or tinted_sheen
+    tinted_sheen = "sheen" in active and not is_const(c["sheen_tint"], 0.0)
+    return not is_const(c["specular_tint"], 0.0) or tinted_sheen
 
 
 def _needs_frame(c: dict) -> bool:
-    return not (c["x"] is None and c["y"] is None and _is_const(c["anisotropic"], 0.0))
+    return not (c["x"] is None and c["y"] is None and is_const(c["anisotropic"], 0.0))
 
 
 def half_vector_terms(l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None,

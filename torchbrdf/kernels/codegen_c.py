@@ -377,5 +377,3 @@ def _store_block(ctype: str) -> list:
               "#endif",
               "    {", *("  " + x for x in plain), "    }"]
     return lines
-
-

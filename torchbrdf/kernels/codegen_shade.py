@@ -1,4 +1,7 @@
-"""C code generation for fused shading: geometry, principled BRDF and the sum over lights in one loop.
+"""Code generation for fused shading: geometry, principled BRDF and the sum over lights in one loop.
+
+C (:func:`generate`) and Triton (:func:`generate_triton`) print the same light-loop schedule
+(:func:`schedule`, printed by :mod:`.light_loop`).
 
 :func:`generate` traces :func:`torchbrdf.brdf.formula.view_direction` and the per-light terms
 :func:`~torchbrdf.brdf.formula.point_light` / :func:`~torchbrdf.brdf.formula.directional_light`
@@ -47,10 +50,12 @@ from typing import Any
 
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.formula import SCALAR_PARAMS
-from torchbrdf.kernels.codegen_c import CHUNK_BLOCKS, PRELUDE, Emitter, lane_index, lit
-from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, live_order, reverse
+from torchbrdf.kernels.codegen_c import lane_index
+from torchbrdf.kernels.light_loop import Layout, LightLoop, LoopSchedule, flags, print_c, print_triton
+from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse
 
-__all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "LIGHT_KINDS", "LIGHT_STRIDE"]
+__all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "generate_triton", "LIGHT_KINDS",
+           "LIGHT_STRIDE"]
 
 LIGHT_KINDS = ("point", "directional")
 LIGHT_STRIDE = 6  # uniforms per light: position/direction (3), intensity/irradiance (3)
@@ -169,80 +174,6 @@ def _trace(spec: ShadeSpec):
     return g, loads, outs
 
 
-def _flags(g: Graph):
-    """Ids of the nodes that depend on a light uniform (``lit``) and on a per-pixel value (``px``)."""
-    lit, px = set(), set()
-    for nd in g.nodes:
-        if nd.op == "in":
-            role = nd.attr["role"]
-            if role == "light":
-                lit.add(nd.id)
-            if role in ("px", "go"):
-                px.add(nd.id)
-            continue
-        for a in nd.args:
-            if isinstance(a, Node):
-                if a.id in lit:
-                    lit.add(nd.id)
-                if a.id in px:
-                    px.add(nd.id)
-    return lit, px
-
-
-def _is_boundary(nd: Node, lit, px) -> bool:
-    """A pixel-level value the light loop reads from the pre-loop's array (loads are re-read
-    from their tensor and masks are printed inline, so neither needs an array)."""
-    return nd.id in px and nd.id not in lit and nd.op != "in" and nd.kind != "b"
-
-
-def _loop_nodes(roots, lit, px):
-    """Nodes of a light-loop body (ids) and the boundary nodes it reads (ids)."""
-    body, bnd = set(), set()
-    stack = [r for r in roots if isinstance(r, Node)]
-    while stack:
-        nd = stack.pop()
-        if nd.id in body or nd.id in bnd:
-            continue
-        if _is_boundary(nd, lit, px):
-            bnd.add(nd.id)
-            continue
-        body.add(nd.id)
-        stack.extend(a for a in nd.args if isinstance(a, Node))
-    return body, bnd
-
-
-class LoopSchedule:
-    """A light-loop kernel, independent of the language it is printed in.
-
-    * ``graph``: all nodes (forward, and for the backward both reverse passes);
-    * ``accs``: per light kind, ``[(key, node)]``: ``node`` is added into accumulator ``key``
-      once per light (keys: ``("out", c)`` radiance channel, ``("adj", id)`` the adjoint of
-      pixel-level node ``id``); ``acc_kind[key]`` its value kind;
-    * ``post``: ``[(store, node or None)]`` after the loop, ``store`` = ``("out", c)`` or
-      ``("grad", k, c)`` (``None``: zero); nodes there read accumulators through ``acc`` inputs;
-    * ``written``: inputs whose gradient the backward writes.
-
-    An emitter classifies nodes with :func:`_flags` / :func:`_loop_nodes` (pre-loop, per-light
-    scalars, light loop) and prints the three phases; see :func:`_print` for C.
-    """
-
-    def __init__(
-        self,
-        graph: Graph,
-        accs: dict[str, list[tuple[tuple[Any, ...], Node]]],
-        acc_kind: dict[tuple[Any, ...], str],
-        post: list[tuple[tuple[Any, ...], Node | None]],
-        written: Iterable[int] = (),
-    ) -> None:
-        self.graph, self.accs, self.acc_kind, self.post, self.written = (
-            graph,
-            accs,
-            acc_kind,
-            post,
-            tuple(written),
-        )
-
-
 def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
     """Trace the formula and build the forward (``"fwd"``) or backward (``"bwd"``) schedule."""
     g, loads, outs = _trace(spec)
@@ -257,7 +188,7 @@ def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
         if kind != "bwd":
             raise ValueError(kind)
         go = [_in("go", c=c) for c in range(3)]
-        lit, px = _flags(g)
+        lit, px = flags(g)
         # The loop body's reverse pass stops at the pixel-level values (no light dependence):
         # their adjoints are summed over the lights and propagated further after the loop.
         stop = frozenset(i for i in px if i not in lit)
@@ -307,142 +238,68 @@ def generate(spec: ShadeSpec, kind: str) -> str:
             "void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
             "int nthreads)"
         )
-    return _print(spec, sch, decl, sig)
+    return print_c(spec.ctype, sch, _layout(spec), decl, sig)
 
 
-def _acc_name(key) -> str:
-    return f"ao{key[1]}" if key[0] == "out" else f"ga{key[1]}"
+def generate_triton(spec: ShadeSpec, kind: str, wide: bool = False) -> str:
+    """Triton source of the forward (``"fwd"``) or backward (``"bwd"``) shading kernel.
+
+    ``tb_fwd(n, P, U, x0 .. x{T-1}, out, Lp, Ld, BLOCK)``;
+    ``tb_bwd(n, P, U, x0 .. x{T-1}, go, g{k} for k in spec.written, Lp, Ld, BLOCK)``: ``x{k}``
+    the per-pixel inputs (``spec.tensors``), ``U`` the segment's uniform row (camera, then the
+    lights, as in C), ``P`` the runtime floats (float64), ``Lp`` / ``Ld`` the light counts,
+    ``out`` / ``g{k}`` lane-dense ``(n, 3)`` / ``(n, C_k)``, ``go`` in ``spec.go_mode``. Sets
+    ``spec.written`` for ``"bwd"``.
+    """
+    sch = schedule(spec, kind)
+    spec.written = sch.written
+    args = [f"x{k}" for k in range(len(spec.tensors))]
+    args += ["out"] if kind == "fwd" else ["go"] + [f"g{k}" for k in sch.written]
+    return print_triton(spec.ctype, sch, _layout(spec), f"tb_{kind}", args + ["Lp", "Ld"], wide)
 
 
-def _load_expr(spec: ShadeSpec, nd: Node) -> str:
-    a = nd.attr
-    role = a["role"]
-    if role == "px":
-        _, mode, C = spec.tensors[a["k"]]
-        return f"p{a['k']}[{lane_index(mode, C, a['c'])}]"
-    if role == "go":
-        return f"go[{lane_index(spec.go_mode, 3, a['c'])}]"
-    if role == "cam":
-        return f"U[{a['c']}]"
-    if role == "light":
-        return f"u[{a['c']}]"
-    return f"{_acc_name(a['key'])}[i - b0]"
+def _tl_index(mode: str, C: int, c: int) -> str:
+    """A Triton load's address offset and mask for a per-pixel value in ``mode``."""
+    if mode == "full":
+        return f"i * {C} + {c}, mask=m, other=0.0" if C > 1 else "i, mask=m, other=0.0"
+    return f"{c}" if mode == "b1" else "0"
 
 
-def _store_expr(spec: ShadeSpec, store) -> str:
-    if store[0] == "out":
-        return f"out[i * 3 + {store[1]}]"
-    _, k, c = store
-    return f"gp{k}[i * {spec.tensors[k][2]} + {c}]"
+def _layout(spec: ShadeSpec) -> Layout:
+    """The shading kernels' loads and stores (C and Triton)."""
+
+    def load_c(a: dict) -> str:
+        role = a["role"]
+        if role == "px":
+            _, mode, C = spec.tensors[a["k"]]
+            return f"p{a['k']}[{lane_index(mode, C, a['c'])}]"
+        if role == "go":
+            return f"go[{lane_index(spec.go_mode, 3, a['c'])}]"
+        return f"U[{a['c']}]" if role == "cam" else f"u[{a['c']}]"
+
+    def load_t(a: dict) -> str:
+        role = a["role"]
+        if role == "px":
+            _, mode, C = spec.tensors[a["k"]]
+            return f"tl.load(x{a['k']} + {_tl_index(mode, C, a['c'])})"
+        if role == "go":
+            return f"tl.load(go + {_tl_index(spec.go_mode, 3, a['c'])})"
+        return f"tl.load(U + {a['c']})" if role == "cam" else f"tl.load(u + {a['c']})"
+
+    def store_c(store: tuple) -> str:
+        if store[0] == "out":
+            return f"out[i * 3 + {store[1]}]"
+        _, k, c = store
+        return f"gp{k}[i * {spec.tensors[k][2]} + {c}]"
+
+    def store_t(store: tuple) -> str:
+        if store[0] == "out":
+            return f"out + (i * 3 + {store[1]})"
+        _, k, c = store
+        return f"g{k} + (i * {spec.tensors[k][2]} + {c})"
+
+    loops = [LightLoop("point", "0", "Lp"), LightLoop("directional", "Lp", "Ld")]
+    return Layout([lp for lp in loops if lp.name in spec.lights], load_c, store_c, load_t, store_t,
+                  skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK)
 
 
-def _print(spec: ShadeSpec, sch: LoopSchedule, decl, sig) -> str:
-    """Print a schedule as C: pre-loop, light loops, post-loop over each block of pixels."""
-    g, accs = sch.graph, sch.accs
-    em = Emitter(spec.ctype, lambda attr: attr["load"])  # the loads are set on the nodes below
-    lit, px = _flags(g)
-    byid = {nd.id: nd for nd in g.nodes}
-    for nd in g.nodes:
-        if nd.op == "in":
-            nd.attr["load"] = _load_expr(spec, nd)
-    acc_arrays = [("R" if k == "r" else "double", _acc_name(key)) for key, k in sch.acc_kind.items()]
-
-    def emit(nodes, names, lines, reads=None):
-        reads = reads or {}
-        for nd in nodes:
-            if nd.id in reads:
-                names[nd.id] = f"v{nd.id}"
-                lines.append(f"const {em.t(nd.kind)} v{nd.id} = {reads[nd.id]};")
-                continue
-            v = _namer(names)
-            if nd.kind == "b":  # masks are inlined (int mask variables stop gcc vectorising)
-                names[nd.id] = f"({em.expr(nd, v)})"
-                continue
-            names[nd.id] = f"v{nd.id}"
-            lines.append(f"const {em.t(nd.kind)} v{nd.id} = {em.expr(nd, v)};")
-
-    # light loops
-    loops, bnd_all = [], set()
-    for lk in spec.lights:
-        roots = [nd for _, nd in accs[lk]]
-        body, bnd = _loop_nodes(roots, lit, px)
-        bnd_all |= bnd
-        names: dict = {}
-        scal: list[str] = []
-        lane: list[str] = []
-        order = [nd for nd in g.nodes if nd.id in body or nd.id in bnd]
-        emit([nd for nd in order if nd.id in body and nd.id not in px], names, scal)
-        emit(
-            [nd for nd in order if nd.id in bnd or nd.id in px],
-            names,
-            lane,
-            reads={b: f"bd{b}[i - b0]" for b in bnd},
-        )
-        lane += [f"{_acc_name(key)}[i - b0] += {names[nd.id]};" for key, nd in accs[lk]]
-        first = "0" if lk == "point" else "Lp"
-        count = "Lp" if lk == "point" else "Ld"
-        loops += [
-            f"    for (long j = 0; j < {count}; ++j) {{",
-            f"      const R* __restrict u = U + {CAMERA} + {LIGHT_STRIDE} * ({first} + j);",
-            *("      " + s for s in scal),
-            "      #pragma GCC ivdep",
-            "      for (long i = b0; i < b1; ++i) {",
-            *("        " + s for s in lane),
-            "      }",
-            "    }",
-        ]
-
-    # pre-loop: pixel-level values read by the light loops
-    pre_names: dict = {}
-    pre: list[str] = []
-    bnd_sorted = sorted(bnd_all)
-    emit(live_order(g, [byid[b] for b in bnd_sorted]), pre_names, pre)
-    pre += [f"bd{b}[i - b0] = {pre_names[b]};" for b in bnd_sorted]
-
-    # post-loop
-    post_names: dict = {}
-    post: list[str] = []
-    roots = [nd for _, nd in sch.post if isinstance(nd, Node)]
-    emit(live_order(g, roots), post_names, post)
-    for store, val in sch.post:
-        post.append(
-            f"{_store_expr(spec, store)} = {post_names[val.id] if isinstance(val, Node) else '((R)0)'};"
-        )
-
-    def arr(kind_c, name):
-        return f"    {kind_c} {name}[{BLOCK}];"
-
-    src = [
-        PRELUDE,
-        f"typedef {spec.ctype} R;",
-        "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if spec.ctype == "float" else "__builtin_sqrt(x)"),
-        sig + " {",
-        *("  " + d for d in decl),
-        f"  #pragma omp parallel for schedule(dynamic, {CHUNK_BLOCKS}) num_threads(nthreads)",
-        f"  for (long b0 = 0; b0 < n; b0 += {BLOCK}) {{",
-        f"    const long b1 = b0 + {BLOCK} < n ? b0 + {BLOCK} : n;",
-        *(arr("R" if byid[b].kind == "r" else "double", f"bd{b}") for b in bnd_sorted),
-        *(arr(t, name) for t, name in acc_arrays),
-        *(f"    for (long i = 0; i < {BLOCK}; ++i) {name}[i] = 0;" for _, name in acc_arrays),
-        "    #pragma GCC ivdep",
-        "    for (long i = b0; i < b1; ++i) {",
-        *("      " + s for s in pre),
-        "    }",
-        *loops,
-        "    #pragma GCC ivdep",
-        "    for (long i = b0; i < b1; ++i) {",
-        *("      " + s for s in post),
-        "    }",
-        "  }",
-        "}",
-    ]
-    return "\n".join(src) + "\n"
-
-
-def _namer(names):
-    """Name of a node (or a literal for a Python number) in the current loop."""
-
-    def v(nd):
-        return names[nd.id] if isinstance(nd, Node) else f"((R){lit(nd)})"
-
-    return v

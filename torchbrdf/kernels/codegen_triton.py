@@ -24,16 +24,12 @@ Rounding choices that keep IEEE semantics (as the C kernels' ``-ffp-contract=off
 ``tl.sqrt`` are approximate on NVIDIA GPUs), FMA contraction is disabled at launch, and the
 single ``log`` / ``log1p`` of the clearcoat lobe is evaluated in float64 and rounded once.
 
-Other fused kernels (the hook for the fused ``shade`` point/directional passes, which are not
-on this branch yet): a single-phase graph (built with :class:`.trace.TraceOps`,
+Other fused kernels: a single-phase graph (built with :class:`.trace.TraceOps`,
 :func:`.trace.reverse` / :func:`.trace.tangents`) prints with :func:`print_kernel`, imports with
 :func:`compile_source` and runs with :func:`launch`; register it in the same ``torch.library``
 operator as the C kernel, choosing by ``cfg``'s backend field as :mod:`.ops` does for
-``principled``. A light-loop schedule (pixel-level nodes once, light-dependent nodes inside
-``for j in range(L)``, accumulators across lights, then the pixel-level reverse pass) needs one
-more printer here: the pre/post parts print as below, the loop body as a Triton ``for`` loop
-whose accumulators are loop-carried ``[BLOCK]`` tensors and whose light uniforms are scalar
-``tl.load`` s from the uniform table.
+``principled``. Light-loop kernels (fused shading, the recovery's normal equations) print with
+:func:`torchbrdf.kernels.light_loop.print_triton`, which reuses this module's node printer.
 
 Compilation: the source is written to ``<kernel cache dir>/triton/`` (Triton's ``@jit`` reads
 its function's source file) and imported; Triton then compiles it on first launch and keeps
@@ -67,7 +63,7 @@ __all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "inte
 _CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
 _ARITH = {"add": "+", "sub": "-", "mul": "*"}
 
-_PRELUDE = '''import triton
+PRELUDE = '''import triton
 import triton.language as tl
 
 
@@ -82,14 +78,14 @@ def _log1p64(t):
 '''
 
 
-def _lit(x: float) -> str:
+def lit(x: float) -> str:
     r = repr(float(x))
     if r in ("inf", "-inf", "nan"):
         raise ValueError(f"non-finite constant {x} in a kernel graph")
     return r
 
 
-class _Printer:
+class Printer:
     """Prints nodes as Triton expressions for a compute type ``DT`` (``tl.float32``/``tl.float64``)."""
 
     def __init__(self, ctype: str, go_strides=(3, 1)):
@@ -122,7 +118,7 @@ class _Printer:
         if op == "P":
             return f"tl.load(P + {nd.attr})"
         if op == "const":
-            return f"tl.full([BLOCK], {_lit(nd.attr)}, {self.ty(k)})"
+            return f"tl.full([BLOCK], {lit(nd.attr)}, {self.ty(k)})"
         if op in _ARITH:
             return f"{a[0]} {_ARITH[op]} {a[1]}"
         if op == "div":
@@ -213,11 +209,11 @@ def print_kernel(name: str, g: Graph, stores: Sequence[tuple[tuple[Any, ...], No
     attributes of :mod:`.graphs`, ``P`` nodes index the float64 runtime-float tensor ``P``, and
     ``ctype`` (``"float"``/``"double"``) is the compute type of kind-``'r'`` nodes.
     """
-    pr = _Printer(ctype, go_strides)
+    pr = Printer(ctype, go_strides)
     names: dict[int, str] = {}
 
     def v(nd):
-        return names[nd.id] if isinstance(nd, Node) else f"tl.full([BLOCK], {_lit(nd)}, {pr.DT})"
+        return names[nd.id] if isinstance(nd, Node) else f"tl.full([BLOCK], {lit(nd)}, {pr.DT})"
 
     body = []
     for nd in live_order(g, [val for _, val in stores]):
@@ -227,7 +223,7 @@ def print_kernel(name: str, g: Graph, stores: Sequence[tuple[tuple[Any, ...], No
         body.append(f"tl.store({_target(tgt)}, tl.broadcast_to({v(val)}, [BLOCK]), mask=m)")
     pid = "tl.program_id(0).to(tl.int64)" if wide else "tl.program_id(0)"
     src = [
-        _PRELUDE,
+        PRELUDE,
         "@triton.jit",
         f"def {name}(n, P, {', '.join(args)}, BLOCK: tl.constexpr):",
         f"    i = {pid} * BLOCK + tl.arange(0, BLOCK)",

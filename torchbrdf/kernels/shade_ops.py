@@ -23,13 +23,15 @@ the same formula (:mod:`torchbrdf.brdf.formula`) eagerly.
 
 from __future__ import annotations
 
+import threading
+import warnings
 from collections.abc import Iterable
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from torchbrdf.kernels.codegen_shade import CAMERA, LIGHT_STRIDE, ShadeSpec
+from torchbrdf.kernels.codegen_shade import CAMERA, LIGHT_STRIDE, ShadeSpec, generate_triton
 from torchbrdf.kernels.fused import buffer_pool, load
 from torchbrdf.kernels.layout import SCALAR_NAMES, dparams, flatten, ptrs, to_shape
 
@@ -40,25 +42,29 @@ TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES
 
 
 def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
-             frame: bool, normalize_n: bool, n_point: int, n_dir: int) -> str:
-    """The ``cfg`` string of the shading operators (what changes the kernel, as text)."""
-    return "|".join(
-        [
-            ",".join(tensor_names),
-            ",".join(float_names),
-            ",".join(active),
-            str(int(need_tint)),
-            str(int(frame)),
-            str(int(normalize_n)),
-            str(int(n_point)),
-            str(int(n_dir)),
-        ]
-    )
+             frame: bool, normalize_n: bool, n_point: int, n_dir: int, backend: str = "c") -> str:
+    """The ``cfg`` string of the shading operators (what changes the kernel, as text).
+
+    ``backend``: ``"c"`` (the C kernels, CPU tensors) or ``"triton"`` (CUDA tensors, or CPU
+    tensors under ``TRITON_INTERPRET=1``).
+    """
+    parts = [
+        ",".join(tensor_names),
+        ",".join(float_names),
+        ",".join(active),
+        str(int(need_tint)),
+        str(int(frame)),
+        str(int(normalize_n)),
+        str(int(n_point)),
+        str(int(n_dir)),
+    ]
+    return "|".join(parts + ([backend] if backend != "c" else []))
 
 
 class _Plan:
     def __init__(self, cfg: str, tensors, floats):
-        tn, fn, act, tint, frame, nrm, lp, ld = cfg.split("|")
+        tn, fn, act, tint, frame, nrm, lp, ld, *rest = cfg.split("|")
+        self.backend = rest[0] if rest else "c"
         self.tensor_names = tn.split(",") if tn else []
         self.float_names = fn.split(",") if fn else []
         self.active = tuple(act.split(",")) if act else ()
@@ -92,6 +98,10 @@ class _Plan:
 
     def params(self):
         return dparams(self.floats + [float(self.n_point), float(self.n_dir)])
+
+    def triton_params(self, device) -> Tensor:
+        # float64 (the formula folds Python numbers in double); at least one element
+        return torch.tensor(self.floats + [0.0], dtype=torch.float64, device=device)
 
 
 def _segments(seg):
@@ -136,8 +146,14 @@ def _formula_eager(plan: _Plan, tensors, floats, uniforms: Tensor, seg) -> Tenso
 def _run_fwd(plan: _Plan, tensors, uniforms: Tensor, seg) -> Tensor:
     N = plan.N
     if N == 0:
-        return torch.zeros(0, 3, dtype=plan.dtype)
+        return torch.zeros(0, 3, dtype=plan.dtype, device=tensors[0].device)
     flat, modes = plan.flat(tensors)
+    if plan.backend == "triton":
+        res = _run_triton(plan, plan.spec(modes), "fwd", flat, modes, uniforms, seg)
+        if res is not None:
+            return res[0][0]
+        with torch.no_grad():
+            return _formula_eager(plan, tensors, plan.floats, uniforms, seg)
     lib = load(plan.spec(modes), backward=False)
     if lib is None:
         with torch.no_grad():
@@ -167,7 +183,16 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
     # The output gradient as lanes too: the gradient of a sum is one value for all pixels ('b0'),
     # read in place instead of being materialised.
     go, go_mode = flatten(grad_out.to(plan.dtype), 3, (N,), N)
-    lib = load(plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode), backward=True)
+    spec = plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode)
+    lib = None
+    if plan.backend == "triton":
+        res = _run_triton(plan, spec, "bwd", flat, modes, uniforms, seg, go, go_mode)
+        if res is not None:
+            full = dict(zip(res[1], res[0]))
+            return [to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i])
+                    for i in need]
+    else:
+        lib = load(spec, backward=True)
     if lib is None:
         with torch.enable_grad():
             ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
@@ -189,6 +214,76 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
         go_ptr = go.data_ptr() + (s * 3 * item if go_mode == "full" else 0)
         lib[1](e - s, ptrs(ins), P, go_ptr, ptrs(gouts), nt)
     return [to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
+
+
+_triton_lock = threading.Lock()
+_triton_kernels: dict = {}
+_triton_failed: set = set()
+
+
+def _triton_kernel(spec: ShadeSpec, kind: str, wide: bool):
+    """The ``@triton.jit`` shading kernel of ``spec`` (``kind`` ``"fwd"``/``"bwd"``) and the
+    inputs whose gradient it writes, or None when it cannot be built (one warning)."""
+    from torchbrdf.kernels import codegen_triton
+
+    key = (spec.key(kind == "bwd"), kind, wide, codegen_triton.interpret_mode())
+    hit = _triton_kernels.get(key)
+    if hit is not None:
+        return hit
+    with _triton_lock:
+        hit = _triton_kernels.get(key)
+        if hit is not None or key in _triton_failed:
+            return hit
+        if not codegen_triton.available():
+            _triton_failed.add(key)
+            return None
+        try:
+            src = generate_triton(spec, kind, wide)
+            hit = (codegen_triton.compile_source(src, f"tb_{kind}"), spec.written)
+        except Exception as e:  # noqa: BLE001 - any failure: the shading runs eagerly
+            _triton_failed.add(key)
+            warnings.warn(f"torchbrdf: building the Triton shading kernel failed; using eager.\n{e!r}"[:2000],
+                          RuntimeWarning, stacklevel=3)
+            return None
+        _triton_kernels[key] = hit
+        return hit
+
+
+def _run_triton(plan: _Plan, spec: ShadeSpec, kind: str, flat, modes, uniforms: Tensor, seg, go=None,
+                go_mode="full") -> tuple[list[Tensor], tuple[int, ...]] | None:
+    """One Triton launch per segment: ``([out (N, 3)], ())`` (``"fwd"``) or the gradients
+    ``(N, C_k)`` of the inputs ``written`` and ``written`` (``"bwd"``); None when the kernel
+    cannot be built."""
+    from torchbrdf.kernels import codegen_triton
+
+    N = plan.N
+    wide = N * max([3] + plan.C) >= 2**31
+    hit = _triton_kernel(spec, kind, wide)
+    if hit is None:
+        return None
+    kernel, written = hit
+    dev = flat[0].device
+    outs = ([torch.empty((N, 3), dtype=plan.dtype, device=dev)] if kind == "fwd"
+            else [torch.empty((N, plan.C[k]), dtype=plan.dtype, device=dev) for k in written])
+    P = plan.triton_params(dev)
+    uniforms = uniforms.to(device=dev).contiguous()
+    for r, s, e in _segments(seg):
+        ins = [f[s:e] if mode == "full" else f for f, (_, mode, _) in zip(flat, modes)]
+        if kind == "fwd":
+            tail = [outs[0][s:e]]
+        else:
+            tail = [go[s:e] if go_mode == "full" else go] + [o[s:e] for o in outs]
+        args = [uniforms[r], *ins, *tail, plan.n_point, plan.n_dir]
+        try:
+            codegen_triton.launch(kernel, kind, e - s, P, args)
+        except Exception as exc:  # noqa: BLE001 - a launch failure: this family runs eagerly
+            with _triton_lock:
+                _triton_failed.add((spec.key(kind == "bwd"), kind, wide, codegen_triton.interpret_mode()))
+                _triton_kernels.clear()
+            warnings.warn(f"torchbrdf: the Triton shading kernel failed; using eager.\n{exc!r}"[:2000],
+                          RuntimeWarning, stacklevel=3)
+            return None
+    return outs, written
 
 
 @torch.library.custom_op("torchbrdf::shade_lights_fwd", mutates_args=())
@@ -273,22 +368,25 @@ def shade_lights(
     normalize_n: bool,
     n_point: int,
     n_dir: int,
+    backend: str = "c",
 ) -> Tensor:
-    """Fused shading of ``P`` points on compute-dtype CPU inputs.
+    """Fused shading of ``P`` points on compute-dtype inputs.
 
     Args:
         c: ``pos``, ``n`` ``(P, 3)``; ``x, y`` ``(P, 3)`` when ``frame``; ``base_color`` and
             the ten scalar parameters (tensors ``(P, C)`` / 0-d, or Python numbers).
         uniforms: ``(S, 3 + 6 (n_point + n_dir))`` (see the module docstring); ``seg``: ``S + 1``
             point offsets.
+        backend: ``"c"`` (CPU tensors) or ``"triton"`` (CUDA tensors; CPU tensors under
+            ``TRITON_INTERPRET=1``).
 
     Returns:
-        ``(P, 3)`` radiance summed over the lights.
+        ``(P, 3)`` radiance summed over the lights, on the inputs' device.
     """
     names = [k for k in TENSOR_ORDER if k in c and (k not in ("x", "y") or frame)]
     tensor_names = [k for k in names if isinstance(c[k], Tensor)]
     float_names = [k for k in names if k not in tensor_names]
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
-    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir)
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir, backend)
     return shade_lights_fwd(tensors, floats, uniforms, [int(s) for s in seg], cfg)

@@ -20,11 +20,11 @@ How it works, in order:
    wrapped in ``torch.utils.checkpoint`` (non-reentrant): its intermediates are dropped after
    the forward pass and recomputed during backward, so forward+backward peak memory is that of
    one pass, whatever the number of lights (measured in ``docs/shading.md``).
-   With the principled BRDF on CPU, all point and directional lights instead go through ONE
-   fused kernel per chunk, forward and recompute-backward (the ``torchbrdf::shade_lights_fwd``
-   operator), generated from the same per-light formula the eager passes run
-   (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``); gradients w.r.t.
-   light parameters or the camera keep the eager passes.
+   With the principled BRDF (the C kernels on CPU, Triton on CUDA), all point and directional
+   lights instead go through ONE fused kernel per chunk, forward and recompute-backward (the
+   ``torchbrdf::shade_lights_fwd`` operator), generated from the same per-light formula the
+   eager passes run (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``);
+   gradients w.r.t. light parameters or the camera keep the eager passes.
 
 Gradients reach every tensor input: material maps, normals, positions, camera position,
 tangents, light positions/directions/intensities and environment maps. Masked and
@@ -339,8 +339,8 @@ def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, element
 
     The principled BRDF, inputs the kernel reads (4-D maps or constants), no gradient wanted
     w.r.t. lights or camera (those stay on the eager shader), and the fused kernels' dispatch
-    rule (``principled._fused_backend``, on ``elements`` pixel-lights) picking the C kernels:
-    the shading kernel is printed as C only.
+    rule (``principled._fused_backend``, on ``elements`` pixel-lights) picking the C or the
+    Triton kernels (the shading kernel is printed in both).
     """
     if kind != "principled" or not (points or dirs):
         return False
@@ -362,7 +362,7 @@ def _fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, element
         uniform = [cam] + [t for light in points + dirs for t in light._light_tensors()]
         if any(t.requires_grad for t in uniform):
             return False
-    return _pr._fused_backend(dev, cd, tensors, lambda: elements) == "c"
+    return _pr._fused_backend(dev, cd, tensors, lambda: elements) in ("c", "triton")
 
 
 def _uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
@@ -397,7 +397,17 @@ def _fused_lights_term(
     else:  # points are batch-major: one segment (uniform row) per image
         counts = torch.bincount(bidx, minlength=table.shape[0])
         seg = [0] + torch.cumsum(counts, 0).tolist()
-    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir)
+    backend = "c" if pos.device.type == "cpu" and not _triton_interpreted() else "triton"
+    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir,
+                        backend)
+
+
+def _triton_interpreted() -> bool:
+    """CPU tensors go to the Triton shading kernels when the backend resolves to Triton (its
+    interpreter, ``TRITON_INTERPRET=1``: how the tests run them without a GPU)."""
+    from torchbrdf.kernels import backend
+
+    return backend.resolve(torch.device("cpu")) == "triton"
 
 
 def _prepare(

@@ -1,0 +1,181 @@
+"""The fused normal-equations pass (kernels/codegen_normal_eq.py) against jacfwd of the torch residual.
+
+Per pixel the kernel sums, over the lights, the data cost Σ r², JᵀJ and Jᵀr of the recovery's
+log residuals in the recovery's parametrisation (the decode's Jacobian given as tangents).
+The reference differentiates the eager residual (``log_residual_points`` of ``decode``) with
+``torch.func.jacfwd`` in float64.
+"""
+
+import importlib
+
+import pytest
+import torch
+
+import torchbrdf
+from torchbrdf.capture.synthetic import log_residual_points
+from torchbrdf.kernels import build
+from torchbrdf.kernels.normal_eq_ops import normal_equations, unpack_jtj
+from torchbrdf.recovery.solver import decode
+
+ne_ops = importlib.import_module("torchbrdf.kernels.normal_eq_ops")
+EPS = 1e-3
+
+
+def _capture(N, L, dtype, seed=0, metal_frac=0.5):
+    g = torch.Generator().manual_seed(seed)
+    theta = torch.randn(N, 7, generator=g, dtype=torch.float64) * 1.5
+    theta[:, 5:7] *= 0.3  # normals within ~40° of +z
+    metal = (torch.rand(N, 1, generator=g, dtype=torch.float64) < metal_frac).double()
+    points = torch.cat((torch.rand(N, 2, generator=g, dtype=torch.float64) * 2 - 1,
+                        torch.zeros(N, 1, dtype=torch.float64)), -1)
+    ang = torch.arange(L, dtype=torch.float64) * (6.283 / L)
+    lpos = torch.stack((2 * ang.cos(), 2 * ang.sin(), torch.full_like(ang, 2.0)), -1)
+    lint = torch.full((L, 3), 20.0, dtype=torch.float64) + torch.rand(L, 3, generator=g, dtype=torch.float64)
+    cam = torch.tensor([0.1, -0.2, 3.0], dtype=torch.float64)
+    obs = torch.rand(N, L, 3, generator=g, dtype=torch.float64) * 2.0
+    obs[0, 0] = -0.5 * EPS  # a pixel whose log residual is clamped under one light
+    log_obs = torch.log(torch.clamp(obs + EPS, min=0.5 * EPS))
+    cast = [t.to(dtype) for t in (theta, metal, points, cam, lpos, lint, log_obs)]
+    return cast
+
+
+def _reference(theta, metal, points, cam, lpos, lint, log_obs):
+    """cost, JᵀJ (N, K, K), Jᵀr with J from torch.func.jacfwd of the eager residual."""
+    def res(th, me, pt, lo):  # one pixel
+        p = decode(th[None], me[None])
+        return log_residual_points(p["normal"], pt[None], cam, lpos, lint, p, lo[None], EPS).reshape(-1)
+
+    old = torchbrdf.get_backend()
+    torchbrdf.set_backend("eager")
+    try:
+        r = torch.vmap(res)(theta, metal, points, log_obs)
+        J = torch.vmap(torch.func.jacfwd(res))(theta, metal, points, log_obs)
+    finally:
+        torchbrdf.set_backend(None if old == "auto" else old)
+    return (r * r).sum(-1), J.transpose(1, 2) @ J, (J.transpose(1, 2) @ r[..., None])[..., 0]
+
+
+def _fused(theta, metal, points, cam, lpos, lint, log_obs, pattern=None):
+    K = theta.shape[1]
+    eye = torch.eye(K, dtype=theta.dtype)[:, None].expand(K, theta.shape[0], K)
+    p, dp = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
+                            out_dims=(None, 0))(eye)
+    return normal_equations(p, {k: v for k, v in dp.items() if k != "metallic"}, points, cam, lpos, lint,
+                            log_obs, EPS, pattern)
+
+
+@pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+def test_c_kernel_matches_jacfwd_float64_dielectric_and_metal():
+    case = _capture(40, 5, torch.float64)
+    cost, jtj, jtr = _fused(*case)
+    assert any(k[0] == "c" and v is not None for k, v in ne_ops._kernels.items())  # the kernel ran
+    rc, rjtj, rjtr = _reference(*case)
+    K = 7
+    assert jtj.shape == (40, K * (K + 1) // 2) and jtr.shape == (40, K)
+    torch.testing.assert_close(cost, rc, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(unpack_jtj(jtj, K), rjtj, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(jtr, rjtr, rtol=1e-10, atol=1e-10)
+    metal = case[1][:, 0] == 1
+    assert metal.any() and (~metal).any()
+    assert rjtj[metal].abs().max() > 1e-3 and rjtj[~metal].abs().max() > 1e-3  # not vacuous
+
+
+@pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+def test_known_pattern_equals_read_pattern_and_float32_is_close():
+    case = _capture(16, 3, torch.float64, seed=1)
+    pattern = {"base_color": [(0, 0), (1, 1), (2, 2)], "specular": [(3, 0)], "roughness": [(4, 0)],
+               "normal": [(j, c) for j in (5, 6) for c in range(3)]}
+    a = _fused(*case)
+    b = _fused(*case, pattern=pattern)
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+    c32 = _fused(*[t.float() for t in case], pattern=pattern)
+    for x, y in zip(c32, a):
+        torch.testing.assert_close(x.double(), y, rtol=2e-3, atol=2e-3)
+
+
+def test_eager_fallback_matches_jacfwd(monkeypatch):
+    monkeypatch.setattr(ne_ops, "_c_kernel", lambda spec: None)
+    case = _capture(12, 4, torch.float64, seed=2)
+    cost, jtj, jtr = _fused(*case)
+    rc, rjtj, rjtr = _reference(*case)
+    torch.testing.assert_close(cost, rc, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(unpack_jtj(jtj, 7), rjtj, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(jtr, rjtr, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+def test_operator_passes_opcheck_and_compiles():
+    case = _capture(8, 2, torch.float64, seed=3)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    calls = []
+    real = ne_ops.normal_equations_op
+
+    def spy(*args):
+        calls.append(args)
+        return real(*args)
+
+    ne_ops.normal_equations_op = spy
+    try:
+        _fused(*case)
+    finally:
+        ne_ops.normal_equations_op = real
+    torch.library.opcheck(torch.ops.torchbrdf.normal_equations, calls[0])
+
+
+def test_bad_inputs_name_the_argument():
+    case = _capture(4, 2, torch.float64)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    with pytest.raises(ValueError, match="log_obs"):
+        _fused(theta, metal, points, cam, lpos, lint, log_obs[:, :, :2])
+    p = decode(theta, metal)
+    with pytest.raises(ValueError, match="tangents"):
+        normal_equations(p, {"sheen": torch.zeros(7, 4, 1, dtype=torch.float64)}, points, cam, lpos, lint,
+                         log_obs, EPS)
+
+
+def test_triton_kernel_matches_jacfwd_under_the_interpreter(monkeypatch, tmp_path):
+    pytest.importorskip("triton")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path))
+    built = []
+    real = ne_ops._triton_kernel
+
+    def spy(spec, wide):
+        hit = real(spec, wide)
+        built.append(hit)
+        return hit
+
+    monkeypatch.setattr(ne_ops, "_triton_kernel", spy)
+    torchbrdf.set_backend("triton")
+    try:
+        case = _capture(24, 4, torch.float64, seed=4)
+        cost, jtj, jtr = _fused(*case)
+    finally:
+        torchbrdf.set_backend(None)
+    assert built and built[0] is not None  # the Triton kernel ran
+    rc, rjtj, rjtr = _reference(*case)
+    torch.testing.assert_close(cost, rc, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(unpack_jtj(jtj, 7), rjtj, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(jtr, rjtr, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+def test_shared_tangent_slots_give_the_same_sums():
+    # the decode's three tangents (the five one-channel unknowns share one) as the recovery's
+    # bench passes them: the same sums as seven separate directions, and as jacfwd
+    from torchbrdf.bench.recovery import DECODE_PATTERN, DECODE_SLOTS
+
+    case = _capture(20, 4, torch.float64, seed=5)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    dirs = torch.zeros(3, 7, dtype=torch.float64)
+    for s, cols in enumerate(DECODE_SLOTS):
+        dirs[s, list(cols)] = 1.0
+    p, dp = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
+                            out_dims=(None, 0))(dirs[:, None].expand(-1, *theta.shape))
+    got = normal_equations(p, {k: v for k, v in dp.items() if k in DECODE_PATTERN}, points, cam, lpos, lint,
+                           log_obs, EPS, DECODE_PATTERN, unknowns=7)
+    rc, rjtj, rjtr = _reference(*case)
+    torch.testing.assert_close(got[0], rc, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(unpack_jtj(got[1], 7), rjtj, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(got[2], rjtr, rtol=1e-10, atol=1e-10)

@@ -1,0 +1,199 @@
+"""The recovery's Gauss–Newton normal equations per pixel, as one light-loop kernel.
+
+A fit of per-pixel unknowns ``x`` (``K`` of them) minimises ``Σ_lights Σ_channels r²`` with
+``r`` the capture's log residual (:func:`torchbrdf.brdf.formula.capture_log_residual`:
+``log(max(L + ε, ε/2)) − log_obs``). Per pixel its Gauss–Newton step needs the data cost
+``Σ r²``, ``JᵀJ`` and ``Jᵀr`` with ``J = ∂r/∂x`` (rows: the lights' channels). Here they are
+computed in one pass, with no ``(pixels, lights, K)`` Jacobian in memory:
+
+* the residual formula is traced (:mod:`.trace`) with the per-pixel material and geometry as
+  loads, the light's position and intensity as per-light uniforms and ``log_obs`` as a
+  per-pixel-per-light load;
+* its forward-mode derivatives along the ``K`` directions are the tracer's tangent transform
+  (:func:`.trace.tangents`) seeded with the directions' tangents of the per-pixel inputs
+  (``∂p/∂x_j``: the decode's Jacobian, given as input — the decode is the solver's one
+  definition, differentiated by ``torch.func``);
+* the products ``r²``, ``J_a · J_b`` (a ≤ b) and ``J_a · r`` are summed over the lights by the
+  light-loop schedule (:mod:`.light_loop`: pixel-level terms once, the per-light terms inside
+  the loop), which both the C and the Triton printer print.
+
+A direction's tangent is read only for the input channels it moves (``pattern``), so the
+decode's sparsity (each logit moves one channel) prunes the tangent graph. Nothing here knows
+a formula or a derivative rule.
+
+Output layout, per pixel (``W = 1 + K (K + 1) / 2 + K`` values): the cost, then ``JᵀJ``'s upper
+triangle row by row (``(0,0), (0,1) … (0,K−1), (1,1) …``), then ``Jᵀr``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+from torchbrdf.brdf import formula
+from torchbrdf.brdf.formula import SCALAR_PARAMS
+from torchbrdf.kernels.light_loop import Layout, LightLoop, LoopSchedule, acc_input, print_c, print_triton
+from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, tangents
+
+__all__ = ["NormalEqSpec", "schedule", "generate", "generate_triton", "width", "LIGHT_STRIDE", "CAMERA"]
+
+CAMERA = 3  # uniforms before the lights: the camera position
+LIGHT_STRIDE = 6  # per light: position (3), intensity (3)
+# Pixels per block of the C kernel: ~K × the pixel-level nodes' tangents live in stack arrays
+# of this length (a few hundred arrays × 64 × 8 B: well inside a thread's stack).
+BLOCK = 64
+
+
+def width(K: int) -> int:
+    """Values per pixel of the output: the cost, ``JᵀJ``'s upper triangle, ``Jᵀr``."""
+    return 1 + K * (K + 1) // 2 + K
+
+
+class NormalEqSpec:
+    """Everything that changes the generated normal-equations code.
+
+    ``tensors``: ``(name, C)`` per per-pixel input (``pos``, ``n``, ``base_color``, scalar
+    maps; lane-dense ``(n, C)``); ``floats``: names of the material parameters passed as
+    runtime floats (then ``eps``, then the light count); ``K``: the unknowns per pixel;
+    ``pattern``: per tensor input, the ``(direction, channel)`` pairs whose tangent is not
+    zero, optionally ``(direction, channel, slot)``: the tangent tensor's row ``slot`` holds it
+    (default the direction; directions that move disjoint channels can share a row, so the
+    caller computes fewer tangents). An input with none has no tangent tensor.
+    """
+
+    def __init__(self, ctype: str, tensors: Iterable[tuple[str, int]], floats: Iterable[str],
+                 active: Iterable[str], need_tint: bool, K: int,
+                 pattern: Iterable[Iterable[tuple[int, ...]]]) -> None:
+        self.ctype = ctype
+        self.hi_double = ctype == "float"
+        self.tensors = tuple(tensors)
+        self.floats = tuple(floats)
+        self.active = tuple(active)
+        self.need_tint = bool(need_tint)
+        self.K = int(K)
+        # (direction, channel, slot): slot = the tangent tensor's row holding it (default the direction)
+        self.pattern = tuple(tuple(sorted((e[0], e[1], e[2] if len(e) > 2 else e[0]) for e in p))
+                             for p in pattern)
+        if len(self.pattern) != len(self.tensors):
+            raise ValueError("NormalEqSpec: one pattern per tensor input")
+        # the inputs with a tangent tensor, in tensor order: tangent argument m is tensor tan_inputs[m]
+        self.tan_inputs = tuple(k for k, p in enumerate(self.pattern) if p)
+
+    def key(self) -> tuple[Any, ...]:
+        return ("normal_eq", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.K,
+                self.pattern, tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled")))
+
+
+def _in(role: str, grad: bool = False, **attr) -> Node:
+    return Node("in", (), "r", {"role": role, **attr}, grad=grad)
+
+
+def schedule(spec: NormalEqSpec) -> LoopSchedule:
+    """Trace the residual and its tangents; the light loop sums the normal-equation terms."""
+    g = Graph()
+    K = spec.K
+    with g:
+        ops = TraceOps(spec.hi_double)
+        inp: dict[str, Any] = {}
+        loads: list[Node] = []
+        for k, (name, C) in enumerate(spec.tensors):
+            chans = [_in("px", grad=True, k=k, c=c) for c in range(C)]
+            loads += chans
+            inp[name] = Vec3(chans) if C == 3 else chans[0]
+        for j, name in enumerate(spec.floats):
+            inp[name] = Node("P", (), "p", j)
+        for name in ("x", "y", *SCALAR_PARAMS):
+            inp.setdefault(name, None)
+        u = [_in("light", c=c) for c in range(LIGHT_STRIDE)]
+        inp.update({
+            "camera": Vec3(_in("cam", c=c) for c in range(3)),
+            "light_pos": Vec3(u[:3]), "light_int": Vec3(u[3:]),
+            "log_obs": Vec3(_in("obs", c=c) for c in range(3)),
+            "eps": Node("P", (), "p", len(spec.floats)),
+        })
+        r = list(formula.capture_log_residual(ops, inp, spec.active, spec.need_tint, False).c)
+        J: list[list[Any]] = []  # J[a][c]: ∂r_c/∂x_a (None: zero)
+        for a in range(K):
+            seeds = {}
+            for nd in loads:
+                k, c = nd.attr["k"], nd.attr["c"]
+                for a2, c2, slot in spec.pattern[k]:
+                    if (a2, c2) == (a, c):
+                        seeds[nd.id] = _in("tan", k=k, c=c, j=slot, m=spec.tan_inputs.index(k))
+            J.append(tangents(g, r, seeds) if seeds else [None, None, None])
+
+        def dot(xs, ys):
+            terms = [x * y for x, y in zip(xs, ys) if x is not None and y is not None]
+            if not terms:
+                return None
+            s = terms[0]
+            for t in terms[1:]:
+                s = s + t
+            return s
+
+        values = [dot(r, r)]
+        values += [dot(J[a], J[b]) for a in range(K) for b in range(a, K)]
+        values += [dot(J[a], r) for a in range(K)]
+        accs = [(("out", i), v) for i, v in enumerate(values) if v is not None]
+        acc_kind = {key: "r" for key, _ in accs}
+        post: list[tuple[tuple[Any, ...], Node | None]] = [
+            (("out", i), acc_input(("out", i)) if v is not None else None) for i, v in enumerate(values)]
+    return LoopSchedule(g, {"point": accs}, acc_kind, post)
+
+
+def _layout(spec: NormalEqSpec) -> Layout:
+    W = width(spec.K)
+
+    def load_c(a: dict) -> str:
+        role = a["role"]
+        if role == "px":
+            C = spec.tensors[a["k"]][1]
+            return f"p{a['k']}[i * {C} + {a['c']}]"
+        if role == "tan":
+            C = spec.tensors[a["k"]][1]
+            return f"t{a['m']}[({a['j']} * n + i) * {C} + {a['c']}]"
+        if role == "obs":
+            return f"lo[(i * L + j) * 3 + {a['c']}]"
+        return f"U[{a['c']}]" if role == "cam" else f"u[{a['c']}]"
+
+    def load_t(a: dict) -> str:
+        role = a["role"]
+        if role == "px":
+            C = spec.tensors[a["k"]][1]
+            return f"tl.load(x{a['k']} + (i * {C} + {a['c']}), mask=m, other=0.0)"
+        if role == "tan":
+            C = spec.tensors[a["k"]][1]
+            return f"tl.load(t{a['m']} + (({a['j']} * n + i) * {C} + {a['c']}), mask=m, other=0.0)"
+        if role == "obs":
+            return f"tl.load(lo + ((i * L + j) * 3 + {a['c']}), mask=m, other=0.0)"
+        return f"tl.load(U + {a['c']})" if role == "cam" else f"tl.load(u + {a['c']})"
+
+    return Layout(
+        [LightLoop("point", "0", "L")], load_c, lambda s: f"out[i * {W} + {s[1]}]", load_t,
+        lambda s: f"out + (i * {W} + {s[1]})", lit_roles=("light", "obs"), px_roles=("px", "tan", "obs"),
+        skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK)
+
+
+def generate(spec: NormalEqSpec) -> str:
+    """C source of ``tb_ne(n, in, P, out, nthreads)``.
+
+    ``in``: the per-pixel inputs ``(n, C)`` (``spec.tensors``), then one ``(S, n, C)`` tangent
+    per input in ``spec.tan_inputs``, then ``log_obs`` ``(n, L, 3)``, then the uniform row
+    ``[camera (3), (q, I) per light]``; ``P``: the runtime floats, ``eps``, the light count;
+    ``out`` ``(n, W)`` (:func:`width`).
+    """
+    T, M, F = len(spec.tensors), len(spec.tan_inputs), len(spec.floats)
+    decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(T)]
+    decl += [f"const R* __restrict t{m} = (const R*)in[{T + m}];" for m in range(M)]
+    decl += [f"const R* __restrict lo = (const R*)in[{T + M}];",
+             f"const R* __restrict U = (const R*)in[{T + M + 1}];",
+             f"const long L = (long)P[{F + 1}];"]
+    sig = "void tb_ne(long n, void** in, const double* P, R* __restrict out, int nthreads)"
+    return print_c(spec.ctype, schedule(spec), _layout(spec), decl, sig)
+
+
+def generate_triton(spec: NormalEqSpec, wide: bool = False) -> str:
+    """Triton source of ``tb_ne(n, P, U, x0 .. x{T-1}, t0 .. t{M-1}, lo, out, L, BLOCK)`` (the
+    same data as :func:`generate`; ``P`` a float64 tensor, ``L`` the light count)."""
+    args = [f"x{k}" for k in range(len(spec.tensors))] + [f"t{m}" for m in range(len(spec.tan_inputs))]
+    return print_triton(spec.ctype, schedule(spec), _layout(spec), "tb_ne", args + ["lo", "out", "L"], wide)

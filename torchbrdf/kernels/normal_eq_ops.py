@@ -1,0 +1,279 @@
+"""The recovery's per-pixel normal equations as a PyTorch operator: ``torch.ops.torchbrdf.normal_equations``.
+
+``normal_equations(tensors, tangents, floats, uniforms, log_obs, cfg) -> (N, W)``: per pixel
+the data cost ``Σ r²``, ``JᵀJ`` (upper triangle) and ``Jᵀr`` of the capture's log residuals
+over every light, in one kernel pass (:mod:`torchbrdf.kernels.codegen_normal_eq`; C for CPU
+tensors, Triton for CUDA tensors and under ``TRITON_INTERPRET=1``). A fake implementation lets
+``torch.compile`` trace it; it has no autograd (its outputs are already derivatives). Where no
+kernel can be built it evaluates the same formula eagerly (``torch.func.jvp`` per direction).
+
+:func:`normal_equations` is the entry point on the recovery's decoded maps.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import threading
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchbrdf.brdf import formula
+from torchbrdf.brdf.formula import PRINCIPLED_DEFAULTS, SCALAR_PARAMS, active_lobes
+from torchbrdf.kernels import build
+from torchbrdf.kernels.codegen_normal_eq import CAMERA, NormalEqSpec, generate, generate_triton, width
+
+__all__ = ["normal_equations", "normal_equations_op", "make_cfg", "unpack_jtj", "tangent_pattern"]
+
+#: The per-pixel inputs in kernel order (those present).
+TENSOR_ORDER = ("pos", "n", "base_color") + SCALAR_PARAMS
+
+_lock = threading.Lock()
+_kernels: dict = {}
+_failed: set = set()
+
+
+def make_cfg(tensor_names: Sequence[str], float_names: Sequence[str], active: Sequence[str], need_tint: bool,
+             K: int, pattern: Sequence[Sequence[tuple[int, ...]]], backend: str = "c") -> str:
+    """The ``cfg`` string of the operator; ``pattern[k]``: input ``k``'s non-zero ``(direction,
+    channel[, slot])`` tangents (:class:`~.codegen_normal_eq.NormalEqSpec`); ``backend`` ``"c"``
+    or ``"triton"``."""
+    pat = ";".join(",".join(".".join(str(int(x)) for x in e) for e in p) for p in pattern)
+    return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
+                     str(int(K)), pat, backend])
+
+
+def _parse(cfg: str, dtype: torch.dtype) -> tuple[NormalEqSpec, str]:
+    tn, fn, act, tint, K, pat, backend = cfg.split("|")
+    names = tn.split(",") if tn else []
+    C = [3 if k in ("pos", "n", "base_color") else 1 for k in names]
+    pattern = [[tuple(int(x) for x in e.split(".")) for e in p.split(",") if e] for p in pat.split(";")]
+    pattern += [[] for _ in range(len(names) - len(pattern))]
+    ctype = "float" if dtype == torch.float32 else "double"
+    spec = NormalEqSpec(ctype, list(zip(names, C)), fn.split(",") if fn else [],
+                        act.split(",") if act else [], tint == "1", int(K), pattern)
+    return spec, backend
+
+
+def _cached(key: tuple, make: Callable[[], Any]) -> Any:
+    """The kernel under ``key``, made once by ``make()`` (None: it cannot be made; not retried)."""
+    hit = _kernels.get(key)
+    if hit is not None or key in _failed:
+        return hit
+    with _lock:
+        hit = _kernels.get(key)
+        if hit is not None or key in _failed:
+            return hit
+        hit = make()
+        if hit is None:
+            _failed.add(key)
+        else:
+            _kernels[key] = hit
+        return hit
+
+
+def _c_kernel(spec: NormalEqSpec):
+    def make():
+        args = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+        lib = build.load_kernel(generate(spec), "normal_eq", {"tb_ne": (args, None)})
+        return None if lib is None else (lib, lib.tb_ne)  # the library stays alive with its function
+
+    return _cached(("c", spec.key()), make)
+
+
+def _triton_kernel(spec: NormalEqSpec, wide: bool):
+    from torchbrdf.kernels import codegen_triton
+
+    def make():
+        try:
+            if not codegen_triton.available():
+                raise ImportError("triton does not import")
+            return codegen_triton.compile_source(generate_triton(spec, wide), "tb_ne")
+        except Exception as e:  # noqa: BLE001 - any failure: evaluated eagerly
+            msg = f"torchbrdf: building the Triton normal-equations kernel failed; using eager.\n{e!r}"
+            warnings.warn(msg[:2000], RuntimeWarning, stacklevel=4)
+            return None
+
+    return _cached(("triton", spec.key(), wide, codegen_triton.interpret_mode()), make)
+
+
+def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> Tensor:
+    """The same sums from the formula on torch tensors (the fallback): one ``jvp`` per direction."""
+    N, L = log_obs.shape[0], log_obs.shape[1]
+    ops = formula.TorchOps(log_obs.dtype, log_obs.device)
+    names = [k for k, _ in spec.tensors]
+    K = spec.K
+
+    def res(*ts):
+        c: dict[str, Any] = dict(zip(spec.floats, floats[:-1]))
+        c.update({k: t[:, None] for k, t in zip(names, ts)})
+        c.setdefault("x", None)
+        c.setdefault("y", None)
+        c.update({"camera": uniforms[:CAMERA], "light_pos": uniforms[CAMERA:].reshape(L, 6)[None, :, :3],
+                  "light_int": uniforms[CAMERA:].reshape(L, 6)[None, :, 3:], "log_obs": log_obs,
+                  "eps": floats[-1]})
+        return formula.capture_log_residual(ops, c, spec.active, spec.need_tint, False).reshape(N, -1)
+
+    tan_of = dict(zip(spec.tan_inputs, tangents))
+    r = res(*tensors)
+    J = []
+    for a in range(K):
+        dirs = []
+        for k, t in enumerate(tensors):
+            d = torch.zeros_like(t)
+            for j, c, slot in spec.pattern[k]:
+                if j == a:
+                    d[:, c] = tan_of[k][slot][:, c]
+            dirs.append(d)
+        J.append(torch.func.jvp(res, tuple(tensors), tuple(dirs))[1])
+    Jm = torch.stack(J, -1)  # (N, M, K)
+    iu = torch.triu_indices(K, K, device=log_obs.device)
+    jtj = torch.einsum("nma,nmb->nab", Jm, Jm)[:, iu[0], iu[1]]
+    return torch.cat(((r * r).sum(-1, keepdim=True), jtj, torch.einsum("nma,nm->na", Jm, r)), -1)
+
+
+def _run(spec: NormalEqSpec, backend: str, tensors, tangents, floats, uniforms, log_obs) -> Tensor:
+    N, L = log_obs.shape[0], log_obs.shape[1]
+    W = width(spec.K)
+    dtype, dev = log_obs.dtype, log_obs.device
+    if N == 0:
+        return torch.zeros(N, W, dtype=dtype, device=dev)
+    tensors = [t.contiguous() for t in tensors]
+    tangents = [t.contiguous() for t in tangents]
+    log_obs, uniforms = log_obs.contiguous(), uniforms.contiguous()
+    out = torch.empty(N, W, dtype=dtype, device=dev)
+    if backend == "triton":
+        from torchbrdf.kernels import codegen_triton
+
+        wide = N * max(W, 3 * L, 3 * spec.K) >= 2**31
+        kernel = _triton_kernel(spec, wide)
+        if kernel is not None:
+            P = torch.tensor(list(floats) + [0.0], dtype=torch.float64, device=dev)
+            codegen_triton.launch(kernel, "fwd", N, P, [uniforms, *tensors, *tangents, log_obs, out, L])
+            return out
+    else:
+        hit = _c_kernel(spec)
+        if hit is not None:
+            ptrs = [t.data_ptr() for t in (*tensors, *tangents, log_obs, uniforms)]
+            params = list(floats) + [float(L)]
+            hit[1](N, (ctypes.c_void_p * len(ptrs))(*ptrs), (ctypes.c_double * len(params))(*params),
+                   out.data_ptr(), torch.get_num_threads())
+            return out
+    with torch.no_grad():
+        return _eager(spec, tensors, tangents, floats, uniforms, log_obs)
+
+
+@torch.library.custom_op("torchbrdf::normal_equations", mutates_args=())
+def normal_equations_op(tensors: list[Tensor], tangents: list[Tensor], floats: list[float], uniforms: Tensor,
+                        log_obs: Tensor, cfg: str) -> Tensor:
+    """Per pixel ``[cost, JᵀJ upper triangle, Jᵀr]`` ``(N, W)`` (see the module docstring).
+
+    ``tensors``: the per-pixel inputs ``(N, C)`` named in ``cfg``; ``tangents``: ``(K, N, C)``
+    per input with a tangent; ``floats``: the material floats then ``eps``; ``uniforms``
+    ``(3 + 6 L,)``: camera, then position and intensity per light; ``log_obs`` ``(N, L, 3)``.
+    """
+    spec, backend = _parse(cfg, log_obs.dtype)
+    return _run(spec, backend, tensors, tangents, floats, uniforms, log_obs)
+
+
+@normal_equations_op.register_fake
+def _(tensors, tangents, floats, uniforms, log_obs, cfg):
+    K = int(cfg.split("|")[4])
+    return log_obs.new_empty((log_obs.shape[0], width(K)))
+
+
+def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int, ...]]]:
+    """The ``(direction, channel)`` pairs of each ``(K, N, C)`` tangent that are not zero at
+    every pixel (one reduction and a host read: pass a known pattern to avoid it)."""
+    out: dict[str, list[tuple[int, ...]]] = {}
+    for k, t in tangents.items():
+        nz = (t != 0).any(dim=1).cpu()  # (K, C)
+        out[k] = [(int(j), int(c)) for j, c in nz.nonzero().tolist()]
+    return out
+
+
+def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
+                     camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
+                     pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
+                     unknowns: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-pixel Gauss–Newton terms of the capture's log residuals, in one fused pass.
+
+    The residuals are :func:`torchbrdf.capture.synthetic.log_residual_points`'s
+    (``log(max(L + ε, ε/2)) − log_obs`` over every light and channel, ``M = 3 L`` rows per
+    pixel), their Jacobian ``J (N, M, K)`` is along ``K`` directions of the unknowns.
+
+    Args:
+        params: the decoded maps: ``normal (N, 3)``, ``base_color (N, 3)`` and scalar
+            principled parameters ``(N, 1)`` (tensors, or Python floats held fixed); the others
+            keep their defaults.
+        tangents: ``{name: (K, N, C)}``: each direction's tangent of an entry of ``params``
+            (``∂p/∂x_j``, e.g. from ``torch.func.jvp`` of the decode); absent entries are held.
+            With slots in ``pattern``, ``(S, N, C)``: row ``slot`` holds the tangents of the
+            directions mapped to it (directions moving disjoint channels share a row).
+        points ``(N, 3)``, camera ``(3,)``, light_pos, light_int ``(L, 3)``, log_obs
+        ``(N, L, 3)``, eps: as for ``log_residual_points``; one floating dtype and device.
+        pattern: ``{name: [(direction, channel[, slot]), ...]}``, the tangents' non-zero
+            entries (default :func:`tangent_pattern`, which reads the tangents; a known pattern
+            keeps the call free of host synchronisation).
+        unknowns: ``K`` (default: the tangents' leading size; needed with slots).
+
+    Returns:
+        ``(cost (N,), jtj (N, K (K + 1) / 2), jtr (N, K))``: ``Σ r²``, the upper triangle of
+        ``JᵀJ`` row by row (:func:`unpack_jtj`) and ``Jᵀr``, in ``log_obs``'s dtype and device.
+    """
+    if log_obs.dim() != 3 or log_obs.shape[-1] != 3:
+        raise ValueError(f"normal_equations: log_obs must be (N, L, 3), got {tuple(log_obs.shape)}")
+    N, L = log_obs.shape[:2]
+    unknown = set(tangents) - set(params)
+    if unknown:
+        raise ValueError(f"normal_equations: tangents for {sorted(unknown)}, which params does not hold")
+    if params.get("anisotropic", 0.0) != 0.0 or "specular_tint" in params or "sheen_tint" in params:
+        raise ValueError("normal_equations: anisotropic, specular_tint and sheen_tint must keep their "
+                         "defaults")
+    Ks = {t.shape[0] for t in tangents.values()}
+    if unknowns is None and len(Ks) != 1:
+        raise ValueError(f"normal_equations: every tangent needs the same number of directions, got "
+                         f"{sorted(Ks)}")
+    K = int(unknowns) if unknowns is not None else Ks.pop()
+    dtype, dev = log_obs.dtype, log_obs.device
+    c = {"pos": points, "n": params["normal"], **{k: v for k, v in params.items() if k != "normal"}}
+    tan = {("n" if k == "normal" else k): v for k, v in tangents.items()}
+    mat = {**PRINCIPLED_DEFAULTS, **{k: v for k, v in c.items() if k in SCALAR_PARAMS}}
+    active = active_lobes(mat)
+    for k, v in c.items():
+        if isinstance(v, Tensor) and (v.dtype != dtype or v.device != dev or v.shape[0] != N):
+            raise ValueError(f"normal_equations: {k!r} must be ({N}, C) {dtype} on {dev}, got "
+                             f"{tuple(v.shape)} {v.dtype} on {v.device}")
+    names = [k for k in TENSOR_ORDER if isinstance(c.get(k), Tensor)]
+    float_names = [k for k in SCALAR_PARAMS if k not in names]
+    floats = [float(mat[k]) for k in float_names] + [float(eps)]
+    if pattern is None:
+        pattern = tangent_pattern(tangents)
+    pat_by = {("n" if k == "normal" else k): v for k, v in pattern.items()}
+    pats = [sorted(pat_by.get(k, [])) if k in tan else [] for k in names]
+    tans = [tan[k].to(dtype) for k, p in zip(names, pats) if p]
+    uniforms = torch.cat((camera.reshape(3), torch.cat((light_pos, light_int), -1).reshape(-1))).to(dtype)
+    backend = "c" if dev.type == "cpu" and not _interpreted() else "triton"
+    # (specular_tint is 0: the tint is needed only by a tinted sheen, sheen_tint's default being 0.5)
+    cfg = make_cfg(names, float_names, active, "sheen" in active, K, pats, backend)
+    out = normal_equations_op([c[k] for k in names], tans, floats, uniforms, log_obs, cfg)
+    nt = K * (K + 1) // 2
+    return out[:, 0], out[:, 1:1 + nt], out[:, 1 + nt:]
+
+
+def _interpreted() -> bool:
+    from torchbrdf.kernels import backend
+
+    return backend.resolve(torch.device("cpu")) == "triton"
+
+
+def unpack_jtj(packed: Tensor, K: int) -> Tensor:
+    """The symmetric ``(N, K, K)`` matrices of packed upper triangles ``(N, K (K + 1) / 2)``."""
+    iu = torch.triu_indices(K, K, device=packed.device)
+    full = packed.new_zeros(packed.shape[0], K, K)
+    full[:, iu[0], iu[1]] = packed
+    full[:, iu[1], iu[0]] = packed
+    return full
