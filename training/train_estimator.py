@@ -49,6 +49,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="torch threads of the training process")
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init", type=Path, default=None, help="continue from these weights (same architecture)")
     p.add_argument("--heldout", type=int, default=64, help="held-out samples for the card's accuracy")
     p.add_argument("--benchmark", action="store_true", help="measure loader samples/s vs the training step, then exit")
     return p
@@ -129,6 +130,14 @@ def train(args) -> dict:
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     model = MapEstimator(args.lights, args.width, args.depth).to(args.device)
+    previous = None
+    if args.init is not None:
+        init = Prior.from_file(args.init)
+        if init.model.config != model.config:
+            raise SystemExit(f"train_estimator: --init {args.init} is a {init.model.config} estimator, "
+                             f"not {model.config}")
+        model.load_state_dict(init.model.state_dict())
+        previous = init.card.get("training")
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     gen = torch.Generator().manual_seed(args.seed)
     heldout_ds = MaterialDataset(length=args.heldout, size=args.size, seed=HELDOUT_SEED, variants=1,
@@ -163,7 +172,8 @@ def train(args) -> dict:
         "training": {"steps": steps, "batch": args.batch, "seconds": round(seconds, 1), "device": args.device,
                      "threads": args.threads, "workers": args.workers, "loader_wait_fraction": round(wait / seconds, 3),
                      "loss": f"rendering_loss + {args.map_weight} * map_loss", "lr": args.lr,
-                     "torch": torch.__version__, "torchbrdf": torchbrdf.__version__},
+                     "torch": torch.__version__, "torchbrdf": torchbrdf.__version__,
+                     "continued_from": previous},
         "heldout": {"seed": HELDOUT_SEED, "samples": args.heldout, **accuracy},
         "command": "python -m training.train_estimator " + " ".join(sys.argv[1:]),
         "log": log[-20:],
@@ -187,7 +197,9 @@ def model_card_markdown(card: dict) -> str:
         f"Data: {d['dataset']} ({d['source']}), {d['size']}x{d['size']} samples, seed {d['seed']}, "
         f"{d['samples_seen']} samples seen.\n\n"
         f"Training: {t['steps']} steps of {t['batch']} in {t['seconds']} s on {t['device']} "
-        f"({t['threads']} thread(s), {t['workers']} loader workers), loss {t['loss']}.\n\n"
+        f"({t['threads']} thread(s), {t['workers']} loader workers), loss {t['loss']}"
+        + (f", continuing {prev['steps']} steps of {prev['seconds']} s" if (prev := t.get("continued_from")) else "")
+        + ".\n\n"
         f"Held-out accuracy ({h['samples']} samples, dataset seed {h['seed']}):\n\n"
         "| map | RMSE | RMSE of the best constant |\n|---|---|---|\n" + rows + "\n"
         f"| normal (mean angle, deg) | {h['normal_mean_deg']:.2f} | {h['normal_mean_deg_flat']:.2f} (flat) |\n\n"
