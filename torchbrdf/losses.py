@@ -141,16 +141,15 @@ def random_configurations(
         )
     if device is None:
         device = generator.device if generator is not None else torch.device("cpu")
-    kw = {"generator": generator, "dtype": dtype, "device": device}
     d_light = _hemisphere((batch, n_diffuse), generator, dtype, device)
     d_view = _hemisphere((batch, n_diffuse), generator, dtype, device)
     s_view = _hemisphere((batch, n_specular), generator, dtype, device)
     s_light = s_view * torch.tensor([-1.0, -1.0, 1.0], dtype=dtype, device=device)
     shift = torch.cat(
-        (2.0 * torch.rand((batch, n_specular, 2), **kw) - 1.0,
+        (2.0 * torch.rand((batch, n_specular, 2), generator=generator, dtype=dtype, device=device) - 1.0,
          torch.full((batch, n_specular, 1), _SHIFT_Z, dtype=dtype, device=device)), -1)
-    view_dist = torch.exp(_DISTANCE_MEAN + _DISTANCE_STD * torch.randn((batch, n_specular, 1), **kw))
-    light_dist = torch.exp(_DISTANCE_MEAN + _DISTANCE_STD * torch.randn((batch, n_specular, 1), **kw))
+    view_dist, light_dist = torch.exp(_DISTANCE_MEAN + _DISTANCE_STD * torch.randn(
+        (2, batch, n_specular, 1), generator=generator, dtype=dtype, device=device))
     positional = torch.cat((torch.zeros(n_diffuse, dtype=dtype, device=device),
                             torch.ones(n_specular, dtype=dtype, device=device)))
     return Configurations(

@@ -98,7 +98,8 @@ class MapEstimator(nn.Module):
         self.head = nn.Conv2d(chans[0], 8, 1)
         with torch.no_grad():  # start from flat normals: most of a sample's surface is nearly flat
             self.head.weight[6:].zero_()
-            self.head.bias[6:].zero_()
+            if self.head.bias is not None:
+                self.head.bias[6:].zero_()
 
     def forward(self, images: Tensor, light_positions: Tensor, light_intensities: Tensor) -> Tensor:
         if images.dim() != 5 or images.shape[1] != self.config["lights"]:
