@@ -222,6 +222,8 @@ def test_cuda_matches_cpu():
     cpu = L.rendering_loss(pred, target, configs=configs)
     gpu = L.rendering_loss(pred.cuda(), target.cuda(), configs=L.Configurations(*(t.cuda() for t in configs)))
     assert float(gpu) == pytest.approx(float(cpu), rel=1e-4)
+    seeded = L.rendering_loss(pred.cuda(), target.cuda(), generator=torch.Generator().manual_seed(0))
+    assert float(seeded) == pytest.approx(float(cpu), rel=1e-4)  # a CPU generator seeds a CUDA loss
 
 
 def test_map_loss_is_the_weighted_sum_of_per_map_l1():

@@ -229,7 +229,8 @@ def rendering_loss(
         layout: ``"principled"`` (:data:`PRINCIPLED_LAYOUT`) or ``"svbrdf_ggx"`` (:data:`GGX_LAYOUT`).
         n_diffuse: diffuse-lit configurations per element (when ``configs`` is not given).
         n_specular: specular-lit configurations per element.
-        generator: seeds the configurations (``None``: torch's global generator). Under
+        generator: seeds the configurations (``None``: torch's global generator), on any
+            device (the configurations move to ``pred``'s). Under
             ``torch.compile(fullgraph=True)`` pass ``configs`` (or no generator) instead:
             a generator argument is not traceable.
         configs: fixed :class:`Configurations` (from :func:`random_configurations`) instead of
@@ -252,7 +253,9 @@ def rendering_loss(
                          f"{getattr(pred, 'shape', type(pred).__name__)} and "
                          f"{getattr(target, 'shape', type(target).__name__)}")
     if configs is None:
-        configs = random_configurations(pred.shape[0], n_diffuse, n_specular, generator, pred.dtype, pred.device)
+        # Drawn on the generator's device (a CPU generator may seed a CUDA loss), then moved.
+        where = generator.device if generator is not None else pred.device
+        configs = random_configurations(pred.shape[0], n_diffuse, n_specular, generator, pred.dtype, where)
     both = render_configurations(torch.cat((pred, target)), Configurations(
         configs.light.expand(pred.shape[0], -1, -1).repeat(2, 1, 1),
         configs.view.expand(pred.shape[0], -1, -1).repeat(2, 1, 1), configs.positional), layout, intensity)
@@ -285,11 +288,8 @@ class RenderingLoss(nn.Module):
         self.generator = None if seed is None else torch.Generator().manual_seed(int(seed))
 
     def forward(self, pred: Tensor, target: Tensor, configs: Configurations | None = None) -> Tensor:
-        if configs is None and self.generator is not None:
-            configs = random_configurations(pred.shape[0], self.n_diffuse, self.n_specular, self.generator,
-                                            pred.dtype, torch.device("cpu"))
-        return rendering_loss(pred, target, layout=self.layout, n_diffuse=self.n_diffuse,
-                              n_specular=self.n_specular, configs=configs, intensity=self.intensity)
+        return rendering_loss(pred, target, layout=self.layout, n_diffuse=self.n_diffuse, n_specular=self.n_specular,
+                              generator=self.generator, configs=configs, intensity=self.intensity)
 
     def extra_repr(self) -> str:
         return f"layout={self.layout!r}, n_diffuse={self.n_diffuse}, n_specular={self.n_specular}"

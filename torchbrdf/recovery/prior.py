@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import MAP_NAMES
+from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
 
 __all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS"]
 
@@ -225,8 +225,6 @@ class Prior:
             if self.lights != 1:
                 raise ValueError("Prior.predict: light_positions and light_intensities are required "
                                  f"for an estimator of {self.lights} images")
-            from torchbrdf.capture.synthetic import light_layout
-
             pos, inten = light_layout(0, near_camera=True)
             light_positions = pos if light_positions is None else light_positions
             light_intensities = inten if light_intensities is None else light_intensities
