@@ -99,6 +99,7 @@ from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, PointLig
 from torchbrdf.render.shading import Shader, ShadingPlan, plan, shade
 from torchbrdf.kernels.backend import get_backend, set_backend
 from torchbrdf.brdf.principled import LOBES, PRINCIPLED_DEFAULTS, PrincipledBRDF, fast_path_enabled, principled, set_fast_path
+from torchbrdf import data, losses
 from torchbrdf.brdf.smits import SMITS_LOBES, SmitsBRDF, SmitsLayeredBRDF, smits, smits_composite, smits_layered, smits_lobes
 
 __version__ = "0.1.0"

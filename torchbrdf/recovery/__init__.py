@@ -22,3 +22,5 @@ from torchbrdf.recovery.svbrdf import (
 
 __all__ = ["RecoveryConfig", "RecoveryError", "RecoveryResult", "recover", "load_outputs", "map_errors",
            "psnr"]
+from torchbrdf.recovery.prior import Prior, prior_penalty, prior_weight  # noqa: E402  (the learned prior)
+__all__ += ["Prior", "prior_penalty", "prior_weight"]

@@ -1,0 +1,127 @@
+"""torchbrdf.data: deterministic samples per seed and worker, consistent symmetries, the renderings."""
+
+import sys
+import types
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from torchbrdf.capture.synthetic import DEFAULT_CAMERA, MAP_NAMES, light_layout, make_material, render_capture
+from torchbrdf.data import (
+    SYMMETRIES,
+    FamilySource,
+    MaterialDataset,
+    MaterialStream,
+    RecipeSource,
+    transform_maps,
+)
+
+
+def _same(a, b):
+    assert a["index"] == b["index"]
+    for k in ("maps", "images", "light_positions", "light_intensities"):
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_samples_depend_on_seed_and_index_only():
+    a = MaterialDataset(length=10, size=12, seed=3, extra_lights=1)
+    b = MaterialDataset(length=50, size=12, seed=3, extra_lights=1)
+    _same(a[7], b[7])
+    _same(a[7], a[7])
+    assert not torch.equal(a[7]["images"], a[6]["images"])
+    assert not torch.equal(a[7]["images"], MaterialDataset(length=10, size=12, seed=4, extra_lights=1)[7]["images"])
+
+
+def test_dataloader_with_two_workers_gets_the_samples_of_one_process():
+    stream = MaterialStream(length=10, size=8, seed=2, variants=2)
+    one = [s for b in DataLoader(stream, batch_size=None, num_workers=0) for s in [b]]
+    two = list(DataLoader(stream, batch_size=None, num_workers=2))
+    assert sorted(s["index"] for s in two) == list(range(10))  # every index once, none twice
+    by_index = {s["index"]: s for s in one}
+    for s in two:
+        _same(s, by_index[s["index"]])
+    ds = MaterialDataset(length=10, size=8, seed=2, variants=2)
+    _same(ds[5], by_index[5])
+
+
+def test_sample_is_the_capture_rendering_of_its_material():
+    ds = MaterialDataset(length=4, size=16, seed=1, variants=1, noise=0.0, source=RecipeSource(["tiles"]))
+    s = ds[2]
+    maps = make_material("tiles", 1 * 1_000_003 + 2, 16)
+    assert torch.equal(s["maps"], torch.cat([maps[k] for k in MAP_NAMES]))
+    pos, inten = light_layout(0, near_camera=True)
+    torch.testing.assert_close(s["light_positions"], pos)
+    torch.testing.assert_close(s["images"], render_capture(maps, (pos, torch.full((1, 3), 15.0)), DEFAULT_CAMERA))
+    assert s["camera_position"].tolist() == list(DEFAULT_CAMERA)
+
+
+def _lights_transformed(pos, code):
+    x, y, z = pos.unbind(-1)
+    if code & 1:
+        x = -x
+    if code & 2:
+        y = -y
+    if code & 4:
+        x, y = -y, -x
+    return torch.stack((x, y, z), -1)
+
+
+@pytest.mark.parametrize("code", range(SYMMETRIES))
+def test_symmetries_keep_the_normal_map_consistent(code):
+    maps = make_material("stone", 3, 12)  # strong relief: a wrong normal transform changes the shading
+    pos = torch.tensor([[1.2, -0.7, 2.0], [-0.4, 1.5, 1.2]])
+    inten = torch.full((2, 3), 20.0)
+    camera = (0.0, 0.0, 3.0)
+    want = transform_maps({"img": render_capture(maps, (pos, inten), camera)[0]}, code)["img"]
+    got = render_capture(transform_maps(maps, code), (_lights_transformed(pos, code), inten), camera)[0]
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
+
+
+def test_noise_and_gamma():
+    clean = MaterialDataset(length=2, size=16, noise=0.0)[0]["images"]
+    noisy = MaterialDataset(length=2, size=16, noise=0.05)[0]["images"]
+    rel = ((noisy - clean) / (clean.abs() + 1e-3)).std()
+    assert 0.02 < float(rel) < 0.08
+    g = MaterialDataset(length=2, size=16, noise=0.0, gamma=2.2)[0]["images"]
+    torch.testing.assert_close(g, clean.clamp(0, 1) ** (1 / 2.2))
+
+
+def test_family_source_plugs_in_lazily(monkeypatch):
+    calls = []
+
+    def make_family_material(family, seed, size):
+        calls.append((family, seed, size))
+        return make_material("painted", seed, size)
+
+    fake = types.SimpleNamespace(FAMILIES=("paint", "metal"), make_family_material=make_family_material)
+    monkeypatch.setitem(sys.modules, "torchbrdf.capture.families", fake)
+    ds = MaterialDataset(length=4, size=8, source=FamilySource(["metal"]), variants=1)
+    ds[1]
+    assert calls == [("metal", 1_000_003 * 0 + 1, 8)]
+    with pytest.raises(ValueError, match="subset"):
+        FamilySource(["wood"])
+    monkeypatch.setitem(sys.modules, "torchbrdf.capture.families", None)  # absent: a clear ImportError
+    with pytest.raises(ImportError, match="RecipeSource"):
+        FamilySource()
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="variants"):
+        MaterialDataset(variants=9)
+    with pytest.raises(ValueError, match="noise"):
+        MaterialDataset(noise=(0.1, 0.0))
+    with pytest.raises(ValueError, match="recipes"):
+        RecipeSource(["marble"])
+    with pytest.raises(IndexError, match="out of range"):
+        MaterialDataset(length=3, size=8)[3]
+    with pytest.raises(ValueError, match="code"):
+        transform_maps({}, 8)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_renders_on_the_gpu_when_asked():
+    cpu = MaterialDataset(length=2, size=16, noise=0.0)[1]
+    gpu = MaterialDataset(length=2, size=16, noise=0.0, device="cuda")[1]
+    assert gpu["images"].is_cuda and gpu["maps"].is_cuda
+    torch.testing.assert_close(gpu["images"].cpu(), cpu["images"], rtol=1e-4, atol=1e-6)

@@ -1,0 +1,287 @@
+"""A learned prior for SVBRDF recovery: a compact U-Net that estimates principled maps from flash image(s).
+
+* :class:`MapEstimator` -- the network: ``L`` images ``(B, L, 3, H, W)`` of a flat sample (the
+  capture format, ``docs/capture_format.md``) plus their lights -> principled maps
+  ``(B, 9, H, W)`` in :data:`torchbrdf.losses.PRINCIPLED_LAYOUT` order. Trained by
+  ``python -m training.train_estimator`` (``docs/neural.md``).
+* :class:`Prior` -- a trained estimator loaded from a file (:meth:`Prior.from_file`, or the
+  weights shipped with the package, :meth:`Prior.default`) whose :meth:`Prior.predict` turns
+  images or a :class:`~torchbrdf.capture.Capture` into a dict of ``(B, C, H, W)`` maps.
+* :func:`prior_penalty` -- the confidence-weighted regulariser a solver adds to pull its maps
+  toward the prior's where the captured data are silent; :func:`prior_weight` makes its
+  weight from a recovery confidence map.
+
+Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
+and multiplied by the squared light distance at the sample's centre (so the network sees
+``~ f * cos``, independent of the light's power), then ``log(x + 0.01)``; two channels of pixel
+coordinates tell the network where each pixel lies relative to the flash.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from torchbrdf.capture.format import Capture, pixel_points
+from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
+
+__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS"]
+
+DEFAULT_WEIGHTS = "estimator.pt"
+"""File name of the shipped weights inside the ``torchbrdf.weights`` package."""
+
+_LOG_OFFSET = 0.01  # as the rendering loss's log transform: compresses highlights, keeps dark detail
+
+
+def estimator_inputs(images: Tensor, light_positions: Tensor, light_intensities: Tensor) -> Tensor:
+    """Normalised network input: ``(B, L, 3, H, W)`` images -> ``(B, 3 L + 2, H, W)``.
+
+    Args:
+        images: linear radiance ``(B, L, 3, H, W)``.
+        light_positions: ``(B, L, 3)`` or ``(L, 3)`` world positions.
+        light_intensities: ``(B, L, 3)`` or ``(L, 3)`` RGB intensities (positive).
+
+    Returns:
+        ``log(images * |q|^2 / I + 0.01)`` per light, then the pixel coordinates ``x, y``.
+    """
+    if images.dim() != 5 or images.shape[2] != 3:
+        raise ValueError(f"estimator_inputs: images must be (B, L, 3, H, W), got {tuple(images.shape)}")
+    b, nl, _, h, w = images.shape
+    pos = light_positions.to(images).expand(b, nl, 3)
+    inten = light_intensities.to(images).expand(b, nl, 3)
+    scale = (pos * pos).sum(-1, keepdim=True) / inten.clamp(min=1e-8)
+    x = torch.log(torch.clamp(images * scale[..., None, None], min=0.0) + _LOG_OFFSET).reshape(b, 3 * nl, h, w)
+    coords = pixel_points(w, h, device=images.device, dtype=images.dtype)[..., :2].permute(2, 0, 1)
+    return torch.cat((x, coords.expand(b, 2, h, w)), 1)
+
+
+def _block(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1), nn.GroupNorm(min(8, cout // 4), cout), nn.LeakyReLU(0.1),
+        nn.Conv2d(cout, cout, 3, padding=1), nn.GroupNorm(min(8, cout // 4), cout), nn.LeakyReLU(0.1),
+    )
+
+
+class MapEstimator(nn.Module):
+    """Compact U-Net: flash image(s) -> principled maps.
+
+    Args:
+        lights: L, the images it takes (the flash first).
+        width: channels of the first level (doubled per level).
+        depth: number of 2x downsamplings; H and W are padded to a multiple of ``2 ** depth``.
+
+    Shape:
+        - Input: ``images (B, L, 3, H, W)``, ``light_positions`` and ``light_intensities``
+          ``(B, L, 3)`` or ``(L, 3)``.
+        - Output: ``(B, 9, H, W)``: base_color, roughness, metallic, specular in [0, 1]
+          (sigmoids), then a unit tangent-space normal with z > 0.
+    """
+
+    def __init__(self, lights: int = 1, width: int = 16, depth: int = 3) -> None:
+        super().__init__()
+        if lights < 1 or width < 4 or depth < 1:
+            raise ValueError(f"MapEstimator: need lights >= 1, width >= 4, depth >= 1; got {lights}, {width}, {depth}")
+        self.config = {"lights": int(lights), "width": int(width), "depth": int(depth)}
+        chans = [width * 2**i for i in range(depth + 1)]
+        self.down = nn.ModuleList([_block(3 * lights + 2, chans[0])]
+                                  + [_block(chans[i], chans[i + 1]) for i in range(depth)])
+        self.up = nn.ModuleList([nn.ConvTranspose2d(chans[i + 1], chans[i], 2, stride=2) for i in range(depth)])
+        self.merge = nn.ModuleList([_block(2 * chans[i], chans[i]) for i in range(depth)])
+        self.head = nn.Conv2d(chans[0], 8, 1)
+        with torch.no_grad():  # start from flat normals: most of a sample's surface is nearly flat
+            self.head.weight[6:].zero_()
+            if self.head.bias is not None:
+                self.head.bias[6:].zero_()
+
+    def forward(self, images: Tensor, light_positions: Tensor, light_intensities: Tensor) -> Tensor:
+        if images.dim() != 5 or images.shape[1] != self.config["lights"]:
+            raise ValueError(f"MapEstimator: images must be (B, {self.config['lights']}, 3, H, W), "
+                             f"got {tuple(images.shape)}")
+        x = estimator_inputs(images, light_positions, light_intensities)
+        h, w = x.shape[-2:]
+        m = 2 ** self.config["depth"]
+        x = F.pad(x, (0, -w % m, 0, -h % m), mode="replicate")
+        skips = []
+        for i, block in enumerate(self.down):
+            x = block(x if i == 0 else F.avg_pool2d(x, 2))
+            skips.append(x)
+        for i in reversed(range(self.config["depth"])):
+            x = self.merge[i](torch.cat((self.up[i](x), skips[i]), 1))
+        out = self.head(x)[..., :h, :w]
+        params = torch.sigmoid(out[:, :6])
+        tilt = out[:, 6:8]
+        normal = torch.cat((tilt, torch.ones_like(tilt[:, :1])), 1)
+        return torch.cat((params, normal * torch.rsqrt((normal * normal).sum(1, keepdim=True))), 1)
+
+
+def _as_batch(t: Tensor, b: int) -> Tensor:
+    return t if t.dim() == 3 else t[None].expand(b, *t.shape)
+
+
+class Prior:
+    """A trained :class:`MapEstimator` with its model card, ready to predict maps.
+
+    Use :meth:`from_file` or :meth:`default`; :meth:`save` writes the same format (a
+    ``torch.save`` dict of the config, the state dict and the card, loaded with
+    ``weights_only=True``).
+
+    Attributes:
+        model: the :class:`MapEstimator` (eval mode).
+        card: the model card (training data, time, measured accuracy), a dict.
+    """
+
+    def __init__(self, model: MapEstimator, card: Mapping[str, Any] | None = None) -> None:
+        self.model = model.eval()
+        self.card = dict(card or {})
+
+    @property
+    def lights(self) -> int:
+        """L, the number of images the estimator takes."""
+        return int(self.model.config["lights"])
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, map_location: torch.device | str = "cpu") -> Prior:
+        """Load weights written by :meth:`save` (or ``python -m training.train_estimator``).
+
+        Raises:
+            FileNotFoundError: if ``path`` does not exist.
+            ValueError: if the file is not an estimator checkpoint.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"Prior.from_file: no weights file at {path}")
+        try:
+            ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as err:  # a truncated or foreign file: say which, with the cause
+            raise ValueError(f"Prior.from_file: {path} is not a readable estimator checkpoint ({err})") from err
+        if not isinstance(ckpt, dict) or not {"config", "state_dict"} <= set(ckpt):
+            raise ValueError(f"Prior.from_file: {path} is not an estimator checkpoint "
+                             "(expected a dict with 'config' and 'state_dict')")
+        model = MapEstimator(**ckpt["config"])
+        model.load_state_dict({k: v.float() for k, v in ckpt["state_dict"].items()})
+        card = ckpt.get("card") or {}
+        return cls(model, json.loads(card) if isinstance(card, str) else card)
+
+    @classmethod
+    def default(cls) -> Prior:
+        """The estimator shipped in the package (``torchbrdf/weights/estimator.pt``; its card beside it)."""
+        ref = resources.files("torchbrdf.weights").joinpath(DEFAULT_WEIGHTS)
+        with resources.as_file(ref) as path:
+            return cls.from_file(path)
+
+    def save(self, path: str | os.PathLike, half: bool = True) -> None:
+        """Write the weights (float16 when ``half``, halving the file) and the card to ``path``."""
+        state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in self.model.state_dict().items()}
+        tmp = Path(f"{path}.tmp{os.getpid()}")
+        torch.save({"config": self.model.config, "state_dict": state, "card": json.dumps(self.card)}, tmp)
+        os.replace(tmp, path)  # atomic: a reader never sees half a file
+
+    def to(self, device: torch.device | str) -> Prior:
+        """Move the network to ``device`` (in place); returns ``self``."""
+        self.model.to(device)
+        return self
+
+    @torch.no_grad()
+    def predict(
+        self,
+        images: Tensor | Capture,
+        light_positions: Tensor | None = None,
+        light_intensities: Tensor | None = None,
+    ) -> dict[str, Tensor]:
+        """Estimate principled maps.
+
+        Args:
+            images: ``(B, L, 3, H, W)`` linear radiance (``L`` = :attr:`lights`, the flash
+                first), or a :class:`~torchbrdf.capture.Capture`, whose ``L`` lights nearest
+                its camera are used (nearest first).
+            light_positions: ``(B, L, 3)`` or ``(L, 3)``; default the flash of
+                :func:`~torchbrdf.capture.synthetic.light_layout` (required for ``L > 1``).
+            light_intensities: like ``light_positions``; default that flash's intensity.
+
+        Returns:
+            ``base_color (B, 3, H, W)``, ``roughness``, ``metallic``, ``specular``
+            ``(B, 1, H, W)`` and ``normal (B, 3, H, W)``, on the images' device, float32.
+        """
+        if isinstance(images, Capture):
+            d = (images.light_positions - images.camera_position).norm(dim=-1)
+            order = torch.argsort(d)[: self.lights]
+            if len(order) < self.lights:
+                raise ValueError(f"Prior.predict: the estimator takes {self.lights} images, the capture has "
+                                 f"{len(images.images)}")
+            light_positions, light_intensities = images.light_positions[order], images.light_intensities[order]
+            images = images.images[order][None]
+        if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[1:3] != (self.lights, 3):
+            raise ValueError(f"Prior.predict: images must be (B, {self.lights}, 3, H, W) or a Capture, got "
+                             f"{tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__}")
+        if light_positions is None or light_intensities is None:
+            if self.lights != 1:
+                raise ValueError("Prior.predict: light_positions and light_intensities are required "
+                                 f"for an estimator of {self.lights} images")
+            pos, inten = light_layout(0, near_camera=True)
+            light_positions = pos if light_positions is None else light_positions
+            light_intensities = inten if light_intensities is None else light_intensities
+        device = next(self.model.parameters()).device
+        b = images.shape[0]
+        out = self.model(images.to(device, torch.float32), _as_batch(light_positions.to(device, torch.float32), b),
+                         _as_batch(light_intensities.to(device, torch.float32), b)).to(images.device)
+        return dict(zip(MAP_NAMES, torch.split(out, list(MAP_NAMES.values()), dim=1)))
+
+
+def prior_weight(confidence: Tensor, strength: float = 1.0) -> Tensor:
+    """Per-pixel prior weight ``strength * (1 - confidence)``: full where the data are silent.
+
+    Args:
+        confidence: the recovery's confidence map in [0, 1], ``(1, H, W)`` or ``(B, 1, H, W)``
+            (1: the data measured the pixel; 0: the priors inferred it).
+        strength: the weight where the confidence is 0.
+    """
+    return strength * (1.0 - confidence.clamp(0.0, 1.0))
+
+
+def prior_penalty(
+    maps: Mapping[str, Tensor],
+    prior_maps: Mapping[str, Tensor],
+    weight: Tensor | float,
+    map_weights: Mapping[str, float] | None = None,
+) -> Tensor:
+    """Confidence-weighted squared distance of ``maps`` to the prior's maps.
+
+    ``sum over maps of map_weights[m] * mean over pixels of weight * |maps[m] - prior_maps[m]|^2``,
+    summed over channels; maps missing from either dict are skipped. The prior maps are
+    constants (detached): the penalty pulls ``maps`` toward them, never the reverse.
+
+    Args:
+        maps: name -> ``(B, C, H, W)`` or ``(C, H, W)`` maps being fitted.
+        prior_maps: name -> maps of the same shapes (e.g. :meth:`Prior.predict`).
+        weight: per-pixel weight broadcasting against the maps (e.g. ``(B, 1, H, W)`` from
+            :func:`prior_weight`), or a float.
+        map_weights: name -> weight (default 1 for each map).
+
+    Returns:
+        A 0-d tensor.
+
+    Raises:
+        ValueError: if a shared map's shapes differ.
+    """
+    total: Tensor | None = None
+    for name, value in maps.items():
+        if name not in prior_maps:
+            continue
+        target = prior_maps[name].detach().to(value)
+        if target.shape != value.shape:
+            raise ValueError(f"prior_penalty: map {name!r} is {tuple(value.shape)} but the prior's is "
+                             f"{tuple(target.shape)}")
+        w = (map_weights or {}).get(name, 1.0)
+        term = w * (weight * (value - target).square().sum(-3, keepdim=True)).mean()
+        total = term if total is None else total + term
+    if total is None:
+        raise ValueError(f"prior_penalty: no map in common between {sorted(maps)} and {sorted(prior_maps)}")
+    return total
