@@ -15,6 +15,7 @@ import pytest
 import torch
 
 import torchbrdf.recovery.solver as solver
+import torchbrdf.recovery.outputs as outputs
 import torchbrdf.recovery.svbrdf as svbrdf
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
@@ -121,7 +122,7 @@ def test_failure_during_output_write_leaves_the_previous_run(done, cap, tmp_path
     out = _copy(done, tmp_path)
     before = _hashes(out)
     calls = []
-    real = svbrdf.write_exr
+    real = outputs.write_exr
 
     def failing(path, *a, **k):
         calls.append(path)
@@ -129,7 +130,7 @@ def test_failure_during_output_write_leaves_the_previous_run(done, cap, tmp_path
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(path, *a, **k)
 
-    monkeypatch.setattr(svbrdf, "write_exr", failing)
+    monkeypatch.setattr(outputs, "write_exr", failing)
     assert main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "7"]) == 1
     err = _one_line_error(capsys)
     assert "no space left on device while writing roughness.exr" in err
@@ -144,14 +145,14 @@ def test_interrupted_write_never_mixes_runs(done, cap, tmp_path, monkeypatch):
     """
     out = _copy(done, tmp_path)
     before = {k: v for k, v in _hashes(out).items() if k != CHECKPOINT}
-    real = svbrdf.write_png
+    real = outputs.write_png
 
     def killed(path, *a, **k):
         if path.name == "roughness.png":
             raise KeyboardInterrupt
         return real(path, *a, **k)
 
-    monkeypatch.setattr(svbrdf, "write_png", killed)
+    monkeypatch.setattr(outputs, "write_png", killed)
     with pytest.raises(KeyboardInterrupt):
         main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "9"])
     after = {k: v for k, v in _hashes(out).items() if k != CHECKPOINT}
@@ -174,13 +175,13 @@ def test_report_lists_its_files_and_readers_detect_a_mix(done, tmp_path):
 
 _KILL_DURING_WRITE = """
 import os, signal, sys
-import torchbrdf.recovery.svbrdf as s
-real = s.write_png
+import torchbrdf.recovery.outputs as o, torchbrdf.recovery.svbrdf as s
+real = o.write_png
 def write_png(path, *a, **k):
     if path.name == "roughness.png":  # base_color.exr/.png and roughness.exr are written already
         os.kill(os.getpid(), signal.SIGKILL)
     return real(path, *a, **k)
-s.write_png = write_png
+o.write_png = write_png
 sys.exit(s.main(sys.argv[1:]))
 """
 
@@ -212,7 +213,7 @@ def test_other_files_in_out_are_kept_and_mode_is_not_0700(done, cap, tmp_path):
     out = _copy(done, tmp_path)
     (out / "notes.txt").write_text("mine")
     os.chmod(out, 0o755)
-    assert main(["--capture", str(cap), "--out", str(out), *FAST]) == 0
+    assert main(["--capture", str(cap), "--out", str(out), *FAST, "--allow-other-files"]) == 0
     assert (out / "notes.txt").read_text() == "mine"
     assert (out.stat().st_mode & 0o777) == 0o755
 
@@ -263,7 +264,7 @@ def test_bad_gt_capture_and_out_are_refused(cap, tmp_path, capsys):
 
 def test_read_only_out_is_one_line(cap, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(os, "access", lambda *a, **k: False)
-    monkeypatch.setattr(svbrdf, "_read_only", lambda p: True)
+    monkeypatch.setattr(outputs, "_read_only", lambda p: True)
     assert main(["--capture", str(cap), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "read-only file system" in _one_line_error(capsys)
 
