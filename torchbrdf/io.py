@@ -17,6 +17,7 @@ PNG output goes through :func:`to_display` (exposure, optional tone map, sRGB en
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import sys
 import tempfile
@@ -166,19 +167,19 @@ def _library_output(into: list[str]) -> Iterator[None]:
         for stream in (sys.stdout, sys.stderr):
             stream.flush()
         saved = [os.dup(1), os.dup(2)]
+        python_side = io.StringIO()  # the bindings' own Python-level prints
         try:
             os.dup2(sink.fileno(), 1)
             os.dup2(sink.fileno(), 2)
-            yield
+            with contextlib.redirect_stdout(python_side), contextlib.redirect_stderr(python_side):
+                yield
         finally:
-            for stream in (sys.stdout, sys.stderr):
-                stream.flush()
             os.dup2(saved[0], 1)
             os.dup2(saved[1], 2)
             for fd in saved:
                 os.close(fd)
             sink.seek(0)
-            into.append(sink.read().decode("utf-8", errors="replace"))
+            into.append(sink.read().decode("utf-8", errors="replace") + python_side.getvalue())
 
 
 def _import_openexr():

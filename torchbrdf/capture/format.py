@@ -539,6 +539,14 @@ def write_capture(
     )
     if cam.shape != (3,) or not np.isfinite(cam).all():
         raise ValueError(f"write_capture: camera_position must be a finite 3-vector, got {cam.tolist()}")
+    if cam[2] <= 0:
+        raise ValueError(f"write_capture: camera_position {cam.tolist()} is on or below the sample plane; "
+                         "the loader would reject it")
+    unlit = ~(images > 0).flatten(1).any(dim=1)
+    out_of_range = (np.abs(positions) > MAX_COORDINATE).any() or (np.abs(cam) > MAX_COORDINATE).any()
+    if unlit.any() or out_of_range or (intensities > MAX_RADIANCE).any() or images.abs().max() > MAX_RADIANCE:
+        raise ValueError("write_capture: an image with no positive pixel, or a position or value beyond "
+                         f"±{MAX_COORDINATE:g} / {MAX_RADIANCE:g}; the loader would reject it")
     if files is None:
         digits = max(3, len(str(count - 1)))
         files = [f"img_{k:0{digits}d}.exr" for k in range(count)]
