@@ -266,3 +266,21 @@ def test_too_few_lights_are_reported_and_the_confidence_map_shows_it(tmp_path):
     assert any("3 light(s) for 5 unknowns per pixel" in w for w in res.report["warnings"])  # 2 + the flash
     assert any(m.startswith("warning: ") and "unknowns per pixel" in m for m in logged)
     assert res.confidence is not None and float(res.confidence.max()) == 0.0
+
+
+def test_batch_waits_for_a_worker_that_still_holds_its_output_lock(cap, tmp_path):
+    """A cancelled task's worker may end after the rerun starts: the rerun waits, then recovers."""
+    out = tmp_path / "out"
+    (out / "c").mkdir(parents=True)
+    src = tmp_path / "captures" / "c"
+    shutil.copytree(cap, src)
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK.replace("sys.stdin.read()", "time.sleep(3)")
+                               .replace("import fcntl", "import time, fcntl"), str(out / "c")],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        rows = run_batch([src], out, RecoveryConfig(iters=4, seed=0), use_ray=False, progress=False)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert rows[0]["status"] == "done", rows[0]

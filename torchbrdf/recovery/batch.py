@@ -42,6 +42,7 @@ from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON
 from torchbrdf.recovery.checkpoint import digest, folder_fingerprint, settings_fingerprint
 from torchbrdf.recovery.checks import RecoveryError
+from torchbrdf.recovery.outputs import OutputBusyError
 from torchbrdf.recovery.solver import RecoveryConfig
 
 __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "write_summary", "write_overview",
@@ -50,6 +51,8 @@ __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "writ
 REPORT = "report.json"
 SUMMARY_FIELDS = ("name", "status", "seconds", "iterations", "final_loss", "held_out_psnr", "error",
                   "capture", "out")
+#: How long a task waits for the lock of its output folder (held by a cancelled task's worker that is ending).
+LOCK_WAIT_SECONDS = 60.0
 # Single-recovery flags that are RecoveryConfig fields but mean something else in a batch.
 _NOT_PASSED = {"threads"}  # replaced by --threads-per-task
 
@@ -125,10 +128,22 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None, cfg: Recover
 
 
 def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, resume: bool) -> None:
-    """The one call into the single-capture API; its outputs (``out/report.json``) are the result."""
+    """The one call into the single-capture API; its outputs (``out/report.json``) are the result.
+
+    ``out`` belongs to this batch, so a lock on it is a cancelled task's worker that has not
+    ended yet (Ray stops workers asynchronously): wait up to :data:`LOCK_WAIT_SECONDS` for it.
+    """
     from torchbrdf.recovery.api import recover
 
-    recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
+    deadline = time.monotonic() + LOCK_WAIT_SECONDS
+    while True:
+        try:
+            recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
+            return
+        except OutputBusyError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
 
 
 def _import_before_interrupts() -> None:

@@ -35,7 +35,7 @@ from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.previews import comparison_figure, loss_figure, maps_figure, metallic_preview
 from torchbrdf.recovery.solver import CHECKPOINT
 
-__all__ = ["REPORT", "OUTPUT_FILES", "RecoveryResult", "check_out", "foreign_entries", "locked_out",
+__all__ = ["REPORT", "OUTPUT_FILES", "RecoveryResult", "OutputBusyError", "check_out", "foreign_entries", "locked_out",
            "clean_leftovers", "commit_outputs", "write_outputs", "load_outputs", "write_failure",
            "OneLineWriteErrors"]
 
@@ -140,6 +140,10 @@ def _read_only(path: Path) -> bool:
         return False
 
 
+class OutputBusyError(RecoveryError):
+    """``--out`` is locked by another process's run."""
+
+
 def _lock_folder(path: Path) -> int | None:
     """An open descriptor of ``path`` holding its exclusive ``flock``; None when another process holds it."""
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
@@ -160,12 +164,12 @@ def locked_out(out: Path) -> Iterator[None]:
     folder now at ``out``.
 
     Raises:
-        RecoveryError: another process holds the lock.
+        OutputBusyError: another process holds the lock.
     """
     while True:
         fd = _lock_folder(out)
         if fd is None:
-            raise RecoveryError(f"--out {out}: another recovery is writing it (the folder is locked); "
+            raise OutputBusyError(f"--out {out}: another recovery is writing it (the folder is locked); "
                                 "wait for it to finish or name another --out")
         held = os.fstat(fd)
         try:
