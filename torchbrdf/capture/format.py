@@ -315,7 +315,9 @@ def load_capture(
         raise ValueError(f"{json_path}: images must be a non-empty list")
 
     # First every entry (cheap, JSON only), then the images: bad descriptions fail up front.
-    files, paths, positions, intensities, images = [], [], [], [], []
+    files: list[str] = []
+    images: list[Tensor] = []
+    paths, positions, intensities = [], [], []
     for k, entry in enumerate(entries):
         where = f"images[{k}]"
         if not isinstance(entry, dict):

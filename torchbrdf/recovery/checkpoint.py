@@ -13,6 +13,7 @@ import hashlib
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -70,7 +71,7 @@ def settings_fingerprint(cfg: RecoveryConfig) -> dict:
     return out
 
 
-def digest(obj) -> str:
+def digest(obj: Any) -> str:  # Any: a JSON value
     """SHA-256 of a JSON value (keys sorted)."""
     return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()
 
@@ -171,7 +172,7 @@ def checkpoint_problems(blob: dict) -> list[str]:
         return [f"its state has the wrong type for {', '.join(wrong)}"]
     if "state_sha256" not in fp:
         return ["it carries no checksum (made by an older version)"]
-    if fp["state_sha256"] != state_checksum(state, blob.get("plan"), blob.get("torch_rng")):
+    if fp["state_sha256"] != state_checksum(state, blob["plan"], blob["torch_rng"]):
         return ["its checksum does not match its contents (the file was altered or damaged)"]
     problems = []
     for key in FINITE_STATE:

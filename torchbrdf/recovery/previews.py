@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from types import ModuleType
 
 import torch
 import torch.nn.functional as F
@@ -31,7 +32,7 @@ def metallic_preview(metallic: Tensor) -> Tensor:
 
 
 
-def pyplot():
+def pyplot() -> ModuleType:
     """matplotlib's pyplot on the file-only Agg backend (imported on first use)."""
     import matplotlib
 
@@ -169,23 +170,25 @@ def maps_figure(path: Path, maps: dict, confidence: Tensor | None = None) -> Non
     from torchbrdf.io import to_display
 
     plt = pyplot()
-    scalars = [(k, t, lab) for k, t, lab in _MAP_PANELS if k in maps or (k == "confidence" and confidence is not None)]
+    scalars = [panel for panel in _MAP_PANELS
+               if panel[0] in maps or (panel[0] == "confidence" and confidence is not None)]
     n = 2 + len(scalars)
     cols = 3
     rows = math.ceil(n / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows), squeeze=False)
     extent = (-1.0, 1.0, -1.0, 1.0)  # row 0 is the +y edge (docs/capture_format.md)
-    panels = [("base colour (sRGB display)", to_display(maps["base_color"], srgb=True), None),
-              ("normal (xyz → RGB, [-1, 1] → [0, 1])", (maps["normal"] * 0.5 + 0.5).clamp(0, 1), None)]
-    for key, title, label in scalars:
-        panels.append((title, confidence if key == "confidence" else maps[key], label))
-    for index, (ax, (title, img, label)) in enumerate(zip(axes.flat, panels)):
-        if label is None:
+    panels: list[tuple[str, Tensor, str | None]] = [
+        ("base colour (sRGB display)", to_display(maps["base_color"], srgb=True), None),
+        ("normal (xyz → RGB, [-1, 1] → [0, 1])", (maps["normal"] * 0.5 + 0.5).clamp(0, 1), None)]
+    for key, title, bar_label in scalars:
+        panels.append((title, confidence if key == "confidence" and confidence is not None else maps[key], bar_label))
+    for index, (ax, (title, img, scale)) in enumerate(zip(axes.flat, panels)):
+        if scale is None:
             ax.imshow(img.permute(1, 2, 0).numpy(), extent=extent, interpolation="nearest")
         else:
             im = ax.imshow(img[0].numpy(), extent=extent, vmin=0.0, vmax=1.0, cmap="viridis",
                            interpolation="nearest")
-            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).set_label(label, fontsize=7)
+            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).set_label(scale, fontsize=7)
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("sample x (world units)", fontsize=7)
         if index % cols == 0:  # one y label per row: the colour bars' labels need the room

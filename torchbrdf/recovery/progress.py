@@ -33,7 +33,8 @@ class StageProgress:
     stages instead of jumping when a level four times the size starts.
     """
 
-    def __init__(self, plan, stage: int, it: int, enabled: bool, write: Callable[[str], None]):
+    def __init__(self, plan: list[tuple[int, str, int]], stage: int, it: int, enabled: bool,
+                 write: Callable[[str], None]):
         self.plan = plan
         self.units = [s * s * (2 if kind == "dual" else 1) for s, kind, _ in plan]
         self.total_iters = sum(p[2] for p in plan)
