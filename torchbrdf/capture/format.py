@@ -22,8 +22,8 @@ from torch import Tensor
 from torchbrdf._checks import excerpt
 from torchbrdf.io import atomic_path, read_exr, write_exr
 
-__all__ = ["CAPTURE_JSON", "Capture", "check_capture", "image_path", "load_capture", "pixel_points", "write_capture",
-           "MAX_RADIANCE", "MAX_COORDINATE"]
+__all__ = ["CAPTURE_JSON", "Capture", "check_capture", "image_path", "load_capture", "pixel_points",
+           "write_capture", "MAX_RADIANCE", "MAX_COORDINATE"]
 
 #: Name of the description file inside a capture folder.
 CAPTURE_JSON = "capture.json"
@@ -143,7 +143,8 @@ def _positive_int(value, where: str, json_path: Path) -> int:
     return value
 
 
-def _vec3(value, where: str, json_path: Path, nonnegative: bool = False, limit: float = MAX_COORDINATE) -> list[float]:
+def _vec3(value, where: str, json_path: Path, nonnegative: bool = False,
+          limit: float = MAX_COORDINATE) -> list[float]:
     ok = (
         isinstance(value, (list, tuple))
         and len(value) == 3
@@ -249,8 +250,9 @@ def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path:
         raise ValueError(f"{file}: no pixel is positive; radiance cannot be negative, so this is not an "
                          "exposure of a lit sample (a sign or offset error?)")
     if float(image.abs().max()) > MAX_RADIANCE:
-        raise ValueError(f"{file}: a pixel value reaches {float(image.abs().max()):g}, beyond ±{MAX_RADIANCE:g} "
-                         "(the fit runs in float32); scale the images and intensities down together")
+        raise ValueError(f"{file}: a pixel value reaches {float(image.abs().max()):g}, beyond "
+                         f"±{MAX_RADIANCE:g} (the fit runs in float32); scale the images and intensities "
+                         "down together")
 
 
 def load_capture(
@@ -308,8 +310,8 @@ def load_capture(
         raise ValueError(f"{json_path}: camera must be an object, got {camera!r}")
     cam_pos = _vec3(_require(camera, "position", "camera", json_path), "camera.position", json_path)
     if cam_pos[2] <= 0:
-        raise ValueError(f"{json_path}: camera.position is at z = {cam_pos[2]:g}, on or below the sample plane; "
-                         "the sample at z = 0 faces +z, so a camera there cannot see it")
+        raise ValueError(f"{json_path}: camera.position is at z = {cam_pos[2]:g}, on or below the sample "
+                         "plane; the sample at z = 0 faces +z, so a camera there cannot see it")
     entries = _require(meta, "images", "the capture", json_path)
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{json_path}: images must be a non-empty list")
@@ -343,8 +345,8 @@ def load_capture(
             limit=MAX_RADIANCE,
         )
         if name in files:
-            raise ValueError(f"{json_path}: {where}.file {name!r} is listed already as images[{files.index(name)}]"
-                             ".file; each light needs its own image")
+            raise ValueError(f"{json_path}: {where}.file {name!r} is listed already as "
+                             f"images[{files.index(name)}].file; each light needs its own image")
         files.append(name)
         positions.append(pos)
         intensities.append(inten)
@@ -403,8 +405,8 @@ def check_capture(capture: Capture) -> list[str]:
     """
     n = len(capture)
     if n < UNKNOWNS_PER_PIXEL:
-        return [f"the capture has {n} light(s) for {UNKNOWNS_PER_PIXEL} unknowns per pixel (normal 2, roughness, "
-                "specular, albedo): the data cannot determine the maps, so they come from the priors and "
+        return [f"the capture has {n} light(s) for {UNKNOWNS_PER_PIXEL} unknowns per pixel (normal 2, "
+                "roughness, specular, albedo): the data cannot determine the maps, so they come from the priors and "
                 "the starting guess (on synthetic captures with 1-2 lights the normals were off by about "
                 "40 degrees); the confidence map is 0"]
     directions = capture.light_positions.double().cpu()

@@ -3,7 +3,8 @@
 ``api`` is the recovery (:func:`recover` -> :class:`RecoveryResult`, :class:`RecoveryConfig`),
 ``outputs`` its output folder (:func:`load_outputs` reads one back), ``checkpoint`` the
 fingerprints and checkpoint checks, ``previews`` its figures, ``progress`` its messages,
-``options``/``cli`` the ``torchbrdf-recover`` command (``svbrdf`` re-exports them all), ``smoothness_prior`` its coupled spatial prior and the
+``options``/``cli`` the ``torchbrdf-recover`` command (``svbrdf`` re-exports them),
+``smoothness_prior`` its coupled spatial prior and the
 conjugate-gradient solve, ``batch`` many captures on Ray
 (``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit (``torchbrdf-fit-merl``).
 

@@ -204,7 +204,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
 
 def _start_or_resume(cap: Capture, cfg: RecoveryConfig, out: Path | None, fingerprint: dict, resume: bool,
                      force: bool, log: Callable[[str], None]) -> Recovery:
-    """A solver at its first iteration, or restored from ``out/checkpoint.pt`` once that passes every check."""
+    """A solver at its first iteration, or restored from ``out/checkpoint.pt`` once that passes its checks."""
     ck = out / CHECKPOINT if out is not None else None
     if resume and ck is not None and not ck.is_file():
         log(f"--resume: no checkpoint in {out}; starting from scratch")
@@ -278,9 +278,8 @@ def _finish(rec: Recovery, cap: Capture, cfg: RecoveryConfig, out: Path | None, 
     final_loss = float(st["history"][-1]["loss"]) if st["history"] else float("nan")
     if not interrupted and not (math.isfinite(final_loss) and all(bool(torch.isfinite(t).all())
                                                                    for t in st["theta"])):
-        raise RecoveryError(f"the fit ended in a non-finite state (final loss {final_loss}); "
-                            f"{'the outputs in ' + str(out) + ' are unchanged' if out else 'nothing written'}",
-                            rc=1)
+        kept = f"the outputs in {out} are unchanged" if out else "nothing written"
+        raise RecoveryError(f"the fit ended in a non-finite state (final loss {final_loss}); {kept}", rc=1)
     with torch.no_grad():
         fin = _finite_maps(_resize_maps(rec.current_params(), cap.height, cap.width))
         pred = render_capture(fin, cap, cap.camera_position, backend="compact")
@@ -290,7 +289,7 @@ def _finish(rec: Recovery, cap: Capture, cfg: RecoveryConfig, out: Path | None, 
             confidence = F.interpolate(confidence.reshape(1, 1, *confidence.shape[-2:]).float(),
                                        size=(cap.height, cap.width), mode="bilinear", align_corners=False)[0]
         if confidence is not None and capture_warnings:
-            confidence = torch.zeros_like(confidence)  # the capture cannot determine the maps: nothing is measured
+            confidence = torch.zeros_like(confidence)  # the capture cannot determine the maps: nothing measured
     report = {
         "iterations": int(st["global_it"]),
         "seconds": float(seconds),

@@ -104,7 +104,8 @@ def _read_report(out_dir: Path) -> dict | None:
         return None
 
 
-def is_complete(out_dir: PathLike, capture: PathLike | None = None, cfg: RecoveryConfig | None = None) -> bool:
+def is_complete(out_dir: PathLike, capture: PathLike | None = None,
+                cfg: RecoveryConfig | None = None) -> bool:
     """Whether ``out_dir`` holds a finished recovery of ``capture`` with the settings ``cfg``.
 
     That is a ``report.json`` with ``"completed": true`` whose fingerprint matches the
@@ -247,7 +248,7 @@ def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, 
     try:
         _run_single(capture, out, cfg, _gt_folder(capture, gt_name), resume)
     except Exception as e:  # the capture's own failure: record it, keep the batch going
-        if isinstance(e, (ValueError, OSError, RecoveryError)):  # bad input: the message says which file and why
+        if isinstance(e, (ValueError, OSError, RecoveryError)):  # bad input: the message says what and why
             print(f"{name}: {_one_line(e)}", file=sys.stderr)
         else:  # unexpected: keep the traceback in the worker's log
             traceback.print_exc(file=sys.stderr)

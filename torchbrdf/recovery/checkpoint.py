@@ -95,7 +95,7 @@ def capture_differences(old: dict, new: dict) -> list[str]:
 
 
 def settings_differences(old: dict, new: dict) -> list[str]:
-    """``"name old -> new"`` for each setting that differs between two :func:`settings_fingerprint` results."""
+    """``"name old -> new"`` for each setting that differs between two settings fingerprints."""
     keys = sorted(set(old) | set(new))
     return [f"{k} {old.get(k, '(unset)')!r} -> {new.get(k, '(unset)')!r}"
             for k in keys if old.get(k) != new.get(k)]

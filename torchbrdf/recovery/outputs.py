@@ -35,9 +35,9 @@ from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.previews import comparison_figure, loss_figure, maps_figure, metallic_preview
 from torchbrdf.recovery.solver import CHECKPOINT
 
-__all__ = ["REPORT", "OUTPUT_FILES", "RecoveryResult", "OutputBusyError", "check_out", "foreign_entries", "locked_out",
-           "clean_leftovers", "commit_outputs", "write_outputs", "load_outputs", "write_failure",
-           "OneLineWriteErrors"]
+__all__ = ["REPORT", "OUTPUT_FILES", "RecoveryResult", "OutputBusyError", "check_out", "foreign_entries",
+           "locked_out", "clean_leftovers", "commit_outputs", "write_outputs", "load_outputs", "write_failure",
+           "OneLineWriteErrors", "is_own_file"]
 
 REPORT = "report.json"
 #: Every file a run writes into OUT besides checkpoint.pt.
@@ -115,9 +115,9 @@ def check_out(out: str | os.PathLike, allow_other_files: bool = False) -> Path:
     foreign = foreign_entries(out)
     if foreign and not allow_other_files:
         more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
-        raise RecoveryError(f"--out {out}: holds entries this recovery did not write ({', '.join(foreign[:3])}"
-                            f"{more}); name a new or earlier output folder, or pass --allow-other-files to "
-                            "leave them untouched")
+        raise RecoveryError(f"--out {out}: holds entries this recovery did not write "
+                            f"({', '.join(foreign[:3])}{more}); name a new or earlier output folder, or pass "
+                            "--allow-other-files to leave them untouched")
     anc = out if out.exists() else out.parent
     while not anc.exists():
         anc = anc.parent

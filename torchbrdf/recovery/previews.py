@@ -181,7 +181,8 @@ def maps_figure(path: Path, maps: dict, confidence: Tensor | None = None) -> Non
         ("base colour (sRGB display)", to_display(maps["base_color"], srgb=True), None),
         ("normal (xyz → RGB, [-1, 1] → [0, 1])", (maps["normal"] * 0.5 + 0.5).clamp(0, 1), None)]
     for key, title, bar_label in scalars:
-        panels.append((title, confidence if key == "confidence" and confidence is not None else maps[key], bar_label))
+        img = confidence if key == "confidence" and confidence is not None else maps[key]
+        panels.append((title, img, bar_label))
     for index, (ax, (title, img, scale)) in enumerate(zip(axes.flat, panels)):
         if scale is None:
             ax.imshow(img.permute(1, 2, 0).numpy(), extent=extent, interpolation="nearest")

@@ -150,7 +150,7 @@ def stage_seconds(history: list) -> list[dict]:
 
 
 def last_fit_loss(history: list) -> float | None:
-    """The last iteration's fit loss (each pixel's better hypothesis, or its chosen class), None without one."""
+    """The last iteration's fit loss (each pixel's better hypothesis, or its chosen class), or None."""
     if not history or "fit" not in history[-1]:
         return None
     f = history[-1]["fit"]
