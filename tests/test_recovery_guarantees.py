@@ -8,7 +8,6 @@ is reported. Tiny captures (16 px, 4 iterations) keep this CI-sized.
 """
 
 import contextlib
-import hashlib
 import json
 import os
 import shutil
@@ -27,47 +26,10 @@ from torchbrdf.recovery.batch import run_batch
 from torchbrdf.recovery.checkpoint import state_checksum
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
-FAST = ["--iters", "4", "--threads", "1", "--quiet", "--seed", "0"]
-
-
-@pytest.fixture(scope="module")
-def cap(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("cap16")
-    generate_capture(folder, recipe="metal_inlay", seed=2, size=16, lights=6, noise=0.01)
-    return folder
-
-
-@pytest.fixture(scope="module")
-def done(cap, tmp_path_factory):
-    """A completed run (CLI, FAST settings)."""
-    out = tmp_path_factory.mktemp("done") / "out"
-    assert main(["--capture", str(cap), "--out", str(out), *FAST]) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def stopped(cap, tmp_path_factory):
-    """A run stopped by SIGTERM after one iteration (checkpoint + partial outputs)."""
-    out = tmp_path_factory.mktemp("stopped") / "out"
-    res = recover(cap, RecoveryConfig(iters=4, threads=1, signal_at=1), out, progress=False)
-    assert not res.report["completed"] and (out / CHECKPOINT).is_file()
-    return out
-
-
-def _hashes(folder):
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
-
-
-def _copy(src, tmp_path):
-    dst = tmp_path / "out"
-    shutil.copytree(src, dst)
-    return dst
-
-
-def _one_line_error(capsys):
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err, err
-    return err
+from tests.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
+from tests.recovery_fixtures import copy_out as _copy
+from tests.recovery_fixtures import file_hashes as _hashes
+from tests.recovery_fixtures import one_line_error as _one_line_error
 
 
 @contextlib.contextmanager
