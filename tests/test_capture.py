@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from torchbrdf.capture import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
+from torchbrdf.capture.format import check_capture
 from torchbrdf.io import write_exr
 
 H, W, L = 6, 8, 3
@@ -405,3 +406,75 @@ def test_pixel_points_symmetry_dtype_device(device):
     assert (p[:, 1:, 0] > p[:, :-1, 0]).all() and (p[1:, :, 1] < p[:-1, :, 1]).all()
     with pytest.raises(ValueError, match="positive"):
         pixel_points(0, 4)
+
+
+# --------------------------------------------------------------------------------------
+# What cannot be a capture, or cannot be fitted in float32
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (_set([0.0, 0.0, -2.0], "images", 1, "light", "position"), r"light 1 is at z = -2, on or below the sample"),
+        (_set([0.5, 0.5, 0.0], "images", 2, "light", "position"), r"light 2 is at z = 0, on or below"),
+        (_set([0.0, 0.0, -3.0], "camera", "position"), r"camera\.position is at z = -3, on or below"),
+        (_set([0.5, 0.0, 0.0], "camera", "position"), r"camera\.position is at z = 0"),
+        (_set([1e39, 1.0, 1.0], "images", 0, "light", "intensity"), r"images\[0\]\.light\.intensity must lie within"),
+        (_set([1e39, 0.0, 1e39], "images", 1, "light", "position"), r"images\[1\]\.light\.position must lie within"),
+        (_set("img_000.exr", "images", 2, "file"), r"images\[2\]\.file 'img_000\.exr' is listed already"),
+    ],
+)
+def test_impossible_geometry_and_float32_ranges_refused(capture_dir, edit, match):
+    _edit_json(capture_dir, edit)
+    with pytest.raises(ValueError, match=match):
+        load_capture(capture_dir)
+
+
+def test_pixel_beyond_float32_range_refused(capture_dir):
+    img = _images()[1]
+    img[0, 2, 3] = 3e38
+    write_exr(capture_dir / "img_001.exr", img)
+    with pytest.raises(ValueError, match=r"img_001\.exr: a pixel value reaches 3e\+38"):
+        load_capture(capture_dir)
+
+
+def test_wholly_negative_image_refused(capture_dir):
+    write_exr(capture_dir / "img_001.exr", -_images()[1].abs() - 0.01)
+    with pytest.raises(ValueError, match=r"img_001\.exr: no pixel is positive"):
+        load_capture(capture_dir)
+
+
+def test_the_same_exposure_under_two_names_refused(capture_dir):
+    write_exr(capture_dir / "img_002.exr", _images()[0])
+    with pytest.raises(ValueError, match=r"img_002\.exr .*the same pixels as img_000\.exr \(images\[0\]\)"):
+        load_capture(capture_dir)
+
+
+def test_deeply_nested_json_is_one_value_error(capture_dir):
+    (capture_dir / CAPTURE_JSON).write_text("[" * 100_000)
+    with pytest.raises(ValueError, match="nests lists or objects too deeply"):
+        load_capture(capture_dir)
+
+
+def test_fifo_image_is_not_reported_missing(capture_dir):
+    (capture_dir / "img_001.exr").unlink()
+    os.mkfifo(capture_dir / "img_001.exr")
+    with pytest.raises(ValueError, match=r"img_001\.exr.*is not a regular file \(a FIFO"):
+        load_capture(capture_dir)
+
+
+def test_check_capture_warns_about_too_few_lights_and_a_degenerate_layout():
+    images = _images().abs() + 0.1
+    positions, intensities = _lights()
+    few = Capture(images[:2], positions[:2], intensities[:2], torch.tensor([0.0, 0.0, 3.0]), W, H, ("a", "b"))
+    assert "2 light(s) for 5 unknowns per pixel" in " ".join(check_capture(few))
+    n = 6
+    line = torch.stack([torch.linspace(-1, 1, n), torch.zeros(n), torch.full((n,), 2.0)], 1)  # one plane: y = 0
+    flat = Capture(images[[0] * n], line, torch.ones(n, 3), torch.tensor([0.0, 0.0, 3.0]), W, H,
+                   tuple(str(k) for k in range(n)))
+    assert "span only 2 dimension(s)" in " ".join(check_capture(flat))
+    spread = torch.tensor([[1.0, 0, 2], [-1, 0, 2], [0, 1, 2], [0, -1, 2], [0, 0, 3], [0.7, 0.7, 1]])
+    good = Capture(images[[0] * n], spread, torch.ones(n, 3), torch.tensor([0.0, 0.0, 3.0]), W, H,
+                   tuple(str(k) for k in range(n)))
+    assert check_capture(good) == []

@@ -160,6 +160,20 @@ def test_read_truncated_exr(tmp_path):
         read_exr(p)
 
 
+def test_truncated_exr_prints_nothing_and_its_error_carries_the_library_text(tmp_path, capfd):
+    """OpenEXR prints its own lines about a damaged file; they belong in the one error, not on the terminal."""
+    p = tmp_path / "cut.exr"
+    write_exr(p, _hdr(3, 64, 64))
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    capfd.readouterr()
+    with pytest.raises(ValueError, match=r"cut\.exr.*\(OpenEXR: .*\)") as e:
+        read_exr(p)
+    assert "\n" not in str(e.value)
+    printed = capfd.readouterr()
+    assert printed.out == "" and printed.err == ""
+
+
 # --------------------------------------------------------------------------------------
 # Display and PNG
 # --------------------------------------------------------------------------------------

@@ -145,6 +145,18 @@ def test_one_cache_variable_for_kernels_and_demo_capture(monkeypatch, tmp_path):
     assert build.cache_root() == str(tmp_path / "xdg" / "torchbrdf")
 
 
+@pytest.mark.parametrize("home", ["", "relative/home"])
+def test_empty_or_relative_home_is_not_taken_relative_to_the_current_folder(monkeypatch, tmp_path, home):
+    import pwd
+
+    monkeypatch.delenv("TORCHBRDF_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", "")
+    monkeypatch.setenv("HOME", home)
+    monkeypatch.chdir("/")
+    expected = os.path.join(pwd.getpwuid(os.getuid()).pw_dir, ".cache", "torchbrdf")
+    assert build.cache_root() == os.path.abspath(expected) != "/.cache/torchbrdf"
+
+
 # --- unusable folders: a private per-process folder, never a shared one ------------------------
 
 def test_unwritable_cache_dir_builds_in_a_private_folder(cache, tmp_path, monkeypatch, recwarn):

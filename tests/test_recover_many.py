@@ -233,7 +233,7 @@ def test_an_interrupt_during_the_first_imports_waits_until_they_are_complete(mon
     """
     import signal
 
-    from torchbrdf.recovery import batch, svbrdf
+    from torchbrdf.recovery import batch, previews
 
     done = []
 
@@ -242,7 +242,7 @@ def test_an_interrupt_during_the_first_imports_waits_until_they_are_complete(mon
         time.sleep(0.05)  # the interrupt would land here, inside the import
         done.append(True)
 
-    monkeypatch.setattr(svbrdf, "_pyplot", pyplot_interrupted_midway)
+    monkeypatch.setattr(previews, "pyplot", pyplot_interrupted_midway)
     handler = signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
         batch._import_before_interrupts()

@@ -4,7 +4,6 @@ messages, prompt stop, the Python API (issues 14 and 15).
 
 import contextlib
 import errno
-import hashlib
 import json
 import os
 import shutil
@@ -15,20 +14,17 @@ import pytest
 import torch
 
 import torchbrdf.recovery.solver as solver
+import torchbrdf.recovery.outputs as outputs
 import torchbrdf.recovery.svbrdf as svbrdf
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
 from torchbrdf.recovery import RecoveryConfig, recover
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
-FAST = ["--iters", "4", "--threads", "1", "--quiet", "--seed", "0"]
-
-
-@pytest.fixture(scope="module")
-def cap(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("cap16")
-    generate_capture(folder, recipe="metal_inlay", seed=2, size=16, lights=6, noise=0.01)
-    return folder
+from tests.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
+from tests.recovery_fixtures import copy_out as _copy
+from tests.recovery_fixtures import file_hashes as _hashes
+from tests.recovery_fixtures import one_line_error as _one_line_error
 
 
 @pytest.fixture(scope="module")
@@ -36,40 +32,6 @@ def other_cap(tmp_path_factory):
     folder = tmp_path_factory.mktemp("cap16b")
     generate_capture(folder, recipe="metal_inlay", seed=5, size=16, lights=6, noise=0.01)
     return folder
-
-
-@pytest.fixture(scope="module")
-def done(cap, tmp_path_factory):
-    """A completed run (CLI, FAST settings)."""
-    out = tmp_path_factory.mktemp("done") / "out"
-    assert main(["--capture", str(cap), "--out", str(out), *FAST]) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def stopped(cap, tmp_path_factory):
-    """A run stopped by SIGTERM after one iteration (checkpoint + partial outputs)."""
-    out = tmp_path_factory.mktemp("stopped") / "out"
-    res = recover(cap, RecoveryConfig(iters=4, threads=1, signal_at=1), out, progress=False)
-    assert not res.report["completed"] and (out / CHECKPOINT).is_file()
-    return out
-
-
-def _hashes(folder):
-    files = [p for p in sorted(folder.iterdir()) if p.is_file()]
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
-
-
-def _copy(src, tmp_path):
-    dst = tmp_path / "out"
-    shutil.copytree(src, dst)
-    return dst
-
-
-def _one_line_error(capsys):
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err, err
-    return err
 
 
 # --------------------------------------------------------------------------------------
@@ -121,7 +83,7 @@ def test_failure_during_output_write_leaves_the_previous_run(done, cap, tmp_path
     out = _copy(done, tmp_path)
     before = _hashes(out)
     calls = []
-    real = svbrdf.write_exr
+    real = outputs.write_exr
 
     def failing(path, *a, **k):
         calls.append(path)
@@ -129,7 +91,7 @@ def test_failure_during_output_write_leaves_the_previous_run(done, cap, tmp_path
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(path, *a, **k)
 
-    monkeypatch.setattr(svbrdf, "write_exr", failing)
+    monkeypatch.setattr(outputs, "write_exr", failing)
     assert main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "7"]) == 1
     err = _one_line_error(capsys)
     assert "no space left on device while writing roughness.exr" in err
@@ -144,14 +106,14 @@ def test_interrupted_write_never_mixes_runs(done, cap, tmp_path, monkeypatch):
     """
     out = _copy(done, tmp_path)
     before = {k: v for k, v in _hashes(out).items() if k != CHECKPOINT}
-    real = svbrdf.write_png
+    real = outputs.write_png
 
     def killed(path, *a, **k):
         if path.name == "roughness.png":
             raise KeyboardInterrupt
         return real(path, *a, **k)
 
-    monkeypatch.setattr(svbrdf, "write_png", killed)
+    monkeypatch.setattr(outputs, "write_png", killed)
     with pytest.raises(KeyboardInterrupt):
         main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "9"])
     after = {k: v for k, v in _hashes(out).items() if k != CHECKPOINT}
@@ -174,13 +136,13 @@ def test_report_lists_its_files_and_readers_detect_a_mix(done, tmp_path):
 
 _KILL_DURING_WRITE = """
 import os, signal, sys
-import torchbrdf.recovery.svbrdf as s
-real = s.write_png
+import torchbrdf.recovery.outputs as o, torchbrdf.recovery.svbrdf as s
+real = o.write_png
 def write_png(path, *a, **k):
     if path.name == "roughness.png":  # base_color.exr/.png and roughness.exr are written already
         os.kill(os.getpid(), signal.SIGKILL)
     return real(path, *a, **k)
-s.write_png = write_png
+o.write_png = write_png
 sys.exit(s.main(sys.argv[1:]))
 """
 
@@ -212,7 +174,7 @@ def test_other_files_in_out_are_kept_and_mode_is_not_0700(done, cap, tmp_path):
     out = _copy(done, tmp_path)
     (out / "notes.txt").write_text("mine")
     os.chmod(out, 0o755)
-    assert main(["--capture", str(cap), "--out", str(out), *FAST]) == 0
+    assert main(["--capture", str(cap), "--out", str(out), *FAST, "--allow-other-files"]) == 0
     assert (out / "notes.txt").read_text() == "mine"
     assert (out.stat().st_mode & 0o777) == 0o755
 
@@ -263,7 +225,7 @@ def test_bad_gt_capture_and_out_are_refused(cap, tmp_path, capsys):
 
 def test_read_only_out_is_one_line(cap, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(os, "access", lambda *a, **k: False)
-    monkeypatch.setattr(svbrdf, "_read_only", lambda p: True)
+    monkeypatch.setattr(outputs, "_read_only", lambda p: True)
     assert main(["--capture", str(cap), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "read-only file system" in _one_line_error(capsys)
 

@@ -17,8 +17,11 @@ PNG output goes through :func:`to_display` (exposure, optional tone map, sRGB en
 from __future__ import annotations
 
 import contextlib
+import io
 import os
+import sys
 import tempfile
+import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Literal, overload
@@ -149,6 +152,36 @@ def check_readable_file(path: Path, what: str) -> None:
 # --------------------------------------------------------------------------------------
 
 
+_LIBRARY_OUTPUT_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _library_output(into: list[str]) -> Iterator[None]:
+    """Collect what native code prints to file descriptors 1 and 2 during the body into ``into``.
+
+    The OpenEXR bindings print their own lines about a damaged file before raising; the
+    caller's one-line error carries that text instead. The descriptors are process-wide, so
+    one body at a time holds them.
+    """
+    with _LIBRARY_OUTPUT_LOCK, tempfile.TemporaryFile() as sink:
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        saved = [os.dup(1), os.dup(2)]
+        python_side = io.StringIO()  # the bindings' own Python-level prints
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            with contextlib.redirect_stdout(python_side), contextlib.redirect_stderr(python_side):
+                yield
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            into.append(sink.read().decode("utf-8", errors="replace") + python_side.getvalue())
+
+
 def _import_openexr():
     try:
         import OpenEXR
@@ -227,15 +260,20 @@ def read_exr(
     # so check the magic number first to tell the user which problem they have.
     if not exr.isOpenExrFile(str(path)):
         raise ValueError(f"'{path}' is not an OpenEXR file (bad magic number or truncated header)")
+    printed: list[str] = []
     try:
-        with exr.File(str(path), separate_channels=True) as f:
+        with _library_output(printed), exr.File(str(path), separate_channels=True) as f:
             # A truncated or corrupt file loads with no parts (the bindings only print a warning).
             if not f.parts:
                 raise ValueError("no readable part (truncated or corrupt pixel data)")
             stored = {name: ch.pixels for name, ch in f.channels().items()}
             sampling = {name: (ch.xSampling, ch.ySampling) for name, ch in f.channels().items()}
     except (RuntimeError, ValueError, IndexError) as e:
-        raise ValueError(f"could not read OpenEXR file '{path}': {e}") from e
+        said = " ".join(" ".join(printed).split())
+        detail = f" (OpenEXR: {said[:200]})" if said else ""
+        raise ValueError(f"could not read OpenEXR file '{path}': {e}{detail}") from e
+    if printed and printed[0].strip():  # a file that read, with the library's remarks: pass them on
+        sys.stderr.write(printed[0])
     if not stored:
         raise ValueError(f"OpenEXR file '{path}' has no channels")
     subsampled = [n for n, s in sampling.items() if tuple(s) != (1, 1)]

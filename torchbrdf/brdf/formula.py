@@ -131,7 +131,7 @@ SQRT_EPS = 1e-12
 NORM_EPS = 1e-12
 # |x| below which t / log(1 + t) switches to its Taylor series.
 SERIES_EPS = 1e-4
-# Floor under NDF denominators (α² cos² + sin²): only a zero half vector reaches it.
+# Floor under NDF denominators (α² cos² + sin²): only a zero half vector or normal reaches it.
 DEN_EPS = 1e-18
 # |l + v|² below which there is no half vector (l = -v); such lanes borrow h = n.
 HALF_DEGENERATE = 1e-20
@@ -298,7 +298,7 @@ def specular_dg(ops: Ops, l: Value, v: Value, x: Value | None, y: Value | None, 
     if x is None:
         alpha = ops.clamp_min(r2, ALPHA_MIN)
         a2 = alpha * alpha
-        den = a2 * nh * nh + hg["sin2_h"]
+        den = ops.clamp_min(a2 * nh * nh + hg["sin2_h"], DEN_EPS)  # 0 only for a zero-length n (masked)
         ds = a2 / (math.pi * den * den)
         gs = g_over_4nn(ops, nl, a2 * (1.0 - nl * nl)) * g_over_4nn(ops, nv, a2 * (1.0 - nv * nv))
         return ops.where(nh > 0.0, ds * gs, 0.0)
@@ -306,7 +306,7 @@ def specular_dg(ops: Ops, l: Value, v: Value, x: Value | None, y: Value | None, 
     ax = ops.clamp_min(r2 / aspect, ALPHA_MIN)
     ay = ops.clamp_min(r2 * aspect, ALPHA_MIN)
     hx, hy = hg["hx"] / ax, hg["hy"] / ay
-    den = hx * hx + hy * hy + nh * nh
+    den = ops.clamp_min(hx * hx + hy * hy + nh * nh, DEN_EPS)
     ds = 1.0 / (math.pi * ax * ay * den * den)
     lx, ly, vx, vy = ops.dot(l, x) * ax, ops.dot(l, y) * ay, ops.dot(v, x) * ax, ops.dot(v, y) * ay
     gs = g_over_4nn(ops, nl, lx * lx + ly * ly) * g_over_4nn(ops, nv, vx * vx + vy * vy)

@@ -22,12 +22,27 @@ from torch import Tensor
 from torchbrdf._checks import excerpt
 from torchbrdf.io import atomic_path, read_exr, write_exr
 
-__all__ = ["CAPTURE_JSON", "Capture", "image_path", "load_capture", "pixel_points", "write_capture"]
+__all__ = ["CAPTURE_JSON", "Capture", "check_capture", "image_path", "load_capture", "pixel_points",
+           "write_capture", "MAX_RADIANCE", "MAX_COORDINATE"]
 
 #: Name of the description file inside a capture folder.
 CAPTURE_JSON = "capture.json"
 
 _LIGHT_TYPES = ("point",)
+
+#: Largest light intensity and pixel value accepted. The fit squares values up to the BRDF's
+#: peak (about 1000) times these, and float32 overflows at 3.4e38.
+MAX_RADIANCE = 1e15
+#: Largest light or camera coordinate accepted (the sample is 2 units wide); squared
+#: distances stay far from float32's overflow.
+MAX_COORDINATE = 1e6
+#: Unknowns per pixel that the lights must determine: the normal (2), roughness, specular
+#: and the albedo's level (its colour comes from the ratios of the channels).
+UNKNOWNS_PER_PIXEL = 5
+#: Light layouts whose directions' smallest singular value is below this fraction of the
+#: largest leave the normals undetermined (all lights on one line, or in one plane, through
+#: the sample).
+DEGENERATE_LAYOUT = 0.05
 
 
 @dataclass(frozen=True)
@@ -128,7 +143,8 @@ def _positive_int(value, where: str, json_path: Path) -> int:
     return value
 
 
-def _vec3(value, where: str, json_path: Path, nonnegative: bool = False) -> list[float]:
+def _vec3(value, where: str, json_path: Path, nonnegative: bool = False,
+          limit: float = MAX_COORDINATE) -> list[float]:
     ok = (
         isinstance(value, (list, tuple))
         and len(value) == 3
@@ -140,6 +156,9 @@ def _vec3(value, where: str, json_path: Path, nonnegative: bool = False) -> list
         raise ValueError(f"{json_path}: {where} must be finite, got {value!r}")
     if nonnegative and any(c < 0 for c in value):
         raise ValueError(f"{json_path}: {where} must be non-negative, got {value!r}")
+    if any(abs(c) > limit for c in value):
+        raise ValueError(f"{json_path}: {where} must lie within ±{limit:g} (the fit runs in float32), "
+                         f"got {value!r}")
     return [float(c) for c in value]
 
 
@@ -204,6 +223,12 @@ def _check_lights(positions, intensities, where) -> None:
             f"{where(None)}: no light is above the sample plane (every light position has z <= 0); "
             "the sample at z = 0 faces +z, so no image can show it lit"
         )
+    for k, p in enumerate(positions):
+        if p[2] <= 0:
+            raise ValueError(
+                f"{where(None)}: light {k} is at z = {p[2]:g}, on or below the sample plane; the sample at "
+                "z = 0 faces +z, so its image cannot show it lit; drop the image or fix the position"
+            )
 
 
 def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path: Path) -> None:
@@ -221,6 +246,13 @@ def _check_pixels(image: Tensor, file: Path, width: int, height: int, json_path:
         )
     if not bool(image.any()):
         raise ValueError(f"{file}: every pixel is 0 (a blank or failed exposure?); such an image shows nothing")
+    if not bool((image > 0).any()):
+        raise ValueError(f"{file}: no pixel is positive; radiance cannot be negative, so this is not an "
+                         "exposure of a lit sample (a sign or offset error?)")
+    if float(image.abs().max()) > MAX_RADIANCE:
+        raise ValueError(f"{file}: a pixel value reaches {float(image.abs().max()):g}, beyond "
+                         f"±{MAX_RADIANCE:g} (the fit runs in float32); scale the images and intensities "
+                         "down together")
 
 
 def load_capture(
@@ -261,6 +293,9 @@ def load_capture(
         raise FileNotFoundError(f"{json_path}: missing; a capture folder needs a {CAPTURE_JSON}")
     try:
         meta = json.loads(json_path.read_text(encoding="utf-8"))
+    except RecursionError as e:
+        raise ValueError(f"{json_path}: nests lists or objects too deeply to read; a capture description "
+                         "is a shallow object (docs/capture_format.md)") from e
     except json.JSONDecodeError as e:
         raise ValueError(f"{json_path}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from e
     except UnicodeDecodeError as e:
@@ -274,12 +309,17 @@ def load_capture(
     if not isinstance(camera, dict):
         raise ValueError(f"{json_path}: camera must be an object, got {camera!r}")
     cam_pos = _vec3(_require(camera, "position", "camera", json_path), "camera.position", json_path)
+    if cam_pos[2] <= 0:
+        raise ValueError(f"{json_path}: camera.position is at z = {cam_pos[2]:g}, on or below the sample "
+                         "plane; the sample at z = 0 faces +z, so a camera there cannot see it")
     entries = _require(meta, "images", "the capture", json_path)
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{json_path}: images must be a non-empty list")
 
     # First every entry (cheap, JSON only), then the images: bad descriptions fail up front.
-    files, paths, positions, intensities, images = [], [], [], [], []
+    files: list[str] = []
+    images: list[Tensor] = []
+    paths, positions, intensities = [], [], []
     for k, entry in enumerate(entries):
         where = f"images[{k}]"
         if not isinstance(entry, dict):
@@ -302,7 +342,11 @@ def load_capture(
             f"{where}.light.intensity",
             json_path,
             nonnegative=True,
+            limit=MAX_RADIANCE,
         )
+        if name in files:
+            raise ValueError(f"{json_path}: {where}.file {name!r} is listed already as "
+                             f"images[{files.index(name)}].file; each light needs its own image")
         files.append(name)
         positions.append(pos)
         intensities.append(inten)
@@ -317,13 +361,19 @@ def load_capture(
         listed = f"{file}: image listed as {where}.file in {json_path}"
         if file.is_dir():
             raise IsADirectoryError(f"{listed} is a directory, not a file")
-        if not file.is_file():
+        if not file.exists():
             raise FileNotFoundError(f"{listed} not found (no such file)")
+        if not file.is_file():  # checked before opening: reading a FIFO would block
+            raise ValueError(f"{listed} is not a regular file (a FIFO, socket or device)")
         try:
             image = read_exr(file, channels=("R", "G", "B"))
         except ValueError as e:
             raise ValueError(f"{file} ({where} in {json_path}): {e}") from e
         _check_pixels(image, file, width, height, json_path)
+        same = next((j for j, earlier in enumerate(images) if torch.equal(earlier, image)), None)
+        if same is not None:
+            raise ValueError(f"{file} ({where} in {json_path}): the same pixels as {paths[same].name} "
+                             f"(images[{same}]); each light needs its own exposure")
         images.append(image)
 
     return Capture(
@@ -335,6 +385,39 @@ def load_capture(
         height=height,
         files=tuple(files),
     )
+
+
+def check_capture(capture: Capture) -> list[str]:
+    """What a loaded capture cannot determine, one warning per problem (empty: nothing found).
+
+    * Fewer lights than :data:`UNKNOWNS_PER_PIXEL`: each pixel has more unknowns than
+      observations, so the maps come from the priors and the starting guess, not the data.
+    * A degenerate light layout: the directions from the sample's centre to the lights
+      span less than three dimensions (smallest singular value under
+      :data:`DEGENERATE_LAYOUT` of the largest), so a normal's tilt in the missing
+      direction trades against albedo.
+
+    Args:
+        capture: a :class:`Capture` (any device or dtype).
+
+    Returns:
+        One line per problem, each with what it costs.
+    """
+    n = len(capture)
+    if n < UNKNOWNS_PER_PIXEL:
+        return [f"the capture has {n} light(s) for {UNKNOWNS_PER_PIXEL} unknowns per pixel (normal 2, "
+                "roughness, specular, albedo): the data cannot determine the maps, so they come from the priors and "
+                "the starting guess (on synthetic captures with 1-2 lights the normals were off by about "
+                "40 degrees); the confidence map is 0"]
+    directions = capture.light_positions.double().cpu()
+    directions = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    s = torch.linalg.svdvals(directions)
+    ratio = float(s[-1] / s[0])
+    if ratio < DEGENERATE_LAYOUT:
+        return [f"the light directions nearly span only {int((s > DEGENERATE_LAYOUT * s[0]).sum())} "
+                f"dimension(s) (smallest/largest singular value {ratio:.3g}): the normals' tilt along the "
+                "missing direction cannot be told from an albedo change; the confidence map is 0"]
+    return []
 
 
 # --------------------------------------------------------------------------------------
@@ -460,6 +543,14 @@ def write_capture(
     )
     if cam.shape != (3,) or not np.isfinite(cam).all():
         raise ValueError(f"write_capture: camera_position must be a finite 3-vector, got {cam.tolist()}")
+    if cam[2] <= 0:
+        raise ValueError(f"write_capture: camera_position {cam.tolist()} is on or below the sample plane; "
+                         "the loader would reject it")
+    unlit = ~(images > 0).flatten(1).any(dim=1)
+    out_of_range = (np.abs(positions) > MAX_COORDINATE).any() or (np.abs(cam) > MAX_COORDINATE).any()
+    if unlit.any() or out_of_range or (intensities > MAX_RADIANCE).any() or images.abs().max() > MAX_RADIANCE:
+        raise ValueError("write_capture: an image with no positive pixel, or a position or value beyond "
+                         f"±{MAX_COORDINATE:g} / {MAX_RADIANCE:g}; the loader would reject it")
     if files is None:
         digits = max(3, len(str(count - 1)))
         files = [f"img_{k:0{digits}d}.exr" for k in range(count)]

@@ -9,7 +9,8 @@ recovery) and writes ``OUT/summary.json``, ``OUT/summary.csv`` and ``OUT/overvie
   cluster, and the capture and output folders must be on a path every node sees (a shared
   file system). Ray is optional (the ``[cluster]`` extra): without it the captures run one
   after another in this process.
-- A rerun skips captures whose ``report.json`` says ``"completed": true`` and resumes the
+- A rerun skips captures whose ``report.json`` says ``"completed": true`` and carries the
+  fingerprints of the same capture and settings (those ``--resume`` checks), and resumes the
   others from their checkpoints. A task whose worker dies is retried (``--retries``, Ray's
   ``max_retries``; exceptions raised by the recovery itself are not retried). A capture that
   fails on its own (a bad file) is recorded with a one-line error; the batch goes on.
@@ -39,6 +40,9 @@ from typing import Any
 
 from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON
+from torchbrdf.recovery.checkpoint import digest, folder_fingerprint, settings_fingerprint
+from torchbrdf.recovery.checks import RecoveryError
+from torchbrdf.recovery.outputs import OutputBusyError
 from torchbrdf.recovery.solver import RecoveryConfig
 
 __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "write_summary", "write_overview",
@@ -47,6 +51,8 @@ __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "writ
 REPORT = "report.json"
 SUMMARY_FIELDS = ("name", "status", "seconds", "iterations", "final_loss", "held_out_psnr", "error",
                   "capture", "out")
+#: How long a task waits for the lock of its output folder (held by a cancelled task's worker that is ending).
+LOCK_WAIT_SECONDS = 60.0
 # Single-recovery flags that are RecoveryConfig fields but mean something else in a batch.
 _NOT_PASSED = {"threads"}  # replaced by --threads-per-task
 
@@ -98,10 +104,23 @@ def _read_report(out_dir: Path) -> dict | None:
         return None
 
 
-def is_complete(out_dir: PathLike) -> bool:
-    """Whether ``out_dir`` holds a finished recovery: ``report.json`` with ``"completed": true``."""
+def is_complete(out_dir: PathLike, capture: PathLike | None = None,
+                cfg: RecoveryConfig | None = None) -> bool:
+    """Whether ``out_dir`` holds a finished recovery of ``capture`` with the settings ``cfg``.
+
+    That is a ``report.json`` with ``"completed": true`` whose fingerprint matches the
+    capture folder's current contents and the settings' result-changing fields (when
+    ``capture`` / ``cfg`` are given): a capture changed since, or other settings, are not done.
+    """
     rep = _read_report(Path(out_dir))
-    return bool(rep and rep.get("completed") is True)
+    if not (rep and rep.get("completed") is True):
+        return False
+    fingerprint = rep.get("fingerprint") or {}
+    if capture is not None:
+        now = folder_fingerprint(capture)
+        if now is None or fingerprint.get("capture_sha256") != digest(now):
+            return False
+    return cfg is None or fingerprint.get("settings") == settings_fingerprint(cfg)
 
 
 # --------------------------------------------------------------------------------------
@@ -110,10 +129,22 @@ def is_complete(out_dir: PathLike) -> bool:
 
 
 def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, resume: bool) -> None:
-    """The one call into the single-capture API; its outputs (``out/report.json``) are the result."""
-    from torchbrdf.recovery.svbrdf import recover
+    """The one call into the single-capture API; its outputs (``out/report.json``) are the result.
 
-    recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
+    ``out`` belongs to this batch, so a lock on it is a cancelled task's worker that has not
+    ended yet (Ray stops workers asynchronously): wait up to :data:`LOCK_WAIT_SECONDS` for it.
+    """
+    from torchbrdf.recovery.api import recover
+
+    deadline = time.monotonic() + LOCK_WAIT_SECONDS
+    while True:
+        try:
+            recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
+            return
+        except OutputBusyError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
 
 
 def _import_before_interrupts() -> None:
@@ -137,9 +168,9 @@ def _import_before_interrupts() -> None:
         import PIL.Image  # noqa: F401
         import torch._dynamo  # noqa: F401
 
-        from torchbrdf.recovery import svbrdf
+        from torchbrdf.recovery.previews import pyplot
 
-        svbrdf._pyplot()
+        pyplot()
     finally:
         if main_thread:  # None: a handler installed outside Python, which cannot be put back
             signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
@@ -206,7 +237,7 @@ def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, 
     _import_before_interrupts()
     capture, out_root = Path(capture), Path(out_root)
     name, out = capture.name, Path(out_root) / capture.name
-    if not force and is_complete(out):
+    if not force and is_complete(out, capture, cfg):
         return _row(name, capture, out, "skipped")
     _kill_hook()
     torch.set_num_threads(max(1, int(threads)))
@@ -217,7 +248,7 @@ def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, 
     try:
         _run_single(capture, out, cfg, _gt_folder(capture, gt_name), resume)
     except Exception as e:  # the capture's own failure: record it, keep the batch going
-        if isinstance(e, (ValueError, OSError)):  # bad input: the message says which file and why
+        if isinstance(e, (ValueError, OSError, RecoveryError)):  # bad input: the message says what and why
             print(f"{name}: {_one_line(e)}", file=sys.stderr)
         else:  # unexpected: keep the traceback in the worker's log
             traceback.print_exc(file=sys.stderr)
@@ -288,7 +319,7 @@ def run_batch(captures: Iterable[PathLike], out: PathLike, cfg: RecoveryConfig |
     # Completed captures are skipped here, without a task.
     todo = []
     for i, c in enumerate(dirs):
-        if not force and is_complete(out / c.name):
+        if not force and is_complete(out / c.name, c, cfg):
             rows[i] = _row(c.name, c, out / c.name, "skipped")
             bar.update(1)
         else:
@@ -481,8 +512,8 @@ def write_overview(path: PathLike, rows: list[dict], max_rows: int = 24, thumb: 
 
 
 def _parser() -> argparse.ArgumentParser:
-    from torchbrdf.recovery.svbrdf import OFF_SWITCHES
-    from torchbrdf.recovery.svbrdf import _parser as single_parser
+    from torchbrdf.recovery.options import OFF_SWITCHES
+    from torchbrdf.recovery.options import build_parser as single_parser
 
     p = argparse.ArgumentParser(prog="torchbrdf-recover-many", description=__doc__.split("\n\n")[0],
                                 allow_abbrev=False)  # --threads must not pass for --threads-per-task
@@ -511,7 +542,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
     """The :class:`RecoveryConfig` of the recovery flags in ``args``."""
-    from torchbrdf.recovery.svbrdf import OFF_SWITCHES
+    from torchbrdf.recovery.options import OFF_SWITCHES
 
     fields = {f.name for f in dataclasses.fields(RecoveryConfig)} - _NOT_PASSED
     off: dict[str, Any] = {field: not getattr(args, flag) for flag, field in OFF_SWITCHES.items()}
