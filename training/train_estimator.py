@@ -19,9 +19,6 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a file: use this checkout's torchbrdf, as ``python -m`` from its root does
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import torch
 from torch.utils.data import DataLoader
 
