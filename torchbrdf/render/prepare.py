@@ -324,8 +324,9 @@ def _reduce_material(material: Mapping[str, Any], prune: bool, cd: torch.dtype, 
     compiling = torch.compiler.is_compiling()
     for name, v in material.items():
         if isinstance(v, numbers.Real):
-            # Compiled: a tensor input, so the graph does not specialise on (guard) the value.
-            values[name] = torch.as_tensor(v, dtype=cd, device=device) if compiling else float(v)
+            # Compiled: a 0-d tensor (torch.full keeps the value symbolic, where as_tensor would
+            # guard on it), so a new value is a new input rather than a new graph.
+            values[name] = torch.full((), v, dtype=cd, device=device) if compiling else float(v)
             reduction[name] = "constant"
             continue
         if prune and not v.requires_grad:
