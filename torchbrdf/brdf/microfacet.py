@@ -64,16 +64,20 @@ class _Terms:
     p: dict[str, Any]  # the model parameters: alpha, alpha_y, f0, f90, ior, eta, k, gamma, abc_a
 
 
+def _half_in_frame(t: _Terms) -> tuple[Tensor, Tensor]:
+    """``(h·x, h·y)``: the half vector's tangent-frame components (anisotropic NDFs)."""
+    assert t.x is not None and t.y is not None  # built whenever aniso
+    return dot(t.h, t.x), dot(t.h, t.y)
+
+
 def _ndf_ggx(t: _Terms) -> Tensor:
     a, ay = t.p["alpha"], t.p["alpha_y"]
-    return ndf_ggx_aniso(dot(t.h, t.x), dot(t.h, t.y), t.nh, a, ay) if t.aniso else ndf_ggx(t.nh, a, t.sin2_h)
+    return ndf_ggx_aniso(*_half_in_frame(t), t.nh, a, ay) if t.aniso else ndf_ggx(t.nh, a, t.sin2_h)
 
 
 def _ndf_beckmann(t: _Terms) -> Tensor:
     a, ay = t.p["alpha"], t.p["alpha_y"]
-    if t.aniso:
-        return ndf_beckmann_aniso(dot(t.h, t.x), dot(t.h, t.y), t.nh, a, ay)
-    return ndf_beckmann(t.nh, a, t.sin2_h)
+    return ndf_beckmann_aniso(*_half_in_frame(t), t.nh, a, ay) if t.aniso else ndf_beckmann(t.nh, a, t.sin2_h)
 
 
 def _ndf_abc(t: _Terms) -> Tensor:
@@ -222,10 +226,10 @@ def microfacet(
     params = dict(
         alpha=alpha, alpha_y=alpha_y, f0=f0, f90=f90, ior=ior, eta=eta, k=k, gamma=gamma, abc_a=abc_a
     )
-    t = _Terms(l, v, n, x, y, h, nl, nv, nh, lh, cross_norm2(n, h), tan_a2, aniso, distribution, params)
-    d = _NDFS[distribution](t)
-    f = _FRESNELS[fresnel](t)
-    g = _MASKINGS[masking](t)
+    terms = _Terms(l, v, n, x, y, h, nl, nv, nh, lh, cross_norm2(n, h), tan_a2, aniso, distribution, params)
+    d = _NDFS[distribution](terms)
+    f = _FRESNELS[fresnel](terms)
+    g = _MASKINGS[masking](terms)
 
     out = d * f * g / (4.0 * nl * nv)
     out = torch.where(valid, out, torch.zeros_like(out))

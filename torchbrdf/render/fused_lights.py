@@ -10,15 +10,29 @@ camera keep the eager passes.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
 from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
+from torchbrdf.render.gbuffer import GBuffer
+from torchbrdf.render.lights import DirectionalLight, PointLight
 
 __all__ = ["fused_lights_wanted", "uniform_table", "fused_lights_term"]
 
 
-def fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements: int) -> bool:
+def fused_lights_wanted(
+    gbuf: GBuffer,
+    kind: str,
+    values: dict[str, Any],
+    points: list[PointLight],
+    dirs: list[DirectionalLight],
+    cam: Tensor,
+    dev: torch.device,
+    cd: torch.dtype,
+    elements: int,
+) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
     The principled BRDF, inputs the kernel reads (4-D maps or constants), no gradient wanted
@@ -43,13 +57,15 @@ def fused_lights_wanted(gbuf, kind, values, points, dirs, cam, dev, cd, elements
             return False
         tensors.append(t)
     if torch.is_grad_enabled():
-        uniform = [cam] + [t for light in points + dirs for t in light._light_tensors()]
+        uniform = [cam] + [t for light in [*points, *dirs] for t in light._light_tensors()]
         if any(t.requires_grad for t in uniform):
             return False
     return _pr._fused_backend(dev, cd, tensors, lambda: elements) == "c"
 
 
-def uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
+def uniform_table(
+    cam: Tensor, points: list[PointLight], dirs: list[DirectionalLight], dev: torch.device, cd: torch.dtype
+) -> Tensor:
     """``(R, 3 + 6 L)``: camera, then ``(q, I)`` per point and ``(d, E)`` per directional light,
     one row per batch element (``R = 1`` when nothing is batched)."""
     parts = [cam.reshape(-1, 3)]
@@ -58,23 +74,35 @@ def uniform_table(cam: Tensor, points, dirs, dev, cd) -> Tensor:
             light.position.to(device=dev, dtype=cd).reshape(-1, 3),
             light.intensity.to(device=dev, dtype=cd).reshape(-1, 3),
         ]
-    for light in dirs:
+    for sun in dirs:
         parts += [
-            light.direction.to(device=dev, dtype=cd).reshape(-1, 3),
-            light.irradiance.to(device=dev, dtype=cd).reshape(-1, 3),
+            sun.direction.to(device=dev, dtype=cd).reshape(-1, 3),
+            sun.irradiance.to(device=dev, dtype=cd).reshape(-1, 3),
         ]
     rows = max(p.shape[0] for p in parts)
     return torch.cat([p.detach().expand(rows, 3) for p in parts], dim=1).contiguous()
 
 
 def fused_lights_term(
-    table: Tensor, pos, n, x, y, mat, bidx, active, frame, normalize_n, n_point, n_dir
+    table: Tensor,
+    pos: Tensor,
+    n: Tensor,
+    x: Tensor | None,
+    y: Tensor | None,
+    mat: dict[str, Any],
+    bidx: Tensor,
+    active: tuple[str, ...] | None,
+    frame: bool,
+    normalize_n: bool,
+    n_point: int,
+    n_dir: int,
 ) -> Tensor:
     """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
     (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
     from torchbrdf.brdf.principled import _need_tint
     from torchbrdf.kernels.shade_ops import shade_lights
 
+    assert active is not None  # the fused route is the principled BRDF's: its lobes are known
     c = {**PRINCIPLED_DEFAULTS, **mat, "pos": pos, "n": n, "x": x, "y": y}
     if table.shape[0] == 1:
         seg = [0, pos.shape[0]]

@@ -9,10 +9,14 @@ and :func:`directional_term` are the per-light terms of :mod:`torchbrdf.brdf.for
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from torchbrdf._types import BRDF
 from torchbrdf.brdf import formula
 
 __all__ = ["checkpointed_pass", "point_term", "directional_term", "TRIM_MIN_ELEMENTS"]
@@ -58,7 +62,7 @@ class _ReleaseFreedMemory(torch.autograd.Function):
         return grad
 
 
-def checkpointed_pass(elements: int, fn, *args, **kwargs):
+def checkpointed_pass(elements: int, fn: Callable[..., Tensor], *args: Any, **kwargs: Any) -> Tensor:
     """Run one accumulation pass of ``elements`` BRDF evaluations.
 
     Under autograd the pass is checkpointed (non-reentrant): nothing inside it is stored, and
@@ -88,7 +92,18 @@ def _per_pixel(t: Tensor, bidx: Tensor) -> Tensor:
     return t.reshape(1, 3)
 
 
-def point_term(brdf, pos, n, v, x, y, mat, q, intensity, bidx) -> Tensor:
+def point_term(
+    brdf: BRDF,
+    pos: Tensor,
+    n: Tensor,
+    v: Tensor,
+    x: Tensor | None,
+    y: Tensor | None,
+    mat: dict[str, Any],
+    q: Tensor,
+    intensity: Tensor,
+    bidx: Tensor,
+) -> Tensor:
     """``f(l, v) I max(n·l, 0) / |q - P|²`` at ``(P, 3)`` points (:func:`formula.point_light`)."""
     ops = formula.TorchOps(pos.dtype, pos.device)
     return formula.point_light(
@@ -96,7 +111,18 @@ def point_term(brdf, pos, n, v, x, y, mat, q, intensity, bidx) -> Tensor:
     )
 
 
-def directional_term(brdf, pos, n, v, x, y, mat, direction, irradiance, bidx) -> Tensor:
+def directional_term(
+    brdf: BRDF,
+    pos: Tensor,
+    n: Tensor,
+    v: Tensor,
+    x: Tensor | None,
+    y: Tensor | None,
+    mat: dict[str, Any],
+    direction: Tensor,
+    irradiance: Tensor,
+    bidx: Tensor,
+) -> Tensor:
     """``f(d, v) E max(n·d, 0)`` at ``(P, 3)`` points (:func:`formula.directional_light`)."""
     ops = formula.TorchOps(n.dtype, n.device)
     return formula.directional_light(

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import inspect
 import numbers
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
@@ -81,7 +81,7 @@ def _default_brdf():
     return principled
 
 
-def brdf_name(brdf) -> str:
+def brdf_name(brdf: BRDF) -> str:
     """A BRDF's name for messages and plans: the module's class or the function's name."""
     if isinstance(brdf, nn.Module):
         return type(brdf).__name__
@@ -156,12 +156,20 @@ def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
     check_finite(named)
 
 
-def _is_count(value, minimum: int = 1) -> bool:
-    return not isinstance(value, bool) and isinstance(value, numbers.Integral) and value >= minimum
+def _is_count(value: object, minimum: int = 1) -> bool:
+    return not isinstance(value, bool) and isinstance(value, numbers.Integral) and int(value) >= minimum
 
 
 def validate(
-    gbuf, lights, brdf, env_strategy, env_samples, seed, chunk, prune, env_sampling
+    gbuf: GBuffer,
+    lights: Light | Sequence[Light] | None,
+    brdf: BRDF | None,
+    env_strategy: str,
+    env_samples: int,
+    seed: int | None,
+    chunk: int | None,
+    prune: bool,
+    env_sampling: str,
 ) -> ShadingRequest:
     """Check the arguments of :func:`torchbrdf.shade`; raise naming the offending one.
 
@@ -326,7 +334,7 @@ def _reduce_material(material: Mapping[str, Any], prune: bool, cd: torch.dtype, 
         if isinstance(v, numbers.Real):
             # Compiled: a 0-d tensor (torch.full keeps the value symbolic, where as_tensor would
             # guard on it), so a new value is a new input rather than a new graph.
-            values[name] = torch.full((), v, dtype=cd, device=device) if compiling else float(v)
+            values[name] = torch.full((), cast(float, v), dtype=cd, device=device) if compiling else float(v)
             reduction[name] = "constant"
             continue
         if prune and not v.requires_grad:

@@ -7,24 +7,30 @@ the formulas of :mod:`torchbrdf.render.lights`. It evaluates any BRDF callable w
 
 How it works, in order:
 
-1. **Inspect once** (:func:`plan` shows the result). Pixels that are masked out or face away
-   from the camera (``n·v <= 0``, where every BRDF of the library is 0) are dropped. Each
-   material map that does not require grad is reduced: all zeros -> the Python float
-   ``0.0`` (the BRDF then skips the lobe it weights), uniform single-channel map -> a float.
-   Tangent frames are built only when ``anisotropic`` is not a Python 0; environment
-   integration runs only when an :class:`~torchbrdf.EnvironmentLight` is present. The result
-   equals full evaluation (``prune=False``) to float rounding.
+1. **Inspect once** (:mod:`torchbrdf.render.prepare`; :func:`plan` shows the result). Pixels
+   that are masked out or face away from the camera (``n·v <= 0``, where every BRDF of the
+   library is 0) are dropped. Each material map that does not require grad is reduced: all
+   zeros -> the Python float ``0.0`` (the BRDF then skips the lobe it weights), uniform
+   single-channel map -> a float. Tangent frames are built only when ``anisotropic`` is not a
+   Python 0; environment integration runs only when an :class:`~torchbrdf.EnvironmentLight`
+   is present. The result equals full evaluation (``prune=False``) to float rounding. Under
+   ``torch.compile`` these value-dependent decisions are skipped (every pixel and map is
+   evaluated) and Python-float material values enter as 0-d tensors, so ``shade`` compiles
+   with ``fullgraph=True`` (and ``dynamic=True``), and neither new material values nor new
+   image sizes recompile it more than once.
 2. **Convert once** from ``(B, C, H, W)`` to flat channel-last ``(P, C)`` over the shaded
    pixels, call the BRDF on those, and scatter back.
 3. **Accumulate per light** (per environment-sample pass, per pixel chunk), each pass
-   wrapped in ``torch.utils.checkpoint`` (non-reentrant): its intermediates are dropped after
-   the forward pass and recomputed during backward, so forward+backward peak memory is that of
-   one pass, whatever the number of lights (measured in ``docs/shading.md``).
+   wrapped in ``torch.utils.checkpoint`` (non-reentrant; :mod:`torchbrdf.render.passes`): its
+   intermediates are dropped after the forward pass and recomputed during backward, so
+   forward+backward peak memory is that of one pass, whatever the number of lights (measured
+   in ``docs/shading.md``).
    With the principled BRDF on CPU, all point and directional lights instead go through ONE
-   fused kernel per chunk, forward and recompute-backward (the ``torchbrdf::shade_lights_fwd``
-   operator), generated from the same per-light formula the eager passes run
-   (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``); gradients w.r.t.
-   light parameters or the camera keep the eager passes.
+   fused kernel per chunk (:mod:`torchbrdf.render.fused_lights`), forward and
+   recompute-backward (the ``torchbrdf::shade_lights_fwd`` operator), generated from the same
+   per-light formula the eager passes run (:func:`torchbrdf.brdf.formula.point_light`,
+   ``directional_light``); gradients w.r.t. light parameters or the camera keep the eager
+   passes.
 
 Gradients reach every tensor input: material maps, normals, positions, camera position,
 tangents, light positions/directions/intensities and environment maps. Masked and

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import torch
 from torch import Tensor
 
 from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
 from torchbrdf.render.env import PREFILTER_ROUGHNESS, sampling_lobes_for
-from torchbrdf.render.lights import DirectionalLight, PointLight
+from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, PointLight
 from torchbrdf.render.prepare import ShadingSchedule, brdf_name
 
 __all__ = ["ShadingPlan", "describe", "ENV_ELEMENTS_PER_PASS"]
@@ -139,7 +140,8 @@ def _describe_lights(sch: ShadingSchedule) -> list[str]:
         elif isinstance(light, DirectionalLight):
             out.append(f"[{i}] directional light ({batched}): f·E·max(n·l,0), 1 BRDF evaluation per pixel")
         else:
-            out.append(f"[{i}] environment {list(light.radiance.shape)} ({batched}): {sch.req.env_strategy}")
+            shape = list(cast(EnvironmentLight, light).radiance.shape)
+            out.append(f"[{i}] environment {shape} ({batched}): {sch.req.env_strategy}")
     return out
 
 

@@ -45,7 +45,7 @@ def latlong_lookup(radiance: Tensor, d: Tensor, batch_index: Tensor | None = Non
     return lookup_cl(as_bhwc(radiance), d, batch_index)
 
 
-def lookup_cl(img: Tensor, d: Tensor, batch_index) -> Tensor:
+def lookup_cl(img: Tensor, d: Tensor, batch_index: Tensor | None) -> Tensor:
     b, h, w, _ = img.shape
     row, col = latlong_texel_index(d.detach(), h, w)
     flat = row * w + col
@@ -142,7 +142,14 @@ def texel_cells(height: int, width: int, rows: Tensor, cols: Tensor, subdivision
 
 
 def directions_sum(
-    brdf: BRDF, n1: Tensor, v1: Tensor, x1, y1, mat: dict, ll: Tensor, weight: Tensor
+    brdf: BRDF,
+    n1: Tensor,
+    v1: Tensor,
+    x1: Tensor | None,
+    y1: Tensor | None,
+    mat: dict,
+    ll: Tensor,
+    weight: Tensor,
 ) -> Tensor:
     """``Σ_k f(l_k, v) w_k max(n·l_k, 0)`` over a few directions per point, ``(P, 3)``.
 

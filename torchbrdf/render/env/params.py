@@ -9,25 +9,25 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchbrdf._types import BRDF
+from torchbrdf._types import BRDF, Color, Scalar
 from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS, PrincipledBRDF
 
 __all__ = ["param_value", "as_tensor_like", "as_rgb", "with_sample_axes", "brdf_kind"]
 
 
-def param_value(material: dict, name: str):
+def param_value(material: dict, name: str) -> Scalar:
     """``material[name]``, else the principled default, else 0."""
     return material.get(name, PRINCIPLED_DEFAULTS.get(name, 0.0))
 
 
-def as_tensor_like(p, like: Tensor) -> Tensor:
+def as_tensor_like(p: Scalar, like: Tensor) -> Tensor:
     """A material value as a tensor broadcastable against ``like`` ``(P, ...)``."""
     if isinstance(p, Tensor):
         return p.to(like.dtype)
     return torch.as_tensor(float(p), dtype=like.dtype, device=like.device)
 
 
-def as_rgb(p, like: Tensor) -> Tensor:
+def as_rgb(p: Color, like: Tensor) -> Tensor:
     """A colour value (float, 0-d, ``(..., 1)`` or ``(..., 3)``) as a tensor with last axis 3."""
     t = as_tensor_like(p, like)
     if t.dim() == 0:
@@ -35,7 +35,7 @@ def as_rgb(p, like: Tensor) -> Tensor:
     return t.expand(*t.shape[:-1], 3)
 
 
-def with_sample_axes(p, dims: int):
+def with_sample_axes(p: Scalar, dims: int) -> Scalar:
     """Insert ``dims`` sample axes before the channel axis of a ``(P, C)`` material value."""
     if isinstance(p, Tensor) and p.dim() >= 2:
         return p.reshape(p.shape[:-1] + (1,) * dims + p.shape[-1:])
