@@ -36,7 +36,8 @@ def scene(h, w, seed=0, **material):
 
 def compiled_shade(counter, **kwargs):
     light_list = lights()
-    return torch.compile(lambda gb: shade(gb, light_list), fullgraph=True, backend=counter, **kwargs), light_list
+    fn = torch.compile(lambda gb: shade(gb, light_list), fullgraph=True, backend=counter, **kwargs)
+    return fn, light_list
 
 
 def test_shade_compiles_with_dynamic_shapes():
