@@ -17,6 +17,7 @@ these floors never underflow.
 from __future__ import annotations
 
 import functools
+import numbers
 from collections.abc import Callable
 from typing import Any, ParamSpec, TypeVar, cast, overload
 
@@ -31,6 +32,12 @@ _R = TypeVar("_R")
 SQRT_EPS = 1e-12
 NORM_EPS = 1e-12
 DIV_EPS = 1e-12
+
+
+def is_zero(x: object) -> bool:
+    """True only for a Python number equal to 0; a tensor is never inspected (no host sync,
+    no guard under ``torch.compile``), so a lobe weighted by it is always evaluated."""
+    return isinstance(x, numbers.Real) and float(x) == 0.0
 
 
 def dot(a: Tensor, b: Tensor) -> Tensor:

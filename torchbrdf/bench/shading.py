@@ -63,14 +63,14 @@ def _child(
     import torch
 
     import torchbrdf
-    from torchbrdf.render import shading
+    from torchbrdf.render import passes, shading
     from torchbrdf.render.geometry import plane_gbuffer
     from torchbrdf.render.lights import PointLight
 
     torch.set_num_threads(threads)
     torchbrdf.set_fast_path(True if fused else None)
     if not recompute:
-        shading._pass = lambda elements, fn, *a, **k: fn(*a, **k)
+        passes.checkpointed_pass = lambda elements, fn, *a, **k: fn(*a, **k)
     brdf: Callable[..., torch.Tensor] | None = None  # None: shade's default (principled)
     if brdf_name == "lambert":
         from torchbrdf.brdf.lambert import lambert as brdf

@@ -8,7 +8,8 @@ benchmark measures what each choice costs.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -41,9 +42,107 @@ from torchbrdf.brdf.masking import (
 
 __all__ = ["microfacet", "MicrofacetBRDF", "DISTRIBUTIONS", "FRESNELS", "MASKINGS"]
 
-DISTRIBUTIONS = ("ggx", "beckmann", "gtr", "blinn_phong", "abc")
-FRESNELS = ("schlick", "dielectric", "conductor", "none")
-MASKINGS = ("smith_separable", "smith_correlated", "cook_torrance", "kelemen", "implicit")
+
+@dataclass
+class _Terms:
+    """The shared quantities of one evaluation that the table entries below read."""
+
+    l: Tensor
+    v: Tensor
+    n: Tensor
+    x: Tensor | None
+    y: Tensor | None
+    h: Tensor
+    nl: Tensor
+    nv: Tensor
+    nh: Tensor
+    lh: Tensor
+    sin2_h: Tensor
+    tan_a2: Callable[[Tensor], Tensor]  # α² tan²θ of a direction (anisotropic α when aniso)
+    aniso: bool
+    distribution: str
+    p: dict[str, Any]  # the model parameters: alpha, alpha_y, f0, f90, ior, eta, k, gamma, abc_a
+
+
+def _half_in_frame(t: _Terms) -> tuple[Tensor, Tensor]:
+    """``(h·x, h·y)``: the half vector's tangent-frame components (anisotropic NDFs)."""
+    assert t.x is not None and t.y is not None  # built whenever aniso
+    return dot(t.h, t.x), dot(t.h, t.y)
+
+
+def _ndf_ggx(t: _Terms) -> Tensor:
+    a, ay = t.p["alpha"], t.p["alpha_y"]
+    return ndf_ggx_aniso(*_half_in_frame(t), t.nh, a, ay) if t.aniso else ndf_ggx(t.nh, a, t.sin2_h)
+
+
+def _ndf_beckmann(t: _Terms) -> Tensor:
+    a, ay = t.p["alpha"], t.p["alpha_y"]
+    return ndf_beckmann_aniso(*_half_in_frame(t), t.nh, a, ay) if t.aniso else ndf_beckmann(t.nh, a, t.sin2_h)
+
+
+def _ndf_abc(t: _Terms) -> Tensor:
+    if t.p["abc_a"] is None:
+        raise ValueError("abc_a: the ABC distribution needs its 'B' parameter abc_a")
+    return ndf_abc(t.nh, t.p["abc_a"], t.p["gamma"])
+
+
+#: Normal distribution D by name.
+_NDFS: dict[str, Callable[[_Terms], Tensor]] = {
+    "ggx": _ndf_ggx,
+    "beckmann": _ndf_beckmann,
+    "gtr": lambda t: ndf_gtr(t.nh, t.p["alpha"], t.p["gamma"], t.sin2_h),
+    "blinn_phong": lambda t: ndf_blinn_phong(t.nh, alpha_to_phong_exponent(t.p["alpha"])),
+    "abc": _ndf_abc,
+}
+
+
+def _fresnel_conductor(t: _Terms) -> Tensor:
+    if t.p["eta"] is None or t.p["k"] is None:
+        raise ValueError("eta, k: the conductor Fresnel needs both the real IOR eta and extinction k")
+    return fresnel_conductor(t.lh, t.p["eta"], t.p["k"])
+
+
+#: Fresnel term F by name.
+_FRESNELS: dict[str, Callable[[_Terms], Tensor]] = {
+    "schlick": lambda t: fresnel_schlick(t.lh, t.p["f0"], t.p["f90"]),
+    "dielectric": lambda t: fresnel_dielectric(t.lh, t.p["ior"]),
+    "conductor": _fresnel_conductor,
+    "none": lambda t: torch.ones_like(t.lh),
+}
+
+
+def _beckmann_alpha_eff(t: _Terms, w: Tensor, nw: Tensor) -> Tensor:
+    """The effective (projected) Beckmann width along ``w``."""
+    return torch.sqrt(torch.clamp(t.tan_a2(w) / torch.clamp(1 - nw * nw, min=1e-12), min=1e-12))
+
+
+def _smith_separable(t: _Terms) -> Tensor:
+    if t.distribution == "beckmann":
+        a_l, a_v = _beckmann_alpha_eff(t, t.l, t.nl), _beckmann_alpha_eff(t, t.v, t.nv)
+        return smith_g1_beckmann(t.nl, a_l) * smith_g1_beckmann(t.nv, a_v)
+    return smith_g1_ggx_aniso(t.nl, t.tan_a2(t.l)) * smith_g1_ggx_aniso(t.nv, t.tan_a2(t.v))
+
+
+def _smith_correlated(t: _Terms) -> Tensor:
+    if t.distribution == "beckmann":
+        a_l, a_v = _beckmann_alpha_eff(t, t.l, t.nl), _beckmann_alpha_eff(t, t.v, t.nv)
+        return 1.0 / (1.0 + smith_lambda_beckmann(t.nl, a_l) + smith_lambda_beckmann(t.nv, a_v))
+    return smith_g2_ggx_correlated(t.nl, t.nv, t.tan_a2(t.l), t.tan_a2(t.v))
+
+
+#: Masking-shadowing term G by name. Smith terms use Beckmann's exact Λ for ``beckmann`` and
+#: GGX's Λ otherwise.
+_MASKINGS: dict[str, Callable[[_Terms], Tensor]] = {
+    "smith_separable": _smith_separable,
+    "smith_correlated": _smith_correlated,
+    "cook_torrance": lambda t: g_cook_torrance(t.nl, t.nv, t.nh, dot(t.v, t.h)),
+    "kelemen": lambda t: g_kelemen(t.nl, t.nv, t.lh),
+    "implicit": lambda t: g_implicit(t.nl, t.nv),
+}
+
+DISTRIBUTIONS = tuple(_NDFS)
+FRESNELS = tuple(_FRESNELS)
+MASKINGS = tuple(_MASKINGS)
 
 
 def _choice(name: str, value: str, options: Sequence[str]) -> None:
@@ -124,49 +223,13 @@ def microfacet(
     else:
         tan_a2 = lambda w: alpha * alpha * torch.clamp(1.0 - dot(n, w) ** 2, min=0.0)  # noqa: E731
 
-    sin2_h = cross_norm2(n, h)
-    if distribution == "ggx":
-        d = ndf_ggx_aniso(dot(h, x), dot(h, y), nh, alpha, alpha_y) if aniso else ndf_ggx(nh, alpha, sin2_h)
-    elif distribution == "beckmann":
-        d = ndf_beckmann_aniso(dot(h, x), dot(h, y), nh, alpha, alpha_y) if aniso else ndf_beckmann(nh, alpha, sin2_h)
-    elif distribution == "gtr":
-        d = ndf_gtr(nh, alpha, gamma, sin2_h)
-    elif distribution == "blinn_phong":
-        d = ndf_blinn_phong(nh, alpha_to_phong_exponent(alpha))
-    else:
-        if abc_a is None:
-            raise ValueError("abc_a: the ABC distribution needs its 'B' parameter abc_a")
-        d = ndf_abc(nh, abc_a, gamma)
-
-    if fresnel == "schlick":
-        f = fresnel_schlick(lh, f0, f90)
-    elif fresnel == "dielectric":
-        f = fresnel_dielectric(lh, ior)
-    elif fresnel == "conductor":
-        if eta is None or k is None:
-            raise ValueError("eta, k: the conductor Fresnel needs both the real IOR eta and extinction k")
-        f = fresnel_conductor(lh, eta, k)
-    else:
-        f = torch.ones_like(lh)
-
-    if masking in ("smith_separable", "smith_correlated"):
-        if distribution == "beckmann":
-            alpha_eff_l = torch.sqrt(torch.clamp(tan_a2(l) / torch.clamp(1 - nl * nl, min=1e-12), min=1e-12))
-            alpha_eff_v = torch.sqrt(torch.clamp(tan_a2(v) / torch.clamp(1 - nv * nv, min=1e-12), min=1e-12))
-            if masking == "smith_separable":
-                g = smith_g1_beckmann(nl, alpha_eff_l) * smith_g1_beckmann(nv, alpha_eff_v)
-            else:
-                g = 1.0 / (1.0 + smith_lambda_beckmann(nl, alpha_eff_l) + smith_lambda_beckmann(nv, alpha_eff_v))
-        elif masking == "smith_separable":
-            g = smith_g1_ggx_aniso(nl, tan_a2(l)) * smith_g1_ggx_aniso(nv, tan_a2(v))
-        else:
-            g = smith_g2_ggx_correlated(nl, nv, tan_a2(l), tan_a2(v))
-    elif masking == "cook_torrance":
-        g = g_cook_torrance(nl, nv, nh, dot(v, h))
-    elif masking == "kelemen":
-        g = g_kelemen(nl, nv, lh)
-    else:
-        g = g_implicit(nl, nv)
+    params = dict(
+        alpha=alpha, alpha_y=alpha_y, f0=f0, f90=f90, ior=ior, eta=eta, k=k, gamma=gamma, abc_a=abc_a
+    )
+    terms = _Terms(l, v, n, x, y, h, nl, nv, nh, lh, cross_norm2(n, h), tan_a2, aniso, distribution, params)
+    d = _NDFS[distribution](terms)
+    f = _FRESNELS[fresnel](terms)
+    g = _MASKINGS[masking](terms)
 
     out = d * f * g / (4.0 * nl * nv)
     out = torch.where(valid, out, torch.zeros_like(out))

@@ -151,6 +151,7 @@ from torchbrdf._math import (
     compute_dtype,
     cross_norm2,
     dot,
+    is_zero,
     lerp,
     luminance,
     safe_div,
@@ -248,11 +249,6 @@ class SmitsLobes:
 def _frnl_blend(normal, grazing, cos: Tensor) -> Tensor:
     """Generalised Schlick blend ``Mix(normal, grazing, (1 - cos)^5)``; cos clamped to [0, 1]."""
     return lerp(normal, grazing, schlick_weight(cos))
-
-
-def _is_zero(x) -> bool:
-    """True only for a Python number equal to 0 (tensors are never inspected: no sync)."""
-    return isinstance(x, numbers.Real) and float(x) == 0.0
 
 
 def _check_args(named: dict) -> None:
@@ -465,10 +461,10 @@ def smits_lobes(  # noqa: D417 (the material parameters are documented once, in 
     eta = (1.0 + sq) / (1.0 - sq)
 
     # Lobes whose weights are exactly 0 for Python-number parameters (no tensor is read).
-    pruned = {name for name in SMITS_LOBES if _is_zero(params[name + "_scale"])}
-    if _is_zero(clear):
+    pruned = {name for name in SMITS_LOBES if is_zero(params[name + "_scale"])}
+    if is_zero(clear):
         pruned |= {"transmit_specular", "refraction"}
-    if _is_zero(back):
+    if is_zero(back):
         pruned.add("transmit_diffuse")
     if isinstance(roughness, numbers.Real) and float(roughness) >= 0.5:
         pruned |= {"reflection", "refraction"}

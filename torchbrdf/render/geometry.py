@@ -122,6 +122,12 @@ def sphere_gbuffer(
     Returns:
         A :class:`~torchbrdf.GBuffer` with ``(B, ·, H, W)`` maps, a tangent map and a mask.
 
+    Note:
+        Under ``torch.compile(fullgraph=True)`` pass ``center`` and ``camera_position`` as
+        numbers: the distance between them (the inside-the-sphere check, the default field of
+        view) is then computed on the host, in double precision; from tensors it is a
+        data-dependent value.
+
     Raises:
         ValueError: if ``height``, ``width`` or ``batch_size`` is not a positive integer,
             ``radius`` is not positive, or the camera is inside the sphere; the message
@@ -138,7 +144,12 @@ def sphere_gbuffer(
     dtype = dtype or torch.get_default_dtype()
     c = _vec(camera_position, dtype, device)
     ctr = _vec(center, dtype, device)
-    dist = float(torch.linalg.norm(c - ctr))
+    host_numbers = not isinstance(camera_position, Tensor) and not isinstance(center, Tensor)
+    if torch.compiler.is_compiling() and host_numbers:
+        # Numbers known on the host: no data-dependent branch (and fov) in the traced graph.
+        dist = math.dist(camera_position, center)
+    else:
+        dist = float(torch.linalg.norm(c - ctr))
     if dist <= radius:
         raise ValueError(
             "sphere_gbuffer: `camera_position` must be outside the sphere "

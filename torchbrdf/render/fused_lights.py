@@ -1,0 +1,122 @@
+"""The fused route of the shader: every point and directional light in one kernel pass per chunk.
+
+With the principled BRDF on CPU, :func:`fused_lights_term` evaluates all point and
+directional lights through ONE fused kernel (the ``torchbrdf::shade_lights_fwd`` operator),
+forward and recompute-backward, generated from the same per-light formula the eager passes
+run (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``).
+:func:`fused_lights_wanted` is the rule that picks it; gradients w.r.t. light parameters or the
+camera keep the eager passes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
+from torchbrdf.render.gbuffer import GBuffer
+from torchbrdf.render.lights import DirectionalLight, PointLight
+
+__all__ = ["fused_lights_wanted", "uniform_table", "fused_lights_term"]
+
+
+def fused_lights_wanted(
+    gbuf: GBuffer,
+    kind: str,
+    values: dict[str, Any],
+    points: list[PointLight],
+    dirs: list[DirectionalLight],
+    cam: Tensor,
+    dev: torch.device,
+    cd: torch.dtype,
+    elements: int,
+) -> bool:
+    """Whether the point and directional lights go through the fused shading kernel.
+
+    The principled BRDF, inputs the kernel reads (4-D maps or constants), no gradient wanted
+    w.r.t. lights or camera (those stay on the eager shader), and the fused kernels' dispatch
+    rule (``principled._fused_backend``, on ``elements`` pixel-lights) picking the C or the
+    Triton kernels (the shading kernel is printed in both).
+    """
+    if kind != "principled" or not (points or dirs):
+        return False
+    if "base_color" not in values or set(values) - set(PRINCIPLED_DEFAULTS) - {"base_color"}:
+        return False  # the eager call raises the error naming the argument
+    from torchbrdf.brdf import principled as _pr
+
+    tensors = []
+    for k, t in [("position", gbuf.position), ("normal", gbuf.normal), *values.items()]:
+        if not isinstance(t, Tensor):
+            continue
+        if not torch.compiler.is_compiling() and torch._C._functorch.is_functorch_wrapped_tensor(t):
+            return False  # the shade ops have no vmap/jvp rule: torch.func goes eager
+        channels = {"position": (3,), "normal": (3,), "base_color": (1, 3)}.get(k, (1,))
+        if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
+            return False
+        tensors.append(t)
+    if torch.is_grad_enabled():
+        uniform = [cam] + [t for light in [*points, *dirs] for t in light._light_tensors()]
+        if any(t.requires_grad for t in uniform):
+            return False
+    return _pr._fused_backend(dev, cd, tensors, lambda: elements) in ("c", "triton")
+
+
+def uniform_table(
+    cam: Tensor, points: list[PointLight], dirs: list[DirectionalLight], dev: torch.device, cd: torch.dtype
+) -> Tensor:
+    """``(R, 3 + 6 L)``: camera, then ``(q, I)`` per point and ``(d, E)`` per directional light,
+    one row per batch element (``R = 1`` when nothing is batched)."""
+    parts = [cam.reshape(-1, 3)]
+    for light in points:
+        parts += [
+            light.position.to(device=dev, dtype=cd).reshape(-1, 3),
+            light.intensity.to(device=dev, dtype=cd).reshape(-1, 3),
+        ]
+    for sun in dirs:
+        parts += [
+            sun.direction.to(device=dev, dtype=cd).reshape(-1, 3),
+            sun.irradiance.to(device=dev, dtype=cd).reshape(-1, 3),
+        ]
+    rows = max(p.shape[0] for p in parts)
+    return torch.cat([p.detach().expand(rows, 3) for p in parts], dim=1).contiguous()
+
+
+def fused_lights_term(
+    table: Tensor,
+    pos: Tensor,
+    n: Tensor,
+    x: Tensor | None,
+    y: Tensor | None,
+    mat: dict[str, Any],
+    bidx: Tensor,
+    active: tuple[str, ...] | None,
+    frame: bool,
+    normalize_n: bool,
+    n_point: int,
+    n_dir: int,
+) -> Tensor:
+    """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
+    (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
+    from torchbrdf.brdf.principled import _need_tint
+    from torchbrdf.kernels.shade_ops import shade_lights
+
+    assert active is not None  # the fused route is the principled BRDF's: its lobes are known
+    c = {**PRINCIPLED_DEFAULTS, **mat, "pos": pos, "n": n, "x": x, "y": y}
+    if table.shape[0] == 1:
+        seg = [0, pos.shape[0]]
+    else:  # points are batch-major: one segment (uniform row) per image
+        counts = torch.bincount(bidx, minlength=table.shape[0])
+        seg = [0] + torch.cumsum(counts, 0).tolist()
+    backend = "c" if pos.device.type == "cpu" and not _triton_interpreted() else "triton"
+    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir,
+                        backend)
+
+
+def _triton_interpreted() -> bool:
+    """CPU tensors go to the Triton shading kernels when the backend resolves to Triton (its
+    interpreter, ``TRITON_INTERPRET=1``: how the tests run them without a GPU)."""
+    from torchbrdf.kernels import backend
+
+    return backend.resolve(torch.device("cpu")) == "triton"
