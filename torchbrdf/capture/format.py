@@ -278,10 +278,14 @@ def load_capture(
         ValueError: malformed JSON, a missing or ill-typed key, an unsupported light type,
             a position that is not a finite 3-vector, a negative or non-finite intensity;
             an image name that is absolute, contains ``..`` or resolves (through a symlink)
-            outside the folder; a light whose intensity is zero; no light above the sample
-            plane (z > 0); an image that is not RGB, whose size differs from width/height,
-            that has non-finite pixels or whose pixels are all 0. The message names the
-            offending file and entry. Every ``capture.json`` check runs before any image is read.
+            outside the folder; a light whose intensity is zero; a light or the camera on or
+            below the sample plane (z <= 0); a coordinate beyond :data:`MAX_COORDINATE` or an
+            intensity beyond :data:`MAX_RADIANCE`; a file listed twice; a ``capture.json``
+            nested too deeply to parse; an image path that is not a regular file; an image
+            that is not RGB, whose size differs from width/height, that has non-finite pixels,
+            no positive pixel or a value beyond :data:`MAX_RADIANCE`, or the same pixels as
+            another image. The message names the offending file and entry. Every
+            ``capture.json`` check runs before any image is read.
     """
     folder = Path(folder)
     if not folder.is_dir():
