@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 import torch
 
-import torchbrdf.recovery.solver as solver
 import torchbrdf.recovery.svbrdf as svbrdf
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
 from torchbrdf.recovery import RecoveryConfig, recover
+from torchbrdf.recovery import engine
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
 FAST = ["--iters", "4", "--threads", "1", "--quiet", "--seed", "0"]
@@ -310,7 +310,7 @@ def test_disk_full_during_checkpoint(done, cap, tmp_path, monkeypatch, capsys):
         raise OSError(errno.ENOSPC, "No space left on device")
         yield
 
-    monkeypatch.setattr(solver, "atomic_path", full)
+    monkeypatch.setattr(engine, "atomic_path", full)
     assert main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "5", "--checkpoint-every", "1"]) == 1
     err = _one_line_error(capsys)
     assert "no space left on device while writing" in err and CHECKPOINT in err
@@ -321,7 +321,7 @@ def test_checkpoint_write_reports_enospc_as_oserror(tmp_path, monkeypatch):
     """Torch's own writer turns ENOSPC into an opaque RuntimeError; the checkpoint is
     serialised in memory and written by Python, so the errno survives.
     """
-    rec = solver.Recovery.__new__(solver.Recovery)
+    rec = engine.Recovery.__new__(engine.Recovery)
     rec.out, rec.state, rec.plan, rec.cfg = tmp_path, {"x": torch.zeros(3)}, [], RecoveryConfig()
     real_open = open
 
@@ -354,7 +354,7 @@ def test_checkpoint_write_reports_enospc_as_oserror(tmp_path, monkeypatch):
 def test_sigterm_is_honoured_within_one_inner_step_and_resumes_exactly(cap, tmp_path, monkeypatch):
     cfg = dict(iters=4, threads=1, seed=0, checkpoint_every=10)
     full = recover(cap, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
-    real = solver.lm_step
+    real = engine.lm_step
     calls = []
 
     def spy(*a, **k):
@@ -363,11 +363,11 @@ def test_sigterm_is_honoured_within_one_inner_step_and_resumes_exactly(cap, tmp_
             os.kill(os.getpid(), signal.SIGTERM)
         return real(*a, **k)
 
-    monkeypatch.setattr(solver, "lm_step", spy)
+    monkeypatch.setattr(engine, "lm_step", spy)
     part = recover(cap, RecoveryConfig(**cfg), tmp_path / "part", progress=False)
     assert len(calls) == 3  # the step in progress was abandoned, nothing after it ran
     assert not part.report["completed"] and part.report["iterations"] == 1
-    monkeypatch.setattr(solver, "lm_step", real)
+    monkeypatch.setattr(engine, "lm_step", real)
     resumed = recover(cap, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
     assert resumed.report["completed"]
     for k in full.maps:

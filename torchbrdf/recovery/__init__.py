@@ -2,7 +2,13 @@
 
 ``svbrdf`` is the recovery (:func:`recover` -> :class:`RecoveryResult`, :class:`RecoveryConfig`;
 :func:`load_outputs` reads an output folder back; the
-``torchbrdf-recover`` command), ``smoothness_prior`` its coupled spatial prior and the
+``torchbrdf-recover`` command). Its algorithm, one concept per module, imports run downward:
+``engine`` (the resumable :class:`~torchbrdf.recovery.engine.Recovery`) over ``soft_metal``
+(the final stage's continuous metallic), ``classes`` (metal / dielectric), ``search``
+(propagation, normal search), ``calibration`` (the lights), ``priors`` (non-local), ``lm``
+(Levenberg–Marquardt), ``levels`` (the capture at one resolution), ``map_ops``, ``params``
+(the unknowns) and ``config`` (:class:`RecoveryConfig`); ``solver`` re-exports the former
+single module's names. ``smoothness_prior`` is its coupled spatial prior and the
 conjugate-gradient solve, ``batch`` many captures on Ray
 (``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit (``torchbrdf-fit-merl``).
 
