@@ -11,6 +11,7 @@ from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
 from torchbrdf.recovery import (calibration, classes, engine, levels, lm, map_ops, params, priors, search,
                                 smoothness_prior, soft_metal)
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.svbrdf import CHECKPOINT, RecoveryConfig, main, recover
 
 CONTRACT_FILES = ["base_color.exr", "roughness.exr", "metallic.exr", "specular.exr", "normal.exr", "report.json"]
@@ -96,7 +97,7 @@ def test_demo_runs(tmp_path, monkeypatch):
 def test_resume_equals_uninterrupted(tiny, tmp_path):
     cfg = dict(seed=1, iters=12, checkpoint_every=3, threads=2)
     full = recover(tiny, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
-    part = recover(tiny, RecoveryConfig(**cfg, signal_at=3), tmp_path / "part", progress=False)
+    part = recover(tiny, Settings(**cfg, signal_at=3), tmp_path / "part", progress=False)
     assert not part["completed"] and part["iterations"] == 3
     assert (tmp_path / "part" / CHECKPOINT).is_file()
     for f in CONTRACT_FILES:  # partial outputs are valid files
@@ -188,7 +189,7 @@ def test_resume_after_a_converged_stage_equals_uninterrupted(tiny, tmp_path):
     cfg = dict(seed=1, checkpoint_every=1, threads=2, converge_tol=0.05)
     full = recover(tiny, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
     first = next(h["iteration"] for h in full["loss_history"] if "skipped" in h)
-    part = recover(tiny, RecoveryConfig(**cfg, signal_at=first), tmp_path / "part", progress=False)
+    part = recover(tiny, Settings(**cfg, signal_at=first), tmp_path / "part", progress=False)
     assert not part["completed"] and part["iterations"] == first
     resumed = recover(tiny, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
     assert resumed["iterations"] == full["iterations"]
@@ -237,7 +238,7 @@ def test_a_resumed_progress_bar_starts_where_the_stages_left_off():
 
 
 def test_nan_is_detected_recovered_and_never_written(tiny, tmp_path):
-    rep = recover(tiny, RecoveryConfig(seed=0, iters=10, fault_at=3, threads=2), tmp_path / "nan", progress=False)
+    rep = recover(tiny, Settings(seed=0, iters=10, fault_at=3, threads=2), tmp_path / "nan", progress=False)
     assert rep["completed"]
     assert any(e["event"].startswith("non-finite") for e in rep["events"])
     for f in ("base_color", "roughness", "metallic", "specular", "normal"):
@@ -314,7 +315,7 @@ def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch
         return float((wt * theta[:, 0]).sum() / wt.sum())
 
     for w_fit in (1.0, 0.5):
-        cfg = RecoveryConfig(nonlocal_sigma=1000.0, nonlocal_fit_weight=w_fit)  # a flat window
+        cfg = Settings(nonlocal_sigma=1000.0, nonlocal_fit_weight=w_fit)  # a flat window
         _, m, _ = priors.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg, cost=cost)
         want = expected(w_fit)
         assert torch.allclose(m[rest, 0:3], torch.full_like(m[rest, 0:3], want), atol=1e-4), (w_fit, want)
@@ -322,7 +323,7 @@ def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch
     assert abs(expected(1.0) - expected(0.5)) > 0.05  # the setting matters here
     # without the fit weight the dark patch drags the average by most of a logit unit
     _, m0, _ = priors.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal,
-                                RecoveryConfig(nonlocal_sigma=1000.0, nonlocal_fit_weight=0.0), cost=cost)
+                                Settings(nonlocal_sigma=1000.0, nonlocal_fit_weight=0.0), cost=cost)
     assert float(m0[rest, 0].mean()) < expected(1.0) - 0.4
 
 
@@ -373,7 +374,7 @@ def test_metal_base_tie_is_guided_by_base_colour():
                     "normal": torch.tensor([0.0, 0.0, 1.0]).repeat(n, 1)})
     metal = torch.ones(n, 1)
     for guided in (True, False):
-        cfg = RecoveryConfig(metal_base_guided=guided)
+        cfg = Settings(metal_base_guided=guided)
         wx, wy = edge_weights(theta, metal, size, cfg)
         w = cfg.prior_metal_base
         assert torch.allclose(wx[:, 0, 0:3], torch.full((size, 3), w))  # alike: tied
@@ -868,7 +869,7 @@ def test_flash_position_in_the_dual_stage_is_a_choice(tiny, at_camera):
     from torchbrdf.recovery.calibration import camera_lights
 
     cap = load_capture(tiny)
-    rec = Recovery(cap, RecoveryConfig(seed=0, soft_metal=False, dual_calibration_at_camera=at_camera),
+    rec = Recovery(cap, Settings(seed=0, soft_metal=False, dual_calibration_at_camera=at_camera),
                    log=lambda m: None)
     full = rec.plan[-1][0]
     dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
@@ -908,7 +909,7 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     stage's LM steps are given it. Without ``fit_nonlocal_tie`` there is none.
     """
 
-    cfg = RecoveryConfig(seed=0, soft_metal=False, fit_nonlocal_tie=tie)
+    cfg = Settings(seed=0, soft_metal=False, fit_nonlocal_tie=tie)
     rec, polish = _recovery_at_polish(tiny, cfg)
     if not tie:
         assert "tie" not in rec.state
@@ -966,7 +967,7 @@ def test_a_tie_pass_on_the_metal_pixels_alone_gives_the_full_passs_average(tiny)
     assert torch.allclose(m_m, m, atol=1e-5, rtol=0)
     assert torch.allclose(info_m[ism], info[ism], rtol=1e-4) and torch.all(info_m[~ism] == 0)
     with pytest.raises(ValueError, match="prior_nonlocal"):
-        priors.nonlocal_prior(d, th, mt, RecoveryConfig(prior_nonlocal=1.0), jtj_m, lm.pixel_cost(r_m), jtr_m,
+        priors.nonlocal_prior(d, th, mt, Settings(prior_nonlocal=1.0), jtj_m, lm.pixel_cost(r_m), jtr_m,
                          rows=rows)
     with pytest.raises(ValueError, match="every metal pixel"):  # a metal pixel left out
         priors.nonlocal_prior(d, th, mt, cfg, jtj_m[1:], lm.pixel_cost(r_m[1:]), jtr_m[1:], rows=rows[1:])
@@ -1045,7 +1046,7 @@ def _recovery_with_a_brighter_light(tiny, **settings):
     cap = load_capture(tiny)
     images = cap.images.clone()
     images[3] *= 1.06
-    return Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False, **settings),
+    return Recovery(dc.replace(cap, images=images), Settings(seed=0, soft_metal=False, **settings),
                     log=lambda m: None)
 
 
@@ -1470,7 +1471,7 @@ def test_fusion_averages_each_metals_own_data_optimum_not_where_its_fit_stopped(
     off = theta + delta + lm.conditional_shift(jtj, delta, moved)
     off = torch.where(stopped, off, theta)
     _, jtj_off, jtr_off = lm.gauss_newton(data, off, metal, idx, "principled")
-    cfg = RecoveryConfig(nonlocal_sigma=1000.0)  # one flat window
+    cfg = Settings(nonlocal_sigma=1000.0)  # one flat window
     lvl = types.SimpleNamespace(size=size, train_idx=idx)
     # (no fit weights: noise-free, the stopped pixels would weigh ~0 against the exact ones)
     _, m_stop, _ = priors.nonlocal_prior(lvl, off, metal, cfg, jtj_off)
@@ -1549,7 +1550,7 @@ def test_fusion_rounds_refine_the_average_without_compounding_the_pull():
     well = info > info.median()  # pulled only part of the way (info ≫ κ)
     pull = {}
     for rounds in (1, 3):
-        cfg = RecoveryConfig(soft_metal=False, fuse_rounds=rounds, nonlocal_sigma=1000.0)
+        cfg = Settings(soft_metal=False, fuse_rounds=rounds, nonlocal_sigma=1000.0)
         rec = engine.Recovery(cap, cfg, log=lambda *a: None)
         rec.init_state()
         st = rec.state

@@ -19,6 +19,7 @@ from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
 from torchbrdf.recovery import RecoveryConfig, recover
 from torchbrdf.recovery import engine
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
 FAST = ["--iters", "4", "--threads", "1", "--quiet", "--seed", "0"]
@@ -50,7 +51,7 @@ def done(cap, tmp_path_factory):
 def stopped(cap, tmp_path_factory):
     """A run stopped by SIGTERM after one iteration (checkpoint + partial outputs)."""
     out = tmp_path_factory.mktemp("stopped") / "out"
-    res = recover(cap, RecoveryConfig(iters=4, threads=1, signal_at=1), out, progress=False)
+    res = recover(cap, Settings(iters=4, threads=1, signal_at=1), out, progress=False)
     assert not res.report["completed"] and (out / CHECKPOINT).is_file()
     return out
 
@@ -283,8 +284,8 @@ def test_soft_metal_and_fusion_settings_are_checked(kw):
     # A NaN smooth weight made every second-pass residual NaN (sqrt(nan)); a negative band
     # reached max_pool2d as a kernel size <= 0. Both are refused up front, naming the setting.
     name = next(iter(kw))
-    with pytest.raises(svbrdf.RecoveryError, match=f"RecoveryConfig.{name}"):  # no command-line flag
-        svbrdf.check_config(RecoveryConfig(**kw))
+    with pytest.raises(svbrdf.RecoveryError, match=f"Settings.{name}"):  # a constant of the method
+        svbrdf.check_config(Settings(**kw))
 
 
 # --------------------------------------------------------------------------------------

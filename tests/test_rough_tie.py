@@ -14,6 +14,7 @@ from torchbrdf.capture.format import load_capture, write_capture
 from torchbrdf.capture.synthetic import light_layout, normals_from_height, render_capture
 from torchbrdf.recovery import lm, soft_metal
 from torchbrdf.recovery.classes import rough_basin_tie
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.params import decode, encode
 from torchbrdf.recovery.soft_metal import soft_rough_tie
@@ -102,7 +103,7 @@ def test_the_tie_settings_are_checked():
                 {"soft_rough_tie": float("nan")}, {"soft_rough_tie_glossy": 0.5},
                 {"soft_rough_tie_glossy": 0.45, "rough_tie_start": 0.85}):
         with pytest.raises(RecoveryError, match=list(bad)[-1]):
-            check_config(RecoveryConfig(**bad))
+            check_config(Settings(**bad))
 
 
 def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_path, monkeypatch):

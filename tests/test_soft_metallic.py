@@ -20,6 +20,7 @@ from torchbrdf.capture.synthetic import (
     write_maps,
 )
 from torchbrdf.recovery import lm, map_ops, soft_metal
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.params import decode, encode
 from torchbrdf.recovery.soft_metal import (blend_ends, growth_front, may_be_mixed, soft_metal_candidates, soft_metal_fit,
@@ -297,7 +298,7 @@ def test_blend_stripe_recovers_fractional_metallic(tmp_path, monkeypatch):
     assert cov.shape == (24 * 24, 1) and bool(torch.isnan(cov).any())
     assert bool(torch.isfinite(cov[rows]).any())
     calls.clear()
-    off = RecoveryConfig(iters=16, threads=2, soft_rough_tie=0.0)
+    off = Settings(iters=16, threads=2, soft_rough_tie=0.0)
     recover(tmp_path, off, tmp_path / "off", progress=False)
     assert calls == []
     m = res.maps["metallic"][0]
@@ -427,7 +428,7 @@ def test_clear_candidates_that_fit_at_the_noise_level_leave_the_stage(tmp_path, 
             return fit(d, t, mt, rows, *a, **k)
 
         monkeypatch.setattr(soft_metal, "soft_metal_fit", spy)
-        recover(tmp_path, RecoveryConfig(iters=16, threads=2, **over), None, progress=False)
+        recover(tmp_path, Settings(iters=16, threads=2, **over), None, progress=False)
         tried = [set(t.nonzero()[:, 0].tolist()) for t in seen["tried"]]
         return set(seen["cand"].tolist()), [set(f.tolist()) for f in seen["fits"]], tried
 
@@ -466,7 +467,7 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
         return out
 
     monkeypatch.setattr(soft_metal, "soft_metal_fit", spy)
-    cfg = RecoveryConfig(iters=8, threads=2, soft_metal_passes=2, soft_metal_grow=0, fuse_rounds=1,
+    cfg = Settings(iters=8, threads=2, soft_metal_passes=2, soft_metal_grow=0, fuse_rounds=1,
                          fit_nonlocal_tie=False, soft_metal_line=0.0)
     recover(tmp_path, cfg, None, progress=False)
     assert len(calls) == 2, len(calls)
@@ -559,7 +560,7 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
     monkeypatch.setattr(soft_metal, "growth_front", front)
     monkeypatch.setattr(soft_metal, "unmix_metallic", spy)
     monkeypatch.setattr(soft_metal, "soft_metal_fit", spy_fit)
-    cfg = RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False)
+    cfg = Settings(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False)
     recover(tmp_path, cfg, None, progress=False)
     assert len(unmixed) == 2 and torch.equal(unmixed[1], fronts[0])
     (nb, target), = grown
@@ -567,7 +568,7 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
     assert torch.allclose(target, (w_nb * nb + w_un * 0.37) / (w_nb + w_un), atol=1e-5)
     unmixed.clear()
     calls["n"] = 0
-    recover(tmp_path, RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False,
+    recover(tmp_path, Settings(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False,
                                      soft_metal_unmix=0.0), None, progress=False)
     assert unmixed == []
 
@@ -596,7 +597,7 @@ def test_an_answer_of_the_other_class_is_taken(tmp_path, monkeypatch):
         return t, m, torch.ones(rows.numel(), dtype=torch.bool)
 
     monkeypatch.setattr(soft_metal, "soft_metal_fit", fit)
-    cfg = RecoveryConfig(iters=8, threads=2, soft_metal_passes=0, soft_metal_grow=0, soft_rough_tie=0.0,
+    cfg = Settings(iters=8, threads=2, soft_metal_passes=0, soft_metal_grow=0, soft_rough_tie=0.0,
                          soft_metal_line=0.0, soft_metal_unmix=0.0)
     res = recover(tmp_path, cfg, None, progress=False)
     rows = seen["rows"]

@@ -16,6 +16,7 @@ May import everything below it: ``torchbrdf.capture``, ``torchbrdf.render``,
 ``torchbrdf.brdf``, ``torchbrdf.io`` and the plumbing.
 """
 
+from torchbrdf.recovery.config import CalibrationConfig, ClassConfig, PriorConfig, ScheduleConfig
 from torchbrdf.recovery.svbrdf import (
     RecoveryConfig,
     RecoveryError,
@@ -26,5 +27,5 @@ from torchbrdf.recovery.svbrdf import (
     recover,
 )
 
-__all__ = ["RecoveryConfig", "RecoveryError", "RecoveryResult", "recover", "load_outputs", "map_errors",
-           "psnr"]
+__all__ = ["RecoveryConfig", "ScheduleConfig", "PriorConfig", "CalibrationConfig", "ClassConfig", "RecoveryError",
+           "RecoveryResult", "recover", "load_outputs", "map_errors", "psnr"]

@@ -75,7 +75,7 @@ def camera_lights(pos: Tensor, camera: Tensor, centre: Tensor, frac: float = 0.1
     least determined of the lights' positions (at a capture's true maps, about 10x the ring
     lights' posterior deviation along the axis), and the one
     that soaked up what the two-hypothesis maps had not yet fitted
-    (``RecoveryConfig.dual_calibration_at_camera``).
+    (``Settings.dual_calibration_at_camera``).
     """
     reach = frac * float((camera - centre).norm())
     return (pos - camera).norm(dim=-1) < reach

@@ -91,7 +91,7 @@ from torchbrdf.io import atomic_path
 from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step
 from torchbrdf.recovery.classes import (choose_class, despeckle, majority_vote, rough_basin_tie,
                                         unconverged_dielectric_rows)
-from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.levels import LevelData, photometric_stereo
 from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map_prior_terms,
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
@@ -107,7 +107,7 @@ __all__ = ["Recovery", "psnr", "CHECKPOINT"]
 CHECKPOINT = "checkpoint.pt"
 
 
-def _schedule(size: int, cfg: RecoveryConfig) -> list[tuple[int, str, int]]:
+def _schedule(size: int, cfg: Settings) -> list[tuple[int, str, int]]:
     """Stages ``(level size, kind, iterations)``; kind in dual / polish / all."""
     sizes = []
     s = size
@@ -133,9 +133,10 @@ def _schedule(size: int, cfg: RecoveryConfig) -> list[tuple[int, str, int]]:
 class Recovery:
     """The resumable optimisation state machine (see the module docstring)."""
 
-    def __init__(self, cap: Capture, cfg: RecoveryConfig, out: Path | None = None,
+    def __init__(self, cap: Capture, cfg: RecoveryConfig | Settings, out: Path | None = None,
                  log: Callable[[str], Any] = print):
-        self.cap, self.cfg, self.out, self.log = cap, cfg, out, log
+        self.cap, self.cfg, self.out, self.log = cap, settings_of(cfg), out, log
+        cfg = self.cfg
         self.size = cfg.size or max(cap.width, cap.height)
         n_l = len(cap)
         if cfg.holdout is not None:
@@ -193,7 +194,7 @@ class Recovery:
         """
         if self.out is None:
             return
-        blob = {"state": self.state, "plan": self.plan, "config": vars(self.cfg) | {"schedule": []},
+        blob = {"state": self.state, "plan": self.plan, "config": vars(self.cfg),
                 "torch_rng": torch.get_rng_state(), "fingerprint": getattr(self, "fingerprint", None)}
         buf = io.BytesIO()
         torch.save(blob, buf)

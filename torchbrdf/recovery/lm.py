@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.params import N_PARAMS
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, pcg, prior_energy
@@ -108,7 +108,7 @@ def prior_gradient(theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     return g
 
 
-def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig,
+def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: Settings,
                     unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Gradient and Hessian diagonal ``(P, 7)`` each of the maps' prior energy at ``theta``.
 
@@ -120,7 +120,7 @@ def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: RecoveryConfig
     return prior_gradient(theta, wx, wy, size, unary), hdiag if unary is None else hdiag + unary[1]
 
 
-def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: RecoveryConfig, lr: float,
+def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Settings, lr: float,
             extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None,
             gn: tuple[Tensor, Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor, int]:
     """One Levenberg–Marquardt iteration with the coupled smoothness prior.

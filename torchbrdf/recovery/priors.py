@@ -8,14 +8,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import marginal_information, newton_step
 from torchbrdf.recovery.map_ops import blur, kmeans
 from torchbrdf.recovery.params import R_MAX, R_MIN
 
 
-def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
+def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
                    jtj: Tensor | None = None, cost: Tensor | None = None, jtr: Tensor | None = None,
                    rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Confidence-weighted non-local estimate of a metal's base colour (and, optionally, roughness).
@@ -126,7 +126,7 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
-def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
+def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
                   info: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Targets and precisions ``(P, 7)`` of a unary prior that fills under-determined roughness and
     specular from same-material pixels the captured highlights do constrain.

@@ -9,13 +9,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import unary_cost
 from torchbrdf.recovery.smoothness_prior import edge_weights, local_prior
 
 
-def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig,
+def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
               margin: float | None = None,
               unary: tuple[Tensor, Tensor] | None = None,
               active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import PixelRows, at_rows, keep_better, pixel_cost, soft_lm
 from torchbrdf.recovery.map_ops import blur, dilate, neighbour_mean
@@ -422,7 +422,7 @@ class _Stage:
     of their clear neighbours (NaN where unknown; growth fills it in)."""
 
     data: LevelData
-    cfg: RecoveryConfig
+    cfg: Settings
     sigma2: float
     unmix: Tensor
 
@@ -452,7 +452,7 @@ class _Stage:
         return t, m
 
 
-def soft_metal_stage(data: LevelData, theta: Tensor, metal: Tensor, cfg: RecoveryConfig
+def soft_metal_stage(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
                      ) -> tuple[Tensor, Tensor, dict[str, int]]:
     """Final stage: continuous metallic where the binary choice fits poorly, at a class
     boundary or at a metal's colour step (:func:`soft_metal_candidates`,

@@ -53,7 +53,8 @@ from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON, Capture, load_capture
 from torchbrdf.capture.synthetic import MAP_NAMES, render_capture
 from torchbrdf.io import atomic_path, fsync_dir, read_exr, write_exr, write_png
-from torchbrdf.recovery.solver import CHECKPOINT, Recovery, RecoveryConfig, psnr
+from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
+from torchbrdf.recovery.engine import CHECKPOINT, Recovery, psnr
 
 __all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "cli",
            "psnr", "map_errors", "CHECKPOINT", "REPORT"]
@@ -112,13 +113,15 @@ class RecoveryResult:
 
 
 def _setting(name: str) -> str:
-    """How an error names a :class:`RecoveryConfig` field.
+    """How an error names a setting.
 
-    ``lr (--lr)`` when the command line has the flag, else ``RecoveryConfig.name`` (a setting of
-    the Python API only).
+    ``lr (--lr)`` when the command line has the flag, else ``RecoveryConfig.name`` (an option of
+    the Python API only) or ``Settings.name`` (a constant of the method).
     """
     flag = f"--{name.replace('_', '-')}"
-    return f"{name} ({flag})" if flag in _parser()._option_string_actions else f"RecoveryConfig.{name}"
+    if flag in _parser()._option_string_actions:
+        return f"{name} ({flag})"
+    return f"RecoveryConfig.{name}" if hasattr(RecoveryConfig, name) else f"Settings.{name}"
 
 
 def _finite(name: str, v, lo: float, hi: float, lo_open: bool = False) -> None:
@@ -136,8 +139,9 @@ def _integer(name: str, v, lo: int, hi: int, allow_none: bool = False) -> None:
         raise RecoveryError(f"{_setting(name)} must be an integer in [{lo}, {hi}], got {v!r}")
 
 
-def check_config(cfg: RecoveryConfig) -> None:
+def check_config(cfg: RecoveryConfig | Settings) -> None:
     """Refuse settings that cannot give a meaningful result (one-line :class:`RecoveryError`)."""
+    cfg = settings_of(cfg)
     _integer("iters", cfg.iters, 0, 1_000_000)
     _finite("lr", cfg.lr, 0.0, 2.0, lo_open=True)
     _integer("size", cfg.size, 8, 16384, allow_none=True)
@@ -276,12 +280,13 @@ def capture_fingerprint(capture: PathLike | Capture, cap: Capture) -> dict:
     return {CAPTURE_JSON: _sha256_file(folder / CAPTURE_JSON), "images": images}
 
 
-def settings_fingerprint(cfg: RecoveryConfig) -> dict:
-    """Every :class:`RecoveryConfig` field that changes the result, as JSON values.
-
-    All fields but threads, device, checkpoint frequency and the test-only signal hook), as JSON values.
+def settings_fingerprint(cfg: RecoveryConfig | Settings) -> dict:
+    """Every setting that changes the result, as JSON values: the options and the method's
+    constants (:class:`Settings`), all but threads, device, checkpoint frequency and the test-only
+    signal hook.
     """
     out = {}
+    cfg = settings_of(cfg)
     for f in dataclasses.fields(cfg):
         if f.name not in RESULT_INDEPENDENT:
             out[f.name] = json.loads(json.dumps(getattr(cfg, f.name), default=repr))
@@ -832,7 +837,7 @@ class _Interrupt(BaseException):
 # --------------------------------------------------------------------------------------
 
 
-def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, out: PathLike | None = None, *, gt: PathLike | None = None, resume: bool = False,
+def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | None = None, out: PathLike | None = None, *, gt: PathLike | None = None, resume: bool = False,
             force: bool = False, progress: bool = True,
             log: Callable[[str], None] | None = None) -> RecoveryResult:
     """Recover per-pixel principled maps from a capture.
@@ -862,9 +867,9 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
     """
     # Backward compatibility: the old order was recover(capture, out, cfg). (The annotations give
     # only the current order, so the type checker sees this branch as unreachable.)
-    if isinstance(config, (str, os.PathLike)) or isinstance(out, RecoveryConfig):
+    if isinstance(config, (str, os.PathLike)) or isinstance(out, (RecoveryConfig, Settings)):
         config, out = out, config
-    cfg = config or RecoveryConfig()
+    cfg = settings_of(config or RecoveryConfig())
     log = log or (lambda msg: print(msg, file=sys.stderr))
     check_config(cfg)
     out = check_out(out) if out is not None else None
@@ -1017,7 +1022,7 @@ def _last_fit(history: list) -> float | None:
     return float(f.get("best", f.get("chosen", float("nan"))))
 
 
-def _run(rec: Recovery, cfg: RecoveryConfig, ck: Path | None, progress: bool, log) -> tuple[bool, float]:
+def _run(rec: Recovery, cfg: Settings, ck: Path | None, progress: bool, log) -> tuple[bool, float]:
     """Iterate to the end or until a signal; returns ``(interrupted, seconds)``.
 
     A SIGINT/SIGTERM inside an iteration raises :class:`_Interrupt` at the next Python step
