@@ -267,7 +267,7 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     info[corner, 0:3] = 1e-6
     theta[: size * 4, 0:3] = -2.0  # a dark dielectric must not leak into the metal average
     monkeypatch.setattr(priors, "marginal_information", lambda *a: info)
-    cfg = RecoveryConfig()
+    cfg = Settings()
     w, m, inf = priors.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg)
     fused = torch.where(w > 0, (inf * theta + w * m) / (inf + w).clamp(min=1e-12), theta)
     assert torch.allclose(fused[corner, 0:3], torch.ones(int(corner.sum()), 3), atol=0.05)
@@ -340,8 +340,6 @@ def _random_edges(size, c=7, seed=0):
 
 
 def test_laplacian_is_the_gradient_of_the_prior_energy():
-    import torchbrdf.recovery.smoothness_prior as R
-
     size = 5
     wx, wy = _random_edges(size)
     x = torch.randn(size * size, 7, dtype=torch.float64, requires_grad=True)
@@ -362,7 +360,6 @@ def test_metal_base_tie_is_guided_by_base_colour():
     2026-12-02), the tie is class-only; a dielectric pair has no base-colour tie at all.
     """
     from torchbrdf.recovery.smoothness_prior import edge_weights
-    from torchbrdf.recovery.config import RecoveryConfig
     from torchbrdf.recovery.params import encode
 
     size = 4
@@ -383,7 +380,7 @@ def test_metal_base_tie_is_guided_by_base_colour():
         assert torch.allclose(across, torch.full_like(across, w)) != guided
         if guided:
             assert float(across.max()) < 1e-6 * w
-    wx, _ = edge_weights(theta, torch.zeros(n, 1), size, RecoveryConfig())
+    wx, _ = edge_weights(theta, torch.zeros(n, 1), size, Settings())
     assert float(wx[..., 0:3].abs().max()) == 0.0
 
 
@@ -391,8 +388,6 @@ def test_metal_base_tie_is_guided_by_base_colour():
 def test_pcg_solves_the_coupled_system(joined):
     """Every pattern of prior-joined channels (all; a dielectric's specular and roughness; with
     a metal's base colour; none), so the per-pixel elimination of the others is exact."""
-    import torchbrdf.recovery.smoothness_prior as R
-
     size, c = 4, 7
     p = size * size
     wx, wy = _random_edges(size, c, seed=1)
@@ -431,7 +426,7 @@ def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     data = levels.LevelData(cap, size, list(range(len(pos))), float(0.01 * imgs.mean()))
     p = {k: v.reshape(v.shape[0], -1).T.contiguous() for k, v in maps.items()}
     metal = p.pop("metallic")
-    return R, data, params.encode(p), metal
+    return data, params.encode(p), metal
 
 
 def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
@@ -441,7 +436,7 @@ def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
     import torchbrdf
     from torchbrdf.kernels import fused
 
-    R, data, theta, metal = _flat_level(size=12, lights=6, normal_tilt_deg=10.0)
+    data, theta, metal = _flat_level(size=12, lights=6, normal_tilt_deg=10.0)
     theta = theta + 0.3 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(0))
     metal = metal.clone()
     metal[::3] = 1.0
@@ -476,36 +471,36 @@ def test_a_propagation_pass_restricted_to_the_last_changes_equals_a_full_pass():
     # Pass 2 can differ from pass 1 only where a 3x3 neighbourhood changed in pass 1, so the
     # recovery evaluates only those pixels; the result must be exactly the full pass's. A
     # wrong 6x6 block is repaired one ring per pass, so pass 2 has work to do.
-    R, data, theta, metal = _flat_level(size=12, lights=6)
+    data, theta, metal = _flat_level(size=12, lights=6)
     bad = theta.clone().reshape(12, 12, -1)
     bad[3:9, 3:9, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])
     bad = bad.reshape(theta.shape)
-    t1, m1, changed = search.propagate(data, bad, metal, RecoveryConfig())
-    full = search.propagate(data, t1, m1, RecoveryConfig())
-    part = search.propagate(data, t1, m1, RecoveryConfig(), active=map_ops.dilate(changed, 12))
+    t1, m1, changed = search.propagate(data, bad, metal, Settings())
+    full = search.propagate(data, t1, m1, Settings())
+    part = search.propagate(data, t1, m1, Settings(), active=map_ops.dilate(changed, 12))
     assert bool(changed.any()) and bool(full[2].any())
     assert torch.equal(full[0], part[0]) and torch.equal(full[1], part[1]) and torch.equal(full[2], part[2])
     # Only the changed pixels themselves would miss the next ring.
-    only = search.propagate(data, t1, m1, RecoveryConfig(), active=changed)
+    only = search.propagate(data, t1, m1, Settings(), active=changed)
     assert not torch.equal(full[0], only[0])
 
 
 def test_propagation_repairs_a_pixel_from_its_neighbours():
-    R, data, theta, metal = _flat_level()
+    data, theta, metal = _flat_level()
     bad = theta.clone()
     bad[40, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])  # a wrong local optimum
-    fixed, new_metal, changed = search.propagate(data, bad, metal, RecoveryConfig())
+    fixed, new_metal, changed = search.propagate(data, bad, metal, Settings())
     assert int(changed.sum()) >= 1 and torch.allclose(fixed[40], theta[40], atol=1e-5)
     assert torch.equal(new_metal, metal)
     # Across classes: a pixel wrongly called metal returns to dielectric by the margin rule.
     m2 = metal.clone()
     m2[40] = 1.0
-    fixed, new_metal, _ = search.propagate(data, bad, m2, RecoveryConfig(), margin=0.5)
+    fixed, new_metal, _ = search.propagate(data, bad, m2, Settings(), margin=0.5)
     assert float(new_metal[40]) == 0.0 and torch.allclose(fixed[40], theta[40], atol=1e-5)
 
 
 def test_normal_search_finds_a_steep_normal():
-    R, data, theta, metal = _flat_level(normal_tilt_deg=24.0)
+    data, theta, metal = _flat_level(normal_tilt_deg=24.0)
     rows = torch.arange(100, 110)
     flat = theta.clone()
     flat[rows, 5:7] = 0.0  # these normals started flat, 24° off: a glossy local optimum
@@ -586,7 +581,7 @@ def test_light_scale_step_recovers_per_light_calibration_error():
     """Issue 13: images taken with intensities off by a few percent per light; the per-light
     scale step finds the factors (up to the fixed overall scale) from the residuals at the
     true maps, and a capture without error gives scales of exactly-ish 1."""
-    R, data, theta, metal = _flat_level()
+    data, theta, metal = _flat_level()
     n_l = data.pos.shape[0]
     true = 0.03 * torch.randn(n_l, generator=torch.Generator().manual_seed(3))
     true = true - true.mean()
@@ -598,7 +593,7 @@ def test_light_scale_step_recovers_per_light_calibration_error():
         data.set_light_scale(est)
         est = calibration.light_scale_step(data.residual(theta, metal, idx), idx, est, idx)
     assert torch.allclose(est, true, atol=2e-3)
-    _, clean, _, _ = _flat_level()
+    clean, _, _ = _flat_level()
     r = clean.residual(theta, metal, idx)
     assert float(calibration.light_scale_step(r, idx, torch.zeros(n_l), idx).abs().max()) < 1e-4
 
@@ -606,7 +601,7 @@ def test_light_scale_step_recovers_per_light_calibration_error():
 def test_nonlocal_fill_takes_the_measured_value_of_the_same_material(monkeypatch):
     """Issue 13: glossy pixels no highlight constrains (low information) get a unary prior toward
     the reliable pixels of the same base colour; another material is not mixed in."""
-    R, data, theta, metal = _flat_level()
+    data, theta, metal = _flat_level()
     p = theta.shape[0]
     theta = theta.clone()
     half = torch.arange(p) < p // 2
@@ -618,7 +613,7 @@ def test_nonlocal_fill_takes_the_measured_value_of_the_same_material(monkeypatch
     theta[blind, 4] = -2.5
     info[blind, 3:5] = 1e-6
     monkeypatch.setattr(priors, "marginal_information", lambda *a: info)
-    tgt, prec = priors.nonlocal_fill(data, theta, metal, RecoveryConfig(), info=info)
+    tgt, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
     good = half & ~blind
     assert torch.allclose(tgt[blind, 4], theta[good, 4].mean().expand(int(blind.sum())), atol=1e-4)
     assert bool((prec[blind, 4] > 1e3 * info[blind, 4]).all())  # the prior dominates where data are silent
@@ -630,7 +625,7 @@ def test_light_position_step_finds_a_moved_light():
     """Issue 13: a light 1.5 cm from where capture.json says; the position step finds the offset."""
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     true = torch.zeros(n_l, 3)
     true[2] = torch.tensor([0.015, -0.01, 0.005])
@@ -656,7 +651,7 @@ def test_light_beside_the_camera_keeps_its_stated_position():
     """
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     true = torch.zeros(n_l, 3)
     true[-1] = torch.tensor([0.01, -0.01, -0.02])  # the flash (last light of light_layout)
@@ -686,7 +681,7 @@ def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
     """
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     g = torch.Generator().manual_seed(3)
     other = theta.clone()
@@ -718,7 +713,7 @@ def test_light_joint_step_finds_light_errors_the_maps_absorb():
     """
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     true_off = torch.zeros(n_l, 3)
     true_off[2] = torch.tensor([0.015, -0.01, 0.005])
@@ -736,7 +731,7 @@ def test_light_joint_step_finds_light_errors_the_maps_absorb():
     lam = torch.full((theta.shape[0], 1), 1e-3)
     th, s, off = theta.clone(), torch.zeros(n_l), torch.zeros(n_l, 3)
     for _ in range(6):
-        th, lam, _, _ = lm.lm_step(data, th, metal, lam, RecoveryConfig(), 1.0)
+        th, lam, _, _ = lm.lm_step(data, th, metal, lam, Settings(), 1.0)
         s, off = calibration.light_joint_step(data, th, metal, s, off, idx, "principled")
         data.set_light_scale(s)
         data.set_light_offset(off)
@@ -763,7 +758,7 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     from torchbrdf.capture.synthetic import log_residual_points
 
     f64 = torch.float64
-    R, data, theta, metal = _flat_level(size=8, lights=8, normal_tilt_deg=10.0)
+    data, theta, metal = _flat_level(size=8, lights=8, normal_tilt_deg=10.0)
     g = torch.Generator().manual_seed(1)
     data.points, data.camera, data.pos_stated, data.inten_stated = (
         data.points.to(f64), data.camera.to(f64), data.pos_stated.to(f64), data.inten_stated.to(f64))
@@ -952,7 +947,7 @@ def test_a_tie_pass_on_the_metal_pixels_alone_gives_the_full_passs_average(tiny)
     refused.
     """
 
-    cfg = RecoveryConfig(seed=0, soft_metal=False)
+    cfg = Settings(seed=0, soft_metal=False)
     rec, polish = _recovery_at_polish(tiny, cfg)
     d = rec.data(rec.plan[polish][0])
     th, mt = rec.state["theta"][0], rec.state["metal"]
@@ -1022,18 +1017,18 @@ def test_a_pixel_subset_gathers_its_levels_targets(tiny):
 
 
 def test_two_unary_priors_sum_to_one():
-    """``_sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
+    """``sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
     from torchbrdf.recovery.lm import sum_unary, unary_cost
 
     g = torch.Generator().manual_seed(0)
     a = (torch.randn(5, 7, generator=g), torch.rand(5, 7, generator=g))
     b = (torch.randn(5, 7, generator=g), torch.rand(5, 7, generator=g))
     b[1][0] = 0.0  # absent on one pixel
-    s = _sum_unary(a, b)
+    s = sum_unary(a, b)
     x, y = torch.randn(5, 7, generator=g), torch.randn(5, 7, generator=g)
-    both = lambda t: _unary_cost(t, a) + _unary_cost(t, b)  # noqa: E731
-    assert torch.allclose(both(x) - both(y), _unary_cost(x, s) - _unary_cost(y, s), atol=1e-5)
-    assert _sum_unary(a, None) is a and _sum_unary(None, b) is b
+    both = lambda t: unary_cost(t, a) + unary_cost(t, b)  # noqa: E731
+    assert torch.allclose(both(x) - both(y), unary_cost(x, s) - unary_cost(y, s), atol=1e-5)
+    assert sum_unary(a, None) is a and sum_unary(None, b) is b
 
 
 def _recovery_with_a_brighter_light(tiny, **settings):
@@ -1586,7 +1581,7 @@ def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t, model)
         return data.residual(v[:, :7], v[:, 7:8] if n_t == 8 else x[:, 7:8], data.train_idx, model)
 
     xs = x if n_t == 8 else x[:, :7]
-    for jvp in (lambda v, tg: data.residual_jvp(v, x[:, 7:8], data.train_idx, model, tg), _vmapped_jvp(fn)):
+    for jvp in (lambda v, tg: data.residual_jvp(v, x[:, 7:8], data.train_idx, model, tg), vmapped_jvp(fn)):
         r, jac = fit_jacobian(jvp, xs, n_t)
         assert jac.shape == (32 * 32, n_t, 3 * len(data.train_idx))
         assert torch.allclose(r, fn(xs), rtol=1e-6, atol=1e-6)
@@ -1607,7 +1602,7 @@ def test_fit_jacobian_benchmark_times_both_ways(tiny):
 
 
 def test_blur_is_the_truncated_normalised_gaussian():
-    """``_blur`` is the truncated, normalised Gaussian, against a direct double sum.
+    """``blur`` is the truncated, normalised Gaussian, against a direct double sum.
 
     Σ over the pixels within 3σ (and the map) of g(dx) g(dy) x, g the Gaussian normalised over
     its 2r + 1 taps, zero outside the map.
@@ -1628,7 +1623,7 @@ def test_blur_is_the_truncated_normalised_gaussian():
                 for a in range(size):
                     for b in range(size):
                         want[:, i, j] += k(a - i) * k(b - j) * img[:, a, b]
-        got = _blur(x, size, sigma).T.reshape(2, size, size)
+        got = blur(x, size, sigma).T.reshape(2, size, size)
         assert torch.allclose(got, want, atol=1e-12), sigma
 
 

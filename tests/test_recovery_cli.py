@@ -323,7 +323,7 @@ def test_checkpoint_write_reports_enospc_as_oserror(tmp_path, monkeypatch):
     serialised in memory and written by Python, so the errno survives.
     """
     rec = engine.Recovery.__new__(engine.Recovery)
-    rec.out, rec.state, rec.plan, rec.cfg = tmp_path, {"x": torch.zeros(3)}, [], RecoveryConfig()
+    rec.out, rec.state, rec.plan, rec.cfg = tmp_path, {"x": torch.zeros(3)}, [], Settings()
     real_open = open
 
     class Full:
