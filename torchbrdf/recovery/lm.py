@@ -213,7 +213,7 @@ def sum_unary(a: tuple[Tensor, Tensor] | None, b: tuple[Tensor, Tensor] | None
     return target, prec
 
 
-def unary_cost(theta: Tensor, unary: tuple[Tensor, Tensor] | None):
+def unary_cost(theta: Tensor, unary: tuple[Tensor, Tensor] | None) -> Tensor | float:
     """Per-pixel share ``(P, 1)`` (on the ``|r|²`` scale) of the unary prior, or 0."""
     if unary is None:
         return 0.0

@@ -62,7 +62,8 @@ def dilate(mask: Tensor, size: int) -> Tensor:
     return (F.max_pool2d(m, 3, stride=1, padding=1) > 0).reshape(-1)
 
 
-def upsample(x: Tensor, s0: int, s1: int, mode="bilinear") -> Tensor:
+def upsample(x: Tensor, s0: int, s1: int, mode: str = "bilinear") -> Tensor:
+    """A ``(s0², C)`` map resampled to ``(s1², C)`` (``F.interpolate`` with ``mode``; ``x``'s dtype, device)."""
     img = x.T.reshape(1, -1, s0, s0)
     kw = {"align_corners": False} if mode == "bilinear" else {}
     up = F.interpolate(img, size=(s1, s1), mode=mode, **kw)

@@ -18,7 +18,8 @@ N_PARAMS = 7  # logit base (3), logit specular, logit roughness, slope p, slope 
 R_MIN, R_MAX = 0.03, 1.0  # roughness range the logit maps onto (alpha floor is 1e-3)
 
 
-def logit(x: Tensor, lo=0.0, hi=1.0, eps=1e-4) -> Tensor:
+def logit(x: Tensor, lo: float = 0.0, hi: float = 1.0, eps: float = 1e-4) -> Tensor:
+    """The logit of ``x`` (any shape) mapped from ``[lo, hi]`` onto [0, 1], clamped ``eps`` inside its ends."""
     t = ((x - lo) / (hi - lo)).clamp(eps, 1 - eps)
     return torch.log(t) - torch.log1p(-t)
 
