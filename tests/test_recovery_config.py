@@ -110,3 +110,25 @@ def test_no_comment_or_default_of_the_algorithm_names_a_tuning_capture():
         text = (root / f"{name}.py").read_text()
         hits = [line.strip() for line in text.splitlines() if pattern.search(line)]
         assert not hits, (name, hits)
+
+
+ALGORITHM = ("config", "params", "levels", "map_ops", "lm", "priors", "calibration", "search", "classes",
+             "soft_metal", "engine")
+
+
+def test_the_algorithm_is_split_into_modules_of_one_concept():
+    """No module of the algorithm over 900 lines, no function over 120; ``solver`` re-exports."""
+    import ast
+
+    import torchbrdf.recovery.solver as solver
+    from torchbrdf.recovery.engine import Recovery
+
+    root = Path(__file__).resolve().parent.parent / "torchbrdf" / "recovery"
+    for name in ALGORITHM:
+        text = (root / f"{name}.py").read_text()
+        assert len(text.splitlines()) <= 900, name
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef):
+                assert node.end_lineno - node.lineno < 120, (name, node.name)
+    assert {"RecoveryConfig", "Recovery", "psnr", "CHECKPOINT"} <= set(vars(solver))
+    assert Recovery.tick is Recovery.step  # the former name, kept
