@@ -7,7 +7,8 @@ import shutil
 import pytest
 
 from torchbrdf.capture.synthetic import generate_capture
-from torchbrdf.recovery import RecoveryConfig, recover
+from torchbrdf.recovery import recover
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
 #: A recovery small enough for CI: 4 iterations, one thread, no progress output, seed 0.
@@ -34,7 +35,7 @@ def done(cap, tmp_path_factory):
 def stopped(cap, tmp_path_factory):
     """A run stopped by SIGTERM after one iteration (checkpoint + partial outputs)."""
     out = tmp_path_factory.mktemp("stopped") / "out"
-    res = recover(cap, RecoveryConfig(iters=4, threads=1, signal_at=1), out, progress=False)
+    res = recover(cap, Settings(iters=4, threads=1, signal_at=1), out, progress=False)
     assert not res.report["completed"] and (out / CHECKPOINT).is_file()
     return out
 

@@ -10,12 +10,12 @@ import subprocess
 import pytest
 
 from torchbrdf.bench import soft_metal_cost
-from torchbrdf.recovery.svbrdf import RecoveryConfig
+from torchbrdf.recovery.config import Settings
 
 
 def test_off_turns_each_addition_away_from_its_default():
     """*off* changes every addition's setting from its default."""
-    d = RecoveryConfig()
+    d = Settings()
     assert soft_metal_cost.OFF and all(getattr(d, k) != v for k, v in soft_metal_cost.OFF.items())
 
 

@@ -17,6 +17,7 @@ import torch
 from torchbrdf.capture import generate_capture
 from torchbrdf.io import read_exr
 from torchbrdf.recovery import RecoveryConfig, recover
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.batch import _parser, config_from_args, find_captures, main, run_batch
 
 MAPS = ("base_color", "roughness", "metallic", "specular", "normal")
@@ -178,7 +179,7 @@ def test_interrupted_capture_is_resumed(good, single, tmp_path):
     """SIGTERM (as Ctrl-C) stops the batch with a summary; the rerun resumes from the checkpoint."""
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
-        run_batch(good, out, RecoveryConfig(**CFG, signal_at=2), use_ray=False, progress=False)
+        run_batch(good, out, Settings(**CFG, signal_at=2), use_ray=False, progress=False)
     rows = json.loads((out / "summary.json").read_text())
     assert _status(rows) == {"cap0": "interrupted", "cap1": "interrupted", "cap2": "interrupted"}
     assert (out / "cap0" / "checkpoint.pt").is_file() and not (out / "cap1").exists()

@@ -9,6 +9,9 @@ import torch
 
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
+from torchbrdf.recovery import (calibration, classes, engine, levels, lm, map_ops, params, priors, search,
+                                smoothness_prior, soft_metal)
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.svbrdf import CHECKPOINT, RecoveryConfig, main, recover
 
 CONTRACT_FILES = ["base_color.exr", "roughness.exr", "metallic.exr", "specular.exr", "normal.exr", "report.json"]
@@ -94,7 +97,7 @@ def test_demo_runs(tmp_path, monkeypatch):
 def test_resume_equals_uninterrupted(tiny, tmp_path):
     cfg = dict(seed=1, iters=12, checkpoint_every=3, threads=2)
     full = recover(tiny, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
-    part = recover(tiny, RecoveryConfig(**cfg, signal_at=3), tmp_path / "part", progress=False)
+    part = recover(tiny, Settings(**cfg, signal_at=3), tmp_path / "part", progress=False)
     assert not part["completed"] and part["iterations"] == 3
     assert (tmp_path / "part" / CHECKPOINT).is_file()
     for f in CONTRACT_FILES:  # partial outputs are valid files
@@ -164,7 +167,7 @@ def test_stage_seconds_group_runs_of_one_stage():
 
 def test_a_stages_end_work_counts_in_its_last_iteration(tiny, monkeypatch):
     """The work at a stage's end (here a 0.2 s sleep added to it) is in its last iteration's seconds."""
-    from torchbrdf.recovery.solver import Recovery
+    from torchbrdf.recovery.engine import Recovery
 
     plain = Recovery.end_stage
 
@@ -186,7 +189,7 @@ def test_resume_after_a_converged_stage_equals_uninterrupted(tiny, tmp_path):
     cfg = dict(seed=1, checkpoint_every=1, threads=2, converge_tol=0.05)
     full = recover(tiny, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
     first = next(h["iteration"] for h in full["loss_history"] if "skipped" in h)
-    part = recover(tiny, RecoveryConfig(**cfg, signal_at=first), tmp_path / "part", progress=False)
+    part = recover(tiny, Settings(**cfg, signal_at=first), tmp_path / "part", progress=False)
     assert not part["completed"] and part["iterations"] == first
     resumed = recover(tiny, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
     assert resumed["iterations"] == full["iterations"]
@@ -203,7 +206,7 @@ def test_the_fit_loss_is_the_training_lights_data_cost(tiny):
     """The fit loss taken from each LM step equals a render of the state on the training lights,
     in every stage (the "all" stage also fits the held-out light, which it leaves out)."""
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
+    from torchbrdf.recovery.engine import Recovery
     from torchbrdf.recovery.svbrdf import _fit_losses
 
     cfg = RecoveryConfig(seed=0, light_scale=False, light_position=False, soft_metal=False)
@@ -235,7 +238,7 @@ def test_a_resumed_progress_bar_starts_where_the_stages_left_off():
 
 
 def test_nan_is_detected_recovered_and_never_written(tiny, tmp_path):
-    rep = recover(tiny, RecoveryConfig(seed=0, iters=10, fault_at=3, threads=2), tmp_path / "nan", progress=False)
+    rep = recover(tiny, Settings(seed=0, iters=10, fault_at=3, threads=2), tmp_path / "nan", progress=False)
     assert rep["completed"]
     assert any(e["event"].startswith("non-finite") for e in rep["events"])
     for f in ("base_color", "roughness", "metallic", "specular", "normal"):
@@ -249,7 +252,6 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     neighbours; well-observed metal pixels and dielectric pixels keep their own values."""
     import types
 
-    import torchbrdf.recovery.solver as R
 
     size = 16
     p = size * size
@@ -264,9 +266,9 @@ def test_nonlocal_metal_base_fills_low_information_pixels(monkeypatch):
     theta[corner, 0:3] = -1.0  # the under-determined corner came out dark
     info[corner, 0:3] = 1e-6
     theta[: size * 4, 0:3] = -2.0  # a dark dielectric must not leak into the metal average
-    monkeypatch.setattr(R, "marginal_information", lambda *a: info)
-    cfg = RecoveryConfig()
-    w, m, inf = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg)
+    monkeypatch.setattr(priors, "marginal_information", lambda *a: info)
+    cfg = Settings()
+    w, m, inf = priors.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg)
     fused = torch.where(w > 0, (inf * theta + w * m) / (inf + w).clamp(min=1e-12), theta)
     assert torch.allclose(fused[corner, 0:3], torch.ones(int(corner.sum()), 3), atol=0.05)
     keep = ~corner & (metal[:, 0] > 0.5)
@@ -283,7 +285,6 @@ def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch
     """
     import types
 
-    import torchbrdf.recovery.solver as R
 
     size = 16
     p = size * size
@@ -305,7 +306,7 @@ def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch
     info = torch.full((p, 7), 10.0, dtype=torch.float64)
     cost = torch.ones(p, 1, dtype=torch.float64)
     cost[bad], cost[good], cost[diel], cost[nan_px] = 100.0, 0.25, 0.01, float("nan")
-    monkeypatch.setattr(R, "marginal_information", lambda *a: info)
+    monkeypatch.setattr(priors, "marginal_information", lambda *a: info)
     rest = ~diel & ~bad & ~good & ~nan_px
 
     def expected(w_fit):  # the median metal pixel costs 1
@@ -314,15 +315,15 @@ def test_nonlocal_metal_base_discounts_pixels_the_model_does_not_fit(monkeypatch
         return float((wt * theta[:, 0]).sum() / wt.sum())
 
     for w_fit in (1.0, 0.5):
-        cfg = RecoveryConfig(nonlocal_sigma=1000.0, nonlocal_fit_weight=w_fit)  # a flat window
-        _, m, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg, cost=cost)
+        cfg = Settings(nonlocal_sigma=1000.0, nonlocal_fit_weight=w_fit)  # a flat window
+        _, m, _ = priors.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal, cfg, cost=cost)
         want = expected(w_fit)
         assert torch.allclose(m[rest, 0:3], torch.full_like(m[rest, 0:3], want), atol=1e-4), (w_fit, want)
         assert torch.equal(m[diel], theta[diel])  # dielectrics keep their own values
     assert abs(expected(1.0) - expected(0.5)) > 0.05  # the setting matters here
     # without the fit weight the dark patch drags the average by most of a logit unit
-    _, m0, _ = R.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal,
-                                RecoveryConfig(nonlocal_sigma=1000.0, nonlocal_fit_weight=0.0), cost=cost)
+    _, m0, _ = priors.nonlocal_prior(types.SimpleNamespace(size=size), theta, metal,
+                                Settings(nonlocal_sigma=1000.0, nonlocal_fit_weight=0.0), cost=cost)
     assert float(m0[rest, 0].mean()) < expected(1.0) - 0.4
 
 
@@ -339,18 +340,16 @@ def _random_edges(size, c=7, seed=0):
 
 
 def test_laplacian_is_the_gradient_of_the_prior_energy():
-    import torchbrdf.recovery.smoothness_prior as R
-
     size = 5
     wx, wy = _random_edges(size)
     x = torch.randn(size * size, 7, dtype=torch.float64, requires_grad=True)
-    energy = 0.5 * R.prior_energy(x, wx, wy, size).sum()  # per-pixel shares sum to 2 E
+    energy = 0.5 * smoothness_prior.prior_energy(x, wx, wy, size).sum()  # per-pixel shares sum to 2 E
     (grad,) = torch.autograd.grad(energy, x)
-    assert torch.allclose(grad, R.laplacian(x.detach(), wx, wy, size), atol=1e-12)
+    assert torch.allclose(grad, smoothness_prior.laplacian(x.detach(), wx, wy, size), atol=1e-12)
     # Diagonal: L applied to a unit vector at pixel p, channel c.
     e = torch.zeros(size * size, 7, dtype=torch.float64)
     e[7, 3] = 1.0
-    assert math.isclose(float(R.laplacian(e, wx, wy, size)[7, 3]), float(R.laplacian_diag(wx, wy, size)[7, 3]))
+    assert math.isclose(float(smoothness_prior.laplacian(e, wx, wy, size)[7, 3]), float(smoothness_prior.laplacian_diag(wx, wy, size)[7, 3]))
 
 
 def test_metal_base_tie_is_guided_by_base_colour():
@@ -361,7 +360,7 @@ def test_metal_base_tie_is_guided_by_base_colour():
     2026-12-02), the tie is class-only; a dielectric pair has no base-colour tie at all.
     """
     from torchbrdf.recovery.smoothness_prior import edge_weights
-    from torchbrdf.recovery.solver import RecoveryConfig, encode
+    from torchbrdf.recovery.params import encode
 
     size = 4
     base = torch.tensor([0.95, 0.93, 0.88]).repeat(size, size, 1)
@@ -372,7 +371,7 @@ def test_metal_base_tie_is_guided_by_base_colour():
                     "normal": torch.tensor([0.0, 0.0, 1.0]).repeat(n, 1)})
     metal = torch.ones(n, 1)
     for guided in (True, False):
-        cfg = RecoveryConfig(metal_base_guided=guided)
+        cfg = Settings(metal_base_guided=guided)
         wx, wy = edge_weights(theta, metal, size, cfg)
         w = cfg.prior_metal_base
         assert torch.allclose(wx[:, 0, 0:3], torch.full((size, 3), w))  # alike: tied
@@ -381,7 +380,7 @@ def test_metal_base_tie_is_guided_by_base_colour():
         assert torch.allclose(across, torch.full_like(across, w)) != guided
         if guided:
             assert float(across.max()) < 1e-6 * w
-    wx, _ = edge_weights(theta, torch.zeros(n, 1), size, RecoveryConfig())
+    wx, _ = edge_weights(theta, torch.zeros(n, 1), size, Settings())
     assert float(wx[..., 0:3].abs().max()) == 0.0
 
 
@@ -389,8 +388,6 @@ def test_metal_base_tie_is_guided_by_base_colour():
 def test_pcg_solves_the_coupled_system(joined):
     """Every pattern of prior-joined channels (all; a dielectric's specular and roughness; with
     a metal's base colour; none), so the per-pixel elimination of the others is exact."""
-    import torchbrdf.recovery.smoothness_prior as R
-
     size, c = 4, 7
     p = size * size
     wx, wy = _random_edges(size, c, seed=1)
@@ -399,14 +396,14 @@ def test_pcg_solves_the_coupled_system(joined):
     a = torch.randn(p, c, c, dtype=torch.float64)
     hess = a @ a.transpose(-1, -2) + 1e-2 * torch.eye(c, dtype=torch.float64)  # SPD blocks
     rhs = torch.randn(p, c, dtype=torch.float64)
-    x = R.pcg(hess, wx, wy, rhs, size, iters=300)
+    x = smoothness_prior.pcg(hess, wx, wy, rhs, size, iters=300)
     # Dense reference: assemble the (P·C)² matrix column by column.
     cols = []
     for k in range(p * c):
         e = torch.zeros(p * c, dtype=torch.float64)
         e[k] = 1.0
         e = e.reshape(p, c)
-        cols.append((torch.einsum("pij,pj->pi", hess, e) + R.laplacian(e, wx, wy, size)).flatten())
+        cols.append((torch.einsum("pij,pj->pi", hess, e) + smoothness_prior.laplacian(e, wx, wy, size)).flatten())
     dense = torch.stack(cols, 1)
     ref = torch.linalg.solve(dense, rhs.flatten()).reshape(p, c)
     assert torch.allclose(x, ref, atol=1e-8, rtol=1e-6)
@@ -414,7 +411,6 @@ def test_pcg_solves_the_coupled_system(joined):
 
 def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     """A LevelData of a uniform glossy dielectric (or a tilted normal everywhere)."""
-    import torchbrdf.recovery.solver as R
     from torchbrdf.capture.format import Capture
     from torchbrdf.capture.synthetic import light_layout, render_capture
 
@@ -427,10 +423,10 @@ def _flat_level(size=16, lights=8, normal_tilt_deg=0.0):
     cap = Capture(images=imgs, light_positions=pos, light_intensities=inten,
                   camera_position=torch.tensor([0.0, 0.0, 3.0]), width=size, height=size,
                   files=tuple(f"{k}.exr" for k in range(len(pos))))
-    data = R.LevelData(cap, size, list(range(len(pos))), float(0.01 * imgs.mean()))
+    data = levels.LevelData(cap, size, list(range(len(pos))), float(0.01 * imgs.mean()))
     p = {k: v.reshape(v.shape[0], -1).T.contiguous() for k, v in maps.items()}
     metal = p.pop("metallic")
-    return R, data, R.encode(p), metal
+    return data, params.encode(p), metal
 
 
 def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
@@ -440,7 +436,7 @@ def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
     import torchbrdf
     from torchbrdf.kernels import fused
 
-    R, data, theta, metal = _flat_level(size=12, lights=6, normal_tilt_deg=10.0)
+    data, theta, metal = _flat_level(size=12, lights=6, normal_tilt_deg=10.0)
     theta = theta + 0.3 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(0))
     metal = metal.clone()
     metal[::3] = 1.0
@@ -452,7 +448,7 @@ def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
         # d r[p] / d theta[p]: the residual of pixel p depends only on its own unknowns.
         full = torch.func.jacrev(lambda t: data.residual(t, metal, idx))(theta)  # (P, M, P, 7)
         jac = full[torch.arange(P), :, torch.arange(P)]  # (P, M, 7)
-        got = {False: R.gauss_newton(data, theta, metal, idx, "principled", chunk=50)}
+        got = {False: lm.gauss_newton(data, theta, metal, idx, "principled", chunk=50)}
     finally:
         torchbrdf.set_fast_path(None)
     jtj_ref = torch.einsum("pmi,pmj->pij", jac, jac)
@@ -460,7 +456,7 @@ def test_normal_equations_match_reverse_mode_and_the_fused_kernels():
     if fused.available():
         torchbrdf.set_fast_path(True)
         try:
-            got[True] = R.gauss_newton(data, theta, metal, idx, "principled", chunk=50)
+            got[True] = lm.gauss_newton(data, theta, metal, idx, "principled", chunk=50)
         finally:
             torchbrdf.set_fast_path(None)
     for r, jtj, jtr in got.values():
@@ -475,43 +471,43 @@ def test_a_propagation_pass_restricted_to_the_last_changes_equals_a_full_pass():
     # Pass 2 can differ from pass 1 only where a 3x3 neighbourhood changed in pass 1, so the
     # recovery evaluates only those pixels; the result must be exactly the full pass's. A
     # wrong 6x6 block is repaired one ring per pass, so pass 2 has work to do.
-    R, data, theta, metal = _flat_level(size=12, lights=6)
+    data, theta, metal = _flat_level(size=12, lights=6)
     bad = theta.clone().reshape(12, 12, -1)
     bad[3:9, 3:9, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])
     bad = bad.reshape(theta.shape)
-    t1, m1, changed = R.propagate(data, bad, metal, RecoveryConfig())
-    full = R.propagate(data, t1, m1, RecoveryConfig())
-    part = R.propagate(data, t1, m1, RecoveryConfig(), active=R._dilate(changed, 12))
+    t1, m1, changed = search.propagate(data, bad, metal, Settings())
+    full = search.propagate(data, t1, m1, Settings())
+    part = search.propagate(data, t1, m1, Settings(), active=map_ops.dilate(changed, 12))
     assert bool(changed.any()) and bool(full[2].any())
     assert torch.equal(full[0], part[0]) and torch.equal(full[1], part[1]) and torch.equal(full[2], part[2])
     # Only the changed pixels themselves would miss the next ring.
-    only = R.propagate(data, t1, m1, RecoveryConfig(), active=changed)
+    only = search.propagate(data, t1, m1, Settings(), active=changed)
     assert not torch.equal(full[0], only[0])
 
 
 def test_propagation_repairs_a_pixel_from_its_neighbours():
-    R, data, theta, metal = _flat_level()
+    data, theta, metal = _flat_level()
     bad = theta.clone()
     bad[40, 0:5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])  # a wrong local optimum
-    fixed, new_metal, changed = R.propagate(data, bad, metal, RecoveryConfig())
+    fixed, new_metal, changed = search.propagate(data, bad, metal, Settings())
     assert int(changed.sum()) >= 1 and torch.allclose(fixed[40], theta[40], atol=1e-5)
     assert torch.equal(new_metal, metal)
     # Across classes: a pixel wrongly called metal returns to dielectric by the margin rule.
     m2 = metal.clone()
     m2[40] = 1.0
-    fixed, new_metal, _ = R.propagate(data, bad, m2, RecoveryConfig(), margin=0.5)
+    fixed, new_metal, _ = search.propagate(data, bad, m2, Settings(), margin=0.5)
     assert float(new_metal[40]) == 0.0 and torch.allclose(fixed[40], theta[40], atol=1e-5)
 
 
 def test_normal_search_finds_a_steep_normal():
-    R, data, theta, metal = _flat_level(normal_tilt_deg=24.0)
+    data, theta, metal = _flat_level(normal_tilt_deg=24.0)
     rows = torch.arange(100, 110)
     flat = theta.clone()
     flat[rows, 5:7] = 0.0  # these normals started flat, 24° off: a glossy local optimum
     flat[rows - 16, 5:7] = 0.0  # ... and so did the rows above and below: only the grid
     flat[rows + 16, 5:7] = 0.0  # of normals can help the middle ones
     cost = lambda t: (data.residual(t, metal, data.train_idx) ** 2).sum(-1)  # noqa: E731
-    found, changed = R.normal_search(data, flat, metal, "principled")
+    found, changed = search.normal_search(data, flat, metal, "principled")
     assert changed >= len(rows)
     assert bool((cost(found)[rows] < 0.1 * cost(flat)[rows]).all())
     nz = 1 / torch.sqrt(1 + (found[rows, 5:7] ** 2).sum(-1))
@@ -520,7 +516,6 @@ def test_normal_search_finds_a_steep_normal():
 
 
 def test_ambiguous_pixels_take_their_neighbours_class():
-    import torchbrdf.recovery.solver as R
 
     size = 6
     diel = torch.ones(size * size, 1)
@@ -528,7 +523,7 @@ def test_ambiguous_pixels_take_their_neighbours_class():
     met.view(size, size)[:, :3] = 0.01  # ... except the left half, decisively metal
     met.view(size, size)[2, 2] = 1.0  # ambiguous, among metals
     met.view(size, size)[3, 4] = 1.0  # ambiguous, among dielectrics
-    label = R._choose_class(diel, met, 0.5, size).view(size, size)
+    label = classes.choose_class(diel, met, 0.5, size).view(size, size)
     assert float(label[2, 2]) == 1.0 and float(label[3, 4]) == 0.0
     assert torch.equal(label[:, :2], torch.ones(size, 2)) and torch.equal(label[:, 4:], torch.zeros(size, 2))
 
@@ -539,7 +534,6 @@ def test_a_metal_win_over_an_unconverged_dielectric_is_refitted_first():
     Here 7× the median, as the README example's bottom-edge grout; not when the metal fits at
     the noise level, nor for a dielectric near it.
     """
-    import torchbrdf.recovery.solver as R
 
     diel = torch.ones(100, 1)
     metal = torch.full((100, 1), 5.0)  # dielectric clearly better everywhere ...
@@ -547,48 +541,47 @@ def test_a_metal_win_over_an_unconverged_dielectric_is_refitted_first():
     diel[1], metal[1] = 7.0, 1.5  # ... a metal at the noise level: a metal
     diel[2], metal[2] = 3.0, 1.0  # ... a dielectric near the noise level: no refit needed
     diel[3], metal[3] = 20.0, 4.0  # stuck far above the noise: refit
-    rows = R.unconverged_dielectric_rows(diel, metal, 0.5)
+    rows = classes.unconverged_dielectric_rows(diel, metal, 0.5)
     assert rows.tolist() == [0, 3]
 
 
 def test_edge_pixels_vote_with_the_neighbours_they_have():
     """Issue 13: an edge pixel has 5 neighbours (a corner 3), not copies of itself (replicate
     padding let an edge row outvote the rows inside and kept a frame of the wrong class)."""
-    import torchbrdf.recovery.solver as R
 
     size = 6
     diel = torch.ones(size * size, 1)
     met = torch.full((size * size, 1), 0.01)  # decisively metal everywhere ...
     met.view(size, size)[0, :] = 1.0  # ... except the top edge row: ambiguous
-    label = R._choose_class(diel, met, 0.5, size).view(size, size)
+    label = classes.choose_class(diel, met, 0.5, size).view(size, size)
     assert torch.equal(label, torch.ones(size, size))  # the edge row joins the metal inside it
     # A corner pixel with 2 of its 3 neighbours decisively metal takes their class.
     met = torch.full((size * size, 1), 10.0)
     met.view(size, size)[0, 0] = 1.0
     met.view(size, size)[0, 1] = met.view(size, size)[1, 0] = 0.01
-    assert float(R._choose_class(diel, met, 0.5, size).view(size, size)[0, 0]) == 1.0
+    assert float(classes.choose_class(diel, met, 0.5, size).view(size, size)[0, 0]) == 1.0
     # An isolated metal pixel in a corner or on an edge is a speckle like any other ...
     speck = torch.zeros(size, size)
     speck[0, 0] = speck[0, 3] = speck[3, 3] = 1.0
-    assert float(R._despeckle(speck.reshape(-1, 1), size).sum()) == 0.0
+    assert float(classes.despeckle(speck.reshape(-1, 1), size).sum()) == 0.0
     # ... while a one-pixel line along the edge is kept, and the majority vote keeps an edge row
     # of metal that has metal inside it.
     line = torch.zeros(size, size)
     line[0, 1:5] = 1.0
-    assert torch.equal(R._despeckle(line.reshape(-1, 1), size).view(size, size), line)
+    assert torch.equal(classes.despeckle(line.reshape(-1, 1), size).view(size, size), line)
     block = torch.zeros(size, size)
     block[:2] = 1.0
-    assert torch.equal(R._majority(block.reshape(-1, 1), size).view(size, size), block)
+    assert torch.equal(classes.majority_vote(block.reshape(-1, 1), size).view(size, size), block)
     # The NaN fill averages the neighbours that exist.
     x = torch.arange(size * size, dtype=torch.float32).reshape(-1, 1)
-    assert float(R._neighbour_mean(x, size)[0]) == (1.0 + size) / 2
+    assert float(map_ops.neighbour_mean(x, size)[0]) == (1.0 + size) / 2
 
 
 def test_light_scale_step_recovers_per_light_calibration_error():
     """Issue 13: images taken with intensities off by a few percent per light; the per-light
     scale step finds the factors (up to the fixed overall scale) from the residuals at the
     true maps, and a capture without error gives scales of exactly-ish 1."""
-    R, data, theta, metal = _flat_level()
+    data, theta, metal = _flat_level()
     n_l = data.pos.shape[0]
     true = 0.03 * torch.randn(n_l, generator=torch.Generator().manual_seed(3))
     true = true - true.mean()
@@ -598,29 +591,29 @@ def test_light_scale_step_recovers_per_light_calibration_error():
     est = torch.zeros(n_l)
     for _ in range(3):
         data.set_light_scale(est)
-        est = R.light_scale_step(data.residual(theta, metal, idx), idx, est, idx)
+        est = calibration.light_scale_step(data.residual(theta, metal, idx), idx, est, idx)
     assert torch.allclose(est, true, atol=2e-3)
-    _, clean, _, _ = _flat_level()
+    clean, _, _ = _flat_level()
     r = clean.residual(theta, metal, idx)
-    assert float(R.light_scale_step(r, idx, torch.zeros(n_l), idx).abs().max()) < 1e-4
+    assert float(calibration.light_scale_step(r, idx, torch.zeros(n_l), idx).abs().max()) < 1e-4
 
 
 def test_nonlocal_fill_takes_the_measured_value_of_the_same_material(monkeypatch):
     """Issue 13: glossy pixels no highlight constrains (low information) get a unary prior toward
     the reliable pixels of the same base colour; another material is not mixed in."""
-    R, data, theta, metal = _flat_level()
+    data, theta, metal = _flat_level()
     p = theta.shape[0]
     theta = theta.clone()
     half = torch.arange(p) < p // 2
-    theta[~half, 0:3] = R._logit(torch.tensor([0.1, 0.1, 0.1]))  # a second, dark material
+    theta[~half, 0:3] = params.logit(torch.tensor([0.1, 0.1, 0.1]))  # a second, dark material
     theta[~half, 4] = 2.0
     info = torch.full((p, 7), 1e3)
     blind = torch.zeros(p, dtype=torch.bool)
     blind[10:30] = True  # material 1, no highlight: roughness drifted
     theta[blind, 4] = -2.5
     info[blind, 3:5] = 1e-6
-    monkeypatch.setattr(R, "marginal_information", lambda *a: info)
-    tgt, prec = R.nonlocal_fill(data, theta, metal, RecoveryConfig(), info=info)
+    monkeypatch.setattr(priors, "marginal_information", lambda *a: info)
+    tgt, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
     good = half & ~blind
     assert torch.allclose(tgt[blind, 4], theta[good, 4].mean().expand(int(blind.sum())), atol=1e-4)
     assert bool((prec[blind, 4] > 1e3 * info[blind, 4]).all())  # the prior dominates where data are silent
@@ -632,11 +625,11 @@ def test_light_position_step_finds_a_moved_light():
     """Issue 13: a light 1.5 cm from where capture.json says; the position step finds the offset."""
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     true = torch.zeros(n_l, 3)
     true[2] = torch.tensor([0.015, -0.01, 0.005])
-    maps = {k: v.T.reshape(-1, 24, 24) for k, v in R.decode(theta, metal).items()}
+    maps = {k: v.T.reshape(-1, 24, 24) for k, v in params.decode(theta, metal).items()}
     with torch.no_grad():
         img = render_capture(maps, (data.pos_stated + true, data.inten_stated), backend="compact")
     obs = img.permute(0, 2, 3, 1).reshape(n_l, -1, 3)
@@ -645,7 +638,7 @@ def test_light_position_step_finds_a_moved_light():
     off = torch.zeros(n_l, 3)
     for _ in range(4):
         data.set_light_offset(off)
-        off = R.light_position_step(data, theta, metal, off, "principled", stride=1)
+        off = calibration.light_position_step(data, theta, metal, off, "principled", stride=1)
     assert torch.allclose(off, true, atol=2e-3)
 
 
@@ -658,24 +651,24 @@ def test_light_beside_the_camera_keeps_its_stated_position():
     """
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     true = torch.zeros(n_l, 3)
     true[-1] = torch.tensor([0.01, -0.01, -0.02])  # the flash (last light of light_layout)
-    maps = {k: v.T.reshape(-1, 24, 24) for k, v in R.decode(theta, metal).items()}
+    maps = {k: v.T.reshape(-1, 24, 24) for k, v in params.decode(theta, metal).items()}
     with torch.no_grad():
         img = render_capture(maps, (data.pos_stated + true, data.inten_stated), backend="compact")
     data.log_obs = torch.log(torch.clamp(img.permute(0, 2, 3, 1).reshape(n_l, -1, 3) + data.eps,
                                          min=0.5 * data.eps))
     data._light = {}
     zero, idx = torch.zeros(n_l, 3), list(range(n_l))
-    held = R.light_position_step(data, theta, metal, zero, "principled", stride=1, at_camera=False)
-    moved = R.light_position_step(data, theta, metal, zero, "principled", stride=1)
+    held = calibration.light_position_step(data, theta, metal, zero, "principled", stride=1, at_camera=False)
+    moved = calibration.light_position_step(data, theta, metal, zero, "principled", stride=1)
     assert torch.equal(held[-1], torch.zeros(3))
     assert float(torch.nn.functional.cosine_similarity(moved[-1], true[-1], dim=0)) > 0.5
-    _, held = R.light_joint_step(data, theta, metal, torch.zeros(n_l), zero, idx, "principled",
+    _, held = calibration.light_joint_step(data, theta, metal, torch.zeros(n_l), zero, idx, "principled",
                                  at_camera=False)
-    _, moved = R.light_joint_step(data, theta, metal, torch.zeros(n_l), zero, idx, "principled")
+    _, moved = calibration.light_joint_step(data, theta, metal, torch.zeros(n_l), zero, idx, "principled")
     assert torch.equal(held[-1], torch.zeros(3)) and float(moved[-1].norm()) > 2e-3
 
 
@@ -688,14 +681,14 @@ def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
     """
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     g = torch.Generator().manual_seed(3)
     other = theta.clone()
     wrong = torch.rand(theta.shape[0], generator=g) < 0.04
     other[wrong, 0:3] += 2.0  # a much brighter base colour there
     other[wrong, 4] -= 2.0  # and glossier
-    maps = {k: v.T.reshape(-1, 24, 24) for k, v in R.decode(other, metal).items()}
+    maps = {k: v.T.reshape(-1, 24, 24) for k, v in params.decode(other, metal).items()}
     with torch.no_grad():
         img = render_capture(maps, (data.pos_stated, data.inten_stated), backend="compact")
     img = img * (1 + 0.01 * torch.randn(img.shape, generator=g, dtype=img.dtype))
@@ -705,7 +698,7 @@ def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
     off = torch.zeros(n_l, 3)
     for _ in range(4):
         data.set_light_offset(off)
-        off = R.light_position_step(data, theta, metal, off, "principled", stride=1)
+        off = calibration.light_position_step(data, theta, metal, off, "principled", stride=1)
     assert float(off.abs().max()) < 5e-3, off
 
 
@@ -720,14 +713,14 @@ def test_light_joint_step_finds_light_errors_the_maps_absorb():
     """
     from torchbrdf.capture.synthetic import render_capture
 
-    R, data, theta, metal = _flat_level(size=24)
+    data, theta, metal = _flat_level(size=24)
     n_l = data.pos.shape[0]
     true_off = torch.zeros(n_l, 3)
     true_off[2] = torch.tensor([0.015, -0.01, 0.005])
     true_s = torch.zeros(n_l)
     true_s[4] = 0.06
     true_s = true_s - true_s.mean()  # the overall scale is the stated one
-    maps = {k: v.T.reshape(-1, 24, 24) for k, v in R.decode(theta, metal).items()}
+    maps = {k: v.T.reshape(-1, 24, 24) for k, v in params.decode(theta, metal).items()}
     with torch.no_grad():
         img = render_capture(maps, (data.pos_stated + true_off, data.inten_stated * true_s.exp()[:, None]),
                              backend="compact")
@@ -738,19 +731,19 @@ def test_light_joint_step_finds_light_errors_the_maps_absorb():
     lam = torch.full((theta.shape[0], 1), 1e-3)
     th, s, off = theta.clone(), torch.zeros(n_l), torch.zeros(n_l, 3)
     for _ in range(6):
-        th, lam, _, _ = R.lm_step(data, th, metal, lam, RecoveryConfig(), 1.0)
-        s, off = R.light_joint_step(data, th, metal, s, off, idx, "principled")
+        th, lam, _, _ = lm.lm_step(data, th, metal, lam, Settings(), 1.0)
+        s, off = calibration.light_joint_step(data, th, metal, s, off, idx, "principled")
         data.set_light_scale(s)
         data.set_light_offset(off)
     # What the images tell apart from a move of the whole rig (which the maps absorb: the
     # rig's placement is the stated one) is found; the rig's own moves are not made.
-    free = R.rig_free_directions(data.pos_stated, data.points.mean(0))
+    free = calibration.rig_free_directions(data.pos_stated, data.points.mean(0))
     seen = (free @ (free.T @ true_off.reshape(-1))).reshape(n_l, 3)
     assert float((off - seen).norm(dim=1).max()) < 4e-3, off
     assert float((free @ (free.T @ off.reshape(-1)) - off.reshape(-1)).abs().max()) < 1e-6
     assert float((s - true_s).abs().max()) < 2e-3, s
     # Scales only: the offsets are left as they are.
-    s2, off2 = R.light_joint_step(data, th, metal, s, off, idx, "principled", position=False)
+    s2, off2 = calibration.light_joint_step(data, th, metal, s, off, idx, "principled", position=False)
     assert torch.equal(off2, off)
 
 
@@ -762,11 +755,10 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     prior's gradient and curvature enter as the pixels' own do. In float64, so the two agree
     closely.
     """
-    import torchbrdf.recovery.solver as R2
     from torchbrdf.capture.synthetic import log_residual_points
 
     f64 = torch.float64
-    R, data, theta, metal = _flat_level(size=8, lights=8, normal_tilt_deg=10.0)
+    data, theta, metal = _flat_level(size=8, lights=8, normal_tilt_deg=10.0)
     g = torch.Generator().manual_seed(1)
     data.points, data.camera, data.pos_stated, data.inten_stated = (
         data.points.to(f64), data.camera.to(f64), data.pos_stated.to(f64), data.inten_stated.to(f64))
@@ -780,14 +772,14 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     off0 = torch.zeros(n_l, 3, dtype=f64)
     grad = 1e-3 * torch.randn(theta.shape, generator=g, dtype=f64)
     curv = 0.5 * torch.rand(theta.shape, generator=g, dtype=f64)
-    s1, off1 = R.light_joint_step(data, theta, metal, s0, off0, ref, "principled", map_prior=(grad, curv),
+    s1, off1 = calibration.light_joint_step(data, theta, metal, s0, off0, ref, "principled", map_prior=(grad, curv),
                                   scale_sigma=0.05, position_sigma=0.02, damping=1e-3, at_camera=False)
 
     def residual(x):  # all unknowns -> (P * L * 3,)
         t = x[: n_px * 7].reshape(n_px, 7)
         pos = data.pos_stated + x[n_px * 7: n_px * 7 + 3 * n_l].reshape(n_l, 3)
         inten = data.inten_stated * x[n_px * 7 + 3 * n_l:].exp()[:, None]
-        p = R2.decode(t, metal)
+        p = params.decode(t, metal)
         return log_residual_points(p["normal"], data.points, data.camera, pos, inten, p,
                                    data.log_obs.permute(1, 0, 2), data.eps).reshape(-1)
 
@@ -807,9 +799,9 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     grad_all[n_p:] += prior * x0[n_p:]
     # Constraints: no move of the whole rig nor (at_camera=False) of the light beside the
     # camera, the reference lights' mean log scale kept.
-    flash = R.camera_lights(data.pos_stated, data.camera, data.points.mean(0))
+    flash = calibration.camera_lights(data.pos_stated, data.camera, data.points.mean(0))
     assert flash.tolist() == [False] * (n_l - 1) + [True]
-    free = R.rig_free_directions(data.pos_stated, data.points.mean(0), flash)
+    free = calibration.rig_free_directions(data.pos_stated, data.points.mean(0), flash)
     is_ref = torch.tensor([float(i in ref) for i in idx], dtype=f64)
     keep_mean = torch.linalg.qr(is_ref[:, None], mode="complete")[0][:, 1:]
     t = torch.block_diag(torch.eye(n_p, dtype=f64), free, keep_mean)
@@ -827,13 +819,12 @@ def test_rig_free_directions_exclude_every_move_of_the_whole_rig():
     Orthogonal to every translation, turn (about any axis through the centre) and dilation;
     one light alone moves freely.
     """
-    import torchbrdf.recovery.solver as R
     from torchbrdf.capture.synthetic import light_layout
 
     f64 = torch.float64
     pos, _ = light_layout(8)
     centre = torch.tensor([0.1, -0.2, 0.0], dtype=f64)
-    free = R.rig_free_directions(pos.to(f64), centre)
+    free = calibration.rig_free_directions(pos.to(f64), centre)
     n = pos.shape[0]
     assert free.shape == (3 * n, 3 * n - 7)
     assert torch.allclose(free.T @ free, torch.eye(3 * n - 7, dtype=f64), atol=1e-12)
@@ -851,7 +842,7 @@ def test_rig_free_directions_exclude_every_move_of_the_whole_rig():
     # orthonormal and free of every rig move; the others still move.
     held = torch.zeros(n, dtype=torch.bool)
     held[[1, 5]] = True
-    part = R.rig_free_directions(pos.to(f64), centre, held)
+    part = calibration.rig_free_directions(pos.to(f64), centre, held)
     assert part.shape == (3 * n, 3 * n - 13)
     assert torch.allclose(part.T @ part, torch.eye(3 * n - 13, dtype=f64), atol=1e-12)
     assert float(part.reshape(n, 3, -1)[held].abs().max()) < 1e-12
@@ -869,10 +860,11 @@ def test_flash_position_in_the_dual_stage_is_a_choice(tiny, at_camera):
     stages on; by default it moves there too.
     """
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery, camera_lights
+    from torchbrdf.recovery.engine import Recovery
+    from torchbrdf.recovery.calibration import camera_lights
 
     cap = load_capture(tiny)
-    rec = Recovery(cap, RecoveryConfig(seed=0, soft_metal=False, dual_calibration_at_camera=at_camera),
+    rec = Recovery(cap, Settings(seed=0, soft_metal=False, dual_calibration_at_camera=at_camera),
                    log=lambda m: None)
     full = rec.plan[-1][0]
     dual_end = max(i for i, (s, k, _) in enumerate(rec.plan) if s == full and k == "dual") + 1
@@ -892,7 +884,7 @@ def test_flash_position_in_the_dual_stage_is_a_choice(tiny, at_camera):
 def _recovery_at_polish(capture, cfg):
     """A :class:`Recovery` of ``capture`` run up to the start of its polish stage, and that stage's index."""
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
+    from torchbrdf.recovery.engine import Recovery
 
     rec = Recovery(load_capture(capture), cfg, log=lambda m: None)
     polish = next(i for i, (_, k, _) in enumerate(rec.plan) if k == "polish")
@@ -911,9 +903,8 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     base colour, zero elsewhere, the target :func:`nonlocal_prior`'s average at that state; the
     stage's LM steps are given it. Without ``fit_nonlocal_tie`` there is none.
     """
-    import torchbrdf.recovery.solver as R
 
-    cfg = RecoveryConfig(seed=0, soft_metal=False, fit_nonlocal_tie=tie)
+    cfg = Settings(seed=0, soft_metal=False, fit_nonlocal_tie=tie)
     rec, polish = _recovery_at_polish(tiny, cfg)
     if not tie:
         assert "tie" not in rec.state
@@ -925,23 +916,23 @@ def test_the_nonlocal_f0_tie_is_a_prior_of_the_fit(tiny, tie):
     assert torch.all(prec[:, 3:] == 0)
     d = rec.data(rec.plan[polish][0])
     th, mt = rec.state["theta"][0], rec.state["metal"]
-    r0, jtj, jtr = R.gauss_newton(d, th, mt, d.train_idx, cfg.model)
-    avg = R.nonlocal_prior(d, th, mt, cfg, jtj, R._pixel_cost(r0), jtr)[1]
+    r0, jtj, jtr = lm.gauss_newton(d, th, mt, d.train_idx, cfg.model)
+    avg = priors.nonlocal_prior(d, th, mt, cfg, jtj, lm.pixel_cost(r0), jtr)[1]
     assert torch.allclose(target[ism, :3], avg[ism, :3], atol=1e-5)
     assert float((target[ism, :3] - th[ism, :3]).abs().max()) > 1e-3  # not the pixel's own value
     seen = []
-    step = R.lm_step
+    step = engine.lm_step
 
     def spy(*args, **kwargs):
         seen.append(kwargs.get("unary", args[7] if len(args) > 7 else None))
         return step(*args, **kwargs)
 
-    R.lm_step = spy
+    engine.lm_step = spy
     try:
         with torch.no_grad():
             rec.tick()
     finally:
-        R.lm_step = step
+        engine.lm_step = step
     assert seen and seen[0] is not None and torch.equal(seen[0][1], prec)
 
 
@@ -955,27 +946,26 @@ def test_a_tie_pass_on_the_metal_pixels_alone_gives_the_full_passs_average(tiny)
     without every metal pixel, or with the roughness average (which needs every pixel), are
     refused.
     """
-    import torchbrdf.recovery.solver as R
 
-    cfg = RecoveryConfig(seed=0, soft_metal=False)
+    cfg = Settings(seed=0, soft_metal=False)
     rec, polish = _recovery_at_polish(tiny, cfg)
     d = rec.data(rec.plan[polish][0])
     th, mt = rec.state["theta"][0], rec.state["metal"]
     ism = mt[:, 0] > 0.5
     assert bool(ism.any()) and bool((~ism).any())
-    r0, jtj, jtr = R.gauss_newton(d, th, mt, d.train_idx, cfg.model)
-    w, m, info = R.nonlocal_prior(d, th, mt, cfg, jtj, R._pixel_cost(r0), jtr)
+    r0, jtj, jtr = lm.gauss_newton(d, th, mt, d.train_idx, cfg.model)
+    w, m, info = priors.nonlocal_prior(d, th, mt, cfg, jtj, lm.pixel_cost(r0), jtr)
     rows = torch.nonzero(ism)[:, 0]
-    r_m, jtj_m, jtr_m = R.gauss_newton(d.subset(rows), th[rows], mt[rows], d.train_idx, cfg.model)
-    w_m, m_m, info_m = R.nonlocal_prior(d, th, mt, cfg, jtj_m, R._pixel_cost(r_m), jtr_m, rows=rows)
+    r_m, jtj_m, jtr_m = lm.gauss_newton(d.subset(rows), th[rows], mt[rows], d.train_idx, cfg.model)
+    w_m, m_m, info_m = priors.nonlocal_prior(d, th, mt, cfg, jtj_m, lm.pixel_cost(r_m), jtr_m, rows=rows)
     assert torch.equal(w_m, w)
     assert torch.allclose(m_m, m, atol=1e-5, rtol=0)
     assert torch.allclose(info_m[ism], info[ism], rtol=1e-4) and torch.all(info_m[~ism] == 0)
     with pytest.raises(ValueError, match="prior_nonlocal"):
-        R.nonlocal_prior(d, th, mt, RecoveryConfig(prior_nonlocal=1.0), jtj_m, R._pixel_cost(r_m), jtr_m,
+        priors.nonlocal_prior(d, th, mt, Settings(prior_nonlocal=1.0), jtj_m, lm.pixel_cost(r_m), jtr_m,
                          rows=rows)
     with pytest.raises(ValueError, match="every metal pixel"):  # a metal pixel left out
-        R.nonlocal_prior(d, th, mt, cfg, jtj_m[1:], R._pixel_cost(r_m[1:]), jtr_m[1:], rows=rows[1:])
+        priors.nonlocal_prior(d, th, mt, cfg, jtj_m[1:], lm.pixel_cost(r_m[1:]), jtr_m[1:], rows=rows[1:])
 
 
 def test_a_pixel_subset_gathers_its_levels_targets(tiny):
@@ -988,7 +978,8 @@ def test_a_pixel_subset_gathers_its_levels_targets(tiny):
     import dataclasses
 
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import LevelData, encode
+    from torchbrdf.recovery.levels import LevelData
+    from torchbrdf.recovery.params import encode
 
     cap = load_capture(tiny)
     data = LevelData(cap, 32, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
@@ -1026,18 +1017,18 @@ def test_a_pixel_subset_gathers_its_levels_targets(tiny):
 
 
 def test_two_unary_priors_sum_to_one():
-    """``_sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
-    from torchbrdf.recovery.solver import _sum_unary, _unary_cost
+    """``sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
+    from torchbrdf.recovery.lm import sum_unary, unary_cost
 
     g = torch.Generator().manual_seed(0)
     a = (torch.randn(5, 7, generator=g), torch.rand(5, 7, generator=g))
     b = (torch.randn(5, 7, generator=g), torch.rand(5, 7, generator=g))
     b[1][0] = 0.0  # absent on one pixel
-    s = _sum_unary(a, b)
+    s = sum_unary(a, b)
     x, y = torch.randn(5, 7, generator=g), torch.randn(5, 7, generator=g)
-    both = lambda t: _unary_cost(t, a) + _unary_cost(t, b)  # noqa: E731
-    assert torch.allclose(both(x) - both(y), _unary_cost(x, s) - _unary_cost(y, s), atol=1e-5)
-    assert _sum_unary(a, None) is a and _sum_unary(None, b) is b
+    both = lambda t: unary_cost(t, a) + unary_cost(t, b)  # noqa: E731
+    assert torch.allclose(both(x) - both(y), unary_cost(x, s) - unary_cost(y, s), atol=1e-5)
+    assert sum_unary(a, None) is a and sum_unary(None, b) is b
 
 
 def _recovery_with_a_brighter_light(tiny, **settings):
@@ -1045,12 +1036,12 @@ def _recovery_with_a_brighter_light(tiny, **settings):
     import dataclasses as dc
 
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import Recovery
+    from torchbrdf.recovery.engine import Recovery
 
     cap = load_capture(tiny)
     images = cap.images.clone()
     images[3] *= 1.06
-    return Recovery(dc.replace(cap, images=images), RecoveryConfig(seed=0, soft_metal=False, **settings),
+    return Recovery(dc.replace(cap, images=images), Settings(seed=0, soft_metal=False, **settings),
                     log=lambda m: None)
 
 
@@ -1138,7 +1129,6 @@ def test_soft_lm_judges_each_candidate_by_its_linearisation():
     +inf. Fails if a candidate were costed and then linearised anew, if the cost left out the
     prior, or if it were taken from the cleaned residuals.
     """
-    import torchbrdf.recovery.solver as R
 
     gen = torch.Generator().manual_seed(4)
     n, m = 6, 15
@@ -1161,10 +1151,10 @@ def test_soft_lm_judges_each_candidate_by_its_linearisation():
 
     def jvp(v, tg, r):
         counts["jvp"] += 1
-        return R._vmapped_jvp(lambda u: fn(u, r))(v, tg)
+        return levels.vmapped_jvp(lambda u: fn(u, r))(v, tg)
 
     x0 = torch.zeros(n, 8, dtype=torch.float64)
-    x, c = R._soft_lm(jvp, cost, x0, 4, prior=prior, tol=0.0)
+    x, c = lm.soft_lm(jvp, cost, x0, 4, prior=prior, tol=0.0)
     assert counts == {"jvp": 4, "cost": 1}
     counts["cost"] = 0
     assert torch.allclose(c, cost(x), rtol=1e-12)
@@ -1178,10 +1168,10 @@ def test_soft_lm_judges_each_candidate_by_its_linearisation():
         first = (torch.arange(n) if r is None else r) == 0
         return torch.where((first & (x[:, 3] > 0.5))[:, None], float("nan"), out)
 
-    x, c = R._soft_lm(lambda v, tg, r: R._vmapped_jvp(lambda u: walled(u, r))(v, tg),
-                      lambda v, r=None: R._pixel_cost(walled(v, r)), x0, 6, tol=0.0)
+    x, c = lm.soft_lm(lambda v, tg, r: levels.vmapped_jvp(lambda u: walled(u, r))(v, tg),
+                      lambda v, r=None: lm.pixel_cost(walled(v, r)), x0, 6, tol=0.0)
     assert bool(torch.isfinite(c).all()) and float(x[0, 3]) <= 0.5
-    assert torch.equal(c, R._pixel_cost(walled(x)))
+    assert torch.equal(c, lm.pixel_cost(walled(x)))
 
 
 def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_held():
@@ -1196,7 +1186,6 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     A pixel whose cost starts infinite does not stop on its first finite one. Per-pixel
     ``held`` unknowns keep their start and the others solve the reduced problem.
     """
-    import torchbrdf.recovery.solver as R
 
     gen = torch.Generator().manual_seed(3)
     n, m = 5, 21
@@ -1210,17 +1199,17 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
         return (fn(x, r) ** 2).sum(-1, keepdim=True)
 
     def jvp(f):  # the residuals and their derivatives along K directions, as LevelData.residual_jvp
-        return lambda v, tg, r: R._vmapped_jvp(lambda u: f(u, r))(v, tg)
+        return lambda v, tg, r: levels.vmapped_jvp(lambda u: f(u, r))(v, tg)
 
     x0 = torch.zeros(n, 8, dtype=torch.float64)
     x0[:, 7] = 0.5
-    x, c = R._soft_lm(jvp(fn), cost, x0, 30, fix_metal=True, tol=0.0)
+    x, c = lm.soft_lm(jvp(fn), cost, x0, 30, fix_metal=True, tol=0.0)
     want = torch.linalg.lstsq(a[..., :7], (b - a[..., 7] * 0.5)[..., None]).solution[..., 0]
     assert torch.equal(x[:, 7], x0[:, 7])
     assert torch.allclose(x[:, :7], want, atol=1e-6)
     assert torch.allclose(c, cost(x))
     # metallic free: the full solution, its last unknown clamped to [0, 1] by the projected steps
-    x, _ = R._soft_lm(jvp(fn), cost, x0, 60, tol=0.0)
+    x, _ = lm.soft_lm(jvp(fn), cost, x0, 60, tol=0.0)
     full = torch.linalg.lstsq(a, b[..., None]).solution[..., 0]
     inside = (full[:, 7] > 0) & (full[:, 7] < 1)
     assert torch.allclose(x[inside], full[inside], atol=1e-5)
@@ -1232,7 +1221,7 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     near = torch.tensor([0.01, 0.01, 20.0, 20.0, 20.0], dtype=torch.float64)[:, None]
     start = torch.cat((want + near, x0[:, 7:]), -1)
     logged = lambda v, r=None: calls.append(r) or fn(v, r)  # noqa: E731
-    x, c = R._soft_lm(jvp(logged), cost, start, 60, fix_metal=True, tol=1e-2)
+    x, c = lm.soft_lm(jvp(logged), cost, start, 60, fix_metal=True, tol=1e-2)
     best = cost(torch.cat((want, x0[:, 7:]), -1))
     assert bool((c <= best * 1.02 + 1e-9).all()) and torch.allclose(c, cost(x))
     assert any(r is not None and 0 < len(r) < n for r in calls)
@@ -1251,7 +1240,7 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     def cost_p(v, r=None):
         return cost(v, r) + (prior(v, r)[0] ** 2).sum(-1, keepdim=True)
 
-    x, _ = R._soft_lm(jvp(fn), cost_p, x0, 60, prior=prior, tol=0.0)
+    x, _ = lm.soft_lm(jvp(fn), cost_p, x0, 60, prior=prior, tol=0.0)
     aug = torch.linalg.lstsq(torch.cat((a, row), 1), rhs[..., None]).solution[..., 0]
     inside = (aug[:, 7] > 0) & (aug[:, 7] < 1)
     assert bool(inside.any()) and not torch.allclose(aug[inside], full[inside], atol=1e-3)
@@ -1259,7 +1248,7 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     # ... also when the converged pixels leave (the prior evaluated on row subsets)
     calls.clear()
     logged_p = lambda v, r=None: calls.append(r) or prior(v, r)  # noqa: E731
-    x, c = R._soft_lm(jvp(fn), cost_p, torch.cat((aug[:, :7] + near, x0[:, 7:]), -1), 60, prior=logged_p,
+    x, c = lm.soft_lm(jvp(fn), cost_p, torch.cat((aug[:, :7] + near, x0[:, 7:]), -1), 60, prior=logged_p,
                       tol=1e-2)
     assert any(r is not None and 0 < len(r) < n for r in calls)
     # (where the optimum's metallic is in [0, 1]: elsewhere the clamped fit cannot reach it)
@@ -1270,13 +1259,13 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
         f = fn(v, r)
         return torch.cat((torch.where(v[:, :1] < -5.0, float("nan"), f[:, :1]), f[:, 1:]), -1)
 
-    cost_inf = lambda v, r=None: R._pixel_cost(fn_inf(v, r))  # noqa: E731
+    cost_inf = lambda v, r=None: lm.pixel_cost(fn_inf(v, r))  # noqa: E731
     start_inf = torch.cat((want, x0[:, 7:]), -1)
     start_inf[:, 0] = -6.0
-    x, c = R._soft_lm(jvp(fn_inf), cost_inf, start_inf, 60, fix_metal=True, tol=1e-2)
+    x, c = lm.soft_lm(jvp(fn_inf), cost_inf, start_inf, 60, fix_metal=True, tol=1e-2)
     assert bool((c <= best * 1.02 + 1e-9).all()), (c, best)
     # ... and with metallic held, the prior's other columns still act (the coupled row)
-    x, _ = R._soft_lm(jvp(fn), cost_p, x0, 30, fix_metal=True, prior=prior, tol=0.0)
+    x, _ = lm.soft_lm(jvp(fn), cost_p, x0, 30, fix_metal=True, prior=prior, tol=0.0)
     rhs_h = rhs - torch.cat((a, row), 1)[..., 7] * 0.5
     held = torch.linalg.lstsq(torch.cat((a, row), 1)[..., :7], rhs_h[..., None]).solution[..., 0]
     assert torch.allclose(x[:, :7], held, atol=1e-6)
@@ -1287,10 +1276,10 @@ def test_soft_lm_solves_a_linear_least_squares_problem_with_metallic_free_or_hel
     for i in range(n - 1):  # the last pixel holds nothing
         hold[i, 3 + i % 4] = True
     calls.clear()
-    x, _ = R._soft_lm(jvp(logged), cost, start, 60, fix_metal=True, tol=1e-2, held=hold)
+    x, _ = lm.soft_lm(jvp(logged), cost, start, 60, fix_metal=True, tol=1e-2, held=hold)
     assert any(r is not None and 0 < len(r) < n for r in calls)
     assert torch.equal(x[hold], start[hold])
-    x, _ = R._soft_lm(jvp(fn), cost, start, 60, fix_metal=True, tol=0.0, held=hold)
+    x, _ = lm.soft_lm(jvp(fn), cost, start, 60, fix_metal=True, tol=0.0, held=hold)
     assert torch.equal(x[hold], start[hold])
     for i in range(n):
         f = (~hold[i, :7]).nonzero()[:, 0]
@@ -1306,7 +1295,6 @@ def test_soft_prior_residuals_and_jacobian():
     where the base colour is the blend of its two ends at the pixel's own metallic, and moves by
     −√w (metal − dielectric) per unit of metallic. Per-pixel weights too.
     """
-    import torchbrdf.recovery.solver as R
 
     gen = torch.Generator().manual_seed(4)
     n = 6
@@ -1317,10 +1305,10 @@ def test_soft_prior_residuals_and_jacobian():
     target = torch.rand(n, 1, generator=gen, dtype=torch.float64)
     smooth = torch.rand(n, 1, generator=gen, dtype=torch.float64) + 0.5
     lw = torch.rand(n, 1, generator=gen, dtype=torch.float64) + 1.0
-    res, jac = R._soft_prior(x, 3.0, target, smooth, (d, e), lw)
+    res, jac = soft_metal.soft_prior(x, 3.0, target, smooth, (d, e), lw)
     assert res.shape == (n, 5) and jac.shape == (n, 5, 8)
     want = torch.func.vmap(torch.func.jacrev(
-        lambda xi, ti, si, di, ei, wi: R._soft_prior(xi[None], 3.0, ti[None], si[None], (di[None], ei[None]),
+        lambda xi, ti, si, di, ei, wi: soft_metal.soft_prior(xi[None], 3.0, ti[None], si[None], (di[None], ei[None]),
                                                      wi[None])[0][0]))(x, target, smooth, d, e, lw)
     assert torch.allclose(jac, want, atol=1e-12)
     m = x[:, 7:8]
@@ -1328,16 +1316,16 @@ def test_soft_prior_residuals_and_jacobian():
     assert torch.allclose(res[:, 1:2], smooth.sqrt() * (m - target))
     on_line = x.clone()
     on_line[:, 0:3] = torch.logit(d + m * (e - d))
-    r_on = R._soft_prior(on_line, 3.0, None, 0.0, (d, e), lw)[0]
+    r_on = soft_metal.soft_prior(on_line, 3.0, None, 0.0, (d, e), lw)[0]
     assert r_on.shape == (n, 4) and float(r_on[:, 1:].abs().max()) < 1e-12
     moved = on_line.clone()
     moved[:, 7] += 0.01
-    r_mv = R._soft_prior(moved, 3.0, None, 0.0, (d, e), lw)[0]
+    r_mv = soft_metal.soft_prior(moved, 3.0, None, 0.0, (d, e), lw)[0]
     assert torch.allclose(r_mv[:, 1:], -lw.sqrt() * (e - d) * 0.01, atol=1e-12)
     # a float weight is the same as a constant per-pixel one; no line, no line rows
-    r_f = R._soft_prior(x, 3.0, target, 2.0, (d, e), 1.5)[0]
-    r_t = R._soft_prior(x, 3.0, target, torch.full_like(m, 2.0), (d, e), torch.full_like(m, 1.5))[0]
-    assert torch.allclose(r_f, r_t) and R._soft_prior(x, 3.0)[0].shape == (n, 1)
+    r_f = soft_metal.soft_prior(x, 3.0, target, 2.0, (d, e), 1.5)[0]
+    r_t = soft_metal.soft_prior(x, 3.0, target, torch.full_like(m, 2.0), (d, e), torch.full_like(m, 1.5))[0]
+    assert torch.allclose(r_f, r_t) and soft_metal.soft_prior(x, 3.0)[0].shape == (n, 1)
 
 
 def _silver_capture(size=8, lights=8):
@@ -1363,13 +1351,12 @@ def _silver_maps(size):
 
 def _silver_level(size=8, lights=8):
     """:func:`_silver_capture` at one level: ``(LevelData, theta (P, 7) at the truth, metal (P, 1))``."""
-    import torchbrdf.recovery.solver as R
 
     cap = _silver_capture(size, lights)
-    data = R.LevelData(cap, size, list(range(len(cap))), float(0.01 * cap.images.mean()))
+    data = levels.LevelData(cap, size, list(range(len(cap))), float(0.01 * cap.images.mean()))
     p = {k: v.reshape(v.shape[0], -1).T.contiguous().double() for k, v in _silver_maps(size).items()}
     metal = p.pop("metallic")
-    return data, R.encode(p), metal
+    return data, params.encode(p), metal
 
 
 def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
@@ -1380,12 +1367,11 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     is the linear least-squares response of the free unknowns, checked against a dense solve,
     and it takes back most of the cost the F0 move alone adds.
     """
-    import torchbrdf.recovery.solver as R
 
     size = 8
     data, theta, metal = _silver_level(size)
     idx = data.train_idx
-    _, jtj, _ = R.gauss_newton(data, theta, metal, idx, "principled")
+    _, jtj, _ = lm.gauss_newton(data, theta, metal, idx, "principled")
     delta = torch.zeros_like(theta)
     delta[:, 0:3] = 0.4  # F0 0.9 -> 0.93: what the fusion does to a dark tail pixel
     moved = torch.zeros_like(theta, dtype=torch.bool)
@@ -1395,8 +1381,8 @@ def test_conditional_shift_keeps_a_metal_on_its_f0_roughness_valley():
     moved[9, 4] = True
     delta[9] = 0.0
     delta[9, 4] = 0.05  # small: the F0 response is ~16x (the valley), inside the ±3 clamp
-    shift = R.conditional_shift(jtj, delta, moved)
-    assert torch.equal(R.conditional_shift(jtj, delta, moved, chunk=7), shift)  # blocks change nothing
+    shift = lm.conditional_shift(jtj, delta, moved)
+    assert torch.equal(lm.conditional_shift(jtj, delta, moved, chunk=7), shift)  # blocks change nothing
     assert torch.equal(shift[moved], torch.zeros_like(shift[moved]))
     assert torch.equal(shift[5], torch.zeros_like(shift[5]))
     # Against a dense least-squares solve of the linearised residuals, pixel by pixel.
@@ -1429,7 +1415,6 @@ def test_a_held_refit_takes_the_free_unknowns_to_their_conditional_optimum():
     This is how a fused metal's roughness and normal follow its fused F0 when
     ``conditional_shift`` falls short (rusted_metal 68's corners: 10³–10⁴ noise variances).
     """
-    import torchbrdf.recovery.solver as R
 
     data, theta, metal = _silver_level()
     idx, n = data.train_idx, theta.shape[0]
@@ -1441,18 +1426,18 @@ def test_a_held_refit_takes_the_free_unknowns_to_their_conditional_optimum():
     start[:, 0:3] += 1.0
 
     def cost(t):
-        return R._pixel_cost(data.residual(t, metal, idx, "principled"))[:, 0]
+        return lm.pixel_cost(data.residual(t, metal, idx, "principled"))[:, 0]
 
-    out, c = R.refit_pixels(data, theta, metal, rows, [start], idx, "principled", iters=10, held=held)
+    out, c = lm.refit_pixels(data, theta, metal, rows, [start], idx, "principled", iters=10, held=held)
     assert torch.equal(out[:, 0:3], start[:, 0:3])  # held exactly
     assert torch.allclose(c[:, 0], cost(out))
-    _, jtj, _ = R.gauss_newton(data, theta, metal, idx, "principled")
-    linear = start + R.conditional_shift(jtj, start - theta, held)
+    _, jtj, _ = lm.gauss_newton(data, theta, metal, idx, "principled")
+    linear = start + lm.conditional_shift(jtj, start - theta, held)
     # the F0 rise is paid back by a smoother lobe; the refit fits better than the linear
     # response from the truth, and far better than the move alone
     assert float((out[:, 4] - theta[:, 4]).mean()) < -0.02
     assert float(cost(out).sum()) < 0.5 * float(cost(linear).sum()) < 0.5 * float(cost(start).sum())
-    free = R.refit_pixels(data, theta, metal, rows, [start], idx, "principled", iters=10)[0]
+    free = lm.refit_pixels(data, theta, metal, rows, [start], idx, "principled", iters=10)[0]
     assert float((free[:, 0:3] - start[:, 0:3]).abs().max()) > 0.1  # without held, F0 moves
 
 
@@ -1467,36 +1452,35 @@ def test_fusion_averages_each_metals_own_data_optimum_not_where_its_fit_stopped(
     """
     import types
 
-    import torchbrdf.recovery.solver as R
 
     size = 8
     data, theta, metal = _silver_level(size)
     idx = data.train_idx
-    _, jtj, _ = R.gauss_newton(data, theta, metal, idx, "principled")
+    _, jtj, _ = lm.gauss_newton(data, theta, metal, idx, "principled")
     # Half the pixels stopped along the valley: F0 darker by 0.3 logit, the others following.
     stopped = (torch.arange(theta.shape[0]) % 2 == 0)[:, None]
     delta = torch.zeros_like(theta)
     delta[:, 0:3] = -0.3
     moved = torch.zeros_like(theta, dtype=torch.bool)
     moved[:, 0:3] = True
-    off = theta + delta + R.conditional_shift(jtj, delta, moved)
+    off = theta + delta + lm.conditional_shift(jtj, delta, moved)
     off = torch.where(stopped, off, theta)
-    _, jtj_off, jtr_off = R.gauss_newton(data, off, metal, idx, "principled")
-    cfg = RecoveryConfig(nonlocal_sigma=1000.0)  # one flat window
+    _, jtj_off, jtr_off = lm.gauss_newton(data, off, metal, idx, "principled")
+    cfg = Settings(nonlocal_sigma=1000.0)  # one flat window
     lvl = types.SimpleNamespace(size=size, train_idx=idx)
     # (no fit weights: noise-free, the stopped pixels would weigh ~0 against the exact ones)
-    _, m_stop, _ = R.nonlocal_prior(lvl, off, metal, cfg, jtj_off)
-    _, m_opt, _ = R.nonlocal_prior(lvl, off, metal, cfg, jtj_off, jtr=jtr_off)
+    _, m_stop, _ = priors.nonlocal_prior(lvl, off, metal, cfg, jtj_off)
+    _, m_opt, _ = priors.nonlocal_prior(lvl, off, metal, cfg, jtj_off, jtr=jtr_off)
     err_stop = float((m_stop[:, 0:3] - theta[:, 0:3]).abs().mean())
     err_opt = float((m_opt[:, 0:3] - theta[:, 0:3]).abs().mean())
     assert err_stop > 0.05  # the stopped pixels' share of the weights × 0.3
     assert err_opt < 0.2 * err_stop, (err_stop, err_opt)
     # the Newton step itself: zero at the truth, and it leaves held unknowns alone
-    assert float(R.newton_step(jtj, torch.zeros_like(theta)).abs().max()) == 0.0
+    assert float(lm.newton_step(jtj, torch.zeros_like(theta)).abs().max()) == 0.0
     g = torch.randn(theta.shape, generator=torch.Generator().manual_seed(0), dtype=theta.dtype)
     held = torch.zeros_like(moved)
     held[:, 4] = True
-    assert float(R.newton_step(jtj, g, held)[:, 4].abs().max()) == 0.0
+    assert float(lm.newton_step(jtj, g, held)[:, 4].abs().max()) == 0.0
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -1507,7 +1491,6 @@ def test_newton_step_solves_the_damped_normal_equations_on_the_free_unknowns(dty
     whose held direction is the null one included); neither input is written to (the float64
     algebra works in place on copies, and a float64 input is no copy by ``.double()``).
     """
-    from torchbrdf.recovery import solver as R
 
     gen = torch.Generator().manual_seed(3)
     P = 40
@@ -1533,7 +1516,7 @@ def test_newton_step_solves_the_damped_normal_equations_on_the_free_unknowns(dty
     tol = 1e-9 if dtype == torch.float64 else 1e-5
     no_held = torch.zeros_like(held)
     for hd, arg in ((no_held, None), (held, held)):
-        step = R.newton_step(jtj[5:] if arg is None else jtj, g[5:] if arg is None else g,
+        step = lm.newton_step(jtj[5:] if arg is None else jtj, g[5:] if arg is None else g,
                              None if arg is None else arg)
         want = reference(jtj, g, hd)[5:] if arg is None else reference(jtj, g, hd)
         assert step.dtype == dtype
@@ -1548,23 +1531,22 @@ def test_fusion_rounds_refine_the_average_without_compounding_the_pull():
     version fused each round from the last one's fused value: three rounds pulled a pixel
     ``1 − (1 − s)³`` of the way, a hidden multiplier on ``prior_nonlocal_base``.
     """
-    import torchbrdf.recovery.solver as R
 
     cap = _silver_capture()
     data, theta, metal = _silver_level()
-    _, jtj, _ = R.gauss_newton(data, theta, metal, data.train_idx, "principled")
+    _, jtj, _ = lm.gauss_newton(data, theta, metal, data.train_idx, "principled")
     delta = torch.zeros_like(theta)
     gen = torch.Generator().manual_seed(1)
     delta[:, 0:3] = 0.3 * torch.randn(theta.shape[0], 1, generator=gen, dtype=theta.dtype)  # F0 spread
     moved = torch.zeros_like(theta, dtype=torch.bool)
     moved[:, 0:3] = True
-    start = theta + delta + R.conditional_shift(jtj, delta, moved)  # each on its own valley
-    info = R.marginal_information(data, start, metal, "principled")[:, 0]
+    start = theta + delta + lm.conditional_shift(jtj, delta, moved)  # each on its own valley
+    info = lm.marginal_information(data, start, metal, "principled")[:, 0]
     well = info > info.median()  # pulled only part of the way (info ≫ κ)
     pull = {}
     for rounds in (1, 3):
-        cfg = RecoveryConfig(soft_metal=False, fuse_rounds=rounds, nonlocal_sigma=1000.0)
-        rec = R.Recovery(cap, cfg, log=lambda *a: None)
+        cfg = Settings(soft_metal=False, fuse_rounds=rounds, nonlocal_sigma=1000.0)
+        rec = engine.Recovery(cap, cfg, log=lambda *a: None)
         rec.init_state()
         st = rec.state
         st["stage"], st["theta"], st["metal"] = len(rec.plan) - 1, [start.clone()], metal
@@ -1586,7 +1568,8 @@ def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t, model)
     for both of the fit's models.
     """
     from torchbrdf.capture.format import load_capture
-    from torchbrdf.recovery.solver import LevelData, _vmapped_jvp, fit_jacobian
+    from torchbrdf.recovery.levels import LevelData, vmapped_jvp
+    from torchbrdf.recovery.lm import fit_jacobian
 
     cap = load_capture(tiny)
     data = LevelData(cap, 32, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
@@ -1598,7 +1581,7 @@ def test_fit_jacobian_is_the_per_unknown_forward_mode_jacobian(tiny, n_t, model)
         return data.residual(v[:, :7], v[:, 7:8] if n_t == 8 else x[:, 7:8], data.train_idx, model)
 
     xs = x if n_t == 8 else x[:, :7]
-    for jvp in (lambda v, tg: data.residual_jvp(v, x[:, 7:8], data.train_idx, model, tg), _vmapped_jvp(fn)):
+    for jvp in (lambda v, tg: data.residual_jvp(v, x[:, 7:8], data.train_idx, model, tg), vmapped_jvp(fn)):
         r, jac = fit_jacobian(jvp, xs, n_t)
         assert jac.shape == (32 * 32, n_t, 3 * len(data.train_idx))
         assert torch.allclose(r, fn(xs), rtol=1e-6, atol=1e-6)
@@ -1619,12 +1602,12 @@ def test_fit_jacobian_benchmark_times_both_ways(tiny):
 
 
 def test_blur_is_the_truncated_normalised_gaussian():
-    """``_blur`` is the truncated, normalised Gaussian, against a direct double sum.
+    """``blur`` is the truncated, normalised Gaussian, against a direct double sum.
 
     Σ over the pixels within 3σ (and the map) of g(dx) g(dy) x, g the Gaussian normalised over
     its 2r + 1 taps, zero outside the map.
     """
-    from torchbrdf.recovery.solver import _blur
+    from torchbrdf.recovery.map_ops import blur
 
     size = 9
     g = torch.Generator().manual_seed(0)
@@ -1640,7 +1623,7 @@ def test_blur_is_the_truncated_normalised_gaussian():
                 for a in range(size):
                     for b in range(size):
                         want[:, i, j] += k(a - i) * k(b - j) * img[:, a, b]
-        got = _blur(x, size, sigma).T.reshape(2, size, size)
+        got = blur(x, size, sigma).T.reshape(2, size, size)
         assert torch.allclose(got, want, atol=1e-12), sigma
 
 
@@ -1650,26 +1633,25 @@ def test_the_polish_stage_first_step_reuses_the_ties_linearisation(tiny):
     Made at the stage's start and re-linearised where propagation and the normal search moved
     pixels since: equal to the step's own pass (so the step is the same), handed on once only.
     """
-    import torchbrdf.recovery.solver as R
 
     rec, _ = _recovery_at_polish(tiny, RecoveryConfig(seed=0, soft_metal=False))
     assert rec._stage_gn is not None
     th0 = rec._stage_gn[0]
     seen = []
-    step = R.lm_step
+    step = engine.lm_step
 
     def spy(data, theta, metal, lam, cfg_, lr, extra=None, unary=None, gn=None):
-        own = R.gauss_newton(data, theta, metal, data.train_idx, cfg_.model)
+        own = lm.gauss_newton(data, theta, metal, data.train_idx, cfg_.model)
         seen.append((gn, own, bool((theta != th0).any())))
         return step(data, theta, metal, lam, cfg_, lr, extra, unary, gn)
 
-    R.lm_step = spy
+    engine.lm_step = spy
     try:
         with torch.no_grad():
             rec.tick()
             rec.tick()
     finally:
-        R.lm_step = step
+        engine.lm_step = step
     (gn, own, moved), (gn2, _, _) = seen
     assert moved  # propagation / normal search moved some pixels: they were re-linearised
     assert gn is not None and gn2 is None and rec._stage_gn is None

@@ -13,12 +13,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import torchbrdf.recovery.solver as solver
 import torchbrdf.recovery.outputs as outputs
 import torchbrdf.recovery.svbrdf as svbrdf
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
 from torchbrdf.recovery import RecoveryConfig, recover
+from torchbrdf.recovery import engine
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
 from tests.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
@@ -245,8 +246,8 @@ def test_soft_metal_and_fusion_settings_are_checked(kw):
     # A NaN smooth weight made every second-pass residual NaN (sqrt(nan)); a negative band
     # reached max_pool2d as a kernel size <= 0. Both are refused up front, naming the setting.
     name = next(iter(kw))
-    with pytest.raises(svbrdf.RecoveryError, match=f"RecoveryConfig.{name}"):  # no command-line flag
-        svbrdf.check_config(RecoveryConfig(**kw))
+    with pytest.raises(svbrdf.RecoveryError, match=f"Settings.{name}"):  # a constant of the method
+        svbrdf.check_config(Settings(**kw))
 
 
 # --------------------------------------------------------------------------------------
@@ -272,7 +273,7 @@ def test_disk_full_during_checkpoint(done, cap, tmp_path, monkeypatch, capsys):
         raise OSError(errno.ENOSPC, "No space left on device")
         yield
 
-    monkeypatch.setattr(solver, "atomic_path", full)
+    monkeypatch.setattr(engine, "atomic_path", full)
     assert main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "5", "--checkpoint-every", "1"]) == 1
     err = _one_line_error(capsys)
     assert "no space left on device while writing" in err and CHECKPOINT in err
@@ -283,8 +284,8 @@ def test_checkpoint_write_reports_enospc_as_oserror(tmp_path, monkeypatch):
     """Torch's own writer turns ENOSPC into an opaque RuntimeError; the checkpoint is
     serialised in memory and written by Python, so the errno survives.
     """
-    rec = solver.Recovery.__new__(solver.Recovery)
-    rec.out, rec.state, rec.plan, rec.cfg = tmp_path, {"x": torch.zeros(3)}, [], RecoveryConfig()
+    rec = engine.Recovery.__new__(engine.Recovery)
+    rec.out, rec.state, rec.plan, rec.cfg = tmp_path, {"x": torch.zeros(3)}, [], Settings()
     real_open = open
 
     class Full:
@@ -316,7 +317,7 @@ def test_checkpoint_write_reports_enospc_as_oserror(tmp_path, monkeypatch):
 def test_sigterm_is_honoured_within_one_inner_step_and_resumes_exactly(cap, tmp_path, monkeypatch):
     cfg = dict(iters=4, threads=1, seed=0, checkpoint_every=10)
     full = recover(cap, RecoveryConfig(**cfg), tmp_path / "full", progress=False)
-    real = solver.lm_step
+    real = engine.lm_step
     calls = []
 
     def spy(*a, **k):
@@ -325,11 +326,11 @@ def test_sigterm_is_honoured_within_one_inner_step_and_resumes_exactly(cap, tmp_
             os.kill(os.getpid(), signal.SIGTERM)
         return real(*a, **k)
 
-    monkeypatch.setattr(solver, "lm_step", spy)
+    monkeypatch.setattr(engine, "lm_step", spy)
     part = recover(cap, RecoveryConfig(**cfg), tmp_path / "part", progress=False)
     assert len(calls) == 3  # the step in progress was abandoned, nothing after it ran
     assert not part.report["completed"] and part.report["iterations"] == 1
-    monkeypatch.setattr(solver, "lm_step", real)
+    monkeypatch.setattr(engine, "lm_step", real)
     resumed = recover(cap, RecoveryConfig(**cfg), tmp_path / "part", resume=True, progress=False)
     assert resumed.report["completed"]
     for k in full.maps:

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 
-import torchbrdf.recovery.solver as solver
+from torchbrdf.recovery.engine import Recovery
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.recovery import RecoveryConfig, load_outputs, recover
 from torchbrdf.recovery.batch import run_batch
@@ -173,14 +173,14 @@ def test_flipped_bits_in_a_checkpoint_fail_its_checksum(stopped, cap, tmp_path, 
 def test_a_non_finite_final_state_never_replaces_good_outputs(done, cap, tmp_path, monkeypatch, capsys):
     out = _copy(done, tmp_path)
     before = _hashes(out)
-    real_tick = solver.Recovery.tick
+    real_step = Recovery.step
 
-    def tick_then_diverge(self):
-        real_tick(self)
+    def step_then_diverge(self):
+        real_step(self)
         if self.finished():
             self.state["theta"][0].fill_(float("nan"))
 
-    monkeypatch.setattr(solver.Recovery, "tick", tick_then_diverge)
+    monkeypatch.setattr(Recovery, "step", step_then_diverge)
     assert main(["--capture", str(cap), "--out", str(out), *FAST[:-1], "6"]) == 1
     assert "non-finite state" in _one_line_error(capsys)
     assert _hashes(out) == before

@@ -12,7 +12,12 @@ import torch
 
 from torchbrdf.capture.format import load_capture, write_capture
 from torchbrdf.capture.synthetic import light_layout, normals_from_height, render_capture
-from torchbrdf.recovery.solver import LevelData, decode, encode, rough_basin_tie, soft_rough_tie
+from torchbrdf.recovery import lm, soft_metal
+from torchbrdf.recovery.classes import rough_basin_tie
+from torchbrdf.recovery.config import Settings
+from torchbrdf.recovery.levels import LevelData
+from torchbrdf.recovery.params import decode, encode
+from torchbrdf.recovery.soft_metal import soft_rough_tie
 from torchbrdf.recovery.svbrdf import RecoveryConfig, RecoveryError, check_config
 
 
@@ -98,7 +103,7 @@ def test_the_tie_settings_are_checked():
                 {"soft_rough_tie": float("nan")}, {"soft_rough_tie_glossy": 0.5},
                 {"soft_rough_tie_glossy": 0.45, "rough_tie_start": 0.85}):
         with pytest.raises(RecoveryError, match=list(bad)[-1]):
-            check_config(RecoveryConfig(**bad))
+            check_config(Settings(**bad))
 
 
 def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_path, monkeypatch):
@@ -116,7 +121,6 @@ def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_
     (a rough start that slid back to glossy would count as moved), without the snap, or with the
     coverage ignored.
     """
-    import torchbrdf.recovery.solver as R
 
     size = 16
     truth = _maps(size, 0.8, 0.06)
@@ -138,13 +142,13 @@ def test_the_final_stage_tie_moves_a_glossy_fit_of_a_rough_partly_metal_rim(tmp_
     coverage = torch.full((size * size, 1), float("nan"))
     coverage.view(size, size)[2:8, : size // 2] = 0.3  # the blend known on part of the rim
     starts: list = []
-    lm = R._soft_lm
+    real_lm = lm.soft_lm
 
     def spy(jvp, cost, x, iters, **kw):
         starts.append(x.clone())
-        return lm(jvp, cost, x, iters, **kw)
+        return real_lm(jvp, cost, x, iters, **kw)
 
-    monkeypatch.setattr(R, "_soft_lm", spy)
+    monkeypatch.setattr(soft_metal, "soft_lm", spy)
     names = ("base_color", "specular", "roughness", "normal")
     with torch.no_grad():
         theta_true = encode({k: _flat(truth[k]) for k in names})

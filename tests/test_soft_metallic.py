@@ -19,17 +19,12 @@ from torchbrdf.capture.synthetic import (
     render_capture,
     write_maps,
 )
-from torchbrdf.recovery.solver import (
-    LevelData,
-    blend_ends,
-    decode,
-    encode,
-    growth_front,
-    may_be_mixed,
-    soft_metal_candidates,
-    soft_metal_fit,
-    unmix_metallic,
-)
+from torchbrdf.recovery import lm, map_ops, soft_metal
+from torchbrdf.recovery.config import Settings
+from torchbrdf.recovery.levels import LevelData
+from torchbrdf.recovery.params import decode, encode
+from torchbrdf.recovery.soft_metal import (blend_ends, growth_front, may_be_mixed, soft_metal_candidates, soft_metal_fit,
+                                           unmix_metallic)
 from torchbrdf.recovery.svbrdf import RecoveryConfig, metallic_preview, recover
 
 
@@ -251,9 +246,8 @@ def test_unmix_finds_the_coverage_of_a_blend_of_the_clear_neighbours(tmp_path, m
         theta_b, t_b = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
     truth = flat(t[None])[rows]
     assert float((t_b - truth).abs().max()) < 0.025, (t_b - truth).abs().max()
-    import torchbrdf.recovery.solver as R
 
-    monkeypatch.setattr(R, "UNMIX_PIXELS", 1)  # one coverage per call: the same answer
+    monkeypatch.setattr(soft_metal, "UNMIX_PIXELS", 1)  # one coverage per call: the same answer
     with torch.no_grad():
         _, t_1 = unmix_metallic(data, theta, metal, rows, data.train_idx, "principled", size)
     assert torch.equal(t_1, t_b)
@@ -281,16 +275,15 @@ def test_blend_stripe_recovers_fractional_metallic(tmp_path, monkeypatch):
     and grown pixels, the double-well and margin in noise variances, the thresholds, and the
     blend's coverage (NaN off the candidates); with ``soft_rough_tie = 0`` it is not called.
     """
-    import torchbrdf.recovery.solver as R
 
     calls: list = []
-    tie = R.soft_rough_tie
+    tie = soft_metal.soft_rough_tie
 
     def spy(*a, **kw):
         calls.append((a, kw))
         return tie(*a, **kw)
 
-    monkeypatch.setattr(R, "soft_rough_tie", spy)
+    monkeypatch.setattr(soft_metal, "soft_rough_tie", spy)
     gm = _stripe(24)
     _capture(tmp_path, gm)
     cfg = RecoveryConfig(iters=16, threads=2)
@@ -305,7 +298,7 @@ def test_blend_stripe_recovers_fractional_metallic(tmp_path, monkeypatch):
     assert cov.shape == (24 * 24, 1) and bool(torch.isnan(cov).any())
     assert bool(torch.isfinite(cov[rows]).any())
     calls.clear()
-    off = RecoveryConfig(iters=16, threads=2, soft_rough_tie=0.0)
+    off = Settings(iters=16, threads=2, soft_rough_tie=0.0)
     recover(tmp_path, off, tmp_path / "off", progress=False)
     assert calls == []
     m = res.maps["metallic"][0]
@@ -371,7 +364,6 @@ def test_reference_refit_only_where_the_result_can_win(tmp_path, monkeypatch):
     reference): with a gain no pixel can reach, there is no reference fit at all and every
     pixel keeps its class; with no gain, the pixels the stripe made fractional are refitted.
     """
-    import torchbrdf.recovery.solver as R
 
     gm = _stripe(16)
     maps = _capture(tmp_path, gm)
@@ -382,14 +374,14 @@ def test_reference_refit_only_where_the_result_can_win(tmp_path, monkeypatch):
     metal = (flat(maps["metallic"]) > 0.25).float()  # the stripe called metal
     rows = torch.arange(256)
     held = []
-    lm = R._soft_lm
+    real_lm = lm.soft_lm
 
     def spy(fn, cost, x, iters, fix_metal=False, **kw):
         if fix_metal:
             held.append(x.shape[0])
-        return lm(fn, cost, x, iters, fix_metal=fix_metal, **kw)
+        return real_lm(fn, cost, x, iters, fix_metal=fix_metal, **kw)
 
-    monkeypatch.setattr(R, "_soft_lm", spy)
+    monkeypatch.setattr(soft_metal, "soft_lm", spy)
     with torch.no_grad():
         _, m_new, _ = soft_metal_fit(data, theta, metal, rows, data.train_idx, "principled", 0.0, 1e30, 5)
     assert held == [] and torch.equal(m_new, metal)
@@ -416,28 +408,27 @@ def test_clear_candidates_that_fit_at_the_noise_level_leave_the_stage(tmp_path, 
     # In the recovery: a binary boundary's band is all candidates; about half of them fit near
     # the noise level and unmix to their own class (and their neighbours across the boundary
     # would otherwise give them the second pass).
-    import torchbrdf.recovery.solver as R
 
     m = torch.zeros(16, 16)
     m[:, 8:] = 1.0
     _capture(tmp_path, m)
-    cand, fit = R.soft_metal_candidates, R.soft_metal_fit
+    cand, fit = soft_metal.soft_metal_candidates, soft_metal.soft_metal_fit
 
-    grow = R.growth_front
+    grow = soft_metal.growth_front
 
     def run(**over):
         seen: dict = {"fits": [], "tried": []}
-        monkeypatch.setattr(R, "soft_metal_candidates",
+        monkeypatch.setattr(soft_metal, "soft_metal_candidates",
                             lambda *a, **k: seen.setdefault("cand", cand(*a, **k)))
-        monkeypatch.setattr(R, "growth_front", lambda mt, tried, size: (seen["tried"].append(tried.clone()),
+        monkeypatch.setattr(soft_metal, "growth_front", lambda mt, tried, size: (seen["tried"].append(tried.clone()),
                                                                        grow(mt, tried, size))[1])
 
         def spy(d, t, mt, rows, *a, **k):
             seen["fits"].append(rows.clone())
             return fit(d, t, mt, rows, *a, **k)
 
-        monkeypatch.setattr(R, "soft_metal_fit", spy)
-        recover(tmp_path, RecoveryConfig(iters=16, threads=2, **over), None, progress=False)
+        monkeypatch.setattr(soft_metal, "soft_metal_fit", spy)
+        recover(tmp_path, Settings(iters=16, threads=2, **over), None, progress=False)
         tried = [set(t.nonzero()[:, 0].tolist()) for t in seen["tried"]]
         return set(seen["cand"].tolist()), [set(f.tolist()) for f in seen["fits"]], tried
 
@@ -458,11 +449,10 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
     """
     import inspect
 
-    import torchbrdf.recovery.solver as R
 
     _capture(tmp_path, _stripe(16))
     calls = []
-    fit = R.soft_metal_fit
+    fit = soft_metal.soft_metal_fit
     sig = inspect.signature(fit)
 
     def spy(*a, **k):
@@ -476,8 +466,8 @@ def test_second_pass_rounds_after_the_first_go_on_from_the_round_before(tmp_path
             calls.append((rows.clone(), g["starts"], theta, metal, out))
         return out
 
-    monkeypatch.setattr(R, "soft_metal_fit", spy)
-    cfg = RecoveryConfig(iters=8, threads=2, soft_metal_passes=2, soft_metal_grow=0, fuse_rounds=1,
+    monkeypatch.setattr(soft_metal, "soft_metal_fit", spy)
+    cfg = Settings(iters=8, threads=2, soft_metal_passes=2, soft_metal_grow=0, fuse_rounds=1,
                          fit_nonlocal_tie=False, soft_metal_line=0.0)
     recover(tmp_path, cfg, None, progress=False)
     assert len(calls) == 2, len(calls)
@@ -540,7 +530,6 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
     """
     import inspect
 
-    import torchbrdf.recovery.solver as R
 
     _capture(tmp_path, _stripe(16))
     fronts: list = []
@@ -554,7 +543,7 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
         fronts.append(f)
         return f[~tried[f]]
 
-    un, fit = R.unmix_metallic, R.soft_metal_fit
+    un, fit = soft_metal.unmix_metallic, soft_metal.soft_metal_fit
     sig = inspect.signature(fit)
 
     def spy(data, theta, metal, rows, *a, **k):
@@ -565,13 +554,13 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
     def spy_fit(*a, **k):
         g = sig.bind(*a, **k).arguments
         if len(fronts) == 1 and len(unmixed) == 2 and torch.equal(g["rows"], fronts[0]):
-            grown.append((R._neighbour_mean(g["metal"], 16)[g["rows"]], g["target"]))
+            grown.append((map_ops.neighbour_mean(g["metal"], 16)[g["rows"]], g["target"]))
         return fit(*a, **k)
 
-    monkeypatch.setattr(R, "growth_front", front)
-    monkeypatch.setattr(R, "unmix_metallic", spy)
-    monkeypatch.setattr(R, "soft_metal_fit", spy_fit)
-    cfg = RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False)
+    monkeypatch.setattr(soft_metal, "growth_front", front)
+    monkeypatch.setattr(soft_metal, "unmix_metallic", spy)
+    monkeypatch.setattr(soft_metal, "soft_metal_fit", spy_fit)
+    cfg = Settings(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False)
     recover(tmp_path, cfg, None, progress=False)
     assert len(unmixed) == 2 and torch.equal(unmixed[1], fronts[0])
     (nb, target), = grown
@@ -579,7 +568,7 @@ def test_growth_fronts_get_their_blend_coverage(tmp_path, monkeypatch):
     assert torch.allclose(target, (w_nb * nb + w_un * 0.37) / (w_nb + w_un), atol=1e-5)
     unmixed.clear()
     calls["n"] = 0
-    recover(tmp_path, RecoveryConfig(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False,
+    recover(tmp_path, Settings(iters=8, threads=2, fuse_rounds=1, fit_nonlocal_tie=False,
                                      soft_metal_unmix=0.0), None, progress=False)
     assert unmixed == []
 
@@ -592,7 +581,6 @@ def test_an_answer_of_the_other_class_is_taken(tmp_path, monkeypatch):
     replaced by one that answers the other class for the first candidate, its own class with
     another base colour for the second, a fraction for the third.
     """
-    import torchbrdf.recovery.solver as R
 
     _capture(tmp_path, _stripe(16))
     seen: dict = {}
@@ -608,8 +596,8 @@ def test_an_answer_of_the_other_class_is_taken(tmp_path, monkeypatch):
             seen["new"] = t.clone(), m.clone()
         return t, m, torch.ones(rows.numel(), dtype=torch.bool)
 
-    monkeypatch.setattr(R, "soft_metal_fit", fit)
-    cfg = RecoveryConfig(iters=8, threads=2, soft_metal_passes=0, soft_metal_grow=0, soft_rough_tie=0.0,
+    monkeypatch.setattr(soft_metal, "soft_metal_fit", fit)
+    cfg = Settings(iters=8, threads=2, soft_metal_passes=0, soft_metal_grow=0, soft_rough_tie=0.0,
                          soft_metal_line=0.0, soft_metal_unmix=0.0)
     res = recover(tmp_path, cfg, None, progress=False)
     rows = seen["rows"]
@@ -629,7 +617,6 @@ def test_a_metal_of_another_colour_stays_a_clear_metal(tmp_path, monkeypatch):
     colour fits its own class at the noise level, its best blend is its own class, and no
     fractional value wins the gain.
     """
-    import torchbrdf.recovery.solver as R
 
     size = 48
     yy, xx = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
@@ -642,8 +629,8 @@ def test_a_metal_of_another_colour_stays_a_clear_metal(tmp_path, monkeypatch):
     rough[0, wood] = 0.7
     _flat_capture(tmp_path, base, rough, (~wood).float()[None])
     seen: dict = {}
-    cand = R.soft_metal_candidates
-    monkeypatch.setattr(R, "soft_metal_candidates", lambda *a, **k: seen.setdefault("rows", cand(*a, **k)))
+    cand = soft_metal.soft_metal_candidates
+    monkeypatch.setattr(soft_metal, "soft_metal_candidates", lambda *a, **k: seen.setdefault("rows", cand(*a, **k)))
     res = recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, progress=False)
     assert 24 * size + 32 in set(seen["rows"].tolist())  # the disc's centre, 8 pixels from its rim
     m = res.maps["metallic"][0]

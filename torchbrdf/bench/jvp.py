@@ -12,9 +12,9 @@ first call of each (kernel build or load, warm-up) is not timed; the best of a f
 reported.
 
 ``python -m torchbrdf.bench.jvp --fit [--threads 2]`` times the SVBRDF recovery's Jacobian
-(:func:`torchbrdf.recovery.solver.fit_jacobian`, the soft-metal fit's 8 unknowns: 6 directions)
+(:func:`torchbrdf.recovery.lm.fit_jacobian`, the soft-metal fit's 8 unknowns: 6 directions)
 on the demo capture (128², 16 lights and the flash) for a few pixel counts: the fused operators
-called directly (:meth:`~torchbrdf.recovery.solver.LevelData.residual_jvp`) against
+called directly (:meth:`~torchbrdf.recovery.levels.LevelData.residual_jvp`) against
 ``torch.func.vmap`` over ``torch.func.jvp`` of the residual, side by side; medians of ``reps``.
 """
 
@@ -99,7 +99,8 @@ def _fit_jacobian_times(cap, sizes: Sequence[int], threads: int, reps: int) -> d
     """:func:`fit_jacobian_times` on a loaded capture ``cap``."""
     import statistics
 
-    from torchbrdf.recovery.solver import LevelData, _vmapped_jvp, fit_jacobian
+    from torchbrdf.recovery.levels import LevelData, vmapped_jvp
+    from torchbrdf.recovery.lm import fit_jacobian
 
     data = LevelData(cap, cap.width, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
     g = torch.Generator().manual_seed(0)
@@ -112,7 +113,7 @@ def _fit_jacobian_times(cap, sizes: Sequence[int], threads: int, reps: int) -> d
         n = min(n, x_all.shape[0])
         sub, x = data.subset(torch.arange(n)), x_all[:n]
         ways = {"direct": lambda v, tg: sub.residual_jvp(v, v[:, 7:8], idx, "principled", tg),  # noqa: B023
-                "vmap": _vmapped_jvp(lambda v: sub.residual(v[:, :7], v[:, 7:8], idx, "principled"))}  # noqa: B023
+                "vmap": vmapped_jvp(lambda v: sub.residual(v[:, :7], v[:, 7:8], idx, "principled"))}  # noqa: B023
         for name, jvp in ways.items():
             fit_jacobian(jvp, x, 8)  # kernel build or load, warm-up
             ts = []

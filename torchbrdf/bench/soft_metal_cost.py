@@ -38,7 +38,7 @@ import json, sys
 from torchbrdf.recovery import RecoveryConfig, recover
 from torchbrdf.recovery.svbrdf import keep_freed_memory
 keep_freed_memory()  # as the recovery's command does
-cfg = RecoveryConfig(threads=int(sys.argv[3]), **json.loads(sys.argv[2]))
+cfg = RecoveryConfig(threads=int(sys.argv[3])).settings(**json.loads(sys.argv[2]))
 rec = recover(sys.argv[1], cfg, progress=False, log=lambda m: None)
 print(sys.argv[4], rec.report["seconds"])
 print(sys.argv[5], json.dumps(rec.report["stage_seconds"]))
@@ -49,7 +49,7 @@ STAGES = "STAGES"
 
 
 def recover_command(capture: str | os.PathLike, overrides: dict, threads: int) -> list[str]:
-    """The command of one timed run: ``recover(capture)`` with ``RecoveryConfig(**overrides)``.
+    """The command of one timed run: ``recover(capture)`` with ``RecoveryConfig().settings(**overrides)``.
 
     On ``threads`` threads; it prints ``SECONDS <the recovery's own seconds>`` and ``STAGES <its
     stage_seconds as JSON>``.

@@ -57,7 +57,8 @@ from torchbrdf.recovery.outputs import (
     write_outputs,
 )
 from torchbrdf.recovery.progress import StageProgress, fit_losses, last_fit_loss, stage_seconds
-from torchbrdf.recovery.solver import CHECKPOINT, Recovery, RecoveryConfig, psnr
+from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
+from torchbrdf.recovery.engine import CHECKPOINT, Recovery, psnr
 
 __all__ = ["recover", "save_checkpoint", "map_errors", "fractional_metallic_fraction"]
 
@@ -128,7 +129,7 @@ class _Interrupt(BaseException):
     """Raised by the signal handler inside an iteration (rolled back by the driver)."""
 
 
-def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, out: PathLike | None = None, *,
+def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | None = None, out: PathLike | None = None, *,
             gt: PathLike | None = None, resume: bool = False, force: bool = False, progress: bool = True,
             log: Callable[[str], None] | None = None, allow_other_files: bool = False) -> RecoveryResult:
     """Recover per-pixel principled maps from a capture.
@@ -163,9 +164,9 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
     """
     # Backward compatibility: the old order was recover(capture, out, cfg). (The annotations give
     # only the current order, so the type checker sees this branch as unreachable.)
-    if isinstance(config, (str, os.PathLike)) or isinstance(out, RecoveryConfig):
+    if isinstance(config, (str, os.PathLike)) or isinstance(out, (RecoveryConfig, Settings)):
         config, out = out, config
-    cfg = config or RecoveryConfig()
+    cfg = settings_of(config or RecoveryConfig())
     log = log or (lambda msg: print(msg, file=sys.stderr))
     check_config(cfg)
     out = check_out(out, allow_other_files) if out is not None else None
@@ -202,7 +203,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | None = None, o
         return _finish(rec, cap, cfg, out, gt, fingerprint, capture_warnings, interrupted, seconds, log)
 
 
-def _start_or_resume(cap: Capture, cfg: RecoveryConfig, out: Path | None, fingerprint: dict, resume: bool,
+def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint: dict, resume: bool,
                      force: bool, log: Callable[[str], None]) -> Recovery:
     """A solver at its first iteration, or restored from ``out/checkpoint.pt`` once that passes its checks."""
     ck = out / CHECKPOINT if out is not None else None
@@ -270,7 +271,7 @@ def save_checkpoint(rec: Recovery) -> None:
         raise write_failure(e, str(rec.out / CHECKPOINT) if rec.out is not None else CHECKPOINT) from e
 
 
-def _finish(rec: Recovery, cap: Capture, cfg: RecoveryConfig, out: Path | None, gt: Path | None,
+def _finish(rec: Recovery, cap: Capture, cfg: Settings, out: Path | None, gt: Path | None,
             fingerprint: dict, capture_warnings: list[str], interrupted: bool, seconds: float,
             log: Callable[[str], None]) -> RecoveryResult:
     """The maps, the report and (with ``out``) the committed output folder of a run that stopped."""
@@ -333,7 +334,7 @@ def _finish(rec: Recovery, cap: Capture, cfg: RecoveryConfig, out: Path | None, 
     return RecoveryResult(maps=fin, report=report, confidence=confidence, out=out)
 
 
-def _iterate_until_done_or_stopped(rec: Recovery, cfg: RecoveryConfig, progress: bool,
+def _iterate_until_done_or_stopped(rec: Recovery, cfg: Settings, progress: bool,
                                    log: Callable[[str], None]) -> tuple[bool, float]:
     """Iterate to the end or until a signal; returns ``(interrupted, seconds)``.
 
@@ -342,7 +343,7 @@ def _iterate_until_done_or_stopped(rec: Recovery, cfg: RecoveryConfig, progress:
     iteration is rolled back to its start (state and RNG), so the checkpoint written then
     resumes bit for bit. Outside an iteration the signal only sets ``rec.stop_requested``.
     """
-    in_iteration = [False]  # set while Recovery.tick runs: a signal then rolls the iteration back
+    in_iteration = [False]  # set while Recovery.step runs: a signal then rolls the iteration back
 
     def on_signal(signum, frame):
         rec.stop_requested = True
@@ -381,7 +382,7 @@ def _iterate_until_done_or_stopped(rec: Recovery, cfg: RecoveryConfig, progress:
                     in_iteration[0] = True
                     if rec.stop_requested:  # the signal came between two iterations
                         raise _Interrupt()
-                    rec.tick()
+                    rec.step()
                     in_iteration[0] = False
                     rec.state["history"][-1]["fit"] = pending.get("fit") or fit_losses(rec)
                     # the iteration's own time; a stage's end work (class choice, fusion, soft metal,

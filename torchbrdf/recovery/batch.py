@@ -43,7 +43,7 @@ from torchbrdf.capture.format import CAPTURE_JSON
 from torchbrdf.recovery.checkpoint import digest, folder_fingerprint, settings_fingerprint
 from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.outputs import OutputBusyError
-from torchbrdf.recovery.solver import RecoveryConfig
+from torchbrdf.recovery.config import RecoveryConfig, Settings
 
 __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "write_summary", "write_overview",
            "main"]
@@ -533,7 +533,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     # The recovery options: the single CLI's own flags (same names, defaults and help).
     rec = p.add_argument_group("recovery options (as python -m training.recover_svbrdf)")
-    fields = {f.name for f in dataclasses.fields(RecoveryConfig)} - _NOT_PASSED
+    fields = {f.name for f in dataclasses.fields(Settings)} - _NOT_PASSED
     for action in single_parser()._actions:
         if action.dest in fields or action.dest in OFF_SWITCHES:
             rec._add_action(action)
@@ -544,7 +544,7 @@ def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
     """The :class:`RecoveryConfig` of the recovery flags in ``args``."""
     from torchbrdf.recovery.options import OFF_SWITCHES
 
-    fields = {f.name for f in dataclasses.fields(RecoveryConfig)} - _NOT_PASSED
+    fields = {f.name for f in dataclasses.fields(Settings)} - _NOT_PASSED
     off: dict[str, Any] = {field: not getattr(args, flag) for flag, field in OFF_SWITCHES.items()}
     return RecoveryConfig(**{k: v for k, v in vars(args).items() if k in fields}, **off)
 

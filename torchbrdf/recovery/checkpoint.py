@@ -20,7 +20,7 @@ from torch import Tensor
 
 from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON, Capture
-from torchbrdf.recovery.solver import RecoveryConfig
+from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 
 __all__ = ["RESULT_INDEPENDENT", "capture_fingerprint", "settings_fingerprint", "capture_differences",
            "settings_differences", "digest", "sha256_file", "folder_fingerprint", "state_checksum",
@@ -59,11 +59,12 @@ def _files_fingerprint(folder: Path, files) -> dict:
     return {CAPTURE_JSON: sha256_file(folder / CAPTURE_JSON), "images": images}
 
 
-def settings_fingerprint(cfg: RecoveryConfig) -> dict:
+def settings_fingerprint(cfg: RecoveryConfig | Settings) -> dict:
     """Every :class:`RecoveryConfig` field that changes the result, as JSON values.
 
     All fields but threads, device, checkpoint frequency and the test-only signal hook.
     """
+    cfg = settings_of(cfg)
     out = {}
     for f in dataclasses.fields(cfg):
         if f.name not in RESULT_INDEPENDENT:

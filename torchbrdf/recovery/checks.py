@@ -15,7 +15,7 @@ import torch
 from torchbrdf.capture.synthetic import MAP_NAMES
 from torchbrdf.io import read_exr
 from torchbrdf.recovery.options import build_parser
-from torchbrdf.recovery.solver import RecoveryConfig
+from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 
 __all__ = ["RecoveryError", "check_config", "check_gt"]
 
@@ -33,13 +33,15 @@ class RecoveryError(Exception):
 
 
 def _setting(name: str) -> str:
-    """How an error names a :class:`RecoveryConfig` field.
+    """How an error names a setting.
 
     ``lr (--lr)`` when the command line has the flag, else ``RecoveryConfig.name`` (a setting of
     the Python API only).
     """
     flag = f"--{name.replace('_', '-')}"
-    return f"{name} ({flag})" if flag in build_parser()._option_string_actions else f"RecoveryConfig.{name}"
+    if flag in build_parser()._option_string_actions:
+        return f"{name} ({flag})"
+    return f"RecoveryConfig.{name}" if hasattr(RecoveryConfig, name) else f"Settings.{name}"
 
 
 def _finite_in_range(name: str, v, lo: float, hi: float, lo_open: bool = False) -> None:
@@ -57,8 +59,9 @@ def _integer_in_range(name: str, v, lo: int, hi: int, allow_none: bool = False) 
         raise RecoveryError(f"{_setting(name)} must be an integer in [{lo}, {hi}], got {v!r}")
 
 
-def check_config(cfg: RecoveryConfig) -> None:
+def check_config(cfg: RecoveryConfig | Settings) -> None:
     """Refuse settings that cannot give a meaningful result (one-line :class:`RecoveryError`)."""
+    cfg = settings_of(cfg)
     _integer_in_range("iters", cfg.iters, 0, 1_000_000)
     _finite_in_range("lr", cfg.lr, 0.0, 2.0, lo_open=True)
     _integer_in_range("size", cfg.size, 8, 16384, allow_none=True)

@@ -19,7 +19,7 @@ from torchbrdf.recovery.api import recover
 from torchbrdf.recovery.checks import RecoveryError, check_config
 from torchbrdf.recovery.options import OFF_SWITCHES, build_parser
 from torchbrdf.recovery.outputs import check_out
-from torchbrdf.recovery.solver import RecoveryConfig
+from torchbrdf.recovery.config import RecoveryConfig
 
 __all__ = ["main", "cli", "keep_freed_memory"]
 

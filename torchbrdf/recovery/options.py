@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from torchbrdf.recovery.solver import RecoveryConfig
+from torchbrdf.recovery.config import RecoveryConfig
 
 __all__ = ["build_parser", "OFF_SWITCHES"]
 

@@ -33,7 +33,7 @@ from torchbrdf.io import atomic_path, fsync_dir, read_exr, write_exr, write_png
 from torchbrdf.recovery.checkpoint import sha256_file
 from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.previews import comparison_figure, loss_figure, maps_figure, metallic_preview
-from torchbrdf.recovery.solver import CHECKPOINT
+from torchbrdf.recovery.engine import CHECKPOINT
 
 __all__ = ["REPORT", "OUTPUT_FILES", "RecoveryResult", "OutputBusyError", "check_out", "foreign_entries",
            "locked_out", "clean_leftovers", "commit_outputs", "write_outputs", "load_outputs", "write_failure",

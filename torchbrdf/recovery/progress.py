@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from torchbrdf.recovery.solver import Recovery
+from torchbrdf.recovery.engine import Recovery
 
 __all__ = ["StageProgress", "fit_losses", "stage_seconds", "last_fit_loss"]
 

@@ -29,7 +29,8 @@ from torchbrdf.recovery.outputs import (
 )
 from torchbrdf.recovery.previews import metallic_preview
 from torchbrdf.recovery.progress import StageProgress, fit_losses, stage_seconds
-from torchbrdf.recovery.solver import CHECKPOINT, RecoveryConfig, psnr
+from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.engine import CHECKPOINT, psnr
 
 __all__ = ["RecoveryConfig", "RecoveryResult", "RecoveryError", "recover", "load_outputs", "main", "cli",
            "psnr", "map_errors", "CHECKPOINT", "REPORT"]

@@ -1,0 +1,277 @@
+"""Light calibration: per-light intensity scales and position offsets estimated with the maps.
+
+Alternating steps (:func:`light_scale_step`, :func:`light_position_step`) and the joint step
+with the maps eliminated (:func:`light_joint_step`); the rig's placement and a flash beside the
+camera are held (:func:`rig_free_directions`, :func:`camera_lights`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchbrdf.recovery.levels import LevelData, log_residual
+from torchbrdf.recovery.params import N_PARAMS, decode
+
+
+def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: Tensor, model: str,
+                        prior_sigma: float = 0.01, stride: int = 4, at_camera: bool = True) -> Tensor:
+    """One Gauss–Newton update of the per-light position offsets ``(L, 3)`` (world units).
+
+    Each light's residuals depend only on its own position, so three forward-mode passes (one
+    per axis, every light at once) give every light's ``(pixels, 3)`` Jacobian; the step solves
+    each light's 3×3 normal equations with a Gaussian prior of ``prior_sigma`` (1 cm) on the
+    offset, over every ``stride``-th pixel (cheap; the offset is 3 numbers per light against
+    thousands of pixels). Lights not in ``data.train_idx`` keep their offsets, and so, with
+    ``at_camera=False``, does a light beside the camera (:func:`camera_lights`).
+    """
+    idx = data.train_idx
+    rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
+    p = decode(theta[rows], metal[rows])
+    pts, cam = data.points[rows], data.camera
+    log_obs = data.log_obs[idx][:, rows]
+    inten = data.inten[idx]
+    base = data.pos_stated[idx] + offset[idx]
+
+    def res(pos):  # (L, N, 3)
+        r = log_residual(p, pts, cam, pos, inten, log_obs.permute(1, 0, 2), data.eps, model)
+        return r.permute(1, 0, 2)
+
+    r = torch.nan_to_num(res(base))
+    cols = []
+    for k in range(3):
+        tg = torch.zeros_like(base)
+        tg[:, k] = 1.0
+        cols.append(torch.nan_to_num(torch.func.jvp(res, (base,), (tg,))[1]))
+    jac = torch.stack(cols, -1).reshape(len(idx), -1, 3)  # (L, N*3, 3)
+    r = r.reshape(len(idx), -1)
+    sigma2 = float(r.pow(2).median()) + 1e-12  # robust per-residual noise variance
+    # Huber weights: a residual beyond 3 noise deviations counts linearly, not quadratically, so
+    # the few pixels the maps do not fit yet (a material front, an unconverged rim) cannot move
+    # a light to explain them.
+    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device)
+    jtj = torch.einsum("lni,lnj->lij", jac * w[..., None], jac) + (sigma2 / prior_sigma**2) * eye
+    g = torch.einsum("lni,ln->li", jac, w * r) + (sigma2 / prior_sigma**2) * offset[idx]
+    step = torch.linalg.solve(jtj, -g[..., None])[..., 0]
+    if not at_camera:
+        step[camera_lights(data.pos_stated[idx], cam, data.points.mean(0))] = 0.0
+    out = offset.clone()
+    out[idx] = (offset[idx] + torch.nan_to_num(step)).clamp(-5 * prior_sigma, 5 * prior_sigma)
+    return out
+
+
+def camera_lights(pos: Tensor, camera: Tensor, centre: Tensor, frac: float = 0.1) -> Tensor:
+    """``(L,)`` bool: the lights beside the camera (a flash).
+
+    Within ``frac`` × the camera's distance to the surface ``centre (3,)`` of ``camera (3,)``;
+    ``pos (L, 3)``; the mask is on ``pos``'s device (any float dtype).
+
+    Such a light lights every pixel from near the viewing direction, so a small move of it
+    changes the images much as its intensity scale and a slow variation of the maps do: the
+    least determined of the lights' positions (at a capture's true maps, about 10x the ring
+    lights' posterior deviation along the axis), and the one
+    that soaked up what the two-hypothesis maps had not yet fitted
+    (``Settings.dual_calibration_at_camera``).
+    """
+    reach = frac * float((camera - centre).norm())
+    return (pos - camera).norm(dim=-1) < reach
+
+
+def rig_free_directions(pos: Tensor, centre: Tensor, held: Tensor | None = None) -> Tensor:
+    """``(3L, 3L - 7 - 3H)`` orthonormal light-position changes that keep the rig's placement.
+
+    Moving every light together (a translation, a turn or a dilation about the surface's
+    ``centre``) changes the images almost as moving, tilting or scaling the surface would,
+    which the per-pixel maps absorb (normals take a tilt; a near-uniform material is unchanged
+    by a shift); with the maps eliminated these seven directions are barely constrained by the
+    data, and a little model mismatch runs them to the clamp (every light centimetres inward on a
+    capture without calibration error). Like the overall intensity scale, the rig's placement is
+    the stated one. ``pos (L, 3)`` light positions, ``centre (3,)``; ``held (L,)`` bool: lights
+    whose position is kept as stated (``H`` of them; no component on their coordinates; None:
+    none); rows are light-major (light ``i``'s x, y, z at ``3i .. 3i+2``); ``pos``'s dtype and
+    device.
+    """
+    n = pos.shape[0]
+    rel = pos - centre
+    eye = torch.eye(3, dtype=pos.dtype, device=pos.device)
+    turns = [torch.linalg.cross(e.expand_as(rel), rel).reshape(-1, 1) for e in eye]
+    modes = torch.cat((eye.repeat(n, 1), rel.reshape(-1, 1), *turns), 1)  # (3L, 7)
+    if held is not None and bool(held.any()):  # ... and each held light's x, y and z alone
+        coords = torch.eye(3 * n, dtype=pos.dtype, device=pos.device)
+        modes = torch.cat((modes, coords[:, held.repeat_interleave(3)]), 1)
+    q, _ = torch.linalg.qr(modes, mode="complete")
+    return q[:, modes.shape[1]:]
+
+
+def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: Tensor, offset: Tensor,
+                     ref_idx: list[int], model: str, position: bool = True,
+                     map_prior: tuple[Tensor, Tensor] | None = None, scale_sigma: float = 0.1,
+                     position_sigma: float = 0.01, max_pixels: int = 8192,
+                     damping: float = 1e-3, at_camera: bool = True) -> tuple[Tensor, Tensor]:
+    """One Gauss–Newton step on the lights' log scales and offsets, the pixels' unknowns eliminated.
+
+    ``theta (P, 7)``, ``metal (P, 1)`` the maps; ``log_scale (L,)`` and ``offset (L, 3)`` the
+    current estimates; returns the updated pair (lights not in ``data.train_idx`` keep theirs).
+
+    Stepping the lights with the maps held fixed (:func:`light_scale_step`,
+    :func:`light_position_step`) sees only the part of a light's error the maps cannot absorb
+    (a tilted normal, a wider lobe), so alternating with the map steps creeps toward the joint
+    optimum. Here each pixel's 7 unknowns are eliminated (a Schur complement, as in bundle
+    adjustment): with ``A = JpᵀWJp + H``, ``B = JpᵀWJg`` and ``gp = JpᵀWr + g`` per pixel,
+    the reduced normal equations ``(Σ JgᵀWJg − Σ BᵀA⁻¹B) δg = −(Σ JgᵀWr − Σ BᵀA⁻¹ gp)`` give
+    the step the maps would follow. ``map_prior = (g, H)``, both ``(P, 7)``, are the gradient
+    and the Hessian's diagonal of the maps' prior energy at ``theta`` (:func:`map_prior_terms`;
+    block-Jacobi: the prior's coupling between pixels is left out): after an LM step the data
+    gradient balances the prior's rather than vanishing.
+
+    One forward-mode pass with 7 + 4 tangents over at most ``max_pixels`` evenly strided
+    pixels gives both Jacobians (a light's residuals depend only on its own 4 numbers); the
+    reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels ``Σ JgᵀWJg`` in the weak
+    directions). Huber weights ``W`` (3 noise deviations) as in :func:`light_position_step`;
+    pixels with a non-finite residual or derivative are left out. Gaussian priors of
+    ``scale_sigma`` (log) and ``position_sigma`` (world units). The step keeps the training
+    lights' (``ref_idx``) mean log scale and, with ``position``, moves no light rig as a whole
+    (:func:`rig_free_directions`): the maps absorb both, so the capture's stated values fix
+    them; nor, with ``at_camera=False``, a light beside the camera (:func:`camera_lights`). With
+    ``position=False``, or fewer than 3 lights, only the scales are stepped. The
+    result has ``log_scale``'s and ``offset``'s dtype and device (CPU or CUDA alike).
+    """
+    idx = data.train_idx
+    n_l = len(idx)
+    stride = max(1, math.ceil(theta.shape[0] / max_pixels))
+    rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
+    t0, m = theta[rows], metal[rows]
+    pts, cam = data.points[rows], data.camera
+    log_obs = data.log_obs[idx][:, rows].permute(1, 0, 2)  # (n, L, 3)
+    inten0 = data.inten_stated[idx]
+    pos0 = data.pos_stated[idx] + offset[idx]
+    s0 = log_scale[idx]
+
+    def res(t, pos, s):  # (n, L * 3)
+        inten = inten0 * torch.exp(s)[:, None]
+        r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
+        return r.reshape(t.shape[0], -1)
+
+    n = t0.shape[0]
+    eye7 = torch.eye(N_PARAMS, dtype=theta.dtype, device=theta.device)
+    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(4, n, N_PARAMS)))
+    tp = pos0.new_zeros(N_PARAMS + 4, *pos0.shape)
+    ts = s0.new_zeros(N_PARAMS + 4, n_l)
+    for k in range(3):
+        tp[N_PARAMS + k, :, k] = 1.0
+    ts[N_PARAMS + 3] = 1.0
+    out_dims: Any = (None, 0)
+    pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
+                                out_dims=out_dims)(tt, tp, ts)
+    r, cols = pair  # (n, M), (11, n, M): M = L * 3, light-major
+    ok = torch.isfinite(r).all(1) & torch.isfinite(cols).all(2).all(0)  # (n,)
+    if not bool(ok.any()):
+        return log_scale, offset
+    f64 = torch.float64
+    r = torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
+    cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
+    jp = cols[:N_PARAMS].permute(1, 0, 2)  # (n, 7, M)
+    position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
+    keep = slice(0, 4) if position else slice(3, 4)  # the light unknowns: offset xyz, log scale
+    jg = cols[N_PARAMS:].permute(1, 2, 0).reshape(n, n_l, 3, 4)[..., keep]  # (n, L, 3, G)
+    n_g = jg.shape[-1]
+    sigma2 = float(r[ok].pow(2).median()) + 1e-12
+    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0) * ok[:, None]  # Huber, (n, M)
+    jpw = jp * w[:, None, :]
+    a = torch.bmm(jpw, jp.transpose(1, 2))
+    a = a + torch.diag_embed(damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9)
+    b = torch.einsum("nplc,nlcg->nplg", jpw.reshape(n, N_PARAMS, n_l, 3), jg)
+    b = b.reshape(n, N_PARAMS, n_l * n_g)  # light-major, G inner
+    gp = (jpw @ r[..., None])[..., 0]  # (n, 7)
+    if map_prior is not None:
+        gp = gp + torch.nan_to_num(map_prior[0][rows].to(f64)) * ok[:, None]
+        a = a + torch.diag_embed(torch.nan_to_num(map_prior[1][rows].to(f64)) * ok[:, None])
+    wr = (w * r).reshape(n, n_l, 3)
+    gg = torch.einsum("nlcg,nlc->lg", jg, wr).reshape(-1)  # (L G,)
+    c = torch.einsum("nlcg,nlc,nlch->lgh", jg, w.reshape(n, n_l, 3), jg)  # (L, G, G)
+    x = torch.linalg.solve(a, torch.cat((b, gp[..., None]), -1))  # A⁻¹ [B | gp]
+    schur = torch.block_diag(*c) - torch.einsum("npg,nph->gh", b, x[..., :-1])
+    rhs = gg - torch.einsum("npg,np->g", b, x[..., -1])
+    prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
+                         device=r.device)[keep].repeat(n_l) * sigma2
+    cur = torch.cat((offset[idx], s0[:, None]), -1)[:, keep].reshape(-1).to(f64)
+    held = None if at_camera or not position else camera_lights(data.pos_stated[idx], data.camera,
+                                                                 data.points.mean(0))
+    basis, n_pos = _light_step_basis(data, ref_idx, position, held)  # (L G, K): the directions a step takes
+    h = basis.T @ (schur + torch.diag(prior)) @ basis
+    step = (basis @ torch.linalg.solve(h, -(basis.T @ (rhs + prior * cur)))).reshape(n_l, n_g)
+    if not bool(torch.isfinite(step).all()):
+        return log_scale, offset
+    step = step.to(theta.dtype)
+    new_off, new_s = offset.clone(), log_scale.clone()
+    if position:
+        moved = (offset[idx] + step[:, :3]).clamp(-5 * position_sigma, 5 * position_sigma)
+        free = basis[:, :n_pos].reshape(n_l, n_g, -1)[:, :3].reshape(3 * n_l, -1).to(theta.dtype)
+        # the clamp may leave the subspace: project back
+        new_off[idx] = (free @ (free.T @ moved.reshape(-1))).reshape(n_l, 3)
+        if held is not None:  # exactly as before (the projection leaves rounding dust)
+            fixed = torch.as_tensor(idx, device=offset.device)[held]
+            new_off[fixed] = offset[fixed]
+    new_s[idx] = log_scale[idx] + step[:, -1]
+    new_s[ref_idx] = new_s[ref_idx] - new_s[ref_idx].mean()
+    return new_s.clamp(-0.3, 0.3), new_off
+
+
+def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool, held: Tensor | None = None
+                      ) -> tuple[Tensor, int]:
+    """Orthonormal directions ``(L G, K)`` a light step may take, and how many of them move positions.
+
+    ``G`` = 4 with ``position`` (offset xyz, log scale per light, light-major), else 1: positions
+    that move no rig as a whole and none of the ``held (L,)`` lights (:func:`rig_free_directions`,
+    ``3L − 7 − 3H``; the first columns) and log scales that keep the mean over ``ref_idx``
+    (``L − 1``, or ``L`` when none of ``data.train_idx`` is one).
+    """
+    idx = data.train_idx
+    n_l, n_g = len(idx), 4 if position else 1
+    dev, f64 = data.points.device, torch.float64
+    ref = torch.tensor([float(i in ref_idx) for i in idx], dtype=f64, device=dev)
+    if bool(ref.any()):
+        scales = torch.linalg.qr(ref[:, None], mode="complete")[0][:, 1:]  # ⟂ the reference mean
+    else:
+        scales = torch.eye(n_l, dtype=f64, device=dev)
+    parts = []
+    n_pos = 0
+    if position:
+        free = rig_free_directions(data.pos_stated[idx].to(f64), data.points.mean(0).to(f64), held)
+        n_pos = free.shape[1]
+        pos_part = torch.zeros(n_l, n_g, n_pos, dtype=f64, device=dev)
+        pos_part[:, :3] = free.view(n_l, 3, -1)
+        parts.append(pos_part.reshape(n_l * n_g, -1))
+    scale_part = torch.zeros(n_l, n_g, scales.shape[1], dtype=f64, device=dev)
+    scale_part[:, -1] = scales
+    parts.append(scale_part.reshape(n_l * n_g, -1))
+    return torch.cat(parts, 1), n_pos
+
+
+def light_scale_step(residual: Tensor, idx: list[int], log_scale: Tensor, ref_idx: list[int],
+                     prior_sigma: float = 0.1) -> Tensor:
+    """One Gauss–Newton update of the per-light log intensity scales ``(L,)``.
+
+    ``residual (P, len(idx) * 3)`` are the log residuals on lights ``idx``. A light whose
+    stated intensity is off by a factor ``c`` shifts every bright pixel's log residual by
+    ``log c``; the update is minus the per-light *median* residual over pixels (robust to
+    the few badly fitted ones; the log residual's derivative w.r.t. the log scale is
+    ``pred / (pred + ε) ≈ 1``), shrunk by a Gaussian prior of width ``prior_sigma`` on the
+    log scale. One number per light against every pixel (65k at 256²): 1 % noise moves it
+    by ~5e-5, so it cannot fit noise. The absolute scale is fixed by the capture's stated
+    intensities: the mean log scale over ``ref_idx`` (the training lights) is kept at 0.
+    """
+    p = residual.shape[0]
+    r = residual.reshape(p, len(idx), -1).mean(-1)  # (P, n) per pixel and light
+    r = torch.where(torch.isfinite(r), r, torch.zeros_like(r))
+    med = r.median(0).values  # (n,)
+    noise = float((r - med).abs().median()) * 1.4826 + 1e-12  # robust std of one pixel's residual
+    shrink = p / (p + (noise / prior_sigma) ** 2)
+    out = log_scale.clone()
+    out[idx] = shrink * (out[idx] - med)  # posterior mean: data optimum shrunk toward 0
+    out[ref_idx] = out[ref_idx] - out[ref_idx].mean()
+    return out.clamp(-0.3, 0.3)

@@ -1,0 +1,255 @@
+"""The capture at one resolution (:class:`LevelData`) and the fit's log residuals.
+
+Also the photometric-stereo start and the forward-mode helper the residual Jacobians use.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchbrdf.capture.format import Capture, pixel_points
+from torchbrdf.capture.synthetic import light_geometry, log_residual_points, log_residual_points_jvp
+from torchbrdf.recovery.params import decode
+
+
+class LevelData:
+    """Images, geometry and log-targets of a capture at one resolution."""
+
+    def __init__(self, cap: Capture, size: int, train_idx: list[int], eps: float):
+        img = cap.images
+        if img.shape[-1] != size or img.shape[-2] != size:
+            img = F.interpolate(img, size=(size, size), mode="area")
+        self.size: int = size  # (a pixel subset, see subset, has no image layout: size 0)
+        self.images: Tensor | None = img  # (L, 3, S, S); None on a pixel subset
+        self._obs: Tensor | None = img.permute(0, 2, 3, 1).reshape(img.shape[0], -1, 3)  # (L, P, 3)
+        self.points = pixel_points(size, size, device=img.device, dtype=img.dtype).reshape(-1, 3)
+        # A pixel subset's level and its pixels there (subset): its targets are gathered from
+        # the level's, its observations only when asked for.
+        self._level: LevelData | None = None
+        self._rows: Tensor | None = None
+        self.camera = cap.camera_position
+        self.pos, self.inten = cap.light_positions, cap.light_intensities
+        self.inten_stated = cap.light_intensities  # capture.json's; self.inten carries the estimated scales
+        self.pos_stated = cap.light_positions  # capture.json's; self.pos carries the estimated offsets
+        self.eps = eps
+        self._log_obs: Tensor | None = torch.log(torch.clamp(self._obs + eps, min=0.5 * eps))
+        self.train_idx = list(train_idx)
+        self._log_targets: dict[tuple, Tensor] = {}  # light-set tuple -> log targets (P, L, 3)
+        self._light: dict[tuple, dict] = {}  # light-set tuple -> light_geometry (not the principled's)
+
+    def _gathered(self, name: str) -> Tensor:
+        """``obs`` or ``log_obs``: a subset's are its level's at its pixels, gathered when first asked for."""
+        value = getattr(self, "_" + name)
+        if value is None:
+            assert self._level is not None and self._rows is not None
+            value = getattr(self._level, name)[:, self._rows]
+            setattr(self, "_" + name, value)
+        return value
+
+    @property
+    def obs(self) -> Tensor:
+        """Observed radiance ``(L, N, 3)`` under every light (N = P on a full level)."""
+        return self._gathered("obs")
+
+    @obs.setter
+    def obs(self, value: Tensor) -> None:
+        self._obs = value
+
+    @property
+    def log_obs(self) -> Tensor:
+        """``log(max(obs + eps, eps / 2))``, ``(L, N, 3)``: the targets of the log residuals."""
+        return self._gathered("log_obs")
+
+    @log_obs.setter
+    def log_obs(self, value: Tensor) -> None:  # (new targets: the cached ones go)
+        self._log_obs = value
+        self._log_targets = {}
+
+    def subset(self, rows: Tensor) -> "LevelData":
+        """The same capture restricted to pixels ``rows (N,)`` (its own light-geometry cache).
+
+        ``rows``: int64 indices (repeats allowed) or a bool mask of this data's pixels.
+        Nothing of the images is copied here: a light set's targets are gathered from the
+        level's when first used (``(N, L, 3)`` rows of its cached ``(P, L, 3)``, a tenth of the
+        time of gathering every light's observations and transposing them: 0.3 against 11 ms
+        at 8600 pixels), the observations only when asked for. A subset is a view of its level
+        as the level is when the subset first uses it: targets set on the level afterwards
+        (``level.log_obs = ...``) reach the subsets made after, and writes into a level's
+        ``obs`` or ``log_obs`` in place are not seen by its subsets (nothing here writes them).
+        """
+        rows = torch.as_tensor(rows, device=self.points.device)
+        if rows.dtype == torch.bool:
+            if rows.shape != self.points.shape[:1]:
+                raise IndexError(f"LevelData.subset: a mask of shape {tuple(rows.shape)} for "
+                                 f"{self.points.shape[0]} pixels")
+            rows = rows.nonzero()[:, 0]
+        sub = LevelData.__new__(LevelData)
+        sub.__dict__.update(self.__dict__)
+        sub.size, sub.images = 0, None  # no image layout: a pixel list
+        # (a subset of a subset gathers from the level too, unless it has observations of its own)
+        if self._level is None or self._rows is None or self._obs is not None or self._log_obs is not None:
+            sub._level, sub._rows = self, rows
+        else:
+            sub._level, sub._rows = self._level, self._rows[rows]
+        sub._obs = sub._log_obs = None
+        sub.points = self.points[rows]
+        sub._log_targets, sub._light = {}, {}
+        return sub
+
+    def set_light_scale(self, log_scale: Tensor | None) -> None:
+        """Use intensities ``stated × exp(log_scale)`` (``log_scale (L,)``; None: as stated)."""
+        scale = 1.0 if log_scale is None else torch.exp(log_scale)[:, None]
+        self.inten = self.inten_stated * scale
+
+    def set_light_offset(self, offset: Tensor | None) -> None:
+        """Use positions ``stated + offset`` (``offset (L, 3)``; None: as stated)."""
+        pos = self.pos_stated if offset is None else self.pos_stated + offset
+        if not torch.equal(pos, self.pos):
+            self.pos = pos
+            self._light = {}  # the cached light geometry depends on the positions
+
+    def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
+                 rows: Tensor | slice | None = None) -> Tensor:
+        """Log residuals ``(N, len(idx) * 3)`` on lights ``idx``.
+
+        ``theta (N, 7)`` and ``metal (N, 1)`` are every pixel's (``N = P``), or, with
+        ``rows`` (pixel indices ``(N,)``, repeats allowed, or a slice), those of the listed pixels.
+        """
+        points, log_obs, light = self._targets(idx, model, rows)
+        r = log_residual(decode(theta, metal), points, self.camera, self.pos[idx], self.inten[idx], log_obs,
+                         self.eps, model, light)
+        return r.reshape(theta.shape[0], -1)
+
+    def residual_jvp(self, x: Tensor, metal: Tensor, idx: list[int], model: str, tangents: Tensor,
+                     rows: Tensor | slice | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`residual` and its derivatives along ``K`` directions of the unknowns at once.
+
+        ``x (N, 7)``: theta; or ``(N, 8)``: theta and a continuous metallic (``metal`` is then
+        unused); ``tangents (K, N, x's columns)``; ``metal``, ``idx``, ``model``, ``rows`` as for
+        :meth:`residual`. Returns ``(r (N, M), dr (K, N, M))``, ``M = 3 len(idx)``, ``dr[k]``
+        = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``, in ``x``'s dtype, on its
+        device. The principled model evaluates them in one call of the fused operators
+        (:func:`log_residual_points_jvp`, :func:`decode`'s own tangents by ``torch.func``); the
+        others through ``torch.func``.
+        """
+        def unknowns(v: Tensor) -> tuple[Tensor, Tensor]:
+            return (v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal)
+
+        if model != "principled":
+            return vmapped_jvp(lambda v: self.residual(*unknowns(v), idx, model, rows))(x, tangents)
+        points, log_obs, _ = self._targets(idx, model, rows)
+        # (a parameter the directions do not move has a zero tangent: the kernel drops it)
+        p, dp = vmapped_jvp(lambda v: decode(*unknowns(v)))(x, tangents)
+        r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
+                                        log_obs, self.eps, dp, any_size=True)
+        return r.reshape(x.shape[0], -1), dr.reshape(tangents.shape[0], x.shape[0], -1)
+
+    def _targets(self, idx: list[int], model: str, rows: Tensor | slice | None
+                 ) -> tuple[Tensor, Tensor, dict | None]:
+        """The pixels' points ``(N, 3)``, log targets ``(N, L, 3)`` and light geometry.
+
+        On lights ``idx``; the geometry only for models other than the principled (else None);
+        ``rows`` as for :meth:`residual`.
+        """
+        key = tuple(idx)
+        log_obs = self._log_targets.get(key)
+        if log_obs is None:  # per light set, once
+            if self._log_obs is None and self._level is not None and self._rows is not None:
+                # a subset: its level's, gathered (asked for as the principled model's: no geometry)
+                log_obs = self._level._targets(idx, "principled", None)[1][self._rows]
+            else:
+                log_obs = self.log_obs[idx].permute(1, 0, 2).contiguous()  # (P, L, 3)
+            self._log_targets[key] = log_obs
+        light = None
+        if model != "principled":  # the geometry the other models render with, per light set once
+            if key not in self._light:
+                self._light[key] = light_geometry(self.points, self.camera, self.pos[idx])
+            light = self._light[key]
+        points = self.points
+        if rows is not None:
+            points, log_obs = points[rows], log_obs[rows]
+        if rows is not None and light is not None:
+            light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
+        return points, log_obs, light
+
+
+def log_residual(p: dict, points: Tensor, camera: Tensor, pos: Tensor, inten: Tensor, log_obs: Tensor,
+                 eps: float, model: str = "principled", light: dict | None = None) -> Tensor:
+    """The fit's log residuals ``(N, L, 3)``: ``log(max(pred + ε, ε/2)) − log_obs``.
+
+    ``p`` the decoded maps of ``N`` pixels at ``points (N, 3)``, lights at ``pos (L, 3)`` with
+    ``inten (L, 3)``, ``log_obs (N, L, 3)``, all of one dtype and device (the result's). For
+    ``"principled"`` one fused evaluation (:func:`log_residual_points`); the other models
+    render through :func:`_render_points` with ``light`` (:func:`light_geometry`, computed
+    when None). Differentiable w.r.t. every tensor input, in reverse and forward mode. The
+    principled residual runs on the fused kernels at every size (``any_size``): one engine for
+    the whole fit, whose first full-size call compiles them anyway.
+    """
+    if model == "principled":
+        return log_residual_points(p["normal"], points, camera, pos, inten, p, log_obs, eps, any_size=True)
+    light = light_geometry(points, camera, pos) if light is None else light
+    pred = _render_points(p, inten, model, light)
+    return torch.log(torch.clamp(pred + eps, min=0.5 * eps)).permute(1, 0, 2) - log_obs
+
+
+def _render_points(p, inten, model, light):
+    """Radiance ``(L, P, 3)`` of the fit's other models (``"principled"`` goes through the fused
+    :func:`log_residual_points`); ``light`` is :func:`light_geometry` of the pixels and lights."""
+    if model == "svbrdf_ggx":  # the GGX model of torchbrdf.capture_model (not tuned)
+        from torchbrdf.brdf.capture_model import svbrdf_ggx
+
+        l = light["l"]
+        n = p["normal"][None].expand_as(l)
+        spec_alb = 0.08 * p["specular"] * (1 - p["metallic"]) + p["base_color"] * p["metallic"]
+        f = svbrdf_ggx(l, light["v"][None].expand_as(l), n, diffuse_albedo=p["base_color"] * (1 - p["metallic"]),
+                       specular_albedo=spec_alb, roughness=p["roughness"])
+        return f * inten[:, None] * torch.clamp((n * l).sum(-1, keepdim=True), min=0) * light["inv_d2"]
+    raise ValueError(f"unknown model {model!r}")
+
+
+def photometric_stereo(data: LevelData, idx: list[int], drop: int = 3) -> tuple[Tensor, Tensor]:
+    """Lambertian normals ``(P, 3)`` and albedo ``(P, 3)``, the ``drop`` brightest lights ignored."""
+    pts = data.points
+    dl = data.pos[idx][:, None] - pts[None]  # (L, P, 3)
+    d2 = (dl * dl).sum(-1, keepdim=True)
+    l = dl / d2.sqrt()
+    e = data.inten[idx].mean(-1)[:, None, None] / d2  # (L, P, 1) irradiance at normal incidence
+    obs = data.obs[idx]  # (L, P, 3)
+    lum = obs.mean(-1, keepdim=True)
+    y = lum / e  # = l · b,  b = albedo n / π
+    w = torch.ones_like(y)
+    if len(idx) - drop >= 4:
+        order = torch.argsort(y, dim=0, descending=True)
+        w.scatter_(0, order[:drop], 0.0)
+    lt = l.permute(1, 0, 2)  # (P, L, 3)
+    wt, yt = w.permute(1, 0, 2), y.permute(1, 0, 2)
+    a = torch.einsum("pli,plj->pij", lt * wt, lt) + 1e-6 * torch.eye(3, dtype=pts.dtype, device=pts.device)
+    bvec = torch.einsum("pli,plk->pi", lt * wt, yt)
+    b = torch.linalg.solve(a, bvec)
+    n = b / b.norm(dim=-1, keepdim=True).clamp(min=1e-8)
+    n = torch.where(n[:, 2:3] > 0.2, n, torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype, device=n.device))
+    n = n / n.norm(dim=-1, keepdim=True)
+    shade = (e * torch.clamp((l * n[None]).sum(-1, keepdim=True), min=0) / math.pi)  # (L, P, 1)
+    alb = (w * shade * obs).sum(0) / (w * shade * shade).sum(0).clamp(min=1e-8)
+    return n, alb.clamp(0.02, 0.98)
+
+
+def vmapped_jvp(fn: Callable[[Tensor], Any]) -> Callable[[Tensor, Tensor], tuple[Any, Any]]:
+    """``torch.func.jvp`` of ``fn`` vmapped over the directions (the primal computed once).
+
+    Returns ``jvp(x, tangents (K, *x.shape)) -> (fn(x), derivatives (K, *fn(x).shape))`` (for
+    an ``fn`` returning a dict of tensors, dicts of them).
+    """
+    out_dims: Any = (None, 0)  # the primal is not batched over the directions
+
+    def jvp(x: Tensor, tangents: Tensor) -> tuple[Any, Any]:
+        pair: Any = torch.func.vmap(lambda tg: torch.func.jvp(fn, (x,), (tg,)), out_dims=out_dims)(tangents)
+        return pair
+
+    return jvp

@@ -1,0 +1,141 @@
+"""Discrete moves between LM iterations: neighbour propagation and the normal search.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchbrdf.recovery.config import Settings
+from torchbrdf.recovery.levels import LevelData
+from torchbrdf.recovery.lm import unary_cost
+from torchbrdf.recovery.smoothness_prior import edge_weights, local_prior
+
+
+def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
+              margin: float | None = None,
+              unary: tuple[Tensor, Tensor] | None = None,
+              active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
+
+    A pixel stuck in a bad local optimum (typically on a material edge, where upsampling a
+    coarse level blends two materials) adopts the parameters of a neighbour when they
+    explain its own observations better — data cost on the training lights plus the
+    smoothness prior, so where the data cannot tell two solutions apart (a dielectric whose
+    specular went to 0 leaves roughness free) the one agreeing with its neighbours wins.
+    Cheap: 8 renders of the level, no Jacobian. With ``margin`` (the metal/dielectric decision
+    margin), a neighbour of the other class is a candidate too, judged by the same rule as
+    the dual-hypothesis choice: becoming metal needs a cost below ``margin`` × the pixel's
+    own, becoming dielectric one below ``1 / margin`` × it.
+
+    ``active (P,)`` (bool, optional): only these pixels try their neighbours (the renders
+    shrink to them); the others keep their parameters. A pass after a pass can give a new
+    answer only where something in the pixel's 3×3 neighbourhood changed (its candidates,
+    the prior's neighbours and edge weights are all there), so ``active =``
+    :func:`dilate` ``(changed)`` gives the same result as a full pass.
+
+    Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
+    """
+    size, c = data.size, theta.shape[1]
+    rows = None if active is None else active.nonzero()[:, 0]
+    if rows is not None and rows.numel() == 0:
+        return theta, metal, torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
+
+    def sel(x: Tensor) -> Tensor:
+        return x if rows is None else x[rows]
+
+    def cost(t: Tensor, m: Tensor) -> Tensor:
+        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
+        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+
+    un = None if unary is None else (sel(unary[0]), sel(unary[1]))
+    wx, wy = edge_weights(theta, metal, size, cfg)
+    own, own_metal = sel(theta), sel(metal)
+    best, best_metal = own, own_metal
+    best_score = cost(own, own_metal) + sel(local_prior(theta, theta, wx, wy, size)) + unary_cost(own, un)
+    pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
+    padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
+    for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        cand_all = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
+        cand = sel(cand_all)
+        cm = sel(padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T)
+        same = cm == own_metal
+        prior = sel(local_prior(cand_all, theta, wx, wy, size)) + unary_cost(cand, un)
+        if margin is None:
+            score = torch.where(same, cost(cand, own_metal) + prior, float("inf"))
+        else:  # the prior's weights join pixels of one class: a class change is judged on data
+            data_cost = cost(cand, cm)
+            score = torch.where(same, data_cost + prior,
+                                data_cost * torch.where(cm > 0.5, 1.0 / margin, margin))
+        better = score < best_score
+        best = torch.where(better, cand, best)
+        best_metal = torch.where(better, cm, best_metal)
+        best_score = torch.where(better, score, best_score)
+    if rows is not None:
+        best = theta.index_copy(0, rows, best)
+        best_metal = metal.index_copy(0, rows, best_metal)
+    return best, best_metal, (best != theta).any(-1)
+
+
+def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
+    """Normal slopes ``(K, 2)``: the flat normal and a polar grid of tilts (degrees)."""
+    out = [torch.zeros(1, 2, dtype=torch.float64)]
+    for k, t in enumerate(tilts):
+        az = (torch.arange(azimuths, dtype=torch.float64) + 0.5 * (k % 2)) * (2 * math.pi / azimuths)
+        out.append(math.tan(math.radians(t)) * torch.stack((az.cos(), az.sin()), -1))
+    return torch.cat(out).to(dtype=dtype, device=device)
+
+
+def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
+                  max_pixels: int = 4096) -> tuple[Tensor, int]:
+    """Re-seed badly fitted pixels by a discrete search over normals and neighbours' parameters.
+
+    Gauss–Newton only walks downhill: a glossy pixel whose normal starts 30° off (the steep
+    rim of an inlay, where the upsampled coarse level is flat) never finds its highlight.
+    Pixels whose data cost exceeds ``factor`` × the median cost (the noise level) try every
+    combination of {their own, their 8 same-class neighbours'} parameters × a grid of
+    normals (flat, tilts 8–40°, 8 azimuths), and keep the best if it lowers their cost.
+    At most ``max_pixels`` (the worst) are searched per call.
+
+    Returns ``(theta (P, 7), number of pixels changed)``.
+    """
+    size, c = data.size, theta.shape[1]
+    idx = data.train_idx
+    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
+    bad = torch.nonzero(cost > thr).flatten()
+    if bad.numel() == 0:
+        return theta, 0
+    if bad.numel() > max_pixels:
+        bad = bad[torch.topk(cost[bad], max_pixels).indices]
+    # Own parameters and the 8 neighbours' (replicated border), same class only.
+    r, col = bad // size, bad % size
+    base_list, valid_list = [], []
+    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
+        base_list.append(theta[q])
+        valid_list.append(metal[q, 0] == metal[bad, 0])
+    bases = torch.stack(base_list, 1)  # (B, 9, 7)
+    valid = torch.stack(valid_list, 1)  # (B, 9)
+    slopes = _candidate_slopes(theta.dtype, theta.device)  # (K, 2)
+    nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
+    cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
+    cand[:, :, 1:, 5:7] = slopes[None, None]  # index 0 keeps the base's own normal
+    cand = cand.reshape(nb, -1, c)
+    ccost = torch.empty(cand.shape[:2], dtype=theta.dtype, device=theta.device)
+    chunk = max(1, 65536 // cand.shape[1])
+    for s0 in range(0, nb, chunk):
+        sl = slice(s0, s0 + chunk)
+        n = cand[sl].shape[0]
+        rows = bad[sl].repeat_interleave(cand.shape[1])
+        rr = data.residual(cand[sl].reshape(-1, c), metal[rows], idx, model, rows=rows)
+        ccost[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf")).reshape(n, -1)
+    ccost = torch.where(valid[:, :, None].expand(nb, nbase, k + 1).reshape(nb, -1), ccost, float("inf"))
+    best_cost, best = ccost.min(1)
+    better = best_cost < cost[bad]
+    theta = theta.clone()
+    theta[bad[better]] = cand[better, best[better]]
+    return theta, int(better.sum())
