@@ -15,7 +15,7 @@ import torchbrdf
 from torchbrdf.capture.synthetic import log_residual_points
 from torchbrdf.kernels import build
 from torchbrdf.kernels.normal_eq_ops import normal_equations, unpack_jtj
-from torchbrdf.recovery.solver import decode
+from torchbrdf.recovery.params import decode
 
 ne_ops = importlib.import_module("torchbrdf.kernels.normal_eq_ops")
 EPS = 1e-3

@@ -86,7 +86,7 @@ def test_the_cli_flags_map_onto_the_groups(tmp_path, monkeypatch):
         seen["cfg"] = cfg
         raise RecoveryError("stop here")
 
-    monkeypatch.setattr("torchbrdf.recovery.svbrdf.recover", fake_recover)
+    monkeypatch.setattr("torchbrdf.recovery.cli.recover", fake_recover)
     (tmp_path / "cap").mkdir()
     main(["--capture", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--iters", "4", "--lr", "0.5",
           "--levels", "2", "--prior-roughness", "0.01", "--no-soft-metal", "--no-light-position", "--quiet"])

@@ -3,7 +3,7 @@
 One Gauss–Newton linearisation of the fit's log residuals over every light: per pixel the
 data cost, ``JᵀJ (7, 7)`` and ``Jᵀr (7,)`` w.r.t. the recovery's seven unknowns.
 
-* ``before``: the solver's path today, :func:`torchbrdf.recovery.solver.gauss_newton` (the
+* ``before``: the solver's path today, :func:`torchbrdf.recovery.lm.gauss_newton` (the
   fused residual and JVP operators under ``vmap`` of ``jvp`` for the decode, then the 7×7
   products as batched matrix products);
 * ``after``: :func:`torchbrdf.kernels.normal_eq_ops.normal_equations` (one light-loop kernel
@@ -43,7 +43,7 @@ def synthetic_level(size: int, lights: int, seed: int = 0, dtype: torch.dtype = 
     """A ``LevelData`` of a random capture (ring of lights), and a fit state ``theta (P, 7)``,
     ``metal (P, 1)`` (half the pixels metal)."""
     from torchbrdf.capture.synthetic import light_layout
-    from torchbrdf.recovery.solver import LevelData
+    from torchbrdf.recovery.levels import LevelData
 
     g = torch.Generator().manual_seed(seed)
     pos, inten = light_layout(lights - 1, near_camera=True)
@@ -62,7 +62,7 @@ def synthetic_level(size: int, lights: int, seed: int = 0, dtype: torch.dtype = 
 def normal_equations_before(level: Any, theta: torch.Tensor, metal: torch.Tensor
                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(cost (P,), JᵀJ (P, 7, 7), Jᵀr (P, 7))`` by the solver's :func:`gauss_newton`."""
-    from torchbrdf.recovery.solver import gauss_newton
+    from torchbrdf.recovery.lm import gauss_newton
 
     r, jtj, jtr = gauss_newton(level, theta, metal, level.train_idx, "principled")
     return (r * r).sum(-1), jtj, jtr
@@ -72,7 +72,7 @@ def normal_equations_after(level: Any, theta: torch.Tensor, metal: torch.Tensor
                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The same by the fused kernel (:func:`torchbrdf.kernels.normal_eq_ops.normal_equations`)."""
     from torchbrdf.kernels.normal_eq_ops import normal_equations, unpack_jtj
-    from torchbrdf.recovery.solver import decode
+    from torchbrdf.recovery.params import decode
 
     K = theta.shape[1]
     dirs = torch.zeros(len(DECODE_SLOTS), K, dtype=theta.dtype, device=theta.device)
