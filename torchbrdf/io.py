@@ -31,6 +31,8 @@ from torchbrdf._types import Device, PathLike
 
 __all__ = [
     "TONEMAPS",
+    "CACHE_ENV",
+    "cache_root",
     "atomic_path",
     "read_exr",
     "to_display",
@@ -40,6 +42,20 @@ __all__ = [
 
 #: Tone maps accepted by :func:`to_display` / :func:`write_png` (``None`` clips to [0, 1]).
 TONEMAPS = (None, "clip", "reinhard", "aces")
+#: The one environment variable naming torchbrdf's per-user cache (kernels, demo capture).
+CACHE_ENV = "TORCHBRDF_CACHE_DIR"
+
+
+def cache_root() -> str:
+    """The per-user cache folder of torchbrdf (kernels, demo capture); not created here.
+
+    ``$TORCHBRDF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchbrdf``, else ``~/.cache/torchbrdf``.
+    """
+    d = os.environ.get(CACHE_ENV)
+    if d:
+        return os.path.abspath(os.path.expanduser(d))
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(os.path.abspath(base), "torchbrdf")
 
 _HALF_MAX = 65504.0  # largest finite float16: half EXRs saturate here instead of storing inf
 

@@ -33,8 +33,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf.brdf import capture_residual
 from torchbrdf.brdf.principled import principled
-from torchbrdf.io import write_exr, write_png
+from torchbrdf.io import cache_root, write_exr, write_png
 
 from torchbrdf.capture.format import Capture, pixel_points, write_capture
 
@@ -615,16 +616,8 @@ def log_residual_points(
     fit's first full-size call compiles them, and its later calls on a few pixels (refits,
     converged pixels left out) then cost half as much fused as eager.
     """
-    from torchbrdf.brdf import formula
-
-    c, active, need_tint, frame, backend = _capture_inputs(normal, points, camera, light_pos, light_int,
-                                                           params, log_obs, eps, any_size)
-    if backend is not None:
-        from torchbrdf.kernels.ops import capture_fast
-
-        return capture_fast(c, active, need_tint, frame, backend)
-    ops = formula.TorchOps(log_obs.dtype, log_obs.device)
-    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+    return capture_residual.log_residual(_residual_inputs(normal, points, camera, light_pos, light_int, params,
+                                                          log_obs, eps, any_size))
 
 
 def log_residual_points_jvp(
@@ -638,7 +631,7 @@ def log_residual_points_jvp(
     is held. The other arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3),
     dr (K, P, L, 3))`` in ``log_obs``'s dtype, on its device, ``dr[k]`` what ``torch.func.jvp``
     of :func:`log_residual_points` along direction ``k`` gives. On the fused kernels, one
-    forward and one JVP call of the operators (:func:`torchbrdf.kernels.ops.capture_jvp`),
+    forward and one JVP call of the operators (:func:`torchbrdf.brdf.capture_residual.log_residual_jvp`),
     which prunes each direction to its own tangents: a fit's Gauss–Newton Jacobian without the
     ``vmap``-of-``jvp`` transforms' work per call; otherwise (no kernel, or inputs that need a
     gradient) that ``vmap`` of ``jvp``.
@@ -647,16 +640,10 @@ def log_residual_points_jvp(
     if unknown:
         raise ValueError(f"log_residual_points_jvp: tangents for {sorted(unknown)}: expected 'normal' or "
                          f"keys of params ({sorted(params)})")
-    c, active, need_tint, frame, backend = _capture_inputs(normal, points, camera, light_pos, light_int,
-                                                           params, log_obs, eps, any_size)
-    needs_grad = torch.is_grad_enabled() and any(
-        isinstance(t, Tensor) and t.requires_grad for t in c.values())
-    if backend is not None and not needs_grad and not frame:
-        from torchbrdf.kernels.ops import capture_jvp
-
-        # the inputs' per-pixel (P, 1, C) layout, as _capture_inputs gives them
-        tans = {"n" if k == "normal" else k: t[:, :, None] for k, t in tangents.items()}
-        return capture_jvp(c, tans, active, need_tint, frame, backend)
+    fused = capture_residual.log_residual_jvp(
+        _residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps, any_size), tangents)
+    if fused is not None:
+        return fused
     names = list(tangents)
 
     def res(*vals: Tensor) -> Tensor:
@@ -672,36 +659,12 @@ def log_residual_points_jvp(
     return pair
 
 
-def _capture_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
-                    params: Mapping, log_obs: Tensor, eps: float, any_size: bool
-                    ) -> tuple[dict[str, Any], tuple, bool, bool, str | None]:
-    """The checked inputs of :func:`~torchbrdf.brdf.formula.capture_log_residual` and how to run it.
-
-    Returns ``(c, active lobes, need_tint, frame, backend)``: ``c`` with the per-pixel values as
-    ``(P, 1, C)`` (broadcast over the lights), and the fused backend (None: eager).
-    """
-    from torchbrdf import _checks
-    from torchbrdf.brdf import principled as _p
-
-    _checks.check_same_dtype_device({"log_obs": log_obs, "normal": normal, "points": points, "camera": camera,
-                                     "light_pos": light_pos, "light_int": light_int,
-                                     **{f"params[{k!r}]": v for k, v in params.items()}})
-
-    def px(t: Any) -> Any:  # a per-pixel value as (P, 1, C): broadcast over the lights
-        return t[:, None] if isinstance(t, Tensor) else t
-
-    mat = {**_p.PRINCIPLED_DEFAULTS, **{k: px(v) for k, v in params.items() if k != "normal"}}
-    x, y = (px(t) for t in _fit_frame(normal, mat))
-    c: dict[str, Any] = {**mat, "pos": points[:, None], "n": normal[:, None], "camera": camera,
-                         "light_pos": light_pos[None], "light_int": light_int[None], "log_obs": log_obs,
-                         "eps": float(eps), "x": x, "y": y}
-    active = _p.active_lobes(mat)
-    need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
-    tensors = [t for t in c.values() if isinstance(t, Tensor)]
-    lanes = log_obs.shape[0] * log_obs.shape[1]
-    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors,
-                                lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
-    return c, active, need_tint, frame, backend
+def _residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+                     params: Mapping, log_obs: Tensor, eps: float, any_size: bool) -> capture_residual.ResidualInputs:
+    """:func:`torchbrdf.brdf.capture_residual.residual_inputs` with the capture format's frame."""
+    x, y = _fit_frame(normal, params)
+    return capture_residual.residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps,
+                                            x, y, any_size)
 
 
 def render_capture(
@@ -863,8 +826,6 @@ def default_capture(folder: str | os.PathLike | None = None, size: int = 128) ->
         The capture folder (holding ``capture.json`` and ``gt/``).
     """
     if folder is None:
-        from torchbrdf.kernels.build import cache_root  # the one cache variable, one default
-
         root = Path(cache_root())
         folder = root / f"default_capture_{size}"
     folder = Path(folder)
