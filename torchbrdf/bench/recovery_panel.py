@@ -29,7 +29,8 @@ light PSNR (dB), false-metal fraction (recovered metallic > 0.5 where the truth 
 the recovery's wall time.
 
 ``--compare BASELINE.json`` prints the change of every case present in both runs and flags a
-case that got worse beyond the noise band of :data:`TOLERANCES` (see :func:`compare`).
+case that got worse beyond the noise band of :data:`TOLERANCES` (see :func:`compare`);
+``--table RUN.json`` prints a stored run's table (``--markdown``) and comparison without running.
 """
 
 from __future__ import annotations
@@ -410,37 +411,67 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--json", help="write the rows (and the run's settings) here")
     ap.add_argument("--markdown", action="store_true", help="print a Markdown table")
     ap.add_argument("--compare", help="a baseline JSON of an earlier run: print the change per case")
+    ap.add_argument("--table", help="run nothing: print the table (and --compare) of this JSON")
     args = ap.parse_args(argv)
     if args.size < 16:
         ap.error(f"--size: at least 16 pixels, got {args.size}")
     if args.workers < 1:
         ap.error(f"--workers: at least 1, got {args.workers}")
-    baseline = None
-    if args.compare:
+    def read_run(flag: str, path: str) -> dict:
         try:
-            baseline = json.loads(Path(args.compare).read_text())["rows"]
+            run = json.loads(Path(path).read_text())
+            run["rows"], run["meta"]["size"]  # noqa: B018  (both must be there)
+            return run
         except (OSError, ValueError, KeyError, TypeError) as e:
-            ap.error(f"--compare {args.compare}: not a panel JSON ({e})")
+            ap.error(f"{flag} {path}: not a panel JSON ({e})")
+
+    base_run = read_run("--compare", args.compare) if args.compare else None
+    baseline = base_run["rows"] if base_run else None
+    if args.table:
+        run = read_run("--table", args.table)
+        if base_run and base_run["meta"]["size"] != run["meta"]["size"]:
+            ap.error(f"--compare: {args.compare} is at {base_run['meta']['size']}², {args.table} at "
+                     f"{run['meta']['size']}²; compare runs of one size")
+        rows = [r for r in run["rows"] if args.only in r["case"]]
+        print(format_rows(rows, args.markdown))
+        print(_summary(rows))
+        if baseline is not None:
+            print(format_compare(compare(rows, baseline)))
+        return 0
+    if base_run and base_run["meta"]["size"] != args.size:
+        ap.error(f"--compare: {args.compare} is at {base_run['meta']['size']}², this run at {args.size}² "
+                 "(--size); compare runs of one size")
     cases = [c for c in panel_cases(args.split, args.quick) if args.only in c.name]
     print(f"recovery panel: {len(cases)} cases, split {args.split}, {args.size}², workers {args.workers}",
           file=sys.stderr)
 
-    def progress(row: dict) -> None:
-        print(f"  {row['case']}: worst {row['heldout_worst_db']:.1f} dB, {row['seconds']:.1f} s",
-              file=sys.stderr, flush=True)
-
     t0 = time.perf_counter()
-    rows = run_panel(cases, args.size, args.workers, args.noise_seed, on_row=progress)
-    print(format_rows(rows, args.markdown))
-    print(_summary(rows))
-    if args.json:
+    done: list[dict] = []
+
+    def write_json(complete: bool) -> None:
         meta = {"split": args.split, "size": args.size, "noise": NOISE, "noise_seed": args.noise_seed,
-                "workers": args.workers, "quick": args.quick, "wall_seconds": time.perf_counter() - t0,
+                "workers": args.workers, "quick": args.quick, "only": args.only, "complete": complete,
+                "cases": len(cases), "wall_seconds": time.perf_counter() - t0,
                 "date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, "
                 f"{os.cpu_count()} cores", "torch": torch.__version__,
                 "command": "python -m torchbrdf.bench.recovery_panel " + " ".join(sys.argv[1:] if argv is None
                                                                                    else argv)}
-        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+        tmp = Path(f"{args.json}.partial")
+        tmp.write_text(json.dumps({"meta": meta, "rows": done}, indent=1) + "\n")
+        tmp.replace(args.json)
+
+    def progress(row: dict) -> None:
+        print(f"  {row['case']}: worst {row['heldout_worst_db']:.1f} dB, {row['seconds']:.1f} s",
+              file=sys.stderr, flush=True)
+        done.append(row)
+        if args.json:  # after every case, so an interrupted run keeps what it measured
+            write_json(False)
+
+    rows = run_panel(cases, args.size, args.workers, args.noise_seed, on_row=progress)
+    print(format_rows(rows, args.markdown))
+    print(_summary(rows))
+    if args.json:
+        write_json(True)
     if baseline is not None:
         print(format_compare(compare(rows, baseline)))
     return 0

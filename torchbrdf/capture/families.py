@@ -44,6 +44,7 @@ from torchbrdf.capture.synthetic import (
     scratch_mask,
     smoothstep,
     soft_step,
+    tile_grid,
 )
 
 __all__ = ["FAMILIES", "DIELECTRIC_FAMILIES", "make_family_material"]
@@ -103,12 +104,8 @@ def _raw_wood(gen: torch.Generator, size: int) -> _Fields:
 
 
 def _ceramic_tiles(gen: torch.Generator, size: int) -> _Fields:
-    x, y = pixel_coords(size)
     n_tiles = int(torch.randint(2, 5, (1,), generator=gen))
-    gx, gy = (x + 1) * n_tiles / 2, (1 - y) * n_tiles / 2
-    fx, fy = gx - gx.floor(), gy - gy.floor()
-    tid = (gy.floor() * n_tiles + gx.floor()).long().clamp(0, n_tiles * n_tiles - 1)
-    edge = torch.minimum(torch.minimum(fx, 1 - fx), torch.minimum(fy, 1 - fy))
+    tid, edge = tile_grid(size, n_tiles)
     grout_w = pick_uniform(gen, 0.03, 0.06)
     tile = smoothstep(grout_w, grout_w + 0.05, edge)
     k = n_tiles * n_tiles

@@ -61,6 +61,7 @@ __all__ = [
     "metal_color",
     "soft_step",
     "inlay_sdf",
+    "tile_grid",
     "normals_from_height",
     "light_layout",
     "random_lights",
@@ -199,18 +200,25 @@ def metal_color(gen: torch.Generator) -> Tensor:
     return torch.tensor(METAL_F0[names[k]])
 
 
+def tile_grid(size: int, n_tiles: int) -> tuple[Tensor, Tensor]:
+    """An ``n_tiles`` × ``n_tiles`` grid over the sample: each pixel's tile index ``(S, S)``
+    (long, row-major from the +y edge) and its distance to the tile's nearest edge ``(S, S)`` in
+    tile units (0 on an edge, 0.5 at the centre)."""
+    x, y = pixel_coords(size)
+    gx, gy = (x + 1) * n_tiles / 2, (1 - y) * n_tiles / 2
+    fx, fy = gx - gx.floor(), gy - gy.floor()
+    tid = (gy.floor() * n_tiles + gx.floor()).long().clamp(0, n_tiles * n_tiles - 1)
+    return tid, torch.minimum(torch.minimum(fx, 1 - fx), torch.minimum(fy, 1 - fy))
+
+
 # --------------------------------------------------------------------------------------
 # Recipes: each returns (base (3,H,W), rough (H,W), metal (H,W), spec (H,W), height (H,W))
 # --------------------------------------------------------------------------------------
 
 
 def _recipe_tiles(gen, size):
-    x, y = pixel_coords(size)
     n_tiles = int(torch.randint(3, 7, (1,), generator=gen))
-    gx, gy = (x + 1) * n_tiles / 2, (1 - y) * n_tiles / 2
-    fx, fy = gx - gx.floor(), gy - gy.floor()
-    tid = (gy.floor() * n_tiles + gx.floor()).long().clamp(0, n_tiles * n_tiles - 1)
-    edge = torch.minimum(torch.minimum(fx, 1 - fx), torch.minimum(fy, 1 - fy))
+    tid, edge = tile_grid(size, n_tiles)
     grout_w = pick_uniform(gen, 0.04, 0.08)
     tile = smoothstep(grout_w, grout_w + 0.06, edge)  # 0 in grout, 1 on tile top
     cols = torch.stack([random_color(gen, (0.1, 0.7), (0.2, 0.75)) for _ in range(n_tiles * n_tiles)])
