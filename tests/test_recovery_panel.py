@@ -160,3 +160,17 @@ def test_tables():
     text, md = rp.format_rows(rows), rp.format_rows(rows, markdown=True)
     assert "cloth/2 L12 principled" in text and "33.0" in text
     assert md.splitlines()[0].startswith("| case |") and md.count("\n") == 2
+
+
+def test_table_of_a_stored_run_and_size_mismatch(tmp_path, capsys):
+    run = tmp_path / "run.json"
+    run.write_text(json.dumps({"meta": {"size": 128}, "rows": [_row("cloth/2 L12 principled"),
+                                                               _row("lacquer/3 L17 principled")]}))
+    assert rp.main(["--table", str(run), "--markdown", "--only", "cloth", "--compare", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "| cloth/2 L12 principled |" in out and "lacquer" not in out and "0 of 1 cases worse" in out
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"meta": {"size": 64}, "rows": []}))
+    with pytest.raises(SystemExit):
+        rp.main(["--table", str(run), "--compare", str(other)])
+    assert "compare runs of one size" in capsys.readouterr().err
