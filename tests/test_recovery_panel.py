@@ -169,6 +169,8 @@ def test_table_of_a_stored_run_and_size_mismatch(tmp_path, capsys):
     assert rp.main(["--table", str(run), "--markdown", "--only", "cloth", "--compare", str(run)]) == 0
     out = capsys.readouterr().out
     assert "| cloth/2 L12 principled |" in out and "lacquer" not in out and "0 of 1 cases worse" in out
+    assert rp.main(["--table", str(run), "--only", "cloth/2,lacquer"]) == 0
+    assert "2 cases" in capsys.readouterr().out
     other = tmp_path / "other.json"
     other.write_text(json.dumps({"meta": {"size": 64}, "rows": []}))
     with pytest.raises(SystemExit):

@@ -267,7 +267,8 @@ def _recovery_config() -> Any:
     from torchbrdf.recovery import RecoveryConfig
 
     names = {f.name for f in dataclasses.fields(RecoveryConfig)}
-    return RecoveryConfig(**{k: v for k, v in {"threads": 1, "holdout": -1}.items() if k in names})
+    wanted: dict[str, Any] = {"threads": 1, "holdout": -1}
+    return RecoveryConfig(**{k: v for k, v in wanted.items() if k in names})
 
 
 def run_case(case: PanelCase, size: int = 128, noise_seed: int = 0,
@@ -279,6 +280,7 @@ def run_case(case: PanelCase, size: int = 128, noise_seed: int = 0,
     with tempfile.TemporaryDirectory(prefix="panel_") as tmp:
         truth, _ = render_case(case, tmp, size, noise_seed)
         t0 = time.perf_counter()
+        maps: Mapping[str, Tensor]
         if recover_fn is None:
             from torchbrdf.recovery import recover
 
@@ -400,6 +402,11 @@ def _summary(rows: Sequence[Mapping]) -> str:
             f"time min/median/max {t[0]:.1f}/{t[len(t) // 2]:.1f}/{t[-1]:.1f} s")
 
 
+def _selected(name: str, only: str) -> bool:
+    """Whether ``name`` contains one of the comma-separated texts of ``only`` (all: empty)."""
+    return any(t in name for t in only.split(","))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
     ap = argparse.ArgumentParser(prog="python -m torchbrdf.bench.recovery_panel",
@@ -409,7 +416,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="captures in parallel processes, one thread each")
     ap.add_argument("--quick", action="store_true", help="four small cases: a smoke test of the whole path")
     ap.add_argument("--noise-seed", type=int, default=0, help="another noise draw of the same captures")
-    ap.add_argument("--only", default="", help="only cases whose name contains this text")
+    ap.add_argument("--only", default="", help="only cases whose name contains this text (or any of several, "
+                    "comma separated)")
     ap.add_argument("--json", help="write the rows (and the run's settings) here")
     ap.add_argument("--markdown", action="store_true", help="print a Markdown table")
     ap.add_argument("--compare", help="a baseline JSON of an earlier run: print the change per case")
@@ -434,7 +442,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if base_run and base_run["meta"]["size"] != run["meta"]["size"]:
             ap.error(f"--compare: {args.compare} is at {base_run['meta']['size']}², {args.table} at "
                      f"{run['meta']['size']}²; compare runs of one size")
-        rows = [r for r in run["rows"] if args.only in r["case"]]
+        rows = [r for r in run["rows"] if _selected(r["case"], args.only)]
         print(format_rows(rows, args.markdown))
         print(_summary(rows))
         if baseline is not None:
@@ -443,7 +451,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if base_run and base_run["meta"]["size"] != args.size:
         ap.error(f"--compare: {args.compare} is at {base_run['meta']['size']}², this run at {args.size}² "
                  "(--size); compare runs of one size")
-    cases = [c for c in panel_cases(args.split, args.quick) if args.only in c.name]
+    cases = [c for c in panel_cases(args.split, args.quick) if _selected(c.name, args.only)]
     print(f"recovery panel: {len(cases)} cases, split {args.split}, {args.size}², workers {args.workers}",
           file=sys.stderr)
 
