@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import torch
@@ -71,8 +71,8 @@ def sphere_image(brdf: BRDFCallable, resolution: int = 128,
     ld = torch.nn.functional.normalize(torch.tensor(light_direction, dtype=torch.float64), dim=0)
     img = shade(g, DirectionalLight(ld, torch.full((3,), math.pi, dtype=torch.float64)),
                 lambda l, v, n, x=None, y=None, **_: brdf(l, v, n))[0]
-    assert g.mask is not None  # sphere_gbuffer always sets the coverage mask
-    return img, g.mask[0, 0].bool()
+    mask = cast(Tensor, g.mask)  # sphere_gbuffer always sets the coverage mask
+    return img, mask[0, 0].bool()
 
 
 def slice_comparison_figure(reference: BRDFCallable, model: BRDFCallable,
