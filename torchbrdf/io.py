@@ -50,11 +50,21 @@ def cache_root() -> str:
     """The per-user cache folder of torchbrdf (kernels, demo capture); not created here.
 
     ``$TORCHBRDF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchbrdf``, else ``~/.cache/torchbrdf``.
+    A relative or empty ``$XDG_CACHE_HOME`` is ignored (the XDG spec calls it invalid), and
+    so is a relative or empty ``$HOME`` (it would make the cache relative to the current
+    folder): the home folder then comes from the user database.
     """
     d = os.environ.get(CACHE_ENV)
     if d:
         return os.path.abspath(os.path.expanduser(d))
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        home = os.environ.get("HOME", "")
+        if not os.path.isabs(home):
+            import pwd
+
+            home = pwd.getpwuid(os.getuid()).pw_dir
+        base = os.path.join(home, ".cache")
     return os.path.join(os.path.abspath(base), "torchbrdf")
 
 _HALF_MAX = 65504.0  # largest finite float16: half EXRs saturate here instead of storing inf
