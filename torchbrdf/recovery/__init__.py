@@ -4,8 +4,7 @@
 :func:`load_outputs` reads an output folder back; the
 ``torchbrdf-recover`` command), ``smoothness_prior`` its coupled spatial prior and the
 conjugate-gradient solve, ``batch`` many captures on Ray
-(``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit
-(``torchbrdf-fit-merl``) and ``fit_figures`` its figures.
+(``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit (``torchbrdf-fit-merl``).
 
 May import everything below it: ``torchbrdf.capture``, ``torchbrdf.render``,
 ``torchbrdf.brdf``, ``torchbrdf.io`` and the plumbing.
