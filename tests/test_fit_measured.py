@@ -123,3 +123,23 @@ def test_two_lobe_model_and_loss():
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
     with pytest.raises(ValueError, match="cannot fit"):
         FM.PrincipledFit(names=("base_color", "shininess"))
+
+
+def test_demo_fits_a_tabulated_known_material(tmp_path, capsys):
+    # --demo needs no data: it writes a MERL file of DEMO_MATERIAL into --out and fits it; the
+    # fit's error against that truth is reported (tolerances as in the test above).
+    out = tmp_path / "demo"
+    assert FM.main(["--demo", "--out", str(out), "--samples", "3000", "--iters", "30", "--lbfgs", "60",
+                    "--no-figures"]) == 0
+    assert (out / FM.DEMO_FILE).is_file() and MERLBRDF.from_file(out / FM.DEMO_FILE).table.shape[0] == 3
+    report = json.loads((out / "params.json").read_text())
+    assert report["truth"]["roughness"] == FM.DEMO_MATERIAL["roughness"]
+    err = report["truth_error"]
+    assert err["base_color"] < 0.02 and err["roughness"] < 0.02 and err["metallic"] < 0.03, err
+    # --help says where measured data come from; a source is required.
+    with pytest.raises(SystemExit):
+        FM.main(["--help"])
+    assert "MERL BRDF database" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        FM.main(["--out", str(out)])
+    assert "one of the arguments --merl --demo is required" in capsys.readouterr().err

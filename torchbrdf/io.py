@@ -34,6 +34,8 @@ from torchbrdf._types import Device, PathLike
 
 __all__ = [
     "TONEMAPS",
+    "CACHE_ENV",
+    "cache_root",
     "atomic_path",
     "read_exr",
     "to_display",
@@ -43,6 +45,30 @@ __all__ = [
 
 #: Tone maps accepted by :func:`to_display` / :func:`write_png` (``None`` clips to [0, 1]).
 TONEMAPS = (None, "clip", "reinhard", "aces")
+#: The one environment variable naming torchbrdf's per-user cache (kernels, demo capture).
+CACHE_ENV = "TORCHBRDF_CACHE_DIR"
+
+
+def cache_root() -> str:
+    """The per-user cache folder of torchbrdf (kernels, demo capture); not created here.
+
+    ``$TORCHBRDF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchbrdf``, else ``~/.cache/torchbrdf``.
+    A relative or empty ``$XDG_CACHE_HOME`` is ignored (the XDG spec calls it invalid), and
+    so is a relative or empty ``$HOME`` (it would make the cache relative to the current
+    folder): the home folder then comes from the user database.
+    """
+    d = os.environ.get(CACHE_ENV)
+    if d:
+        return os.path.abspath(os.path.expanduser(d))
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        home = os.environ.get("HOME", "")
+        if not os.path.isabs(home):
+            import pwd
+
+            home = pwd.getpwuid(os.getuid()).pw_dir
+        base = os.path.join(home, ".cache")
+    return os.path.join(os.path.abspath(base), "torchbrdf")
 
 _HALF_MAX = 65504.0  # largest finite float16: half EXRs saturate here instead of storing inf
 

@@ -40,7 +40,6 @@ __all__ = [
     "plot_retro_reflection",
     "plot_specular_peaks",
     "plot_polar_lobes",
-    "plot_slice_comparison",
 ]
 
 Entries = Sequence[tuple[str, BRDF]]
@@ -278,38 +277,4 @@ def plot_polar_lobes(
                title="\n".join(notes_per_column) or None, title_fontsize=7)
     what = "f · cos θl" if cosine else "f"
     fig.suptitle(f"Lobes in the plane of incidence ({what}, luminance)", fontsize=10)
-    return fig
-
-
-def plot_slice_comparison(
-    reference: BRDF,
-    model: BRDF,
-    labels: Sequence[str] = ("measured", "fitted"),
-    resolution: int = 128,
-    exposure: float = 0.0,
-) -> Figure:
-    """Slices of a reference and a model BRDF and their log2 ratio (blue: model too dark).
-
-    Args:
-        reference, model: parameter-free BRDF callables (e.g. a :class:`MERLBRDF` and a
-            bound fitted principled model).
-    """
-    a = A.image_slice(reference, resolution) * math.pi
-    b = A.image_slice(model, resolution) * math.pi
-    lum = torch.tensor(_LUMA, dtype=a.dtype)[:, None, None]
-    la, lb = (a * lum).sum(0), (b * lum).sum(0)
-    valid = (la > 0) | (lb > 0)
-    ratio = torch.where(valid, torch.log2((lb + 1e-4) / (la + 1e-4)), torch.full_like(la, float("nan")))
-    fig = _figure(9.0, 3.1)
-    axes = fig.subplots(1, 3)
-    for ax, img, name in ((axes[0], a, labels[0]), (axes[1], b, labels[1])):
-        ax.imshow(display_image(img, exposure), origin="lower", extent=(0, 90, 0, 90))
-        ax.set_title(name, fontsize=9)
-        ax.set_xlabel("θh (deg)")
-    axes[0].set_ylabel("θd (deg)")
-    im = axes[2].imshow(ratio.numpy(), origin="lower", extent=(0, 90, 0, 90), cmap="RdBu_r", vmin=-1, vmax=1)
-    axes[2].set_title(f"log2({labels[1]} / {labels[0]})", fontsize=9)
-    axes[2].set_xlabel("θh (deg)")
-    fig.colorbar(im, ax=axes[2], shrink=0.85)
-    fig.suptitle("Image slices, φd = 90° (π·f)", fontsize=10)
     return fig

@@ -2,7 +2,8 @@
 
 ``format`` loads and writes a capture folder (``capture.json`` + one linear EXR per light;
 see ``docs/capture_format.md``) with clear errors for bad input; ``synthetic`` makes
-procedural materials and renders them into captures with ground-truth maps.
+procedural materials and renders them into captures with ground-truth maps; ``families``
+adds ten material families (cloth, plaster, ... patinated copper) in the same layout.
 
 May import: ``torchbrdf.brdf``, ``torchbrdf.render``, ``torchbrdf.io`` and the plumbing.
 Never ``recovery``.

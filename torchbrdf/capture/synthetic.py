@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeAlias, cast
 from pathlib import Path
 
@@ -33,8 +33,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf.brdf import capture_residual
 from torchbrdf.brdf.principled import principled
-from torchbrdf.io import write_exr, write_png
+from torchbrdf.io import cache_root, write_exr, write_png
 
 from torchbrdf.capture.format import Capture, pixel_points, write_capture
 
@@ -48,6 +49,19 @@ __all__ = [
     "MAP_NAMES",
     "DEFAULT_CAMERA",
     "make_material",
+    "pack_maps",
+    "fractal_noise",
+    "pixel_coords",
+    "smoothstep",
+    "scratch_mask",
+    "hsv_color",
+    "pick_uniform",
+    "random_color",
+    "METAL_F0",
+    "metal_color",
+    "soft_step",
+    "inlay_sdf",
+    "tile_grid",
     "normals_from_height",
     "light_layout",
     "random_lights",
@@ -77,7 +91,7 @@ DEFAULT_CAMERA = (0.0, 0.0, 3.0)
 # --------------------------------------------------------------------------------------
 
 
-def _noise(gen: torch.Generator, size: int, cells: int, octaves: int = 4, persistence: float = 0.5) -> Tensor:
+def fractal_noise(gen: torch.Generator, size: int, cells: int, octaves: int = 4, persistence: float = 0.5) -> Tensor:
     """Fractal value noise in about [-1, 1], ``(size, size)``; ``cells`` = coarsest grid size."""
     out = torch.zeros(size, size)
     amp, total = 1.0, 0.0
@@ -94,13 +108,14 @@ def _noise(gen: torch.Generator, size: int, cells: int, octaves: int = 4, persis
     return out / total
 
 
-def _coords(size: int) -> tuple[Tensor, Tensor]:
+def pixel_coords(size: int) -> tuple[Tensor, Tensor]:
     """World x (columns) and y (rows, +y at row 0) of every pixel, each ``(size, size)``."""
     p = pixel_points(size, size)
     return p[..., 0], p[..., 1]
 
 
-def _smoothstep(e0: float, e1: float, x: Tensor) -> Tensor:
+def smoothstep(e0: float, e1: float, x: Tensor) -> Tensor:
+    """Hermite ramp of ``x`` (any shape) from 0 at ``e0`` to 1 at ``e1``, same shape."""
     t = torch.clamp((x - e0) / (e1 - e0), 0.0, 1.0)
     return t * t * (3 - 2 * t)
 
@@ -116,8 +131,13 @@ def _segments_distance(x: Tensor, y: Tensor, seg: Tensor) -> Tensor:
     return (p - q).norm(dim=-1).min(dim=0).values
 
 
-def _scratches(gen, x, y, count: int, length: tuple[float, float], angle: float | None = None) -> Tensor:
-    """Groove mask in [0, 1] (1 on a scratch), about 1.5 px wide at 256²."""
+def scratch_mask(gen: torch.Generator, x: Tensor, y: Tensor, count: int, length: tuple[float, float],
+                 angle: float | None = None) -> Tensor:
+    """Groove mask ``(H, W)`` in [0, 1] (1 on a scratch), about 1.5 px wide at 256².
+
+    ``x``, ``y``: :func:`pixel_coords`; ``count`` straight scratches of a length in ``length``,
+    at random angles or within ±0.15 rad of ``angle``.
+    """
     start = torch.rand(count, 2, generator=gen) * 2 - 1
     if angle is None:
         ang = torch.rand(count, generator=gen) * math.pi
@@ -144,22 +164,26 @@ def normals_from_height(height: Tensor) -> Tensor:
     return n / n.norm(dim=0, keepdim=True)
 
 
-def _hsv(h: float, s: float, v: float) -> Tensor:
-    """Linear RGB from HSV-like parameters (colour picking only)."""
+def hsv_color(h: float, s: float, v: float) -> Tensor:
+    """Linear RGB ``(3,)`` from HSV-like parameters in [0, 1] (colour picking only)."""
     k = torch.tensor([5.0, 3.0, 1.0])
     c = v - v * s * torch.clamp(torch.minimum((k + h * 6) % 6, 4 - (k + h * 6) % 6), 0, 1)
     return c
 
 
-def _pick(gen, lo: float, hi: float) -> float:
+def pick_uniform(gen: torch.Generator, lo: float, hi: float) -> float:
+    """One uniform draw in ``[lo, hi)`` from ``gen``."""
     return lo + (hi - lo) * float(torch.rand((), generator=gen))
 
 
-def _rand_color(gen, sat=(0.2, 0.8), val=(0.15, 0.8)) -> Tensor:
-    return _hsv(_pick(gen, 0, 1), _pick(gen, *sat), _pick(gen, *val))
+def random_color(gen: torch.Generator, sat: tuple[float, float] = (0.2, 0.8),
+                 val: tuple[float, float] = (0.15, 0.8)) -> Tensor:
+    """A random linear RGB colour ``(3,)``: any hue, saturation in ``sat``, value in ``val``."""
+    return hsv_color(pick_uniform(gen, 0, 1), pick_uniform(gen, *sat), pick_uniform(gen, *val))
 
 
-_METALS = {  # linear F0 of common metals (approximate)
+#: Linear RGB normal-incidence reflectance (F0) of common metals (approximate).
+METAL_F0 = {
     "gold": (1.0, 0.77, 0.34),
     "copper": (0.95, 0.64, 0.54),
     "silver": (0.95, 0.93, 0.88),
@@ -169,10 +193,22 @@ _METALS = {  # linear F0 of common metals (approximate)
 }
 
 
-def _metal_color(gen) -> Tensor:
-    names = list(_METALS)
+def metal_color(gen: torch.Generator) -> Tensor:
+    """The F0 ``(3,)`` of a metal of :data:`METAL_F0` picked from ``gen``."""
+    names = list(METAL_F0)
     k = int(torch.randint(len(names), (1,), generator=gen))
-    return torch.tensor(_METALS[names[k]])
+    return torch.tensor(METAL_F0[names[k]])
+
+
+def tile_grid(size: int, n_tiles: int) -> tuple[Tensor, Tensor]:
+    """An ``n_tiles`` × ``n_tiles`` grid over the sample: each pixel's tile index ``(S, S)``
+    (long, row-major from the +y edge) and its distance to the tile's nearest edge ``(S, S)`` in
+    tile units (0 on an edge, 0.5 at the centre)."""
+    x, y = pixel_coords(size)
+    gx, gy = (x + 1) * n_tiles / 2, (1 - y) * n_tiles / 2
+    fx, fy = gx - gx.floor(), gy - gy.floor()
+    tid = (gy.floor() * n_tiles + gx.floor()).long().clamp(0, n_tiles * n_tiles - 1)
+    return tid, torch.minimum(torch.minimum(fx, 1 - fx), torch.minimum(fy, 1 - fy))
 
 
 # --------------------------------------------------------------------------------------
@@ -181,46 +217,43 @@ def _metal_color(gen) -> Tensor:
 
 
 def _recipe_tiles(gen, size):
-    x, y = _coords(size)
     n_tiles = int(torch.randint(3, 7, (1,), generator=gen))
-    gx, gy = (x + 1) * n_tiles / 2, (1 - y) * n_tiles / 2
-    fx, fy = gx - gx.floor(), gy - gy.floor()
-    tid = (gy.floor() * n_tiles + gx.floor()).long().clamp(0, n_tiles * n_tiles - 1)
-    edge = torch.minimum(torch.minimum(fx, 1 - fx), torch.minimum(fy, 1 - fy))
-    grout_w = _pick(gen, 0.04, 0.08)
-    tile = _smoothstep(grout_w, grout_w + 0.06, edge)  # 0 in grout, 1 on tile top
-    cols = torch.stack([_rand_color(gen, (0.1, 0.7), (0.2, 0.75)) for _ in range(n_tiles * n_tiles)])
-    rough_t = torch.tensor([_pick(gen, 0.15, 0.45) for _ in range(n_tiles * n_tiles)])
-    spec_t = torch.tensor([_pick(gen, 0.3, 0.7) for _ in range(n_tiles * n_tiles)])
-    grout_col = _rand_color(gen, (0.0, 0.2), (0.15, 0.35))
-    nz = _noise(gen, size, 8)
+    tid, edge = tile_grid(size, n_tiles)
+    grout_w = pick_uniform(gen, 0.04, 0.08)
+    tile = smoothstep(grout_w, grout_w + 0.06, edge)  # 0 in grout, 1 on tile top
+    cols = torch.stack([random_color(gen, (0.1, 0.7), (0.2, 0.75)) for _ in range(n_tiles * n_tiles)])
+    rough_t = torch.tensor([pick_uniform(gen, 0.15, 0.45) for _ in range(n_tiles * n_tiles)])
+    spec_t = torch.tensor([pick_uniform(gen, 0.3, 0.7) for _ in range(n_tiles * n_tiles)])
+    grout_col = random_color(gen, (0.0, 0.2), (0.15, 0.35))
+    nz = fractal_noise(gen, size, 8)
     base = cols[tid].permute(2, 0, 1) * (1 + 0.1 * nz) * tile + grout_col[:, None, None] * (1 - tile)
-    rough = (rough_t[tid] + 0.08 * _noise(gen, size, 6)) * tile + 0.85 * (1 - tile)
+    rough = (rough_t[tid] + 0.08 * fractal_noise(gen, size, 6)) * tile + 0.85 * (1 - tile)
     spec = spec_t[tid] * tile + 0.4 * (1 - tile)
-    height = 0.02 * tile + 0.002 * _noise(gen, size, 16, 3)
+    height = 0.02 * tile + 0.002 * fractal_noise(gen, size, 16, 3)
     metal = torch.zeros(size, size)
     return base, rough, metal, spec, height
 
 
 def _wood(gen, size, y):
     """A wood-like dielectric (stretched noise stripes): ``base (3, S, S)``, ``rough``, ``spec``."""
-    stripes = torch.sin(18 * (y + 0.15 * _noise(gen, size, 4)) + 3 * _noise(gen, size, 8))
-    c0, c1 = _rand_color(gen, (0.4, 0.7), (0.25, 0.5)), _rand_color(gen, (0.4, 0.8), (0.1, 0.3))
+    stripes = torch.sin(18 * (y + 0.15 * fractal_noise(gen, size, 4)) + 3 * fractal_noise(gen, size, 8))
+    c0, c1 = random_color(gen, (0.4, 0.7), (0.25, 0.5)), random_color(gen, (0.4, 0.8), (0.1, 0.3))
     t = (stripes * 0.5 + 0.5)[None]
     base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
-    rough = 0.55 + 0.12 * _noise(gen, size, 6)
-    spec = torch.full((size, size), _pick(gen, 0.35, 0.6))
+    rough = 0.55 + 0.12 * fractal_noise(gen, size, 6)
+    spec = torch.full((size, size), pick_uniform(gen, 0.35, 0.6))
     return base, rough, spec
 
 
-def _inlay_sdf(gen, x, y, count: tuple[int, int], extent: float, radius: tuple[float, float]):
+def inlay_sdf(gen: torch.Generator, x: Tensor, y: Tensor, count: tuple[int, int], extent: float,
+              radius: tuple[float, float]) -> Tensor:
     """Signed distance ``(S, S)`` to a union of random inlays (< 0 inside): discs and bars,
     ``count`` = [low, high) of their number, centres in ``±extent``, sizes in ``radius``;
-    ``x``, ``y`` are :func:`_coords`."""
+    ``x``, ``y`` are :func:`pixel_coords`."""
     sdf = torch.full(x.shape, 10.0)
     for _ in range(int(torch.randint(count[0], count[1], (1,), generator=gen))):
-        cx, cy = _pick(gen, -extent, extent), _pick(gen, -extent, extent)
-        r = _pick(gen, *radius)
+        cx, cy = pick_uniform(gen, -extent, extent), pick_uniform(gen, -extent, extent)
+        r = pick_uniform(gen, *radius)
         if float(torch.rand((), generator=gen)) < 0.5:  # a disc
             d = ((x - cx) ** 2 + (y - cy) ** 2).sqrt() - r
         else:  # a bar
@@ -230,84 +263,84 @@ def _inlay_sdf(gen, x, y, count: tuple[int, int], extent: float, radius: tuple[f
 
 
 def _recipe_metal_inlay(gen, size):
-    x, y = _coords(size)
+    x, y = pixel_coords(size)
     base, rough, spec = _wood(gen, size, y)
-    mask = (_inlay_sdf(gen, x, y, (3, 6), 0.7, (0.12, 0.3)) < 0).float()
-    mcol = _metal_color(gen)
-    mrough = _pick(gen, 0.2, 0.4) + 0.06 * _noise(gen, size, 8)
-    scratch = _scratches(gen, x, y, 25, (0.1, 0.5))
+    mask = (inlay_sdf(gen, x, y, (3, 6), 0.7, (0.12, 0.3)) < 0).float()
+    mcol = metal_color(gen)
+    mrough = pick_uniform(gen, 0.2, 0.4) + 0.06 * fractal_noise(gen, size, 8)
+    scratch = scratch_mask(gen, x, y, 25, (0.1, 0.5))
     base = base * (1 - mask) + mcol[:, None, None] * mask
     rough = rough * (1 - mask) + (mrough + 0.15 * scratch) * mask
-    height = 0.01 * _smoothstep(-0.5, 0.5, F.avg_pool2d(mask[None, None], 5, 1, 2)[0, 0] * 2 - 1)
-    height = height - 0.004 * scratch * mask + 0.003 * _noise(gen, size, 8, 3)
+    height = 0.01 * smoothstep(-0.5, 0.5, F.avg_pool2d(mask[None, None], 5, 1, 2)[0, 0] * 2 - 1)
+    height = height - 0.004 * scratch * mask + 0.003 * fractal_noise(gen, size, 8, 3)
     return base, rough, mask, spec, height
 
 
 def _recipe_scratched_metal(gen, size):
-    x, y = _coords(size)
-    mcol = _metal_color(gen)
-    base = mcol[:, None, None] * (1 + 0.05 * _noise(gen, size, 6))[None]
-    rough = _pick(gen, 0.25, 0.45) + 0.1 * _noise(gen, size, 5)
-    ang = _pick(gen, 0, math.pi)
-    scratch = torch.maximum(_scratches(gen, x, y, 40, (0.2, 0.9), angle=ang), _scratches(gen, x, y, 15, (0.1, 0.4)))
+    x, y = pixel_coords(size)
+    mcol = metal_color(gen)
+    base = mcol[:, None, None] * (1 + 0.05 * fractal_noise(gen, size, 6))[None]
+    rough = pick_uniform(gen, 0.25, 0.45) + 0.1 * fractal_noise(gen, size, 5)
+    ang = pick_uniform(gen, 0, math.pi)
+    scratch = torch.maximum(scratch_mask(gen, x, y, 40, (0.2, 0.9), angle=ang), scratch_mask(gen, x, y, 15, (0.1, 0.4)))
     rough = rough + 0.2 * scratch
     # Paint chips: dielectric patches where noise is high.
-    paint = (_noise(gen, size, 4) > 0.35).float()
-    pcol = _rand_color(gen, (0.5, 0.9), (0.3, 0.7))
+    paint = (fractal_noise(gen, size, 4) > 0.35).float()
+    pcol = random_color(gen, (0.5, 0.9), (0.3, 0.7))
     base = base * (1 - paint) + pcol[:, None, None] * paint
     rough = rough * (1 - paint) + 0.6 * paint
     metal = 1 - paint
     spec = torch.full((size, size), 0.5)
-    height = 0.006 * paint - 0.004 * scratch + 0.004 * _noise(gen, size, 6, 3)
+    height = 0.006 * paint - 0.004 * scratch + 0.004 * fractal_noise(gen, size, 6, 3)
     return base, rough, metal, spec, height
 
 
 def _recipe_painted(gen, size):
-    n1, n2 = _noise(gen, size, 3), _noise(gen, size, 5)
-    c = [_rand_color(gen, (0.4, 0.9), (0.2, 0.8)) for _ in range(3)]
-    w1 = _smoothstep(-0.05, 0.05, n1)[None]
-    w2 = _smoothstep(-0.05, 0.05, n2)[None]
+    n1, n2 = fractal_noise(gen, size, 3), fractal_noise(gen, size, 5)
+    c = [random_color(gen, (0.4, 0.9), (0.2, 0.8)) for _ in range(3)]
+    w1 = smoothstep(-0.05, 0.05, n1)[None]
+    w2 = smoothstep(-0.05, 0.05, n2)[None]
     base = (c[0][:, None, None] * w1 + c[1][:, None, None] * (1 - w1)) * (1 - 0.5 * w2) + c[2][:, None, None] * 0.5 * w2
-    rough = (0.5 + 0.35 * _noise(gen, size, 4)).clamp(0.08, 0.95)
-    spec = (0.5 + 0.25 * _noise(gen, size, 3)).clamp(0, 1)
-    height = 0.006 * _noise(gen, size, 10, 3) + 0.004 * w1[0]
+    rough = (0.5 + 0.35 * fractal_noise(gen, size, 4)).clamp(0.08, 0.95)
+    spec = (0.5 + 0.25 * fractal_noise(gen, size, 3)).clamp(0, 1)
+    height = 0.006 * fractal_noise(gen, size, 10, 3) + 0.004 * w1[0]
     return base, rough, torch.zeros(size, size), spec, height
 
 
 def _recipe_stone(gen, size):
-    c0, c1 = _rand_color(gen, (0.0, 0.3), (0.3, 0.7)), _rand_color(gen, (0.0, 0.4), (0.1, 0.4))
-    t = (0.5 + 0.5 * _noise(gen, size, 6, 5))[None]
+    c0, c1 = random_color(gen, (0.0, 0.3), (0.3, 0.7)), random_color(gen, (0.0, 0.4), (0.1, 0.4))
+    t = (0.5 + 0.5 * fractal_noise(gen, size, 6, 5))[None]
     base = c0[:, None, None] * t + c1[:, None, None] * (1 - t)
-    rough = (0.75 + 0.15 * _noise(gen, size, 6)).clamp(0, 1)
+    rough = (0.75 + 0.15 * fractal_noise(gen, size, 6)).clamp(0, 1)
     spec = torch.full((size, size), 0.4)
-    height = 0.012 * _noise(gen, size, 12, 4, 0.6)
+    height = 0.012 * fractal_noise(gen, size, 12, 4, 0.6)
     return base, rough, torch.zeros(size, size), spec, height
 
 
 def _recipe_circuit(gen, size):
-    x, y = _coords(size)
-    board = _rand_color(gen, (0.5, 0.9), (0.05, 0.25))
-    base = board[:, None, None] * (1 + 0.1 * _noise(gen, size, 8))[None]
-    rough = torch.full((size, size), _pick(gen, 0.3, 0.5)) + 0.05 * _noise(gen, size, 8)
+    x, y = pixel_coords(size)
+    board = random_color(gen, (0.5, 0.9), (0.05, 0.25))
+    base = board[:, None, None] * (1 + 0.1 * fractal_noise(gen, size, 8))[None]
+    rough = torch.full((size, size), pick_uniform(gen, 0.3, 0.5)) + 0.05 * fractal_noise(gen, size, 8)
     # Traces: axis-aligned bars; pads: squares.
     mask = torch.zeros(size, size)
     for _ in range(int(torch.randint(6, 12, (1,), generator=gen))):
-        cx, cy, ln = _pick(gen, -0.8, 0.8), _pick(gen, -0.8, 0.8), _pick(gen, 0.2, 0.9)
-        wd = _pick(gen, 0.03, 0.06)
+        cx, cy, ln = pick_uniform(gen, -0.8, 0.8), pick_uniform(gen, -0.8, 0.8), pick_uniform(gen, 0.2, 0.9)
+        wd = pick_uniform(gen, 0.03, 0.06)
         if float(torch.rand((), generator=gen)) < 0.5:
             m = ((x - cx).abs() < ln / 2) & ((y - cy).abs() < wd)
         else:
             m = ((y - cy).abs() < ln / 2) & ((x - cx).abs() < wd)
         mask = torch.maximum(mask, m.float())
-    mcol = torch.tensor(_METALS["gold" if float(torch.rand((), generator=gen)) < 0.5 else "copper"])
+    mcol = torch.tensor(METAL_F0["gold" if float(torch.rand((), generator=gen)) < 0.5 else "copper"])
     base = base * (1 - mask) + mcol[:, None, None] * mask
-    rough = rough * (1 - mask) + (0.3 + 0.05 * _noise(gen, size, 8)) * mask
+    rough = rough * (1 - mask) + (0.3 + 0.05 * fractal_noise(gen, size, 8)) * mask
     spec = torch.full((size, size), 0.5)
-    height = 0.008 * F.avg_pool2d(mask[None, None], 5, 1, 2)[0, 0] + 0.002 * _noise(gen, size, 16, 2)
+    height = 0.008 * F.avg_pool2d(mask[None, None], 5, 1, 2)[0, 0] + 0.002 * fractal_noise(gen, size, 16, 2)
     return base, rough, mask, spec, height
 
 
-def _soft_step(field: Tensor, coverage: float, soft: float) -> Tensor:
+def soft_step(field: Tensor, coverage: float, soft: float) -> Tensor:
     """A ramp in [0, 1] ``(H, W)`` over the values of ``field (H, W)``: exactly a fraction ``soft``
     of the pixels get a value in (0.05, 0.95) and about ``coverage`` of them a value ≥ 0.5.
 
@@ -323,43 +356,43 @@ def _soft_step(field: Tensor, coverage: float, soft: float) -> Tensor:
 
 def _recipe_rusted_metal(gen, size):
     """Steel with a rust front: metallic ramps smoothly from 1 (bare) to 0 (rust) across it."""
-    mcol = torch.tensor(_METALS["iron" if float(torch.rand((), generator=gen)) < 0.5 else "silver"])
-    rust_col = _hsv(_pick(gen, 0.03, 0.08), _pick(gen, 0.6, 0.85), _pick(gen, 0.2, 0.45))
-    field = _noise(gen, size, 3, 5) + 0.25 * _noise(gen, size, 12, 3)
-    rust = _soft_step(field, _pick(gen, 0.3, 0.5), _pick(gen, 0.08, 0.13))
-    rust_tex = rust_col[:, None, None] * (1 + 0.15 * _noise(gen, size, 16))[None]
+    mcol = torch.tensor(METAL_F0["iron" if float(torch.rand((), generator=gen)) < 0.5 else "silver"])
+    rust_col = hsv_color(pick_uniform(gen, 0.03, 0.08), pick_uniform(gen, 0.6, 0.85), pick_uniform(gen, 0.2, 0.45))
+    field = fractal_noise(gen, size, 3, 5) + 0.25 * fractal_noise(gen, size, 12, 3)
+    rust = soft_step(field, pick_uniform(gen, 0.3, 0.5), pick_uniform(gen, 0.08, 0.13))
+    rust_tex = rust_col[:, None, None] * (1 + 0.15 * fractal_noise(gen, size, 16))[None]
     base = mcol[:, None, None] * (1 - rust) + rust_tex * rust
-    rough = (_pick(gen, 0.2, 0.35) + 0.04 * _noise(gen, size, 8)) * (1 - rust) + 0.8 * rust
+    rough = (pick_uniform(gen, 0.2, 0.35) + 0.04 * fractal_noise(gen, size, 8)) * (1 - rust) + 0.8 * rust
     spec = torch.full((size, size), 0.5)
-    height = 0.003 * rust + 0.002 * _noise(gen, size, 16, 3) * rust
+    height = 0.003 * rust + 0.002 * fractal_noise(gen, size, 16, 3) * rust
     return base, rough, 1 - rust, spec, height
 
 
 def _recipe_dusty_metal(gen, size):
     """A metal with speckles of dust: small dielectric specks with soft edges."""
-    mcol = _metal_color(gen)
-    dust_col = _hsv(_pick(gen, 0.08, 0.14), _pick(gen, 0.1, 0.3), _pick(gen, 0.4, 0.6))
-    field = _noise(gen, size, 24, 2) + 0.5 * _noise(gen, size, 4, 2)
-    dust = _soft_step(field, _pick(gen, 0.12, 0.2), _pick(gen, 0.08, 0.13))
+    mcol = metal_color(gen)
+    dust_col = hsv_color(pick_uniform(gen, 0.08, 0.14), pick_uniform(gen, 0.1, 0.3), pick_uniform(gen, 0.4, 0.6))
+    field = fractal_noise(gen, size, 24, 2) + 0.5 * fractal_noise(gen, size, 4, 2)
+    dust = soft_step(field, pick_uniform(gen, 0.12, 0.2), pick_uniform(gen, 0.08, 0.13))
     base = mcol[:, None, None] * (1 - dust) + dust_col[:, None, None] * dust
-    rough = (_pick(gen, 0.25, 0.4) + 0.05 * _noise(gen, size, 8)) * (1 - dust) + 0.9 * dust
+    rough = (pick_uniform(gen, 0.25, 0.4) + 0.05 * fractal_noise(gen, size, 8)) * (1 - dust) + 0.9 * dust
     spec = torch.full((size, size), 0.5)
-    height = 0.002 * _noise(gen, size, 8, 3)
+    height = 0.002 * fractal_noise(gen, size, 8, 3)
     return base, rough, 1 - dust, spec, height
 
 
 def _recipe_aa_inlay(gen, size):
     """metal_inlay's wood and discs/bars, with anti-aliased (filtered) inlay edges: metallic ramps
     from 0 to 1 across each edge, as in a texture magnified with bilinear filtering."""
-    x, y = _coords(size)
+    x, y = pixel_coords(size)
     base, rough, spec = _wood(gen, size, y)
-    sdf = _inlay_sdf(gen, x, y, (6, 10), 0.75, (0.1, 0.25))
-    mask = _soft_step(-sdf, float((sdf < 0).float().mean()), _pick(gen, 0.07, 0.12))
-    mcol = _metal_color(gen)
-    mrough = _pick(gen, 0.2, 0.4) + 0.06 * _noise(gen, size, 8)
+    sdf = inlay_sdf(gen, x, y, (6, 10), 0.75, (0.1, 0.25))
+    mask = soft_step(-sdf, float((sdf < 0).float().mean()), pick_uniform(gen, 0.07, 0.12))
+    mcol = metal_color(gen)
+    mrough = pick_uniform(gen, 0.2, 0.4) + 0.06 * fractal_noise(gen, size, 8)
     base = base * (1 - mask) + mcol[:, None, None] * mask
     rough = rough * (1 - mask) + mrough * mask
-    height = 0.004 * mask + 0.002 * _noise(gen, size, 8, 3)
+    height = 0.004 * mask + 0.002 * fractal_noise(gen, size, 8, 3)
     return base, rough, mask, spec, height
 
 
@@ -405,13 +438,21 @@ def make_material(recipe: str | None = None, seed: int = 0, size: int = 256) -> 
     if size < 4:
         raise ValueError(f"make_material: size must be >= 4, got {size}")
     gen = torch.Generator().manual_seed(int(seed) * 7919 + (RECIPES + SOFT_RECIPES).index(recipe))
-    base, rough, metal, spec, height = _RECIPE_FUNCS[recipe](gen, size)
-    metal = metal.clamp(0, 1)
-    base = base.clamp(0.03, 1.0)
+    return pack_maps(*_RECIPE_FUNCS[recipe](gen, size))
+
+
+def pack_maps(base: Tensor, rough: Tensor, metal: Tensor, spec: Tensor, height: Tensor) -> dict[str, Tensor]:
+    """A recipe's raw fields as :func:`make_material`'s maps, clamped to their ranges.
+
+    Args ``base (3, S, S)``, ``rough``, ``metal``, ``spec`` and ``height (S, S)`` (world units);
+    returns ``base_color (3, S, S)`` in [0.03, 1], ``roughness`` in [0.05, 1], ``metallic`` and
+    ``specular (1, S, S)`` in [0, 1] and the unit ``normal (3, S, S)`` of the height field,
+    float32, contiguous.
+    """
     return {
-        "base_color": base.float().contiguous(),
+        "base_color": base.clamp(0.03, 1.0).float().contiguous(),
         "roughness": rough.clamp(0.05, 1.0)[None].float().contiguous(),
-        "metallic": metal[None].float().contiguous(),
+        "metallic": metal.clamp(0, 1)[None].float().contiguous(),
         "specular": spec.clamp(0, 1)[None].float().contiguous(),
         "normal": normals_from_height(height.float()).contiguous(),
     }
@@ -583,16 +624,8 @@ def log_residual_points(
     fit's first full-size call compiles them, and its later calls on a few pixels (refits,
     converged pixels left out) then cost half as much fused as eager.
     """
-    from torchbrdf.brdf import formula
-
-    c, active, need_tint, frame, backend = _capture_inputs(normal, points, camera, light_pos, light_int,
-                                                           params, log_obs, eps, any_size)
-    if backend is not None:
-        from torchbrdf.kernels.ops import capture_fast
-
-        return capture_fast(c, active, need_tint, frame, backend)
-    ops = formula.TorchOps(log_obs.dtype, log_obs.device)
-    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+    return capture_residual.log_residual(_residual_inputs(normal, points, camera, light_pos, light_int, params,
+                                                          log_obs, eps, any_size))
 
 
 def log_residual_points_jvp(
@@ -606,7 +639,7 @@ def log_residual_points_jvp(
     is held. The other arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3),
     dr (K, P, L, 3))`` in ``log_obs``'s dtype, on its device, ``dr[k]`` what ``torch.func.jvp``
     of :func:`log_residual_points` along direction ``k`` gives. On the fused kernels, one
-    forward and one JVP call of the operators (:func:`torchbrdf.kernels.ops.capture_jvp`),
+    forward and one JVP call of the operators (:func:`torchbrdf.brdf.capture_residual.log_residual_jvp`),
     which prunes each direction to its own tangents: a fit's Gauss–Newton Jacobian without the
     ``vmap``-of-``jvp`` transforms' work per call; otherwise (no kernel, or inputs that need a
     gradient) that ``vmap`` of ``jvp``.
@@ -615,16 +648,10 @@ def log_residual_points_jvp(
     if unknown:
         raise ValueError(f"log_residual_points_jvp: tangents for {sorted(unknown)}: expected 'normal' or "
                          f"keys of params ({sorted(params)})")
-    c, active, need_tint, frame, backend = _capture_inputs(normal, points, camera, light_pos, light_int,
-                                                           params, log_obs, eps, any_size)
-    needs_grad = torch.is_grad_enabled() and any(
-        isinstance(t, Tensor) and t.requires_grad for t in c.values())
-    if backend is not None and not needs_grad and not frame:
-        from torchbrdf.kernels.ops import capture_jvp
-
-        # the inputs' per-pixel (P, 1, C) layout, as _capture_inputs gives them
-        tans = {"n" if k == "normal" else k: t[:, :, None] for k, t in tangents.items()}
-        return capture_jvp(c, tans, active, need_tint, frame, backend)
+    fused = capture_residual.log_residual_jvp(
+        _residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps, any_size), tangents)
+    if fused is not None:
+        return fused
     names = list(tangents)
 
     def res(*vals: Tensor) -> Tensor:
@@ -640,36 +667,12 @@ def log_residual_points_jvp(
     return pair
 
 
-def _capture_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
-                    params: Mapping, log_obs: Tensor, eps: float, any_size: bool
-                    ) -> tuple[dict[str, Any], tuple, bool, bool, str | None]:
-    """The checked inputs of :func:`~torchbrdf.brdf.formula.capture_log_residual` and how to run it.
-
-    Returns ``(c, active lobes, need_tint, frame, backend)``: ``c`` with the per-pixel values as
-    ``(P, 1, C)`` (broadcast over the lights), and the fused backend (None: eager).
-    """
-    from torchbrdf import _checks
-    from torchbrdf.brdf import principled as _p
-
-    _checks.check_same_dtype_device({"log_obs": log_obs, "normal": normal, "points": points, "camera": camera,
-                                     "light_pos": light_pos, "light_int": light_int,
-                                     **{f"params[{k!r}]": v for k, v in params.items()}})
-
-    def px(t: Any) -> Any:  # a per-pixel value as (P, 1, C): broadcast over the lights
-        return t[:, None] if isinstance(t, Tensor) else t
-
-    mat = {**_p.PRINCIPLED_DEFAULTS, **{k: px(v) for k, v in params.items() if k != "normal"}}
-    x, y = (px(t) for t in _fit_frame(normal, mat))
-    c: dict[str, Any] = {**mat, "pos": points[:, None], "n": normal[:, None], "camera": camera,
-                         "light_pos": light_pos[None], "light_int": light_int[None], "log_obs": log_obs,
-                         "eps": float(eps), "x": x, "y": y}
-    active = _p.active_lobes(mat)
-    need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
-    tensors = [t for t in c.values() if isinstance(t, Tensor)]
-    lanes = log_obs.shape[0] * log_obs.shape[1]
-    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors,
-                                lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
-    return c, active, need_tint, frame, backend
+def _residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+                     params: Mapping, log_obs: Tensor, eps: float, any_size: bool) -> capture_residual.ResidualInputs:
+    """:func:`torchbrdf.brdf.capture_residual.residual_inputs` with the capture format's frame."""
+    x, y = _fit_frame(normal, params)
+    return capture_residual.residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps,
+                                            x, y, any_size)
 
 
 def render_capture(
@@ -680,6 +683,7 @@ def render_capture(
     backend: str = "principled",
     noise: float = 0.0,
     seed: int = 0,
+    brdf: Callable[..., Tensor] | None = None,
 ) -> Tensor:
     """Render the capture (docs/capture_format.md) of a flat sample with SVBRDF ``maps``.
 
@@ -694,6 +698,10 @@ def render_capture(
             call, :func:`render_points`); both evaluate :func:`torchbrdf.principled`.
         noise: relative sensor noise level (0.01 = 1 %); see :func:`add_noise`.
         seed: noise seed.
+        brdf: another reflectance model in place of :func:`torchbrdf.principled`, called as
+            ``brdf(l, v, n, x, y, **maps)`` on ``(H, W, 3)`` vectors and ``(H, W, C)`` maps and
+            returning ``(H, W, 3)`` (``"principled"`` backend only): the same image formation
+            under a model the recovery does not fit with.
 
     Returns:
         ``(L, 3, H, W)`` linear radiance, float32 (or the maps' dtype), differentiable.
@@ -719,6 +727,8 @@ def render_capture(
             continue
         params[name] = _map_hwc(value, 3 if name == "base_color" else 1, h, w, dtype, device)
     p = pixel_points(w, h, device=device, dtype=dtype)
+    if brdf is not None and backend != "principled":
+        raise ValueError(f"render_capture: brdf= needs backend='principled', got {backend!r}")
     if backend == "compact":
         flat = {k: (v.reshape(-1, v.shape[-1]) if isinstance(v, Tensor) else v) for k, v in params.items()}
         img = render_points(n.reshape(-1, 3), p.reshape(-1, 3), cam, pos, inten, flat)
@@ -732,7 +742,7 @@ def render_capture(
             dl = pos[k] - p
             d2 = (dl * dl).sum(-1, keepdim=True)
             l = dl / d2.sqrt()
-            f = principled(l, v, n, x, y, **params)
+            f = (brdf or principled)(l, v, n, x, y, **params)
             nl = torch.clamp((n * l).sum(-1, keepdim=True), min=0.0)
             out.append((f * inten[k] * nl / d2).permute(2, 0, 1))
         img = torch.stack(out)
@@ -824,8 +834,6 @@ def default_capture(folder: str | os.PathLike | None = None, size: int = 128) ->
         The capture folder (holding ``capture.json`` and ``gt/``).
     """
     if folder is None:
-        from torchbrdf.kernels.build import cache_root  # the one cache variable, one default
-
         root = Path(cache_root())
         folder = root / f"default_capture_{size}"
     folder = Path(folder)

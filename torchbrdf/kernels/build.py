@@ -53,12 +53,9 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
-from torchbrdf.io import fsync_dir
+from torchbrdf.io import CACHE_ENV, cache_root, fsync_dir  # re-exported: the kernels' cache lives there
 
 __all__ = ["load_kernel", "cache_root", "kernel_cache_dir", "available", "CACHE_ENV", "CFLAGS"]
-
-#: The one environment variable naming torchbrdf's per-user cache (kernels, demo capture).
-CACHE_ENV = "TORCHBRDF_CACHE_DIR"
 
 # -ffp-contract=off: no FMA contraction, so float results round exactly like ATen's ops.
 # -fno-math-errno/-fno-trapping-math: lets sqrt and the selects vectorise (IEEE results kept).
@@ -100,27 +97,6 @@ def _warn_once(kind: str, msg: str) -> None:
 # ---------------------------------------------------------------------------------------------
 # Where: the per-user cache
 # ---------------------------------------------------------------------------------------------
-
-def cache_root() -> str:
-    """The per-user cache folder of torchbrdf (kernels, demo capture); not created here.
-
-    ``$TORCHBRDF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchbrdf``, else ``~/.cache/torchbrdf``.
-    A relative or empty ``$XDG_CACHE_HOME`` is ignored (the XDG spec calls it invalid), and
-    so is a relative or empty ``$HOME`` (it would make the cache relative to the current
-    folder): the home folder then comes from the user database.
-    """
-    d = os.environ.get(CACHE_ENV)
-    if d:
-        return os.path.abspath(os.path.expanduser(d))
-    base = os.environ.get("XDG_CACHE_HOME", "")
-    if not os.path.isabs(base):
-        home = os.environ.get("HOME", "")
-        if not os.path.isabs(home):
-            import pwd
-
-            home = pwd.getpwuid(os.getuid()).pw_dir
-        base = os.path.join(home, ".cache")
-    return os.path.join(os.path.abspath(base), "torchbrdf")
 
 
 def kernel_cache_dir() -> str:

@@ -2,7 +2,12 @@
 
 Usage::
 
-    python -m training.fit_measured --merl red-plastic.binary --out fit_red_plastic/ [--two-lobes]
+    torchbrdf-fit-merl --merl red-plastic.binary --out fit_red_plastic/ [--two-lobes]
+    torchbrdf-fit-merl --demo --out fit_demo/      # no data needed: a known material, tabulated
+
+Measured files come from the MERL BRDF database (not shipped); ``--demo`` writes a MERL file
+of :data:`DEMO_MATERIAL` into ``--out`` and fits it, so the fit's error against a known truth
+is in ``params.json`` (``truth_error``).
 
 What is fitted
     The principled parameters ``base_color`` (RGB), ``metallic``, ``specular`` and
@@ -331,13 +336,23 @@ def write_outputs(out: Path, merl: MERLBRDF, model: PrincipledFit, report: dict,
     (out / "params.json").write_text(json.dumps(report, indent=2))
     if not figures:
         return
-    from torchbrdf.analysis import plots
+    from torchbrdf.recovery.fit_figures import slice_comparison_figure, spheres_figure
 
     fitted = _frozen(model)
-    fig = plots.plot_slice_comparison(merl, fitted, labels=(merl.name or "measured", "fitted"))
+    fig = slice_comparison_figure(merl, fitted, labels=(merl.name or "measured", "fitted"))
     fig.savefig(out / "slices.png")
-    fig = plots.plot_spheres([(merl.name or "measured", merl), ("fitted", fitted)], resolution=128)
+    fig = spheres_figure([(merl.name or "measured", merl), ("fitted", fitted)], resolution=128)
     fig.savefig(out / "spheres.png")
+
+
+def _demo_errors(params: dict) -> dict:
+    """Absolute error of each fitted value of :data:`DEMO_MATERIAL` (the largest over channels)."""
+    out = {}
+    for k, want in DEMO_MATERIAL.items():
+        if k in params:
+            got = torch.as_tensor(params[k], dtype=F64)
+            out[k] = float((got - torch.as_tensor(want, dtype=F64)).abs().max())
+    return out
 
 
 def _frozen(model: PrincipledFit):
@@ -350,10 +365,36 @@ def _frozen(model: PrincipledFit):
     return f
 
 
+#: The known material of ``--demo``: a partly metallic copper-coloured principled BRDF, so base
+#: colour, roughness and metallic all shape the data.
+DEMO_MATERIAL = {"base_color": (0.7, 0.35, 0.15), "roughness": 0.3, "metallic": 0.4, "specular": 0.5}
+DEMO_FILE = "demo_principled.binary"
+
+
+def write_demo_merl(folder: Path) -> Path:
+    """Tabulate :data:`DEMO_MATERIAL` into ``folder``/:data:`DEMO_FILE` (MERL binary layout); its path."""
+    from torchbrdf.brdf.measured import write_merl
+
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / DEMO_FILE
+    params = {k: torch.tensor(v, dtype=F64) if isinstance(v, tuple) else v for k, v in DEMO_MATERIAL.items()}
+    write_merl(path, principled, **params)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
-    ap = argparse.ArgumentParser(prog="torchbrdf-fit-merl", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--merl", required=True, help="MERL .binary file")
+    ap = argparse.ArgumentParser(
+        prog="torchbrdf-fit-merl", description=__doc__.split("\n\n")[0],
+        epilog="Measured data: the MERL BRDF database (Matusik et al. 2003, 100 isotropic materials as "
+               "*.binary files) is not shipped with torchbrdf; download it from MERL's BRDF database page "
+               "and pass one file with --merl. --demo needs no data: it writes a MERL file from a known "
+               "principled material (DEMO_MATERIAL) into --out and fits it, reporting the fit's error "
+               "against that truth.")
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--merl", help="MERL .binary file")
+    src.add_argument("--demo", action="store_true",
+                     help=f"fit a synthetic MERL file ({DEMO_FILE}, written into --out) of a known material")
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--two-lobes", action="store_true", help="add a second GGX specular lobe")
     ap.add_argument("--extra", default="", help="more principled parameters to fit, comma separated "
@@ -368,6 +409,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
+    if args.demo:
+        args.merl = str(write_demo_merl(Path(args.out)))
+        print(f"fit_measured: --demo wrote {args.merl} from {DEMO_MATERIAL}")
     merl = MERLBRDF.from_file(args.merl)
     samples = sample_merl(merl, args.samples, args.seed, args.max_theta)
     names = list(DEFAULT_PARAMS) + [n.strip() for n in args.extra.split(",") if n.strip()]
@@ -387,6 +431,9 @@ def main(argv: list[str] | None = None) -> int:
         "max_theta_deg": args.max_theta,
         "seconds": seconds,
     }
+    if args.demo:
+        report["truth"] = DEMO_MATERIAL
+        report["truth_error"] = _demo_errors(model.to_json())
     write_outputs(Path(args.out), merl, model, report, figures=not args.no_figures)
     print(json.dumps({"params": report["params"], "errors": errors}, indent=2))
     print(f"wrote {args.out} in {time.perf_counter() - t0:.1f} s")

@@ -1,0 +1,90 @@
+"""The capture's log residual dispatched to the fused kernels or evaluated eagerly.
+
+:func:`torchbrdf.brdf.formula.capture_log_residual` is the one definition of the residual a
+capture fit minimises (the point-light image formation with the principled BRDF, then the
+log). This module prepares its inputs (:func:`residual_inputs`) and runs it on the fused
+kernels when they apply, or eagerly (:func:`log_residual`, :func:`log_residual_jvp`); the
+kernels are imported here, at dispatch, so the capture layer above never imports them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from torch import Tensor
+
+from torchbrdf import _checks
+from torchbrdf.brdf import formula
+from torchbrdf.brdf import principled as _p
+
+__all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp"]
+
+#: ``(c, active lobes, need_tint, frame, backend)``: the formula's inputs ``c`` (per-pixel
+#: values as ``(P, 1, C)``, broadcast over the lights) and how to run it (backend None: eager).
+ResidualInputs = tuple[dict[str, Any], tuple, bool, bool, str | None]
+
+
+def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+                    params: Mapping, log_obs: Tensor, eps: float, x: Tensor | None = None,
+                    y: Tensor | None = None, any_size: bool = False) -> ResidualInputs:
+    """The checked inputs of :func:`~torchbrdf.brdf.formula.capture_log_residual` and its backend.
+
+    Args:
+        normal: ``(P, 3)`` unit normals; points ``(P, 3)``; camera ``(3,)``; light_pos and
+            light_int ``(L, 3)``; params: ``base_color (P, 3)`` and scalar principled
+            parameters ``(P, 1)`` or floats (a ``"normal"`` entry is ignored); log_obs
+            ``(P, L, 3)``; eps the log's ε; x, y: the tangent frame ``(P, 3)`` or None.
+        any_size: in the automatic mode, the fused kernels at every lane count.
+
+    Every tensor must share ``log_obs``'s dtype and device (checked).
+    """
+    _checks.check_same_dtype_device({"log_obs": log_obs, "normal": normal, "points": points, "camera": camera,
+                                     "light_pos": light_pos, "light_int": light_int,
+                                     **{f"params[{k!r}]": v for k, v in params.items()}})
+
+    def px(t: Any) -> Any:  # a per-pixel value as (P, 1, C): broadcast over the lights
+        return t[:, None] if isinstance(t, Tensor) else t
+
+    mat = {**_p.PRINCIPLED_DEFAULTS, **{k: px(v) for k, v in params.items() if k != "normal"}}
+    c: dict[str, Any] = {**mat, "pos": points[:, None], "n": normal[:, None], "camera": camera,
+                         "light_pos": light_pos[None], "light_int": light_int[None], "log_obs": log_obs,
+                         "eps": float(eps), "x": px(x), "y": px(y)}
+    active = _p.active_lobes(mat)
+    need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
+    tensors = [t for t in c.values() if isinstance(t, Tensor)]
+    lanes = log_obs.shape[0] * log_obs.shape[1]
+    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors,
+                                lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
+    return c, active, need_tint, frame, backend
+
+
+def log_residual(inputs: ResidualInputs) -> Tensor:
+    """The log residual ``(P, L, 3)`` of :func:`residual_inputs`' result, fused when it says so."""
+    c, active, need_tint, frame, backend = inputs
+    if backend is not None:
+        from torchbrdf.kernels.ops import capture_fast
+
+        return capture_fast(c, active, need_tint, frame, backend)
+    ops = formula.TorchOps(c["log_obs"].dtype, c["log_obs"].device)
+    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+
+
+def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> tuple[Tensor, Tensor] | None:
+    """The residual and its derivatives along ``K`` directions on the fused kernels, or None.
+
+    ``tangents``: ``{name: (K, P, C)}`` for ``"normal"`` and parameter names. Returns ``(r (P, L, 3),
+    dr (K, P, L, 3))``, or None where the kernels do not apply (no backend, a tangent frame, or
+    inputs that need a gradient): the caller then takes ``torch.func``'s ``vmap`` of ``jvp``.
+    """
+    import torch
+
+    c, active, need_tint, frame, backend = inputs
+    needs_grad = torch.is_grad_enabled() and any(isinstance(t, Tensor) and t.requires_grad for t in c.values())
+    if backend is None or needs_grad or frame:
+        return None
+    from torchbrdf.kernels.ops import capture_jvp
+
+    # the inputs' per-pixel (P, 1, C) layout, as residual_inputs gives them
+    tans = {"n" if k == "normal" else k: t[:, :, None] for k, t in tangents.items()}
+    return capture_jvp(c, tans, active, need_tint, frame, backend)
