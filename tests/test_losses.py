@@ -11,7 +11,7 @@ import torch
 import torchbrdf
 from torchbrdf import losses as L
 
-from .reference import principled_ref
+from tests.reference import principled_ref
 
 
 def _maps(layout, b=2, size=8, seed=0, dtype=torch.float32):

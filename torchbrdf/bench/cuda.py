@@ -314,7 +314,7 @@ def gpu_section(out_dir: str) -> list:
     else:
         L += ["**No GPU numbers have been measured yet** (no machine used so far had a GPU). The Triton "
               "kernels are tested for correctness on the CPU through Triton's interpreter "
-              "(`tests/test_triton_backend.py`) and compiled for sm_90 without a GPU, but their speed and "
+              "(`tests/kernels/test_triton_backend.py`) and compiled for sm_90 without a GPU, but their speed and "
               "memory on a GPU are unknown.", ""]
     L += ["On a machine with CUDA (and `pip install -e \".[triton]\"`; Mitsuba optional):", "", "```bash",
           "python -m torchbrdf.bench --device cuda", "```", "",

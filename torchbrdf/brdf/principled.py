@@ -5,7 +5,7 @@ Hanrahan–Krueger-like subsurface blend, an anisotropic GGX primary lobe with t
 un-remapped anisotropic Smith G of the 2014 addendum, Schlick Fresnel toward a tinted or
 metallic F0, a Schlick-shaped sheen, and a GTR1 clearcoat with its fixed α = 0.25 Smith G.
 
-Numerics (each pinned by ``tests/test_principled.py`` and ``tests/test_hard_cases.py``):
+Numerics (each pinned by ``tests/brdf/test_principled.py`` and ``tests/brdf/test_hard_cases.py``):
 
 * ``f = 0`` exactly, with zero gradients, where ``n·l <= 0`` or ``n·v <= 0``: the math runs
   on cosines clamped to ``COS_EPS`` so the masked lanes stay finite, then is masked.

@@ -58,7 +58,7 @@ puts the 10 % falloff of ``D`` at the cone angle:
 ``power = ln 10 / sin^2(cone)``, with the specular cone ``5 deg + 30 deg r`` and the
 reflection cone ``10 deg r``, each multiplied by its cone scale.
 
-Choices where the notes are open (each is tested in ``tests/test_smits.py``)
+Choices where the notes are open (each is tested in ``tests/brdf/test_smits.py``)
 ----------------------------------------------------------------------------
 1. **Normalising denominator of the highlight lobe.** The notes only say it was "changed a
    bit" so that the lobe comes closer to integrating to 1 for every view. As we read

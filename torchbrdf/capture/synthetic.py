@@ -15,7 +15,7 @@ Three pieces:
   call :func:`torchbrdf.principled` (the one definition of the formula): ``"principled"``
   one light at a time on the image grid, ``"compact"`` (:func:`render_points`, what the
   recovery fits with) every light and pixel in one call, which the fused kernels evaluate;
-  they agree to float rounding (pinned by ``tests/test_synthetic.py``).
+  they agree to float rounding (pinned by ``tests/capture/test_synthetic.py``).
 
 :func:`generate_capture` ties them together and writes a capture folder plus ``gt/`` maps
 named as in the recovery's output layout (docs/capture_format.md).

@@ -22,10 +22,10 @@ from torchbrdf.recovery import engine
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
-from tests.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
-from tests.recovery_fixtures import copy_out as _copy
-from tests.recovery_fixtures import file_hashes as _hashes
-from tests.recovery_fixtures import one_line_error as _one_line_error
+from tests.recovery.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
+from tests.recovery.recovery_fixtures import copy_out as _copy
+from tests.recovery.recovery_fixtures import file_hashes as _hashes
+from tests.recovery.recovery_fixtures import one_line_error as _one_line_error
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +154,7 @@ def test_sigkill_during_output_write_then_next_run_cleans_up(done, cap, tmp_path
 
     out = _copy(done, tmp_path)
     before = _hashes(out)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, "-c", _KILL_DURING_WRITE, "--capture", str(cap), "--out", str(out),
                            *FAST[:-1], "9"], env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
@@ -386,7 +386,7 @@ def test_command_line_exit_status_and_output_reach_the_caller(cap, tmp_path):
     import subprocess
     import sys
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(root)}
     cmd = [sys.executable, "-m", "training.recover_svbrdf"]
     bad = subprocess.run([*cmd, "--capture", str(tmp_path / "none"), "--out", str(tmp_path / "o1")],

@@ -245,9 +245,9 @@ def test_truncated_kernel_with_forged_sidecar_does_not_crash(cache, golden):
     # in a child process: if the loader touched the file, the SIGBUS would kill pytest itself
     script = textwrap.dedent(f"""
         import sys, warnings
-        sys.path.insert(0, {os.path.dirname(os.path.dirname(__file__))!r})
+        sys.path.insert(0, {os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))!r})
         warnings.filterwarnings("error", message="torchbrdf")
-        from tests.test_kernel_cache import _check_principled
+        from tests.kernels.test_kernel_cache import _check_principled
         assert _check_principled(expect_fused=True)
     """)
     env = dict(os.environ, TORCHBRDF_CACHE_DIR=str(cache), OMP_NUM_THREADS="1")
@@ -339,9 +339,9 @@ def test_two_processes_compiling_at_once(cache):
     go = cache.parent / "go"
     script = textwrap.dedent(f"""
         import os, sys, time, warnings
-        sys.path.insert(0, {os.path.dirname(os.path.dirname(__file__))!r})
+        sys.path.insert(0, {os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))!r})
         warnings.filterwarnings("error", message="torchbrdf")
-        from tests.test_kernel_cache import _check_principled
+        from tests.kernels.test_kernel_cache import _check_principled
         open(sys.argv[1], "w").close()
         while not os.path.exists({str(go)!r}):
             time.sleep(0.01)

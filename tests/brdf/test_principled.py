@@ -9,8 +9,8 @@ import torch
 import torchbrdf
 from torchbrdf import PrincipledBRDF, principled
 
-from .conftest import hemisphere_pairs
-from .reference import principled_ref
+from tests.conftest import hemisphere_pairs
+from tests.reference import principled_ref
 
 SCALARS = ["metallic", "subsurface", "specular", "roughness", "specular_tint", "anisotropic",
            "sheen", "sheen_tint", "clearcoat", "clearcoat_gloss"]

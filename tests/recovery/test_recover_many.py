@@ -186,7 +186,7 @@ def test_interrupted_capture_is_resumed(good, single, tmp_path):
     rows = run_batch(good, out, RecoveryConfig(**CFG), use_ray=False, progress=False)
     assert _status(rows) == {"cap0": "done", "cap1": "done", "cap2": "done"}
     assert rows[0]["iterations"] == single["cap0"]["iterations"]
-    for k in MAPS:  # resumed = uninterrupted, to the tolerance of tests/test_recovery.py
+    for k in MAPS:  # resumed = uninterrupted, to the tolerance of tests/recovery/test_recovery.py
         got = read_exr(out / "cap0" / f"{k}.exr")
         torch.testing.assert_close(got, single["cap0"][k], rtol=1e-5, atol=1e-6)
 

@@ -103,7 +103,7 @@ RECIPES = ("tiles", "metal_inlay", "scratched_metal", "painted", "stone", "circu
 def test_no_comment_or_default_of_the_algorithm_names_a_tuning_capture():
     """A threshold justified by one of the generator's captures ("dusty_metal 3 ... 0.0762 -> 0.0443")
     is tuned to it; the reason goes in the docs' measurements, the code keeps the why."""
-    root = Path(__file__).resolve().parent.parent / "torchbrdf" / "recovery"
+    root = Path(__file__).resolve().parents[2] / "torchbrdf" / "recovery"
     pattern = re.compile(rf"\b({'|'.join(RECIPES)})\b'?\s*(seed\s*)?\d|\bissue \d+|\bseed \d+")
     for name in ("config", "params", "levels", "map_ops", "lm", "priors", "calibration", "search",
                  "classes", "soft_metal", "engine", "smoothness_prior"):
@@ -123,7 +123,7 @@ def test_the_algorithm_is_split_into_modules_of_one_concept():
     import torchbrdf.recovery.solver as solver
     from torchbrdf.recovery.engine import Recovery
 
-    root = Path(__file__).resolve().parent.parent / "torchbrdf" / "recovery"
+    root = Path(__file__).resolve().parents[2] / "torchbrdf" / "recovery"
     for name in ALGORITHM:
         text = (root / f"{name}.py").read_text()
         assert len(text.splitlines()) <= 900, name

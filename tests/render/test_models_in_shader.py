@@ -7,7 +7,7 @@ import torchbrdf
 from torchbrdf.render.geometry import sphere_gbuffer
 from torchbrdf.render.lights import DirectionalLight, PointLight
 
-from .test_shading import direct_reference, rand
+from tests.render.test_shading import direct_reference, rand
 
 LIGHTS = [PointLight(torch.tensor([2.0, 1.5, 3.0]), torch.tensor([20.0, 18.0, 15.0])),
           DirectionalLight(torch.tensor([-0.3, 0.5, 0.8]), torch.tensor([1.0, 0.9, 0.8]))]

@@ -14,8 +14,8 @@ import torch
 import torchbrdf
 from torchbrdf.kernels import fused as _fast
 
-from .reference import principled_ref
-from .test_principled import SCALARS, random_case, to_t
+from tests.reference import principled_ref
+from tests.brdf.test_principled import SCALARS, random_case, to_t
 
 P = importlib.import_module("torchbrdf.brdf.principled")
 

@@ -17,8 +17,8 @@ import torch
 
 import torchbrdf
 
-from .reference import principled_ref
-from .test_principled import SCALARS, random_case, to_t
+from tests.reference import principled_ref
+from tests.brdf.test_principled import SCALARS, random_case, to_t
 
 triton = pytest.importorskip("triton")
 

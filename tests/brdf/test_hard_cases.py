@@ -15,7 +15,7 @@ import torchbrdf
 from torchbrdf.brdf import distributions as nd
 from torchbrdf import principled
 
-from .reference import principled_ref
+from tests.reference import principled_ref
 
 DTYPES = [torch.float64, torch.float32, torch.float16, torch.bfloat16]
 PARAMS = list(torchbrdf.PRINCIPLED_DEFAULTS)

@@ -9,7 +9,7 @@ import torch
 from torchbrdf.brdf import diffuse as df
 from torchbrdf import microfacet, principled
 
-from .conftest import hemisphere_pairs
+from tests.conftest import hemisphere_pairs
 
 
 def hemisphere_grid(n=200):

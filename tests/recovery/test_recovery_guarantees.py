@@ -26,10 +26,10 @@ from torchbrdf.recovery.batch import run_batch
 from torchbrdf.recovery.checkpoint import state_checksum
 from torchbrdf.recovery.svbrdf import CHECKPOINT, main
 
-from tests.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
-from tests.recovery_fixtures import copy_out as _copy
-from tests.recovery_fixtures import file_hashes as _hashes
-from tests.recovery_fixtures import one_line_error as _one_line_error
+from tests.recovery.recovery_fixtures import FAST, cap, done, stopped  # noqa: F401  (fixtures)
+from tests.recovery.recovery_fixtures import copy_out as _copy
+from tests.recovery.recovery_fixtures import file_hashes as _hashes
+from tests.recovery.recovery_fixtures import one_line_error as _one_line_error
 
 
 @contextlib.contextmanager
