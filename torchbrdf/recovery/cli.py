@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
+from torchbrdf.parallel import default_threads
 from torchbrdf.recovery.api import recover
 from torchbrdf.recovery.checks import RecoveryError, check_config
 from torchbrdf.recovery.options import OFF_SWITCHES, build_parser
@@ -37,7 +38,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
-            threads=args.threads, converge_tol=args.converge_tol, converge_min_iters=args.converge_min_iters,
+            threads=args.threads or default_threads(), converge_tol=args.converge_tol, converge_min_iters=args.converge_min_iters,
             **off,
         )
         check_config(cfg)
