@@ -301,7 +301,8 @@ def test_the_checks_see_what_they_forbid(tmp_path):
     root = _package(tmp_path, {
         "__init__.py": "",
         "_math.py": "",
-        "brdf/__init__.py": '"""May import: ``torchbrdf._math`` and ``torchbrdf.kernels``.  Never ``render``."""\n',
+        "brdf/__init__.py": ('"""May import: ``torchbrdf._math`` and ``torchbrdf.kernels``.  '
+                             'Never ``render``."""\n'),
         "brdf/formula.py": "from torchbrdf._math import dot\n",
         "brdf/model.py": ("def g():\n    from torchbrdf.render import shade\n"
                           "    from torchbrdf.kernels import ops\n    return ops._pool\n"),

@@ -8,6 +8,8 @@ builds the BSDF from :func:`torchbrdf.bench.brdf.make_inputs`-style arrays (NumP
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 __all__ = ["mitsuba_available", "mitsuba_setup", "mitsuba_fwd", "mitsuba_fwdbwd"]
 
 
@@ -103,7 +105,8 @@ def _surface_interaction(s, wi):
     return si
 
 
-def mitsuba_fwd(s, world: bool = True):
+def mitsuba_fwd(s: dict, world: bool = True) -> Callable[[], None]:
+    """The timed forward call on :func:`mitsuba_setup`'s ``s`` (``world``: from world-space directions)."""
     import drjit as dr
 
     def run():
@@ -113,7 +116,8 @@ def mitsuba_fwd(s, world: bool = True):
     return run
 
 
-def mitsuba_fwdbwd(s, world: bool = True):
+def mitsuba_fwdbwd(s: dict, world: bool = True) -> Callable[[], None]:
+    """The timed forward+backward call (gradients of every parameter texture and direction)."""
     import drjit as dr
 
     def run():

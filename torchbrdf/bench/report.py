@@ -209,17 +209,10 @@ def write_plots(res: dict, out_dir: str) -> list:
             e = a[(r["dtype"], r["path"])]["p99_rel"]
             ax.scatter(1e9 / r["fwdbwd_rate"], max(e, 1e-17), label=f"{r['dtype']} {r['path']}",
                        marker="o" if r["path"] == "fast" else "s")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel(f"ns per forward+backward evaluation (N = 2^{int(math.log2(Nref))})")
-        ax.set_ylabel("p99 relative error vs float64")
-        ax.set_title("principled: accuracy vs time (lower-left is better)")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "bench_pareto_dtype.png"), dpi=110)
-        plt.close(fig)
-        files.append("bench_pareto_dtype.png")
+        files.append(_save_log_log(
+            plt, fig, ax, os.path.join(out_dir, "bench_pareto_dtype.png"),
+            f"ns per forward+backward evaluation (N = 2^{int(math.log2(Nref))})",
+            "p99 relative error vs float64", "principled: accuracy vs time (lower-left is better)"))
     env = res.get("environment")
     if env:
         fig, ax = plt.subplots(figsize=(7.5, 5.0))
@@ -239,21 +232,30 @@ def write_plots(res: dict, out_dir: str) -> list:
             if "prefilter_seconds" in ss[0]:
                 ax.scatter([ss[0]["seconds"] + ss[0]["prefilter_seconds"]], [ss[0]["mean_rel_err"]], marker="*",
                            s=150, facecolors="none", edgecolors="r", label="split sum incl. prefiltering")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel("seconds")
-        ax.set_ylabel("relative L1 error vs quadrature")
-        ax.set_title("environment lighting: error vs time (labels: samples per point)")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "bench_pareto_env.png"), dpi=110)
-        plt.close(fig)
-        files.append("bench_pareto_env.png")
+        files.append(_save_log_log(
+            plt, fig, ax, os.path.join(out_dir, "bench_pareto_env.png"), "seconds",
+            "relative L1 error vs quadrature", "environment lighting: error vs time (labels: samples per point)"))
     lobes = res.get("environment_lobes")
     if lobes:
         files.append(_plot_env_lobes(plt, lobes, out_dir))
     return files
+
+
+def _save_log_log(plt, fig, ax, path: str, xlabel: str, ylabel: str, title: str) -> str:
+    """Log-log axes with labels, grid and legend; saves ``fig`` to ``path`` and closes it.
+
+    Returns the file name (the last part of ``path``)."""
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return os.path.basename(path)
 
 
 def _plot_env_lobes(plt, res: dict, out_dir: str) -> str:

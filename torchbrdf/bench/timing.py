@@ -15,7 +15,8 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-__all__ = ["Spread", "time_alternating", "median_time", "overlaps", "ratio_text", "spread_text", "format_or_dash"]
+__all__ = ["Spread", "time_alternating", "median_time", "overlaps", "ratio_text", "spread_text",
+           "format_or_dash"]
 
 _Key = TypeVar("_Key", bound=Hashable)
 

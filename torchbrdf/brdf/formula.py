@@ -93,7 +93,7 @@ SCALAR_PARAMS = tuple(PRINCIPLED_DEFAULTS)
 LOBES = ("diffuse", "subsurface", "specular", "sheen", "clearcoat")
 
 
-def is_const(p, value: float) -> bool:
+def is_const(p: Any, value: float) -> bool:
     """True when ``p`` is a Python number equal to ``value`` (a tensor is never assumed constant)."""
     return isinstance(p, numbers.Real) and float(p) == value
 

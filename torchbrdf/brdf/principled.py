@@ -300,7 +300,7 @@ def principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
     return formula.principled(ops, c, active, needs_tint(c, active), needs_frame(c))
 
 
-def needs_tint(c: dict, active) -> bool:
+def needs_tint(c: dict, active: tuple[str, ...]) -> bool:
     """Whether the tint colour is needed: ``specular_tint`` or (with sheen active) ``sheen_tint``
     is not the constant 0. ``c`` maps parameter names to checked values (``_prepare``'s)."""
     tinted_sheen = "sheen" in active and not is_const(c["sheen_tint"], 0.0)
