@@ -46,7 +46,7 @@ import sys
 import tempfile
 import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from torchbrdf.kernels.graphs import build
@@ -88,7 +88,7 @@ def lit(x: float) -> str:
 class Printer:
     """Prints nodes as Triton expressions for a compute type ``DT`` (``tl.float32``/``tl.float64``)."""
 
-    def __init__(self, ctype: str, go_strides: tuple[int, int] = (3, 1)) -> None:
+    def __init__(self, ctype: str, go_strides=(3, 1)):
         self.go_strides = tuple(go_strides)
         self.f32 = ctype == "float"
         self.DT = "tl.float32" if self.f32 else "tl.float64"
@@ -109,7 +109,7 @@ class Printer:
                 f"tl.load({ptr} + i, mask=m, other=0.0)"
         return f"tl.load({ptr} + {c})" if mode == "b1" else f"tl.load({ptr})"
 
-    def expr(self, nd: Node, v: Callable[[Any], str]) -> str:
+    def expr(self, nd: Node, v) -> str:
         a = [v(x) for x in nd.args]
         op, k = nd.op, nd.kind
         hi32 = k == "r" and self.f32  # a float32 value
