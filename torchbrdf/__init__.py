@@ -91,7 +91,7 @@ from torchbrdf.brdf.masking import (
 from torchbrdf.io import read_exr, to_display, write_exr, write_png
 from torchbrdf.brdf.measured import MERLBRDF, merl_coordinates, read_merl, write_merl
 from torchbrdf.brdf.microfacet import MicrofacetBRDF, microfacet
-from torchbrdf.brdf.capture_model import SVBRDFGGX, svbrdf_ggx
+from torchbrdf.brdf.svbrdf_ggx import SVBRDFGGX, svbrdf_ggx
 from torchbrdf.render.gbuffer import GBuffer
 from torchbrdf.render.geometry import pinhole_rays, plane_gbuffer, sphere_gbuffer
 from torchbrdf.brdf.lambert import LambertBRDF, lambert

@@ -45,7 +45,7 @@ import torch
 from torch import Tensor, nn
 
 from torchbrdf._math import dot, safe_normalize
-from torchbrdf.brdf.capture_model import ROUGHNESS_FLOOR_DESCHAINTRE, svbrdf_ggx
+from torchbrdf.brdf.svbrdf_ggx import ROUGHNESS_FLOOR_DESCHAINTRE, svbrdf_ggx
 from torchbrdf.brdf.principled import principled
 from torchbrdf.capture.format import pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES

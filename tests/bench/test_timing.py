@@ -2,7 +2,7 @@
 
 import pytest
 
-from torchbrdf.bench import brdf as bench_brdf
+from torchbrdf.bench import environment as bench_brdf
 from torchbrdf.bench import timing
 from torchbrdf.bench.timing import Spread, overlaps, ratio_text, spread_text, time_alternating
 

@@ -686,7 +686,7 @@ def test_bad_sampling_raises():
 
 def test_bench_environment_skies_reports_both_variants():
     """The other-skies benchmark runs, and its peaks beat the whole map on a sun."""
-    from torchbrdf.bench import brdf as bench
+    from torchbrdf.bench import environment as bench
 
     res = bench.environment_skies(lambda *_: None, side=6, grazing=4, roughness=(0.5,))
     assert len(res["rows"]) == len(bench.ENV_SKIES)

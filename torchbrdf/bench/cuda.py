@@ -109,7 +109,7 @@ class _Backend:
     def __enter__(self):
         from torchbrdf.kernels import backend
 
-        self.old = (backend._setting["backend"], torchbrdf.fast_path_enabled())
+        self.old = (backend.explicit_backend(), torchbrdf.fast_path_enabled())
         torchbrdf.set_backend(self.name)
         torchbrdf.set_fast_path(None if self.name == "eager" else True)
 
@@ -148,7 +148,7 @@ def _principled_fns(path: str, x: dict, xg: dict):
     if path == "compile":
         from torchbrdf.brdf import principled as _P
 
-        cf = torch.compile(lambda **kw: _P._principled_eager(dict(kw), torchbrdf.LOBES), dynamic=False)
+        cf = torch.compile(lambda **kw: _P.principled_eager(dict(kw), torchbrdf.LOBES), dynamic=False)
 
         def fwd():
             with torch.no_grad():
@@ -160,12 +160,12 @@ def _principled_fns(path: str, x: dict, xg: dict):
             cf(**xg).sum().backward()
         return fwd, fb
     if path == "mitsuba":
-        from torchbrdf.bench import brdf as _b
+        from torchbrdf.bench import mitsuba
 
-        if _b.mitsuba_available("cuda_ad_rgb") is None:
+        if mitsuba.mitsuba_available("cuda_ad_rgb") is None:
             return None
-        s = _b._mitsuba_setup({k: t.detach().cpu().numpy() for k, t in x.items()}, variant="cuda_ad_rgb")
-        return _b._mitsuba_fwd(s, world=True), _b._mitsuba_fwdbwd(s, world=True)
+        s = mitsuba.mitsuba_setup({k: t.detach().cpu().numpy() for k, t in x.items()}, variant="cuda_ad_rgb")
+        return mitsuba.mitsuba_fwd(s, world=True), mitsuba.mitsuba_fwdbwd(s, world=True)
     raise ValueError(f"path: expected one of {PATHS}, got {path!r}")
 
 
@@ -339,11 +339,11 @@ def run(device: torch.device | str | int = "cuda", sizes: Iterable[int] = SIZES,
     except ImportError:
         tver = None
         paths = [p for p in paths if p != "triton"]
-    from torchbrdf.bench import brdf as _b
+    from torchbrdf.bench.mitsuba import mitsuba_available
 
     res = dict(gpu=torch.cuda.get_device_name(device) if device.type == "cuda" else str(device),
                torch=torch.__version__, triton=tver,
-               mitsuba=_b.mitsuba_available("cuda_ad_rgb") if "mitsuba" in paths else None,
+               mitsuba=mitsuba_available("cuda_ad_rgb") if "mitsuba" in paths else None,
                config=dict(sizes=list(sizes), paths=list(paths), repeats=repeats, shade_size=shade_size,
                            lights=lights))
     log(f"device: {res['gpu']}; triton {tver}; Mitsuba cuda_ad_rgb: {res['mitsuba'] or 'not installed'}")

@@ -6,7 +6,7 @@ A horizon is a sharp-edged feature too broad to be one of the map's peaks: refle
 sphere it runs across the picture, and a symmetric prefiltering kernel blurs it. The sky here
 is a bright sky over a dark ground, blended linearly across ±5° of elevation, with a 2° sun
 (2000× the sky) at three positions. The material is a white GGX metal (roughness 0.2, 0.5, 0.9)
-on the orthographic sphere of :func:`torchbrdf.bench.brdf.sphere_points`, float64. The reference
+on the orthographic sphere of :func:`torchbrdf.bench.environment.sphere_points`, float64. The reference
 is the library's own MIS Monte Carlo (:func:`~torchbrdf.render.envmap.integrate_environment_mc`)
 at ``--samples`` per point; a second reference at another seed gives its noise floor.
 Reported per sky and roughness: bias Σ(est − ref) / Σ ref and per-pixel L1 Σ|est − ref| / Σ ref
@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from torchbrdf.bench.brdf import sphere_points
+from torchbrdf.bench.environment import sphere_points
 
 #: Sun positions (elevation °, azimuth rad) of :func:`horizon_sky`'s three skies.
 SUNS: tuple[tuple[float, float], ...] = ((10.0, 0.6), (35.0, 0.6), (20.0, 3.0))

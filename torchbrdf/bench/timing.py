@@ -15,7 +15,8 @@ from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-__all__ = ["Spread", "time_alternating", "overlaps", "ratio_text", "spread_text"]
+__all__ = ["Spread", "time_alternating", "median_time", "overlaps", "ratio_text", "spread_text",
+           "format_or_dash"]
 
 _Key = TypeVar("_Key", bound=Hashable)
 
@@ -87,3 +88,15 @@ def spread_text(s: Spread, work: float | None = None, spec: str = ".3g") -> str:
         return f"{s.median:{spec}} ({s.min:{spec}}–{s.max:{spec}})"
     lo, med, hi = s.rate(work)
     return f"{med:{spec}} ({lo:{spec}}–{hi:{spec}})"
+
+
+def median_time(fn: Callable[[], object], repeats: int, budget: float) -> tuple[float, int]:
+    """Median wall time (seconds) of ``fn()`` after one warm-up call, and the repeats taken
+    (fewer than ``repeats`` when slow; see :func:`time_alternating`'s ``budget``)."""
+    s = time_alternating({"fn": fn}, repeats, budget)["fn"]
+    return s.median, s.repeats
+
+
+def format_or_dash(x: float | None, spec: str = ".3g") -> str:
+    """``x`` formatted with ``spec``, or "—" for a value not measured (``None``)."""
+    return "—" if x is None else format(x, spec)

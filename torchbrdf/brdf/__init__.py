@@ -2,7 +2,7 @@
 
 Fresnel terms (``fresnel``), normal distributions (``distributions``), masking-shadowing
 (``masking``), diffuse lobes (``diffuse``), frames (``frames``) and the models composed from
-them: ``principled`` (Disney 2012/2014), ``smits`` (Pixar Wall-E/Up), ``capture_model`` (the
+them: ``principled`` (Disney 2012/2014), ``smits`` (Pixar Wall-E/Up), ``svbrdf_ggx`` (the
 SVBRDF-capture GGX), ``microfacet`` (any D·F·G by name), ``lambert`` and ``measured`` (MERL);
 ``capture_residual`` runs a capture fit's log residual on the fused kernels (or eagerly).
 

@@ -51,10 +51,10 @@ def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: T
                          "light_pos": light_pos[None], "light_int": light_int[None], "log_obs": log_obs,
                          "eps": float(eps), "x": px(x), "y": px(y)}
     active = _p.active_lobes(mat)
-    need_tint, frame = _p._need_tint(c, active), _p._needs_frame(c)
+    need_tint, frame = _p.needs_tint(c, active), _p.needs_frame(c)
     tensors = [t for t in c.values() if isinstance(t, Tensor)]
     lanes = log_obs.shape[0] * log_obs.shape[1]
-    backend = _p._fused_backend(log_obs.device, log_obs.dtype, tensors,
+    backend = _p.fused_backend(log_obs.device, log_obs.dtype, tensors,
                                 lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
     return c, active, need_tint, frame, backend
 

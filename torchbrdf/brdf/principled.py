@@ -135,7 +135,7 @@ def principled(
     backend = _fast_backend(c)
     f = _principled_fast_or_none(c, active, backend) if backend is not None else None
     if f is None:
-        f = _principled_eager(c, active)
+        f = principled_eager(c, active)
     return cast_back(f, dtype)
 
 
@@ -186,10 +186,10 @@ def _fast_backend(c: dict) -> str | None:
         except RuntimeError:
             return None
 
-    return _fused_backend(c["l"].device, c["l"].dtype, tensors, lanes)
+    return fused_backend(c["l"].device, c["l"].dtype, tensors, lanes)
 
 
-def _fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor],
+def fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor],
                    lanes: Callable[[], int | None]) -> str | None:
     """The one dispatch rule of the fused kernels (``principled`` and the shader's light pass).
 
@@ -275,12 +275,12 @@ def _principled_fast_or_none(c: dict, active: tuple[str, ...], backend: str = "c
     from torchbrdf.kernels import ops as _ops
 
     c = _fill_frame(c)
-    return _ops.principled_fast(c, active, _need_tint(c, active), _needs_frame(c), backend=backend)
+    return _ops.principled_fast(c, active, needs_tint(c, active), needs_frame(c), backend=backend)
 
 
 def _fill_frame(c: dict) -> dict:
     """``c`` with the tangent frame filled in when the anisotropic form needs one."""
-    if not _needs_frame(c) or (c["x"] is not None and c["y"] is not None):
+    if not needs_frame(c) or (c["x"] is not None and c["y"] is not None):
         return c
     c = dict(c)
     if c["x"] is None:
@@ -290,22 +290,25 @@ def _fill_frame(c: dict) -> dict:
     return c
 
 
-def _principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
+def principled_eager(c: dict, active: tuple[str, ...]) -> Tensor:
     """The principled BRDF on already-checked, compute-dtype inputs ``c`` (see ``_prepare``).
 
     This is :func:`torchbrdf.brdf.formula.principled` evaluated with torch operations.
     """
     c = _fill_frame(c)
     ops = formula.TorchOps(c["l"].dtype, c["l"].device)
-    return formula.principled(ops, c, active, _need_tint(c, active), _needs_frame(c))
+    return formula.principled(ops, c, active, needs_tint(c, active), needs_frame(c))
 
 
-def _need_tint(c: dict, active) -> bool:
+def needs_tint(c: dict, active: tuple[str, ...]) -> bool:
+    """Whether the tint colour is needed: ``specular_tint`` or (with sheen active) ``sheen_tint``
+    is not the constant 0. ``c`` maps parameter names to checked values (``_prepare``'s)."""
     tinted_sheen = "sheen" in active and not is_const(c["sheen_tint"], 0.0)
     return not is_const(c["specular_tint"], 0.0) or tinted_sheen
 
 
-def _needs_frame(c: dict) -> bool:
+def needs_frame(c: dict) -> bool:
+    """Whether the anisotropic form (and so a tangent frame ``x``, ``y``) is needed for ``c``."""
     return not (c["x"] is None and c["y"] is None and is_const(c["anisotropic"], 0.0))
 
 

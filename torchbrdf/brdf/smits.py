@@ -460,17 +460,6 @@ def smits_lobes(  # noqa: D417 (the material parameters are documented once, in 
     sq = safe_sqrt(r_eta)
     eta = (1.0 + sq) / (1.0 - sq)
 
-    # Lobes whose weights are exactly 0 for Python-number parameters (no tensor is read).
-    pruned = {name for name in SMITS_LOBES if is_zero(params[name + "_scale"])}
-    if is_zero(clear):
-        pruned |= {"transmit_specular", "refraction"}
-    if is_zero(back):
-        pruned.add("transmit_diffuse")
-    if isinstance(roughness, numbers.Real) and float(roughness) >= 0.5:
-        pruned |= {"reflection", "refraction"}
-    if isinstance(roughness, numbers.Real) and float(roughness) >= 1.0:
-        pruned |= {"specular", "transmit_specular"}
-
     values = dict(
         diffuse_n=diffuse_n,
         diffuse_g=diffuse_g,
@@ -497,7 +486,23 @@ def smits_lobes(  # noqa: D417 (the material parameters are documented once, in 
     for k, x in values.items():
         ch = 3 if (k.endswith(("_n", "_g")) or k.endswith("normal")) else 1
         out[k] = torch.broadcast_to(x, (*batch, ch))
-    return SmitsLobes(**out, pruned=frozenset(pruned))
+    return SmitsLobes(**out, pruned=_pruned_lobes(params))
+
+
+def _pruned_lobes(params: dict) -> frozenset[str]:
+    """Lobes whose weights are exactly 0 for Python-number parameters (no tensor is read);
+    ``params`` are :func:`smits_lobes`' arguments by name."""
+    pruned = {name for name in SMITS_LOBES if is_zero(params[name + "_scale"])}
+    if is_zero(params["clear"]):
+        pruned |= {"transmit_specular", "refraction"}
+    if is_zero(params["back"]):
+        pruned.add("transmit_diffuse")
+    roughness = params["roughness"]
+    if isinstance(roughness, numbers.Real) and float(roughness) >= 0.5:
+        pruned |= {"reflection", "refraction"}
+    if isinstance(roughness, numbers.Real) and float(roughness) >= 1.0:
+        pruned |= {"specular", "transmit_specular"}
+    return frozenset(pruned)
 
 
 # --------------------------------------------------------------------------- evaluation

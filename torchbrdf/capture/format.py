@@ -288,6 +288,24 @@ def load_capture(
             ``capture.json`` check runs before any image is read.
     """
     folder = Path(folder)
+    json_path, meta = _read_description(folder)
+    width, height, cam_pos, entries = _capture_fields(meta, json_path)
+    # First every entry (cheap, JSON only), then the images: bad descriptions fail up front.
+    files, paths, positions, intensities = _image_entries(entries, folder, json_path)
+    images = _read_images(paths, width, height, json_path)
+    return Capture(
+        images=torch.stack(images).to(device=device, dtype=dtype),
+        light_positions=torch.tensor(positions, dtype=torch.float64).to(device=device, dtype=dtype),
+        light_intensities=torch.tensor(intensities, dtype=torch.float64).to(device=device, dtype=dtype),
+        camera_position=torch.tensor(cam_pos, dtype=torch.float64).to(device=device, dtype=dtype),
+        width=width,
+        height=height,
+        files=tuple(files),
+    )
+
+
+def _read_description(folder: Path) -> tuple[Path, dict]:
+    """``capture.json``'s path and its top-level object; errors name the folder or the file."""
     if not folder.is_dir():
         if folder.exists():
             raise NotADirectoryError(f"capture folder '{folder}' is a file, not a folder")
@@ -306,7 +324,11 @@ def load_capture(
         raise ValueError(f"{json_path}: not UTF-8 text ({e})") from e
     if not isinstance(meta, dict):
         raise ValueError(f"{json_path}: the top level must be a JSON object, got {type(meta).__name__}")
+    return json_path, meta
 
+
+def _capture_fields(meta: dict, json_path: Path) -> tuple[int, int, list[float], list]:
+    """Width, height, camera position and the ``images`` list of a description, checked."""
     width = _positive_int(_require(meta, "width", "the capture", json_path), "width", json_path)
     height = _positive_int(_require(meta, "height", "the capture", json_path), "height", json_path)
     camera = _require(meta, "camera", "the capture", json_path)
@@ -319,10 +341,13 @@ def load_capture(
     entries = _require(meta, "images", "the capture", json_path)
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{json_path}: images must be a non-empty list")
+    return width, height, cam_pos, entries
 
-    # First every entry (cheap, JSON only), then the images: bad descriptions fail up front.
+
+def _image_entries(entries: list, folder: Path, json_path: Path) -> tuple[list[str], list[Path], list, list]:
+    """File names, image paths, light positions and intensities of the ``images`` entries, checked
+    (JSON only: no image is opened)."""
     files: list[str] = []
-    images: list[Tensor] = []
     paths, positions, intensities = [], [], []
     for k, entry in enumerate(entries):
         where = f"images[{k}]"
@@ -359,7 +384,12 @@ def load_capture(
         intensities,
         lambda k: f"{json_path}: images[{k}].light.intensity" if k is not None else f"{json_path}",
     )
+    return files, paths, positions, intensities
 
+
+def _read_images(paths: list[Path], width: int, height: int, json_path: Path) -> list[Tensor]:
+    """The listed images, each ``(3, H, W)``, checked (:func:`_check_pixels`) and distinct."""
+    images: list[Tensor] = []
     for k, file in enumerate(paths):
         where = f"images[{k}]"
         listed = f"{file}: image listed as {where}.file in {json_path}"
@@ -379,16 +409,7 @@ def load_capture(
             raise ValueError(f"{file} ({where} in {json_path}): the same pixels as {paths[same].name} "
                              f"(images[{same}]); each light needs its own exposure")
         images.append(image)
-
-    return Capture(
-        images=torch.stack(images).to(device=device, dtype=dtype),
-        light_positions=torch.tensor(positions, dtype=torch.float64).to(device=device, dtype=dtype),
-        light_intensities=torch.tensor(intensities, dtype=torch.float64).to(device=device, dtype=dtype),
-        camera_position=torch.tensor(cam_pos, dtype=torch.float64).to(device=device, dtype=dtype),
-        width=width,
-        height=height,
-        files=tuple(files),
-    )
+    return images
 
 
 def check_capture(capture: Capture) -> list[str]:
@@ -510,64 +531,21 @@ def write_capture(
             that would leave ``folder`` — whatever :func:`load_capture` would refuse. Nothing
             is written then.
     """
-    if not isinstance(images, Tensor):
-        images = torch.stack([torch.as_tensor(im) for im in images])
-    images = images.detach()
-    if images.dim() != 4 or images.shape[1] != 3:
-        raise ValueError(f"write_capture: images must have shape (L, 3, H, W), got {tuple(images.shape)}")
+    images = _image_stack(images)
     count, _, height, width = images.shape
-    if not torch.isfinite(images).all():
-        bad = int((~torch.isfinite(images)).nonzero()[0, 0])
-        raise ValueError(f"write_capture: image {bad} has non-finite pixels; the loader would reject it")
-    positions, intensities = _split_lights(lights)
-    if positions.shape[0] != count or intensities.shape[0] != count:
-        raise ValueError(
-            f"write_capture: {count} images but {positions.shape[0]} light positions "
-            f"and {intensities.shape[0]} intensities"
-        )
-    if not (np.isfinite(positions).all() and np.isfinite(intensities).all()):
-        raise ValueError("write_capture: light positions and intensities must be finite")
-    if (intensities < 0).any():
-        k = int(np.nonzero((intensities < 0).any(axis=1))[0][0])
-        raise ValueError(f"write_capture: light {k} has a negative intensity {intensities[k].tolist()}")
-    # What the loader refuses is refused here too, so a written capture always loads.
-    _check_lights(
-        positions.tolist(),
-        intensities.tolist(),
-        lambda k: f"write_capture: the intensity of light {k}" if k is not None else "write_capture",
-    )
+    positions, intensities = _checked_lights(lights, count)
     blank = ~images.flatten(1).any(dim=1)
     if blank.any():
         k = int(blank.nonzero()[0, 0])
         raise ValueError(f"write_capture: image {k} is all 0; the loader would reject it")
-    cam = (
-        camera_position.detach().cpu().double().numpy()
-        if isinstance(camera_position, Tensor)
-        else np.asarray(camera_position, float)
-    )
-    if cam.shape != (3,) or not np.isfinite(cam).all():
-        raise ValueError(f"write_capture: camera_position must be a finite 3-vector, got {cam.tolist()}")
-    if cam[2] <= 0:
-        raise ValueError(f"write_capture: camera_position {cam.tolist()} is on or below the sample plane; "
-                         "the loader would reject it")
+    cam = _checked_camera(camera_position)
     unlit = ~(images > 0).flatten(1).any(dim=1)
     out_of_range = (np.abs(positions) > MAX_COORDINATE).any() or (np.abs(cam) > MAX_COORDINATE).any()
     if unlit.any() or out_of_range or (intensities > MAX_RADIANCE).any() or images.abs().max() > MAX_RADIANCE:
         raise ValueError("write_capture: an image with no positive pixel, or a position or value beyond "
                          f"±{MAX_COORDINATE:g} / {MAX_RADIANCE:g}; the loader would reject it")
-    if files is None:
-        digits = max(3, len(str(count - 1)))
-        files = [f"img_{k:0{digits}d}.exr" for k in range(count)]
-    files = [os.fspath(f) if isinstance(f, os.PathLike) else f for f in files]
-    if len(files) != count or len(set(files)) != count:
-        raise ValueError(f"write_capture: need {count} distinct file names, got {excerpt(files)}")
     folder = Path(folder)
-    for k, name in enumerate(files):  # before anything is created: nothing lands outside
-        image_path(folder, name, f"write_capture: files[{k}]")
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for k, name in enumerate(files):  # again now that the folder exists: symlinks inside it
-        image_path(folder, name, f"write_capture: files[{k}]")
+    files = _file_names(files, count, folder)
     entries = []
     for k, name in enumerate(files):
         write_exr(folder / name, images[k], half=half)
@@ -596,3 +574,71 @@ def write_capture(
     with atomic_path(json_path) as tmp:
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return json_path
+
+
+def _image_stack(images: Tensor | Sequence) -> Tensor:
+    """``(L, 3, H, W)`` detached images, checked finite (what :func:`load_capture` needs)."""
+    if not isinstance(images, Tensor):
+        images = torch.stack([torch.as_tensor(im) for im in images])
+    images = images.detach()
+    if images.dim() != 4 or images.shape[1] != 3:
+        raise ValueError(f"write_capture: images must have shape (L, 3, H, W), got {tuple(images.shape)}")
+    if not torch.isfinite(images).all():
+        bad = int((~torch.isfinite(images)).nonzero()[0, 0])
+        raise ValueError(f"write_capture: image {bad} has non-finite pixels; the loader would reject it")
+    return images
+
+
+def _checked_lights(lights: Mapping | Sequence, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Light positions and intensities ``(count, 3)`` float64, refused as :func:`load_capture` would."""
+    positions, intensities = _split_lights(lights)
+    if positions.shape[0] != count or intensities.shape[0] != count:
+        raise ValueError(
+            f"write_capture: {count} images but {positions.shape[0]} light positions "
+            f"and {intensities.shape[0]} intensities"
+        )
+    if not (np.isfinite(positions).all() and np.isfinite(intensities).all()):
+        raise ValueError("write_capture: light positions and intensities must be finite")
+    if (intensities < 0).any():
+        k = int(np.nonzero((intensities < 0).any(axis=1))[0][0])
+        raise ValueError(f"write_capture: light {k} has a negative intensity {intensities[k].tolist()}")
+    # What the loader refuses is refused here too, so a written capture always loads.
+    _check_lights(
+        positions.tolist(),
+        intensities.tolist(),
+        lambda k: f"write_capture: the intensity of light {k}" if k is not None else "write_capture",
+    )
+    return positions, intensities
+
+
+def _checked_camera(camera_position: Tensor | Sequence[float]) -> np.ndarray:
+    """The camera position ``(3,)`` float64: finite and above the sample plane."""
+    cam = (
+        camera_position.detach().cpu().double().numpy()
+        if isinstance(camera_position, Tensor)
+        else np.asarray(camera_position, float)
+    )
+    if cam.shape != (3,) or not np.isfinite(cam).all():
+        raise ValueError(f"write_capture: camera_position must be a finite 3-vector, got {cam.tolist()}")
+    if cam[2] <= 0:
+        raise ValueError(f"write_capture: camera_position {cam.tolist()} is on or below the sample plane; "
+                         "the loader would reject it")
+    return cam
+
+
+def _file_names(files: Sequence[str] | None, count: int, folder: Path) -> list[str]:
+    """``count`` distinct image names inside ``folder`` (default ``img_000.exr`` ...); creates the
+    folder only after every name is checked, then checks again for symlinks inside it."""
+    if files is None:
+        digits = max(3, len(str(count - 1)))
+        files = [f"img_{k:0{digits}d}.exr" for k in range(count)]
+    files = [os.fspath(f) if isinstance(f, os.PathLike) else f for f in files]
+    if len(files) != count or len(set(files)) != count:
+        raise ValueError(f"write_capture: need {count} distinct file names, got {excerpt(files)}")
+    for k, name in enumerate(files):  # before anything is created: nothing lands outside
+        image_path(folder, name, f"write_capture: files[{k}]")
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, name in enumerate(files):  # again now that the folder exists: symlinks inside it
+        image_path(folder, name, f"write_capture: files[{k}]")
+    return files

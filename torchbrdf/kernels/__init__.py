@@ -7,6 +7,7 @@ forward and the recompute-backward and builds it once per kernel family into a p
 their vmap rules; ``autograd``: their derivatives). ``codegen_triton`` prints the same graphs as Triton
 kernels for CUDA tensors; ``backend`` chooses between them (``torchbrdf.set_backend``).
 
-May import: ``torchbrdf._math``, ``torchbrdf._checks`` and ``torchbrdf.brdf`` (the formulas it
-traces).  Nothing above.
+May import: ``torchbrdf._math``, ``torchbrdf._checks``, ``torchbrdf.io`` (the per-user cache
+folder) and ``torchbrdf.brdf.formula`` (the formulas it traces and their constants), never the
+BRDF models that dispatch to the kernels.  Nothing above.
 """

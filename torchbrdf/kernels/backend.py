@@ -51,6 +51,12 @@ def set_backend(name: str | None) -> None:
     _setting["backend"] = None if name is None else _check(name, "backend")
 
 
+def explicit_backend() -> str | None:
+    """The backend :func:`set_backend` chose, or ``None`` when ``$TORCHBRDF_BACKEND`` is followed
+    (what to pass back to :func:`set_backend` to restore the setting)."""
+    return _setting["backend"]
+
+
 def get_backend() -> str:
     """The backend in force: :func:`set_backend`'s, else ``$TORCHBRDF_BACKEND``, else ``"auto"``."""
     if _setting["backend"] is not None:

@@ -88,7 +88,7 @@ def lit(x: float) -> str:
 class Printer:
     """Prints nodes as Triton expressions for a compute type ``DT`` (``tl.float32``/``tl.float64``)."""
 
-    def __init__(self, ctype: str, go_strides: tuple[int, int] = (3, 1)) -> None:
+    def __init__(self, ctype: str, go_strides: tuple[int, ...] = (3, 1)) -> None:
         self.go_strides = tuple(go_strides)
         self.f32 = ctype == "float"
         self.DT = "tl.float32" if self.f32 else "tl.float64"

@@ -201,8 +201,8 @@ def log_residual(p: dict, points: Tensor, camera: Tensor, pos: Tensor, inten: Te
 def _render_points(p, inten, model, light):
     """Radiance ``(L, P, 3)`` of the fit's other models (``"principled"`` goes through the fused
     :func:`log_residual_points`); ``light`` is :func:`light_geometry` of the pixels and lights."""
-    if model == "svbrdf_ggx":  # the GGX model of torchbrdf.capture_model (not tuned)
-        from torchbrdf.brdf.capture_model import svbrdf_ggx
+    if model == "svbrdf_ggx":  # the GGX model of torchbrdf.brdf.svbrdf_ggx (not tuned)
+        from torchbrdf.brdf.svbrdf_ggx import svbrdf_ggx
 
         l = light["l"]
         n = p["normal"][None].expand_as(l)

@@ -37,7 +37,7 @@ def fused_lights_wanted(
 
     The principled BRDF, inputs the kernel reads (4-D maps or constants), no gradient wanted
     w.r.t. lights or camera (those stay on the eager shader), and the fused kernels' dispatch
-    rule (``principled._fused_backend``, on ``elements`` pixel-lights) picking the C or the
+    rule (``principled.fused_backend``, on ``elements`` pixel-lights) picking the C or the
     Triton kernels (the shading kernel is printed in both).
     """
     if kind != "principled" or not (points or dirs):
@@ -60,7 +60,7 @@ def fused_lights_wanted(
         uniform = [cam] + [t for light in [*points, *dirs] for t in light._light_tensors()]
         if any(t.requires_grad for t in uniform):
             return False
-    return _pr._fused_backend(dev, cd, tensors, lambda: elements) in ("c", "triton")
+    return _pr.fused_backend(dev, cd, tensors, lambda: elements) in ("c", "triton")
 
 
 def uniform_table(
@@ -99,7 +99,7 @@ def fused_lights_term(
 ) -> Tensor:
     """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
     (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
-    from torchbrdf.brdf.principled import _need_tint
+    from torchbrdf.brdf.principled import needs_tint
     from torchbrdf.kernels.shade_ops import shade_lights
 
     assert active is not None  # the fused route is the principled BRDF's: its lobes are known
@@ -110,7 +110,7 @@ def fused_lights_term(
         counts = torch.bincount(bidx, minlength=table.shape[0])
         seg = [0] + torch.cumsum(counts, 0).tolist()
     backend = "c" if pos.device.type == "cpu" and not _triton_interpreted() else "triton"
-    return shade_lights(c, table, seg, active, _need_tint(c, active), frame, normalize_n, n_point, n_dir,
+    return shade_lights(c, table, seg, active, needs_tint(c, active), frame, normalize_n, n_point, n_dir,
                         backend)
 
 

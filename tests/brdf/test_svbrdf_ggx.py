@@ -1,4 +1,4 @@
-"""Tests of the SVBRDF-capture GGX model (``torchbrdf.capture_model``).
+"""Tests of the SVBRDF-capture GGX model (``torchbrdf.brdf.svbrdf_ggx``).
 
 The float64 NumPy reference is written from the published formulas (uncancelled G / (4 n.l
 n.v), textbook GGX denominator); it does not call the library.
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchbrdf.brdf import capture_model
-from torchbrdf.brdf.capture_model import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
+from torchbrdf.brdf import svbrdf_ggx as capture_model
+from torchbrdf.brdf.svbrdf_ggx import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
 
 
 def _unit(a):
