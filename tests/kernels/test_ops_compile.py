@@ -8,7 +8,7 @@ import torch
 import torchbrdf
 from torchbrdf.kernels import fused as _fast
 
-from ..test_principled import random_case, to_t
+from tests.brdf.test_principled import random_case, to_t
 
 P = importlib.import_module("torchbrdf.brdf.principled")
 

@@ -11,8 +11,8 @@ from torch.autograd import gradcheck, gradgradcheck
 
 import torchbrdf
 
-from ..test_fast_path import fast, pytestmark  # noqa: F401  (the fused-path fixture and skip mark)
-from ..test_principled import random_case, to_t
+from tests.kernels.test_fast_path import fast, pytestmark  # noqa: F401  (the fused-path fixture and skip mark)
+from tests.brdf.test_principled import random_case, to_t
 
 P = importlib.import_module("torchbrdf.brdf.principled")
 c_runner = importlib.import_module("torchbrdf.kernels.c_runner")

@@ -286,7 +286,7 @@ def test_blend_stripe_recovers_fractional_metallic(tmp_path, monkeypatch):
     monkeypatch.setattr(soft_metal, "soft_rough_tie", spy)
     gm = _stripe(24)
     _capture(tmp_path, gm)
-    cfg = RecoveryConfig(iters=16, threads=2)
+    cfg = Settings(iters=16, threads=2)
     res = recover(tmp_path, cfg, None, gt=tmp_path / "gt", progress=False)
     assert len(calls) == 1
     (data, theta, metal, rows, idx, model, well, margin, glossy, rough), kw = calls[0]

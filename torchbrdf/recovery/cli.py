@@ -38,7 +38,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
-            threads=args.threads or default_threads(), converge_tol=args.converge_tol, converge_min_iters=args.converge_min_iters,
+            threads=default_threads() if args.threads is None else args.threads,
+            converge_tol=args.converge_tol, converge_min_iters=args.converge_min_iters,
             **off,
         )
         check_config(cfg)
