@@ -15,7 +15,7 @@ conjugate-gradient solve, ``batch`` many captures on Ray
 (``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit (``torchbrdf-fit-merl``).
 
 May import everything below it: ``torchbrdf.capture``, ``torchbrdf.render``,
-``torchbrdf.brdf``, ``torchbrdf.io`` and the plumbing.
+``torchbrdf.brdf``, ``torchbrdf.io``, ``torchbrdf.parallel`` (the thread count) and the plumbing.
 """
 
 from torchbrdf.recovery.api import map_errors, recover
