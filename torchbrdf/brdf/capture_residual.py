@@ -3,7 +3,8 @@
 :func:`torchbrdf.brdf.formula.capture_log_residual` is the one definition of the residual a
 capture fit minimises (the point-light image formation with the principled BRDF, then the
 log). This module prepares its inputs (:func:`residual_inputs`) and runs it on the fused
-kernels when they apply, or eagerly (:func:`log_residual`, :func:`log_residual_jvp`); the
+kernels when they apply, or eagerly (:func:`log_residual`, :func:`log_residual_jvp`), and a
+Gauss–Newton fit's per-pixel normal equations in one fused pass (:func:`normal_equations`); the
 kernels are imported here, at dispatch, so the capture layer above never imports them.
 """
 
@@ -18,7 +19,7 @@ from torchbrdf import _checks
 from torchbrdf.brdf import formula
 from torchbrdf.brdf import principled as _p
 
-__all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp"]
+__all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp", "normal_equations"]
 
 #: ``(c, active lobes, need_tint, frame, backend)``: the formula's inputs ``c`` (per-pixel
 #: values as ``(P, 1, C)``, broadcast over the lights) and how to run it (backend None: eager).
@@ -88,3 +89,41 @@ def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> 
     # the inputs' per-pixel (P, 1, C) layout, as residual_inputs gives them
     tans = {"n" if k == "normal" else k: t[:, :, None] for k, t in tangents.items()}
     return capture_jvp(c, tans, active, need_tint, frame, backend)
+
+
+def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+                     params: Mapping, log_obs: Tensor, eps: float, tangents: Mapping[str, Tensor],
+                     pattern: Mapping[str, Any], unknowns: int
+                     ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """A Gauss–Newton fit's per-pixel terms of the log residual on the fused kernel, or None.
+
+    One pass of ``torch.ops.torchbrdf.normal_equations`` over every light: ``(r (P, 3 L), cost
+    (P,), JᵀJ (P, K, K), Jᵀr (P, K))`` with ``J`` the residuals' derivatives along
+    ``K = unknowns`` directions, whose tangents of ``normal`` and of ``params``' entries are
+    ``tangents`` (``(S, P, C)`` rows, ``pattern`` their non-zero ``(direction, channel, row)``
+    entries, as :func:`torchbrdf.kernels.normal_eq_ops.normal_equations` takes them). ``JᵀJ``
+    and ``Jᵀr`` count non-finite Jacobian entries and residuals as 0; ``r`` and the cost are
+    as they come (``r`` light-major, ``3 l + c``). The other arguments as for
+    :func:`residual_inputs`, in ``log_obs``'s dtype and device. None where the kernel does not
+    apply (the fused path off or not available for this dtype or device, inputs that need a
+    gradient, or parameters other than the isotropic untinted ones): the caller then
+    linearises by ``torch.func``.
+    """
+    import torch
+
+    tensors = [t for t in (normal, points, camera, light_pos, light_int, log_obs, *params.values(),
+                           *tangents.values()) if isinstance(t, Tensor)]
+    if any(k in params for k in ("anisotropic", "specular_tint", "sheen_tint")):  # the kernel keeps their defaults
+        return None
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return None
+    lanes = log_obs.shape[0] * log_obs.shape[1]
+    if _p.fused_backend(log_obs.device, log_obs.dtype, tensors, lambda: max(lanes, _p.FAST_PATH_MIN_LANES)) is None:
+        return None
+    from torchbrdf.kernels.normal_eq_ops import normal_equations as fused_normal_equations
+    from torchbrdf.kernels.normal_eq_ops import unpack_jtj
+
+    p = {**params, "normal": normal}
+    cost, jtj, jtr, r = fused_normal_equations(p, tangents, points, camera, light_pos, light_int, log_obs, eps,
+                                               pattern, unknowns, residuals=True)
+    return r, cost, unpack_jtj(jtj, unknowns), jtr

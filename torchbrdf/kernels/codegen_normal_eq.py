@@ -22,7 +22,12 @@ decode's sparsity (each logit moves one channel) prunes the tangent graph. Nothi
 a formula or a derivative rule.
 
 Output layout, per pixel (``W = 1 + K (K + 1) / 2 + K`` values): the cost, then ``JᵀJ``'s upper
-triangle row by row (``(0,0), (0,1) … (0,K−1), (1,1) …``), then ``Jᵀr``.
+triangle row by row (``(0,0), (0,1) … (0,K−1), (1,1) …``), then ``Jᵀr``; with ``residuals``,
+then the residuals themselves, ``3 L`` values light-major (``3 j + c``), as they come.
+
+Non-finite values follow the solver's rule: the cost sums the residuals as they are (a
+non-finite one makes it non-finite), while ``JᵀJ`` and ``Jᵀr`` take a non-finite Jacobian
+entry or residual as 0 (a pixel-light the model cannot evaluate adds nothing to the step).
 """
 
 from __future__ import annotations
@@ -58,12 +63,13 @@ class NormalEqSpec:
     ``pattern``: per tensor input, the ``(direction, channel)`` pairs whose tangent is not
     zero, optionally ``(direction, channel, slot)``: the tangent tensor's row ``slot`` holds it
     (default the direction; directions that move disjoint channels can share a row, so the
-    caller computes fewer tangents). An input with none has no tangent tensor.
+    caller computes fewer tangents). An input with none has no tangent tensor. ``residuals``:
+    each pixel's row also holds its ``3 L`` residuals (see the module docstring).
     """
 
     def __init__(self, ctype: str, tensors: Iterable[tuple[str, int]], floats: Iterable[str],
                  active: Iterable[str], need_tint: bool, K: int,
-                 pattern: Iterable[Iterable[tuple[int, ...]]]) -> None:
+                 pattern: Iterable[Iterable[tuple[int, ...]]], residuals: bool = False) -> None:
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
@@ -71,6 +77,7 @@ class NormalEqSpec:
         self.active = tuple(active)
         self.need_tint = bool(need_tint)
         self.K = int(K)
+        self.residuals = bool(residuals)
         # (direction, channel, slot): slot = the tangent tensor's row holding it (default the direction)
         self.pattern = tuple(tuple(sorted((e[0], e[1], e[2] if len(e) > 2 else e[0]) for e in p))
                              for p in pattern)
@@ -81,7 +88,7 @@ class NormalEqSpec:
 
     def key(self) -> tuple[Any, ...]:
         return ("normal_eq", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.K,
-                self.pattern, tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled")))
+                self.pattern, self.residuals, tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled")))
 
 
 def _in(role: str, grad: bool = False, **attr) -> Node:
@@ -122,6 +129,12 @@ def schedule(spec: NormalEqSpec) -> LoopSchedule:
                         seeds[nd.id] = _in("tan", k=k, c=c, j=slot, m=spec.tan_inputs.index(k))
             J.append(tangents(g, r, seeds) if seeds else [None, None, None])
 
+        # the largest finite value of the kernel's type: |v| <= it is false for inf and NaN
+        big = 3.4028234663852886e38 if spec.ctype == "float" else 1.7976931348623157e308
+
+        def finite(x):
+            return None if x is None else ops.where(ops.abs(x) <= big, x, 0.0)
+
         def dot(xs, ys):
             terms = [x * y for x, y in zip(xs, ys) if x is not None and y is not None]
             if not terms:
@@ -131,18 +144,25 @@ def schedule(spec: NormalEqSpec) -> LoopSchedule:
                 s = s + t
             return s
 
+        rf = [finite(x) for x in r]
+        Jf = [[finite(x) for x in Ja] for Ja in J]
         values = [dot(r, r)]
-        values += [dot(J[a], J[b]) for a in range(K) for b in range(a, K)]
-        values += [dot(J[a], r) for a in range(K)]
+        values += [dot(Jf[a], Jf[b]) for a in range(K) for b in range(a, K)]
+        values += [dot(Jf[a], rf) for a in range(K)]
         accs = [(("out", i), v) for i, v in enumerate(values) if v is not None]
         acc_kind = {key: "r" for key, _ in accs}
         post: list[tuple[tuple[Any, ...], Node | None]] = [
             (("out", i), acc_input(("out", i)) if v is not None else None) for i, v in enumerate(values)]
-    return LoopSchedule(g, {"point": accs}, acc_kind, post)
+        stores = {"point": [(("res", c), x) for c, x in enumerate(r)]} if spec.residuals else {}
+    return LoopSchedule(g, {"point": accs}, acc_kind, post, stores=stores)
 
 
 def _layout(spec: NormalEqSpec) -> Layout:
     W = width(spec.K)
+    row = f"({W} + 3 * L)" if spec.residuals else str(W)  # values per pixel
+
+    def slot(s: tuple) -> str:  # a value's index in the pixel's row (a residual's: per light j)
+        return f"{W} + 3 * j + {s[1]}" if s[0] == "res" else str(s[1])
 
     def load_c(a: dict) -> str:
         role = a["role"]
@@ -169,8 +189,8 @@ def _layout(spec: NormalEqSpec) -> Layout:
         return f"tl.load(U + {a['c']})" if role == "cam" else f"tl.load(u + {a['c']})"
 
     return Layout(
-        [LightLoop("point", "0", "L")], load_c, lambda s: f"out[i * {W} + {s[1]}]", load_t,
-        lambda s: f"out + (i * {W} + {s[1]})", lit_roles=("light", "obs"), px_roles=("px", "tan", "obs"),
+        [LightLoop("point", "0", "L")], load_c, lambda s: f"out[i * {row} + {slot(s)}]", load_t,
+        lambda s: f"out + (i * {row} + {slot(s)})", lit_roles=("light", "obs"), px_roles=("px", "tan", "obs"),
         skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK)
 
 
@@ -180,7 +200,7 @@ def generate(spec: NormalEqSpec) -> str:
     ``in``: the per-pixel inputs ``(n, C)`` (``spec.tensors``), then one ``(S, n, C)`` tangent
     per input in ``spec.tan_inputs``, then ``log_obs`` ``(n, L, 3)``, then the uniform row
     ``[camera (3), (q, I) per light]``; ``P``: the runtime floats, ``eps``, the light count;
-    ``out`` ``(n, W)`` (:func:`width`).
+    ``out`` ``(n, W)`` (:func:`width`; ``(n, W + 3 L)`` with ``spec.residuals``).
     """
     T, M, F = len(spec.tensors), len(spec.tan_inputs), len(spec.floats)
     decl = [f"const R* __restrict p{k} = (const R*)in[{k}];" for k in range(T)]

@@ -39,7 +39,9 @@ class LoopSchedule:
       ``key`` once per light; ``acc_kind[key]`` its value kind (``'r'`` or ``'d'``);
     * ``post``: ``[(store, node or None)]`` after the loops (``None``: zero); nodes there read
       accumulators through :func:`acc_input` nodes;
-    * ``written``: inputs whose gradient a backward writes.
+    * ``written``: inputs whose gradient a backward writes;
+    * ``stores``: per light loop (by name), ``[(store, node)]``: ``node`` is stored once per
+      pixel and light, inside the loop (the layout's store address may use the light ``j``).
     """
 
     def __init__(
@@ -49,6 +51,7 @@ class LoopSchedule:
         acc_kind: dict[tuple[Any, ...], str],
         post: list[tuple[tuple[Any, ...], Node | None]],
         written: Iterable[int] = (),
+        stores: dict[str, list[tuple[tuple[Any, ...], Node]]] | None = None,
     ) -> None:
         self.graph, self.accs, self.acc_kind, self.post, self.written = (
             graph,
@@ -57,6 +60,7 @@ class LoopSchedule:
             post,
             tuple(written),
         )
+        self.stores = dict(stores or {})
 
 
 def acc_input(key: tuple[Any, ...], kind: str = "r") -> Node:
@@ -156,7 +160,8 @@ def _phases(sch: LoopSchedule, lay: Layout):
     loops = {}
     bnd_all: set[int] = set()
     for lp in lay.loops:
-        body, bnd = loop_nodes([nd for _, nd in sch.accs.get(lp.name, [])], lit, px)
+        roots = [nd for _, nd in sch.accs.get(lp.name, []) + sch.stores.get(lp.name, [])]
+        body, bnd = loop_nodes(roots, lit, px)
         loops[lp.name] = (body, bnd)
         bnd_all |= bnd
     return lit, px, loops, bnd_all
@@ -208,6 +213,7 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
         emit([nd for nd in order if nd.id in bnd or nd.id in px], names, lane,
              reads={b: f"bd{b}[i - b0]" for b in bnd})
         lane += [f"{_acc_name(key)}[i - b0] += {names[nd.id]};" for key, nd in sch.accs[lp.name]]
+        lane += [f"{lay.store_c(key)} = {names[nd.id]};" for key, nd in sch.stores.get(lp.name, [])]
         loops += [
             f"    for (long j = 0; j < {lp.count}; ++j) {{",
             f"      const R* __restrict u = U + {lay.skip} + {lay.stride} * ({lp.first} + j);",
@@ -327,6 +333,8 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
         lines: list[str] = []
         emit([nd for nd in g.nodes if nd.id in body], lnames, lines, done=set(names))
         lines += [f"{_acc_name(key)} += {lnames[nd.id]}" for key, nd in sch.accs[lp.name]]
+        lines += [f"tl.store({store_t(key)}, tl.broadcast_to({lnames[nd.id]}, [BLOCK]), mask=m)"
+                  for key, nd in sch.stores.get(lp.name, [])]
         loops += [
             f"for j in range({lp.first}, {lp.first} + {lp.count}):",
             f"    u = U + {lay.skip} + {lay.stride} * j",

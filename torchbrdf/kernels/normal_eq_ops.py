@@ -2,7 +2,7 @@
 
 ``normal_equations(tensors, tangents, floats, uniforms, log_obs, cfg) -> (N, W)``: per pixel
 the data cost ``Σ r²``, ``JᵀJ`` (upper triangle) and ``Jᵀr`` of the capture's log residuals
-over every light, in one kernel pass (:mod:`torchbrdf.kernels.codegen_normal_eq`; C for CPU
+over every light (optionally the residuals too, ``(N, W + 3 L)``), in one kernel pass (:mod:`torchbrdf.kernels.codegen_normal_eq`; C for CPU
 tensors, Triton for CUDA tensors and under ``TRITON_INTERPRET=1``). A fake implementation lets
 ``torch.compile`` trace it; it has no autograd (its outputs are already derivatives). Where no
 kernel can be built it evaluates the same formula eagerly (``torch.func.jvp`` per direction).
@@ -16,7 +16,7 @@ import ctypes
 import threading
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Literal, overload
 
 import torch
 from torch import Tensor
@@ -37,24 +37,25 @@ _failed: set = set()
 
 
 def make_cfg(tensor_names: Sequence[str], float_names: Sequence[str], active: Sequence[str], need_tint: bool,
-             K: int, pattern: Sequence[Sequence[tuple[int, ...]]], backend: str = "c") -> str:
+             K: int, pattern: Sequence[Sequence[tuple[int, ...]]], backend: str = "c",
+             residuals: bool = False) -> str:
     """The ``cfg`` string of the operator; ``pattern[k]``: input ``k``'s non-zero ``(direction,
     channel[, slot])`` tangents (:class:`~.codegen_normal_eq.NormalEqSpec`); ``backend`` ``"c"``
-    or ``"triton"``."""
+    or ``"triton"``; ``residuals``: the rows hold the residuals too."""
     pat = ";".join(",".join(".".join(str(int(x)) for x in e) for e in p) for p in pattern)
     return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-                     str(int(K)), pat, backend])
+                     str(int(K)), pat, backend, str(int(residuals))])
 
 
 def _parse(cfg: str, dtype: torch.dtype) -> tuple[NormalEqSpec, str]:
-    tn, fn, act, tint, K, pat, backend = cfg.split("|")
+    tn, fn, act, tint, K, pat, backend, res = cfg.split("|")
     names = tn.split(",") if tn else []
     C = [3 if k in ("pos", "n", "base_color") else 1 for k in names]
     pattern = [[tuple(int(x) for x in e.split(".")) for e in p.split(",") if e] for p in pat.split(";")]
     pattern += [[] for _ in range(len(names) - len(pattern))]
     ctype = "float" if dtype == torch.float32 else "double"
     spec = NormalEqSpec(ctype, list(zip(names, C)), fn.split(",") if fn else [],
-                        act.split(",") if act else [], tint == "1", int(K), pattern)
+                        act.split(",") if act else [], tint == "1", int(K), pattern, res == "1")
     return spec, backend
 
 
@@ -101,7 +102,8 @@ def _triton_kernel(spec: NormalEqSpec, wide: bool):
 
 
 def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> Tensor:
-    """The same sums from the formula on torch tensors (the fallback): one ``jvp`` per direction."""
+    """The same sums from the formula on torch tensors (the fallback): one ``jvp`` per direction
+    (non-finite entries as the kernel takes them, :mod:`.codegen_normal_eq`)."""
     N, L = log_obs.shape[0], log_obs.shape[1]
     ops = formula.TorchOps(log_obs.dtype, log_obs.device)
     names = [k for k, _ in spec.tensors]
@@ -129,15 +131,17 @@ def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> 
                     d[:, c] = tan_of[k][slot][:, c]
             dirs.append(d)
         J.append(torch.func.jvp(res, tuple(tensors), tuple(dirs))[1])
-    Jm = torch.stack(J, -1)  # (N, M, K)
+    Jm = torch.stack(J, -1).nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)  # (N, M, K)
+    rf = r.nan_to_num(nan=0.0, posinf=0.0, neginf=0.0)
     iu = torch.triu_indices(K, K, device=log_obs.device)
     jtj = torch.einsum("nma,nmb->nab", Jm, Jm)[:, iu[0], iu[1]]
-    return torch.cat(((r * r).sum(-1, keepdim=True), jtj, torch.einsum("nma,nm->na", Jm, r)), -1)
+    out = [(r * r).sum(-1, keepdim=True), jtj, torch.einsum("nma,nm->na", Jm, rf)]
+    return torch.cat(out + [r] if spec.residuals else out, -1)
 
 
 def _run(spec: NormalEqSpec, backend: str, tensors, tangents, floats, uniforms, log_obs) -> Tensor:
     N, L = log_obs.shape[0], log_obs.shape[1]
-    W = width(spec.K)
+    W = width(spec.K) + (3 * L if spec.residuals else 0)
     dtype, dev = log_obs.dtype, log_obs.device
     if N == 0:
         return torch.zeros(N, W, dtype=dtype, device=dev)
@@ -174,6 +178,7 @@ def normal_equations_op(tensors: list[Tensor], tangents: list[Tensor], floats: l
     ``tensors``: the per-pixel inputs ``(N, C)`` named in ``cfg``; ``tangents``: ``(K, N, C)``
     per input with a tangent; ``floats``: the material floats then ``eps``; ``uniforms``
     ``(3 + 6 L,)``: camera, then position and intensity per light; ``log_obs`` ``(N, L, 3)``.
+    With the residuals (``cfg``), ``(N, W + 3 L)``.
     """
     spec, backend = _parse(cfg, log_obs.dtype)
     return _run(spec, backend, tensors, tangents, floats, uniforms, log_obs)
@@ -181,8 +186,9 @@ def normal_equations_op(tensors: list[Tensor], tangents: list[Tensor], floats: l
 
 @normal_equations_op.register_fake
 def _(tensors, tangents, floats, uniforms, log_obs, cfg):
-    K = int(cfg.split("|")[4])
-    return log_obs.new_empty((log_obs.shape[0], width(K)))
+    fields = cfg.split("|")
+    extra = 3 * log_obs.shape[1] if fields[7] == "1" else 0
+    return log_obs.new_empty((log_obs.shape[0], width(int(fields[4])) + extra))
 
 
 def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int, ...]]]:
@@ -195,10 +201,27 @@ def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int,
     return out
 
 
+@overload
 def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
                      camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
                      pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
-                     unknowns: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                     unknowns: int | None = None, residuals: Literal[False] = False) -> tuple[Tensor, Tensor, Tensor]:
+    ...
+
+
+@overload
+def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
+                     camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
+                     pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
+                     unknowns: int | None = None, *, residuals: Literal[True]
+                     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    ...
+
+
+def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
+                     camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
+                     pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
+                     unknowns: int | None = None, residuals: bool = False) -> tuple[Tensor, ...]:
     """Per-pixel Gauss–Newton terms of the capture's log residuals, in one fused pass.
 
     The residuals are :func:`torchbrdf.capture.synthetic.log_residual_points`'s
@@ -219,10 +242,14 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
             entries (default :func:`tangent_pattern`, which reads the tangents; a known pattern
             keeps the call free of host synchronisation).
         unknowns: ``K`` (default: the tangents' leading size; needed with slots).
+        residuals: also return the residuals.
 
     Returns:
         ``(cost (N,), jtj (N, K (K + 1) / 2), jtr (N, K))``: ``Σ r²``, the upper triangle of
-        ``JᵀJ`` row by row (:func:`unpack_jtj`) and ``Jᵀr``, in ``log_obs``'s dtype and device.
+        ``JᵀJ`` row by row (:func:`unpack_jtj`) and ``Jᵀr``, in ``log_obs``'s dtype and device;
+        with ``residuals``, then ``r (N, 3 L)`` (light-major, a view of the kernel's rows).
+        ``JᵀJ`` and ``Jᵀr`` count a non-finite Jacobian entry or residual as 0; the cost and
+        the residuals are as they come.
     """
     if log_obs.dim() != 3 or log_obs.shape[-1] != 3:
         raise ValueError(f"normal_equations: log_obs must be (N, L, 3), got {tuple(log_obs.shape)}")
@@ -258,10 +285,11 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
     uniforms = torch.cat((camera.reshape(3), torch.cat((light_pos, light_int), -1).reshape(-1))).to(dtype)
     backend = "c" if dev.type == "cpu" and not _interpreted() else "triton"
     # (specular_tint is 0: the tint is needed only by a tinted sheen, sheen_tint's default being 0.5)
-    cfg = make_cfg(names, float_names, active, "sheen" in active, K, pats, backend)
+    cfg = make_cfg(names, float_names, active, "sheen" in active, K, pats, backend, residuals)
     out = normal_equations_op([c[k] for k in names], tans, floats, uniforms, log_obs, cfg)
     nt = K * (K + 1) // 2
-    return out[:, 0], out[:, 1:1 + nt], out[:, 1 + nt:]
+    sums = (out[:, 0], out[:, 1:1 + nt], out[:, 1 + nt:1 + nt + K])
+    return (*sums, out[:, width(K):]) if residuals else sums
 
 
 def _interpreted() -> bool:

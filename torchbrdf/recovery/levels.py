@@ -13,9 +13,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf.brdf import capture_residual
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import light_geometry, log_residual_points, log_residual_points_jvp
-from torchbrdf.recovery.params import decode
+from torchbrdf.recovery.params import decode, decode_pattern, decode_slots
 
 
 class LevelData:
@@ -149,6 +150,33 @@ class LevelData:
         r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
                                         log_obs, self.eps, dp, any_size=True)
         return r.reshape(x.shape[0], -1), dr.reshape(tangents.shape[0], x.shape[0], -1)
+
+    def normal_equations(self, x: Tensor, metal: Tensor, idx: list[int], model: str, n_t: int,
+                         rows: Tensor | slice | None = None
+                         ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """:meth:`residual` and its per-pixel Gauss–Newton terms in one fused pass, or None.
+
+        ``x``, ``metal``, ``idx``, ``model``, ``rows`` as for :meth:`residual_jvp`; ``n_t``: the
+        unknowns differentiated, the first 7 (theta) or 8 (and the continuous metallic) columns
+        of ``x``. Returns ``(r (N, M), cost (N,), JᵀJ (N, n_t, n_t), Jᵀr (N, n_t))`` (the
+        residuals and their summed squares as they come, non-finite Jacobian entries and
+        residuals counted as 0 in ``JᵀJ`` and ``Jᵀr``), in ``x``'s dtype, on its device: the
+        decode's tangents by ``torch.func`` (:func:`decode_slots`, three directions), then one
+        light-loop kernel (:func:`torchbrdf.brdf.capture_residual.normal_equations`). None where
+        that kernel does not apply (another model, no fused path for this dtype or device).
+        """
+        if model != "principled":
+            return None
+        points, log_obs, _ = self._targets(idx, model, rows)
+        slots = decode_slots(n_t)
+        dirs = torch.zeros(len(slots), x.shape[1], dtype=x.dtype, device=x.device)
+        for s, cols in enumerate(slots):
+            dirs[s, list(cols)] = 1.0
+        p, dp = vmapped_jvp(lambda v: decode(*((v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal))))(
+            x, dirs[:, None].expand(-1, *x.shape))
+        pattern = decode_pattern(n_t)
+        return capture_residual.normal_equations(p["normal"], points, self.camera, self.pos[idx], self.inten[idx],
+                                                 p, log_obs, self.eps, {k: dp[k] for k in pattern}, pattern, n_t)
 
     def _targets(self, idx: list[int], model: str, rows: Tensor | slice | None
                  ) -> tuple[Tensor, Tensor, dict | None]:

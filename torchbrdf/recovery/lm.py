@@ -57,7 +57,10 @@ def gauss_newton(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], 
 
     Returns ``r (P, M)`` (the residuals at ``theta``, non-finite entries as they come),
     ``JᵀJ (P, 7, 7)`` and ``Jᵀr (P, 7)`` w.r.t. each pixel's 7 unknowns (non-finite Jacobian
-    entries and residuals count as 0 there). Pixels are independent, so forward mode
+    entries and residuals count as 0 there). Where the fused normal-equations kernel applies
+    (the principled model in float32/float64 with the fused path on:
+    :meth:`LevelData.normal_equations`) one pass over the lights writes all three, with no
+    Jacobian in memory. Otherwise pixels being independent, forward mode
     (:func:`fit_jacobian`: five directions for the seven unknowns, in one call of the fused
     operators, the residual as their primal output) gives every pixel's Jacobian. It runs over blocks of
     ``chunk`` pixels and reduces each block to its 7×7 products at once, so the
@@ -65,6 +68,9 @@ def gauss_newton(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], 
     the allocator's mmap threshold (a whole 256² Jacobian is 88 MB, and every fresh
     allocation that size is page-faulted in anew: 0.5 s of a 1.4 s Jacobian, measured).
     """
+    fused = data.normal_equations(theta, metal, idx, model, N_PARAMS)
+    if fused is not None:
+        return fused[0], fused[2], fused[3]
     P = theta.shape[0]
     r_out = theta.new_empty(P, 3 * len(idx))
     jtj = theta.new_empty(P, N_PARAMS, N_PARAMS)

@@ -18,6 +18,29 @@ N_PARAMS = 7  # logit base (3), logit specular, logit roughness, slope p, slope 
 R_MIN, R_MAX = 0.03, 1.0  # roughness range the logit maps onto (alpha floor is 1e-3)
 
 
+def decode_slots(n_t: int = N_PARAMS) -> tuple[tuple[int, ...], ...]:
+    """The unknowns (columns of ``theta``, then metallic as column 7) whose decode tangents share a row.
+
+    For the first ``n_t`` unknowns (7, or 8 with a continuous metallic): each of the base-colour,
+    specular, roughness (and metallic) logits moves one channel of its own parameter in
+    :func:`decode`, so one direction along all of them holds their tangents at once (row 0);
+    each normal slope moves the whole normal (rows 1 and 2).
+    """
+    return ((0, 1, 2, 3, 4, 7) if n_t > N_PARAMS else (0, 1, 2, 3, 4)), (5,), (6,)
+
+
+def decode_pattern(n_t: int = N_PARAMS) -> dict[str, list[tuple[int, int, int]]]:
+    """The non-zero ``(unknown, channel, row)`` tangents of :func:`decode`'s parameters.
+
+    Rows as in :func:`decode_slots`; ``n_t`` as there (metallic has a tangent only with 8).
+    """
+    pattern = {"base_color": [(0, 0, 0), (1, 1, 0), (2, 2, 0)], "specular": [(3, 0, 0)],
+               "roughness": [(4, 0, 0)], "normal": [(j, c, j - 4) for j in (5, 6) for c in range(3)]}
+    if n_t > N_PARAMS:
+        pattern["metallic"] = [(7, 0, 0)]
+    return pattern
+
+
 def logit(x: Tensor, lo: float = 0.0, hi: float = 1.0, eps: float = 1e-4) -> Tensor:
     """The logit of ``x`` (any shape) mapped from ``[lo, hi]`` onto [0, 1], clamped ``eps`` inside its ends."""
     t = ((x - lo) / (hi - lo)).clamp(eps, 1 - eps)
