@@ -313,7 +313,9 @@ def at_rows(v: Any, r: PixelRows) -> Any:
 def soft_lm(jvp: Callable[[Tensor, Tensor, PixelRows], tuple[Tensor, Tensor]],
              cost: Callable[[Tensor, PixelRows], Tensor], x: Tensor, iters: int, fix_metal: bool = False,
              prior: Callable[[Tensor, PixelRows], tuple[Tensor, Tensor]] | None = None, tol: float = 1e-3,
-             held: Tensor | None = None) -> tuple[Tensor, Tensor]:
+             held: Tensor | None = None,
+             normal_eq: Callable[[Tensor, PixelRows, int], tuple[Tensor, Tensor, Tensor] | None] | None = None
+             ) -> tuple[Tensor, Tensor]:
     """``iters`` per-pixel LM iterations on ``x (N, 8)`` (the data residuals and their
     derivatives along K directions from ``jvp``, as :meth:`LevelData.residual_jvp`; metallic —
     the last column — clamped to [0, 1] after each step; held fixed with ``fix_metal``, which
@@ -327,6 +329,10 @@ def soft_lm(jvp: Callable[[Tensor, Tensor, PixelRows], tuple[Tensor, Tensor]],
     base-colour unknowns act each on its own channel's residuals (:func:`fit_jacobian`).
     ``held (N, 8)`` bool: unknowns kept at their start (None: none held but metallic with
     ``fix_metal``, which ignores its column 7; a held metallic is still clamped to [0, 1]).
+    ``normal_eq(x, rows, n_t)``: the data term's summed squares ``(n,)``, ``JᵀJ (n, n_t, n_t)``
+    and ``Jᵀr (n, n_t)`` w.r.t. the first ``n_t`` unknowns in one fused pass
+    (:meth:`LevelData.normal_equations`), or None where that does not apply: then (and with
+    ``normal_eq`` None) they come from ``jvp`` by :func:`fit_jacobian`.
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
@@ -340,14 +346,21 @@ def soft_lm(jvp: Callable[[Tensor, Tensor, PixelRows], tuple[Tensor, Tensor]],
     def linearise(v: Tensor, rows: PixelRows) -> tuple[Tensor, Tensor, Tensor]:
         # The cost (n, 1) at v and its normal equations (n, n_t, n_t), (n, n_t): the residuals
         # come with the Jacobian (the same values `cost` gives).
-        r, jac = fit_jacobian(lambda u, tg: jvp(u, tg, rows), v, n_t)  # (n, M), (n, n_t, M)
-        pr, pj = prior(v, rows) if prior is not None else (r[:, :0], None)
-        c = pixel_cost(torch.cat((r, pr), -1))
-        r = r.nan_to_num_()  # (a fresh tensor of the jvp: cleaned in place)
-        # (the gradients, and the priors' few rows, as products and sums: a batch of small
-        # matrix-vector products is slower, 4.4 against 3.3 ms at 8500 pixels)
-        jtj = torch.bmm(jac, jac.transpose(1, 2))
-        g = (jac * r[:, None, :]).sum(-1)
+        fused = normal_eq(v, rows, n_t) if normal_eq is not None else None
+        if fused is not None:
+            data_cost, jtj, g = fused
+            pr, pj = prior(v, rows) if prior is not None else (v[:, :0], None)
+            inf = float("inf")
+            c = torch.nan_to_num(data_cost[:, None] + (pr * pr).sum(-1, keepdim=True), nan=inf, posinf=inf)
+        else:
+            r, jac = fit_jacobian(lambda u, tg: jvp(u, tg, rows), v, n_t)  # (n, M), (n, n_t, M)
+            pr, pj = prior(v, rows) if prior is not None else (r[:, :0], None)
+            c = pixel_cost(torch.cat((r, pr), -1))
+            r = r.nan_to_num_()  # (a fresh tensor of the jvp: cleaned in place)
+            # (the gradients, and the priors' few rows, as products and sums: a batch of small
+            # matrix-vector products is slower, 4.4 against 3.3 ms at 8500 pixels)
+            jtj = torch.bmm(jac, jac.transpose(1, 2))
+            g = (jac * r[:, None, :]).sum(-1)
         if pj is not None:
             pj = pj[..., :n_t]  # (n, k, n_t)
             jtj = jtj + (pj[..., :, None] * pj[..., None, :]).sum(1)

@@ -246,13 +246,14 @@ def snap_metallic(m: Tensor, snap: float) -> Tensor:
 
 def soft_energy(sub: LevelData, idx: list[int], model: str, well: float, target: Tensor | None = None,
                  smooth: float | Tensor = 0.0, line: tuple[Tensor, Tensor] | None = None,
-                 line_weight: float | Tensor = 0.0) -> tuple[Callable, Callable, Callable]:
+                 line_weight: float | Tensor = 0.0) -> tuple[Callable, Callable, Callable, Callable]:
     """The final stage's energy of ``sub``'s pixels, as :func:`soft_lm` takes it.
 
-    Returns ``(jvp, prior, cost)`` of some of the pixels' unknowns ``x (n, 8)`` by their
-    indices: the data residuals on lights ``idx`` and their derivatives, the prior residuals
-    (:func:`soft_prior`; ``target``, ``smooth``, ``line``, ``line_weight`` per pixel of ``sub``
-    or floats) and their Jacobian, and the summed cost ``(n, 1)`` of both, on ``sub``'s device
+    Returns ``(jvp, prior, cost, normal_eq)`` of some of the pixels' unknowns ``x (n, 8)`` by
+    their indices: the data residuals on lights ``idx`` and their derivatives, the prior
+    residuals (:func:`soft_prior`; ``target``, ``smooth``, ``line``, ``line_weight`` per pixel
+    of ``sub`` or floats) and their Jacobian, the summed cost ``(n, 1)`` of both, and the data
+    term's fused normal equations (:meth:`LevelData.normal_equations`), on ``sub``'s device
     and in its dtype.
     """
     def residual(v: Tensor, r: PixelRows) -> Tensor:
@@ -264,7 +265,11 @@ def soft_energy(sub: LevelData, idx: list[int], model: str, well: float, target:
     def prior(v: Tensor, r: PixelRows) -> tuple[Tensor, Tensor]:
         return soft_prior(v, well, at_rows(target, r), at_rows(smooth, r), at_rows(line, r), at_rows(line_weight, r))
 
-    return jvp, prior, lambda v, r: pixel_cost(torch.cat((residual(v, r), prior(v, r)[0]), -1))
+    def normal_eq(v: Tensor, r: PixelRows, n_t: int) -> tuple[Tensor, Tensor, Tensor] | None:
+        fused = sub.normal_equations(v, v[:, 7:8], idx, model, n_t, rows=r)
+        return None if fused is None else fused[1:]
+
+    return jvp, prior, lambda v, r: pixel_cost(torch.cat((residual(v, r), prior(v, r)[0]), -1)), normal_eq
 
 
 def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, idx: list[int], model: str,
@@ -304,7 +309,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     sub = data.subset(rows)
     t0, m0 = theta[rows], metal[rows]
 
-    jvp, prior, cost = soft_energy(sub, idx, model, well, target, smooth, line, line_weight)
+    jvp, prior, cost, normal_eq = soft_energy(sub, idx, model, well, target, smooth, line, line_weight)
 
     best, best_c = None, None
     for m_start in starts:
@@ -315,7 +320,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
             t_init, m_start = m_start
         m_init = m0 if m_start is None else target if m_start == "target" else torch.full_like(m0, m_start)
         assert m_init is not None, "soft_metal_fit: a 'target' start needs `target`"
-        x, c = soft_lm(jvp, cost, torch.cat((t_init, m_init), -1), iters, prior=prior)
+        x, c = soft_lm(jvp, cost, torch.cat((t_init, m_init), -1), iters, prior=prior, normal_eq=normal_eq)
         best, best_c = keep_better(best, best_c, x, c)
     assert best is not None and best_c is not None, "soft_metal_fit: `starts` must not be empty"
     # Within `snap` of 0 or 1 is a clear pixel: a 1 % lobe is below what the noise can tell
@@ -343,9 +348,9 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     away = torch.nonzero(((m_snap != m0) & (best_c < c_ref - margin))[:, 0]).squeeze(1) if refit_reference \
         else rows[:0]
     if away.numel():
-        jvp_a, prior_a, cost_a = soft_energy(sub.subset(away), idx, model, well, at_rows(target, away),
+        jvp_a, prior_a, cost_a, ne_a = soft_energy(sub.subset(away), idx, model, well, at_rows(target, away),
                                               at_rows(smooth, away), at_rows(line, away), at_rows(line_weight, away))
-        ref_a, c_fix = soft_lm(jvp_a, cost_a, ref[away], iters, fix_metal=True, prior=prior_a)
+        ref_a, c_fix = soft_lm(jvp_a, cost_a, ref[away], iters, fix_metal=True, prior=prior_a, normal_eq=ne_a)
         keep_a = c_fix < c_ref[away]
         ref[away] = torch.where(keep_a, ref_a, ref[away])
         c_ref[away] = torch.where(keep_a, c_fix, c_ref[away])
@@ -390,10 +395,10 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # Both fits in one LM call (each pixel twice: glossy held, then rough free; the pixels'
     # iterations are independent, so this only saves the calls' fixed cost)
     n = test.numel()
-    jvp, prior, cost = soft_energy(data.subset(torch.cat((test, test))), idx, model, well)
+    jvp, prior, cost, normal_eq = soft_energy(data.subset(torch.cat((test, test))), idx, model, well)
     held = torch.zeros(2 * n, x0.shape[1], dtype=torch.bool, device=x0.device)
     held[:n, 4] = True  # the glossy fit's roughness logit
-    x, c = soft_lm(jvp, cost, torch.cat((x0, start)), iters, prior=prior, held=held)
+    x, c = soft_lm(jvp, cost, torch.cat((x0, start)), iters, prior=prior, held=held, normal_eq=normal_eq)
     c_glossy, x, c_rough = c[:n], x[n:], c[n:]
     m = x[:, 7:8]
     m_snap = snap_metallic(m, snap)
@@ -404,8 +409,8 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
         # others with it held: a rough dielectric left at metallic 0.01 fits a little worse at 0
         # until its base colour follows.
         s_rows = snapped.nonzero()[:, 0]
-        jvp_s, prior_s, cost_s = soft_energy(data.subset(test[s_rows]), idx, model, well)
-        x_s, c_s = soft_lm(jvp_s, cost_s, x[s_rows], iters, fix_metal=True, prior=prior_s)
+        jvp_s, prior_s, cost_s, ne_s = soft_energy(data.subset(test[s_rows]), idx, model, well)
+        x_s, c_s = soft_lm(jvp_s, cost_s, x[s_rows], iters, fix_metal=True, prior=prior_s, normal_eq=ne_s)
         x[s_rows], c_rough[s_rows] = x_s, c_s
     stayed_rough = decode(x[:, :7], x[:, 7:8])["roughness"][:, 0] > 2 * glossy
     take = (torch.isfinite(c_rough) & (c_rough <= c_glossy + margin))[:, 0] & stayed_rough
