@@ -179,3 +179,86 @@ def test_shared_tangent_slots_give_the_same_sums():
     torch.testing.assert_close(got[0], rc, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(unpack_jtj(got[1], 7), rjtj, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(got[2], rjtr, rtol=1e-10, atol=1e-10)
+
+
+def _non_finite_case(seed):
+    """A case whose Jacobian has non-finite entries (NaN and inf tangents) and whose residuals
+    have NaN and ±inf (targets), with its residual-returning normal equations and a reference
+    from the same Jacobian by jacfwd, non-finite entries taken as 0 in JᵀJ and Jᵀr."""
+    case = _capture(10, 3, torch.float64, seed=seed)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    log_obs[2, 1, 0] = float("nan")
+    log_obs[3, 0, 2] = float("inf")
+    log_obs[5, 2, 1] = float("-inf")
+    eye = torch.eye(7, dtype=theta.dtype)[:, None].expand(7, theta.shape[0], 7)
+    p, dp = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
+                            out_dims=(None, 0))(eye)
+    dp = {k: v.clone() for k, v in dp.items() if k != "metallic"}
+    dp["roughness"][4, 6, 0] = float("nan")  # pixel 6's roughness column
+    dp["normal"][5, 7, 1] = float("inf")  # pixel 7's first slope column
+    got = normal_equations(p, dp, points, cam, lpos, lint, log_obs, EPS, residuals=True)
+    _, rjtj, _ = _reference(theta, metal, points, cam, lpos, lint, log_obs.nan_to_num(0.0, 0.0, 0.0))
+
+    def res(th, me, pt, lo):  # one pixel, as _reference
+        q = decode(th[None], me[None])
+        return log_residual_points(q["normal"], pt[None], cam, lpos, lint, q, lo[None], EPS).reshape(-1)
+
+    old = torchbrdf.get_backend()
+    torchbrdf.set_backend("eager")
+    try:
+        r = torch.vmap(res)(theta, metal, points, log_obs)
+        J = torch.vmap(torch.func.jacfwd(res))(theta, metal, points, log_obs)  # (N, M, 7)
+    finally:
+        torchbrdf.set_backend(None if old == "auto" else old)
+    J[6, :, 4] = float("nan")
+    J[7, :, 5] = float("inf")
+    Jc, rc = J.nan_to_num(0.0, 0.0, 0.0), r.nan_to_num(0.0, 0.0, 0.0)
+    ref = ((r * r).sum(-1), Jc.transpose(1, 2) @ Jc, (Jc.transpose(1, 2) @ rc[..., None])[..., 0], r)
+    return got, ref
+
+
+def _check_non_finite(got, ref):
+    cost, jtj, jtr, r = got
+    assert r.shape == (10, 9)
+    torch.testing.assert_close(r, ref[3], rtol=1e-10, atol=1e-10, equal_nan=True)
+    assert r[2, 3].isnan() and r[3, 2] == float("-inf") and r[5, 7] == float("inf")
+    torch.testing.assert_close(cost, ref[0], rtol=1e-10, atol=1e-10, equal_nan=True)
+    assert not cost[[2, 3, 5]].isfinite().any() and cost[[0, 1, 4, 6, 7]].isfinite().all()
+    assert jtj.isfinite().all() and jtr.isfinite().all()
+    torch.testing.assert_close(unpack_jtj(jtj, 7), ref[1], rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(jtr, ref[2], rtol=1e-10, atol=1e-10)
+    assert (unpack_jtj(jtj, 7)[6, 4] == 0).all() and (jtr[7, 5] == 0) and jtr[6, 6] != 0
+
+
+@pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+def test_c_kernel_returns_residuals_and_takes_non_finite_terms_as_zero():
+    got, ref = _non_finite_case(6)
+    assert any(k[0] == "c" and k[1][8] and v is not None for k, v in ne_ops._kernels.items())
+    _check_non_finite(got, ref)
+
+
+def test_eager_fallback_returns_residuals_and_takes_non_finite_terms_as_zero(monkeypatch):
+    monkeypatch.setattr(ne_ops, "_c_kernel", lambda spec: None)
+    _check_non_finite(*_non_finite_case(7))
+
+
+def test_triton_kernel_returns_residuals_under_the_interpreter(monkeypatch, tmp_path):
+    pytest.importorskip("triton")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path))
+    built = []
+    real = ne_ops._triton_kernel
+
+    def spy(spec, wide):
+        hit = real(spec, wide)
+        built.append((spec.residuals, hit))
+        return hit
+
+    monkeypatch.setattr(ne_ops, "_triton_kernel", spy)
+    torchbrdf.set_backend("triton")
+    try:
+        got, ref = _non_finite_case(8)
+    finally:
+        torchbrdf.set_backend(None)
+    assert built and built[0][0] and built[0][1] is not None  # the Triton kernel with residuals ran
+    _check_non_finite(got, ref)
