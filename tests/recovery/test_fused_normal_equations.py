@@ -96,12 +96,13 @@ def test_gauss_newton_through_the_operator_equals_the_unfused_normal_equations(o
 
 
 @needs_c
-def test_float32_fused_normal_equations_stay_close_to_the_eager_ones():
+def test_float32_fused_normal_equations_stay_close_to_the_eager_ones(op_calls):
     data, theta, metal = _level(torch.float32)
     theta[4, 5] = 0.1
     idx = data.train_idx
     r_ref, jtj_ref, jtr_ref = _eager(lambda: lm.gauss_newton(data, theta, metal, idx, "principled"))
     r, jtj, jtr = lm.gauss_newton(data, theta, metal, idx, "principled")
+    assert len(op_calls) == 1 and op_calls[0].split("|")[6] == "c"  # the float32 C kernel
     torch.testing.assert_close(r, r_ref, rtol=1e-4, atol=1e-5, equal_nan=True)
     torch.testing.assert_close(jtj, jtj_ref, rtol=1e-3, atol=1e-5 * float(jtj_ref.abs().max()))
     torch.testing.assert_close(jtr, jtr_ref, rtol=1e-3, atol=1e-5 * float(jtr_ref.abs().max()))
