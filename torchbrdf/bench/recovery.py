@@ -3,11 +3,12 @@
 One Gauss–Newton linearisation of the fit's log residuals over every light: per pixel the
 data cost, ``JᵀJ (7, 7)`` and ``Jᵀr (7,)`` w.r.t. the recovery's seven unknowns.
 
-* ``before``: the solver's path today, :func:`torchbrdf.recovery.lm.gauss_newton` (the
-  fused residual and JVP operators under ``vmap`` of ``jvp`` for the decode, then the 7×7
-  products as batched matrix products);
-* ``after``: :func:`torchbrdf.kernels.normal_eq_ops.normal_equations` (one light-loop kernel
-  writes the cost, ``JᵀJ`` and ``Jᵀr``; the decode's Jacobian by ``torch.func`` first).
+* ``before``: the solver's unfused path, :func:`torchbrdf.recovery.lm.gauss_newton` with
+  ``fused=False`` (the fused residual and JVP operators under ``vmap`` of ``jvp`` for the
+  decode, then the 7×7 products as batched matrix products);
+* ``after``: the solver's path, :func:`~torchbrdf.recovery.lm.gauss_newton` (one light-loop
+  kernel, :func:`torchbrdf.kernels.normal_eq_ops.normal_equations`, writes the residuals, the
+  cost, ``JᵀJ`` and ``Jᵀr``; the decode's Jacobian by ``torch.func`` first).
 
 Both run alternately on the same synthetic capture (``--size``² pixels, ``--lights`` lights,
 float32 as the recovery runs), ``--reps`` times each, and the table gives pixel-lights per
@@ -26,16 +27,16 @@ from typing import Any
 
 import torch
 
+from torchbrdf.recovery.params import decode_pattern, decode_slots
+
 __all__ = ["main", "synthetic_level", "normal_equations_before", "normal_equations_after", "DECODE_PATTERN",
            "DECODE_SLOTS"]
 
 #: The non-zero ``(direction, channel, slot)`` tangents of the decode's parameters along the
-#: seven unknowns (base-colour logits, specular, roughness, the two normal slopes). The first
-#: five each move one channel of their own, so one tangent (slot 0, along all five) holds them;
-#: each normal slope moves the whole normal (slots 1 and 2).
-DECODE_PATTERN = {"base_color": [(0, 0, 0), (1, 1, 0), (2, 2, 0)], "specular": [(3, 0, 0)],
-                  "roughness": [(4, 0, 0)], "normal": [(j, c, j - 4) for j in (5, 6) for c in range(3)]}
-DECODE_SLOTS = ((0, 1, 2, 3, 4), (5,), (6,))  # the unknowns each slot's tangent moves
+#: seven unknowns, and the unknowns each slot's tangent moves
+#: (:func:`torchbrdf.recovery.params.decode_pattern`, :func:`~torchbrdf.recovery.params.decode_slots`).
+DECODE_PATTERN = decode_pattern()
+DECODE_SLOTS = decode_slots()
 
 
 def synthetic_level(size: int, lights: int, seed: int = 0, dtype: torch.dtype = torch.float32
@@ -61,33 +62,21 @@ def synthetic_level(size: int, lights: int, seed: int = 0, dtype: torch.dtype = 
 
 def normal_equations_before(level: Any, theta: torch.Tensor, metal: torch.Tensor
                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(cost (P,), JᵀJ (P, 7, 7), Jᵀr (P, 7))`` by the solver's :func:`gauss_newton`."""
+    """``(cost (P,), JᵀJ (P, 7, 7), Jᵀr (P, 7))`` by the solver's unfused :func:`gauss_newton`."""
     from torchbrdf.recovery.lm import gauss_newton
 
-    r, jtj, jtr = gauss_newton(level, theta, metal, level.train_idx, "principled")
+    r, jtj, jtr = gauss_newton(level, theta, metal, level.train_idx, "principled", fused=False)
     return (r * r).sum(-1), jtj, jtr
 
 
 def normal_equations_after(level: Any, theta: torch.Tensor, metal: torch.Tensor
                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The same by the fused kernel (:func:`torchbrdf.kernels.normal_eq_ops.normal_equations`)."""
-    from torchbrdf.kernels.normal_eq_ops import normal_equations, unpack_jtj
-    from torchbrdf.recovery.params import decode
+    """The same by the solver's fused path (:func:`gauss_newton`: one light-loop kernel, which
+    writes the residuals too)."""
+    from torchbrdf.recovery.lm import gauss_newton
 
-    K = theta.shape[1]
-    dirs = torch.zeros(len(DECODE_SLOTS), K, dtype=theta.dtype, device=theta.device)
-    for s, cols in enumerate(DECODE_SLOTS):
-        dirs[s, list(cols)] = 1.0
-    out_dims: Any = (None, 0)  # the decoded maps once, their tangents per direction
-    pair: Any = torch.func.vmap(lambda t: torch.func.jvp(lambda x: decode(x, metal), (theta,), (t,)),
-                                out_dims=out_dims)(dirs[:, None].expand(-1, *theta.shape))
-    p, dp = pair
-    idx = level.train_idx
-    log_obs = level.log_obs[idx].permute(1, 0, 2).contiguous()
-    cost, jtj, jtr = normal_equations(p, {k: v for k, v in dp.items() if k in DECODE_PATTERN}, level.points,
-                                      level.camera, level.pos[idx], level.inten[idx], log_obs, level.eps,
-                                      DECODE_PATTERN, unknowns=K)
-    return cost, unpack_jtj(jtj, K), jtr
+    r, jtj, jtr = gauss_newton(level, theta, metal, level.train_idx, "principled")
+    return (r * r).sum(-1), jtj, jtr
 
 
 def _stats(xs: list[float]) -> str:

@@ -52,25 +52,25 @@ def fit_jacobian(jvp: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tens
 
 
 def gauss_newton(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], model: str,
-                 chunk: int = 16384) -> tuple[Tensor, Tensor, Tensor]:
+                 chunk: int = 16384, fused: bool = True) -> tuple[Tensor, Tensor, Tensor]:
     """Residuals and the per-pixel normal equations of the log residuals on lights ``idx``.
 
     Returns ``r (P, M)`` (the residuals at ``theta``, non-finite entries as they come),
     ``JᵀJ (P, 7, 7)`` and ``Jᵀr (P, 7)`` w.r.t. each pixel's 7 unknowns (non-finite Jacobian
     entries and residuals count as 0 there). Where the fused normal-equations kernel applies
     (the principled model in float32/float64 with the fused path on:
-    :meth:`LevelData.normal_equations`) one pass over the lights writes all three, with no
-    Jacobian in memory. Otherwise pixels being independent, forward mode
-    (:func:`fit_jacobian`: five directions for the seven unknowns, in one call of the fused
-    operators, the residual as their primal output) gives every pixel's Jacobian. It runs over blocks of
-    ``chunk`` pixels and reduces each block to its 7×7 products at once, so the
+    :meth:`LevelData.normal_equations`; ``fused=False`` skips it, to compare) one pass over
+    the lights writes all three, with no Jacobian in memory. Otherwise, pixels being
+    independent, forward mode (:func:`fit_jacobian`: five directions for the seven unknowns,
+    in one call of the fused operators, the residual as their primal output) gives every
+    pixel's Jacobian. It runs over blocks of ``chunk`` pixels and reduces each block to its 7×7 products at once, so the
     ``7 × lights × pixels`` Jacobian never exists whole: its blocks stay in cache and below
     the allocator's mmap threshold (a whole 256² Jacobian is 88 MB, and every fresh
     allocation that size is page-faulted in anew: 0.5 s of a 1.4 s Jacobian, measured).
     """
-    fused = data.normal_equations(theta, metal, idx, model, N_PARAMS)
-    if fused is not None:
-        return fused[0], fused[2], fused[3]
+    one_pass = data.normal_equations(theta, metal, idx, model, N_PARAMS) if fused else None
+    if one_pass is not None:
+        return one_pass[0], one_pass[2], one_pass[3]
     P = theta.shape[0]
     r_out = theta.new_empty(P, 3 * len(idx))
     jtj = theta.new_empty(P, N_PARAMS, N_PARAMS)
