@@ -134,7 +134,9 @@ def test_bad_inputs_name_the_argument():
                          log_obs, EPS)
 
 
-def test_triton_kernel_matches_jacfwd_under_the_interpreter(monkeypatch, tmp_path):
+def _interpreted_triton(monkeypatch, tmp_path, run):
+    """``run()`` with the Triton kernels under the interpreter; returns its result and the
+    kernels built ``[(spec, kernel or None)]``."""
     pytest.importorskip("triton")
     monkeypatch.setenv("TRITON_INTERPRET", "1")
     monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path))
@@ -143,17 +145,21 @@ def test_triton_kernel_matches_jacfwd_under_the_interpreter(monkeypatch, tmp_pat
 
     def spy(spec, wide):
         hit = real(spec, wide)
-        built.append(hit)
+        built.append((spec, hit))
         return hit
 
     monkeypatch.setattr(ne_ops, "_triton_kernel", spy)
     torchbrdf.set_backend("triton")
     try:
-        case = _capture(24, 4, torch.float64, seed=4)
-        cost, jtj, jtr = _fused(*case)
+        return run(), built
     finally:
         torchbrdf.set_backend(None)
-    assert built and built[0] is not None  # the Triton kernel ran
+
+
+def test_triton_kernel_matches_jacfwd_under_the_interpreter(monkeypatch, tmp_path):
+    case = _capture(24, 4, torch.float64, seed=4)
+    (cost, jtj, jtr), built = _interpreted_triton(monkeypatch, tmp_path, lambda: _fused(*case))
+    assert built and built[0][1] is not None  # the Triton kernel ran
     rc, rjtj, rjtr = _reference(*case)
     torch.testing.assert_close(cost, rc, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(unpack_jtj(jtj, 7), rjtj, rtol=1e-10, atol=1e-10)
@@ -243,22 +249,6 @@ def test_eager_fallback_returns_residuals_and_takes_non_finite_terms_as_zero(mon
 
 
 def test_triton_kernel_returns_residuals_under_the_interpreter(monkeypatch, tmp_path):
-    pytest.importorskip("triton")
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
-    monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path))
-    built = []
-    real = ne_ops._triton_kernel
-
-    def spy(spec, wide):
-        hit = real(spec, wide)
-        built.append((spec.residuals, hit))
-        return hit
-
-    monkeypatch.setattr(ne_ops, "_triton_kernel", spy)
-    torchbrdf.set_backend("triton")
-    try:
-        got, ref = _non_finite_case(8)
-    finally:
-        torchbrdf.set_backend(None)
-    assert built and built[0][0] and built[0][1] is not None  # the Triton kernel with residuals ran
+    (got, ref), built = _interpreted_triton(monkeypatch, tmp_path, lambda: _non_finite_case(8))
+    assert built and built[0][0].residuals and built[0][1] is not None  # the Triton kernel with residuals ran
     _check_non_finite(got, ref)
