@@ -41,6 +41,12 @@ def _capture(N, L, dtype, seed=0, metal_frac=0.5):
 
 def _reference(theta, metal, points, cam, lpos, lint, log_obs):
     """cost, JᵀJ (N, K, K), Jᵀr with J from torch.func.jacfwd of the eager residual."""
+    r, J = _jacobian(theta, metal, points, cam, lpos, lint, log_obs)
+    return (r * r).sum(-1), J.transpose(1, 2) @ J, (J.transpose(1, 2) @ r[..., None])[..., 0]
+
+
+def _jacobian(theta, metal, points, cam, lpos, lint, log_obs):
+    """The eager residuals (N, M) and their Jacobian (N, M, K) by torch.func.jacfwd."""
     def res(th, me, pt, lo):  # one pixel
         p = decode(th[None], me[None])
         return log_residual_points(p["normal"], pt[None], cam, lpos, lint, p, lo[None], EPS).reshape(-1)
@@ -52,7 +58,7 @@ def _reference(theta, metal, points, cam, lpos, lint, log_obs):
         J = torch.vmap(torch.func.jacfwd(res))(theta, metal, points, log_obs)
     finally:
         torchbrdf.set_backend(None if old == "auto" else old)
-    return (r * r).sum(-1), J.transpose(1, 2) @ J, (J.transpose(1, 2) @ r[..., None])[..., 0]
+    return r, J
 
 
 def _fused(theta, metal, points, cam, lpos, lint, log_obs, pattern=None):
@@ -203,19 +209,7 @@ def _non_finite_case(seed):
     dp["roughness"][4, 6, 0] = float("nan")  # pixel 6's roughness column
     dp["normal"][5, 7, 1] = float("inf")  # pixel 7's first slope column
     got = normal_equations(p, dp, points, cam, lpos, lint, log_obs, EPS, residuals=True)
-    _, rjtj, _ = _reference(theta, metal, points, cam, lpos, lint, log_obs.nan_to_num(0.0, 0.0, 0.0))
-
-    def res(th, me, pt, lo):  # one pixel, as _reference
-        q = decode(th[None], me[None])
-        return log_residual_points(q["normal"], pt[None], cam, lpos, lint, q, lo[None], EPS).reshape(-1)
-
-    old = torchbrdf.get_backend()
-    torchbrdf.set_backend("eager")
-    try:
-        r = torch.vmap(res)(theta, metal, points, log_obs)
-        J = torch.vmap(torch.func.jacfwd(res))(theta, metal, points, log_obs)  # (N, M, 7)
-    finally:
-        torchbrdf.set_backend(None if old == "auto" else old)
+    r, J = _jacobian(theta, metal, points, cam, lpos, lint, log_obs)  # (N, M), (N, M, 7)
     J[6, :, 4] = float("nan")
     J[7, :, 5] = float("inf")
     Jc, rc = J.nan_to_num(0.0, 0.0, 0.0), r.nan_to_num(0.0, 0.0, 0.0)
