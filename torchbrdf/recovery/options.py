@@ -90,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write OUT/checkpoint.pt every N iterations (>= 1; also on SIGINT/SIGTERM)")
     p.add_argument("--threads", type=int, default=None,
                    help="CPU threads for torch (default: the CPUs this process may use, from its affinity and "
-                        "cgroup quota, less the load of other processes; torchbrdf.parallel.default_threads)")
+                        "cgroup quota, less the load of other processes and the CPUs a hypervisor steals; "
+                        "torchbrdf.parallel.default_threads)")
     p.add_argument("--demo-size", type=int, default=128, help="resolution of the --demo capture (16-4096)")
     p.add_argument("--quiet", action="store_true", help="no stage messages or progress bar")
     return p
