@@ -14,16 +14,18 @@ def _row(schedule, case, seconds, db):
 
 
 def test_schedule_table_rows_and_time_spread():
-    rows = [_row("fast", "tiles", [3.0, 1.0, 2.0], 30.0), _row("thorough", "tiles", [9.0], 33.25)]
+    rows = [_row("fast", "tiles", [3.0, 1.0, 2.0], 30.0) | {"cpu_seconds": [0.5, 0.7, 0.6]},
+            _row("thorough", "tiles", [9.0], 33.25)]
     lines = bench.schedule_table(rows).splitlines()
     assert len(lines) == 3
-    assert lines[0].split()[:5] == ["schedule", "capture", "s", "min", "median"]
+    assert lines[0].split()[:6] == ["schedule", "capture", "wall", "s", "min", "median"]
     fast = lines[1].split()
-    assert fast[:7] == ["fast", "tiles", "1.0", "2.0", "3.0", "30.00", "27.00"]  # min, median, max of the times
-    assert lines[2].split()[2:5] == ["9.0", "9.0", "9.0"] and "33.25" in lines[2]
+    # min, median, max of the wall times, median CPU time, held-out mean and worst
+    assert fast[:8] == ["fast", "tiles", "1.0", "2.0", "3.0", "0.6", "30.00", "27.00"]
+    assert lines[2].split()[2:7] == ["9.0", "9.0", "9.0", "–", "33.25"]
     md = bench.schedule_table(rows, markdown=True).splitlines()
     assert md[0].startswith("| schedule | capture |") and md[1].startswith("|---|")
-    assert md[2].startswith("| fast | tiles | 1.0 | 2.0 | 3.0 | 30.00 | 27.00 | 0.0100 |")
+    assert md[2].startswith("| fast | tiles | 1.0 | 2.0 | 3.0 | 0.6 | 30.00 | 27.00 | 0.0100 |")
 
 
 def test_schedule_rows_alternate_the_schedules(monkeypatch):
@@ -46,7 +48,7 @@ def test_schedule_rows_alternate_the_schedules(monkeypatch):
     case = panel_cases("all")[0]
     rows = bench.schedule_rows([case], ["fast", "thorough"], size=16, reps=2, threads=1)
     assert [r["schedule"] for r in rows] == ["fast", "thorough"]
-    assert all(len(r["seconds"]) == 2 and r["case"] == case.name for r in rows)
+    assert all(len(r["seconds"]) == len(r["cpu_seconds"]) == 2 and r["case"] == case.name for r in rows)
     fast, thorough = (SCHEDULES[s]["iters"] for s in ("fast", "thorough"))
     assert [c[0] for c in calls] == [fast, thorough, thorough, fast]  # odd rounds reversed
     assert all(c[2:] == (1, -1) for c in calls)

@@ -114,7 +114,8 @@ def schedule_rows(cases: Sequence[Any], schedules: Sequence[str], size: int = 64
 
     Each capture is rendered once at ``size``² pixels; the recovery runs on ``threads`` threads
     with every light in the fit. Returns one row per schedule and case: ``schedule``,
-    ``case``, ``seconds`` (the list of wall times), and the metrics of
+    ``case``, ``seconds`` (the list of wall times), ``cpu_seconds`` (the process's CPU time of
+    each, all threads: less sensitive to other processes' load), and the metrics of
     :func:`~torchbrdf.bench.recovery_panel.score_maps` of the last repetition (a seeded
     recovery is deterministic).
     """
@@ -126,33 +127,38 @@ def schedule_rows(cases: Sequence[Any], schedules: Sequence[str], size: int = 64
         with tempfile.TemporaryDirectory(prefix="schedules_") as tmp:
             truth, _ = render_case(case, tmp, size)
             times: dict[str, list[float]] = {s: [] for s in schedules}
+            cpu: dict[str, list[float]] = {s: [] for s in schedules}
             scores: dict[str, dict] = {}
             for rep in range(reps):
                 for name in (schedules if rep % 2 == 0 else schedules[::-1]):
                     cfg = RecoveryConfig(schedule=name, threads=threads, holdout=-1)
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     maps = recover(tmp, cfg, progress=False, log=lambda m: None).maps
                     times[name].append(time.perf_counter() - t0)
+                    cpu[name].append(time.process_time() - c0)
                     scores[name] = score_maps(maps, truth, case.model, seed=_case_seed(case))
-        rows += [{"schedule": n, "case": case.name, "seconds": times[n], **scores[n]} for n in schedules]
+        rows += [{"schedule": n, "case": case.name, "seconds": times[n], "cpu_seconds": cpu[n], **scores[n]}
+                 for n in schedules]
     return rows
 
 
-_SCHEDULE_HEAD = ("schedule", "capture", "s min", "median", "max", "held dB", "worst dB", "base", "rough",
-                  "metal", "spec", "n°")
+_SCHEDULE_HEAD = ("schedule", "capture", "wall s min", "median", "max", "CPU s median", "held dB", "worst dB",
+                  "base", "rough", "metal", "spec", "n°")
 
 
 def schedule_table(rows: Sequence[Mapping[str, Any]], markdown: bool = False) -> str:
     """The rows of :func:`schedule_rows` as an aligned text table (or Markdown), one line each.
 
-    Columns: schedule, capture, wall seconds per capture (min, median, max), held-out mean and
+    Columns: schedule, capture, wall seconds per capture (min, median, max), the median CPU
+    seconds (``cpu_seconds``; a dash where a row has none), held-out mean and
     worst-light PSNR (dB), base-colour / roughness / metallic / specular RMSE, mean normal
     error (degrees).
     """
     table = [list(_SCHEDULE_HEAD)]
     for r in rows:
         t = sorted(r["seconds"])
-        table.append([r["schedule"], r["case"], f"{t[0]:.1f}", f"{statistics.median(t):.1f}", f"{t[-1]:.1f}",
+        cpu = f"{statistics.median(r['cpu_seconds']):.1f}" if r.get("cpu_seconds") else "–"
+        table.append([r["schedule"], r["case"], f"{t[0]:.1f}", f"{statistics.median(t):.1f}", f"{t[-1]:.1f}", cpu,
                       f"{r['heldout_mean_db']:.2f}", f"{r['heldout_worst_db']:.2f}", f"{r['base_rmse']:.4f}",
                       f"{r['roughness_rmse']:.4f}", f"{r['metallic_rmse']:.4f}", f"{r['specular_rmse']:.4f}",
                       f"{r['normal_deg']:.2f}"])
