@@ -56,20 +56,24 @@ def test_affinity_caps_the_count(monkeypatch, tmp_path):
     assert parallel.available_cpus(root, pc) == 3
 
 
+def _no_steal():
+    return 0.0
+
+
 def test_default_threads_subtracts_other_processes_load():
     def load(x):
         return lambda: (x, 0.0, 0.0)
 
     # quiet 2-CPU machine: our own running thread is the whole load
-    assert parallel.default_threads(cpus=2, loadavg=load(1.0), own_load=1.0) == 2
+    assert parallel.default_threads(cpus=2, loadavg=load(1.0), own_load=1.0, steal=_no_steal) == 2
     # one busy process beside us: one thread
-    assert parallel.default_threads(cpus=2, loadavg=load(2.0), own_load=1.0) == 1
+    assert parallel.default_threads(cpus=2, loadavg=load(2.0), own_load=1.0, steal=_no_steal) == 1
     # heavily loaded: never below one
-    assert parallel.default_threads(cpus=2, loadavg=load(40.0), own_load=1.0) == 1
+    assert parallel.default_threads(cpus=2, loadavg=load(40.0), own_load=1.0, steal=_no_steal) == 1
     # 16 CPUs, 5 others busy: 11
-    assert parallel.default_threads(cpus=16, loadavg=load(6.0), own_load=1.0) == 11
+    assert parallel.default_threads(cpus=16, loadavg=load(6.0), own_load=1.0, steal=_no_steal) == 11
     # never above the available CPUs, and load_aware=False ignores the load
-    assert parallel.default_threads(cpus=4, loadavg=load(0.0), own_load=1.0) == 4
+    assert parallel.default_threads(cpus=4, loadavg=load(0.0), own_load=1.0, steal=_no_steal) == 4
     assert parallel.default_threads(False, cpus=2, loadavg=load(40.0)) == 2
 
 
@@ -77,7 +81,62 @@ def test_default_threads_without_a_load_average():
     def none():
         raise OSError("no load average")
 
-    assert parallel.default_threads(cpus=3, loadavg=none) == 3
+    assert parallel.default_threads(cpus=3, loadavg=none, steal=_no_steal) == 3
+
+
+def _stat(user: int, idle: int, steal: int, cpus: int = 2) -> str:
+    """A /proc/stat text: the aggregate line (user nice system idle iowait irq softirq steal guest
+    guest_nice) and ``cpus`` per-CPU lines."""
+    lines = [f"cpu  {user} 0 0 {idle} 0 0 0 {steal} 0 0"]
+    lines += [f"cpu{k} 1 0 0 1 0 0 0 0 0 0" for k in range(cpus)]
+    return "\n".join(lines + ["intr 1 2 3", "ctxt 100", "procs_running 3"]) + "\n"
+
+
+def test_steal_between_counts_cpus_of_stolen_time():
+    # 2 vCPUs, over the window: 100 ticks user, 100 idle, 200 stolen: half of all time → 1 CPU
+    assert parallel.steal_between(_stat(0, 0, 0), _stat(100, 100, 200)) == pytest.approx(1.0)
+    # quiet host
+    assert parallel.steal_between(_stat(5, 5, 7), _stat(105, 105, 7)) == 0.0
+    # 4 vCPUs, a quarter stolen → 1 CPU
+    assert parallel.steal_between(_stat(0, 0, 0, 4), _stat(150, 150, 100, 4)) == pytest.approx(1.0)
+    # no time passed, no steal column (an old kernel), not a stat file
+    assert parallel.steal_between(_stat(1, 1, 1), _stat(1, 1, 1)) is None
+    assert parallel.steal_between("cpu  1 2 3 4\ncpu0 1 2 3 4\n", "cpu  2 3 4 5\ncpu0 2 3 4 5\n") is None
+    assert parallel.steal_between("hello", "world") is None
+
+
+def test_stolen_cpus_reads_the_file_twice_across_a_sleep(tmp_path):
+    stat = tmp_path / "stat"
+    stat.write_text(_stat(1000, 1000, 0))
+    waits = []
+
+    def sleep(seconds):  # the window passes: the host took 60 of the 200 ticks
+        waits.append(seconds)
+        stat.write_text(_stat(1070, 1070, 60))
+
+    assert parallel.stolen_cpus(0.25, str(stat), sleep) == pytest.approx(2 * 60 / 200)
+    assert waits == [0.25]
+    assert parallel.stolen_cpus(0.1, str(tmp_path / "missing"), sleep) is None
+
+
+def test_default_threads_subtracts_stolen_cpus():
+    def quiet():
+        return (1.0, 0.0, 0.0)  # our own thread only
+
+    # a 2-vCPU machine whose host takes half its time: one thread, as beside one busy process
+    assert parallel.default_threads(cpus=2, loadavg=quiet, own_load=1.0, steal=lambda: 1.0) == 1
+    # a little steal rounds away; no reading (None) counts as none
+    assert parallel.default_threads(cpus=2, loadavg=quiet, own_load=1.0, steal=lambda: 0.3) == 2
+    assert parallel.default_threads(cpus=2, loadavg=quiet, own_load=1.0, steal=lambda: None) == 2
+    # steal and other processes add up; never below one
+    assert parallel.default_threads(cpus=8, loadavg=lambda: (3.0, 0, 0), own_load=1.0, steal=lambda: 2.0) == 4
+    assert parallel.default_threads(cpus=2, loadavg=quiet, own_load=1.0, steal=lambda: 5.0) == 1
+
+    # load_aware=False reads nothing
+    def boom():
+        raise AssertionError("steal read with load_aware=False")
+
+    assert parallel.default_threads(False, cpus=2, steal=boom) == 2
 
 
 def test_default_threads_real_machine_is_in_range():

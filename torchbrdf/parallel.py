@@ -8,8 +8,12 @@ happens with the CPUs they use.
 
 * :func:`available_cpus`: the CPUs this process may use, from the affinity mask and the cgroup
   v2 (``cpu.max``) or v1 (``cpu.cfs_quota_us`` / ``cpu.cfs_period_us``) quota;
+* :func:`stolen_cpus`: the CPUs' worth of time a hypervisor gave other machines over a short
+  window (the ``steal`` column of ``/proc/stat``): on a virtual machine whose host is
+  oversubscribed a vCPU is descheduled for whole milliseconds, and an OpenMP barrier waits
+  for it just as for a thread another process holds;
 * :func:`default_threads`: that count, optionally less the 1-minute load of the other
-  processes (``load_aware``), at least 1.
+  processes and the stolen CPUs (``load_aware``), at least 1.
 
 Typical use, when the user did not choose a thread count::
 
@@ -20,12 +24,19 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Callable
 
-__all__ = ["available_cpus", "cgroup_cpu_limit", "default_threads", "CGROUP_ROOT"]
+__all__ = ["available_cpus", "cgroup_cpu_limit", "default_threads", "stolen_cpus", "steal_between",
+           "CGROUP_ROOT", "PROC_STAT", "STEAL_WINDOW"]
 
 #: Where the cgroup file systems are mounted (the process's own cgroup is read from /proc/self/cgroup).
 CGROUP_ROOT = "/sys/fs/cgroup"
+#: The kernel's CPU time counters (the aggregate ``cpu`` line and one ``cpuN`` line per CPU).
+PROC_STAT = "/proc/stat"
+#: Seconds between the two readings of :data:`PROC_STAT` in :func:`stolen_cpus`: the steal of an
+#: oversubscribed host comes in bursts of milliseconds, so a tenth of a second averages tens of them.
+STEAL_WINDOW = 0.1
 
 
 def _read(path: str) -> str | None:
@@ -140,23 +151,78 @@ def _own_load() -> float:
     return float(max(running, 1))
 
 
+def _cpu_times(text: str) -> tuple[list[int], int] | None:
+    """The aggregate ``cpu`` line's counters and the number of ``cpuN`` lines of a ``/proc/stat`` text."""
+    total: list[int] | None = None
+    n_cpu = 0
+    for line in text.splitlines():
+        name, _, rest = line.partition(" ")
+        if name == "cpu":
+            try:
+                total = [int(x) for x in rest.split()]
+            except ValueError:
+                return None
+        elif name.startswith("cpu") and name[3:].isdigit():
+            n_cpu += 1
+    return (total, n_cpu) if total is not None and n_cpu else None
+
+
+def steal_between(before: str, after: str) -> float | None:
+    """The CPUs' worth of stolen time between two ``/proc/stat`` texts, or None.
+
+    ``steal`` (the 8th counter of the aggregate ``cpu`` line: time a vCPU was ready but the
+    hypervisor ran something else) over all eight time counters (user … steal; ``guest`` is
+    part of ``user``), times the CPU count: ``1.0`` on a 2-vCPU machine means half of every
+    vCPU's time went to other machines. None when either text lacks the counters (no steal
+    column before Linux 2.6.11, not Linux) or no time passed.
+    """
+    a, b = _cpu_times(before), _cpu_times(after)
+    if a is None or b is None or len(a[0]) < 8 or len(b[0]) < 8:
+        return None
+    delta = [y - x for x, y in zip(a[0][:8], b[0][:8])]
+    total = sum(delta)
+    if total <= 0:
+        return None
+    return max(0.0, delta[7] / total) * b[1]
+
+
+def stolen_cpus(window: float = STEAL_WINDOW, stat: str = PROC_STAT,
+                sleep: Callable[[float], object] = time.sleep) -> float | None:
+    """The CPUs' worth of time the hypervisor gave to other machines over ``window`` seconds.
+
+    Reads ``stat`` (:data:`PROC_STAT`), sleeps ``window`` seconds (a sleep: no spinning) and
+    reads it again (:func:`steal_between`). 0 on bare metal or a quiet host; None where the
+    file or its steal counter is missing. ``stat`` / ``sleep``: tests point them at fake files.
+    """
+    before = _read(stat)
+    if before is None:
+        return None
+    sleep(window)
+    after = _read(stat)
+    return None if after is None else steal_between(before, after)
+
+
 def default_threads(load_aware: bool = True, *, cpus: int | None = None,
                     loadavg: Callable[[], tuple[float, float, float]] | None = None,
-                    own_load: float | None = None) -> int:
+                    own_load: float | None = None, steal: Callable[[], float | None] | None = None) -> int:
     """The thread count for this process's CPU work, at least 1.
 
     :func:`available_cpus`, and with ``load_aware`` less the 1-minute load average of the other
-    processes (``os.getloadavg()[0]`` minus this process's own running threads), rounded to
-    the nearest CPU: beside one busy process on 2 CPUs this gives 1 thread, so no OpenMP
-    barrier waits for a thread the scheduler has parked behind the other process. The load
-    average counts every runnable task of the machine, which inside a container with a quota
-    may include other containers' work; the result is still at most :func:`available_cpus`.
+    processes (``os.getloadavg()[0]`` minus this process's own running threads) and less the
+    CPUs the hypervisor is stealing now (:func:`stolen_cpus`, over :data:`STEAL_WINDOW`),
+    rounded to the nearest CPU: beside one busy process on 2 CPUs this gives 1 thread, and so
+    does a 2-vCPU virtual machine whose host takes half its time, so no OpenMP barrier waits for
+    a thread the scheduler (or the hypervisor) has parked. The load average counts every
+    runnable task of the machine, which inside a container with a quota may include other
+    containers' work; the result is still at most :func:`available_cpus`.
 
     Args:
-        load_aware: subtract the other processes' load (False: the available CPUs).
+        load_aware: subtract the other processes' load and the stolen CPUs (False: the
+            available CPUs, nothing read, no wait).
         cpus: the available CPUs (default :func:`available_cpus`).
         loadavg: replaces ``os.getloadavg`` (tests).
         own_load: this process's own share of the load (default: its running threads).
+        steal: replaces :func:`stolen_cpus` (tests; None from it counts as no steal).
 
     Returns:
         An int in ``[1, cpus]``.
@@ -165,9 +231,10 @@ def default_threads(load_aware: bool = True, *, cpus: int | None = None,
     n = max(1, n)
     if not load_aware:
         return n
+    stolen = (steal or stolen_cpus)() or 0.0
     try:
-        one_min = (loadavg or os.getloadavg)()[0]
+        one_min = float((loadavg or os.getloadavg)()[0])
     except (AttributeError, OSError):  # no load average on this platform
-        return n
-    others = max(0.0, float(one_min) - (_own_load() if own_load is None else float(own_load)))
-    return int(min(n, max(1, math.floor(n - others + 0.5))))
+        one_min = None
+    others = 0.0 if one_min is None else max(0.0, one_min - (_own_load() if own_load is None else float(own_load)))
+    return int(min(n, max(1, math.floor(n - others - stolen + 0.5))))

@@ -535,18 +535,20 @@ def _parser() -> argparse.ArgumentParser:
     rec = p.add_argument_group("recovery options (as python -m training.recover_svbrdf)")
     fields = {f.name for f in dataclasses.fields(Settings)} - _NOT_PASSED
     for action in single_parser()._actions:
-        if action.dest in fields or action.dest in OFF_SWITCHES:
+        if action.dest in fields or action.dest in OFF_SWITCHES or action.dest == "schedule":
             rec._add_action(action)
     return p
 
 
 def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
     """The :class:`RecoveryConfig` of the recovery flags in ``args``."""
-    from torchbrdf.recovery.options import OFF_SWITCHES
+    from torchbrdf.recovery.options import OFF_SWITCHES, SCHEDULE_FLAGS
 
     fields = {f.name for f in dataclasses.fields(Settings)} - _NOT_PASSED
     off: dict[str, Any] = {field: not getattr(args, flag) for flag, field in OFF_SWITCHES.items()}
-    return RecoveryConfig(**{k: v for k, v in vars(args).items() if k in fields}, **off)
+    # (a schedule flag left out is None: the chosen schedule's value stands)
+    given = {k: v for k, v in vars(args).items() if k in fields and not (k in SCHEDULE_FLAGS and v is None)}
+    return RecoveryConfig(schedule=getattr(args, "schedule", "default"), **given, **off)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -184,18 +184,27 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     jpw = jp * w[:, None, :]
     a = torch.bmm(jpw, jp.transpose(1, 2))
     a = a + torch.diag_embed(damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9)
-    b = torch.einsum("nplc,nlcg->nplg", jpw.reshape(n, N_PARAMS, n_l, 3), jg)
-    b = b.reshape(n, N_PARAMS, n_l * n_g)  # light-major, G inner
-    gp = (jpw @ r[..., None])[..., 0]  # (n, 7)
+    # [B | gp] (n, 7, L G + 1) in one buffer, B = JpᵀW Jg a colour channel at a time (light-major,
+    # G inner): per light a (7, 3) by (3, G) product, too small for a batched matrix product.
+    jpw4, jgc = jpw.view(n, N_PARAMS, n_l, 3), jg.contiguous()
+    bg = jpw.new_empty(n, N_PARAMS, n_l * n_g + 1)
+    b, gp = bg[..., :-1], bg[..., -1]
+    b4 = b.view(n, N_PARAMS, n_l, n_g)
+    torch.mul(jpw4[..., 0, None], jgc[:, None, :, 0], out=b4)
+    for ch in (1, 2):
+        b4.addcmul_(jpw4[..., ch, None], jgc[:, None, :, ch])
+    torch.bmm(jpw, r[..., None], out=gp[..., None])  # (n, 7)
     if map_prior is not None:
-        gp = gp + torch.nan_to_num(map_prior[0][rows].to(f64)) * ok[:, None]
+        gp += torch.nan_to_num(map_prior[0][rows].to(f64)) * ok[:, None]
         a = a + torch.diag_embed(torch.nan_to_num(map_prior[1][rows].to(f64)) * ok[:, None])
     wr = (w * r).reshape(n, n_l, 3)
     gg = torch.einsum("nlcg,nlc->lg", jg, wr).reshape(-1)  # (L G,)
     c = torch.einsum("nlcg,nlc,nlch->lgh", jg, w.reshape(n, n_l, 3), jg)  # (L, G, G)
-    x = torch.linalg.solve(a, torch.cat((b, gp[..., None]), -1))  # A⁻¹ [B | gp]
-    schur = torch.block_diag(*c) - torch.einsum("npg,nph->gh", b, x[..., :-1])
-    rhs = gg - torch.einsum("npg,np->g", b, x[..., -1])
+    x = torch.linalg.inv(a) @ bg  # A⁻¹ [B | gp]: one inverse serves the 4 L + 1 right-hand sides
+    # Σ [B | gp]ᵀ A⁻¹ [B | gp] over every pixel's 7 rows, one matrix product: Σ BᵀA⁻¹B and Σ BᵀA⁻¹gp
+    gram = bg.view(-1, bg.shape[-1]).T @ x.view(-1, bg.shape[-1])
+    schur = torch.block_diag(*c) - gram[:-1, :-1]
+    rhs = gg - gram[:-1, -1]
     prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
                          device=r.device)[keep].repeat(n_l) * sigma2
     cur = torch.cat((offset[idx], s0[:, None]), -1)[:, keep].reshape(-1).to(f64)

@@ -18,7 +18,7 @@ from typing import Any, NoReturn
 from torchbrdf.parallel import default_threads
 from torchbrdf.recovery.api import recover
 from torchbrdf.recovery.checks import RecoveryError, check_config
-from torchbrdf.recovery.options import OFF_SWITCHES, build_parser
+from torchbrdf.recovery.options import OFF_SWITCHES, SCHEDULE_FLAGS, build_parser
 from torchbrdf.recovery.outputs import check_out
 from torchbrdf.recovery.config import RecoveryConfig
 
@@ -33,14 +33,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(e.code or 0)
     try:
         off: dict[str, Any] = {field: not getattr(args, flag) for flag, field in OFF_SWITCHES.items()}
+        given = {k: getattr(args, k) for k in SCHEDULE_FLAGS if getattr(args, k) is not None}
         cfg = RecoveryConfig(
-            iters=args.iters, lr=args.lr, size=args.size, seed=args.seed, device=args.device,
-            levels=args.levels, prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
+            schedule=args.schedule, size=args.size, seed=args.seed, device=args.device,
+            prior_roughness=args.prior_roughness, prior_specular=args.prior_specular,
             prior_metal_base=args.prior_metal_base, prior_nonlocal_base=args.prior_nonlocal_base,
             holdout=args.holdout, checkpoint_every=args.checkpoint_every, model=args.model,
             threads=default_threads() if args.threads is None else args.threads,
-            converge_tol=args.converge_tol, converge_min_iters=args.converge_min_iters,
-            **off,
+            **given, **off,
         )
         check_config(cfg)
         check_out(args.out, args.allow_other_files)

@@ -10,9 +10,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from torchbrdf.recovery.config import RecoveryConfig
+from torchbrdf.recovery.config import SCHEDULES, RecoveryConfig
 
-__all__ = ["build_parser", "OFF_SWITCHES"]
+__all__ = ["build_parser", "OFF_SWITCHES", "SCHEDULE_FLAGS"]
 
 
 class _OneLineErrorParser(argparse.ArgumentParser):
@@ -44,11 +44,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "(report.json last) instead of as one folder")
     p.add_argument("--gt", type=Path,
                    help="folder of ground-truth maps (base_color.exr, ...) to report errors against")
-    p.add_argument("--iters", type=int, default=d.iters,
-                   help="total LM iterations planned, spread over the stages (0 = the default schedule, 39); "
-                        "converged full-resolution stages end early (--converge-tol)")
-    p.add_argument("--lr", type=float, default=d.lr,
-                   help="LM step multiplier in (0, 2] (1 = full damped Gauss-Newton step)")
+    p.add_argument("--schedule", choices=tuple(SCHEDULES), default="default",
+                   help="how long the fit runs, time against accuracy (docs/recovery.md, Schedules): fast "
+                        "(18 iterations planned, stop at a 3%% change), default (39, 1%%) or thorough (78, 0.2%%); "
+                        "--iters, --levels, --lr, --converge-tol and --converge-min-iters adjust it")
+    p.add_argument("--iters", type=int, default=None,
+                   help="total LM iterations planned, spread over the stages (0 = the default plan, 39; "
+                        "default: the schedule's); converged full-resolution stages end early (--converge-tol)")
+    p.add_argument("--lr", type=float, default=None,
+                   help=f"LM step multiplier in (0, 2] (1 = full damped Gauss-Newton step; default {d.lr})")
     p.add_argument("--size", type=int, default=d.size,
                    help="working resolution in pixels (default: the capture's; "
                         "maps are written at capture size)")
@@ -62,12 +66,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --resume: continue even if settings differ (never for another capture)")
     p.add_argument("--model", choices=("principled", "svbrdf_ggx"), default=d.model,
                    help="BRDF model fitted (default principled)")
-    p.add_argument("--levels", type=int, default=d.levels, help="coarse-to-fine levels (1-12)")
-    p.add_argument("--converge-tol", type=float, default=d.converge_tol,
+    p.add_argument("--levels", type=int, default=None, help=f"coarse-to-fine levels (1-12; default {d.levels})")
+    p.add_argument("--converge-tol", type=float, default=None,
                    help="a full-resolution stage ends once an iteration changes its fit loss by less than this "
-                        "fraction (default %(default)s; 0 runs every planned iteration)")
-    p.add_argument("--converge-min-iters", type=int, default=d.converge_min_iters,
-                   help="... but not before this many of its iterations (default %(default)s)")
+                        f"fraction (default: the schedule's, {d.converge_tol} in the default one; 0 runs every "
+                        "planned iteration)")
+    p.add_argument("--converge-min-iters", type=int, default=None,
+                   help="... but not before this many of its iterations (default: the schedule's, "
+                        f"{d.converge_min_iters} in the default one)")
     p.add_argument("--prior-roughness", type=float, default=d.prior_roughness,
                    help="weight of the roughness smoothness prior (>= 0)")
     p.add_argument("--prior-specular", type=float, default=d.prior_specular,
@@ -90,11 +96,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write OUT/checkpoint.pt every N iterations (>= 1; also on SIGINT/SIGTERM)")
     p.add_argument("--threads", type=int, default=None,
                    help="CPU threads for torch (default: the CPUs this process may use, from its affinity and "
-                        "cgroup quota, less the load of other processes; torchbrdf.parallel.default_threads)")
+                        "cgroup quota, less the load of other processes and the CPUs a hypervisor steals; "
+                        "torchbrdf.parallel.default_threads)")
     p.add_argument("--demo-size", type=int, default=128, help="resolution of the --demo capture (16-4096)")
     p.add_argument("--quiet", action="store_true", help="no stage messages or progress bar")
     return p
 
+
+# The schedule's flags: None (not given) keeps the value of the chosen --schedule.
+SCHEDULE_FLAGS = ("iters", "lr", "levels", "converge_tol", "converge_min_iters")
 
 # The command line's switches that turn a default-on setting off: flag dest -> RecoveryConfig field.
 OFF_SWITCHES = {"no_soft_metal": "soft_metal", "no_light_calibration": "light_scale",
