@@ -206,17 +206,17 @@ class Recovery:
             pairs = [(t, torch.full_like(t[:, :1], float(h))) for h, t in enumerate(st["theta"])]
         costs = [pixel_cost(d.residual(t, m, d.train_idx, self.cfg.model)) for t, m in pairs]
         per = torch.stack(costs).amin(0) / max(1, 3 * len(d.train_idx))
-        return max(float(per.median()), 1e-6)
+        return min(max(float(per.median()), 1e-6), self.cfg.prior_noise_cap)
 
-    def _prior_unary(self, size: int, metal: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The learned prior's unary term at ``size`` for the classes ``metal (P, 1)`` (None: no prior)."""
+    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` of the
+        level ``size`` (None: no prior)."""
         if self.prior is None:
             return None
         noise = self.state.get("prior_noise")
         if noise is None:  # a run resumed with a prior it did not have: this stage's from its state
             noise = self.state["prior_noise"] = self._noise_variance(size)
-        target, precision = self.prior.unary(size, metal, noise)
-        return target.to(metal), precision.to(metal)
+        return self.prior.unary(theta, metal, noise)
 
     def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
@@ -307,8 +307,9 @@ class Recovery:
         total = 0.0
         for h in hyps:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
-            unary = sum_unary(shared_unary, self._prior_unary(size, metal))
             theta = st["theta"][h]
+            # (linearised at this iteration's start, as the data are)
+            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal))
             bad = ~torch.isfinite(theta).all(-1, keepdim=True)
             if bad.any():  # a non-finite parameter: step back to its last finite neighbour value
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite parameters",

@@ -302,7 +302,7 @@ def estimator_errors(card: Mapping[str, Any]) -> dict[str, float]:
 
     The held-out RMSE of ``base_color``, ``roughness``, ``metallic`` and ``specular``; for the
     normal, the per-component slope error of the card's mean angular error ``θ̄`` (a 2-D Gaussian
-    slope error of deviation ``s`` has mean angle ``s·√(π/2)``). Maps the card lacks take
+    slope error of deviation ``s`` has mean angle ``s·√(π/2)``, for small angles). Maps the card lacks take
     :data:`FALLBACK_MAP_ERRORS`. Floored at 1e-3 (a card claiming no error is not believed).
     """
     held = card.get("heldout") or {}
@@ -336,44 +336,47 @@ def _flat(m: Tensor) -> Tensor:
     return m.reshape(m.shape[0], -1).T
 
 
-def prior_unary(maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
+def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
                 class_weight: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
     """The learned prior as a unary term ``(target, precision)`` ``(P, 7)`` of the recovery's unknowns.
 
     A Gaussian on each map, centred on the network's value ``m_p`` with the network's measured
-    error ``σ_m`` (:func:`estimator_errors`), in the fit's cost scale (squared log residuals): the
-    posterior's ``Σ r²/σ² + Σ (m − m_p)²/σ_m²`` times the residual noise variance ``σ²``.
-    Linearised onto the unknowns (:mod:`~torchbrdf.recovery.params`) at the target, an unknown
-    ``θ`` with ``m = g(θ)`` gets precision ``σ² g'(θ_p)² / σ_m²``. Against the data's own
-    precision (the marginal information ``JᵀJ``, :func:`~torchbrdf.recovery.lm.marginal_information`)
-    the term is negligible where the images determine a value and decides it where they are
-    silent.
+    error ``σ_m`` (:func:`estimator_errors`), in the fit's cost scale (squared log residuals):
+    the posterior's ``Σ r²/σ² + Σ (m − m_p)²/σ_m²`` times the residual noise variance ``σ²``.
+    The maps are sigmoids of the unknowns (:mod:`~torchbrdf.recovery.params`), so the term is
+    linearised at the current unknowns ``θ`` as Gauss–Newton linearises the data: with
+    ``m = g(θ)``, precision ``σ² g'(θ)² / σ_m²`` and target ``θ − (g(θ) − m_p) / g'(θ)`` give the
+    same gradient and curvature there. The normal's slopes ``(p, q)`` are unknowns themselves
+    (``n ∝ (p, q, 1)``): precision ``σ² / σ_n²`` toward the network's slopes. Against the data's
+    own precision (their marginal information) the term is negligible where the images
+    determine a value and decides it where they are silent.
 
     Args:
+        theta: the current unknowns ``(P, 7)``.
         maps: ``base_color (3, S, S)``, ``roughness``, ``specular`` ``(1, S, S)`` and
-            ``normal (3, S, S)`` at the level's size (:func:`prior_maps_at`), float32.
+            ``normal (3, S, S)`` at the level's size (``S² = P``, :func:`prior_maps_at`).
         noise_var: ``σ²``, the fit's per-residual noise variance (> 0).
         errors: name -> ``σ_m`` (:func:`estimator_errors`).
         class_weight: ``(P, 1)`` or a float scaling the precision per pixel: the prior's
             probability of the hypothesis being fitted (its maps are conditional on the class).
 
     Returns:
-        ``target (P, 7)`` (:func:`~torchbrdf.recovery.params.encode` of the maps) and
-        ``precision (P, 7)`` (>= 0), on the maps' device, float32.
+        ``target (P, 7)`` and ``precision (P, 7)`` (>= 0), in ``theta``'s dtype and device.
     """
-    rows = {k: _flat(maps[k]) for k in ("base_color", "specular", "roughness", "normal")}
-    target = encode(rows)
-    s = torch.sigmoid(target[:, :5])
-    slope = s * (1 - s)
-    slope = torch.cat((slope[:, :4], (R_MAX - R_MIN) * slope[:, 4:5]), -1)
-    p2, q2 = target[:, 5:6] ** 2, target[:, 6:7] ** 2
-    # d n_x / d p and d n_y / d q of n = (p, q, 1) / |(p, q, 1)|
-    rad = (1 + p2 + q2) ** 1.5
-    slope = torch.cat((slope, (1 + q2) / rad, (1 + p2) / rad), -1)
-    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]]
-                         + [errors["normal"]] * 2, dtype=target.dtype, device=target.device)
-    precision = float(noise_var) * (slope / sigma) ** 2 * class_weight
-    return target, precision
+    rows = {k: _flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness", "normal")}
+    prior_theta = encode(rows)
+    s = torch.sigmoid(theta[:, :5])
+    lo = torch.tensor([0.0] * 4 + [R_MIN], dtype=theta.dtype, device=theta.device)
+    span = torch.tensor([1.0] * 4 + [R_MAX - R_MIN], dtype=theta.dtype, device=theta.device)
+    value = lo + span * s
+    slope = (span * s * (1 - s)).clamp(min=1e-6)  # d value / d logit
+    want = torch.cat((rows["base_color"], rows["specular"], rows["roughness"]), -1)
+    # (a logit far out in a saturated tail is moved at most 8 by one linearisation)
+    target = torch.cat((theta[:, :5] - ((value - want) / slope).clamp(-8.0, 8.0), prior_theta[:, 5:7]), -1)
+    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
+                         dtype=theta.dtype, device=theta.device)
+    precision = torch.cat(((slope / sigma) ** 2, torch.full_like(theta[:, 5:7], errors["normal"] ** -2.0)), -1)
+    return target, float(noise_var) * precision * class_weight
 
 
 def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
@@ -416,9 +419,10 @@ class LearnedPrior:
         """The network's metallic ``(size², 1)`` at ``size``."""
         return _flat(self.at(size)["metallic"])
 
-    def unary(self, size: int, metal: Tensor, noise_var: float) -> tuple[Tensor, Tensor]:
-        """:func:`prior_unary` at ``size`` for the hypothesis ``metal (P, 1)`` (0 dielectric, 1 metal,
-        or fractional): the prior's maps weighted by its probability of that class."""
+    def unary(self, theta: Tensor, metal: Tensor, noise_var: float) -> tuple[Tensor, Tensor]:
+        """:func:`prior_unary` at ``theta (P, 7)`` for the hypothesis ``metal (P, 1)`` (0 dielectric,
+        1 metal, or fractional): the prior's maps weighted by its probability of that class."""
+        size = int(round(math.sqrt(theta.shape[0])))
         m = self.metallic(size).to(metal)
         agree = metal * m + (1 - metal) * (1 - m)
-        return prior_unary(self.at(size), noise_var, self.errors, agree)
+        return prior_unary(theta, self.at(size), noise_var, self.errors, agree)
