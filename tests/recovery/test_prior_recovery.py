@@ -84,13 +84,24 @@ def test_the_start_is_the_networks_maps_encoded(painted):
     rec.init_state()
     s0 = rec.plan[0][0]
     want = prior_maps_at(maps, s0)
-    for theta in rec.state["theta"]:  # both hypotheses
-        got = decode(theta, torch.zeros_like(theta[:, :1]))
-        for k in ("base_color", "roughness", "specular", "normal"):
-            g = got[k].T.reshape(-1, s0, s0)
-            torch.testing.assert_close(g, want[k].clamp(*((R_MIN, R_MAX) if k == "roughness" else (-1, 1))),
-                                       atol=2e-4, rtol=0, msg=k)
+    bounds = {"roughness": (R_MIN, R_MAX)}
+    diel, metal = (decode(t, torch.zeros_like(t[:, :1])) for t in rec.state["theta"])
+    # The metal hypothesis starts from all of the network's maps; the dielectric from its roughness
+    # and specular, with the albedo and normal that the capture's four training lights determine.
+    for k in ("base_color", "roughness", "specular", "normal"):
+        torch.testing.assert_close(metal[k].T.reshape(-1, s0, s0), want[k].clamp(*bounds.get(k, (-1, 1))),
+                                   atol=2e-4, rtol=0, msg=k)
+    for k in ("roughness", "specular"):
+        torch.testing.assert_close(diel[k], metal[k], msg=k)
+    plain = Recovery(cap, CFG)
+    plain.init_state()
+    torch.testing.assert_close(rec.state["theta"][0][:, [0, 1, 2, 5, 6]], plain.state["theta"][0][:, [0, 1, 2, 5, 6]])
     assert rec.state["prior_noise"] > 0
+    # With fewer than three lights in the fit, the network's maps are the whole start.
+    few = Recovery(cap, CFG.settings(holdout=-1), prior=learned)
+    few.train_idx = few.train_idx[:2]
+    few.init_state()
+    torch.testing.assert_close(few.state["theta"][0], few.state["theta"][1])
 
 
 def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(painted, untied):
@@ -100,9 +111,10 @@ def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(paint
     silent, measured = conf < 0.05, conf > 0.8
     assert silent.sum() >= 8 and measured.sum() >= 8, "the capture must hold both kinds of pixel"
     rough0, rough1 = plain.maps["roughness"][0], guided.maps["roughness"][0]
-    # Where the images do not determine the roughness, the prior's value (0.9) holds it ...
-    assert (rough1[silent] - CONSTANT["roughness"]).abs().median() < 0.25
-    assert (rough0[silent] - CONSTANT["roughness"]).abs().median() > 0.4  # (the plain fit is elsewhere)
+    # Where the images do not determine the roughness, the prior's value (0.9) draws it: at most
+    # 0.6x as far from it as the plain fit, which is elsewhere ...
+    far = (rough0[silent] - CONSTANT["roughness"]).abs().median()
+    assert far > 0.4 and (rough1[silent] - CONSTANT["roughness"]).abs().median() < 0.6 * far
     # ... where they do, the fit follows them as without the prior.
     assert (rough1[measured] - rough0[measured]).abs().median() < 0.06
     # The base colour is measured everywhere (the diffuse): the wrong grey prior does not move it.

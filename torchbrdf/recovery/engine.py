@@ -172,10 +172,17 @@ class Recovery:
     def init_state(self) -> None:
         s0 = self.plan[0][0]
         d = self.data(s0)
-        if self.prior is not None:  # both hypotheses start from the network's maps
-            diel = self.prior.start(s0).to(d.points)
-            met = diel.clone()
+        if self.prior is not None:  # both hypotheses start from the network's maps ...
+            met = self.prior.start(s0).to(d.points)
+            diel = met.clone()
             ones = torch.ones_like(diel[:, :1])
+            if len(self.train_idx) >= 3:
+                # ... but for the dielectric's albedo and normal, which three lights or more
+                # determine (Lambertian least squares), the data's own (17 lights: the network's
+                # start cost the held-out worst light 7 dB)
+                n, alb = photometric_stereo(d, self.train_idx)
+                ps = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
+                diel[:, 0:3], diel[:, 5:7] = ps[:, 0:3], ps[:, 5:7]
         else:
             n, alb = photometric_stereo(d, self.train_idx)
             p = d.points.shape[0]
@@ -191,32 +198,47 @@ class Recovery:
             "metal": None, "history": [], "events": [], "seconds": 0.0,
         }
         if self.prior is not None:
-            self.state["prior_noise"] = self._noise_variance(s0)
+            self._prior_stage(s0)
 
-    def _noise_variance(self, size: int) -> float:
-        """The fit's per-residual noise variance ``σ²`` at ``size`` from the current state: the median
-        pixel's mean squared residual on the training lights (each pixel's better hypothesis in a
-        dual stage), floored at 1e-6 (1 ‰ in log units). It sets the learned prior's precision
-        (:func:`~torchbrdf.recovery.prior.prior_unary`) for a stage."""
+    def _prior_stage(self, size: int) -> None:
+        """At a stage's start (level ``size``): what the learned prior's weight rests on, in the state.
+
+        ``prior_noise``, the fit's per-residual noise variance ``σ²``: the median pixel's mean
+        squared residual on the training lights (each pixel's better hypothesis in a dual stage),
+        within [1e-6, ``prior_noise_cap``]; ``prior_info``, each hypothesis' marginal information
+        ``(P, 7)`` (:func:`marginal_information`) with ``prior_info_weight``, else None.
+        """
         st = self.state
         d = self.data(size)
         if st["metal"] is not None and len(st["theta"]) == 1:
             pairs = [(st["theta"][0], st["metal"])]
         else:
             pairs = [(t, torch.full_like(t[:, :1], float(h))) for h, t in enumerate(st["theta"])]
-        costs = [pixel_cost(d.residual(t, m, d.train_idx, self.cfg.model)) for t, m in pairs]
+        costs, infos = [], []
+        for t, m in pairs:
+            if self.cfg.prior_info_weight:
+                r, jtj, _ = gauss_newton(d, t, m, d.train_idx, self.cfg.model)
+                infos.append(marginal_information(d, t, m, self.cfg.model, jtj))
+            else:
+                r = d.residual(t, m, d.train_idx, self.cfg.model)
+            costs.append(pixel_cost(r))
         per = torch.stack(costs).amin(0) / max(1, 3 * len(d.train_idx))
-        return min(max(float(per.median()), 1e-6), self.cfg.prior_noise_cap)
+        st["prior_noise"] = min(max(float(per.median()), 1e-6), self.cfg.prior_noise_cap)
+        st["prior_info"] = infos if self.cfg.prior_info_weight else None
 
-    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` of the
-        level ``size`` (None: no prior)."""
+    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor, hyp: int) -> tuple[Tensor, Tensor] | None:
+        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` of
+        hypothesis ``hyp`` at the level ``size`` (None: no prior)."""
         if self.prior is None:
             return None
-        noise = self.state.get("prior_noise")
-        if noise is None:  # a run resumed with a prior it did not have: this stage's from its state
-            noise = self.state["prior_noise"] = self._noise_variance(size)
-        return self.prior.unary(theta, metal, noise)
+        if self.state.get("prior_noise") is None:  # a run resumed with a prior it did not have
+            self._prior_stage(size)
+        target, precision = self.prior.unary(theta, metal, self.state["prior_noise"])
+        infos = self.state.get("prior_info")
+        if infos is not None and hyp < len(infos) and infos[hyp].shape == precision.shape:
+            # Only where the data are silent: × prior / (prior + data information), per unknown.
+            precision = precision * precision / (precision + infos[hyp]).clamp(min=1e-30)
+        return target, precision
 
     def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
@@ -309,7 +331,7 @@ class Recovery:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
             theta = st["theta"][h]
             # (linearised at this iteration's start, as the data are)
-            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal))
+            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal, h))
             bad = ~torch.isfinite(theta).all(-1, keepdim=True)
             if bad.any():  # a non-finite parameter: step back to its last finite neighbour value
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite parameters",
@@ -482,7 +504,7 @@ class Recovery:
                 if st["metal"] is not None:
                     st["metal"] = (upsample(st["metal"], size, s1) > 0.5).to(st["theta"][0].dtype)
             if self.prior is not None:  # the prior's weight follows the fit's noise level, stage by stage
-                st["prior_noise"] = self._noise_variance(s1)
+                self._prior_stage(s1)
             if kind1 != "dual" and st["metal"] is not None and self.cfg.fit_nonlocal_tie \
                     and self.cfg.prior_nonlocal_base > 0:
                 self._renew_tie(s1, kind1)
