@@ -248,9 +248,6 @@ class Settings:
     # per-residual cost, at most this (a 3 % log error); a fit far from the data early on
     # would otherwise make the prior's pull as strong as its own misfit.
     prior_noise_cap: float = 1e-3
-    # Scale the learned prior's precision by prior / (prior + the data's marginal information):
-    # a pull only where the images are silent, none where they measure (off: the plain Gaussian).
-    prior_info_weight: bool = False
     fill: bool = False
     fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
     fill_weight: float = 1.0  # its precision, × σ² / fill_sigma²

@@ -205,8 +205,7 @@ class Recovery:
 
         ``prior_noise``, the fit's per-residual noise variance ``σ²``: the median pixel's mean
         squared residual on the training lights (each pixel's better hypothesis in a dual stage),
-        within [1e-6, ``prior_noise_cap``]; ``prior_info``, each hypothesis' marginal information
-        ``(P, 7)`` (:func:`marginal_information`) with ``prior_info_weight``, else None.
+        within [1e-6, ``prior_noise_cap``].
         """
         st = self.state
         d = self.data(size)
@@ -214,31 +213,18 @@ class Recovery:
             pairs = [(st["theta"][0], st["metal"])]
         else:
             pairs = [(t, torch.full_like(t[:, :1], float(h))) for h, t in enumerate(st["theta"])]
-        costs, infos = [], []
-        for t, m in pairs:
-            if self.cfg.prior_info_weight:
-                r, jtj, _ = gauss_newton(d, t, m, d.train_idx, self.cfg.model)
-                infos.append(marginal_information(d, t, m, self.cfg.model, jtj))
-            else:
-                r = d.residual(t, m, d.train_idx, self.cfg.model)
-            costs.append(pixel_cost(r))
+        costs = [pixel_cost(d.residual(t, m, d.train_idx, self.cfg.model)) for t, m in pairs]
         per = torch.stack(costs).amin(0) / max(1, 3 * len(d.train_idx))
         st["prior_noise"] = min(max(float(per.median()), 1e-6), self.cfg.prior_noise_cap)
-        st["prior_info"] = infos if self.cfg.prior_info_weight else None
 
-    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor, hyp: int) -> tuple[Tensor, Tensor] | None:
-        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` of
-        hypothesis ``hyp`` at the level ``size`` (None: no prior)."""
+    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` at the
+        level ``size`` (None: no prior)."""
         if self.prior is None:
             return None
         if self.state.get("prior_noise") is None:  # a run resumed with a prior it did not have
             self._prior_stage(size)
-        target, precision = self.prior.unary(theta, metal, self.state["prior_noise"])
-        infos = self.state.get("prior_info")
-        if infos is not None and hyp < len(infos) and infos[hyp].shape == precision.shape:
-            # Only where the data are silent: × prior / (prior + data information), per unknown.
-            precision = precision * precision / (precision + infos[hyp]).clamp(min=1e-30)
-        return target, precision
+        return self.prior.unary(theta, metal, self.state["prior_noise"])
 
     def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
@@ -331,7 +317,7 @@ class Recovery:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
             theta = st["theta"][h]
             # (linearised at this iteration's start, as the data are)
-            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal, h))
+            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal))
             bad = ~torch.isfinite(theta).all(-1, keepdim=True)
             if bad.any():  # a non-finite parameter: step back to its last finite neighbour value
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite parameters",
