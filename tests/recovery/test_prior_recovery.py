@@ -16,11 +16,12 @@ from torchbrdf.recovery import RecoveryConfig, recover
 from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.engine import Recovery
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode
+from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_prior_cost, estimator_errors,
                                       prior_maps_at, prior_unary)
 from torchbrdf.recovery.svbrdf import main
 
-from .recovery_fixtures import one_line_error
+from tests.recovery.recovery_fixtures import cap, copy_out, one_line_error, stopped  # noqa: F401  (fixtures)
 
 CFG = RecoveryConfig(seed=0, threads=1)
 #: The stand-in estimator's maps: a wrong grey base colour and a wrong rough, plastic surface.
@@ -162,3 +163,9 @@ def test_cli_prior_option(painted, tmp_path, capsys):
                "--quiet", "--threads", "1"])
     assert rc == 2
     assert "prior" in one_line_error(capsys) and not (tmp_path / "o").exists()
+
+
+def test_a_checkpoint_made_without_the_prior_is_not_resumed_with_it(cap, stopped, tmp_path):
+    out = copy_out(stopped, tmp_path)
+    with pytest.raises(RecoveryError, match="other settings.*learned_prior"):
+        recover(cap, Settings(iters=4, threads=1), out, resume=True, progress=False, prior=constant_prior())
