@@ -65,6 +65,8 @@ Method (each choice measured, see ``docs/recovery.md``):
   in the image (base colour and normal-spread similarity).
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
+* **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
+  Gaussian unary toward them with its measured errors (:class:`~torchbrdf.recovery.prior.LearnedPrior`).
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 

@@ -10,6 +10,9 @@
 * :func:`prior_penalty` -- the confidence-weighted regulariser a solver adds to pull its maps
   toward the prior's where the captured data are silent; :func:`prior_weight` makes its
   weight from a recovery confidence map.
+* :class:`LearnedPrior` -- a Prior's maps for one capture as :func:`~torchbrdf.recovery.recover`
+  uses them (``prior=``): the fit's start and a Gaussian unary term (:func:`prior_unary`,
+  :func:`class_prior_cost`) with the network's measured errors (:func:`estimator_errors`).
 
 Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
 and multiplied by the squared light distance at the sample's centre (so the network sees
