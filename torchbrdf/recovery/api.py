@@ -59,6 +59,7 @@ from torchbrdf.recovery.outputs import (
 from torchbrdf.recovery.progress import StageProgress, fit_losses, last_fit_loss, stage_seconds
 from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.engine import CHECKPOINT, Recovery, psnr
+from torchbrdf.recovery.prior import LearnedPrior, Prior, estimator_errors, prior_maps_at
 
 __all__ = ["recover", "save_checkpoint", "map_errors", "fractional_metallic_fraction"]
 
@@ -131,7 +132,8 @@ class _Interrupt(BaseException):
 
 def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | None = None, out: PathLike | None = None, *,
             gt: PathLike | None = None, resume: bool = False, force: bool = False, progress: bool = True,
-            log: Callable[[str], None] | None = None, allow_other_files: bool = False) -> RecoveryResult:
+            log: Callable[[str], None] | None = None, allow_other_files: bool = False,
+            prior: Prior | PathLike | None = None) -> RecoveryResult:
     """Recover per-pixel principled maps from a capture.
 
     Args:
@@ -150,6 +152,11 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
         allow_other_files: let ``out`` hold entries a recovery did not write (they are left
             untouched; the outputs are then committed file by file). Without it such an
             ``out`` is refused.
+        prior: a learned prior (:class:`~torchbrdf.recovery.Prior`, a weights file, or
+            ``"default"`` for the shipped one). The fit then starts from the network's maps
+            and keeps a Gaussian pull toward them, with the network's measured error, that
+            the data outweigh wherever they determine a value (``docs/recovery.md``,
+            "Learned prior"). None: no learned prior.
 
     Returns:
         A :class:`RecoveryResult`: ``maps`` (``(C, H, W)`` tensors at the capture's size),
@@ -182,6 +189,11 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
         raise RecoveryError(f"--holdout {cfg.holdout}: the capture has {len(cap)} lights "
                             f"(0-{len(cap) - 1}, or -1 for none)")
     fingerprint = {"capture": capture_fingerprint(capture, cap), "settings": settings_fingerprint(cfg)}
+    learned = None
+    if prior is not None:
+        learned = _learned_prior(prior, cap, cfg.size or max(cap.width, cap.height))
+        # a checkpoint made with another prior (or none) is another fit
+        fingerprint["settings"]["learned_prior"] = state_checksum(learned.maps, [], torch.zeros(0))
     if resume and out is None:
         raise RecoveryError("--resume needs --out (the folder holding checkpoint.pt)")
     for warning in capture_warnings:
@@ -194,7 +206,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
                 raise RecoveryError(f"--out {out}: cannot create it ({e.strerror or e})") from e
             held.enter_context(locked_out(out))
             clean_leftovers(out, log)
-        rec = _start_or_resume(cap, cfg, out, fingerprint, resume, force, log)
+        rec = _start_or_resume(cap, cfg, out, fingerprint, resume, force, log, learned)
         # torch imports torch._dynamo (about 1.4 s) on a process's first custom-op call and in its
         # Python decompositions under torch.func: take that one-time library import before the
         # clock starts, so `seconds` is the fit's own time.
@@ -203,8 +215,31 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
         return _finish(rec, cap, cfg, out, gt, fingerprint, capture_warnings, interrupted, seconds, log)
 
 
+def _learned_prior(prior: Prior | PathLike, cap: Capture, size: int) -> LearnedPrior:
+    """The network's maps for ``cap`` at the working ``size``, with its card's errors.
+
+    Raises:
+        RecoveryError: ``prior`` is not a Prior, ``"default"`` or a readable weights file, or
+            its estimator takes more images than the capture has (``rc`` 2).
+    """
+    if not isinstance(prior, Prior):
+        if not isinstance(prior, (str, os.PathLike)):
+            raise RecoveryError(f"prior: expected a Prior, a weights file or 'default', got {type(prior).__name__}")
+        try:
+            prior = Prior.default() if str(prior) == "default" else Prior.from_file(prior)
+        except (OSError, ValueError) as e:
+            raise RecoveryError(f"prior: {e}") from e
+    if len(cap) < prior.lights:
+        raise RecoveryError(f"prior: the estimator was trained on {prior.lights} images per capture (the lights "
+                            f"nearest the camera), the capture has {len(cap)}; use a prior trained for "
+                            f"{len(cap)} or fewer lights")
+    with torch.no_grad():
+        maps = prior.predict(cap)
+    return LearnedPrior(prior_maps_at(maps, size), estimator_errors(prior.card))
+
+
 def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint: dict, resume: bool,
-                     force: bool, log: Callable[[str], None]) -> Recovery:
+                     force: bool, log: Callable[[str], None], prior: LearnedPrior | None = None) -> Recovery:
     """A solver at its first iteration, or restored from ``out/checkpoint.pt`` once that passes its checks."""
     ck = out / CHECKPOINT if out is not None else None
     if resume and ck is not None and not ck.is_file():
@@ -213,7 +248,7 @@ def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint:
     torch.manual_seed(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    rec = Recovery(cap, cfg, out, log)
+    rec = Recovery(cap, cfg, out, log, prior)
     rec.fingerprint = fingerprint  # type: ignore[attr-defined]  # stored by save_checkpoint
     if not resume:
         with torch.no_grad():
@@ -316,6 +351,8 @@ def _finish(rec: Recovery, cap: Capture, cfg: Settings, out: Path | None, gt: Pa
         "light_intensity_scale": rec.light_corrections(),  # estimated / stated, per image (calibration)
         "light_position_offset": rec.light_position_corrections(),  # estimated − stated, per image
     }
+    if rec.prior is not None:  # the network's errors the prior's precision came from
+        report["learned_prior"] = {"map_errors": rec.prior.errors, "noise_variance": st.get("prior_noise")}
     cpu_maps = {k: v.cpu() for k, v in fin.items()}  # the ground truth and the files live on the CPU
     if gt is not None:
         report["errors"] = map_errors(cpu_maps, gt)

@@ -57,7 +57,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             capture = args.capture
         result = recover(capture, cfg, args.out, gt=gt, resume=args.resume, force=args.force,
-                         progress=not args.quiet, allow_other_files=args.allow_other_files)
+                         progress=not args.quiet, allow_other_files=args.allow_other_files,
+                         prior=args.prior)
     except RecoveryError as e:
         print("error: " + " ".join(str(e).split()), file=sys.stderr)  # one line, whatever the message
         return e.rc

@@ -271,6 +271,10 @@ class Settings:
     propagate_every: bool = True  # and one pass before every LM iteration of the single-class stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     # Non-local fill of roughness / specular (nonlocal_fill): measured, not kept (docs), off
+    # The learned prior's noise variance σ² (its precision is σ² / σ_map²): the fit's median
+    # per-residual cost, at most this (a 3 % log error); a fit far from the data early on
+    # would otherwise make the prior's pull as strong as its own misfit.
+    prior_noise_cap: float = 1e-3
     fill: bool = False
     fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
     fill_weight: float = 1.0  # its precision, × σ² / fill_sigma²

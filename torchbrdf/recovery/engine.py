@@ -65,6 +65,8 @@ Method (each choice measured, see ``docs/recovery.md``):
   in the image (base colour and normal-spread similarity).
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
+* **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
+  Gaussian unary toward them with its measured errors (:class:`~torchbrdf.recovery.prior.LearnedPrior`).
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 
@@ -97,6 +99,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import dilate, neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
+from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost
 from torchbrdf.recovery.priors import nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate
 from torchbrdf.recovery.soft_metal import soft_metal_stage
@@ -134,8 +137,9 @@ class Recovery:
     """The resumable optimisation state machine (see the module docstring)."""
 
     def __init__(self, cap: Capture, cfg: RecoveryConfig | Settings, out: Path | None = None,
-                 log: Callable[[str], Any] = print):
+                 log: Callable[[str], Any] = print, prior: LearnedPrior | None = None):
         self.cap, self.cfg, self.out, self.log = cap, settings_of(cfg), out, log
+        self.prior = prior  # the learned prior's maps: the start, and a unary term of every stage
         cfg = self.cfg
         self.size = cfg.size or max(cap.width, cap.height)
         n_l = len(cap)
@@ -170,19 +174,59 @@ class Recovery:
     def init_state(self) -> None:
         s0 = self.plan[0][0]
         d = self.data(s0)
-        n, alb = photometric_stereo(d, self.train_idx)
-        p = d.points.shape[0]
-        ones = torch.ones(p, 1, dtype=alb.dtype, device=alb.device)
-        diel = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
-        flat = torch.zeros_like(n)
-        flat[:, 2] = 1.0  # Lambertian normals mean nothing on a metal: start it flat
-        met = encode({"base_color": torch.full_like(alb, 0.7), "specular": 0.5 * ones,
-                      "roughness": 0.4 * ones, "normal": flat})
+        if self.prior is not None:  # both hypotheses start from the network's maps ...
+            met = self.prior.start(s0).to(d.points)
+            diel = met.clone()
+            ones = torch.ones_like(diel[:, :1])
+            if len(self.train_idx) >= 3:
+                # ... but for the dielectric's albedo and normal, which three lights or more
+                # determine (Lambertian least squares), the data's own (17 lights: the network's
+                # start cost the held-out worst light 7 dB)
+                n, alb = photometric_stereo(d, self.train_idx)
+                ps = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
+                diel[:, 0:3], diel[:, 5:7] = ps[:, 0:3], ps[:, 5:7]
+        else:
+            n, alb = photometric_stereo(d, self.train_idx)
+            p = d.points.shape[0]
+            ones = torch.ones(p, 1, dtype=alb.dtype, device=alb.device)
+            diel = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
+            flat = torch.zeros_like(n)
+            flat[:, 2] = 1.0  # Lambertian normals mean nothing on a metal: start it flat
+            met = encode({"base_color": torch.full_like(alb, 0.7), "specular": 0.5 * ones,
+                          "roughness": 0.4 * ones, "normal": flat})
         self.state = {
             "stage": 0, "it": 0, "global_it": 0, "lr": float(self.cfg.lr),
             "theta": [diel, met], "lam": [torch.full_like(ones, 1e-2), torch.full_like(ones, 1e-2)],
             "metal": None, "history": [], "events": [], "seconds": 0.0,
         }
+        if self.prior is not None:
+            self._prior_stage(s0)
+
+    def _prior_stage(self, size: int) -> None:
+        """At a stage's start (level ``size``): what the learned prior's weight rests on, in the state.
+
+        ``prior_noise``, the fit's per-residual noise variance ``σ²``: the median pixel's mean
+        squared residual on the training lights (each pixel's better hypothesis in a dual stage),
+        within [1e-6, ``prior_noise_cap``].
+        """
+        st = self.state
+        d = self.data(size)
+        if st["metal"] is not None and len(st["theta"]) == 1:
+            pairs = [(st["theta"][0], st["metal"])]
+        else:
+            pairs = [(t, torch.full_like(t[:, :1], float(h))) for h, t in enumerate(st["theta"])]
+        costs = [pixel_cost(d.residual(t, m, d.train_idx, self.cfg.model)) for t, m in pairs]
+        per = torch.stack(costs).amin(0) / max(1, 3 * len(d.train_idx))
+        st["prior_noise"] = min(max(float(per.median()), 1e-6), self.cfg.prior_noise_cap)
+
+    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` at the
+        level ``size`` (None: no prior)."""
+        if self.prior is None:
+            return None
+        if self.state.get("prior_noise") is None:  # a run resumed with a prior it did not have
+            self._prior_stage(size)
+        return self.prior.unary(theta, metal, self.state["prior_noise"])
 
     def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
@@ -266,14 +310,16 @@ class Recovery:
             st["theta"][0][: max(1, st["theta"][0].shape[0] // 10)] = float("nan")  # injected fault
         hyps = [0, 1] if kind == "dual" else [0]
         # Unary priors: the non-local fill (last stage, off by default), the metals' F0 tie.
-        unary = sum_unary(st.get("fill") if kind == "all" else None,
-                           st.get("tie") if kind != "dual" else None)
+        shared_unary = sum_unary(st.get("fill") if kind == "all" else None,
+                                  st.get("tie") if kind != "dual" else None)
         self.fit_cost = {}
         residuals: dict[int, Tensor] = {}
         total = 0.0
         for h in hyps:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
             theta = st["theta"][h]
+            # (linearised at this iteration's start, as the data are)
+            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal))
             bad = ~torch.isfinite(theta).all(-1, keepdim=True)
             if bad.any():  # a non-finite parameter: step back to its last finite neighbour value
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite parameters",
@@ -445,6 +491,8 @@ class Recovery:
                 st["lam"] = [torch.full((s1 * s1, 1), 1e-2, dtype=t.dtype, device=t.device) for t in st["lam"]]
                 if st["metal"] is not None:
                     st["metal"] = (upsample(st["metal"], size, s1) > 0.5).to(st["theta"][0].dtype)
+            if self.prior is not None:  # the prior's weight follows the fit's noise level, stage by stage
+                self._prior_stage(s1)
             if kind1 != "dual" and st["metal"] is not None and self.cfg.fit_nonlocal_tie \
                     and self.cfg.prior_nonlocal_base > 0:
                 self._renew_tie(s1, kind1)
@@ -474,6 +522,10 @@ class Recovery:
             scores.append(torch.nan_to_num(c, nan=float("inf")))
         if self.cfg.refit_before_choice:
             scores[0] = self._refit_unconverged_dielectric(size, scores, lights)
+        if self.prior is not None:  # the network's metallic, as a Gaussian with its measured error
+            prior_cost = class_prior_cost(self.prior.metallic(size).to(scores[0]), st["prior_noise"],
+                                          self.prior.errors["metallic"])
+            scores = [s + c for s, c in zip(scores, prior_cost)]
         # Metal only when clearly better: a rough metal's broad GGX lobe can mimic a
         # rough dielectric's diffuse, and dielectrics are the common case.
         metal = choose_class(scores[0], scores[1], self.cfg.metal_margin, size)

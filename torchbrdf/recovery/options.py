@@ -82,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="weight pulling a metal's base colour (F0) toward its metal neighbours (>= 0)")
     p.add_argument("--prior-nonlocal-base", type=float, default=d.prior_nonlocal_base,
                    help="precision of the final non-local fusion of a metal's base colour (0: off)")
+    p.add_argument("--prior", metavar="PATH|default",
+                   help="start from a learned estimator's maps and keep a pull toward them where the images "
+                        "are silent: a weights file (python -m training.train_estimator) or 'default', the "
+                        "shipped one (default: no learned prior)")
     p.add_argument("--no-soft-metal", action="store_true",
                    help="no final continuous-metallic step: every pixel's metallic is exactly 0 or 1")
     p.add_argument("--no-light-calibration", action="store_true",

@@ -10,6 +10,9 @@
 * :func:`prior_penalty` -- the confidence-weighted regulariser a solver adds to pull its maps
   toward the prior's where the captured data are silent; :func:`prior_weight` makes its
   weight from a recovery confidence map.
+* :class:`LearnedPrior` -- a Prior's maps for one capture as :func:`~torchbrdf.recovery.recover`
+  uses them (``prior=``): the fit's start and a Gaussian unary term (:func:`prior_unary`,
+  :func:`class_prior_cost`) with the network's measured errors (:func:`estimator_errors`).
 
 Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
 and multiplied by the squared light distance at the sample's centre (so the network sees
@@ -20,6 +23,7 @@ coordinates tell the network where each pixel lies relative to the flash.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping
 from importlib import resources
@@ -32,8 +36,11 @@ from torch import Tensor, nn
 
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
+from torchbrdf.recovery.params import R_MAX, R_MIN, encode
 
-__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS"]
+__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS",
+           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "class_prior_cost",
+           "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
 """File name of the shipped weights inside the ``torchbrdf.weights`` package."""
@@ -285,3 +292,140 @@ def prior_penalty(
     if total is None:
         raise ValueError(f"prior_penalty: no map in common between {sorted(maps)} and {sorted(prior_maps)}")
     return total
+
+
+#: Per-map errors a :class:`Prior` assumes when its card measured none: about the best constant
+#: maps' held-out RMSE (a network no better than a constant is no prior to lean on).
+FALLBACK_MAP_ERRORS = {"base_color": 0.27, "roughness": 0.18, "metallic": 0.45, "specular": 0.065,
+                       "normal": 0.05}
+
+
+def estimator_errors(card: Mapping[str, Any]) -> dict[str, float]:
+    """Each map's expected error (standard deviation, map units) from a model card.
+
+    The held-out RMSE of ``base_color``, ``roughness``, ``metallic`` and ``specular``; for the
+    normal, the per-component slope error of the card's mean angular error ``θ̄`` (a 2-D Gaussian
+    slope error of deviation ``s`` has mean angle ``s·√(π/2)``, for small angles). Maps the card lacks take
+    :data:`FALLBACK_MAP_ERRORS`. Floored at 1e-3 (a card claiming no error is not believed).
+    """
+    held = card.get("heldout") or {}
+    out = dict(FALLBACK_MAP_ERRORS)
+    for name in ("base_color", "roughness", "metallic", "specular"):
+        if isinstance(held.get(f"{name}_rmse"), (int, float)):
+            out[name] = float(held[f"{name}_rmse"])
+    if isinstance(held.get("normal_mean_deg"), (int, float)):
+        out["normal"] = math.radians(float(held["normal_mean_deg"])) / math.sqrt(math.pi / 2)
+    return {k: max(v, 1e-3) for k, v in out.items()}
+
+
+def prior_maps_at(maps: Mapping[str, Tensor], size: int) -> dict[str, Tensor]:
+    """:meth:`Prior.predict`'s maps ``(1, C, H, W)`` (or ``(C, H, W)``) as ``(C, size, size)``.
+
+    Area-averaged (a downsampled metallic is the fraction of metal), normals renormalised.
+    """
+    out = {}
+    for name, m in maps.items():
+        m = (m if m.dim() == 4 else m[None]).float()
+        if m.shape[-2:] != (size, size):
+            m = F.interpolate(m, size=(size, size), mode="area" if size <= m.shape[-1] else "bilinear")
+        if name == "normal":
+            m = m / m.norm(dim=1, keepdim=True).clamp(min=1e-8)
+        out[name] = m[0]
+    return out
+
+
+def _flat(m: Tensor) -> Tensor:
+    """A ``(C, S, S)`` map as the recovery's per-pixel rows ``(S², C)`` (row-major pixels)."""
+    return m.reshape(m.shape[0], -1).T
+
+
+def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
+                class_weight: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
+    """The learned prior as a unary term ``(target, precision)`` ``(P, 7)`` of the recovery's unknowns.
+
+    A Gaussian on each map, centred on the network's value ``m_p`` with the network's measured
+    error ``σ_m`` (:func:`estimator_errors`), in the fit's cost scale (squared log residuals):
+    the posterior's ``Σ r²/σ² + Σ (m − m_p)²/σ_m²`` times the residual noise variance ``σ²``.
+    The maps are sigmoids of the unknowns (:mod:`~torchbrdf.recovery.params`), so the term is
+    linearised at the current unknowns ``θ`` as Gauss–Newton linearises the data: with
+    ``m = g(θ)``, precision ``σ² g'(θ)² / σ_m²`` and target ``θ − (g(θ) − m_p) / g'(θ)`` give the
+    same gradient and curvature there. The normal's slopes ``(p, q)`` are unknowns themselves
+    (``n ∝ (p, q, 1)``): precision ``σ² / σ_n²`` toward the network's slopes. Against the data's
+    own precision (their marginal information) the term is negligible where the images
+    determine a value and decides it where they are silent.
+
+    Args:
+        theta: the current unknowns ``(P, 7)``.
+        maps: ``base_color (3, S, S)``, ``roughness``, ``specular`` ``(1, S, S)`` and
+            ``normal (3, S, S)`` at the level's size (``S² = P``, :func:`prior_maps_at`).
+        noise_var: ``σ²``, the fit's per-residual noise variance (> 0).
+        errors: name -> ``σ_m`` (:func:`estimator_errors`).
+        class_weight: ``(P, 1)`` or a float scaling the precision per pixel: the prior's
+            probability of the hypothesis being fitted (its maps are conditional on the class).
+
+    Returns:
+        ``target (P, 7)`` and ``precision (P, 7)`` (>= 0), in ``theta``'s dtype and device.
+    """
+    rows = {k: _flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness", "normal")}
+    prior_theta = encode(rows)
+    s = torch.sigmoid(theta[:, :5])
+    lo = torch.tensor([0.0] * 4 + [R_MIN], dtype=theta.dtype, device=theta.device)
+    span = torch.tensor([1.0] * 4 + [R_MAX - R_MIN], dtype=theta.dtype, device=theta.device)
+    value = lo + span * s
+    slope = (span * s * (1 - s)).clamp(min=1e-6)  # d value / d logit
+    want = torch.cat((rows["base_color"], rows["specular"], rows["roughness"]), -1)
+    # (a logit far out in a saturated tail is moved at most 8 by one linearisation)
+    target = torch.cat((theta[:, :5] - ((value - want) / slope).clamp(-8.0, 8.0), prior_theta[:, 5:7]), -1)
+    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
+                         dtype=theta.dtype, device=theta.device)
+    precision = torch.cat(((slope / sigma) ** 2, torch.full_like(theta[:, 5:7], errors["normal"] ** -2.0)), -1)
+    return target, float(noise_var) * precision * class_weight
+
+
+def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
+    """The prior's share ``(P, 1)`` each of a dielectric's and a metal's cost (``σ² (h − m_p)² / σ_m²``).
+
+    Args:
+        metallic: the network's metallic ``(1, S, S)`` (or ``(P, 1)``).
+        noise_var: ``σ²`` as in :func:`prior_unary`; error: the metallic's ``σ_m``.
+    """
+    m = _flat(metallic) if metallic.dim() == 3 else metallic
+    scale = float(noise_var) / error**2
+    return scale * m**2, scale * (1 - m) ** 2
+
+
+class LearnedPrior:
+    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a start and a unary prior.
+
+    Args:
+        maps: the network's maps at the working size, ``(C, S, S)`` each (:func:`prior_maps_at`).
+        errors: name -> the network's expected error ``σ_m`` (:func:`estimator_errors` of its card).
+    """
+
+    def __init__(self, maps: Mapping[str, Tensor], errors: Mapping[str, float]) -> None:
+        self.maps = dict(maps)
+        self.errors = dict(errors)
+        self._levels: dict[int, dict[str, Tensor]] = {}
+
+    def at(self, size: int) -> dict[str, Tensor]:
+        """The maps ``(C, size, size)`` at a level of the recovery (area-averaged; cached)."""
+        if size not in self._levels:
+            self._levels[size] = prior_maps_at({k: v[None] for k, v in self.maps.items()}, size)
+        return self._levels[size]
+
+    def start(self, size: int) -> Tensor:
+        """The unknowns ``(size², 7)`` of the network's maps at ``size`` (:func:`~torchbrdf.recovery.params.encode`)."""
+        m = self.at(size)
+        return encode({k: _flat(m[k]) for k in ("base_color", "specular", "roughness", "normal")})
+
+    def metallic(self, size: int) -> Tensor:
+        """The network's metallic ``(size², 1)`` at ``size``."""
+        return _flat(self.at(size)["metallic"])
+
+    def unary(self, theta: Tensor, metal: Tensor, noise_var: float) -> tuple[Tensor, Tensor]:
+        """:func:`prior_unary` at ``theta (P, 7)`` for the hypothesis ``metal (P, 1)`` (0 dielectric,
+        1 metal, or fractional): the prior's maps weighted by its probability of that class."""
+        size = int(round(math.sqrt(theta.shape[0])))
+        m = self.metallic(size).to(metal)
+        agree = metal * m + (1 - metal) * (1 - m)
+        return prior_unary(theta, self.at(size), noise_var, self.errors, agree)

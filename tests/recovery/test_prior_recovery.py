@@ -1,0 +1,171 @@
+"""recover(..., prior=...): the learned prior as the fit's start and as a Gaussian unary term.
+
+The fits run on 16 px captures with a stand-in estimator whose maps are known constants (the
+shipped network's maps depend on its training; the mechanism does not).
+"""
+
+import math
+
+import pytest
+import torch
+
+from torchbrdf.capture.format import load_capture
+from torchbrdf.capture.synthetic import generate_capture
+from torchbrdf.io import read_exr
+from torchbrdf.recovery import RecoveryConfig, recover
+from torchbrdf.recovery.checks import RecoveryError
+from torchbrdf.recovery.engine import Recovery
+from torchbrdf.recovery.params import R_MAX, R_MIN, decode
+from torchbrdf.recovery.config import Settings
+from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_prior_cost, estimator_errors,
+                                      prior_maps_at, prior_unary)
+from torchbrdf.recovery.svbrdf import main
+
+from tests.recovery.recovery_fixtures import cap, copy_out, one_line_error, stopped  # noqa: F401  (fixtures)
+
+CFG = RecoveryConfig(seed=0, threads=1)
+#: The stand-in estimator's maps: a wrong grey base colour and a wrong rough, plastic surface.
+CONSTANT = {"base_color": 0.5, "roughness": 0.9, "metallic": 0.05, "specular": 0.3}
+CARD = {"heldout": {"base_color_rmse": 0.15, "roughness_rmse": 0.06, "metallic_rmse": 0.2,
+                    "specular_rmse": 0.06, "normal_mean_deg": 2.0}}
+
+
+def constant_prior(lights: int = 1, card=CARD) -> Prior:
+    """A Prior whose network outputs :data:`CONSTANT` maps and flat normals at every pixel."""
+    model = MapEstimator(lights=lights, width=8, depth=1)
+    with torch.no_grad():
+        model.head.weight.zero_()
+        values = [CONSTANT["base_color"]] * 3 + [CONSTANT[k] for k in ("roughness", "metallic", "specular")]
+        model.head.bias.copy_(torch.logit(torch.tensor(values + [0.5, 0.5])))
+        model.head.bias[6:] = 0.0  # no tilt: flat normals
+    return Prior(model, card)
+
+
+@pytest.fixture(scope="module")
+def painted(tmp_path_factory):
+    """A dielectric under four ring lights and the flash: its roughness is silent where no highlight falls."""
+    folder = tmp_path_factory.mktemp("painted16")
+    generate_capture(folder, recipe="painted", seed=1, size=16, lights=4, noise=0.01)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def without_prior(painted):
+    return recover(painted, CFG, progress=False)
+
+
+#: Without the spatial ties and the roughness basin tie, a pixel no highlight reaches is silent
+#: (with them its neighbours fill it in).
+UNTIED = CFG.settings(prior_roughness=0.0, prior_specular=0.0, rough_tie=0.0, soft_metal=False)
+
+
+@pytest.fixture(scope="module")
+def untied(painted):
+    return recover(painted, UNTIED, progress=False), recover(painted, UNTIED, progress=False, prior=constant_prior())
+
+
+def test_no_prior_is_the_plain_fit_bit_for_bit(painted, without_prior):
+    again = recover(painted, CFG, progress=False, prior=None)
+    for k, v in without_prior.maps.items():
+        assert torch.equal(again.maps[k], v), k
+    assert again.report["final_loss"] == without_prior.report["final_loss"]
+    assert "learned_prior" not in again.report
+    # ... and its start is the photometric-stereo one, not a network's
+    rec = Recovery(load_capture(painted), CFG)
+    rec.init_state()
+    assert not torch.equal(rec.state["theta"][0], rec.state["theta"][1])
+
+
+def test_the_start_is_the_networks_maps_encoded(painted):
+    cap = load_capture(painted)
+    prior = Prior.default()
+    maps = prior.predict(cap)
+    learned = LearnedPrior(prior_maps_at(maps, 16), estimator_errors(prior.card))
+    rec = Recovery(cap, CFG, prior=learned)
+    rec.init_state()
+    s0 = rec.plan[0][0]
+    want = prior_maps_at(maps, s0)
+    bounds = {"roughness": (R_MIN, R_MAX)}
+    diel, metal = (decode(t, torch.zeros_like(t[:, :1])) for t in rec.state["theta"])
+    # The metal hypothesis starts from all of the network's maps; the dielectric from its roughness
+    # and specular, with the albedo and normal that the capture's four training lights determine.
+    for k in ("base_color", "roughness", "specular", "normal"):
+        torch.testing.assert_close(metal[k].T.reshape(-1, s0, s0), want[k].clamp(*bounds.get(k, (-1, 1))),
+                                   atol=2e-4, rtol=0, msg=k)
+    for k in ("roughness", "specular"):
+        torch.testing.assert_close(diel[k], metal[k], msg=k)
+    plain = Recovery(cap, CFG)
+    plain.init_state()
+    torch.testing.assert_close(rec.state["theta"][0][:, [0, 1, 2, 5, 6]], plain.state["theta"][0][:, [0, 1, 2, 5, 6]])
+    assert rec.state["prior_noise"] > 0
+    # With fewer than three lights in the fit, the network's maps are the whole start.
+    few = Recovery(cap, CFG.settings(holdout=-1), prior=learned)
+    few.train_idx = few.train_idx[:2]
+    few.init_state()
+    torch.testing.assert_close(few.state["theta"][0], few.state["theta"][1])
+
+
+def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(painted, untied):
+    plain, guided = untied
+    truth = read_exr(painted / "gt" / "base_color.exr")
+    conf = plain.confidence[0]
+    silent, measured = conf < 0.05, conf > 0.8
+    assert silent.sum() >= 8 and measured.sum() >= 8, "the capture must hold both kinds of pixel"
+    rough0, rough1 = plain.maps["roughness"][0], guided.maps["roughness"][0]
+    # Where the images do not determine the roughness, the prior's value (0.9) draws it: at most
+    # 0.6x as far from it as the plain fit, which is elsewhere ...
+    far = (rough0[silent] - CONSTANT["roughness"]).abs().median()
+    assert far > 0.4 and (rough1[silent] - CONSTANT["roughness"]).abs().median() < 0.6 * far
+    # ... where they do, the fit follows them as without the prior.
+    assert (rough1[measured] - rough0[measured]).abs().median() < 0.06
+    # The base colour is measured everywhere (the diffuse): the wrong grey prior does not move it.
+    assert (guided.maps["base_color"] - truth).square().mean().sqrt() < 0.03
+    assert guided.report["learned_prior"]["map_errors"]["roughness"] == pytest.approx(0.06)
+
+
+def test_prior_unary_is_the_maps_gaussian_linearised_at_the_unknowns():
+    maps = {"base_color": torch.tensor([0.2, 0.5, 0.9]).reshape(3, 1, 1), "roughness": torch.full((1, 1, 1), 0.4),
+            "specular": torch.full((1, 1, 1), 0.5), "normal": torch.tensor([0.3, -0.2, 1.0]).reshape(3, 1, 1)}
+    maps["normal"] = maps["normal"] / maps["normal"].norm()
+    errors = estimator_errors(CARD)
+    theta = torch.tensor([[0.3, -1.0, 2.0, 0.5, -0.4, 0.0, 0.1]], dtype=torch.float64)
+    target, prec = prior_unary(theta, maps, 1e-4, errors, class_weight=0.5)
+    # The unary's gradient and curvature equal those of σ² Σ (g(θ) − m_p)² / σ_m² (its Gauss–Newton
+    # form) on the logits; the slopes are pulled toward the network's normal's.
+    want = torch.tensor([0.2, 0.5, 0.9, 0.5, 0.4], dtype=torch.float64)
+    sig = torch.tensor([0.15] * 3 + [0.06, CARD["heldout"]["roughness_rmse"]], dtype=torch.float64)
+
+    def energy(t):
+        v = torch.sigmoid(t)
+        v = torch.cat((v[:4], R_MIN + (R_MAX - R_MIN) * v[4:]))
+        return 0.5 * 1e-4 * (((v - want) / sig) ** 2).sum()
+
+    t5 = theta[0, :5].clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(energy(t5), t5)
+    torch.testing.assert_close(prec[0, :5] * (theta[0, :5] - target[0, :5]), 0.5 * grad)  # (class weight ½)
+    jac = torch.autograd.functional.jacobian(lambda t: torch.cat((torch.sigmoid(t[:4]), (R_MAX - R_MIN)
+                                                                    * torch.sigmoid(t[4:]))), theta[0, :5])
+    torch.testing.assert_close(prec[0, :5], 0.5 * 1e-4 * (torch.diagonal(jac) / sig) ** 2)
+    torch.testing.assert_close(target[0, 5:], torch.tensor([0.3, -0.2], dtype=torch.float64))
+    torch.testing.assert_close(prec[0, 5:], torch.full((2,), 0.5e-4 / errors["normal"] ** 2, dtype=torch.float64))
+    assert errors["normal"] == pytest.approx(math.radians(2.0) / math.sqrt(math.pi / 2))
+    diel, metal = class_prior_cost(torch.tensor([[0.25]]), 1e-4, 0.2)
+    assert float(diel) == pytest.approx(1e-4 * 0.0625 / 0.04) and float(metal) == pytest.approx(1e-4 * 0.5625 / 0.04)
+
+
+def test_a_prior_for_more_lights_than_the_capture_is_refused(painted):
+    with pytest.raises(RecoveryError, match=r"prior: the estimator was trained on 6 images per capture.*has 5"):
+        recover(painted, CFG, progress=False, prior=constant_prior(lights=6))
+
+
+def test_cli_prior_option(painted, tmp_path, capsys):
+    rc = main(["--capture", str(painted), "--out", str(tmp_path / "o"), "--prior", str(tmp_path / "none.pt"),
+               "--quiet", "--threads", "1"])
+    assert rc == 2
+    assert "prior" in one_line_error(capsys) and not (tmp_path / "o").exists()
+
+
+def test_a_checkpoint_made_without_the_prior_is_not_resumed_with_it(cap, stopped, tmp_path):
+    out = copy_out(stopped, tmp_path)
+    with pytest.raises(RecoveryError, match="other settings.*learned_prior"):
+        recover(cap, Settings(iters=4, threads=1), out, resume=True, progress=False, prior=constant_prior())
