@@ -89,7 +89,7 @@ from torchbrdf.capture.format import Capture
 from torchbrdf.capture.synthetic import render_capture
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step
-from torchbrdf.recovery.classes import (choose_class, despeckle, majority_vote, rough_basin_tie,
+from torchbrdf.recovery.classes import (choose_class, majority_vote, residual_variance, rough_basin_tie,
                                         unconverged_dielectric_rows)
 from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.levels import LevelData, photometric_stereo
@@ -285,12 +285,14 @@ class Recovery:
                 st["lam"][h] = torch.where(bad, st["lam"][h] * 100, st["lam"][h])
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
-                cross = None if kind == "dual" else self.cfg.metal_margin
+                # Single-class stages: a neighbour of the other class is a candidate, judged at
+                # the noise level measured at the class choice.
+                cross = None if kind == "dual" else st.get("class_sigma2")
                 active = None  # a later pass needs only the pixels near the last one's changes
                 # A stage's start (a new level, or the class choice) moves pixels far; "all"
                 # continues the converged polish at its size, like one more of its iterations.
                 for _ in range(self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1):
-                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary,
+                    theta, metal, changed = propagate(data, theta, metal, self.cfg, class_sigma2=cross, unary=unary,
                                                       active=active)
                     if not bool(changed.any()):
                         break
@@ -472,16 +474,18 @@ class Recovery:
             r = self.data(size).residual(st["theta"][h], metal, lights, self.cfg.model)
             c = (r * r).sum(-1, keepdim=True)
             scores.append(torch.nan_to_num(c, nan=float("inf")))
+        n_res = int(r.shape[-1])
+        # The capture's noise level: the median pixel's better fit, per residual.
+        sigma2 = residual_variance(torch.minimum(scores[0], scores[1]), n_res)
         if self.cfg.refit_before_choice:
-            scores[0] = self._refit_unconverged_dielectric(size, scores, lights)
-        # Metal only when clearly better: a rough metal's broad GGX lobe can mimic a
-        # rough dielectric's diffuse, and dielectrics are the common case.
-        metal = choose_class(scores[0], scores[1], self.cfg.metal_margin, size)
-        # 3x3 majority vote on the coarse levels only: at full resolution it erodes the
-        # one-pixel-wide edges of inlays and scratches (see docs/recovery.md).
-        # At full resolution only isolated choices are flipped (a pixel with at most one
-        # of its 8 neighbours agreeing), which keeps one-pixel edges.
-        st["metal"] = majority_vote(metal, size) if size < self.plan[-1][0] else despeckle(metal, size)
+            scores[0] = self._refit_unconverged_dielectric(size, scores, lights, sigma2, n_res)
+        # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
+        # classes as an MRF prior: see choose_class.
+        metal = choose_class(scores[0], scores[1], size, sigma2, n_res, self.cfg.false_metal_rate)
+        # 3x3 majority vote on the coarse levels only, whose choice the next level makes again:
+        # at full resolution it erodes the one-pixel-wide edges of inlays and scratches.
+        st["metal"] = majority_vote(metal, size) if size < self.plan[-1][0] else metal
+        st["class_sigma2"] = sigma2
         st.pop("costs", None)
         if self.cfg.rough_tie > 0 and size == self.plan[-1][0]:
             # On the dielectric hypothesis (the next stage takes it where the pixel is
@@ -566,11 +570,10 @@ class Recovery:
                                           self.cfg.fuse_refit_iters, held=wr[bent] > 0)[0]
         st["info"] = info
 
-    def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int],
-                                      factor: float = 5.0, max_pixels: int = 4096, iters: int = 8) -> Tensor:
+    def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int], sigma2: float,
+                                      n_residuals: int, max_pixels: int = 4096, iters: int = 8) -> Tensor:
         """Before the metal/dielectric choice: refit the dielectric hypothesis where the metal wins
-        but the dielectric never converged (cost > ``factor`` × its median, the noise level) and
-        the metal does not fit at the noise level either (> 2× the median).
+        but neither fit is at the noise level ``sigma2`` (:func:`unconverged_dielectric_rows`).
 
         A metal's win is evidence only against a converged dielectric. Where the coarse levels
         blended a narrow structure (a grout line at the image edge is half as wide as inside:
@@ -583,7 +586,7 @@ class Recovery:
         better. Returns the dielectric's updated scores ``(P, 1)`` on ``lights``.
         """
         st = self.state
-        rows = unconverged_dielectric_rows(scores[0], scores[1], self.cfg.metal_margin, factor)
+        rows = unconverged_dielectric_rows(scores[0], scores[1], sigma2, n_residuals, self.cfg.false_metal_rate)
         if rows.numel() == 0:
             return scores[0]
         if rows.numel() > max_pixels:
