@@ -26,14 +26,14 @@ Method (each choice measured, see ``docs/recovery.md``):
 * **Coarse to fine** (S/4, S/2, S): cheap levels settle the metal/dielectric choice and the
   low frequencies; the full level only refines.
 * **Metal/dielectric: two starts**, a dielectric (metallic 0) and a metal (metallic 1)
-  hypothesis fitted side by side; a pixel is metal when its cost on the training lights
-  *plus a held-out captured light* (a light the fit never saw) is below half the
-  dielectric's, dielectric when above twice it; the pixels in between, which the data
-  cannot decide, take their neighbours' class (a few ICM sweeps), then isolated choices are
-  removed.
+  hypothesis fitted side by side; evidence decides: a likelihood-ratio test of their costs
+  on the training lights *plus a held-out captured light* (a light the fit never saw) at the
+  measured noise level, inside an MRF whose Potts term is in the same noise units, so a
+  pixel against a coherent neighbourhood needs the full evidence and the pixels the data
+  cannot decide take their neighbours' class (``classes.choose_class``).
 * **Propagation and search** (PatchMatch-style, between LM iterations): each pixel tries
-  its 8 neighbours' parameters — same class, or the other class under the same margin
-  rule — and keeps them when they lower its data cost plus prior; pixels still fitting
+  its 8 neighbours' parameters — same class, or the other class under the same evidence
+  test — and keeps them when they lower its data cost plus prior; pixels still fitting
   far worse than the noise level try a grid of normals (tilts up to 40°) combined with
   their own and their neighbours' parameters. Gauss–Newton only walks downhill: this is
   what finds the highlight of a steep inlay rim whose normal starts 30° off.
