@@ -232,10 +232,6 @@ def test_edge_pixels_vote_with_the_neighbours_they_have():
     met.view(size, size)[0, 0] = 1.0
     met.view(size, size)[0, 1] = met.view(size, size)[1, 0] = 0.01
     assert float(classes.choose_class(diel, met, size, 1 / 36, 36, 1e-4).view(size, size)[0, 0]) == 1.0
-    # The majority vote keeps an edge row of metal that has metal inside it.
-    block = torch.zeros(size, size)
-    block[:2] = 1.0
-    assert torch.equal(classes.majority_vote(block.reshape(-1, 1), size).view(size, size), block)
     # The NaN fill averages the neighbours that exist.
     x = torch.arange(size * size, dtype=torch.float32).reshape(-1, 1)
     assert float(map_ops.neighbour_mean(x, size)[0]) == (1.0 + size) / 2

@@ -81,7 +81,7 @@ def check_config(cfg: RecoveryConfig | Settings) -> None:
     for name in ("prior_sigma", "nonlocal_range", "nonlocal_sigma"):
         _finite_in_range(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
     _finite_in_range("false_metal_rate", cfg.false_metal_rate, 1e-12, 0.1)
-    for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_smooth",
+    for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_gain", "soft_metal_smooth",
                  "soft_metal_edge", "soft_metal_context", "soft_metal_unmix", "soft_metal_line",
                  "soft_metal_quiet"):
         _finite_in_range(name, getattr(cfg, name), 0.0, 1e6)

@@ -89,7 +89,7 @@ from torchbrdf.capture.format import Capture
 from torchbrdf.capture.synthetic import render_capture
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step
-from torchbrdf.recovery.classes import (choose_class, majority_vote, residual_variance, rough_basin_tie,
+from torchbrdf.recovery.classes import (choose_class, residual_variance, rough_basin_tie,
                                         unconverged_dielectric_rows)
 from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.levels import LevelData, photometric_stereo
@@ -481,10 +481,9 @@ class Recovery:
             scores[0] = self._refit_unconverged_dielectric(size, scores, lights, sigma2, n_res)
         # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
         # classes as an MRF prior: see choose_class.
-        metal = choose_class(scores[0], scores[1], size, sigma2, n_res, self.cfg.false_metal_rate)
-        # 3x3 majority vote on the coarse levels only, whose choice the next level makes again:
-        # at full resolution it erodes the one-pixel-wide edges of inlays and scratches.
-        st["metal"] = majority_vote(metal, size) if size < self.plan[-1][0] else metal
+        # (The MRF's neighbour term replaces the former 3×3 majority vote of the coarse levels:
+        # without it no map of the panel's metal cases changed.)
+        st["metal"] = choose_class(scores[0], scores[1], size, sigma2, n_res, self.cfg.false_metal_rate)
         st["class_sigma2"] = sigma2
         st.pop("costs", None)
         if self.cfg.rough_tie > 0 and size == self.plan[-1][0]:

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchbrdf.recovery.classes import evidence_threshold, residual_variance
+from torchbrdf.recovery.classes import residual_variance
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import PixelRows, at_rows, keep_better, pixel_cost, soft_lm
@@ -435,9 +435,8 @@ class _Stage:
         return self.cfg.soft_metal_well * self.sigma2
 
     def gain(self) -> float:
-        """The cost drop that buys a fractional metallic (one extra unknown): the evidence
-        threshold for Δp = 1 at ``cfg.false_metal_rate``, × σ² (:func:`evidence_threshold`)."""
-        return evidence_threshold(1, self.cfg.false_metal_rate) * self.sigma2
+        """The cost drop that buys a fractional metallic (one extra unknown): ``cfg.soft_metal_gain`` × σ²."""
+        return self.cfg.soft_metal_gain * self.sigma2
 
     def neighbour_fit(self, theta: Tensor, metal: Tensor, rows: Tensor, gain: float | Tensor,
                       warm: bool = False) -> tuple[Tensor, Tensor]:
