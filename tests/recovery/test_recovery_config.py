@@ -34,11 +34,11 @@ def test_every_user_facing_field_is_documented():
 
 def test_the_former_flat_names_map_onto_the_groups():
     cfg = RecoveryConfig(iters=7, lr=0.5, levels=2, converge_tol=0.0, prior_roughness=0.01,
-                         prior_nonlocal_base=0.0, light_scale=False, soft_metal=False, metal_margin=0.4)
+                         prior_nonlocal_base=0.0, light_scale=False, soft_metal=False, false_metal_rate=1e-3)
     assert cfg.schedule == ScheduleConfig(levels=2, iters=7, lr=0.5, converge_tol=0.0)
     assert cfg.priors.roughness == 0.01 and cfg.priors.nonlocal_base == 0.0
     assert not cfg.calibration.light_scale and cfg.calibration.light_position
-    assert cfg.classes == ClassConfig(soft_metal=False, metal_margin=0.4)
+    assert cfg.classes == ClassConfig(soft_metal=False, false_metal_rate=1e-3)
     assert (cfg.iters, cfg.lr, cfg.soft_metal) == (7, 0.5, False)
     cfg.iters = 9
     assert cfg.schedule.iters == 9 and cfg.settings().iters == 9

@@ -80,7 +80,7 @@ def check_config(cfg: RecoveryConfig | Settings) -> None:
     _finite_in_range("nonlocal_fit_weight", cfg.nonlocal_fit_weight, 0.0, 1e6)
     for name in ("prior_sigma", "nonlocal_range", "nonlocal_sigma"):
         _finite_in_range(name, getattr(cfg, name), 0.0, 1e6, lo_open=True)
-    _finite_in_range("metal_margin", cfg.metal_margin, 0.0, 1.0, lo_open=True)
+    _finite_in_range("false_metal_rate", cfg.false_metal_rate, 1e-12, 0.1)
     for name in ("soft_metal_factor", "soft_metal_well", "soft_metal_gain", "soft_metal_smooth",
                  "soft_metal_edge", "soft_metal_context", "soft_metal_unmix", "soft_metal_line",
                  "soft_metal_quiet"):

@@ -107,14 +107,18 @@ class ClassConfig:
     Attributes:
         soft_metal: the final stage's continuous metallic at class boundaries and on poorly
             fitting pixels (False: every pixel exactly 0 or 1).
-        metal_margin: a pixel is metal when its metal cost is below this × its dielectric cost
-            (and dielectric above its inverse; the pixels between take their neighbours'
-            class): ½ asks a metal for twice the dielectric's evidence, as dielectrics are the
-            common case and a rough metal's lobe can mimic a rough diffuse.
+        false_metal_rate: the rate, per pixel, at which noise alone may buy a metal for a
+            dielectric. Every metal/dielectric choice is a likelihood-ratio test at the
+            capture's measured noise level whose threshold, the χ²(7) quantile at
+            ``1 − false_metal_rate``, follows from this rate
+            (``torchbrdf.recovery.classes.evidence_threshold``). 1e-4: a fifth of the 0.05 %
+            of a dielectric's pixels that may be called metal, leaving room for the misfit of
+            a forward model the fit does not share; measured by
+            ``python -m torchbrdf.bench.false_metal`` (docs/recovery.md).
     """
 
     soft_metal: bool = True
-    metal_margin: float = 0.5
+    false_metal_rate: float = 1e-4
 
 
 _T = TypeVar("_T")
@@ -126,7 +130,7 @@ _FLAT = {
     "prior_roughness": ("priors", "roughness"), "prior_specular": ("priors", "specular"),
     "prior_metal_base": ("priors", "metal_base"), "prior_nonlocal_base": ("priors", "nonlocal_base"),
     "light_scale": ("calibration", "light_scale"), "light_position": ("calibration", "light_position"),
-    "soft_metal": ("classes", "soft_metal"), "metal_margin": ("classes", "metal_margin"),
+    "soft_metal": ("classes", "soft_metal"), "false_metal_rate": ("classes", "false_metal_rate"),
 }
 _GROUPS = {"schedule": ScheduleConfig, "priors": PriorConfig, "calibration": CalibrationConfig,
            "classes": ClassConfig}
@@ -171,7 +175,7 @@ class RecoveryConfig:
     The former flat names of the groups' fields (``iters``, ``lr``, ``levels``,
     ``converge_tol``, ``converge_min_iters``, ``prior_roughness``, ``prior_specular``,
     ``prior_metal_base``, ``prior_nonlocal_base``, ``light_scale``, ``light_position``,
-    ``soft_metal``, ``metal_margin``) are accepted as keywords and attributes.
+    ``soft_metal``, ``false_metal_rate``) are accepted as keywords and attributes.
     """
 
     size: int | None
@@ -198,7 +202,7 @@ class RecoveryConfig:
     light_scale = _Flat[bool]()
     light_position = _Flat[bool]()
     soft_metal = _Flat[bool]()
-    metal_margin = _Flat[float]()
+    false_metal_rate = _Flat[float]()
 
     def __init__(self, *, size: int | None = None, seed: int = 0, device: str = "cpu", model: str = "principled",
                  holdout: int | None = None, checkpoint_every: int = 5, threads: int | None = None,
@@ -255,7 +259,7 @@ class Settings:
     converge_min_iters: int = 2
     light_position: bool = True
     light_scale: bool = True
-    metal_margin: float = 0.5
+    false_metal_rate: float = 1e-4
     soft_metal: bool = True
     holdout: int | None = None
     checkpoint_every: int = 5
@@ -323,7 +327,10 @@ class Settings:
     # Continuous metallic (the final stage, soft_metal_stage); σ² units throughout
     soft_metal_factor: float = 8.0  # candidates: a cost above this × the median (and boundaries)
     soft_metal_well: float = 32.0  # double-well prior w m²(1−m)²: metallic 0 and 1 are the likely values
-    soft_metal_gain: float = 8.0  # keep a fractional value only if it lowers the cost by this × σ²
+    # Keep a fractional value only if it lowers the cost by this × σ²: a likelihood-ratio test for
+    # one extra unknown at a rate P(χ²(1) > 8) = 0.5 %. The class test's rate (false_metal_rate,
+    # 15.1 σ²) measured worse on ramps (base colour on a 5-texel ramp 0.0145 vs 0.014).
+    soft_metal_gain: float = 8.0
     soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic
     soft_metal_band: int = 2  # ... and pixels within this many pixels of a class boundary (a ramp's width)
     soft_metal_iters: int = 5  # per-pixel LM iterations

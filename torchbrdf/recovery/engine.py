@@ -26,14 +26,14 @@ Method (each choice measured, see ``docs/recovery.md``):
 * **Coarse to fine** (S/4, S/2, S): cheap levels settle the metal/dielectric choice and the
   low frequencies; the full level only refines.
 * **Metal/dielectric: two starts**, a dielectric (metallic 0) and a metal (metallic 1)
-  hypothesis fitted side by side; a pixel is metal when its cost on the training lights
-  *plus a held-out captured light* (a light the fit never saw) is below half the
-  dielectric's, dielectric when above twice it; the pixels in between, which the data
-  cannot decide, take their neighbours' class (a few ICM sweeps), then isolated choices are
-  removed.
+  hypothesis fitted side by side; evidence decides: a likelihood-ratio test of their costs
+  on the training lights *plus a held-out captured light* (a light the fit never saw) at the
+  measured noise level, inside an MRF whose Potts term is in the same noise units, so a
+  pixel against a coherent neighbourhood needs the full evidence and the pixels the data
+  cannot decide take their neighbours' class (``classes.choose_class``).
 * **Propagation and search** (PatchMatch-style, between LM iterations): each pixel tries
-  its 8 neighbours' parameters — same class, or the other class under the same margin
-  rule — and keeps them when they lower its data cost plus prior; pixels still fitting
+  its 8 neighbours' parameters — same class, or the other class under the same evidence
+  test — and keeps them when they lower its data cost plus prior; pixels still fitting
   far worse than the noise level try a grid of normals (tilts up to 40°) combined with
   their own and their neighbours' parameters. Gauss–Newton only walks downhill: this is
   what finds the highlight of a steep inlay rim whose normal starts 30° off.
@@ -91,7 +91,7 @@ from torchbrdf.capture.format import Capture
 from torchbrdf.capture.synthetic import render_capture
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step
-from torchbrdf.recovery.classes import (choose_class, despeckle, majority_vote, rough_basin_tie,
+from torchbrdf.recovery.classes import (choose_class, residual_variance, rough_basin_tie,
                                         unconverged_dielectric_rows)
 from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.levels import LevelData, photometric_stereo
@@ -331,12 +331,14 @@ class Recovery:
                 st["lam"][h] = torch.where(bad, st["lam"][h] * 100, st["lam"][h])
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
-                cross = None if kind == "dual" else self.cfg.metal_margin
+                # Single-class stages: a neighbour of the other class is a candidate, judged at
+                # the noise level measured at the class choice.
+                cross = None if kind == "dual" else st.get("class_sigma2")
                 active = None  # a later pass needs only the pixels near the last one's changes
                 # A stage's start (a new level, or the class choice) moves pixels far; "all"
                 # continues the converged polish at its size, like one more of its iterations.
                 for _ in range(self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1):
-                    theta, metal, changed = propagate(data, theta, metal, self.cfg, margin=cross, unary=unary,
+                    theta, metal, changed = propagate(data, theta, metal, self.cfg, class_sigma2=cross, unary=unary,
                                                       active=active)
                     if not bool(changed.any()):
                         break
@@ -520,20 +522,19 @@ class Recovery:
             r = self.data(size).residual(st["theta"][h], metal, lights, self.cfg.model)
             c = (r * r).sum(-1, keepdim=True)
             scores.append(torch.nan_to_num(c, nan=float("inf")))
+        n_res = int(r.shape[-1])
+        # The capture's noise level: the median pixel's better fit, per residual.
+        sigma2 = residual_variance(torch.minimum(scores[0], scores[1]), n_res)
         if self.cfg.refit_before_choice:
-            scores[0] = self._refit_unconverged_dielectric(size, scores, lights)
+            scores[0] = self._refit_unconverged_dielectric(size, scores, lights, sigma2, n_res)
         if self.prior is not None:  # the network's metallic, as a Gaussian with its measured error
             prior_cost = class_prior_cost(self.prior.metallic(size).to(scores[0]), st["prior_noise"],
                                           self.prior.errors["metallic"])
             scores = [s + c for s, c in zip(scores, prior_cost)]
-        # Metal only when clearly better: a rough metal's broad GGX lobe can mimic a
-        # rough dielectric's diffuse, and dielectrics are the common case.
-        metal = choose_class(scores[0], scores[1], self.cfg.metal_margin, size)
-        # 3x3 majority vote on the coarse levels only: at full resolution it erodes the
-        # one-pixel-wide edges of inlays and scratches (see docs/recovery.md).
-        # At full resolution only isolated choices are flipped (a pixel with at most one
-        # of its 8 neighbours agreeing), which keeps one-pixel edges.
-        st["metal"] = majority_vote(metal, size) if size < self.plan[-1][0] else despeckle(metal, size)
+        # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
+        # classes as an MRF prior: see choose_class.
+        st["metal"] = choose_class(scores[0], scores[1], size, sigma2, n_res, self.cfg.false_metal_rate)
+        st["class_sigma2"] = sigma2
         st.pop("costs", None)
         if self.cfg.rough_tie > 0 and size == self.plan[-1][0]:
             # On the dielectric hypothesis (the next stage takes it where the pixel is
@@ -618,11 +619,10 @@ class Recovery:
                                           self.cfg.fuse_refit_iters, held=wr[bent] > 0)[0]
         st["info"] = info
 
-    def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int],
-                                      factor: float = 5.0, max_pixels: int = 4096, iters: int = 8) -> Tensor:
+    def _refit_unconverged_dielectric(self, size: int, scores: list[Tensor], lights: list[int], sigma2: float,
+                                      n_residuals: int, max_pixels: int = 4096, iters: int = 8) -> Tensor:
         """Before the metal/dielectric choice: refit the dielectric hypothesis where the metal wins
-        but the dielectric never converged (cost > ``factor`` × its median, the noise level) and
-        the metal does not fit at the noise level either (> 2× the median).
+        but neither fit is at the noise level ``sigma2`` (:func:`unconverged_dielectric_rows`).
 
         A metal's win is evidence only against a converged dielectric. Where the coarse levels
         blended a narrow structure (a grout line at the image edge is half as wide as inside:
@@ -635,7 +635,7 @@ class Recovery:
         better. Returns the dielectric's updated scores ``(P, 1)`` on ``lights``.
         """
         st = self.state
-        rows = unconverged_dielectric_rows(scores[0], scores[1], self.cfg.metal_margin, factor)
+        rows = unconverged_dielectric_rows(scores[0], scores[1], sigma2, n_residuals, self.cfg.false_metal_rate)
         if rows.numel() == 0:
             return scores[0]
         if rows.numel() > max_pixels:

@@ -9,14 +9,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf.recovery.classes import evidence_threshold, pixel_noise_variance
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import unary_cost
+from torchbrdf.recovery.params import N_PARAMS
 from torchbrdf.recovery.smoothness_prior import edge_weights, local_prior
 
 
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
-              margin: float | None = None,
+              class_sigma2: float | None = None,
               unary: tuple[Tensor, Tensor] | None = None,
               active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """PatchMatch-style propagation: each pixel tries its 8 neighbours' parameters.
@@ -26,10 +28,12 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     explain its own observations better — data cost on the training lights plus the
     smoothness prior, so where the data cannot tell two solutions apart (a dielectric whose
     specular went to 0 leaves roughness free) the one agreeing with its neighbours wins.
-    Cheap: 8 renders of the level, no Jacobian. With ``margin`` (the metal/dielectric decision
-    margin), a neighbour of the other class is a candidate too, judged by the same rule as
-    the dual-hypothesis choice: becoming metal needs a cost below ``margin`` × the pixel's
-    own, becoming dielectric one below ``1 / margin`` × it.
+    Cheap: 8 renders of the level, no Jacobian. With ``class_sigma2`` (the noise variance of
+    one residual measured at the class choice), a neighbour of the other class is a candidate
+    too, judged on data by the class choice's evidence test: becoming metal needs a cost below
+    the pixel's own by the evidence threshold ``τ`` (:func:`evidence_threshold`, Δp = 7 at
+    ``cfg.false_metal_rate``) in the pixel's noise variances (:func:`pixel_noise_variance`),
+    becoming dielectric one at most ``τ`` of them above it.
 
     ``active (P,)`` (bool, optional): only these pixels try their neighbours (the renders
     shrink to them); the others keep their parameters. A pass after a pass can give a new
@@ -55,7 +59,11 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     wx, wy = edge_weights(theta, metal, size, cfg)
     own, own_metal = sel(theta), sel(metal)
     best, best_metal = own, own_metal
-    best_score = cost(own, own_metal) + sel(local_prior(theta, theta, wx, wy, size)) + unary_cost(own, un)
+    own_cost = cost(own, own_metal)
+    own_prior = sel(local_prior(theta, theta, wx, wy, size)) + unary_cost(own, un)
+    best_score = own_cost + own_prior
+    tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
+    n_res = 3 * len(data.train_idx)
     pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
     padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
     for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
@@ -64,12 +72,13 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         cm = sel(padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T)
         same = cm == own_metal
         prior = sel(local_prior(cand_all, theta, wx, wy, size)) + unary_cost(cand, un)
-        if margin is None:
+        if class_sigma2 is None:
             score = torch.where(same, cost(cand, own_metal) + prior, float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
             data_cost = cost(cand, cm)
+            price = tau * pixel_noise_variance(own_cost, data_cost, class_sigma2, n_res)
             score = torch.where(same, data_cost + prior,
-                                data_cost * torch.where(cm > 0.5, 1.0 / margin, margin))
+                                data_cost + torch.where(cm > 0.5, price, -price) + own_prior)
         better = score < best_score
         best = torch.where(better, cand, best)
         best_metal = torch.where(better, cm, best_metal)

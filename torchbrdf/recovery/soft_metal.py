@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf.recovery.classes import residual_variance
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import PixelRows, at_rows, keep_better, pixel_cost, soft_lm
@@ -438,6 +439,10 @@ class _Stage:
     def well(self) -> float:
         return self.cfg.soft_metal_well * self.sigma2
 
+    def gain(self) -> float:
+        """The cost drop that buys a fractional metallic (one extra unknown): ``cfg.soft_metal_gain`` × σ²."""
+        return self.cfg.soft_metal_gain * self.sigma2
+
     def neighbour_fit(self, theta: Tensor, metal: Tensor, rows: Tensor, gain: float | Tensor,
                       warm: bool = False) -> tuple[Tensor, Tensor]:
         """Pass 2 and growth: ``rows`` refitted from the 4-neighbours' mean parameters (with ``warm``:
@@ -476,10 +481,8 @@ def soft_metal_stage(data: LevelData, theta: Tensor, metal: Tensor, cfg: Setting
     with torch.no_grad():
         r = data.residual(theta, metal, data.train_idx, cfg.model)
     cost = pixel_cost(r)
-    # Noise variance of one residual: the median pixel's cost per residual.
-    finite = torch.isfinite(cost)
-    typical = float(cost[finite].median()) if bool(finite.any()) else 0.0
-    sigma2 = typical / max(1, r.shape[1])
+    sigma2 = residual_variance(cost, r.shape[1])  # the noise variance of one residual
+    typical = sigma2 * r.shape[1]
     rows = soft_metal_candidates(cost, metal, size, cfg.soft_metal_factor, cfg.soft_metal_max,
                                  cfg.soft_metal_band, torch.sigmoid(theta[:, 0:3]), cfg.soft_metal_edge,
                                  context=BLEND_SIGMAS[-1])
@@ -536,7 +539,7 @@ def _candidate_passes(stage: _Stage, theta: Tensor, metal: Tensor, rows: Tensor,
         pull = {"target": torch.nan_to_num(u), "smooth": torch.where(known, w_un, 0.0).to(u.dtype)}
     t_new, m_new, _ = soft_metal_fit(
         data, theta, metal, rows, data.train_idx, cfg.model, stage.well(),
-        cfg.soft_metal_gain * sigma2, cfg.soft_metal_iters, starts=start, **pull)
+        stage.gain(), cfg.soft_metal_iters, starts=start, **pull)
     theta, metal = theta.clone(), metal.clone()
     theta[rows], metal[rows] = t_new, m_new
     if cfg.soft_metal_smooth > 0:
@@ -555,7 +558,7 @@ def _candidate_passes(stage: _Stage, theta: Tensor, metal: Tensor, rows: Tensor,
         fr = ((metal > 0) & (metal < 1)).to(theta.dtype)
         near = neighbour_mean(fr, size)[rows2] > 0
         ctx_scale = torch.where(near, cfg.soft_metal_context, 1.0).to(theta.dtype)
-        gain2 = cfg.soft_metal_gain * sigma2 * ctx_scale
+        gain2 = stage.gain() * ctx_scale
         # Repeated, each round pulled toward the neighbours' metallic of the round
         # before: a ramp's values settle from both of its ends (Jacobi smoothing). A
         # pixel an earlier round made fractional is no longer asked for the gain (it is
@@ -595,7 +598,7 @@ def _grow(stage: _Stage, theta: Tensor, metal: Tensor, tried: Tensor, refitted: 
         tried[front] = True
         if cfg.soft_metal_unmix * stage.sigma2 > 0:  # their coverage pulls too (a speck's core, from its rim)
             _, stage.unmix[front] = unmix_metallic(data, theta, metal, front, data.train_idx, cfg.model, size)
-        t_f, m_f = stage.neighbour_fit(theta, metal, front, cfg.soft_metal_gain * cfg.soft_metal_context * stage.sigma2)
+        t_f, m_f = stage.neighbour_fit(theta, metal, front, stage.gain() * cfg.soft_metal_context)
         ff = (m_f > 0) & (m_f < 1)
         theta[front] = torch.where(ff, t_f, theta[front])
         metal[front] = torch.where(ff, m_f, metal[front])
