@@ -97,7 +97,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import dilate, neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
-from torchbrdf.recovery.priors import nonlocal_fill, nonlocal_prior
+from torchbrdf.recovery.priors import fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate
 from torchbrdf.recovery.soft_metal import soft_metal_stage
 
@@ -451,14 +451,26 @@ class Recovery:
             if kind1 == "all":
                 st["validation"] = self.validation()
                 if self.cfg.fill and kind == "polish":
-                    # Fill what no captured highlight constrains from the same material where one does.
-                    st["fill"] = nonlocal_fill(self.data(size), st["theta"][0], st["metal"], self.cfg)
+                    self._fill(size)
         elif self.cfg.prior_nonlocal > 0 or self.cfg.prior_nonlocal_base > 0:
             self._fuse_nonlocal(size, kind)
         if nxt >= len(self.plan) and self.cfg.soft_metal and st.get("metal") is not None:
             self._soft_metal(size, kind)
         st["stage"] = nxt
         st["it"] = 0
+
+    def _fill(self, size: int) -> None:
+        """End of the polish stage: what no captured highlight constrains, from the same material
+        where one does — the non-local fill (:func:`nonlocal_fill`) as the last stage's unary
+        prior (``state["fill"]``), each pixel first moved to the mode of its data and that prior
+        (:func:`fuse_fill`, with the metals' F0 tie)."""
+        st = self.state
+        d = self.data(size, all_lights=True)  # the last stage's lights
+        self._sync_light_scale()
+        th, mt, model = st["theta"][0], st["metal"], self.cfg.model
+        gn = gauss_newton(d, th, mt, d.train_idx, model)
+        st["fill"] = nonlocal_fill(d, th, mt, self.cfg, info=marginal_information(d, th, mt, model, gn[1]))
+        st["theta"][0] = fuse_fill(d, th, mt, sum_unary(st["fill"], st.get("tie")), model, gn=gn)
 
     def _choose_classes(self, size: int) -> None:
         """End of a two-hypothesis stage: each pixel's class (``state["metal"]``) from the two fits."""

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
-from torchbrdf.recovery.lm import marginal_information, newton_step
+from torchbrdf.recovery.lm import gauss_newton, marginal_information, newton_step, pixel_cost, unary_cost
 from torchbrdf.recovery.map_ops import blur, kmeans
 
 
@@ -112,6 +112,11 @@ def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     return w, m, info
 
 
+#: Bounds of a member's variance (logit²) in :func:`material_estimate`: below, a value is
+#: exact for any use here; above, it weighs nothing (and ``1 / v²`` stays finite in float32).
+VAR_MIN, VAR_MAX = 1e-12, 1e12
+
+
 def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     """Local standard deviation ``(P, 1)`` of the normal slope ``(p, q)`` in a ``(2r+1)²`` window
     (reflect-padded: an edge pixel's window lies inside the image): the geometry statistic
@@ -125,7 +130,7 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
-def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 4
+def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3
                       ) -> tuple[Tensor, Tensor, Tensor]:
     """A material's mean, spread and the mean's variance from noisy, softly weighted members.
 
@@ -135,24 +140,31 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
     with weights ``s_j / (τ² + v_j)``; ``τ²`` the maximum-likelihood spread, by the fixed point
     ``τ² = Σ s u² ((y − μ)² − v) / Σ s u²`` with ``u = 1 / (τ² + v)`` (``iters`` rounds from
     the fixed-effects spread), so a member the data hardly see (``v`` large) counts neither in
-    the mean nor in the spread. ``values``, ``variances``, ``weights``: ``(N, K, C)`` (``K``
-    members, ``C`` independent quantities; a non-finite variance weighs 0).
-    Returns ``(μ, τ², var(μ) = 1 / Σ s u)``, each ``(N, C)`` float64 (``var(μ)`` is +inf
-    where no member carries weight).
+    the mean nor in the spread. ``values``, ``variances``: ``(N, K, C)`` (``K`` members, ``C``
+    independent quantities); ``weights`` ``(N, K, 1)`` or ``(N, K, C)``. Variances are clamped
+    to ``[VAR_MIN, VAR_MAX]`` (a non-finite one is ``VAR_MAX``: the member weighs nothing), so
+    the powers stay finite in float32.
+    Returns ``(μ, τ², var(μ) = 1 / Σ s u)``, each ``(N, C)`` in ``values``' dtype (``var(μ)`` is
+    +inf where no member carries weight).
     """
-    y, s = values.double(), weights.double()
-    v = torch.nan_to_num(variances.double(), nan=float("inf")).clamp(min=1e-30)
-    u = 1.0 / v
-    wsum = (s * u).sum(1).clamp(min=1e-300)
-    mu = (s * u * y).sum(1) / wsum
-    tau2 = ((s * u * (y - mu[:, None]) ** 2).sum(1) / wsum)
-    for _ in range(iters):
-        u = 1.0 / (tau2[:, None] + v)
-        mu = (s * u * y).sum(1) / (s * u).sum(1).clamp(min=1e-300)
-        u2 = s * u * u
-        tau2 = ((u2 * ((y - mu[:, None]) ** 2 - v)).sum(1) / u2.sum(1).clamp(min=1e-300)).clamp(min=0.0)
-    u = 1.0 / (tau2[:, None] + v)
-    return mu, tau2, 1.0 / (s * u).sum(1)
+    y, s = values, weights
+    v = torch.nan_to_num(variances, nan=VAR_MAX, posinf=VAR_MAX).clamp(VAR_MIN, VAR_MAX)
+    u = v.reciprocal()
+    tau2 = torch.zeros_like(y[:, 0])
+    for it in range(iters + 1):
+        if it:
+            u = (tau2[:, None] + v).reciprocal()
+        su = s * u
+        den = su.sum(1)
+        mu = (su * y).sum(1) / den.clamp(min=1e-30)
+        d2 = (y - mu[:, None]) ** 2
+        if it == 0:  # the start: the fixed-effects spread of the members
+            tau2 = (su * d2).sum(1) / den.clamp(min=1e-30)
+            continue
+        su2 = su * u
+        tau2 = ((su2 * (d2 - v)).sum(1) / su2.sum(1).clamp(min=1e-30)).clamp(min=0.0)
+    u = (tau2[:, None] + v).reciprocal()
+    return mu, tau2, (s * u).sum(1).reciprocal()
 
 
 def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
@@ -182,7 +194,8 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         info = marginal_information(data, theta, metal, cfg.model)
     r = data.residual(theta, metal, data.train_idx, cfg.model)
     sigma2 = float(torch.nan_to_num((r * r).mean(-1), nan=0.0).median())
-    var = sigma2 / info[:, 3:5].double().clamp(min=1e-30)  # (P, 2): specular, roughness logits
+    var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
+    sr = theta[:, 3:5].contiguous()
     feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
                       _normal_texture(theta, size) / cfg.fill_texture), -1)  # (P, 4)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
@@ -199,12 +212,36 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
             rr = pool[s0:s0 + chunk]
             cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
             sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
-            mu, tau2, var_mu = material_estimate(theta[cand][..., 3:5], var[cand],
-                                                 sim[..., None].expand(-1, -1, 2))
-            ok = torch.isfinite(mu) & torch.isfinite(var_mu)
-            tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5].double()).to(theta.dtype)
-            p = torch.where(ok, sigma2 / (tau2 + var_mu).clamp(min=1e-30), 0.0)
-            prec[rr, 3:5] = p.to(theta.dtype)
+            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None])
+            ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
+            tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
+            prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
     if bool(ism.any()):
         prec[ism, 3] = 0.0  # a metal's specular is invisible and already tied to its neighbours
     return torch.nan_to_num(tgt), torch.nan_to_num(prec, posinf=0.0)
+
+
+def fuse_fill(data: LevelData, theta: Tensor, metal: Tensor, unary: tuple[Tensor, Tensor], model: str,
+              rounds: int = 2, gn: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
+    """Each pixel moved to the mode of its data and a unary prior (the fill), all its unknowns
+    following: ``rounds`` Gauss–Newton steps of ``|r|² + Σ precision (θ − target)²``.
+
+    Where the data are silent the step takes roughness / specular to the prior's target and
+    the other unknowns to their conditional optimum there (along the specular–roughness valley,
+    which the damped LM steps of the last stage descend only slowly); where the data pin a
+    value the step keeps it. A pixel takes a step only where it lowers that energy (a curved
+    valley). ``theta (P, 7)``, ``metal (P, 1)``, ``unary = (target, precision)`` ``(P, 7)`` each;
+    ``gn``: :func:`gauss_newton`'s result at ``theta`` on ``data.train_idx`` when the caller has
+    it. Returns the new ``theta (P, 7)`` (same dtype and device).
+    """
+    tgt, prec = unary
+    idx = data.train_idx
+    x = theta
+    for k in range(rounds):
+        r0, jtj, jtr = gn if (k == 0 and gn is not None) else gauss_newton(data, x, metal, idx, model)
+        step = newton_step(jtj + torch.diag_embed(prec), jtr + prec * (x - tgt))
+        cand = x + step
+        e0 = pixel_cost(r0) + unary_cost(x, unary)
+        e1 = pixel_cost(data.residual(cand, metal, idx, model)) + unary_cost(cand, unary)
+        x = torch.where(e1 < e0, cand, x)
+    return x
