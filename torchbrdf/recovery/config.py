@@ -244,8 +244,8 @@ class Settings:
     propagate_every: bool = True  # and one pass before every LM iteration of the single-class stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     # Non-local fill of roughness / specular (nonlocal_fill): each pixel's Gaussian prior is the
-    # same material's measured value, its width the material's measured spread; off by default
-    fill: bool = False
+    # same material's measured value, its width the material's measured spread (docs/recovery.md)
+    fill: bool = True
     fill_range: float = 0.04  # base-colour similarity scale
     fill_texture: float = 0.05  # normal-spread similarity scale (slope units)
     fill_candidates: int = 256  # random same-class candidates per pixel

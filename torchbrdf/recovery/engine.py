@@ -60,9 +60,12 @@ Method (each choice measured, see ``docs/recovery.md``):
   neighbours a pixel has (5 on an edge, 3 in a corner), not padded copies of itself.
 * **Per-light intensity scales** (calibration error) are estimated jointly with the maps, the
   training lights' geometric mean held at the stated intensities.
-* **Non-local fill** (before the last stage): under-determined roughness / specular get a
-  unary prior toward the reliability-weighted value of same-material pixels found anywhere
-  in the image (base colour and normal-spread similarity).
+* **Non-local fill** (before the last stage): each pixel's roughness / specular get a
+  Gaussian prior, the predictive distribution of the same material's pixels found anywhere in
+  the image (base colour and normal-spread similarity), their values weighed by their own
+  information; each pixel is moved to the mode of its data and that prior, which then stays in
+  the last stage's fit: silent pixels take the material's measured value, measured ones keep
+  their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
