@@ -472,8 +472,9 @@ class Recovery:
         self._sync_light_scale()
         th, mt, model = st["theta"][0], st["metal"], self.cfg.model
         gn = gauss_newton(d, th, mt, d.train_idx, model)
-        st["fill"] = nonlocal_fill(d, th, mt, self.cfg, info=marginal_information(d, th, mt, model, gn[1]))
-        st["theta"][0] = fuse_fill(d, th, mt, sum_unary(st["fill"], st.get("tie")), model, gn=gn)
+        fill = nonlocal_fill(d, th, mt, self.cfg, info=marginal_information(d, th, mt, model, gn[1]))
+        st["fill"] = fill
+        st["theta"][0] = fuse_fill(d, th, mt, sum_unary(fill, st.get("tie")) or fill, model, gn=gn)
 
     def _choose_classes(self, size: int) -> None:
         """End of a two-hypothesis stage: each pixel's class (``state["metal"]``) from the two fits."""
