@@ -40,29 +40,6 @@ def test_light_scale_step_recovers_per_light_calibration_error():
     assert float(calibration.light_scale_step(r, idx, torch.zeros(n_l), idx).abs().max()) < 1e-4
 
 
-def test_nonlocal_fill_takes_the_measured_value_of_the_same_material(monkeypatch):
-    """Issue 13: glossy pixels no highlight constrains (low information) get a unary prior toward
-    the reliable pixels of the same base colour; another material is not mixed in."""
-    data, theta, metal = flat_level()
-    p = theta.shape[0]
-    theta = theta.clone()
-    half = torch.arange(p) < p // 2
-    theta[~half, 0:3] = params.logit(torch.tensor([0.1, 0.1, 0.1]))  # a second, dark material
-    theta[~half, 4] = 2.0
-    info = torch.full((p, 7), 1e3)
-    blind = torch.zeros(p, dtype=torch.bool)
-    blind[10:30] = True  # material 1, no highlight: roughness drifted
-    theta[blind, 4] = -2.5
-    info[blind, 3:5] = 1e-6
-    monkeypatch.setattr(priors, "marginal_information", lambda *a: info)
-    tgt, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
-    good = half & ~blind
-    assert torch.allclose(tgt[blind, 4], theta[good, 4].mean().expand(int(blind.sum())), atol=1e-4)
-    assert bool((prec[blind, 4] > 1e3 * info[blind, 4]).all())  # the prior dominates where data are silent
-    assert bool((prec[good, 4] < 1e-2 * info[good, 4]).all())  # ... and not where they speak
-    assert torch.allclose(tgt[~half, 4], torch.full((int((~half).sum()),), 2.0), atol=1e-4)
-
-
 def test_light_position_step_finds_a_moved_light():
     """Issue 13: a light 1.5 cm from where capture.json says; the position step finds the offset."""
     from torchbrdf.capture.synthetic import render_capture

@@ -274,18 +274,16 @@ class Settings:
     propagate_passes: int = 6  # passes at a stage's start, one pixel further per pass
     propagate_every: bool = True  # and one pass before every LM iteration of the single-class stages
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
-    # Non-local fill of roughness / specular (nonlocal_fill): measured, not kept (docs), off
     # The learned prior's noise variance σ² (its precision is σ² / σ_map²): the fit's median
     # per-residual cost, at most this (a 3 % log error); a fit far from the data early on
     # would otherwise make the prior's pull as strong as its own misfit.
     prior_noise_cap: float = 1e-3
-    fill: bool = False
-    fill_sigma: float = 0.05  # its width in map units (and the reliability tolerance)
-    fill_weight: float = 1.0  # its precision, × σ² / fill_sigma²
+    # Non-local fill of roughness / specular (nonlocal_fill): each pixel's Gaussian prior is the
+    # same material's measured value, its width the material's measured spread (docs/recovery.md)
+    fill: bool = True
     fill_range: float = 0.04  # base-colour similarity scale
     fill_texture: float = 0.05  # normal-spread similarity scale (slope units)
     fill_candidates: int = 256  # random same-class candidates per pixel
-    fill_min_similar: float = 2.0  # fewer similar candidates (summed similarity): no fill
     # Metal / dielectric
     refit_before_choice: bool = True  # a metal's win is evidence only against a converged dielectric
     # Full resolution, after the class choice: a dielectric at the glossy end (roughness below

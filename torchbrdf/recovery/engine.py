@@ -60,9 +60,12 @@ Method (each choice measured, see ``docs/recovery.md``):
   neighbours a pixel has (5 on an edge, 3 in a corner), not padded copies of itself.
 * **Per-light intensity scales** (calibration error) are estimated jointly with the maps, the
   training lights' geometric mean held at the stated intensities.
-* **Non-local fill** (before the last stage): under-determined roughness / specular get a
-  unary prior toward the reliability-weighted value of same-material pixels found anywhere
-  in the image (base colour and normal-spread similarity).
+* **Non-local fill** (before the last stage): each pixel's roughness / specular get a
+  Gaussian prior, the predictive distribution of the same material's pixels found anywhere in
+  the image (base colour and normal-spread similarity), their values weighed by their own
+  information; each pixel is moved to the mode of its data and that prior, which then stays in
+  the last stage's fit: silent pixels take the material's measured value, measured ones keep
+  their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
 * **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
@@ -100,7 +103,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
 from torchbrdf.recovery.map_ops import dilate, neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
 from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost
-from torchbrdf.recovery.priors import nonlocal_fill, nonlocal_prior
+from torchbrdf.recovery.priors import fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate
 from torchbrdf.recovery.soft_metal import soft_metal_stage
 
@@ -501,14 +504,27 @@ class Recovery:
             if kind1 == "all":
                 st["validation"] = self.validation()
                 if self.cfg.fill and kind == "polish":
-                    # Fill what no captured highlight constrains from the same material where one does.
-                    st["fill"] = nonlocal_fill(self.data(size), st["theta"][0], st["metal"], self.cfg)
+                    self._fill(size)
         elif self.cfg.prior_nonlocal > 0 or self.cfg.prior_nonlocal_base > 0:
             self._fuse_nonlocal(size, kind)
         if nxt >= len(self.plan) and self.cfg.soft_metal and st.get("metal") is not None:
             self._soft_metal(size, kind)
         st["stage"] = nxt
         st["it"] = 0
+
+    def _fill(self, size: int) -> None:
+        """End of the polish stage: what no captured highlight constrains, from the same material
+        where one does — the non-local fill (:func:`nonlocal_fill`) as the last stage's unary
+        prior (``state["fill"]``), each pixel first moved to the mode of its data and that prior
+        (:func:`fuse_fill`, with the metals' F0 tie)."""
+        st = self.state
+        d = self.data(size, all_lights=True)  # the last stage's lights
+        self._sync_light_scale()
+        th, mt, model = st["theta"][0], st["metal"], self.cfg.model
+        gn = gauss_newton(d, th, mt, d.train_idx, model)
+        fill = nonlocal_fill(d, th, mt, self.cfg, info=marginal_information(d, th, mt, model, gn[1]))
+        st["fill"] = fill
+        st["theta"][0] = fuse_fill(d, th, mt, sum_unary(fill, st.get("tie")) or fill, model, gn=gn)
 
     def _choose_classes(self, size: int) -> None:
         """End of a two-hypothesis stage: each pixel's class (``state["metal"]``) from the two fits."""

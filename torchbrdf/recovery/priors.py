@@ -10,9 +10,8 @@ from torch import Tensor
 
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
-from torchbrdf.recovery.lm import marginal_information, newton_step
+from torchbrdf.recovery.lm import gauss_newton, marginal_information, newton_step, pixel_cost, unary_cost
 from torchbrdf.recovery.map_ops import blur, kmeans
-from torchbrdf.recovery.params import R_MAX, R_MIN
 
 
 def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
@@ -113,6 +112,11 @@ def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     return w, m, info
 
 
+#: Bounds of a member's variance (logit²) in :func:`material_estimate`: below, a value is
+#: exact for any use here; above, it weighs nothing (and ``1 / v²`` stays finite in float32).
+VAR_MIN, VAR_MAX = 1e-12, 1e12
+
+
 def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     """Local standard deviation ``(P, 1)`` of the normal slope ``(p, q)`` in a ``(2r+1)²`` window
     (reflect-padded: an edge pixel's window lies inside the image): the geometry statistic
@@ -126,35 +130,72 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
+def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3
+                      ) -> tuple[Tensor, Tensor, Tensor]:
+    """A material's mean, spread and the mean's variance from noisy, softly weighted members.
+
+    The random-effects model: each member's true value ``θ_j ~ N(μ, τ²)``, measured as
+    ``y_j = θ_j + e_j`` with ``e_j ~ N(0, v_j)``; ``weights`` ``s_j`` in [0, 1] are soft
+    memberships (each member's log-likelihood counted ``s_j`` times). ``μ`` is the weighted mean
+    with weights ``s_j / (τ² + v_j)``; ``τ²`` the maximum-likelihood spread, by the fixed point
+    ``τ² = Σ s u² ((y − μ)² − v) / Σ s u²`` with ``u = 1 / (τ² + v)`` (``iters`` rounds from
+    the fixed-effects spread), so a member the data hardly see (``v`` large) counts neither in
+    the mean nor in the spread. ``values``, ``variances``: ``(N, K, C)`` (``K`` members, ``C``
+    independent quantities); ``weights`` ``(N, K, 1)`` or ``(N, K, C)``. Variances are clamped
+    to ``[VAR_MIN, VAR_MAX]`` (a non-finite one is ``VAR_MAX``: the member weighs nothing), so
+    the powers stay finite in float32.
+    Returns ``(μ, τ², var(μ) = 1 / Σ s u)``, each ``(N, C)`` in ``values``' dtype (``var(μ)`` is
+    +inf where no member carries weight).
+    """
+    y, s = values, weights
+    v = torch.nan_to_num(variances, nan=VAR_MAX, posinf=VAR_MAX).clamp(VAR_MIN, VAR_MAX)
+    u = v.reciprocal()
+    tau2 = torch.zeros_like(y[:, 0])
+    for it in range(iters + 1):
+        if it:
+            u = (tau2[:, None] + v).reciprocal()
+        su = s * u
+        den = su.sum(1)
+        mu = (su * y).sum(1) / den.clamp(min=1e-30)
+        d2 = (y - mu[:, None]) ** 2
+        if it == 0:  # the start: the fixed-effects spread of the members
+            tau2 = (su * d2).sum(1) / den.clamp(min=1e-30)
+            continue
+        su2 = su * u
+        tau2 = ((su2 * (d2 - v)).sum(1) / su2.sum(1).clamp(min=1e-30)).clamp(min=0.0)
+    u = (tau2[:, None] + v).reciprocal()
+    return mu, tau2, (s * u).sum(1).reciprocal()
+
+
 def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
                   info: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Targets and precisions ``(P, 7)`` of a unary prior that fills under-determined roughness and
-    specular from same-material pixels the captured highlights do constrain.
+    specular from same-material pixels the captured highlights do constrain: each pixel's
+    Gaussian prior is what the pixels like it measured.
 
     Each pixel draws ``cfg.fill_candidates`` pixels of its class from the whole image
     (non-local: a glossy region no highlight reaches borrows from the same material where one
-    does) and averages their roughness / specular logits with weights
-    ``similarity × reliability``: similarity ``exp(−|Δbase|²/σ_b² − Δtex²/σ_t²)`` in base
-    colour and in the local spread of the normal (``_normal_texture``), reliability the
-    candidate's own confidence ``1 / (1 + var / tol²)`` from its marginal information
-    ``1 / diag((JᵀJ)⁻¹)`` (its posterior variance in map units; ``tol`` = ``cfg.fill_sigma``).
-    The prior's precision (logit units) is ``σ² / fill_sigma² · (dvalue/dlogit)²`` × the
-    mean reliability of the similar candidates — a value ``fill_sigma`` wide around the
-    material's measured one, as strong as the data at a pixel of confidence ½, and nothing
-    where no similar pixel was measured. The LM then fuses it with each pixel's data: the
-    well-measured pixels keep their own values, the under-determined ones take the material's.
+    does), weighted by their similarity ``exp(−|Δbase|²/fill_range² − Δtex²/fill_texture²)`` in
+    base colour and in the local spread of the normal (``_normal_texture``). Each candidate's
+    roughness / specular logit is a measurement of variance ``v = σ² / info`` (its marginal
+    information ``info = 1 / diag((JᵀJ)⁻¹)`` and the noise variance ``σ²``, the median pixel's
+    cost per residual); :func:`material_estimate` gives the material's mean ``μ``, its spread
+    ``τ²`` and the mean's variance. The prior is ``N(μ, τ² + var(μ))`` — the predictive
+    distribution of one more pixel of the material — so its precision on the fit's ``|r|²``
+    scale is ``σ² / (τ² + var(μ))``. The LM then fuses it with each pixel's data (precision
+    ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``) keeps its value, one the data leave
+    free takes the material's, and where no similar pixel was measured the prior vanishes.
+    A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
+    ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (None: computed); results in
+    ``theta``'s dtype, on its device.
     """
     size = data.size
     if info is None:
         info = marginal_information(data, theta, metal, cfg.model)
     r = data.residual(theta, metal, data.train_idx, cfg.model)
     sigma2 = float(torch.nan_to_num((r * r).mean(-1), nan=0.0).median())
-    sr, ss = torch.sigmoid(theta[:, 4:5]), torch.sigmoid(theta[:, 3:4])
-    d_r = (R_MAX - R_MIN) * sr * (1 - sr)  # d roughness / d logit
-    d_s = ss * (1 - ss)
-    tol = cfg.fill_sigma
-    rel_r = 1.0 / (1.0 + sigma2 * d_r**2 / (info[:, 4:5].clamp(min=1e-12) * tol**2))
-    rel_s = 1.0 / (1.0 + sigma2 * d_s**2 / (info[:, 3:4].clamp(min=1e-12) * tol**2))
+    var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
+    sr = theta[:, 3:5].contiguous()
     feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
                       _normal_texture(theta, size) / cfg.fill_texture), -1)  # (P, 4)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
@@ -163,27 +204,44 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     ism = metal[:, 0] > 0.5
     for cls in (~ism, ism):
         pool = torch.nonzero(cls).flatten()
-        if pool.numel() < 2:
+        if pool.numel() < 2 or sigma2 <= 0:
             continue
         k = min(cfg.fill_candidates, pool.numel())
-        rows = pool
-        num = torch.zeros(rows.numel(), 2, dtype=theta.dtype, device=theta.device)
-        den = torch.zeros_like(num)
-        sim_sum = torch.zeros(rows.numel(), 1, dtype=theta.dtype, device=theta.device)
-        chunk = max(1, 2**21 // k)
-        for s0 in range(0, rows.numel(), chunk):
-            rr = rows[s0:s0 + chunk]
+        chunk = max(1, 2**20 // k)
+        for s0 in range(0, pool.numel(), chunk):
+            rr = pool[s0:s0 + chunk]
             cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
-            sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1))  # (n, K)
-            w = sim[..., None] * torch.stack((rel_s[cand, 0], rel_r[cand, 0]), -1)  # (n, K, 2)
-            num[s0:s0 + rr.numel()] = (w * theta[cand][..., 3:5]).sum(1)
-            den[s0:s0 + rr.numel()] = w.sum(1)
-            sim_sum[s0:s0 + rr.numel()] = sim.sum(1, keepdim=True)
-        ok = den > 1e-9
-        tgt[rows, 3:5] = torch.where(ok, num / den.clamp(min=1e-12), theta[rows, 3:5])
-        support = (den / sim_sum.clamp(min=1e-12)) * (sim_sum >= cfg.fill_min_similar)  # mean reliability
-        base_prec = sigma2 / tol**2 * torch.cat((d_s[rows], d_r[rows]), -1) ** 2
-        prec[rows, 3:5] = cfg.fill_weight * base_prec * support * ok
+            sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
+            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None])
+            ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
+            tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
+            prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
     if bool(ism.any()):
         prec[ism, 3] = 0.0  # a metal's specular is invisible and already tied to its neighbours
-    return torch.nan_to_num(tgt), torch.nan_to_num(prec)
+    return torch.nan_to_num(tgt), torch.nan_to_num(prec, posinf=0.0)
+
+
+def fuse_fill(data: LevelData, theta: Tensor, metal: Tensor, unary: tuple[Tensor, Tensor], model: str,
+              rounds: int = 2, gn: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
+    """Each pixel moved to the mode of its data and a unary prior (the fill), all its unknowns
+    following: ``rounds`` Gauss–Newton steps of ``|r|² + Σ precision (θ − target)²``.
+
+    Where the data are silent the step takes roughness / specular to the prior's target and
+    the other unknowns to their conditional optimum there (along the specular–roughness valley,
+    which the damped LM steps of the last stage descend only slowly); where the data pin a
+    value the step keeps it. A pixel takes a step only where it lowers that energy (a curved
+    valley). ``theta (P, 7)``, ``metal (P, 1)``, ``unary = (target, precision)`` ``(P, 7)`` each;
+    ``gn``: :func:`gauss_newton`'s result at ``theta`` on ``data.train_idx`` when the caller has
+    it. Returns the new ``theta (P, 7)`` (same dtype and device).
+    """
+    tgt, prec = unary
+    idx = data.train_idx
+    x = theta
+    for k in range(rounds):
+        r0, jtj, jtr = gn if (k == 0 and gn is not None) else gauss_newton(data, x, metal, idx, model)
+        step = newton_step(jtj + torch.diag_embed(prec), jtr + prec * (x - tgt))
+        cand = x + step
+        e0 = pixel_cost(r0) + unary_cost(x, unary)
+        e1 = pixel_cost(data.residual(cand, metal, idx, model)) + unary_cost(cand, unary)
+        x = torch.where(e1 < e0, cand, x)
+    return x

@@ -1,0 +1,157 @@
+"""The non-local fill: where the data are silent, the same material's measured value.
+
+Each pixel's unary prior is the predictive distribution of the pixels like it (base colour and
+normal texture), their values weighed by their own information: the target is their
+precision-weighted mean, the width their measured spread, and the fit fuses it with the pixel's
+own data by precisions.
+"""
+
+import torch
+
+from torchbrdf.recovery import params, priors
+from torchbrdf.recovery.config import Settings
+
+from tests.recovery.recovery_fixtures import flat_level
+
+
+def _noise_variance(data, theta, metal):
+    """The fill's σ²: the median pixel's mean squared residual."""
+    r = data.residual(theta, metal, data.train_idx, "principled")
+    return float((r * r).mean(-1).median())
+
+
+def _material(spread, seed=0, size=16):
+    """A flat level whose pixels' roughness logits spread by ``spread`` (std) around 0, measured
+    with variance 1e-4 (logit²), except a silent block (variance 1e6, logit drifted to −3);
+    returns ``(data, theta, metal, info, silent, sigma2)``."""
+    data, theta, metal = flat_level(size=size)
+    p = theta.shape[0]
+    g = torch.Generator().manual_seed(seed)
+    theta = theta.clone()
+    theta[:, 4] = spread * torch.randn(p, generator=g)
+    silent = torch.zeros(p, dtype=torch.bool)
+    silent[:24] = True
+    theta[silent, 4] = -3.0
+    sigma2 = _noise_variance(data, theta, metal)
+    var = torch.full((p, 7), 1e-4)
+    var[silent, 3:5] = 1e6
+    return data, theta, metal, sigma2 / var, silent, sigma2
+
+
+def test_material_estimate_is_the_precision_weighted_mean_and_the_ml_spread():
+    """Members measured without noise give their mean and variance; a member the data do not see
+    moves neither; the weights follow each member's information."""
+    g = torch.Generator().manual_seed(1)
+    y = 0.5 + 0.3 * torch.randn(1, 4000, 1, generator=g)
+    v = torch.full_like(y, 1e-8)
+    s = torch.ones_like(y)
+    mu, tau2, var_mu = priors.material_estimate(y, v, s)
+    assert abs(float(mu) - float(y.mean())) < 1e-6
+    assert abs(float(tau2) - float(y.var(unbiased=False))) < 1e-3
+    assert abs(float(var_mu) - float(tau2) / 4000) < 1e-6
+    y2, v2, s2 = torch.cat((y, torch.full((1, 50, 1), 9.0)), 1), torch.cat((v, torch.full((1, 50, 1), 1e9)), 1), \
+        torch.ones(1, 4050, 1)
+    mu2, tau22, _ = priors.material_estimate(y2, v2, s2)
+    assert abs(float(mu2 - mu)) < 1e-4 and abs(float(tau22 - tau2)) < 1e-3
+    # Two groups of one material (no spread): the precise one decides the mean, 100:1.
+    y3 = torch.tensor([[[0.0], [0.0], [1.0], [1.0]]])
+    v3 = torch.tensor([[[1e-2], [1e-2], [1.0], [1.0]]])
+    mu3, tau23, _ = priors.material_estimate(y3, v3, torch.ones_like(y3))
+    assert float(tau23) == 0.0 and abs(float(mu3) - 1 / 101) < 1e-6
+
+
+def test_fill_width_is_the_material_measured_spread():
+    """A silent pixel's prior is as wide as the spread of the measured pixels of its material (a
+    fixed tolerance would give both materials one width); its centre is their mean."""
+    widths = {}
+    for spread in (0.1, 0.6):
+        data, theta, metal, info, silent, sigma2 = _material(spread)
+        tgt, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
+        good = ~silent
+        variance = sigma2 / prec[silent, 4]  # the prior's variance, logit²
+        assert torch.allclose(variance, torch.full_like(variance, float(theta[good, 4].var())), rtol=0.35)
+        assert float((tgt[silent, 4] - theta[good, 4].mean()).abs().max()) < 3 * spread / 256**0.5 + 0.02
+        widths[spread] = float(variance.median())
+    assert 20 < widths[0.6] / widths[0.1] < 60  # (0.6 / 0.1)² = 36
+
+
+def test_fill_moves_a_pixel_by_its_information():
+    """The fit's fusion ``(info θ + prec m) / (info + prec)``: a pixel measured 100× better than
+    the material's spread keeps its value, one measured as well as the spread moves halfway,
+    and a silent one takes the material's value."""
+    data, theta, metal, info, silent, sigma2 = _material(0.6)
+    tgt, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
+    tau2 = float(theta[~silent, 4].var())
+    info = info.clone()
+    strong, equal = 100, 101
+    theta[strong, 4] = theta[equal, 4] = 1.5
+    info[strong, 4] = sigma2 / (tau2 / 100)
+    info[equal, 4] = sigma2 / tau2
+    fused = (info[:, 4] * theta[:, 4] + prec[:, 4] * tgt[:, 4]) / (info[:, 4] + prec[:, 4])
+    moved = (fused - theta[:, 4]) / (tgt[:, 4] - theta[:, 4])
+    assert float(moved[strong]) < 0.03
+    assert 0.35 < float(moved[equal]) < 0.65
+    assert bool((moved[silent] > 0.999).all())
+
+
+def test_fill_keeps_materials_apart_and_leaves_a_metal_specular_alone():
+    """Another base colour is another material; a metal's specular gets no prior."""
+    data, theta, metal, info, silent, _ = _material(0.1)
+    p = theta.shape[0]
+    other = torch.arange(p) >= p // 2
+    theta[other, 0:3] = params.logit(torch.tensor([0.1, 0.1, 0.1]))
+    theta[other, 4] = 2.0
+    tgt, _ = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
+    assert float((tgt[silent, 4] - theta[~silent & ~other, 4].mean()).abs().max()) < 0.05
+    assert torch.allclose(tgt[other, 4], torch.full((int(other.sum()),), 2.0), atol=1e-4)
+    metal = torch.ones_like(metal)
+    _, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
+    assert bool((prec[:, 3] == 0).all()) and bool((prec[silent, 4] > 0).all())
+
+
+def _island_capture(size=24):
+    """A flat glossy dielectric (roughness 0.25, specular 0.5) cut by a rough green strip; every
+    light stands on the +x side, so the island left of the strip sees no highlight: its
+    roughness and specular are silent, and the strip cuts it off from the neighbours' ties."""
+    from torchbrdf.capture.format import Capture
+    from torchbrdf.capture.synthetic import render_capture
+
+    cols = torch.arange(size)[None, :].expand(size, size)
+    island, strip = cols < int(0.375 * size), (cols >= int(0.375 * size)) & (cols < int(0.54 * size))
+    maps = {"base_color": torch.tensor([0.5, 0.3, 0.2])[:, None, None].repeat(1, size, size),
+            "roughness": torch.full((1, size, size), 0.25), "metallic": torch.zeros(1, size, size),
+            "specular": torch.full((1, size, size), 0.5),
+            "normal": torch.tensor([0.0, 0.0, 1.0])[:, None, None].repeat(1, size, size)}
+    maps["base_color"][:, strip] = torch.tensor([0.1, 0.4, 0.1])[:, None]
+    maps["roughness"][0, strip] = 0.8
+    xy = [(0.5, 0.0), (0.9, 0.4), (0.9, -0.4), (1.3, 0.0), (0.6, 0.6), (0.6, -0.6), (1.4, 0.8), (1.4, -0.8), (2.0, 0.0)]
+    pos = torch.tensor([[x, y, 2.0] for x, y in xy])
+    inten = torch.full((len(xy), 3), 8.0)
+    img = render_capture(maps, (pos, inten), backend="compact")
+    img = img * (1 + 0.01 * torch.randn(img.shape, generator=torch.Generator().manual_seed(0)))
+    cap = Capture(images=img, light_positions=pos, light_intensities=inten,
+                  camera_position=torch.tensor([0.0, 0.0, 3.0]), width=size, height=size,
+                  files=tuple(f"{k}.exr" for k in range(len(xy))))
+    return cap, island, strip
+
+
+def test_silent_island_takes_the_measured_roughness_and_specular():
+    """End to end, default settings: the island no highlight reaches takes the roughness and
+    specular its material shows where highlights land, not the dim, glossy valley's answer
+    (specular ~0.26 without the fill); the measured half and the strip keep their own."""
+    from torchbrdf.recovery.engine import Recovery
+    from torchbrdf.recovery.config import RecoveryConfig
+
+    cap, island, strip = _island_capture()
+    rec = Recovery(cap, RecoveryConfig(threads=1, holdout=-1), log=lambda m: None)
+    with torch.no_grad():
+        rec.init_state()
+        while not rec.finished():
+            rec.step()
+    maps = rec.current_params()
+    rough, spec = maps["roughness"][0], maps["specular"][0]
+    lit = ~island & ~strip
+    assert abs(float(rough[island].mean()) - float(rough[lit].mean())) < 0.02
+    assert abs(float(spec[island].mean()) - float(spec[lit].mean())) < 0.04
+    assert abs(float(spec[island].mean()) - 0.5) < 0.05 and abs(float(rough[island].mean()) - 0.25) < 0.03
+    assert float(rough[strip].mean()) > 0.6  # another material: not pulled toward the glossy one
