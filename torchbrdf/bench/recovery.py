@@ -108,7 +108,7 @@ def schedule_rows(cases: Sequence[Any], schedules: Sequence[str], size: int = 64
     :func:`~torchbrdf.bench.recovery_panel.score_maps` of the last repetition (a seeded
     recovery is deterministic).
     """
-    from torchbrdf.bench.recovery_panel import _case_seed, render_case, score_maps
+    from torchbrdf.bench.recovery_panel import case_seed, render_case, score_maps
     from torchbrdf.recovery import RecoveryConfig, recover
 
     rows = []
@@ -125,7 +125,7 @@ def schedule_rows(cases: Sequence[Any], schedules: Sequence[str], size: int = 64
                     maps = recover(tmp, cfg, progress=False, log=lambda m: None).maps
                     times[name].append(time.perf_counter() - t0)
                     cpu[name].append(time.process_time() - c0)
-                    scores[name] = score_maps(maps, truth, case.model, seed=_case_seed(case))
+                    scores[name] = score_maps(maps, truth, case.model, seed=case_seed(case))
         rows += [{"schedule": n, "case": case.name, "seconds": times[n], "cpu_seconds": cpu[n], **scores[n]}
                  for n in schedules]
     return rows

@@ -209,7 +209,7 @@ def _brdf(model: str) -> Callable[..., Tensor] | None:
     return exact_fresnel_brdf if model == "exact_fresnel" else None
 
 
-def _case_seed(case: PanelCase) -> int:
+def case_seed(case: PanelCase) -> int:
     return 1000 * FAMILIES.index(case.family) + 10 * case.seed + case.lights
 
 
@@ -224,8 +224,8 @@ def render_case(case: PanelCase, folder: str | os.PathLike, size: int = 128,
     pos, inten = synthetic.light_layout(LAYOUTS[case.lights])
     with torch.no_grad():
         img = synthetic.render_capture(maps, (pos, inten), synthetic.DEFAULT_CAMERA, brdf=_brdf(case.model),
-                                       noise=NOISE, seed=_case_seed(case) + 100_000 * noise_seed)
-    stated = calibration_error(pos, inten, _case_seed(case)) if case.calibration_error else (pos, inten)
+                                       noise=NOISE, seed=case_seed(case) + 100_000 * noise_seed)
+    stated = calibration_error(pos, inten, case_seed(case)) if case.calibration_error else (pos, inten)
     write_capture(folder, img, stated, synthetic.DEFAULT_CAMERA)
     return maps, (pos, inten)
 
@@ -289,7 +289,7 @@ def run_case(case: PanelCase, size: int = 128, noise_seed: int = 0,
             maps = recover_fn(Path(tmp))
         seconds = time.perf_counter() - t0
     row = {"case": case.name, **dataclasses.asdict(case), "split": case.split}
-    row.update(score_maps(maps, truth, case.model, seed=_case_seed(case)))
+    row.update(score_maps(maps, truth, case.model, seed=case_seed(case)))
     row["seconds"] = seconds
     return row
 

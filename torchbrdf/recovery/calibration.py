@@ -145,29 +145,14 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     stride = max(1, math.ceil(theta.shape[0] / max_pixels))
     rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
     t0, m = theta[rows], metal[rows]
-    pts, cam = data.points[rows], data.camera
+    pts = data.points[rows]
     log_obs = data.log_obs[idx][:, rows].permute(1, 0, 2)  # (n, L, 3)
     inten0 = data.inten_stated[idx]
     pos0 = data.pos_stated[idx] + offset[idx]
     s0 = log_scale[idx]
 
-    def res(t, pos, s):  # (n, L * 3)
-        inten = inten0 * torch.exp(s)[:, None]
-        r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
-        return r.reshape(t.shape[0], -1)
-
+    r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model)
     n = t0.shape[0]
-    eye7 = torch.eye(N_PARAMS, dtype=theta.dtype, device=theta.device)
-    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(4, n, N_PARAMS)))
-    tp = pos0.new_zeros(N_PARAMS + 4, *pos0.shape)
-    ts = s0.new_zeros(N_PARAMS + 4, n_l)
-    for k in range(3):
-        tp[N_PARAMS + k, :, k] = 1.0
-    ts[N_PARAMS + 3] = 1.0
-    out_dims: Any = (None, 0)
-    pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
-                                out_dims=out_dims)(tt, tp, ts)
-    r, cols = pair  # (n, M), (11, n, M): M = L * 3, light-major
     ok = torch.isfinite(r).all(1) & torch.isfinite(cols).all(2).all(0)  # (n,)
     if not bool(ok.any()):
         return log_scale, offset
@@ -228,6 +213,32 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     new_s[idx] = log_scale[idx] + step[:, -1]
     new_s[ref_idx] = new_s[ref_idx] - new_s[ref_idx].mean()
     return new_s.clamp(-0.3, 0.3), new_off
+
+
+def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,
+                               inten0: Tensor, pos0: Tensor, s0: Tensor, model: str) -> tuple[Tensor, Tensor]:
+    """Residuals ``(n, M)`` and their derivatives ``(11, n, M)`` (``M = 3 L``, light-major) along
+    each pixel's 7 unknowns and every light's offset xyz and log scale at once (a light's
+    residuals depend only on its own 4 numbers, so 4 shared directions cover all lights)."""
+    cam = data.camera
+
+    def res(t, pos, s):  # (n, L * 3)
+        inten = inten0 * torch.exp(s)[:, None]
+        r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
+        return r.reshape(t.shape[0], -1)
+
+    n, n_l = t0.shape[0], s0.shape[0]
+    eye7 = torch.eye(N_PARAMS, dtype=t0.dtype, device=t0.device)
+    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(4, n, N_PARAMS)))
+    tp = pos0.new_zeros(N_PARAMS + 4, *pos0.shape)
+    ts = s0.new_zeros(N_PARAMS + 4, n_l)
+    for k in range(3):
+        tp[N_PARAMS + k, :, k] = 1.0
+    ts[N_PARAMS + 3] = 1.0
+    out_dims: Any = (None, 0)
+    pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
+                                out_dims=out_dims)(tt, tp, ts)
+    return pair  # (n, M), (11, n, M)
 
 
 def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool, held: Tensor | None = None
