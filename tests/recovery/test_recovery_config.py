@@ -54,6 +54,8 @@ def test_a_constant_of_the_method_is_not_an_option():
         RecoveryConfig(signal_at=3)
     with pytest.raises(TypeError, match="no_such"):
         RecoveryConfig(no_such=1)
+    with pytest.raises(TypeError, match="metal_margin.*false_metal_rate"):  # a removed option says what replaced it
+        RecoveryConfig(metal_margin=0.5)
     with pytest.raises(TypeError, match="schedule must be a ScheduleConfig"):
         RecoveryConfig(schedule={"iters": 3})  # type: ignore[arg-type]
     assert RecoveryConfig().settings(fuse_rounds=1).fuse_rounds == 1

@@ -123,6 +123,10 @@ class ClassConfig:
 
 _T = TypeVar("_T")
 
+# Options that no longer exist, and what took their place.
+_REMOVED = {"metal_margin": " (removed: the class choice is a likelihood-ratio test at the measured noise; "
+                            "classes.false_metal_rate sets its false-positive rate)"}
+
 # Former flat RecoveryConfig fields that map onto a group's field: old name -> (group, field).
 _FLAT = {
     "levels": ("schedule", "levels"), "iters": ("schedule", "iters"), "lr": ("schedule", "lr"),
@@ -222,7 +226,7 @@ class RecoveryConfig:
         for name, value in flat.items():
             if name not in _FLAT:
                 hint = (" (a constant of the method: RecoveryConfig().settings(...) replaces it)"
-                        if name in _SETTING_NAMES else "")
+                        if name in _SETTING_NAMES else _REMOVED.get(name, ""))
                 raise TypeError(f"RecoveryConfig: unexpected keyword {name!r}{hint}")
             setattr(self, name, value)
 
