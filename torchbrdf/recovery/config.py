@@ -288,7 +288,6 @@ class Settings:
     fill_range: float = 0.04  # base-colour similarity scale
     fill_texture: float = 0.05  # normal-spread similarity scale (slope units)
     fill_candidates: int = 256  # random same-class candidates per pixel
-    fill_members: int = 32  # of which the most similar form the material's estimate (a 5× cheaper fill)
     # Metal / dielectric
     refit_before_choice: bool = True  # a metal's win is evidence only against a converged dielectric
     # Full resolution, after the class choice: a dielectric at the glossy end (roughness below

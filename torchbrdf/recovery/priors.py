@@ -173,8 +173,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     specular from same-material pixels the captured highlights do constrain: each pixel's
     Gaussian prior is what the pixels like it measured.
 
-    Each pixel draws ``cfg.fill_candidates`` pixels of its class from the whole image, and the
-    ``cfg.fill_members`` most similar of them form the estimate
+    Each pixel draws ``cfg.fill_candidates`` pixels of its class from the whole image
     (non-local: a glossy region no highlight reaches borrows from the same material where one
     does), weighted by their similarity ``exp(−|Δbase|²/fill_range² − Δtex²/fill_texture²)`` in
     base colour and in the local spread of the normal (``_normal_texture``). Each candidate's
@@ -213,9 +212,6 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
             rr = pool[s0:s0 + chunk]
             cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
             sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
-            if k > cfg.fill_members:  # the estimate from the most similar: the rest weigh little
-                sim, best = sim.topk(cfg.fill_members, dim=1)
-                cand = cand.gather(1, best)
             mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None])
             ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
             tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
