@@ -56,7 +56,8 @@ def without_prior(painted):
 
 #: Without the spatial ties and the roughness basin tie, a pixel no highlight reaches is silent
 #: (with them its neighbours fill it in).
-UNTIED = CFG.settings(prior_roughness=0.0, prior_specular=0.0, rough_tie=0.0, soft_metal=False)
+# The spatial priors and the fill off: they would hand silent pixels the measured neighbours' values first.
+UNTIED = CFG.settings(prior_roughness=0.0, prior_specular=0.0, rough_tie=0.0, soft_metal=False, fill=False)
 
 
 @pytest.fixture(scope="module")
