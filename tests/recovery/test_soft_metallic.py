@@ -322,7 +322,8 @@ def test_blend_line_holds_a_ramps_metallic_and_base_colour(tmp_path):
     Base colour, roughness and metallic are blended with one coverage (0.15 … 0.88). The
     stage's last refit ties each fractional pixel's base colour to the blend of its clear ends
     at its own metallic (``RecoveryConfig.soft_metal_line``); without that tie the data trade
-    metallic for base colour along the ramp (mean metallic error 0.049, measured; 0.023 with it).
+    metallic for base colour along the ramp (mean metallic error 0.028–0.029 without it,
+    0.023–0.024 with it, with the fill on and off; base-colour error 0.0137–0.0141 either way).
     """
     maps, t = _ramp_capture(tmp_path, {9: 0.15, 10: 0.3, 11: 0.5, 12: 0.7, 13: 0.88},
                             (torch.tensor([0.5, 0.3, 0.2]), 0.8), (torch.tensor([0.95, 0.93, 0.88]), 0.25))
@@ -330,8 +331,8 @@ def test_blend_line_holds_a_ramps_metallic_and_base_colour(tmp_path):
     res = recover(tmp_path, RecoveryConfig(iters=16, threads=2), None, progress=False)
     ramp = (t > 0) & (t < 1)
     m, b = res.maps["metallic"][0], res.maps["base_color"]
-    assert float((m - t)[ramp].abs().mean()) < 0.035, (m - t)[ramp].abs().mean()
-    assert float((b - base)[:, ramp].abs().mean()) < 0.014, (b - base)[:, ramp].abs().mean()
+    assert float((m - t)[ramp].abs().mean()) < 0.026, (m - t)[ramp].abs().mean()
+    assert float((b - base)[:, ramp].abs().mean()) < 0.016, (b - base)[:, ramp].abs().mean()
     assert bool((m[:, :7] == 0).all() and (m[:, 16:] == 1).all())  # the clear pixels stay clear
 
 
