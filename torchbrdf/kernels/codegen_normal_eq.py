@@ -164,29 +164,28 @@ def _layout(spec: NormalEqSpec) -> Layout:
     def slot(s: tuple) -> str:  # a value's index in the pixel's row (a residual's: per light j)
         return f"{W} + 3 * j + {s[1]}" if s[0] == "res" else str(s[1])
 
-    def load_c(a: dict) -> str:
+    def address(a: dict) -> tuple[str, str, str]:  # (C array, Triton pointer, element offset)
         role = a["role"]
         if role == "px":
             C = spec.tensors[a["k"]][1]
-            return f"p{a['k']}[i * {C} + {a['c']}]"
+            return f"p{a['k']}", f"x{a['k']}", f"i * {C} + {a['c']}"
         if role == "tan":
             C = spec.tensors[a["k"]][1]
-            return f"t{a['m']}[({a['j']} * n + i) * {C} + {a['c']}]"
+            return f"t{a['m']}", f"t{a['m']}", f"({a['j']} * n + i) * {C} + {a['c']}"
         if role == "obs":
-            return f"lo[(i * L + j) * 3 + {a['c']}]"
-        return f"U[{a['c']}]" if role == "cam" else f"u[{a['c']}]"
+            return "lo", "lo", f"(i * L + j) * 3 + {a['c']}"
+        name = "U" if role == "cam" else "u"
+        return name, name, str(a["c"])
 
-    def load_t(a: dict) -> str:
-        role = a["role"]
-        if role == "px":
-            C = spec.tensors[a["k"]][1]
-            return f"tl.load(x{a['k']} + (i * {C} + {a['c']}), mask=m, other=0.0)"
-        if role == "tan":
-            C = spec.tensors[a["k"]][1]
-            return f"tl.load(t{a['m']} + (({a['j']} * n + i) * {C} + {a['c']}), mask=m, other=0.0)"
-        if role == "obs":
-            return f"tl.load(lo + ((i * L + j) * 3 + {a['c']}), mask=m, other=0.0)"
-        return f"tl.load(U + {a['c']})" if role == "cam" else f"tl.load(u + {a['c']})"
+    def load_c(a: dict) -> str:
+        array, _, offset = address(a)
+        return f"{array}[{offset}]"
+
+    def load_t(a: dict) -> str:  # per-pixel values are masked past the last pixel; uniforms are not
+        _, pointer, offset = address(a)
+        if a["role"] in ("px", "tan", "obs"):
+            return f"tl.load({pointer} + ({offset}), mask=m, other=0.0)"
+        return f"tl.load({pointer} + {offset})"
 
     return Layout(
         [LightLoop("point", "0", "L")], load_c, lambda s: f"out[i * {row} + {slot(s)}]", load_t,
