@@ -219,8 +219,8 @@ class Recovery:
         else:
             pairs = [(t, torch.full_like(t[:, :1], float(h))) for h, t in enumerate(st["theta"])]
         costs = [pixel_cost(d.residual(t, m, d.train_idx, self.cfg.model)) for t, m in pairs]
-        per = torch.stack(costs).amin(0) / max(1, 3 * len(d.train_idx))
-        st["prior_noise"] = min(max(float(per.median()), 1e-6), self.cfg.prior_noise_cap)
+        sigma2 = residual_variance(torch.stack(costs).amin(0), 3 * len(d.train_idx))
+        st["prior_noise"] = min(max(sigma2, 1e-6), self.cfg.prior_noise_cap)
 
     def _prior_unary(self, size: int, theta: Tensor, metal: Tensor) -> tuple[Tensor, Tensor] | None:
         """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` at the

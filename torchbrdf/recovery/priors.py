@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchbrdf.recovery.classes import residual_variance
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import gauss_newton, marginal_information, newton_step, pixel_cost, unary_cost
@@ -193,7 +194,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     if info is None:
         info = marginal_information(data, theta, metal, cfg.model)
     r = data.residual(theta, metal, data.train_idx, cfg.model)
-    sigma2 = float(torch.nan_to_num((r * r).mean(-1), nan=0.0).median())
+    sigma2 = residual_variance(pixel_cost(r), r.shape[-1])
     var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
     sr = theta[:, 3:5].contiguous()
     feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
