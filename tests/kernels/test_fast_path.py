@@ -597,6 +597,21 @@ def test_func_jvp_jacfwd_vmap_run_fused_and_match_eager(monkeypatch):
     assert _rel(vm_f, vm_e) <= 1e-6
 
 
+def test_vmapped_dims_count_toward_the_fused_threshold(monkeypatch):
+    """Under automatic dispatch, ``vmap`` over 4 samples of BIG / 4 lanes is BIG lanes for the
+    operator (its vmap rule folds them): fused, as the same batch without vmap is."""
+    inputs = _case(27, BIG, torch.float32, min_cos=0.05)
+    quarter = {k: t.reshape(4, BIG // 4, t.shape[-1]) for k, t in inputs.items()}
+    calls = _count_calls(monkeypatch, "run_fwd")
+    P.set_fast_path(None)
+    out = torch.func.vmap(lambda kw: torchbrdf.principled(**kw))(quarter)
+    assert len(calls) == 1
+    torch.testing.assert_close(out.reshape(BIG, 3), _eval(False, inputs)[0], rtol=1e-6, atol=0)
+    calls.clear()
+    torch.func.vmap(lambda kw: torchbrdf.principled(**kw))({k: t[:, :8] for k, t in quarter.items()})
+    assert not calls  # 4 x 8 lanes: eager, as without vmap
+
+
 def test_forward_ad_dual_tensors_use_the_fused_jvp(fast):
     import torch.autograd.forward_ad as fwAD
 

@@ -182,7 +182,9 @@ def _fast_backend(c: dict) -> str | None:
     def lanes() -> int | None:
         shapes = [t.shape[:-1] if t.dim() > 0 else () for t in tensors]
         try:
-            return math.prod(_checks.broadcast_shapes(*shapes))
+            # under torch.func.vmap a tensor shows one sample's shape; the operator's vmap
+            # rule folds the vmapped dims into the lanes, so they count toward the threshold
+            return math.prod(_checks.broadcast_shapes(*shapes)) * vmap_batch_size()
         except RuntimeError:
             return None
 
@@ -263,6 +265,19 @@ def _in_forward_mode() -> bool:
         return True
     with interpreter.lower():  # the transforms below this one
         return _in_forward_mode()
+
+
+def vmap_batch_size() -> int:
+    """The product of the batch sizes of the active ``torch.func.vmap`` levels (1 outside vmap)."""
+    from torch._C._functorch import TransformType, peek_interpreter_stack
+    from torch._functorch.pyfunctorch import coerce_cinterpreter
+
+    if not torch._C._are_functorch_transforms_active():
+        return 1
+    interpreter = coerce_cinterpreter(peek_interpreter_stack())
+    size = interpreter.batch_size() if interpreter.key() == TransformType.Vmap else 1
+    with interpreter.lower():  # the transforms below this one
+        return size * vmap_batch_size()
 
 
 def _backend_setting() -> str:
