@@ -111,17 +111,30 @@ def cast_back(x: Tensor, dtype: torch.dtype) -> Tensor:
 
 
 class _SaturatingCast(torch.autograd.Function):
-    """Cast to a wider dtype whose backward saturates the gradient at the narrow dtype's range."""
+    """Cast to a wider dtype whose backward saturates the gradient at the narrow dtype's range.
+
+    In the ``setup_context`` form, with a vmap rule and a ``jvp``, so that ``torch.func``
+    transforms (``grad``, ``vmap``, ``jvp``) accept it."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, x: Tensor, dtype: torch.dtype) -> Tensor:
-        ctx.in_dtype = x.dtype
+    def forward(x: Tensor, dtype: torch.dtype) -> Tensor:
         return x.to(dtype)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.in_dtype = inputs[0].dtype
+        ctx.out_dtype = inputs[1]
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         big = torch.finfo(ctx.in_dtype).max
         return torch.clamp(grad, -big, big).to(ctx.in_dtype), None
+
+    @staticmethod
+    def jvp(ctx, x_t: Tensor, _dtype_t) -> Tensor:
+        return x_t.to(ctx.out_dtype)
 
 
 @overload

@@ -335,3 +335,26 @@ def test_error_messages_excerpt_long_values():
     with pytest.raises(TypeError) as e:
         torchbrdf.svbrdf_ggx(n, n, n, diffuse_albedo=[[1.0] * 3] * 4096, specular_albedo=0.04, roughness=0.5)
     assert len(str(e.value)) < 200, str(e.value)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16], ids=str)
+def test_half_inputs_under_torch_func_transforms(dtype):
+    """The saturating cast of half inputs works under torch.func.grad, jvp and vmap, and gives
+    what autograd gives."""
+    g = torch.Generator().manual_seed(5)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=dtype).expand(64, 3)
+    l = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([0.0, 0.0, 0.5]), dim=-1).to(dtype)
+    r = torch.rand(64, 1, generator=g).to(dtype)
+
+    def f(rough):
+        return principled(l, n, n, base_color=0.5, roughness=rough)
+
+    leaf = r.clone().requires_grad_()
+    f(leaf).float().sum().backward()
+    grad = torch.func.grad(lambda rough: f(rough).float().sum())(r)
+    assert grad.dtype == dtype
+    torch.testing.assert_close(grad, leaf.grad, rtol=0, atol=0)
+    out, tangent = torch.func.jvp(f, (r,), (torch.ones_like(r),))
+    assert tangent.dtype == dtype and bool(torch.isfinite(tangent).all())
+    per_sample = torch.func.vmap(torch.func.grad(lambda rough: f(rough).float().sum()))(r[None].expand(2, -1, -1))
+    torch.testing.assert_close(per_sample[1], leaf.grad, rtol=0, atol=0)

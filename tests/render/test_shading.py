@@ -451,6 +451,25 @@ def test_half_precision_gbuffer(dtype):
     torch.testing.assert_close(img.float(), shade(g32, lights, env_samples=4), rtol=3e-2, atol=3e-2)
 
 
+def test_torch_func_grad_and_vjp_through_shade_equal_autograd():
+    """torch.func's reverse transforms refuse saved-tensor hooks, so the per-light passes run
+    without checkpointing there; the gradient is autograd's."""
+    rough = torch.full((1, 1, 6, 6), 0.4, dtype=torch.float64)
+
+    def image(r):
+        g = sphere_gbuffer(6, 6, material={"base_color": torch.full((1, 3, 6, 6), 0.5, dtype=torch.float64),
+                                           "roughness": r}, dtype=torch.float64)
+        return shade(g, LIGHTS)
+
+    leaf = rough.clone().requires_grad_()
+    image(leaf).square().sum().backward()
+    grad = torch.func.grad(lambda r: image(r).square().sum())(rough)
+    torch.testing.assert_close(grad, leaf.grad, rtol=1e-12, atol=0)
+    assert float(grad.abs().sum()) > 0
+    _, pullback = torch.func.vjp(image, rough)
+    torch.testing.assert_close(pullback(2 * image(rough))[0], leaf.grad, rtol=1e-12, atol=0)
+
+
 def test_shader_module():
     brdf = LambertBRDF()
     s = Shader(brdf, env_strategy="split_sum")

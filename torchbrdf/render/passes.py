@@ -66,9 +66,10 @@ def checkpointed_pass(elements: int, fn: Callable[..., Tensor], *args: Any, **kw
     """Run one accumulation pass of ``elements`` BRDF evaluations.
 
     Under autograd the pass is checkpointed (non-reentrant): nothing inside it is stored, and
-    it is recomputed during backward.
+    it is recomputed during backward. Under ``torch.func`` transforms it is not: they refuse
+    saved-tensor hooks (hence checkpointing), so there a pass keeps its intermediates.
     """
-    if not torch.is_grad_enabled():
+    if not torch.is_grad_enabled() or torch._C._are_functorch_transforms_active():
         return fn(*args, **kwargs)
     out = checkpoint(fn, *args, use_reentrant=False, **kwargs)
     if (
