@@ -113,8 +113,8 @@ def cast_back(x: Tensor, dtype: torch.dtype) -> Tensor:
 class _SaturatingCast(torch.autograd.Function):
     """Cast to a wider dtype whose backward saturates the gradient at the narrow dtype's range.
 
-    In the ``setup_context`` form, with a vmap rule and a ``jvp``, so that ``torch.func``
-    transforms (``grad``, ``vmap``, ``jvp``) accept it."""
+    In the ``setup_context`` form with a vmap rule, so that ``torch.func.grad``/``vjp``/``vmap``
+    accept it; forward mode takes a plain cast instead (:func:`cast_in`)."""
 
     generate_vmap_rule = True
 
@@ -125,16 +125,11 @@ class _SaturatingCast(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
         ctx.in_dtype = inputs[0].dtype
-        ctx.out_dtype = inputs[1]
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         big = torch.finfo(ctx.in_dtype).max
         return torch.clamp(grad, -big, big).to(ctx.in_dtype), None
-
-    @staticmethod
-    def jvp(ctx, x_t: Tensor, _dtype_t) -> Tensor:
-        return x_t.to(ctx.out_dtype)
 
 
 @overload
@@ -147,7 +142,10 @@ def cast_in(x: Any, dtype: torch.dtype) -> Any:
     n·l = n·v = 1e-7 the true gradient is ~1e13)."""
     if not isinstance(x, Tensor) or x.dtype == dtype:
         return x
-    if x.dtype in (torch.float16, torch.bfloat16) and x.requires_grad:
+    # Inside a forward-mode dual level a plain cast: an autograd.Function needs a custom jvp
+    # there, which torch.compile refuses to trace.
+    if (x.dtype in (torch.float16, torch.bfloat16) and x.requires_grad
+            and getattr(torch.autograd.forward_ad, "_current_level", -1) < 0):
         return _SaturatingCast.apply(x, dtype)
     return x.to(dtype)
 

@@ -358,3 +358,8 @@ def test_half_inputs_under_torch_func_transforms(dtype):
     assert tangent.dtype == dtype and bool(torch.isfinite(tangent).all())
     per_sample = torch.func.vmap(torch.func.grad(lambda rough: f(rough).float().sum()))(r[None].expand(2, -1, -1))
     torch.testing.assert_close(per_sample[1], leaf.grad, rtol=0, atol=0)
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():  # a dual input that also requires grad
+        dual = f(fwAD.make_dual(r.clone().requires_grad_(), torch.ones_like(r)))
+        torch.testing.assert_close(fwAD.unpack_dual(dual).tangent, tangent, rtol=0, atol=0)

@@ -37,3 +37,27 @@ def test_compiled_principled_does_not_recompile_per_float_value(dynamic):
     # dynamic=True: symbolic from the first call; by default torch.compile specialises a float
     # once, then makes it symbolic when it changes (one recompile), and never again.
     assert counter.frame_count == (1 if dynamic else 2)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16], ids=str)
+def test_compiled_principled_with_half_inputs_that_require_grad(dtype):
+    """Half inputs needing a gradient pass through the saturating cast: one graph, no breaks,
+    values and gradients those of the uncompiled call."""
+    torch._dynamo.reset()
+    vec, base, _ = random_case(52, count=64, min_cos=0.05)
+    t = {k: x.to(dtype) for k, x in to_t(vec, torch.float32).items()}
+    rough = torch.rand(64, 1, generator=torch.Generator().manual_seed(1)).to(dtype)
+
+    def user(r):
+        return torchbrdf.principled(t["l"], t["v"], t["n"], base_color=0.5, roughness=r)
+
+    explained = torch._dynamo.explain(user)(rough.clone().requires_grad_())
+    assert explained.graph_break_count == 0
+    got_r, want_r = rough.clone().requires_grad_(), rough.clone().requires_grad_()
+    got = torch.compile(user, fullgraph=True)(got_r)
+    want = user(want_r)
+    got.float().sum().backward()
+    want.float().sum().backward()
+    assert got.dtype == dtype
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+    torch.testing.assert_close(got_r.grad, want_r.grad, rtol=0, atol=0)

@@ -404,7 +404,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lbfgs", type=int, default=100, help="L-BFGS iterations at the end (0: none)")
     ap.add_argument("--eps", type=float, default=1e-3, help="ε of the log loss")
     ap.add_argument("--max-theta", type=float, default=None, help="ignore data with θl or θv above this (degrees)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the random subset of MERL nodes (--samples)")
     ap.add_argument("--no-figures", action="store_true", help="write params.json only")
     args = ap.parse_args(argv)
 
