@@ -64,7 +64,11 @@ def diffuse_burley(
 def diffuse_subsurface(
     n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color: Color, roughness: Scalar
 ) -> Tensor:
-    """The principled model's subsurface approximation: ``base_color / π · ss``."""
+    """The principled model's subsurface approximation: ``base_color / π · ss``.
+
+    Cosines ``(*, 1)``, ``base_color`` ``(*, 3)`` or a float, ``roughness`` ``(*, 1)`` or a float;
+    returns ``(*, 3)`` (``(*, 1)`` for a float ``base_color``).
+    """
     return base_color * INV_PI * subsurface_factor(n_dot_l, n_dot_v, l_dot_h, roughness)
 
 

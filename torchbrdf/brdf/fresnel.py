@@ -140,7 +140,10 @@ def f0_from_ior(ior: _S) -> _S:
 
 
 def ior_from_f0(f0: Scalar) -> Tensor:
-    """Inverse of :func:`f0_from_ior` for ``0 <= f0 < 1``: ``(1 + sqrt F0) / (1 - sqrt F0)``."""
+    """Inverse of :func:`f0_from_ior` for ``0 <= f0 < 1``: ``(1 + sqrt F0) / (1 - sqrt F0)``.
+
+    Returns a tensor of ``f0``'s shape (0-d for a float).
+    """
     s = torch.sqrt(torch.as_tensor(f0))
     return (1.0 + s) / (1.0 - s)
 

@@ -66,7 +66,10 @@ def smith_lambda_ggx(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
 
 @half_safe
 def smith_lambda_beckmann(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
-    """Exact Smith Λ for Beckmann: ``(erf(a) - 1)/2 + exp(-a²)/(2a√π)``, ``a = cot θ / α``."""
+    """Exact Smith Λ for Beckmann: ``(erf(a) - 1)/2 + exp(-a²)/(2a√π)``, ``a = cot θ / α``.
+
+    ``n_dot_w`` ``(*, 1)``, ``alpha`` a float or ``(*, 1)``; returns ``(*, 1)``.
+    """
     c = torch.clamp(n_dot_w, min=1e-7)
     sin_t = safe_sqrt(1.0 - c * c)
     a = torch.clamp(c / (alpha * sin_t), max=1e6)  # beyond 1e6 Λ is 0 to all precision
@@ -75,14 +78,20 @@ def smith_lambda_beckmann(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
 
 @half_safe
 def smith_g1_beckmann(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
-    """Exact Smith G1 for Beckmann, ``1 / (1 + Λ)``; 0 for ``n_dot_w <= 0``."""
+    """Exact Smith G1 for Beckmann, ``1 / (1 + Λ)``; 0 for ``n_dot_w <= 0``.
+
+    ``n_dot_w`` ``(*, 1)``, ``alpha`` a float or ``(*, 1)``; returns ``(*, 1)``.
+    """
     g = 1.0 / (1.0 + smith_lambda_beckmann(n_dot_w, alpha))
     return torch.where(n_dot_w > 0, g, torch.zeros_like(g))
 
 
 @half_safe
 def smith_g1_beckmann_walter(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
-    """Walter et al.'s rational approximation of the Beckmann Smith G1 (error < 0.35 %)."""
+    """Walter et al.'s rational approximation of the Beckmann Smith G1 (error < 0.35 %).
+
+    ``n_dot_w`` ``(*, 1)``, ``alpha`` a float or ``(*, 1)``; returns ``(*, 1)``.
+    """
     c = torch.clamp(n_dot_w, min=1e-7)
     a = c / (alpha * safe_sqrt(1.0 - c * c))
     g = (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
@@ -133,5 +142,8 @@ def g_kelemen(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor) -> Tensor:
 
 @half_safe
 def g_implicit(n_dot_l: Tensor, n_dot_v: Tensor) -> Tensor:
-    """Implicit geometry term, Hoffman eq. 29: ``G = NL NV`` (visibility term 1)."""
+    """Implicit geometry term, Hoffman eq. 29: ``G = NL NV`` (visibility term 1).
+
+    ``(*, 1)`` cosines in, ``(*, 1)`` out.
+    """
     return torch.clamp(n_dot_l, min=0.0) * torch.clamp(n_dot_v, min=0.0)
