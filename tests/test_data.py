@@ -117,6 +117,8 @@ def test_bad_arguments_are_named():
         MaterialDataset(length=3, size=8)[3]
     with pytest.raises(ValueError, match="code"):
         transform_maps({}, 8)
+    with pytest.raises(ValueError, match=r"MaterialStream: size must be >= 4, got 0"):
+        MaterialStream(size=0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

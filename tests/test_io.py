@@ -233,7 +233,7 @@ def test_write_png_grey_and_batched(tmp_path):
 
 
 def test_write_png_errors(tmp_path):
-    with pytest.raises(ValueError, match="bad.png.*got 2"):
+    with pytest.raises(ValueError, match=r"bad.png.*\(C, H, W\).*got shape \(2, 4, 4\)"):
         write_png(tmp_path / "bad.png", torch.zeros(2, 4, 4))
     with pytest.raises(ValueError, match="tonemap"):
         write_png(tmp_path / "bad.png", torch.zeros(3, 4, 4), tonemap="nope")

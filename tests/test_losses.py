@@ -247,3 +247,10 @@ def test_bad_input_names_the_layout_and_shape():
         L.RenderingLoss(layout="disney")
     with pytest.raises(ValueError, match="n_diffuse"):
         L.random_configurations(1, 0, 0)
+    channel_last = _maps("principled").permute(0, 2, 3, 1)
+    with pytest.raises(ValueError, match=r"rendering_loss: pred must be \(B, 9, H, W\)"):
+        L.rendering_loss(channel_last, channel_last)
+    with pytest.raises(ValueError, match="map_loss: pred must be"):
+        L.map_loss(channel_last, channel_last)
+    with pytest.raises(ValueError, match="dtype and device.*float32.*float64"):
+        L.rendering_loss(_maps("principled"), _maps("principled").double())

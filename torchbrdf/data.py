@@ -280,6 +280,8 @@ class MaterialStream(IterableDataset):
         if length is not None and length < 1:
             raise ValueError(f"MaterialStream: length must be >= 1 or None, got {length}")
         self.length, self.start = length, int(start)
+        if kwargs.get("size", 64) < 4:
+            raise ValueError(f"MaterialStream: size must be >= 4, got {kwargs['size']}")
         self.dataset = MaterialDataset(length=2**62, **kwargs)
 
     def __iter__(self) -> Iterator[dict[str, Any]]:

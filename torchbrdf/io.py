@@ -508,7 +508,8 @@ def write_png(
     path = Path(path)
     chw = _as_chw(image, path, "PNG")
     if chw.shape[0] not in (1, 3, 4):
-        raise ValueError(f"cannot write PNG '{path}': expected 1, 3 or 4 channels, got {chw.shape[0]}")
+        raise ValueError(f"cannot write PNG '{path}': expected a (C, H, W) image with C = 1, 3 or 4, "
+                         f"got shape {tuple(chw.shape)}")
     display = to_display(chw.to(torch.float32), exposure=exposure, tonemap=tonemap, srgb=srgb)
     pixels = (display * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
     if pixels.shape[-1] == 1:

@@ -159,8 +159,10 @@ def random_configurations(
     )
 
 
-def split_maps(maps: Tensor, layout: str = "principled") -> dict[str, Tensor]:
+def split_maps(maps: Tensor, layout: str = "principled", *, name: str = "maps") -> dict[str, Tensor]:
     """Split ``(B, C, H, W)`` maps into named ``(B, c, H, W)`` views by :data:`LAYOUTS`.
+
+    ``name`` is how an error calls ``maps`` (a caller's argument, e.g. ``"rendering_loss: pred"``).
 
     Raises:
         ValueError: if ``layout`` is unknown or ``maps`` is not ``(B, C, H, W)`` with that
@@ -172,7 +174,7 @@ def split_maps(maps: Tensor, layout: str = "principled") -> dict[str, Tensor]:
     channels = sum(spec.values())
     if not isinstance(maps, Tensor) or maps.dim() != 4 or maps.shape[1] != channels:
         shape = tuple(maps.shape) if isinstance(maps, Tensor) else type(maps).__name__
-        raise ValueError(f"maps must be (B, {channels}, H, W) for the {layout!r} layout "
+        raise ValueError(f"{name} must be (B, {channels}, H, W) for the {layout!r} layout "
                          f"({', '.join(f'{k} {c}' for k, c in spec.items())}), got {shape}")
     return dict(zip(spec, torch.split(maps, list(spec.values()), dim=1)))
 
@@ -252,6 +254,10 @@ def rendering_loss(
         raise ValueError(f"rendering_loss: pred and target must be tensors of one shape, got "
                          f"{getattr(pred, 'shape', type(pred).__name__)} and "
                          f"{getattr(target, 'shape', type(target).__name__)}")
+    if (pred.dtype, pred.device) != (target.dtype, target.device):
+        raise ValueError(f"rendering_loss: pred and target must share dtype and device, got "
+                         f"{pred.dtype} on {pred.device} and {target.dtype} on {target.device}")
+    split_maps(pred, layout, name="rendering_loss: pred")  # named before any rendering
     if configs is None:
         # Drawn on the generator's device (a CPU generator may seed a CUDA loss), then moved.
         where = generator.device if generator is not None else pred.device
@@ -315,7 +321,7 @@ def map_loss(pred: Tensor, target: Tensor, *, layout: str = "principled",
         raise ValueError(f"map_loss: pred and target must be tensors of one shape, got "
                          f"{getattr(pred, 'shape', type(pred).__name__)} and "
                          f"{getattr(target, 'shape', type(target).__name__)}")
-    p, t = split_maps(pred, layout), split_maps(target, layout)
+    p, t = split_maps(pred, layout, name="map_loss: pred"), split_maps(target, layout, name="map_loss: target")
     weights = dict(weights or {})
     unknown = set(weights) - set(p)
     if unknown:
