@@ -269,13 +269,13 @@ def _in_forward_mode() -> bool:
 
 def vmap_batch_size() -> int:
     """The product of the batch sizes of the active ``torch.func.vmap`` levels (1 outside vmap)."""
-    from torch._C._functorch import TransformType, peek_interpreter_stack
-    from torch._functorch.pyfunctorch import coerce_cinterpreter
+    from torch._C._functorch import peek_interpreter_stack
+    from torch._functorch.pyfunctorch import VmapInterpreter, coerce_cinterpreter
 
     if not torch._C._are_functorch_transforms_active():
         return 1
     interpreter = coerce_cinterpreter(peek_interpreter_stack())
-    size = interpreter.batch_size() if interpreter.key() == TransformType.Vmap else 1
+    size = interpreter.batch_size() if isinstance(interpreter, VmapInterpreter) else 1
     with interpreter.lower():  # the transforms below this one
         return size * vmap_batch_size()
 
