@@ -330,8 +330,8 @@ class Settings:
     soft_metal_factor: float = 8.0  # candidates: a cost above this × the median (and boundaries)
     soft_metal_well: float = 32.0  # double-well prior w m²(1−m)²: metallic 0 and 1 are the likely values
     # Keep a fractional value only if it lowers the cost by this × σ²: a likelihood-ratio test for
-    # one extra unknown at a rate P(χ²(1) > 8) = 0.5 %. The class test's rate (false_metal_rate,
-    # 15.1 σ²) measured worse on ramps (base colour on a 5-texel ramp 0.0145 vs 0.014).
+    # one extra unknown at a rate P(χ²(1) > 8) = 0.5 %. The class test's stricter threshold
+    # (false_metal_rate, 15.1 σ²) rejects the small gains along soft ramps.
     soft_metal_gain: float = 8.0
     soft_metal_smooth: float = 64.0  # second pass: pull toward the neighbours' metallic
     soft_metal_band: int = 2  # ... and pixels within this many pixels of a class boundary (a ramp's width)
