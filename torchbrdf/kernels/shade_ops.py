@@ -330,32 +330,74 @@ def _no_grad(floats):
     return [] if len(floats) == 0 else None
 
 
-def _backward(ctx, grad_out):
-    *tensors, uniforms = ctx.saved_tensors
-    need = ctx.need
-    grads = [None] * len(tensors)
+def _gradients(tensors, floats, uniforms, seg, cfg, grad_out, need) -> list[Tensor | None]:
+    """Gradients of ``tensors[i]`` for ``i`` in ``need`` (``None`` elsewhere)."""
+    grads: list[Tensor | None] = [None] * len(tensors)
     if not need:
-        return grads, _no_grad(ctx.floats), None, None, None
+        return grads
     if torch.is_grad_enabled() and any(tensors[i].requires_grad for i in need):
         # create_graph=True: a differentiable backward, eagerly from the same formula.
-        plan = _Plan(ctx.cfg, tensors, ctx.floats)
+        plan = _Plan(cfg, tensors, floats)
         with torch.enable_grad():
-            out = _formula_eager(plan, tensors, ctx.floats, uniforms, ctx.seg)
+            out = _formula_eager(plan, tensors, floats, uniforms, seg)
             gs = torch.autograd.grad(
                 out, [tensors[i] for i in need], grad_out, create_graph=True, allow_unused=True
             )
         for i, g in zip(need, gs):
             grads[i] = g
-        return grads, _no_grad(ctx.floats), None, None, None
-    for i, g in zip(
-        need,
-        shade_lights_bwd(list(tensors), list(ctx.floats), uniforms, list(ctx.seg), ctx.cfg, grad_out, need),
-    ):
+        return grads
+    for i, g in zip(need, shade_lights_bwd(list(tensors), list(floats), uniforms, list(seg), cfg, grad_out, need)):
         grads[i] = g
+    return grads
+
+
+def _backward(ctx, grad_out):
+    *tensors, uniforms = ctx.saved_tensors
+    grads = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out, ctx.need)
     return grads, _no_grad(ctx.floats), None, None, None
 
 
 shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)
+
+
+class _ShadeLightsFunction(torch.autograd.Function):
+    """``shade_lights_fwd`` with its backward in the form ``torch.func.grad``/``vjp`` accept (a
+    custom operator's registered autograd is not visible to them); used under those transforms."""
+
+    @staticmethod
+    def forward(uniforms, seg, cfg, floats, *tensors):
+        return shade_lights_fwd(list(tensors), floats, uniforms, seg, cfg)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        uniforms, seg, cfg, floats, *tensors = inputs
+        ctx.save_for_backward(*tensors, uniforms)
+        ctx.floats, ctx.seg, ctx.cfg = floats, seg, cfg
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        *tensors, uniforms = ctx.saved_tensors
+        need = [i for i, wanted in enumerate(ctx.needs_input_grad[4:]) if wanted]
+        # torch.func.grad records every backward with grad mode on; only when something will
+        # differentiate it again does it need the eager formula's differentiable gradient.
+        with torch.set_grad_enabled(_differentiated_again([*tensors, grad_out])):
+            grads = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out, need)
+        return (None, None, None, None, *grads)
+
+
+def _differentiated_again(tensors: list[Tensor]) -> bool:
+    """Whether a gradient computed now can be differentiated again: a second ``torch.func.grad``
+    level, or plain autograd tracking the tensors beneath the transforms."""
+    from torchbrdf.brdf.principled import active_transforms
+
+    if sum(kind == "Grad" for kind, _ in active_transforms()) > 1:
+        return True
+    for t in tensors:
+        while torch._C._functorch.is_functorch_wrapped_tensor(t):
+            t = torch._C._functorch.get_unwrapped(t)
+        if t.requires_grad:
+            return True
+    return False
 
 
 def shade_lights(
@@ -389,4 +431,7 @@ def shade_lights(
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
     cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir, backend)
-    return shade_lights_fwd(tensors, floats, uniforms, [int(s) for s in seg], cfg)
+    seg = [int(s) for s in seg]
+    if not torch.compiler.is_compiling() and torch._C._are_functorch_transforms_active():
+        return _ShadeLightsFunction.apply(uniforms, seg, cfg, floats, *tensors)
+    return shade_lights_fwd(tensors, floats, uniforms, seg, cfg)

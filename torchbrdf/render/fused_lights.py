@@ -46,12 +46,14 @@ def fused_lights_wanted(
         return False  # the eager call raises the error naming the argument
     from torchbrdf.brdf import principled as _pr
 
+    # The shade ops have a reverse rule for torch.func (grad, vjp) but no vmap or jvp rule.
+    transforms = [] if torch.compiler.is_compiling() else _pr.active_transforms()
+    if any(kind != "Grad" for kind, _ in transforms):
+        return False
     tensors = []
     for k, t in [("position", gbuf.position), ("normal", gbuf.normal), *values.items()]:
         if not isinstance(t, Tensor):
             continue
-        if not torch.compiler.is_compiling() and torch._C._functorch.is_functorch_wrapped_tensor(t):
-            return False  # the shade ops have no vmap/jvp rule: torch.func goes eager
         channels = {"position": (3,), "normal": (3,), "base_color": (1, 3)}.get(k, (1,))
         if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
             return False
