@@ -7,6 +7,7 @@ With validation off nothing reads the data: what a non-finite input gives then i
 in ``docs/numerics.md`` ("Non-finite inputs").
 
 Messages show a short excerpt of a bad value (:func:`excerpt`), never a whole list or array.
+:func:`active_transforms` tells dispatch which ``torch.func`` transforms wrap a call.
 """
 
 from __future__ import annotations
@@ -128,6 +129,20 @@ def check_same_dtype_device(named: dict) -> tuple[torch.dtype, torch.device]:
     if ref is None:
         raise TypeError("expected at least one tensor argument")
     return ref.dtype, ref.device
+
+
+def active_transforms() -> list[tuple[str, int]]:
+    """The active ``torch.func`` transforms, innermost first, as ``(kind, batch size)``: kind
+    ``"Vmap"``, ``"Grad"``, ``"Jvp"`` or ``"Functionalize"``; the size is 1 but for vmap."""
+    from torch._C._functorch import peek_interpreter_stack
+    from torch._functorch.pyfunctorch import VmapInterpreter, coerce_cinterpreter
+
+    if not torch._C._are_functorch_transforms_active():
+        return []
+    interpreter = coerce_cinterpreter(peek_interpreter_stack())
+    size = interpreter.batch_size() if isinstance(interpreter, VmapInterpreter) else 1
+    with interpreter.lower():  # the transforms below this one
+        return [(interpreter.key().name, size)] + active_transforms()
 
 
 def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:

@@ -267,23 +267,9 @@ def _in_forward_mode() -> bool:
         return _in_forward_mode()
 
 
-def active_transforms() -> list[tuple[str, int]]:
-    """The active ``torch.func`` transforms, innermost first, as ``(kind, batch size)``: kind
-    ``"Vmap"``, ``"Grad"``, ``"Jvp"`` or ``"Functionalize"``; the size is 1 but for vmap."""
-    from torch._C._functorch import peek_interpreter_stack
-    from torch._functorch.pyfunctorch import VmapInterpreter, coerce_cinterpreter
-
-    if not torch._C._are_functorch_transforms_active():
-        return []
-    interpreter = coerce_cinterpreter(peek_interpreter_stack())
-    size = interpreter.batch_size() if isinstance(interpreter, VmapInterpreter) else 1
-    with interpreter.lower():  # the transforms below this one
-        return [(interpreter.key().name, size)] + active_transforms()
-
-
 def vmap_batch_size() -> int:
     """The product of the batch sizes of the active ``torch.func.vmap`` levels (1 outside vmap)."""
-    return math.prod(size for _, size in active_transforms())
+    return math.prod(size for _, size in _checks.active_transforms())
 
 
 def _backend_setting() -> str:

@@ -31,6 +31,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchbrdf._checks import active_transforms
 from torchbrdf.kernels.codegen_shade import CAMERA, LIGHT_STRIDE, ShadeSpec, generate_triton
 from torchbrdf.kernels.fused import buffer_pool, load
 from torchbrdf.kernels.layout import SCALAR_NAMES, dparams, flatten, ptrs, to_shape
@@ -388,8 +389,6 @@ class _ShadeLightsFunction(torch.autograd.Function):
 def _differentiated_again(tensors: list[Tensor]) -> bool:
     """Whether a gradient computed now can be differentiated again: a second ``torch.func.grad``
     level, or plain autograd tracking the tensors beneath the transforms."""
-    from torchbrdf.brdf.principled import active_transforms
-
     if sum(kind == "Grad" for kind, _ in active_transforms()) > 1:
         return True
     for t in tensors:

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchbrdf._checks import active_transforms
 from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
 from torchbrdf.render.gbuffer import GBuffer
 from torchbrdf.render.lights import DirectionalLight, PointLight
@@ -47,7 +48,7 @@ def fused_lights_wanted(
     from torchbrdf.brdf import principled as _pr
 
     # The shade ops have a reverse rule for torch.func (grad, vjp) but no vmap or jvp rule.
-    transforms = [] if torch.compiler.is_compiling() else _pr.active_transforms()
+    transforms = [] if torch.compiler.is_compiling() else active_transforms()
     if any(kind != "Grad" for kind, _ in transforms):
         return False
     tensors = []
