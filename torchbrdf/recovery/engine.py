@@ -103,7 +103,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
 from torchbrdf.recovery.map_ops import dilate, neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
 from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost
-from torchbrdf.recovery.priors import fuse_fill, nonlocal_fill, nonlocal_prior
+from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate
 from torchbrdf.recovery.soft_metal import soft_metal_stage
 
@@ -522,7 +522,7 @@ class Recovery:
         self._sync_light_scale()
         th, mt, model = st["theta"][0], st["metal"], self.cfg.model
         gn = gauss_newton(d, th, mt, d.train_idx, model)
-        fill = nonlocal_fill(d, th, mt, self.cfg, info=marginal_information(d, th, mt, model, gn[1]))
+        fill = nonlocal_fill(d, th, mt, self.cfg, info=fit_information(d, th, mt, self.cfg, gn[1]))
         st["fill"] = fill
         st["theta"][0] = fuse_fill(d, th, mt, sum_unary(fill, st.get("tie")) or fill, model, gn=gn)
 
