@@ -237,9 +237,10 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
     specular, tied across the image) also pins those its data trade against it (roughness).
     The data-only information understated the fitted values' precision (on a rough rubber
     their squared errors were 0.07 of ``σ² / info`` at the median, where the χ²(1) median is
-    0.45), which took the measured spread ``τ²`` to a third of the material's; with the ties
-    0.38 and 0.9 of it. ``jtj (P, 7, 7)``: the data normal matrices at ``theta`` when the caller
-    has them (else computed); the result has ``theta``'s dtype and device.
+    0.45), which took the measured spread ``τ²`` to 0.37 of the material's; with the ties the
+    median is 0.38 and ``τ²`` 0.94 of it (docs/recovery.md). ``jtj (P, 7, 7)``: the data
+    normal matrices at ``theta`` when the caller has them (else computed); the result has
+    ``theta``'s dtype and device.
     """
     if jtj is None:
         jtj = gauss_newton(data, theta, metal, data.train_idx, cfg.model)[1]
@@ -261,15 +262,16 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     base colour and in the local spread of the normal (``_normal_texture``). Each candidate's
     roughness / specular logit is a measurement of variance ``v = σ² / info`` (the marginal
     information of its fit's energy, data and smoothness ties, :func:`fit_information`, and the
-    noise variance ``σ²``, the median pixel's cost per residual); :func:`material_estimate` gives the material's mean ``μ``, its spread
-    ``τ²`` and the mean's variance. The prior is ``N(μ, τ² + var(μ))`` — the predictive
-    distribution of one more pixel of the material — so its precision on the fit's ``|r|²``
-    scale is ``σ² / (τ² + var(μ))``. The LM then fuses it with each pixel's data (precision
+    noise variance ``σ²``, the median pixel's cost per residual); :func:`material_estimate`
+    gives the material's mean ``μ``, its spread ``τ²`` and the mean's variance, a member stuck
+    in another basin set aside (an outlier component over :data:`LOGIT_SPAN`). The prior is
+    ``N(μ, τ² + var(μ))`` — the predictive distribution of one more pixel of the material — so
+    its precision on the fit's ``|r|²`` scale is ``σ² / (τ² + var(μ))``. The LM then fuses it with each pixel's data (precision
     ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``) keeps its value, one the data leave
     free takes the material's, and where no similar pixel was measured the prior vanishes.
     A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
-    ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None: computed); results in
-    ``theta``'s dtype, on its device.
+    ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None:
+    computed); results in ``theta``'s dtype, on its device.
     """
     size = data.size
     if info is None:
