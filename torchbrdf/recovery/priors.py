@@ -267,8 +267,9 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     in another basin set aside (an outlier component over :data:`LOGIT_SPAN`). The prior is
     ``N(μ, τ² + var(μ))`` — the predictive distribution of one more pixel of the material — so
     its precision on the fit's ``|r|²`` scale is ``σ² / (τ² + var(μ))``. The LM then fuses it
-    with each pixel's data (precision ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``) keeps its value, one the data leave
-    free takes the material's, and where no similar pixel was measured the prior vanishes.
+    with each pixel's data (precision ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``)
+    keeps its value, one the data leave free takes the material's, and where no similar pixel
+    was measured the prior vanishes.
     A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
     ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None:
     computed); results in ``theta``'s dtype, on its device.
