@@ -168,15 +168,15 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
     v = torch.nan_to_num(variances, nan=VAR_MAX, posinf=VAR_MAX).clamp(VAR_MIN, VAR_MAX)
     u = v.reciprocal()
     tau2 = torch.zeros_like(y[:, 0])
-    mu = torch.zeros_like(y[:, 0])
     pi = torch.full_like(y[:, 0], 0.5)
+    d2 = torch.zeros_like(y)
     for it in range(iters + 1):
         if it:
             u = (tau2[:, None] + v).reciprocal()
-            if span is not None:  # E step: each member's responsibility of the material
-                dens = pi[:, None] * torch.exp(-0.5 * (y - mu[:, None]) ** 2 * u) * (u / (2 * math.pi)).sqrt()
-                resp = dens / (dens + (1 - pi[:, None]) / span).clamp(min=1e-30)
-                s = s0 * resp
+            if span is not None:  # E step: each member's responsibility of the material,
+                # π N / (π N + (1 − π) / span) as a sigmoid of its log-odds (one log, no exp of a ratio)
+                c = torch.log(pi * span / (1 - pi)) - 0.5 * math.log(2 * math.pi)
+                s = s0 * torch.sigmoid(c[:, None] + 0.5 * (torch.log(u) - d2 * u))
                 pi = (s.sum(1) / s0.sum(1).clamp(min=1e-30)).clamp(1e-6, 1 - 1e-6)
         su = s * u
         den = su.sum(1)
