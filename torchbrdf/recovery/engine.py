@@ -63,9 +63,9 @@ Method (each choice measured, see ``docs/recovery.md``):
 * **Non-local fill** (before the last stage): each pixel's roughness / specular get a
   Gaussian prior, the predictive distribution of the same material's pixels found anywhere in
   the image (base colour and normal-spread similarity), their values weighed by their own
-  information (data and smoothness ties), members stuck in another basin set aside; each pixel is moved to the mode of its data and that prior, which then stays in
-  the last stage's fit: silent pixels take the material's measured value, measured ones keep
-  their own.
+  information (data and smoothness ties), members stuck in another basin set aside; each
+  pixel is moved to the mode of its data and that prior, which then stays in the last stage's
+  fit: silent pixels take the material's measured value, measured ones keep their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
 * **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
