@@ -155,3 +155,73 @@ def test_silent_island_takes_the_measured_roughness_and_specular():
     assert abs(float(spec[island].mean()) - float(spec[lit].mean())) < 0.04
     assert abs(float(spec[island].mean()) - 0.5) < 0.05 and abs(float(rough[island].mean()) - 0.25) < 0.03
     assert float(rough[strip].mean()) > 0.6  # another material: not pulled toward the glossy one
+
+
+def _periodic_laplacian(size):
+    """The unit-weight 4-neighbour Laplacian ``(size², size²)`` of a periodic lattice, float64."""
+    n = size * size
+    lap = torch.zeros(n, n, dtype=torch.float64)
+    for i in range(size):
+        for j in range(size):
+            p = i * size + j
+            for di, dj in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+                q = ((i + di) % size) * size + (j + dj) % size
+                lap[p, p] += 1.0
+                lap[p, q] -= 1.0
+    return lap
+
+
+def test_tie_information_is_the_lattice_marginal():
+    """What the ties add is ``1 / diag((d I + λ L)⁻¹) − d`` on the lattice (exact, dense inverse):
+    ``4 λ`` (the neighbours held) where the data dominate, little where the data are silent
+    (a silent region floats as a whole), not the ``4 λ`` of neighbours known exactly."""
+    size, lam = 8, 0.002
+    lap = _periodic_laplacian(size)
+    for d in (1e-6, 1e-4, 2e-3, 0.02, 2.0):
+        exact = 1.0 / torch.linalg.inv(d * torch.eye(size * size, dtype=torch.float64) + lam * lap)[0, 0] - d
+        got = priors.tie_information(torch.tensor([[d]]), torch.tensor([[lam]]), size)
+        assert abs(float(got) - float(exact)) <= 1e-3 * float(exact) + 1e-12, (d, float(got), float(exact))
+    strong = float(priors.tie_information(torch.tensor([[1e3 * lam]]), torch.tensor([[lam]]), size))
+    silent = float(priors.tie_information(torch.tensor([[1e-6 * lam]]), torch.tensor([[lam]]), size))
+    assert abs(strong - 4 * lam) < 0.01 * lam and silent < 1e-3 * lam
+    assert float(priors.tie_information(torch.tensor([[1e-3]]), torch.tensor([[0.0]]), size)) == 0.0
+
+
+def test_fit_information_counts_the_ties_between_the_data_and_the_neighbours_held():
+    """A fitted value's information lies between its data's alone (the neighbours unknown) and
+    its data plus ``4 λ`` (the neighbours known), and exceeds the data's where ties act."""
+    from torchbrdf.recovery.lm import gauss_newton, marginal_information
+    from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian_diag
+
+    data, theta, metal = flat_level()
+    cfg = Settings()
+    jtj = gauss_newton(data, theta, metal, data.train_idx, "principled")[1]
+    fit = priors.fit_information(data, theta, metal, cfg, jtj)
+    alone = marginal_information(data, theta, metal, "principled", jtj)
+    wx, wy = edge_weights(theta, metal, data.size, cfg)
+    neighbours = torch.diag_embed(laplacian_diag(wx, wy, data.size))
+    held = marginal_information(data, theta, metal, "principled", jtj + neighbours)
+    assert bool((fit[:, 3:5] > alone[:, 3:5] * 1.01).all())
+    assert bool((fit <= held * (1 + 1e-4)).all()) and bool((fit >= alone * (1 - 1e-4)).all())
+
+
+def test_material_estimate_sets_stuck_members_aside():
+    """Members stuck in another basin (8 % of them, anywhere in the logit range, their variances
+    claimed small) are an outlier component: with ``span`` the spread and the mean are the
+    material's; without, the stuck members inflate the spread many times over."""
+    g = torch.Generator().manual_seed(3)
+    k = 2000
+    y = 0.4 + 0.05 * torch.randn(1, k, 1, generator=g)  # τ² = 2.5e-3
+    stuck = torch.rand(1, k, 1, generator=g) < 0.08
+    y = torch.where(stuck, -9 + 18 * torch.rand(1, k, 1, generator=g), y)
+    v = torch.full_like(y, 1e-4)
+    s = torch.ones_like(y)
+    mu, tau2, _ = priors.material_estimate(y, v, s, span=priors.LOGIT_SPAN)
+    assert abs(float(tau2) - 2.5e-3) < 0.4e-3 and abs(float(mu) - 0.4) < 0.01
+    _, tau2_all, _ = priors.material_estimate(y, v, s)
+    assert float(tau2_all) > 100 * 2.5e-3
+    # No stuck member: the same estimate as without the outlier component.
+    y0 = 0.4 + 0.05 * torch.randn(1, k, 1, generator=g)
+    a, b = priors.material_estimate(y0, v, s, span=priors.LOGIT_SPAN), priors.material_estimate(y0, v, s)
+    assert all(torch.allclose(p, q, rtol=1e-3) for p, q in zip(a, b))
+

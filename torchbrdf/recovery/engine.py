@@ -63,9 +63,9 @@ Method (each choice measured, see ``docs/recovery.md``):
 * **Non-local fill** (before the last stage): each pixel's roughness / specular get a
   Gaussian prior, the predictive distribution of the same material's pixels found anywhere in
   the image (base colour and normal-spread similarity), their values weighed by their own
-  information; each pixel is moved to the mode of its data and that prior, which then stays in
-  the last stage's fit: silent pixels take the material's measured value, measured ones keep
-  their own.
+  information (data and smoothness ties), members stuck in another basin set aside; each
+  pixel is moved to the mode of its data and that prior, which then stays in the last stage's
+  fit: silent pixels take the material's measured value, measured ones keep their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
 * **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
@@ -103,7 +103,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
 from torchbrdf.recovery.map_ops import dilate, neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
 from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost
-from torchbrdf.recovery.priors import fuse_fill, nonlocal_fill, nonlocal_prior
+from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate
 from torchbrdf.recovery.soft_metal import soft_metal_stage
 
@@ -522,7 +522,7 @@ class Recovery:
         self._sync_light_scale()
         th, mt, model = st["theta"][0], st["metal"], self.cfg.model
         gn = gauss_newton(d, th, mt, d.train_idx, model)
-        fill = nonlocal_fill(d, th, mt, self.cfg, info=marginal_information(d, th, mt, model, gn[1]))
+        fill = nonlocal_fill(d, th, mt, self.cfg, info=fit_information(d, th, mt, self.cfg, gn[1]))
         st["fill"] = fill
         st["theta"][0] = fuse_fill(d, th, mt, sum_unary(fill, st.get("tie")) or fill, model, gn=gn)
 

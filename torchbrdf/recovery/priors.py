@@ -4,6 +4,9 @@ under-determined roughness / specular from the same material elsewhere.
 
 from __future__ import annotations
 
+import functools
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -13,6 +16,7 @@ from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import gauss_newton, marginal_information, newton_step, pixel_cost, unary_cost
 from torchbrdf.recovery.map_ops import blur, kmeans
+from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian_diag
 
 
 def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
@@ -117,6 +121,10 @@ def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
 #: exact for any use here; above, it weighs nothing (and ``1 / v²`` stays finite in float32).
 VAR_MIN, VAR_MAX = 1e-12, 1e12
 
+#: The width of the range a specular or roughness logit lives in (:func:`logit`'s clamp, 1e-4
+#: inside each end): where a fit stuck in another basin may sit, for :func:`material_estimate`.
+LOGIT_SPAN = 2 * math.log((1 - 1e-4) / 1e-4)
+
 
 def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     """Local standard deviation ``(P, 1)`` of the normal slope ``(p, q)`` in a ``(2r+1)²`` window
@@ -131,8 +139,8 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
-def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3
-                      ) -> tuple[Tensor, Tensor, Tensor]:
+def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3,
+                      span: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """A material's mean, spread and the mean's variance from noisy, softly weighted members.
 
     The random-effects model: each member's true value ``θ_j ~ N(μ, τ²)``, measured as
@@ -141,20 +149,35 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
     with weights ``s_j / (τ² + v_j)``; ``τ²`` the maximum-likelihood spread, by the fixed point
     ``τ² = Σ s u² ((y − μ)² − v) / Σ s u²`` with ``u = 1 / (τ² + v)`` (``iters`` rounds from
     the fixed-effects spread), so a member the data hardly see (``v`` large) counts neither in
-    the mean nor in the spread. ``values``, ``variances``: ``(N, K, C)`` (``K`` members, ``C``
-    independent quantities); ``weights`` ``(N, K, 1)`` or ``(N, K, C)``. Variances are clamped
-    to ``[VAR_MIN, VAR_MAX]`` (a non-finite one is ``VAR_MAX``: the member weighs nothing), so
-    the powers stay finite in float32.
-    Returns ``(μ, τ², var(μ) = 1 / Σ s u)``, each ``(N, C)`` in ``values``' dtype (``var(μ)`` is
-    +inf where no member carries weight).
+    the mean nor in the spread. With ``span``, a member is instead, with a probability
+    ``1 − π`` estimated with the rest (EM, one update per round from ``π = ½``), a fit stuck
+    anywhere in a range of that width (density ``1 / span``; a pixel in another basin, whose
+    linearised ``v`` does not hold): its weight is multiplied by its responsibility
+    ``π N(y; μ, τ² + v) / (π N(y; μ, τ² + v) + (1 − π) / span)``, so it widens neither the
+    spread nor moves the mean (None: every member measures the material).
+    ``values``, ``variances``: ``(N, K, C)`` (``K`` members, ``C`` independent quantities);
+    ``weights`` ``(N, K, 1)`` or ``(N, K, C)``. Variances are clamped to ``[VAR_MIN, VAR_MAX]``
+    (a non-finite one is ``VAR_MAX``: the member weighs nothing), so the powers stay finite in
+    float32.
+    Returns ``(μ, τ², var(μ) = 1 / Σ s u)`` of the material, each ``(N, C)`` in ``values``'
+    dtype (``var(μ)`` is +inf where no member carries weight).
     """
-    y, s = values, weights
+    y = values
+    s0 = weights.expand_as(y)
+    s = s0
     v = torch.nan_to_num(variances, nan=VAR_MAX, posinf=VAR_MAX).clamp(VAR_MIN, VAR_MAX)
     u = v.reciprocal()
     tau2 = torch.zeros_like(y[:, 0])
+    pi = torch.full_like(y[:, 0], 0.5)
+    d2 = torch.zeros_like(y)
     for it in range(iters + 1):
         if it:
             u = (tau2[:, None] + v).reciprocal()
+            if span is not None:  # E step: each member's responsibility of the material,
+                # π N / (π N + (1 − π) / span) as a sigmoid of its log-odds (one log, no exp of a ratio)
+                c = torch.log(pi * span / (1 - pi)) - 0.5 * math.log(2 * math.pi)
+                s = s0 * torch.sigmoid(c[:, None] + 0.5 * (torch.log(u) - d2 * u))
+                pi = (s.sum(1) / s0.sum(1).clamp(min=1e-30)).clamp(1e-6, 1 - 1e-6)
         su = s * u
         den = su.sum(1)
         mu = (su * y).sum(1) / den.clamp(min=1e-30)
@@ -168,6 +191,65 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
     return mu, tau2, (s * u).sum(1).reciprocal()
 
 
+@functools.lru_cache(maxsize=8)
+def _lattice_green_table(size: int) -> tuple[Tensor, Tensor]:
+    """``(t (T,), g(t) (T,))`` float64: the diagonal of ``(t I + L)⁻¹`` for the unit-weight
+    4-neighbour Laplacian ``L`` of a periodic ``size × size`` lattice, on a log grid of ``t``."""
+    k = 2 * math.pi * torch.arange(size, dtype=torch.float64) / size
+    s = (4 - 2 * torch.cos(k)[:, None] - 2 * torch.cos(k)[None, :]).flatten()  # L's eigenvalues
+    t = torch.logspace(-9, 8, 341, dtype=torch.float64)
+    g = torch.cat([(1.0 / (tc[:, None] + s[None, :])).mean(-1) for tc in t.split(32)])
+    return t, g
+
+
+def tie_information(data_info: Tensor, tie_weight: Tensor, size: int) -> Tensor:
+    """The information ``(P, C)`` a pixel's smoothness ties add to each of its unknowns.
+
+    A Gaussian Markov random field on the image: each unknown has data information ``d``
+    (``data_info (P, C)``, the |r|² scale) and each of its 4 edges the weight ``λ``
+    (``tie_weight (P, C)``: the pixel's mean edge weight). Its marginal variance (∝) is
+    ``G = g(d / λ) / λ`` with ``g(t) = diag((t I + L)⁻¹)`` of the unit lattice Laplacian ``L``
+    (exact on a periodic lattice of constant ``d`` and ``λ``; evaluated over ``L``'s
+    eigenvalues on the ``size × size`` lattice), so the ties add ``1 / G − d``. Where the data
+    dominate (``d ≫ λ``) that is ``4 λ``, the neighbours held; where the data are silent it
+    falls to 0 (on the image's lattice logarithmically, a silent region floats as a whole):
+    the neighbours are not known either. Returns ``data_info``'s dtype and device.
+    """
+    t_grid, g_grid = (x.to(data_info.device) for x in _lattice_green_table(int(size)))
+    lam = tie_weight.double()
+    t = (data_info.double() / lam.clamp(min=1e-300)).clamp(float(t_grid[0]), float(t_grid[-1]))
+    pos = torch.log(t / t_grid[0]) / math.log(float(t_grid[-1] / t_grid[0])) * (t_grid.numel() - 1)
+    i0 = pos.floor().long().clamp(0, t_grid.numel() - 2)
+    f = pos - i0
+    g = torch.exp(torch.lerp(torch.log(g_grid[i0]), torch.log(g_grid[i0 + 1]), f))  # log–log interpolation
+    add = torch.where(lam > 0, (lam / g - data_info.double()).clamp(min=0.0), torch.zeros_like(lam))
+    return add.to(data_info.dtype)
+
+
+def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
+                    jtj: Tensor | None = None) -> Tensor:
+    """Per-parameter marginal information ``(P, 7)`` of each pixel's fitted value: its data
+    normal matrix ``JᵀJ`` plus what its smoothness ties (:func:`edge_weights`) add to each
+    unknown (:func:`tie_information`), the other unknowns free.
+
+    Why not the data's alone (:func:`marginal_information`): the fitted values the fill measures
+    a material from were fitted with the ties, and a tie that pins one unknown (a constant
+    specular, tied across the image) also pins those its data trade against it (roughness).
+    The data-only information understated the fitted values' precision (on a rough rubber
+    their squared errors were 0.07 of ``σ² / info`` at the median, where the χ²(1) median is
+    0.45), which took the measured spread ``τ²`` to 0.37 of the material's; with the ties the
+    median is 0.38 and ``τ²`` 0.94 of it (docs/recovery.md). ``jtj (P, 7, 7)``: the data
+    normal matrices at ``theta`` when the caller has them (else computed); the result has
+    ``theta``'s dtype and device.
+    """
+    if jtj is None:
+        jtj = gauss_newton(data, theta, metal, data.train_idx, cfg.model)[1]
+    wx, wy = edge_weights(theta, metal, data.size, cfg)
+    ties = tie_information(marginal_information(data, theta, metal, cfg.model, jtj),
+                           laplacian_diag(wx, wy, data.size) / 4, data.size)
+    return marginal_information(data, theta, metal, cfg.model, jtj + torch.diag_embed(ties))
+
+
 def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
                   info: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Targets and precisions ``(P, 7)`` of a unary prior that fills under-determined roughness and
@@ -178,21 +260,23 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     (non-local: a glossy region no highlight reaches borrows from the same material where one
     does), weighted by their similarity ``exp(−|Δbase|²/fill_range² − Δtex²/fill_texture²)`` in
     base colour and in the local spread of the normal (``_normal_texture``). Each candidate's
-    roughness / specular logit is a measurement of variance ``v = σ² / info`` (its marginal
-    information ``info = 1 / diag((JᵀJ)⁻¹)`` and the noise variance ``σ²``, the median pixel's
-    cost per residual); :func:`material_estimate` gives the material's mean ``μ``, its spread
-    ``τ²`` and the mean's variance. The prior is ``N(μ, τ² + var(μ))`` — the predictive
-    distribution of one more pixel of the material — so its precision on the fit's ``|r|²``
-    scale is ``σ² / (τ² + var(μ))``. The LM then fuses it with each pixel's data (precision
-    ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``) keeps its value, one the data leave
-    free takes the material's, and where no similar pixel was measured the prior vanishes.
+    roughness / specular logit is a measurement of variance ``v = σ² / info`` (the marginal
+    information of its fit's energy, data and smoothness ties, :func:`fit_information`, and the
+    noise variance ``σ²``, the median pixel's cost per residual); :func:`material_estimate`
+    gives the material's mean ``μ``, its spread ``τ²`` and the mean's variance, a member stuck
+    in another basin set aside (an outlier component over :data:`LOGIT_SPAN`). The prior is
+    ``N(μ, τ² + var(μ))`` — the predictive distribution of one more pixel of the material — so
+    its precision on the fit's ``|r|²`` scale is ``σ² / (τ² + var(μ))``. The LM then fuses it
+    with each pixel's data (precision ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``)
+    keeps its value, one the data leave free takes the material's, and where no similar pixel
+    was measured the prior vanishes.
     A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
-    ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (None: computed); results in
-    ``theta``'s dtype, on its device.
+    ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None:
+    computed); results in ``theta``'s dtype, on its device.
     """
     size = data.size
     if info is None:
-        info = marginal_information(data, theta, metal, cfg.model)
+        info = fit_information(data, theta, metal, cfg)
     r = data.residual(theta, metal, data.train_idx, cfg.model)
     sigma2 = residual_variance(pixel_cost(r), r.shape[-1])
     var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
@@ -213,7 +297,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
             rr = pool[s0:s0 + chunk]
             cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
             sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
-            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None])
+            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None], span=LOGIT_SPAN)
             ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
             tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
             prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
