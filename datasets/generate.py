@@ -15,7 +15,7 @@ from torchbrdf.capture.synthetic import RECIPES, SOFT_RECIPES, generate_capture
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, generate one capture folder, print where it went."""
-    ap = argparse.ArgumentParser(prog="python datasets/generate.py", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python datasets/generate.py", description=__doc__.split("\n")[0].replace("``", ""))
     ap.add_argument("--out", required=True, help="capture folder to create (capture.json, img_*.exr, gt/)")
     ap.add_argument("--recipe", choices=RECIPES + SOFT_RECIPES, default=None, help="procedural material (default: chosen by --seed)")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the material and the noise")

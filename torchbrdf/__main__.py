@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
     from torchbrdf import principled
     from torchbrdf.analysis.plots import plot_image_slices
 
-    parser = argparse.ArgumentParser(prog="python -m torchbrdf", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m torchbrdf", description=__doc__.replace("``", ""))
     parser.add_argument("--out", default="out", help="output folder (default: out)")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)

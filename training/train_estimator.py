@@ -32,7 +32,7 @@ HELDOUT_SEED = 7_777
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m training.train_estimator", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m training.train_estimator", description=__doc__.split("\n")[0].replace("``", ""))
     p.add_argument("--out", type=Path, default=Path("out/estimator"), help="output folder (created)")
     p.add_argument("--minutes", type=float, default=5.0, help="training wall time")
     p.add_argument("--size", type=int, default=64, help="training crop size S")

@@ -436,7 +436,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv[:1] == ["--_rss-child"]:
         print(json.dumps(_rss_child(int(argv[1]), argv[2])))
         return 0
-    ap = argparse.ArgumentParser(prog="torchbrdf-bench", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="torchbrdf-bench", description=__doc__.split("\n")[0].replace("``", ""))
     ap.add_argument("--quick", action="store_true", help="reduced sweep (N up to 2^18 except the headline, 3 repeats)")
     ap.add_argument("--out", default="bench_out",
                     help="folder for benchmarks.md/.json and the plots (default bench_out/; 'docs' updates the committed report)")
