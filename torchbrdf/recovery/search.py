@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.recovery.classes import evidence_threshold, pixel_noise_variance
@@ -43,50 +42,67 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
 
     Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
     """
-    size, c = data.size, theta.shape[1]
-    rows = None if active is None else active.nonzero()[:, 0]
-    if rows is not None and rows.numel() == 0:
-        return theta, metal, torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
-
-    def sel(x: Tensor) -> Tensor:
-        return x if rows is None else x[rows]
-
-    def cost(t: Tensor, m: Tensor) -> Tensor:
-        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
-        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
-
-    un = None if unary is None else (sel(unary[0]), sel(unary[1]))
+    size = data.size
+    p_all = theta.shape[0]
+    rows = torch.arange(p_all, device=theta.device) if active is None else active.nonzero()[:, 0]
+    if rows.numel() == 0:
+        return theta, metal, torch.zeros(p_all, dtype=torch.bool, device=theta.device)
+    un = None if unary is None else (unary[0][rows], unary[1][rows])
     wx, wy = edge_weights(theta, metal, size, cfg)
-    own, own_metal = sel(theta), sel(metal)
+    own, own_metal = theta[rows], metal[rows]
+    nb = neighbour_rows(rows, size)  # (8, N)
+    # (gathered channel-first, as planes of the map: the maps that come out keep that layout,
+    # and later float sums over a pixel's unknowns round by it)
+    cand, cm = theta.T[:, nb].permute(1, 2, 0), metal[nb]  # (8, N, 7), (8, N, 1)
+    same = cm == own_metal
+    own_prior = local_prior(own, theta, wx, wy, size, rows) + unary_cost(own, un)
+    prior = local_prior(cand, theta, wx, wy, size, rows) + unary_cost(cand, un)  # (8, N, 1)
+    # Every render of the pass in one fused call: the own parameters, then the candidates,
+    # stacked along the pixel axis (k × N pixels instead of k calls over N); without
+    # class_sigma2 one of the other class never competes and is not rendered.
+    wanted = same if class_sigma2 is None else torch.ones_like(same)
+    k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
+    t_all = torch.cat((own, cand[k_idx, n_idx]))
+    m_all = torch.cat((own_metal, cm[k_idx, n_idx]))
+    r = data.residual(t_all, m_all, data.train_idx, cfg.model, rows=torch.cat((rows, rows[n_idx])))
+    c_all = torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+    own_cost = c_all[:rows.numel()]
+    data_cost = torch.full_like(prior, float("inf"))
+    data_cost[k_idx, n_idx] = c_all[rows.numel():]
     best, best_metal = own, own_metal
-    own_cost = cost(own, own_metal)
-    own_prior = sel(local_prior(theta, theta, wx, wy, size)) + unary_cost(own, un)
     best_score = own_cost + own_prior
     tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
     n_res = 3 * len(data.train_idx)
-    pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
-    padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
-    for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        cand_all = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
-        cand = sel(cand_all)
-        cm = sel(padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T)
-        same = cm == own_metal
-        prior = sel(local_prior(cand_all, theta, wx, wy, size)) + unary_cost(cand, un)
+    for k in range(nb.shape[0]):  # in the neighbours' order: the first of equal scores wins
         if class_sigma2 is None:
-            score = torch.where(same, cost(cand, own_metal) + prior, float("inf"))
+            score = torch.where(same[k], data_cost[k] + prior[k], float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
-            data_cost = cost(cand, cm)
-            price = tau * pixel_noise_variance(own_cost, data_cost, class_sigma2, n_res)
-            score = torch.where(same, data_cost + prior,
-                                data_cost + torch.where(cm > 0.5, price, -price) + own_prior)
+            price = tau * pixel_noise_variance(own_cost, data_cost[k], class_sigma2, n_res)
+            score = torch.where(same[k], data_cost[k] + prior[k],
+                                data_cost[k] + torch.where(cm[k] > 0.5, price, -price) + own_prior)
         better = score < best_score
-        best = torch.where(better, cand, best)
-        best_metal = torch.where(better, cm, best_metal)
+        best = torch.where(better, cand[k], best)
+        best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
-    if rows is not None:
+    if active is not None:
         best = theta.index_copy(0, rows, best)
         best_metal = metal.index_copy(0, rows, best_metal)
     return best, best_metal, (best != theta).any(-1)
+
+
+#: The 8 neighbours' offsets ``(dy, dx)`` in the order :func:`propagate` tries them.
+NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
+
+def neighbour_rows(rows: Tensor, size: int) -> Tensor:
+    """The 8 neighbours (:data:`NEIGHBOURS` order) of pixels ``rows (N,)`` of a ``size²`` map ``(8, N)``.
+
+    Row-major pixel indices (int64, ``rows``' device); at the border the nearest pixel inside
+    (replicated edge), so a border pixel may list itself.
+    """
+    r, col = rows // size, rows % size
+    off = torch.tensor(NEIGHBOURS, device=rows.device)
+    return ((r + off[:, :1]).clamp(0, size - 1) * size + (col + off[:, 1:]).clamp(0, size - 1))
 
 
 def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:

@@ -202,14 +202,33 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     return out
 
 
-def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
-    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(P, 1)``: the change
-    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``."""
+def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
+                rows: Tensor | None = None) -> Tensor:
+    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(*, N, 1)``: the change
+    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``.
+
+    ``cand (*, N, C)``: values for the pixels ``rows (N,)`` (int64; None: all ``P`` pixels in
+    order), any number of candidate sets at once along the leading dims; ``theta (P, C)`` the
+    map the neighbours keep, ``wx``, ``wy`` its edge weights. The terms are added in one order
+    (right, left, lower, upper neighbour) whatever the batch, so a candidate's value does not
+    depend on which others share the call. ``cand``'s dtype and device.
+    """
     c = theta.shape[1]
-    a, t = cand.reshape(size, size, c), theta.reshape(size, size, c)
-    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
-    e[:, :-1] += (wx * (a[:, :-1] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
-    e[:, 1:] += (wx * (a[:, 1:] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
-    e[:-1] += (wy * (a[:-1] - t[1:]) ** 2).sum(-1, keepdim=True)
-    e[1:] += (wy * (a[1:] - t[:-1]) ** 2).sum(-1, keepdim=True)
-    return e.reshape(-1, 1)
+    if size < 2:  # a single pixel has no neighbours
+        return cand.new_zeros(*cand.shape[:-1], 1)
+    if rows is None:
+        rows = torch.arange(size * size, device=theta.device)
+    i, j = rows // size, rows % size
+    last = size - 1
+    # (neighbour, its edge's row in wx or wy, whether it exists): a missing neighbour's indices
+    # are clamped into range and its term dropped (not weighted by 0: a non-finite value stays out).
+    edges = ((wx, rows + 1, i * last + j, j < last), (wx, rows - 1, i * last + j - 1, j > 0),
+             (wy, rows + size, i * size + j, i < last), (wy, rows - size, (i - 1) * size + j, i > 0))
+    e = None
+    for w, q, w_row, has in edges:
+        wq = w.reshape(-1, c)[w_row.clamp(0, size * last - 1)]
+        term = (wq * (cand - theta[q.clamp(0, size * size - 1)]) ** 2).sum(-1, keepdim=True)
+        term = torch.where(has[:, None], term, torch.zeros_like(term))
+        e = term if e is None else e + term
+    assert e is not None
+    return e
