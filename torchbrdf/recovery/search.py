@@ -49,31 +49,37 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         return theta, metal, torch.zeros(p_all, dtype=torch.bool, device=theta.device)
     un = None if unary is None else (unary[0][rows], unary[1][rows])
     wx, wy = edge_weights(theta, metal, size, cfg)
-    own, own_metal = theta[rows], metal[rows]
-    nb = neighbour_rows(rows, size)  # (8, N)
-    # (gathered channel-first, as planes of the map: the maps that come out keep that layout,
-    # and later float sums over a pixel's unknowns round by it)
-    cand, cm = theta.T[:, nb].permute(1, 2, 0), metal[nb]  # (8, N, 7), (8, N, 1)
+    n, c = rows.numel(), theta.shape[1]
+    own, own_metal = theta.index_select(0, rows), metal.index_select(0, rows)
+    nb = neighbour_rows(rows, size).reshape(-1)  # (8 N,)
+    cand = theta.index_select(0, nb).view(-1, n, c)  # (8, N, 7)
+    cm = metal.index_select(0, nb).view(-1, n, 1)
+    # The choice is made on channel-first planes of the candidates: the maps that come out
+    # keep that layout, and later float sums over a pixel's unknowns round by it.
+    planes = theta.T.contiguous().index_select(1, nb).view(c, -1, n).permute(1, 2, 0)
     same = cm == own_metal
     own_prior = local_prior(own, theta, wx, wy, size, rows) + unary_cost(own, un)
     prior = local_prior(cand, theta, wx, wy, size, rows) + unary_cost(cand, un)  # (8, N, 1)
     # Every render of the pass in one fused call: the own parameters, then the candidates,
-    # stacked along the pixel axis (k × N pixels instead of k calls over N); without
-    # class_sigma2 one of the other class never competes and is not rendered.
-    wanted = same if class_sigma2 is None else torch.ones_like(same)
+    # stacked along the pixel axis (k × N pixels instead of k calls over N). Not rendered: a
+    # neighbour of the other class without class_sigma2 (it never competes), and one of the
+    # pixel's class with the pixel's own parameters (after a pass, whole regions share one
+    # value): its score would equal the pixel's own, which a candidate must beat.
+    own_again = same & (cand == own).all(-1, keepdim=True)
+    wanted = (same if class_sigma2 is None else torch.ones_like(same)) & ~own_again
     k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
     t_all = torch.cat((own, cand[k_idx, n_idx]))
     m_all = torch.cat((own_metal, cm[k_idx, n_idx]))
     r = data.residual(t_all, m_all, data.train_idx, cfg.model, rows=torch.cat((rows, rows[n_idx])))
     c_all = torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
-    own_cost = c_all[:rows.numel()]
+    own_cost = c_all[:n]
     data_cost = torch.full_like(prior, float("inf"))
-    data_cost[k_idx, n_idx] = c_all[rows.numel():]
+    data_cost[k_idx, n_idx] = c_all[n:]
     best, best_metal = own, own_metal
     best_score = own_cost + own_prior
     tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
     n_res = 3 * len(data.train_idx)
-    for k in range(nb.shape[0]):  # in the neighbours' order: the first of equal scores wins
+    for k in range(cand.shape[0]):  # in the neighbours' order: the first of equal scores wins
         if class_sigma2 is None:
             score = torch.where(same[k], data_cost[k] + prior[k], float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
@@ -81,7 +87,7 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
             score = torch.where(same[k], data_cost[k] + prior[k],
                                 data_cost[k] + torch.where(cm[k] > 0.5, price, -price) + own_prior)
         better = score < best_score
-        best = torch.where(better, cand[k], best)
+        best = torch.where(better, planes[k], best)
         best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
     if active is not None:

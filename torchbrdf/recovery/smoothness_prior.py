@@ -226,8 +226,8 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
              (wy, rows + size, i * size + j, i < last), (wy, rows - size, (i - 1) * size + j, i > 0))
     e = None
     for w, q, w_row, has in edges:
-        wq = w.reshape(-1, c)[w_row.clamp(0, size * last - 1)]
-        term = (wq * (cand - theta[q.clamp(0, size * size - 1)]) ** 2).sum(-1, keepdim=True)
+        wq = w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1))
+        term = (wq * (cand - theta.index_select(0, q.clamp(0, size * size - 1))) ** 2).sum(-1, keepdim=True)
         term = torch.where(has[:, None], term, torch.zeros_like(term))
         e = term if e is None else e + term
     assert e is not None
