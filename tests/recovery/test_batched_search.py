@@ -143,3 +143,58 @@ def test_neighbour_rows_replicate_the_border():
     assert search.neighbour_rows(rows, 4).T.tolist() == [[0, 0, 1, 0, 1, 4, 4, 5], [1, 2, 3, 1, 3, 5, 6, 7],
                                                          [0, 1, 2, 4, 6, 8, 9, 10],
                                                          [10, 11, 11, 14, 15, 14, 15, 15]]
+
+
+def reference_normal_search(data, theta, metal, model, factor=10.0, max_pixels=4096):
+    """:func:`search.normal_search` rendering every candidate of every base, blocks of whole pixels."""
+    size, c = data.size, theta.shape[1]
+    idx = data.train_idx
+    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
+    bad = torch.nonzero(cost > thr).flatten()
+    if bad.numel() == 0:
+        return theta, 0
+    if bad.numel() > max_pixels:
+        bad = bad[torch.topk(cost[bad], max_pixels).indices]
+    r, col = bad // size, bad % size
+    base_list, valid_list = [], []
+    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
+        base_list.append(theta[q])
+        valid_list.append(metal[q, 0] == metal[bad, 0])
+    bases, valid = torch.stack(base_list, 1), torch.stack(valid_list, 1)
+    slopes = search._candidate_slopes(theta.dtype, theta.device)
+    nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
+    cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
+    cand[:, :, 1:, 5:7] = slopes[None, None]
+    cand = cand.reshape(nb, -1, c)
+    ccost = torch.empty(cand.shape[:2], dtype=theta.dtype, device=theta.device)
+    chunk = max(1, 65536 // cand.shape[1])
+    for s0 in range(0, nb, chunk):
+        sl = slice(s0, s0 + chunk)
+        n = cand[sl].shape[0]
+        rows = bad[sl].repeat_interleave(cand.shape[1])
+        rr = data.residual(cand[sl].reshape(-1, c), metal[rows], idx, model, rows=rows)
+        ccost[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf")).reshape(n, -1)
+    ccost = torch.where(valid[:, :, None].expand(nb, nbase, k + 1).reshape(nb, -1), ccost, float("inf"))
+    best_cost, best = ccost.min(1)
+    better = best_cost < cost[bad]
+    theta = theta.clone()
+    theta[bad[better]] = cand[better, best[better]]
+    return theta, int(better.sum())
+
+
+def test_normal_search_without_repeated_candidates_equals_rendering_all():
+    # Bad pixels among neighbours that repeat each other's parameters (a region one value
+    # spread over) or only their material (the normal grid's candidates repeat), across a
+    # class boundary (the other class's bases are no candidates).
+    data, theta, metal = rough_state(size=12, seed=5)
+    img = theta.view(12, 12, 7)
+    img[4:8, 0:6] = img[5, 2]  # one value over a block, metal and dielectric pixels
+    img[0:4, 6:12, :5] = img[1, 8, :5]  # one material, the normals left as they were
+    img[0:4, 6:12, 5:7] *= 0.5
+    got = search.normal_search(data, theta, metal, "principled", factor=1.0)
+    ref = reference_normal_search(data, theta, metal, "principled", factor=1.0)
+    assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
+    few = search.normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)
+    assert few[1] == reference_normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)[1]

@@ -155,16 +155,29 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
     nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
     cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
     cand[:, :, 1:, 5:7] = slopes[None, None]  # index 0 keeps the base's own normal
+    # Rendered: the candidates of same-class bases, except repeats of an earlier base's (a
+    # neighbour with the same parameters as one before it; with the same material, the
+    # normal grid's candidates repeat). A repeat's cost equals its first's, which comes first
+    # and wins a tie, so leaving it out changes nothing.
+    earlier = torch.ones(nbase, nbase, dtype=torch.bool, device=theta.device).tril(-1)  # [j, i]: i < j
+    same_material = (bases[:, :, None, :5] == bases[:, None, :, :5]).all(-1) & earlier & valid[:, None, :]
+    same_base = same_material & (bases[:, :, None, 5:] == bases[:, None, :, 5:]).all(-1)
+    render = valid[:, :, None].expand(nb, nbase, k + 1).clone()
+    render[:, :, 0] &= ~same_base.any(-1)
+    render[:, :, 1:] &= ~same_material.any(-1, keepdim=True)
     cand = cand.reshape(nb, -1, c)
-    ccost = torch.empty(cand.shape[:2], dtype=theta.dtype, device=theta.device)
-    chunk = max(1, 65536 // cand.shape[1])
-    for s0 in range(0, nb, chunk):
+    b_idx, j_idx = render.reshape(nb, -1).nonzero(as_tuple=True)
+    pix = bad.index_select(0, b_idx)
+    flat = cand[b_idx, j_idx]
+    m_flat = metal.index_select(0, pix)
+    cost_flat = torch.empty(b_idx.numel(), dtype=theta.dtype, device=theta.device)
+    chunk = 65536  # candidate pixels per render
+    for s0 in range(0, b_idx.numel(), chunk):
         sl = slice(s0, s0 + chunk)
-        n = cand[sl].shape[0]
-        rows = bad[sl].repeat_interleave(cand.shape[1])
-        rr = data.residual(cand[sl].reshape(-1, c), metal[rows], idx, model, rows=rows)
-        ccost[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf")).reshape(n, -1)
-    ccost = torch.where(valid[:, :, None].expand(nb, nbase, k + 1).reshape(nb, -1), ccost, float("inf"))
+        rr = data.residual(flat[sl], m_flat[sl], idx, model, rows=pix[sl])
+        cost_flat[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf"))
+    ccost = torch.full(cand.shape[:2], float("inf"), dtype=theta.dtype, device=theta.device)
+    ccost[b_idx, j_idx] = cost_flat
     best_cost, best = ccost.min(1)
     better = best_cost < cost[bad]
     theta = theta.clone()
