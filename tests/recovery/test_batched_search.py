@@ -198,3 +198,14 @@ def test_normal_search_without_repeated_candidates_equals_rendering_all():
     assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
     few = search.normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)
     assert few[1] == reference_normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)[1]
+
+
+def test_lm_step_counts_and_rejects_non_finite_costs():
+    data, theta, metal = rough_state(size=12, seed=6)
+    theta[[3, 100], 4] = float("nan")  # NaN costs there and, through the prior, at their 4-neighbours
+    lam = torch.full((theta.shape[0], 1), 1e-2)
+    new, lam1, cost, n_bad = lm.lm_step(data, theta, metal, lam, Settings(), 1.0)
+    bad = torch.isinf(cost[:, 0])
+    assert n_bad == int(bad.sum()) == 9 and bool(bad[[2, 3, 4, 15, 88, 99, 100, 101, 112]].all())
+    assert bool(torch.isnan(new[[3, 100], 4]).all()) and bool((lam1[bad] > lam[bad]).all())
+    assert bool(torch.isfinite(new[~bad]).all()) and bool(torch.isfinite(cost[~bad]).all())
