@@ -58,23 +58,30 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     # keep that layout, and later float sums over a pixel's unknowns round by it.
     planes = theta.T.contiguous().index_select(1, nb).view(c, -1, n).permute(1, 2, 0)
     same = cm == own_metal
-    own_prior = local_prior(own, theta, wx, wy, size, rows) + unary_cost(own, un)
-    prior = local_prior(cand, theta, wx, wy, size, rows) + unary_cost(cand, un)  # (8, N, 1)
-    # Every render of the pass in one fused call: the own parameters, then the candidates,
-    # stacked along the pixel axis (k × N pixels instead of k calls over N). Not rendered: a
-    # neighbour of the other class without class_sigma2 (it never competes), and one of the
-    # pixel's class with the pixel's own parameters (after a pass, whole regions share one
-    # value): its score would equal the pixel's own, which a candidate must beat.
-    own_again = same & (cand == own).all(-1, keepdim=True)
-    wanted = (same if class_sigma2 is None else torch.ones_like(same)) & ~own_again
-    k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
-    t_all = torch.cat((own, cand[k_idx, n_idx]))
-    m_all = torch.cat((own_metal, cm[k_idx, n_idx]))
-    r = data.residual(t_all, m_all, data.train_idx, cfg.model, rows=torch.cat((rows, rows[n_idx])))
-    c_all = torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
-    own_cost = c_all[:n]
-    data_cost = torch.full_like(prior, float("inf"))
-    data_cost[k_idx, n_idx] = c_all[n:]
+    at = None if active is None else rows
+    own_prior = local_prior(own, theta, wx, wy, size, at) + unary_cost(own, un)
+    prior = local_prior(cand, theta, wx, wy, size, at) + unary_cost(cand, un)  # (8, N, 1)
+    if active is None:
+        # Every pixel: each candidate set is rendered at the level's own targets, with no gather.
+        # (Stacking the 9 sets into one call renders the same lanes but gathers 9 × P rows of
+        # targets, 192 bytes each at 16 lights: that took more time than the 8 calls it saved.)
+        own_cost = _data_cost(data, own, own_metal, cfg.model, None)
+        data_cost = torch.stack([_data_cost(data, cand[k], cm[k], cfg.model, None) for k in range(cand.shape[0])])
+    else:
+        # Some pixels: every render of the pass in one fused call, the own parameters and then
+        # the candidates stacked along the pixel axis (one gather of their targets). Not
+        # rendered: a neighbour of the other class without class_sigma2 (it never competes),
+        # and one of the pixel's class with the pixel's own parameters (a region that took one
+        # value in the last pass): its score would equal the pixel's own, which a candidate
+        # must beat.
+        own_again = same & (cand == own).all(-1, keepdim=True)
+        wanted = (same if class_sigma2 is None else torch.ones_like(same)) & ~own_again
+        k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
+        c_all = _data_cost(data, torch.cat((own, cand[k_idx, n_idx])), torch.cat((own_metal, cm[k_idx, n_idx])),
+                           cfg.model, torch.cat((rows, rows.index_select(0, n_idx))))
+        own_cost = c_all[:n]
+        data_cost = torch.full_like(prior, float("inf"))
+        data_cost[k_idx, n_idx] = c_all[n:]
     best, best_metal = own, own_metal
     best_score = own_cost + own_prior
     tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
@@ -94,6 +101,12 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         best = theta.index_copy(0, rows, best)
         best_metal = metal.index_copy(0, rows, best_metal)
     return best, best_metal, (best != theta).any(-1)
+
+
+def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
+    """The summed squared residuals ``(N, 1)`` on the training lights (NaN: +inf), as :meth:`LevelData.residual`."""
+    r = data.residual(theta, metal, data.train_idx, model, rows=rows)
+    return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
 
 
 #: The 8 neighbours' offsets ``(dy, dx)`` in the order :func:`propagate` tries them.

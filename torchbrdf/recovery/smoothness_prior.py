@@ -210,14 +210,20 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     ``cand (*, N, C)``: values for the pixels ``rows (N,)`` (int64; None: all ``P`` pixels in
     order), any number of candidate sets at once along the leading dims; ``theta (P, C)`` the
     map the neighbours keep, ``wx``, ``wy`` its edge weights. The terms are added in one order
-    (right, left, lower, upper neighbour) whatever the batch, so a candidate's value does not
-    depend on which others share the call. ``cand``'s dtype and device.
+    (right, left, lower, upper neighbour) whatever the batch or the rows, so a candidate's
+    value does not depend on which others share the call. ``cand``'s dtype and device.
     """
     c = theta.shape[1]
     if size < 2:  # a single pixel has no neighbours
         return cand.new_zeros(*cand.shape[:-1], 1)
-    if rows is None:
-        rows = torch.arange(size * size, device=theta.device)
+    if rows is None:  # every pixel: the edges are slices of the image (no gather)
+        a, t = cand.reshape(*cand.shape[:-2], size, size, c), theta.reshape(size, size, c)
+        e = torch.zeros(*a.shape[:-1], 1, dtype=cand.dtype, device=cand.device)
+        e[..., :, :-1, :] += (wx * (a[..., :, :-1, :] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
+        e[..., :, 1:, :] += (wx * (a[..., :, 1:, :] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
+        e[..., :-1, :, :] += (wy * (a[..., :-1, :, :] - t[1:]) ** 2).sum(-1, keepdim=True)
+        e[..., 1:, :, :] += (wy * (a[..., 1:, :, :] - t[:-1]) ** 2).sum(-1, keepdim=True)
+        return e.reshape(*cand.shape[:-1], 1)
     i, j = rows // size, rows % size
     last = size - 1
     # (neighbour, its edge's row in wx or wy, whether it exists): a missing neighbour's indices
