@@ -230,11 +230,9 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     # are clamped into range and its term dropped (not weighted by 0: a non-finite value stays out).
     edges = ((wx, rows + 1, i * last + j, j < last), (wx, rows - 1, i * last + j - 1, j > 0),
              (wy, rows + size, i * size + j, i < last), (wy, rows - size, (i - 1) * size + j, i > 0))
-    e = None
+    terms = []
     for w, q, w_row, has in edges:
         wq = w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1))
         term = (wq * (cand - theta.index_select(0, q.clamp(0, size * size - 1))) ** 2).sum(-1, keepdim=True)
-        term = torch.where(has[:, None], term, torch.zeros_like(term))
-        e = term if e is None else e + term
-    assert e is not None
-    return e
+        terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
+    return terms[0] + terms[1] + terms[2] + terms[3]
