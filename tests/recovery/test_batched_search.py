@@ -147,23 +147,12 @@ def test_neighbour_rows_replicate_the_border():
 
 def reference_normal_search(data, theta, metal, model, factor=10.0, max_pixels=4096):
     """:func:`search.normal_search` rendering every candidate of every base, blocks of whole pixels."""
-    size, c = data.size, theta.shape[1]
-    idx = data.train_idx
-    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
-    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
-    bad = torch.nonzero(cost > thr).flatten()
-    if bad.numel() == 0:
+    found = search.search_bases(data, theta, metal, model, factor, max_pixels)
+    if found is None:
         return theta, 0
-    if bad.numel() > max_pixels:
-        bad = bad[torch.topk(cost[bad], max_pixels).indices]
-    r, col = bad // size, bad % size
-    base_list, valid_list = [], []
-    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
-        base_list.append(theta[q])
-        valid_list.append(metal[q, 0] == metal[bad, 0])
-    bases, valid = torch.stack(base_list, 1), torch.stack(valid_list, 1)
-    slopes = search._candidate_slopes(theta.dtype, theta.device)
+    cost, bad, bases, valid = found
+    c, idx = theta.shape[1], data.train_idx
+    slopes = search.candidate_slopes(theta.dtype, theta.device)
     nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
     cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
     cand[:, :, 1:, 5:7] = slopes[None, None]

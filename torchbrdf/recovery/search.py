@@ -124,13 +124,40 @@ def neighbour_rows(rows: Tensor, size: int) -> Tensor:
     return ((r + off[:, :1]).clamp(0, size - 1) * size + (col + off[:, 1:]).clamp(0, size - 1))
 
 
-def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
-    """Normal slopes ``(K, 2)``: the flat normal and a polar grid of tilts (degrees)."""
+def candidate_slopes(dtype: torch.dtype, device: torch.device | str, tilts=(8.0, 16.0, 24.0, 32.0, 40.0),
+                     azimuths: int = 8) -> Tensor:
+    """Normal slopes ``(K, 2)`` of :func:`normal_search`: the flat normal and a polar grid of tilts (degrees)."""
     out = [torch.zeros(1, 2, dtype=torch.float64)]
     for k, t in enumerate(tilts):
         az = (torch.arange(azimuths, dtype=torch.float64) + 0.5 * (k % 2)) * (2 * math.pi / azimuths)
         out.append(math.tan(math.radians(t)) * torch.stack((az.cos(), az.sin()), -1))
     return torch.cat(out).to(dtype=dtype, device=device)
+
+
+def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
+                 max_pixels: int = 4096) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """The pixels :func:`normal_search` searches and the parameters it starts from, or None (no such pixel).
+
+    Arguments as there. Returns ``(cost (P,), bad (B,), bases (B, 9, 7), valid (B, 9))``: every
+    pixel's data cost, the searched pixels (int64), their own and 8 neighbours' parameters
+    (replicated border) and whether each base is of the pixel's class.
+    """
+    size = data.size
+    idx = data.train_idx
+    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
+    bad = torch.nonzero(cost > thr).flatten()
+    if bad.numel() == 0:
+        return None
+    if bad.numel() > max_pixels:
+        bad = bad[torch.topk(cost[bad], max_pixels).indices]
+    r, col = bad // size, bad % size
+    base_list, valid_list = [], []
+    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
+        base_list.append(theta[q])
+        valid_list.append(metal[q, 0] == metal[bad, 0])
+    return cost, bad, torch.stack(base_list, 1), torch.stack(valid_list, 1)
 
 
 def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
@@ -146,25 +173,12 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
 
     Returns ``(theta (P, 7), number of pixels changed)``.
     """
-    size, c = data.size, theta.shape[1]
-    idx = data.train_idx
-    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
-    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
-    bad = torch.nonzero(cost > thr).flatten()
-    if bad.numel() == 0:
+    c, idx = theta.shape[1], data.train_idx
+    found = search_bases(data, theta, metal, model, factor, max_pixels)
+    if found is None:
         return theta, 0
-    if bad.numel() > max_pixels:
-        bad = bad[torch.topk(cost[bad], max_pixels).indices]
-    # Own parameters and the 8 neighbours' (replicated border), same class only.
-    r, col = bad // size, bad % size
-    base_list, valid_list = [], []
-    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
-        base_list.append(theta[q])
-        valid_list.append(metal[q, 0] == metal[bad, 0])
-    bases = torch.stack(base_list, 1)  # (B, 9, 7)
-    valid = torch.stack(valid_list, 1)  # (B, 9)
-    slopes = _candidate_slopes(theta.dtype, theta.device)  # (K, 2)
+    cost, bad, bases, valid = found
+    slopes = candidate_slopes(theta.dtype, theta.device)  # (K, 2)
     nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
     cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
     cand[:, :, 1:, 5:7] = slopes[None, None]  # index 0 keeps the base's own normal
