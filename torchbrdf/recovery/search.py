@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.recovery.classes import evidence_threshold, pixel_noise_variance
@@ -50,13 +51,21 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     un = None if unary is None else (unary[0][rows], unary[1][rows])
     wx, wy = edge_weights(theta, metal, size, cfg)
     n, c = rows.numel(), theta.shape[1]
-    own, own_metal = theta.index_select(0, rows), metal.index_select(0, rows)
-    nb = neighbour_rows(rows, size).reshape(-1)  # (8 N,)
-    cand = theta.index_select(0, nb).view(-1, n, c)  # (8, N, 7)
-    cm = metal.index_select(0, nb).view(-1, n, 1)
-    # The choice is made on channel-first planes of the candidates: the maps that come out
-    # keep that layout, and later float sums over a pixel's unknowns round by it.
-    planes = theta.T.contiguous().index_select(1, nb).view(c, -1, n).permute(1, 2, 0)
+    if active is None:
+        # Every pixel: the candidates are the map shifted by one pixel (replicated border), as
+        # channel planes (8, 7, P) viewed (8, P, 7): slices, no gather. The maps that come out
+        # keep that layout (later float sums over a pixel's unknowns round by it), and the
+        # decode and the kernels read each unknown as one contiguous run.
+        own, own_metal = theta, metal
+        pad = F.pad(torch.cat((theta, metal), 1).T.reshape(1, c + 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
+        shifted = torch.stack([pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size] for dy, dx in NEIGHBOURS])
+        shifted = shifted.view(len(NEIGHBOURS), c + 1, n).transpose(1, 2)  # (8, P, 8)
+        cand, cm = shifted[..., :c], shifted[..., c:]
+    else:
+        own, own_metal = theta.index_select(0, rows), metal.index_select(0, rows)
+        nb = neighbour_rows(rows, size).reshape(-1)  # (8 N,)
+        cand = theta.index_select(0, nb).view(-1, n, c)  # (8, N, 7)
+        cm = metal.index_select(0, nb).view(-1, n, 1)
     same = cm == own_metal
     at = None if active is None else rows
     own_prior = local_prior(own, theta, wx, wy, size, at) + unary_cost(own, un)
@@ -94,7 +103,7 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
             score = torch.where(same[k], data_cost[k] + prior[k],
                                 data_cost[k] + torch.where(cm[k] > 0.5, price, -price) + own_prior)
         better = score < best_score
-        best = torch.where(better, planes[k], best)
+        best = torch.where(better, cand[k], best)
         best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
     if active is not None:
