@@ -133,7 +133,8 @@ def neighbour_rows(rows: Tensor, size: int) -> Tensor:
     return ((r + off[:, :1]).clamp(0, size - 1) * size + (col + off[:, 1:]).clamp(0, size - 1))
 
 
-def candidate_slopes(dtype: torch.dtype, device: torch.device | str, tilts=(8.0, 16.0, 24.0, 32.0, 40.0),
+def candidate_slopes(dtype: torch.dtype, device: torch.device | str,
+                     tilts: tuple[float, ...] = (8.0, 16.0, 24.0, 32.0, 40.0),
                      azimuths: int = 8) -> Tensor:
     """Normal slopes ``(K, 2)`` of :func:`normal_search`: the flat normal and a polar grid of tilts (degrees)."""
     out = [torch.zeros(1, 2, dtype=torch.float64)]
