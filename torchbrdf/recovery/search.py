@@ -48,7 +48,7 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     rows = torch.arange(p_all, device=theta.device) if active is None else active.nonzero()[:, 0]
     if rows.numel() == 0:
         return theta, metal, torch.zeros(p_all, dtype=torch.bool, device=theta.device)
-    un = None if unary is None else (unary[0][rows], unary[1][rows])
+    un = unary if unary is None or active is None else (unary[0][rows], unary[1][rows])
     wx, wy = edge_weights(theta, metal, size, cfg)
     n, c = rows.numel(), theta.shape[1]
     if active is None:
