@@ -149,20 +149,21 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Set
     hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + laplacian_diag(wx, wy, size)
     hess = jtj + torch.diag_embed(lam * (hd + 1e-6))  # per-pixel Marquardt damping
     step = pcg(hess, wx, wy, -g, size, cfg.cg_iters)
-    step = torch.where(torch.isfinite(step), step, torch.zeros_like(step)).clamp(-3, 3)
+    step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0).clamp(-3, 3)
+    inf = float("inf")  # (a non-finite cost is +inf: it never wins, and n_nonfinite counts it)
     c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size) + unary_cost(theta, unary)
-    c0 = torch.where(torch.isfinite(c0), c0, torch.full_like(c0, float("inf")))
+    c0 = torch.nan_to_num(c0, nan=inf, posinf=inf, neginf=inf)
     cand = theta + lr * step
     r1 = fn(cand)
     c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size) + unary_cost(cand, unary)
-    c1 = torch.where(torch.isfinite(c1), c1, torch.full_like(c1, float("inf")))
+    c1 = torch.nan_to_num(c1, nan=inf, posinf=inf, neginf=inf)
     better = c1 < c0
     theta = torch.where(better, cand, theta)
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
     cost = torch.where(better, c1, c0)
     if extra is not None:
         extra["residual"] = torch.where(better, r1, r0)
-    return theta, lam, cost, int((~torch.isfinite(c1)).sum())
+    return theta, lam, cost, int((c1 == inf).sum())
 
 
 def newton_step(jtj: Tensor, g: Tensor, held: Tensor | None = None, chunk: int = 65536) -> Tensor:

@@ -43,59 +43,131 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
 
     Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
     """
-    size, c = data.size, theta.shape[1]
-    rows = None if active is None else active.nonzero()[:, 0]
-    if rows is not None and rows.numel() == 0:
-        return theta, metal, torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
-
-    def sel(x: Tensor) -> Tensor:
-        return x if rows is None else x[rows]
-
-    def cost(t: Tensor, m: Tensor) -> Tensor:
-        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
-        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
-
-    un = None if unary is None else (sel(unary[0]), sel(unary[1]))
+    size = data.size
+    p_all = theta.shape[0]
+    rows = torch.arange(p_all, device=theta.device) if active is None else active.nonzero()[:, 0]
+    if rows.numel() == 0:
+        return theta, metal, torch.zeros(p_all, dtype=torch.bool, device=theta.device)
+    un = unary if unary is None or active is None else (unary[0][rows], unary[1][rows])
     wx, wy = edge_weights(theta, metal, size, cfg)
-    own, own_metal = sel(theta), sel(metal)
+    n, c = rows.numel(), theta.shape[1]
+    if active is None:
+        # Every pixel: the candidates are the map shifted by one pixel (replicated border), as
+        # channel planes (8, 7, P) viewed (8, P, 7): slices, no gather. The maps that come out
+        # keep that layout (later float sums over a pixel's unknowns round by it), and the
+        # decode and the kernels read each unknown as one contiguous run.
+        own, own_metal = theta, metal
+        pad = F.pad(torch.cat((theta, metal), 1).T.reshape(1, c + 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
+        shifted = torch.stack([pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size] for dy, dx in NEIGHBOURS])
+        shifted = shifted.view(len(NEIGHBOURS), c + 1, n).transpose(1, 2)  # (8, P, 8)
+        cand, cm = shifted[..., :c], shifted[..., c:]
+    else:
+        own, own_metal = theta.index_select(0, rows), metal.index_select(0, rows)
+        nb = neighbour_rows(rows, size).reshape(-1)  # (8 N,)
+        cand = theta.index_select(0, nb).view(-1, n, c)  # (8, N, 7)
+        cm = metal.index_select(0, nb).view(-1, n, 1)
+    same = cm == own_metal
+    at = None if active is None else rows
+    own_prior = local_prior(own, theta, wx, wy, size, at) + unary_cost(own, un)
+    prior = local_prior(cand, theta, wx, wy, size, at) + unary_cost(cand, un)  # (8, N, 1)
+    if active is None:
+        # Every pixel: each candidate set is rendered at the level's own targets, with no gather.
+        # (Stacking the 9 sets into one call renders the same lanes but gathers 9 × P rows of
+        # targets, 192 bytes each at 16 lights: that took more time than the 8 calls it saved.)
+        own_cost = _data_cost(data, own, own_metal, cfg.model, None)
+        data_cost = torch.stack([_data_cost(data, cand[k], cm[k], cfg.model, None) for k in range(cand.shape[0])])
+    else:
+        # Some pixels: every render of the pass in one fused call, the own parameters and then
+        # the candidates stacked along the pixel axis (one gather of their targets). Not
+        # rendered: a neighbour of the other class without class_sigma2 (it never competes),
+        # and one of the pixel's class with the pixel's own parameters (a region that took one
+        # value in the last pass): its score would equal the pixel's own, which a candidate
+        # must beat.
+        own_again = same & (cand == own).all(-1, keepdim=True)
+        wanted = (same if class_sigma2 is None else torch.ones_like(same)) & ~own_again
+        k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
+        c_all = _data_cost(data, torch.cat((own, cand[k_idx, n_idx])), torch.cat((own_metal, cm[k_idx, n_idx])),
+                           cfg.model, torch.cat((rows, rows.index_select(0, n_idx))))
+        own_cost = c_all[:n]
+        data_cost = torch.full_like(prior, float("inf"))
+        data_cost[k_idx, n_idx] = c_all[n:]
     best, best_metal = own, own_metal
-    own_cost = cost(own, own_metal)
-    own_prior = sel(local_prior(theta, theta, wx, wy, size)) + unary_cost(own, un)
     best_score = own_cost + own_prior
     tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
     n_res = 3 * len(data.train_idx)
-    pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
-    padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
-    for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        cand_all = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
-        cand = sel(cand_all)
-        cm = sel(padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T)
-        same = cm == own_metal
-        prior = sel(local_prior(cand_all, theta, wx, wy, size)) + unary_cost(cand, un)
+    for k in range(cand.shape[0]):  # in the neighbours' order: the first of equal scores wins
         if class_sigma2 is None:
-            score = torch.where(same, cost(cand, own_metal) + prior, float("inf"))
+            score = torch.where(same[k], data_cost[k] + prior[k], float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
-            data_cost = cost(cand, cm)
-            price = tau * pixel_noise_variance(own_cost, data_cost, class_sigma2, n_res)
-            score = torch.where(same, data_cost + prior,
-                                data_cost + torch.where(cm > 0.5, price, -price) + own_prior)
+            price = tau * pixel_noise_variance(own_cost, data_cost[k], class_sigma2, n_res)
+            score = torch.where(same[k], data_cost[k] + prior[k],
+                                data_cost[k] + torch.where(cm[k] > 0.5, price, -price) + own_prior)
         better = score < best_score
-        best = torch.where(better, cand, best)
-        best_metal = torch.where(better, cm, best_metal)
+        best = torch.where(better, cand[k], best)
+        best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
-    if rows is not None:
+    if active is not None:
         best = theta.index_copy(0, rows, best)
         best_metal = metal.index_copy(0, rows, best_metal)
     return best, best_metal, (best != theta).any(-1)
 
 
-def _candidate_slopes(dtype, device, tilts=(8.0, 16.0, 24.0, 32.0, 40.0), azimuths: int = 8) -> Tensor:
-    """Normal slopes ``(K, 2)``: the flat normal and a polar grid of tilts (degrees)."""
+def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
+    """The summed squared residuals ``(N, 1)`` on the training lights (NaN: +inf), as :meth:`LevelData.residual`."""
+    r = data.residual(theta, metal, data.train_idx, model, rows=rows)
+    return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+
+
+#: The 8 neighbours' offsets ``(dy, dx)`` in the order :func:`propagate` tries them.
+NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
+
+def neighbour_rows(rows: Tensor, size: int) -> Tensor:
+    """The 8 neighbours (:data:`NEIGHBOURS` order) of pixels ``rows (N,)`` of a ``size²`` map ``(8, N)``.
+
+    Row-major pixel indices (int64, ``rows``' device); at the border the nearest pixel inside
+    (replicated edge), so a border pixel may list itself.
+    """
+    r, col = rows // size, rows % size
+    off = torch.tensor(NEIGHBOURS, device=rows.device)
+    return ((r + off[:, :1]).clamp(0, size - 1) * size + (col + off[:, 1:]).clamp(0, size - 1))
+
+
+def candidate_slopes(dtype: torch.dtype, device: torch.device | str,
+                     tilts: tuple[float, ...] = (8.0, 16.0, 24.0, 32.0, 40.0),
+                     azimuths: int = 8) -> Tensor:
+    """Normal slopes ``(K, 2)`` of :func:`normal_search`: the flat normal and a polar grid of tilts (degrees)."""
     out = [torch.zeros(1, 2, dtype=torch.float64)]
     for k, t in enumerate(tilts):
         az = (torch.arange(azimuths, dtype=torch.float64) + 0.5 * (k % 2)) * (2 * math.pi / azimuths)
         out.append(math.tan(math.radians(t)) * torch.stack((az.cos(), az.sin()), -1))
     return torch.cat(out).to(dtype=dtype, device=device)
+
+
+def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
+                 max_pixels: int = 4096) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """The pixels :func:`normal_search` searches and the parameters it starts from, or None (no such pixel).
+
+    Arguments as there. Returns ``(cost (P,), bad (B,), bases (B, 9, 7), valid (B, 9))``: every
+    pixel's data cost, the searched pixels (int64), their own and 8 neighbours' parameters
+    (replicated border) and whether each base is of the pixel's class.
+    """
+    size = data.size
+    idx = data.train_idx
+    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
+    bad = torch.nonzero(cost > thr).flatten()
+    if bad.numel() == 0:
+        return None
+    if bad.numel() > max_pixels:
+        bad = bad[torch.topk(cost[bad], max_pixels).indices]
+    r, col = bad // size, bad % size
+    base_list, valid_list = [], []
+    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
+        base_list.append(theta[q])
+        valid_list.append(metal[q, 0] == metal[bad, 0])
+    return cost, bad, torch.stack(base_list, 1), torch.stack(valid_list, 1)
 
 
 def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
@@ -111,38 +183,38 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
 
     Returns ``(theta (P, 7), number of pixels changed)``.
     """
-    size, c = data.size, theta.shape[1]
-    idx = data.train_idx
-    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
-    thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
-    bad = torch.nonzero(cost > thr).flatten()
-    if bad.numel() == 0:
+    c, idx = theta.shape[1], data.train_idx
+    found = search_bases(data, theta, metal, model, factor, max_pixels)
+    if found is None:
         return theta, 0
-    if bad.numel() > max_pixels:
-        bad = bad[torch.topk(cost[bad], max_pixels).indices]
-    # Own parameters and the 8 neighbours' (replicated border), same class only.
-    r, col = bad // size, bad % size
-    base_list, valid_list = [], []
-    for dy, dx in ((0, 0), (-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        q = (r + dy).clamp(0, size - 1) * size + (col + dx).clamp(0, size - 1)
-        base_list.append(theta[q])
-        valid_list.append(metal[q, 0] == metal[bad, 0])
-    bases = torch.stack(base_list, 1)  # (B, 9, 7)
-    valid = torch.stack(valid_list, 1)  # (B, 9)
-    slopes = _candidate_slopes(theta.dtype, theta.device)  # (K, 2)
+    cost, bad, bases, valid = found
+    slopes = candidate_slopes(theta.dtype, theta.device)  # (K, 2)
     nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
     cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
     cand[:, :, 1:, 5:7] = slopes[None, None]  # index 0 keeps the base's own normal
+    # Rendered: the candidates of same-class bases, except repeats of an earlier base's (a
+    # neighbour with the same parameters as one before it; with the same material, the
+    # normal grid's candidates repeat). A repeat's cost equals its first's, which comes first
+    # and wins a tie, so leaving it out changes nothing.
+    earlier = torch.ones(nbase, nbase, dtype=torch.bool, device=theta.device).tril(-1)  # [j, i]: i < j
+    same_material = (bases[:, :, None, :5] == bases[:, None, :, :5]).all(-1) & earlier & valid[:, None, :]
+    same_base = same_material & (bases[:, :, None, 5:] == bases[:, None, :, 5:]).all(-1)
+    render = valid[:, :, None].expand(nb, nbase, k + 1).clone()
+    render[:, :, 0] &= ~same_base.any(-1)
+    render[:, :, 1:] &= ~same_material.any(-1, keepdim=True)
     cand = cand.reshape(nb, -1, c)
-    ccost = torch.empty(cand.shape[:2], dtype=theta.dtype, device=theta.device)
-    chunk = max(1, 65536 // cand.shape[1])
-    for s0 in range(0, nb, chunk):
+    b_idx, j_idx = render.reshape(nb, -1).nonzero(as_tuple=True)
+    pix = bad.index_select(0, b_idx)
+    flat = cand[b_idx, j_idx]
+    m_flat = metal.index_select(0, pix)
+    cost_flat = torch.empty(b_idx.numel(), dtype=theta.dtype, device=theta.device)
+    chunk = 65536  # candidate pixels per render
+    for s0 in range(0, b_idx.numel(), chunk):
         sl = slice(s0, s0 + chunk)
-        n = cand[sl].shape[0]
-        rows = bad[sl].repeat_interleave(cand.shape[1])
-        rr = data.residual(cand[sl].reshape(-1, c), metal[rows], idx, model, rows=rows)
-        ccost[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf")).reshape(n, -1)
-    ccost = torch.where(valid[:, :, None].expand(nb, nbase, k + 1).reshape(nb, -1), ccost, float("inf"))
+        rr = data.residual(flat[sl], m_flat[sl], idx, model, rows=pix[sl])
+        cost_flat[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf"))
+    ccost = torch.full(cand.shape[:2], float("inf"), dtype=theta.dtype, device=theta.device)
+    ccost[b_idx, j_idx] = cost_flat
     best_cost, best = ccost.min(1)
     better = best_cost < cost[bad]
     theta = theta.clone()

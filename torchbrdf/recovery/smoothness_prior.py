@@ -202,14 +202,37 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     return out
 
 
-def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
-    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(P, 1)``: the change
-    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``."""
+def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
+                rows: Tensor | None = None) -> Tensor:
+    """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(*, N, 1)``: the change
+    of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``.
+
+    ``cand (*, N, C)``: values for the pixels ``rows (N,)`` (int64; None: all ``P`` pixels in
+    order), any number of candidate sets at once along the leading dims; ``theta (P, C)`` the
+    map the neighbours keep, ``wx``, ``wy`` its edge weights. The terms are added in one order
+    (right, left, lower, upper neighbour) whatever the batch or the rows, so a candidate's
+    value does not depend on which others share the call. ``cand``'s dtype and device.
+    """
     c = theta.shape[1]
-    a, t = cand.reshape(size, size, c), theta.reshape(size, size, c)
-    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
-    e[:, :-1] += (wx * (a[:, :-1] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
-    e[:, 1:] += (wx * (a[:, 1:] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
-    e[:-1] += (wy * (a[:-1] - t[1:]) ** 2).sum(-1, keepdim=True)
-    e[1:] += (wy * (a[1:] - t[:-1]) ** 2).sum(-1, keepdim=True)
-    return e.reshape(-1, 1)
+    if size < 2:  # a single pixel has no neighbours
+        return cand.new_zeros(*cand.shape[:-1], 1)
+    if rows is None:  # every pixel: the edges are slices of the image (no gather)
+        a, t = cand.reshape(*cand.shape[:-2], size, size, c), theta.reshape(size, size, c)
+        e = torch.zeros(*a.shape[:-1], 1, dtype=cand.dtype, device=cand.device)
+        e[..., :, :-1, :] += (wx * (a[..., :, :-1, :] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
+        e[..., :, 1:, :] += (wx * (a[..., :, 1:, :] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
+        e[..., :-1, :, :] += (wy * (a[..., :-1, :, :] - t[1:]) ** 2).sum(-1, keepdim=True)
+        e[..., 1:, :, :] += (wy * (a[..., 1:, :, :] - t[:-1]) ** 2).sum(-1, keepdim=True)
+        return e.reshape(*cand.shape[:-1], 1)
+    i, j = rows // size, rows % size
+    last = size - 1
+    # (neighbour, its edge's row in wx or wy, whether it exists): a missing neighbour's indices
+    # are clamped into range and its term dropped (not weighted by 0: a non-finite value stays out).
+    edges = ((wx, rows + 1, i * last + j, j < last), (wx, rows - 1, i * last + j - 1, j > 0),
+             (wy, rows + size, i * size + j, i < last), (wy, rows - size, (i - 1) * size + j, i > 0))
+    terms = []
+    for w, q, w_row, has in edges:
+        wq = w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1))
+        term = (wq * (cand - theta.index_select(0, q.clamp(0, size * size - 1))) ** 2).sum(-1, keepdim=True)
+        terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
+    return terms[0] + terms[1] + terms[2] + terms[3]

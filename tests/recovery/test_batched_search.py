@@ -1,0 +1,200 @@
+"""The batched propagation, normal search and smoothness-prior terms against their per-candidate loops.
+
+The references below are the plain loops (one render per candidate, image-shaped prior
+terms); the library evaluates every candidate of a pass in one fused call. Results must be
+the same bit for bit: a candidate mapped to the wrong pixel or slot changes them.
+"""
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from torchbrdf.recovery import classes, lm, map_ops, search, smoothness_prior
+from torchbrdf.recovery.config import Settings
+from torchbrdf.recovery.params import N_PARAMS
+
+from tests.recovery.recovery_fixtures import flat_level
+
+
+def reference_local_prior(cand, theta, wx, wy, size):
+    """``Σ_q w_pq (cand_p − θ_q)²`` ``(P, 1)`` on image-shaped slices (the loop's form)."""
+    c = theta.shape[1]
+    a, t = cand.reshape(size, size, c), theta.reshape(size, size, c)
+    e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
+    e[:, :-1] += (wx * (a[:, :-1] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
+    e[:, 1:] += (wx * (a[:, 1:] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
+    e[:-1] += (wy * (a[:-1] - t[1:]) ** 2).sum(-1, keepdim=True)
+    e[1:] += (wy * (a[1:] - t[:-1]) ** 2).sum(-1, keepdim=True)
+    return e.reshape(-1, 1)
+
+
+def reference_propagate(data, theta, metal, cfg, class_sigma2=None, unary=None, active=None):
+    """:func:`search.propagate` as a loop over the 8 neighbours, one render each."""
+    size, c = data.size, theta.shape[1]
+    rows = None if active is None else active.nonzero()[:, 0]
+
+    def sel(x):
+        return x if rows is None else x[rows]
+
+    def cost(t, m):
+        r = data.residual(t, m, data.train_idx, cfg.model, rows=rows)
+        return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+
+    un = None if unary is None else (sel(unary[0]), sel(unary[1]))
+    wx, wy = smoothness_prior.edge_weights(theta, metal, size, cfg)
+    own, own_metal = sel(theta), sel(metal)
+    best, best_metal = own, own_metal
+    own_cost = cost(own, own_metal)
+    own_prior = sel(reference_local_prior(theta, theta, wx, wy, size)) + lm.unary_cost(own, un)
+    best_score = own_cost + own_prior
+    tau = classes.evidence_threshold(N_PARAMS, cfg.false_metal_rate)
+    n_res = 3 * len(data.train_idx)
+    pad = F.pad(theta.T.reshape(1, c, size, size), (1, 1, 1, 1), mode="replicate")[0]
+    padm = F.pad(metal.T.reshape(1, 1, size, size), (1, 1, 1, 1), mode="replicate")[0]
+    for dy, dx in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+        cand_all = pad[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(c, -1).T
+        cand = sel(cand_all)
+        cm = sel(padm[:, 1 + dy: 1 + dy + size, 1 + dx: 1 + dx + size].reshape(1, -1).T)
+        same = cm == own_metal
+        prior = sel(reference_local_prior(cand_all, theta, wx, wy, size)) + lm.unary_cost(cand, un)
+        if class_sigma2 is None:
+            score = torch.where(same, cost(cand, own_metal) + prior, float("inf"))
+        else:
+            data_cost = cost(cand, cm)
+            price = tau * classes.pixel_noise_variance(own_cost, data_cost, class_sigma2, n_res)
+            score = torch.where(same, data_cost + prior,
+                                data_cost + torch.where(cm > 0.5, price, -price) + own_prior)
+        better = score < best_score
+        best = torch.where(better, cand, best)
+        best_metal = torch.where(better, cm, best_metal)
+        best_score = torch.where(better, score, best_score)
+    if rows is not None:
+        best = theta.index_copy(0, rows, best)
+        best_metal = metal.index_copy(0, rows, best_metal)
+    return best, best_metal, (best != theta).any(-1)
+
+
+def rough_state(size=12, seed=0, dtype=torch.float32):
+    """A level and a noisy fit of it with a metal patch: every neighbour a different candidate."""
+    data, theta, metal = flat_level(size=size, lights=6)
+    gen = torch.Generator().manual_seed(seed)
+    theta = theta + 0.6 * torch.randn(theta.shape, generator=gen)
+    theta[:, 5:7] *= 0.3
+    metal = metal.clone().reshape(size, size)
+    metal[2:7, 3:9] = 1.0
+    metal[8, 1] = 1.0  # a lone metal pixel
+    return data, theta.to(dtype), metal.reshape(-1, 1).to(dtype)
+
+
+def test_local_prior_of_stacked_candidates_equals_the_image_form():
+    size = 7
+    gen = torch.Generator().manual_seed(1)
+    wx = torch.rand(size, size - 1, 7, generator=gen)
+    wy = torch.rand(size - 1, size, 7, generator=gen)
+    theta = torch.randn(size * size, 7, generator=gen)
+    cands = torch.randn(3, size * size, 7, generator=gen)
+    got = smoothness_prior.local_prior(cands, theta, wx, wy, size)
+    assert got.shape == (3, size * size, 1)
+    for k in range(3):
+        assert torch.equal(got[k], reference_local_prior(cands[k], theta, wx, wy, size))
+    rows = torch.tensor([48, 0, 6, 24, 42, 3])  # corners, an edge, the middle, out of order
+    at = smoothness_prior.local_prior(cands[:, rows], theta, wx, wy, size, rows)
+    assert torch.equal(at, got[:, rows])
+    assert torch.equal(smoothness_prior.local_prior(theta[:1], theta[:1], wx[:1, :0], wy[:0, :1], 1),
+                       torch.zeros(1, 1))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cross", [None, 1e-3])
+def test_batched_propagation_equals_the_per_candidate_loop(dtype, cross):
+    data, theta, metal = rough_state(dtype=dtype)
+    data.points, data.camera = data.points.to(dtype), data.camera.to(dtype)
+    data.pos, data.inten, data._log_obs = data.pos.to(dtype), data.inten.to(dtype), data._log_obs.to(dtype)
+    cfg = Settings()
+    got = search.propagate(data, theta, metal, cfg, class_sigma2=cross)
+    ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)
+    assert bool(ref[2].any()) and not bool(ref[2].all())  # some pixels move, not all
+    if cross is not None:
+        assert not torch.equal(ref[1], metal)  # ... and some change class
+    for a, b in zip(got, ref):
+        # (the layout too: the fit's later float sums over a pixel's unknowns round by it)
+        assert torch.equal(a, b) and a.stride() == b.stride()
+
+
+def test_batched_propagation_with_a_unary_prior_and_active_pixels_equals_the_loop():
+    data, theta, metal = rough_state(seed=3)
+    gen = torch.Generator().manual_seed(4)
+    unary = (theta + 0.3 * torch.randn(theta.shape, generator=gen), torch.rand(theta.shape, generator=gen))
+    cfg = Settings()
+    changed = reference_propagate(data, theta, metal, cfg)[2]
+    active = map_ops.dilate(changed, data.size) & (torch.rand(theta.shape[0], generator=gen) < 0.7)
+    for cross in (None, 1e-3):
+        got = search.propagate(data, theta, metal, cfg, class_sigma2=cross, unary=unary, active=active)
+        ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross, unary=unary, active=active)
+        assert bool(ref[2].any())
+        for a, b in zip(got, ref):
+            assert torch.equal(a, b) and a.stride() == b.stride()
+    none = search.propagate(data, theta, metal, cfg, active=torch.zeros_like(active))
+    assert none[0] is theta and not bool(none[2].any())
+
+
+def test_neighbour_rows_replicate_the_border():
+    rows = torch.tensor([0, 2, 5, 15])  # corners, a top-edge pixel, an inside one of a 4x4 map
+    assert search.neighbour_rows(rows, 4).T.tolist() == [[0, 0, 1, 0, 1, 4, 4, 5], [1, 2, 3, 1, 3, 5, 6, 7],
+                                                         [0, 1, 2, 4, 6, 8, 9, 10],
+                                                         [10, 11, 11, 14, 15, 14, 15, 15]]
+
+
+def reference_normal_search(data, theta, metal, model, factor=10.0, max_pixels=4096):
+    """:func:`search.normal_search` rendering every candidate of every base, blocks of whole pixels."""
+    found = search.search_bases(data, theta, metal, model, factor, max_pixels)
+    if found is None:
+        return theta, 0
+    cost, bad, bases, valid = found
+    c, idx = theta.shape[1], data.train_idx
+    slopes = search.candidate_slopes(theta.dtype, theta.device)
+    nb, nbase, k = bad.numel(), bases.shape[1], slopes.shape[0]
+    cand = bases[:, :, None, :].expand(nb, nbase, k + 1, c).clone()
+    cand[:, :, 1:, 5:7] = slopes[None, None]
+    cand = cand.reshape(nb, -1, c)
+    ccost = torch.empty(cand.shape[:2], dtype=theta.dtype, device=theta.device)
+    chunk = max(1, 65536 // cand.shape[1])
+    for s0 in range(0, nb, chunk):
+        sl = slice(s0, s0 + chunk)
+        n = cand[sl].shape[0]
+        rows = bad[sl].repeat_interleave(cand.shape[1])
+        rr = data.residual(cand[sl].reshape(-1, c), metal[rows], idx, model, rows=rows)
+        ccost[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf")).reshape(n, -1)
+    ccost = torch.where(valid[:, :, None].expand(nb, nbase, k + 1).reshape(nb, -1), ccost, float("inf"))
+    best_cost, best = ccost.min(1)
+    better = best_cost < cost[bad]
+    theta = theta.clone()
+    theta[bad[better]] = cand[better, best[better]]
+    return theta, int(better.sum())
+
+
+def test_normal_search_without_repeated_candidates_equals_rendering_all():
+    # Bad pixels among neighbours that repeat each other's parameters (a region one value
+    # spread over) or only their material (the normal grid's candidates repeat), across a
+    # class boundary (the other class's bases are no candidates).
+    data, theta, metal = rough_state(size=12, seed=5)
+    img = theta.view(12, 12, 7)
+    img[4:8, 0:6] = img[5, 2]  # one value over a block, metal and dielectric pixels
+    img[0:4, 6:12, :5] = img[1, 8, :5]  # one material, the normals left as they were
+    img[0:4, 6:12, 5:7] *= 0.5
+    got = search.normal_search(data, theta, metal, "principled", factor=1.0)
+    ref = reference_normal_search(data, theta, metal, "principled", factor=1.0)
+    assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
+    few = search.normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)
+    assert few[1] == reference_normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)[1]
+
+
+def test_lm_step_counts_and_rejects_non_finite_costs():
+    data, theta, metal = rough_state(size=12, seed=6)
+    theta[[3, 100], 4] = float("nan")  # NaN costs there and, through the prior, at their 4-neighbours
+    lam = torch.full((theta.shape[0], 1), 1e-2)
+    new, lam1, cost, n_bad = lm.lm_step(data, theta, metal, lam, Settings(), 1.0)
+    bad = torch.isinf(cost[:, 0])
+    assert n_bad == int(bad.sum()) == 9 and bool(bad[[2, 3, 4, 15, 88, 99, 100, 101, 112]].all())
+    assert bool(torch.isnan(new[[3, 100], 4]).all()) and bool((lam1[bad] > lam[bad]).all())
+    assert bool(torch.isfinite(new[~bad]).all()) and bool(torch.isfinite(cost[~bad]).all())
