@@ -152,44 +152,19 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     s0 = log_scale[idx]
 
     r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model)
-    n = t0.shape[0]
-    ok = torch.isfinite(r).all(1) & torch.isfinite(cols).all(2).all(0)  # (n,)
-    if not bool(ok.any()):
-        return log_scale, offset
-    f64 = torch.float64
-    r = torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
-    cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
-    jp = cols[:N_PARAMS].permute(1, 0, 2)  # (n, 7, M)
+    # One sum per pixel carries any NaN or inf among its residuals and derivatives (a sum that
+    # overflows float32 marks derivatives beyond any meaningful scale: left out as well).
+    ok = torch.isfinite(r.sum(1) + cols.sum((0, 2)))  # (n,)
+    if not bool(ok.all()):
+        if not bool(ok.any()):
+            return log_scale, offset
+        r, cols, rows = r[ok], cols[:, ok], rows[ok]
     position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
     keep = slice(0, 4) if position else slice(3, 4)  # the light unknowns: offset xyz, log scale
-    jg = cols[N_PARAMS:].permute(1, 2, 0).reshape(n, n_l, 3, 4)[..., keep]  # (n, L, 3, G)
-    n_g = jg.shape[-1]
-    sigma2 = float(r[ok].pow(2).median()) + 1e-12
-    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0) * ok[:, None]  # Huber, (n, M)
-    jpw = jp * w[:, None, :]
-    a = torch.bmm(jpw, jp.transpose(1, 2))
-    a = a + torch.diag_embed(damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9)
-    # [B | gp] (n, 7, L G + 1) in one buffer, B = JpᵀW Jg a colour channel at a time (light-major,
-    # G inner): per light a (7, 3) by (3, G) product, too small for a batched matrix product.
-    jpw4, jgc = jpw.view(n, N_PARAMS, n_l, 3), jg.contiguous()
-    bg = jpw.new_empty(n, N_PARAMS, n_l * n_g + 1)
-    b, gp = bg[..., :-1], bg[..., -1]
-    b4 = b.view(n, N_PARAMS, n_l, n_g)
-    torch.mul(jpw4[..., 0, None], jgc[:, None, :, 0], out=b4)
-    for ch in (1, 2):
-        b4.addcmul_(jpw4[..., ch, None], jgc[:, None, :, ch])
-    torch.bmm(jpw, r[..., None], out=gp[..., None])  # (n, 7)
-    if map_prior is not None:
-        gp += torch.nan_to_num(map_prior[0][rows].to(f64)) * ok[:, None]
-        a = a + torch.diag_embed(torch.nan_to_num(map_prior[1][rows].to(f64)) * ok[:, None])
-    wr = (w * r).reshape(n, n_l, 3)
-    gg = torch.einsum("nlcg,nlc->lg", jg, wr).reshape(-1)  # (L G,)
-    c = torch.einsum("nlcg,nlc,nlch->lgh", jg, w.reshape(n, n_l, 3), jg)  # (L, G, G)
-    x = torch.linalg.inv(a) @ bg  # A⁻¹ [B | gp]: one inverse serves the 4 L + 1 right-hand sides
-    # Σ [B | gp]ᵀ A⁻¹ [B | gp] over every pixel's 7 rows, one matrix product: Σ BᵀA⁻¹B and Σ BᵀA⁻¹gp
-    gram = bg.view(-1, bg.shape[-1]).T @ x.view(-1, bg.shape[-1])
-    schur = torch.block_diag(*c) - gram[:-1, :-1]
-    rhs = gg - gram[:-1, -1]
+    prior_terms = None if map_prior is None else (map_prior[0][rows], map_prior[1][rows])
+    schur, rhs, sigma2 = _reduced_light_system(r, cols, keep, prior_terms, damping)
+    f64 = torch.float64
+    n_g = keep.stop - keep.start
     prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
                          device=r.device)[keep].repeat(n_l) * sigma2
     cur = torch.cat((offset[idx], s0[:, None]), -1)[:, keep].reshape(-1).to(f64)
@@ -213,6 +188,72 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     new_s[idx] = log_scale[idx] + step[:, -1]
     new_s[ref_idx] = new_s[ref_idx] - new_s[ref_idx].mean()
     return new_s.clamp(-0.3, 0.3), new_off
+
+
+def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
+                          damping: float) -> tuple[Tensor, Tensor, float]:
+    """The lights' reduced normal equations, each pixel's 7 unknowns eliminated (:func:`light_joint_step`).
+
+    ``r (n, M)`` residuals and ``cols (11, n, M)`` derivatives (``M = 3 L``, light-major; every
+    one finite) from :func:`_pixel_and_light_jacobians`; ``keep`` the light unknowns stepped
+    (``G`` of offset xyz, log scale); ``map_prior`` the pixels' prior gradient and curvature,
+    both ``(n, 7)``. Returns the Schur complement ``(L G, L G)`` and the reduced gradient
+    ``(L G,)`` (light-major, float64) and the residuals' robust variance σ².
+
+    Per pixel, with ``A = JpᵀWJp + H`` factored as ``LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` and
+    ``Σ YᵀY`` is ``Σ [B | gp]ᵀ A⁻¹ [B | gp]`` in one matrix product; ``Y`` is formed as
+    ``(L⁻¹ JpᵀW) Jg`` so that the triangular solve runs on the 3L residual columns rather than
+    the 4L + 1 light ones. Float64 from the products on: the reduced system is a difference of
+    two sums of positive terms, ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the
+    directions the maps almost absorb (float32 sums would leave those directions' curvature
+    to rounding).
+    """
+    f64 = torch.float64
+    n, m_cols = r.shape
+    n_l = m_cols // 3
+    n_g = keep.stop - keep.start
+    # the robust noise variance: the median of r² is the square of the median of |r|
+    sigma2 = float(r.abs().median()) ** 2 + 1e-12
+    r = r.to(f64)
+    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0)  # Huber, (n, M)
+    jp = cols[:N_PARAMS].transpose(0, 1).to(f64, memory_format=torch.contiguous_format)  # (n, 7, M)
+    jpw = jp * w[:, None, :]
+    a = torch.bmm(jpw, jp.transpose(1, 2))
+    diag = damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9
+    if map_prior is not None:
+        diag = diag + torch.nan_to_num(map_prior[1].to(f64))
+    a.diagonal(dim1=-2, dim2=-1).add_(diag)
+    chol, info = torch.linalg.cholesky_ex(a)
+    if bool(info.any()):  # not positive definite to rounding: a general solve of [B | gp] below
+        chol = None
+    # Per light, the G light unknowns and the residual as G + 1 columns over (pixel, colour):
+    # (L, G + 1, n, 3); one batched product gives Σ JgᵀWJg and Σ JgᵀWr.
+    aug = r.new_empty(n_l, n_g + 1, n, 3)
+    aug[:, :n_g] = cols[N_PARAMS:][keep].view(n_g, n, n_l, 3).permute(2, 0, 1, 3)
+    aug[:, n_g] = r.view(n, n_l, 3).transpose(0, 1)
+    augw = aug * w.view(n, n_l, 3).transpose(0, 1)[:, None]
+    gram_l = torch.bmm(augw.view(n_l, n_g + 1, -1), aug.view(n_l, n_g + 1, -1).transpose(1, 2))
+    c, gg = gram_l[:, :n_g, :n_g], gram_l[:, :n_g, n_g].reshape(-1)
+    # Z = L⁻¹ JpᵀW (or JpᵀW itself for the general solve), then [Z Jg | Z r + L⁻¹ g]
+    z = jpw if chol is None else torch.linalg.solve_triangular(chol, jpw, upper=False)
+    jgc = cols[N_PARAMS:][keep].permute(1, 2, 0).to(f64, memory_format=torch.contiguous_format)
+    jgc = jgc.view(n, n_l, 3, n_g)
+    y = z.new_empty(n, N_PARAMS, n_l * n_g + 1)
+    y4, z4 = y[..., :-1].view(n, N_PARAMS, n_l, n_g), z.view(n, N_PARAMS, n_l, 3)
+    # per light a (7, 3) by (3, G) product: a colour channel at a time (too small for bmm)
+    torch.mul(z4[..., 0, None], jgc[:, None, :, 0], out=y4)
+    for ch in (1, 2):
+        y4.addcmul_(z4[..., ch, None], jgc[:, None, :, ch])
+    torch.bmm(z, r[..., None], out=y[..., -1:])
+    if map_prior is not None:
+        g = torch.nan_to_num(map_prior[0].to(f64))[..., None]
+        y[..., -1:] += g if chol is None else torch.linalg.solve_triangular(chol, g, upper=False)
+    flat = y.view(-1, y.shape[-1])
+    if chol is None:
+        gram = flat.T @ torch.linalg.solve(a, y).view(-1, y.shape[-1])
+    else:
+        gram = flat.T @ flat  # Σ [B | gp]ᵀ A⁻¹ [B | gp]: Σ BᵀA⁻¹B and Σ BᵀA⁻¹gp
+    return torch.block_diag(*c) - gram[:-1, :-1], gg - gram[:-1, -1], sigma2
 
 
 def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,
