@@ -191,69 +191,112 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
 
 
 def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
-                          damping: float) -> tuple[Tensor, Tensor, float]:
+                          damping: float, chunk: int = 1024) -> tuple[Tensor, Tensor, float]:
     """The lights' reduced normal equations, each pixel's 7 unknowns eliminated (:func:`light_joint_step`).
 
     ``r (n, M)`` residuals and ``cols (11, n, M)`` derivatives (``M = 3 L``, light-major; every
     one finite) from :func:`_pixel_and_light_jacobians`; ``keep`` the light unknowns stepped
     (``G`` of offset xyz, log scale); ``map_prior`` the pixels' prior gradient and curvature,
-    both ``(n, 7)``. Returns the Schur complement ``(L G, L G)`` and the reduced gradient
+    both ``(n, 7)``. Returns the Schur complement ``(L G, L G)``, the reduced gradient
     ``(L G,)`` (light-major, float64) and the residuals' robust variance σ².
 
-    Per pixel, with ``A = JpᵀWJp + H`` factored as ``LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` and
-    ``Σ YᵀY`` is ``Σ [B | gp]ᵀ A⁻¹ [B | gp]`` in one matrix product; ``Y`` is formed as
-    ``(L⁻¹ JpᵀW) Jg`` so that the triangular solve runs on the 3L residual columns rather than
-    the 4L + 1 light ones. Float64 from the products on: the reduced system is a difference of
-    two sums of positive terms, ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the
-    directions the maps almost absorb (float32 sums would leave those directions' curvature
-    to rounding).
+    Per pixel, with ``A = JpᵀWJp + H = LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` makes
+    ``Σ [B | gp]ᵀ A⁻¹ [B | gp] = Σ YᵀY`` one matrix product. The sums run ``chunk`` pixels at
+    a time (:func:`_reduced_light_terms`), so that a chunk's float64 working set stays in
+    cache. Float64 from the products on: the reduced system is a difference of two sums of
+    positive terms, ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the
+    maps almost absorb.
+    """
+    n, m_cols = r.shape
+    n_l, n_g = m_cols // 3, keep.stop - keep.start
+    sigma2 = float(r.abs().median()) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
+    f64 = torch.float64
+    per_light = torch.zeros(n_l, n_g + 1, n_g + 1, dtype=f64, device=r.device)
+    gram = torch.zeros(n_l * n_g + 1, n_l * n_g + 1, dtype=f64, device=r.device)
+    for lo in range(0, n, chunk):
+        part = slice(lo, lo + chunk)
+        prior = None if map_prior is None else (map_prior[0][part], map_prior[1][part])
+        _reduced_light_terms(r[part], cols[:, part], keep, prior, damping, sigma2, per_light, gram)
+    schur = torch.block_diag(*per_light[:, :n_g, :n_g]) - gram[:-1, :-1]
+    return schur, per_light[:, :n_g, n_g].reshape(-1) - gram[:-1, -1], sigma2
+
+
+def _reduced_light_terms(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
+                         damping: float, sigma2: float, per_light: Tensor, gram: Tensor) -> None:
+    """Add a chunk of pixels' terms of :func:`_reduced_light_system`: ``[JgᵀWJg | JgᵀWr]`` per
+    light to ``per_light (L, G + 1, G + 1)`` and ``Σ [B | gp]ᵀ A⁻¹ [B | gp]`` to ``gram
+    (L G + 1, L G + 1)``.
+
+    ``Y = L⁻¹ [B | gp]`` is formed as ``(L⁻¹ JpᵀW) Jg``, so the triangular solve runs on the 3L
+    residual columns rather than the 4L + 1 light ones. Pixels are the innermost dimension:
+    the 7×7 factorisations and solves are a few dozen vector operations, not one tiny one per
+    pixel. A pixel whose ``A`` is not positive definite to rounding (never, as ``A`` carries
+    the damping) is left out.
     """
     f64 = torch.float64
     n, m_cols = r.shape
-    n_l = m_cols // 3
-    n_g = keep.stop - keep.start
-    # the robust noise variance: the median of r² is the square of the median of |r|
-    sigma2 = float(r.abs().median()) ** 2 + 1e-12
-    r = r.to(f64)
-    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0)  # Huber, (n, M)
-    jp = cols[:N_PARAMS].transpose(0, 1).to(f64, memory_format=torch.contiguous_format)  # (n, 7, M)
-    jpw = jp * w[:, None, :]
-    a = torch.bmm(jpw, jp.transpose(1, 2))
-    diag = damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9
+    n_l, n_g = m_cols // 3, keep.stop - keep.start
+    rt = r.T.to(f64, memory_format=torch.contiguous_format)  # (M, n)
+    w = (3.0 * math.sqrt(sigma2) / rt.abs().clamp(min=1e-30)).clamp(max=1.0)  # Huber, (M, n)
+    x = cols.permute(2, 0, 1).to(f64, memory_format=torch.contiguous_format)  # (M, 11, n)
+    jp = x[:, :N_PARAMS]
+    jg = x.view(n_l, 3, -1, n)[:, :, N_PARAMS + keep.start:N_PARAMS + keep.stop]  # (L, 3, G, n)
+    jpw = jp * w[:, None]
+    a = x.new_empty(N_PARAMS, N_PARAMS, n)
+    gp = x.new_empty(N_PARAMS, n)
+    for i in range(N_PARAMS):
+        gp[i] = torch.linalg.vecdot(jpw[:, i], rt, dim=0)
+        for j in range(i + 1):
+            a[j, i] = a[i, j] = torch.linalg.vecdot(jpw[:, i], jp[:, j], dim=0)
+    diag = a.diagonal(0, 0, 1)  # (n, 7), a view
+    extra = damping * diag + 1e-9
     if map_prior is not None:
-        diag = diag + torch.nan_to_num(map_prior[1].to(f64))
-    a.diagonal(dim1=-2, dim2=-1).add_(diag)
-    chol, info = torch.linalg.cholesky_ex(a)
-    if bool(info.any()):  # not positive definite to rounding: a general solve of [B | gp] below
-        chol = None
-    # Per light, the G light unknowns and the residual as G + 1 columns over (pixel, colour):
-    # (L, G + 1, n, 3); one batched product gives Σ JgᵀWJg and Σ JgᵀWr.
-    aug = r.new_empty(n_l, n_g + 1, n, 3)
-    aug[:, :n_g] = cols[N_PARAMS:][keep].view(n_g, n, n_l, 3).permute(2, 0, 1, 3)
-    aug[:, n_g] = r.view(n, n_l, 3).transpose(0, 1)
-    augw = aug * w.view(n, n_l, 3).transpose(0, 1)[:, None]
-    gram_l = torch.bmm(augw.view(n_l, n_g + 1, -1), aug.view(n_l, n_g + 1, -1).transpose(1, 2))
-    c, gg = gram_l[:, :n_g, :n_g], gram_l[:, :n_g, n_g].reshape(-1)
-    # Z = L⁻¹ JpᵀW (or JpᵀW itself for the general solve), then [Z Jg | Z r + L⁻¹ g]
-    z = jpw if chol is None else torch.linalg.solve_triangular(chol, jpw, upper=False)
-    jgc = cols[N_PARAMS:][keep].permute(1, 2, 0).to(f64, memory_format=torch.contiguous_format)
-    jgc = jgc.view(n, n_l, 3, n_g)
-    y = z.new_empty(n, N_PARAMS, n_l * n_g + 1)
-    y4, z4 = y[..., :-1].view(n, N_PARAMS, n_l, n_g), z.view(n, N_PARAMS, n_l, 3)
-    # per light a (7, 3) by (3, G) product: a colour channel at a time (too small for bmm)
-    torch.mul(z4[..., 0, None], jgc[:, None, :, 0], out=y4)
+        extra += torch.nan_to_num(map_prior[1].to(f64))
+        gp += torch.nan_to_num(map_prior[0].T.to(f64))
+    diag += extra
+    low, good = _cholesky_pixels(a)
+    if not bool(good.all()):
+        w, jpw, gp = w * good, jpw * good, gp * good
+    # per light, the G unknowns and the residual as G + 1 rows over (colour, pixel)
+    aug = x.new_empty(n_l, n_g + 1, 3, n)
+    aug[:, :n_g] = jg.transpose(1, 2)
+    aug[:, n_g] = rt.view(n_l, 3, n)
+    per_light.baddbmm_((aug * w.view(n_l, 1, 3, n)).view(n_l, n_g + 1, -1), aug.view(n_l, n_g + 1, -1).mT)
+    # L⁻¹ JpᵀW (M, 7, n) and L⁻¹ gp (7, n) by forward substitution
+    z = torch.empty_like(jpw)
+    for k in range(N_PARAMS):
+        acc, acc_g = jpw[:, k].clone(), gp[k]
+        for j in range(k):
+            acc.addcmul_(z[:, j], low[k, j], value=-1.0)
+            acc_g.addcmul_(gp[j], low[k, j], value=-1.0)
+        torch.div(acc, low[k, k], out=z[:, k])
+        acc_g.div_(low[k, k])
+    # Y (L G + 1, 7, n): per light and unknown Σ over colours of (L⁻¹ JpᵀW) Jg, then L⁻¹ gp
+    y = x.new_empty(n_l * n_g + 1, N_PARAMS, n)
+    y4, zl = y[:-1].view(n_l, n_g, N_PARAMS, n), z.view(n_l, 3, N_PARAMS, n)
+    torch.mul(zl[:, None, 0], jg[:, 0, :, None], out=y4)
     for ch in (1, 2):
-        y4.addcmul_(z4[..., ch, None], jgc[:, None, :, ch])
-    torch.bmm(z, r[..., None], out=y[..., -1:])
-    if map_prior is not None:
-        g = torch.nan_to_num(map_prior[0].to(f64))[..., None]
-        y[..., -1:] += g if chol is None else torch.linalg.solve_triangular(chol, g, upper=False)
-    flat = y.view(-1, y.shape[-1])
-    if chol is None:
-        gram = flat.T @ torch.linalg.solve(a, y).view(-1, y.shape[-1])
-    else:
-        gram = flat.T @ flat  # Σ [B | gp]ᵀ A⁻¹ [B | gp]: Σ BᵀA⁻¹B and Σ BᵀA⁻¹gp
-    return torch.block_diag(*c) - gram[:-1, :-1], gg - gram[:-1, -1], sigma2
+        y4.addcmul_(zl[:, None, ch], jg[:, ch, :, None])
+    y[-1] = gp
+    flat = y.view(y.shape[0], -1)
+    gram.addmm_(flat, flat.T)
+
+
+def _cholesky_pixels(a: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower Cholesky factors ``(k, k, n)`` of ``n`` symmetric ``a (k, k, n)``, pixels innermost,
+    and ``(n,)`` bool whether each is positive definite to rounding (a factor that is not has
+    a unit diagonal where it failed, so that solves with it stay finite)."""
+    k = a.shape[0]
+    low = torch.zeros_like(a)
+    good = torch.ones(a.shape[-1], dtype=torch.bool, device=a.device)
+    for j in range(k):
+        d = a[j, j] - low[j, :j].pow(2).sum(0)
+        ok = d > 0  # False for NaN too
+        good &= ok
+        low[j, j] = torch.where(ok, d, 1.0).sqrt()
+        if j + 1 < k:
+            low[j + 1:, j] = (a[j + 1:, j] - (low[j + 1:, :j] * low[j, :j]).sum(1)) / low[j, j]
+    return low, good
 
 
 def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,
