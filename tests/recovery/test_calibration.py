@@ -580,3 +580,64 @@ def test_coarse_dual_calibration_can_be_left_to_full_resolution(tiny):
         rec.tick()  # the full-resolution dual stage's first iteration estimates them
     assert float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean()) > 0.01
     assert float(rec.light_offset().abs().max()) > 0.0
+
+
+def test_the_light_steps_evidence_is_chi2_with_its_degrees_of_freedom():
+    """At the true lights, with the maps fitted, the step's ``δgᵀHδg / σ²`` is a χ² with K dof.
+
+    Noise alone puts the joint optimum about one posterior deviation per free direction from
+    the truth: over four noise draws the mean is within 0.6–1.5 K (26.7 of 28 here; with σ²
+    the median squared residual, not its Gaussian variance, it would be 2.2× lower). A light
+    estimate 2 cm from where the images were made gives a step far beyond that.
+    """
+    chi2 = []
+    for seed in range(4):
+        data, theta, metal = flat_level(size=16, lights=8, normal_tilt_deg=10.0)
+        gen = torch.Generator().manual_seed(seed)
+        data.log_obs = data.log_obs + 0.01 * torch.randn(data.log_obs.shape, generator=gen)
+        n_l = data.pos_stated.shape[0]
+        lam = torch.full((theta.shape[0], 1), 1e-3)
+        for _ in range(4):
+            theta, lam, _, _ = lm.lm_step(data, theta, metal, lam, Settings(), 1.0)
+        evidence = {}
+        calibration.light_joint_step(data, theta, metal, torch.zeros(n_l), torch.zeros(n_l, 3), list(range(n_l)),
+                                     "principled", evidence=evidence)
+        dof = evidence["dof"]
+        assert dof == 3 * n_l - 7 + n_l - 1  # the rig-free positions and the scales keeping their mean
+        chi2.append(evidence["chi2"])
+    assert 0.6 * dof < sum(chi2) / len(chi2) < 1.5 * dof, chi2
+    wrong = torch.zeros(n_l, 3)
+    wrong[2, 0] = 0.02  # the current estimate; the images were made at the stated place
+    evidence = {}
+    calibration.light_joint_step(data, theta, metal, torch.zeros(n_l), wrong, list(range(n_l)), "principled",
+                                 evidence=evidence)
+    assert evidence["chi2"] > 5 * dof, evidence  # 242 of 28 here
+
+
+@pytest.mark.parametrize("light_evidence", [True, False])
+def test_the_light_step_rests_for_the_rest_of_a_stage_once_below_noise(tiny, monkeypatch, light_evidence):
+    """Once a joint light step is below what noise alone gives (χ² under its dof), the stage's
+    later iterations skip it; the next stage steps the lights again (``light_evidence``)."""
+    calls = []
+
+    def below_noise(*args, evidence=None, **kwargs):
+        calls.append(rec.state["stage"])
+        evidence.update(chi2=0.5, dof=1.0)
+        return args[3], args[4]
+
+    monkeypatch.setattr(engine, "light_joint_step", below_noise)
+    rec = _recovery_with_a_brighter_light(tiny, light_evidence=light_evidence)
+    with torch.no_grad():
+        rec.init_state()
+        iterations = {}
+        while rec.state["stage"] < len(rec.plan) - 1:
+            stage = rec.state["stage"]
+            iterations[stage] = iterations.get(stage, 0) + 1
+            rec.tick()
+    calibrated = [s for s, (size, kind, _) in enumerate(rec.plan[:-1])
+                  if kind != "dual" or size == rec.plan[-1][0] or rec.cfg.dual_calibration_coarse]
+    if light_evidence:
+        assert calls == calibrated  # once per stage
+    else:
+        assert calls == [s for s in calibrated for _ in range(iterations[s])]
+        assert len(calls) > len(calibrated)

@@ -17,6 +17,10 @@ from torchbrdf.recovery.levels import LevelData, log_residual
 from torchbrdf.recovery.params import N_PARAMS, decode
 
 
+#: The median of χ² with one degree of freedom: median(r²) = 0.455 σ² for Gaussian residuals.
+_CHI2_1_MEDIAN = 0.45493642311957283
+
+
 def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: Tensor, model: str,
                         prior_sigma: float = 0.01, stride: int = 4, at_camera: bool = True) -> Tensor:
     """One Gauss–Newton update of the per-light position offsets ``(L, 3)`` (world units).
@@ -111,7 +115,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
                      ref_idx: list[int], model: str, position: bool = True,
                      map_prior: tuple[Tensor, Tensor] | None = None, scale_sigma: float = 0.1,
                      position_sigma: float = 0.01, max_pixels: int = 8192,
-                     damping: float = 1e-3, at_camera: bool = True) -> tuple[Tensor, Tensor]:
+                     damping: float = 1e-3, at_camera: bool = True,
+                     evidence: dict[str, float] | None = None) -> tuple[Tensor, Tensor]:
     """One Gauss–Newton step on the lights' log scales and offsets, the pixels' unknowns eliminated.
 
     ``theta (P, 7)``, ``metal (P, 1)`` the maps; ``log_scale (L,)`` and ``offset (L, 3)`` the
@@ -139,6 +144,19 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     them; nor, with ``at_camera=False``, a light beside the camera (:func:`camera_lights`). With
     ``position=False``, or fewer than 3 lights, only the scales are stepped. The
     result has ``log_scale``'s and ``offset``'s dtype and device (CPU or CUDA alike).
+
+    ``evidence``, a dict, receives what the step could still buy: ``"chi2"``, the step's
+    ``δgᵀ H δg / σ²`` over its ``"dof"`` = K free directions (the basis). ``H`` is the reduced
+    Hessian of ``½ Σ wr²`` plus the priors, so ``H / σ²`` is the lights' posterior precision
+    with the maps eliminated, and ``δgᵀ H δg / σ²`` is twice the decrease, in noise variances,
+    that the step predicts, and the squared distance to the optimum in posterior deviations.
+    Were the lights at the data's optimum, noise alone would put that optimum this far from
+    the truth: ``χ²`` with K degrees of freedom, mean K. A step below K moves the lights less
+    than their own uncertainty, which no further step of the stage can resolve
+    (:meth:`~torchbrdf.recovery.engine.Recovery.step` then skips the step until the next
+    stage). ``σ²`` here is the noise variance: the median squared residual over the median of
+    ``χ²₁`` (0.455), the median of one Gaussian residual's square. Left empty when no step is
+    taken.
     """
     idx = data.train_idx
     n_l = len(idx)
@@ -172,7 +190,11 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
                                                                  data.points.mean(0))
     basis, n_pos = _light_step_basis(data, ref_idx, position, held)  # (L G, K): the directions a step takes
     h = basis.T @ (schur + torch.diag(prior)) @ basis
-    step = (basis @ torch.linalg.solve(h, -(basis.T @ (rhs + prior * cur)))).reshape(n_l, n_g)
+    grad = basis.T @ (rhs + prior * cur)
+    coef = torch.linalg.solve(h, -grad)
+    step = (basis @ coef).reshape(n_l, n_g)
+    if evidence is not None:  # δgᵀHδg = −δgᵀ(reduced gradient), over σ² = median r² / median χ²₁
+        evidence.update(chi2=float(-(coef @ grad)) / (sigma2 / _CHI2_1_MEDIAN), dof=float(basis.shape[1]))
     if not bool(torch.isfinite(step).all()):
         return log_scale, offset
     step = step.to(theta.dtype)
