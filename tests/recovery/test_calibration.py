@@ -614,15 +614,16 @@ def test_the_light_steps_evidence_is_chi2_with_its_degrees_of_freedom():
     assert evidence["chi2"] > 5 * dof, evidence  # 242 of 28 here
 
 
-@pytest.mark.parametrize("light_evidence", [True, False])
+@pytest.mark.parametrize("light_evidence", [0.25, 0.0])
 def test_the_light_step_rests_for_the_rest_of_a_stage_once_below_noise(tiny, monkeypatch, light_evidence):
-    """Once a joint light step is below what noise alone gives (χ² under its dof), the stage's
-    later iterations skip it; the next stage steps the lights again (``light_evidence``)."""
+    """Once a joint light step is below a fraction ``light_evidence`` of what noise alone gives
+    (χ² under that × its dof), the stage's later iterations skip it; the next stage steps the
+    lights again. A step just above the fraction does not rest."""
     calls = []
 
-    def below_noise(*args, evidence=None, **kwargs):
+    def below_noise(*args, evidence=None, **kwargs):  # a stage's first step 0.3, then 0.2 of its dof
+        evidence.update(chi2=0.2 if calls and calls[-1] == rec.state["stage"] else 0.3, dof=1.0)
         calls.append(rec.state["stage"])
-        evidence.update(chi2=0.5, dof=1.0)
         return args[3], args[4]
 
     monkeypatch.setattr(engine, "light_joint_step", below_noise)
@@ -636,8 +637,9 @@ def test_the_light_step_rests_for_the_rest_of_a_stage_once_below_noise(tiny, mon
             rec.tick()
     calibrated = [s for s, (size, kind, _) in enumerate(rec.plan[:-1])
                   if kind != "dual" or size == rec.plan[-1][0] or rec.cfg.dual_calibration_coarse]
-    if light_evidence:
-        assert calls == calibrated  # once per stage
+    if light_evidence:  # 0.3 is above a quarter, 0.2 below: two steps per stage
+        assert calls == [s for s in calibrated for _ in range(min(2, iterations[s]))]
+        assert len(calls) < sum(iterations[s] for s in calibrated)
     else:
         assert calls == [s for s in calibrated for _ in range(iterations[s])]
         assert len(calls) > len(calibrated)

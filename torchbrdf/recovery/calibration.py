@@ -153,8 +153,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     Were the lights at the data's optimum, noise alone would put that optimum this far from
     the truth: ``χ²`` with K degrees of freedom, mean K. A step below K moves the lights less
     than their own uncertainty, which no further step of the stage can resolve
-    (:meth:`~torchbrdf.recovery.engine.Recovery.step` then skips the step until the next
-    stage). ``σ²`` here is the noise variance: the median squared residual over the median of
+    (:meth:`~torchbrdf.recovery.engine.Recovery.step` skips the step until the next stage
+    once it is below a fraction of K, ``Settings.light_evidence``). ``σ²`` here is the noise variance: the median squared residual over the median of
     ``χ²₁`` (0.455), the median of one Gaussian residual's square. Left empty when no step is
     taken.
     """
@@ -224,8 +224,8 @@ def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple
 
     Per pixel, with ``A = JpᵀWJp + H = LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` makes
     ``Σ [B | gp]ᵀ A⁻¹ [B | gp] = Σ YᵀY`` one matrix product. The sums run ``chunk`` pixels at
-    a time (:func:`_reduced_light_terms`), so that a chunk's float64 working set stays in
-    cache. Float64 from the products on: the reduced system is a difference of two sums of
+    a time (:func:`_reduced_light_terms`), so that a chunk's float64 working set (~4 MB at
+    1024 pixels and 17 lights) stays in cache; on a GPU in one chunk. Float64 from the products on: the reduced system is a difference of two sums of
     positive terms, ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the
     maps almost absorb.
     """
@@ -233,6 +233,8 @@ def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple
     n_l, n_g = m_cols // 3, keep.stop - keep.start
     sigma2 = float(r.abs().median()) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
     f64 = torch.float64
+    if r.device.type != "cpu":
+        chunk = n  # one launch per operation serves every pixel
     per_light = torch.zeros(n_l, n_g + 1, n_g + 1, dtype=f64, device=r.device)
     gram = torch.zeros(n_l * n_g + 1, n_l * n_g + 1, dtype=f64, device=r.device)
     for lo in range(0, n, chunk):

@@ -417,19 +417,20 @@ class Recovery:
         """The joint light step (:func:`light_joint_step`) at ``theta (P, 7)``, ``metal (P, 1)``
         of level ``size``, the maps' prior with the ``unary`` terms (or none).
 
-        Skipped for the rest of the stage once a step moved the lights less than noise alone
-        would (``light_evidence``; the step's χ² below its degrees of freedom, the derivation in
-        :func:`light_joint_step`): the lights are then known as well as this stage's maps allow.
+        Skipped for the rest of the stage once a step moved the lights by less than a fraction
+        ``light_evidence`` of what noise alone would (the step's χ² below that fraction of its
+        degrees of freedom, the derivation in :func:`light_joint_step`): the lights are then
+        known as well as this stage's maps allow.
         """
         st = self.state
-        if self.cfg.light_evidence and st.get("lights_settled") == st["stage"]:
+        if st.get("lights_settled") == st["stage"]:
             return
         evidence: dict[str, float] = {}
         st["light_log_scale"], st["light_offset"] = light_joint_step(
             data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx, self.cfg.model,
             position, map_prior_terms(theta, metal, size, self.cfg, unary), at_camera=at_camera,
             evidence=evidence)
-        if evidence and evidence["chi2"] < evidence["dof"]:
+        if evidence and evidence["chi2"] < self.cfg.light_evidence * evidence["dof"]:
             st["lights_settled"] = st["stage"]
         self._sync_light_scale()
 
