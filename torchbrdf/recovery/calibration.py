@@ -145,18 +145,17 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     ``position=False``, or fewer than 3 lights, only the scales are stepped. The
     result has ``log_scale``'s and ``offset``'s dtype and device (CPU or CUDA alike).
 
-    ``evidence``, a dict, receives what the step could still buy: ``"chi2"``, the step's
-    ``δgᵀ H δg / σ²`` over its ``"dof"`` = K free directions (the basis). ``H`` is the reduced
-    Hessian of ``½ Σ wr²`` plus the priors, so ``H / σ²`` is the lights' posterior precision
-    with the maps eliminated, and ``δgᵀ H δg / σ²`` is twice the decrease, in noise variances,
-    that the step predicts, and the squared distance to the optimum in posterior deviations.
-    Were the lights at the data's optimum, noise alone would put that optimum this far from
-    the truth: ``χ²`` with K degrees of freedom, mean K. A step below K moves the lights less
-    than their own uncertainty, which no further step of the stage can resolve
-    (:meth:`~torchbrdf.recovery.engine.Recovery.step` skips the step until the next stage
-    once it is below a fraction of K, ``Settings.light_evidence``). ``σ²`` here is the noise variance: the median squared residual over the median of
-    ``χ²₁`` (0.455), the median of one Gaussian residual's square. Left empty when no step is
-    taken.
+    ``evidence``, a dict, receives what the step could still buy: ``"chi2"`` = ``δgᵀ H δg / σ²``
+    and ``"dof"`` = K, the free directions (the basis). ``H`` is the reduced Hessian of
+    ``½ Σ wr²`` plus the priors, so ``H / σ²`` is the lights' posterior precision with the maps
+    eliminated: ``δgᵀ H δg / σ²`` is twice the cost decrease the step predicts, in noise
+    variances, and the step's squared length in posterior deviations. Noise alone puts the
+    data's optimum that far from the true lights with a ``χ²`` distribution of K degrees of
+    freedom (mean K): a step well below K moves the lights less than their own uncertainty,
+    which later steps at the same maps cannot resolve (:meth:`~torchbrdf.recovery.engine.Recovery.step`
+    skips the step for the rest of the stage below ``Settings.light_evidence`` × K). ``σ²`` is
+    the noise variance: the median squared residual over 0.455, the median of ``χ²₁``. Left
+    empty when no step is taken.
     """
     idx = data.train_idx
     n_l = len(idx)
@@ -225,9 +224,9 @@ def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple
     Per pixel, with ``A = JpᵀWJp + H = LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` makes
     ``Σ [B | gp]ᵀ A⁻¹ [B | gp] = Σ YᵀY`` one matrix product. The sums run ``chunk`` pixels at
     a time (:func:`_reduced_light_terms`), so that a chunk's float64 working set (~4 MB at
-    1024 pixels and 17 lights) stays in cache; on a GPU in one chunk. Float64 from the products on: the reduced system is a difference of two sums of
-    positive terms, ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the
-    maps almost absorb.
+    1024 pixels and 17 lights) stays in cache; on a GPU in one chunk. Float64 from the
+    products on: the reduced system is a difference of two sums of positive terms,
+    ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the maps almost absorb.
     """
     n, m_cols = r.shape
     n_l, n_g = m_cols // 3, keep.stop - keep.start
