@@ -614,20 +614,27 @@ def test_the_light_steps_evidence_is_chi2_with_its_degrees_of_freedom():
     assert evidence["chi2"] > 5 * dof, evidence  # 242 of 28 here
 
 
-@pytest.mark.parametrize("light_evidence", [0.25, 0.0])
-def test_the_light_step_rests_for_the_rest_of_a_stage_once_below_noise(tiny, monkeypatch, light_evidence):
-    """Once a joint light step is below a fraction ``light_evidence`` of what noise alone gives
-    (χ² under that × its dof), the stage's later iterations skip it; the next stage steps the
-    lights again. A step just above the fraction does not rest."""
+@pytest.mark.parametrize("light_rest", [True, False])
+def test_the_light_step_rests_once_the_iterations_left_could_not_move_it_beyond_noise(tiny, monkeypatch,
+                                                                                       light_rest):
+    """With ``m`` planned iterations left in the stage, the joint light step rests exactly when
+    ``m²`` times its χ² is below its degrees of freedom: a stage's first step 2 % above that,
+    its second 2 % below (a count of ``m`` left off by one, ``m`` instead of ``m²``, or a fixed
+    fraction of K would rest elsewhere). The next stage steps the lights again; with
+    ``light_rest=False`` every iteration steps them."""
     calls = []
+    dof = 5.0
 
-    def below_noise(*args, evidence=None, **kwargs):  # a stage's first step 0.3, then 0.2 of its dof
-        evidence.update(chi2=0.2 if calls and calls[-1] == rec.state["stage"] else 0.3, dof=1.0)
-        calls.append(rec.state["stage"])
+    def at_the_bound(*args, evidence=None, **kwargs):
+        st = rec.state
+        left = rec.plan[st["stage"]][2] - st["it"] - 1
+        factor = 0.98 if calls and calls[-1] == st["stage"] else 1.02
+        evidence.update(chi2=factor * dof / max(left, 1) ** 2, dof=dof)
+        calls.append(st["stage"])
         return args[3], args[4]
 
-    monkeypatch.setattr(engine, "light_joint_step", below_noise)
-    rec = _recovery_with_a_brighter_light(tiny, light_evidence=light_evidence)
+    monkeypatch.setattr(engine, "light_joint_step", at_the_bound)
+    rec = _recovery_with_a_brighter_light(tiny, light_rest=light_rest)
     with torch.no_grad():
         rec.init_state()
         iterations = {}
@@ -637,7 +644,7 @@ def test_the_light_step_rests_for_the_rest_of_a_stage_once_below_noise(tiny, mon
             rec.tick()
     calibrated = [s for s, (size, kind, _) in enumerate(rec.plan[:-1])
                   if kind != "dual" or size == rec.plan[-1][0] or rec.cfg.dual_calibration_coarse]
-    if light_evidence:  # 0.3 is above a quarter, 0.2 below: two steps per stage
+    if light_rest:  # 2 % above, then 2 % below the bound: two steps per stage
         assert calls == [s for s in calibrated for _ in range(min(2, iterations[s]))]
         assert len(calls) < sum(iterations[s] for s in calibrated)
     else:

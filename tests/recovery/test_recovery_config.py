@@ -74,13 +74,11 @@ def test_checks_and_fingerprints_see_the_groups():
         check_config(RecoveryConfig(schedule=ScheduleConfig(lr=0.0)))
     with pytest.raises(RecoveryError, match="Settings.cg_iters"):
         check_config(Settings(cg_iters=0))
-    with pytest.raises(RecoveryError, match="Settings.light_evidence"):
-        check_config(Settings(light_evidence=float("nan")))
     base = settings_fingerprint(RecoveryConfig())
     assert base == settings_fingerprint(Settings())
     assert base != settings_fingerprint(RecoveryConfig(priors=PriorConfig(roughness=0.01)))
     assert base != settings_fingerprint(RecoveryConfig().settings(soft_metal_well=16.0))
-    assert base != settings_fingerprint(RecoveryConfig().settings(light_evidence=0.0))
+    assert base != settings_fingerprint(RecoveryConfig().settings(light_rest=False))
     assert base == settings_fingerprint(RecoveryConfig(threads=3))  # result-independent
 
 

@@ -151,9 +151,9 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     eliminated: ``δgᵀ H δg / σ²`` is twice the cost decrease the step predicts, in noise
     variances, and the step's squared length in posterior deviations. Noise alone puts the
     data's optimum that far from the true lights with a ``χ²`` distribution of K degrees of
-    freedom (mean K): a step well below K moves the lights less than their own uncertainty,
-    which later steps at the same maps cannot resolve (:meth:`~torchbrdf.recovery.engine.Recovery.step`
-    skips the step for the rest of the stage below ``Settings.light_evidence`` × K). ``σ²`` is
+    freedom (mean K): steps whose sum stays well below that move the lights less than their
+    own uncertainty (:meth:`~torchbrdf.recovery.engine.Recovery.step` skips the step for the
+    rest of a stage once ``m²`` times it is below K, ``m`` the stage's iterations left). ``σ²`` is
     the noise variance: the median squared residual over 0.455, the median of ``χ²₁``. Left
     empty when no step is taken.
     """

@@ -93,7 +93,6 @@ def check_config(cfg: RecoveryConfig | Settings) -> None:
     _integer_in_range("soft_metal_passes", cfg.soft_metal_passes, 0, 10_000)
     _integer_in_range("soft_metal_band", cfg.soft_metal_band, 0, 10_000)  # a max-pool half width
     _finite_in_range("rough_tie", cfg.rough_tie, 0.0, 1e6)
-    _finite_in_range("light_evidence", cfg.light_evidence, 0.0, 1e6)  # a fraction of the step's dof
     _finite_in_range("rough_tie_glossy", cfg.rough_tie_glossy, 0.0, 1.0)
     _finite_in_range("rough_tie_start", cfg.rough_tie_start, 0.03, 1.0)
     _finite_in_range("soft_rough_tie", cfg.soft_rough_tie, 0.0, 1e6)

@@ -417,10 +417,11 @@ class Recovery:
         """The joint light step (:func:`light_joint_step`) at ``theta (P, 7)``, ``metal (P, 1)``
         of level ``size``, the maps' prior with the ``unary`` terms (or none).
 
-        Skipped for the rest of the stage once a step moved the lights by less than a fraction
-        ``light_evidence`` of what noise alone would (the step's χ² below that fraction of its
-        degrees of freedom, the derivation in :func:`light_joint_step`): the lights are then
-        known as well as this stage's maps allow.
+        Skipped for the rest of the stage once the ``m`` iterations it has left could not move the
+        lights beyond noise (with ``Settings.light_rest``): consecutive steps point the same way
+        while the maps still move, so resting leaves at most about ``m δg`` unapplied, whose cost
+        ``m² δgᵀHδg / σ²`` (the χ² of :func:`light_joint_step`) is then below its K degrees of
+        freedom, what noise alone puts between the data's optimum and the true lights.
         """
         st = self.state
         if st.get("lights_settled") == st["stage"]:
@@ -430,7 +431,8 @@ class Recovery:
             data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx, self.cfg.model,
             position, map_prior_terms(theta, metal, size, self.cfg, unary), at_camera=at_camera,
             evidence=evidence)
-        if evidence and evidence["chi2"] < self.cfg.light_evidence * evidence["dof"]:
+        left = self.plan[st["stage"]][2] - st["it"] - 1  # this stage's planned iterations after this one
+        if self.cfg.light_rest and evidence and left**2 * evidence["chi2"] < evidence["dof"]:
             st["lights_settled"] = st["stage"]
         self._sync_light_scale()
 
