@@ -232,6 +232,64 @@ def test_light_joint_step_is_the_dense_joint_gauss_newton_step():
     assert torch.allclose(s1, ref_s, atol=1e-7, rtol=1e-5), (s1, ref_s)
 
 
+def _reference_reduced_light_system(r, cols, keep, map_prior, damping, leave_out=None):
+    """The lights' reduced system as first written: a dense inverse per pixel, float64 throughout
+    (``leave_out``: pixels dropped)."""
+    f64 = torch.float64
+    r, cols = r.to(f64), cols.to(f64)
+    sigma2 = float(r.pow(2).median()) + 1e-12
+    g, h = map_prior[0].to(f64), map_prior[1].to(f64)
+    if leave_out is not None:
+        r, cols, g, h = r[~leave_out], cols[:, ~leave_out], g[~leave_out], h[~leave_out]
+    n, n_l = r.shape[0], r.shape[1] // 3
+    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0)
+    jp = cols[:7].permute(1, 0, 2)  # (n, 7, M)
+    jg = cols[7:].permute(1, 2, 0).reshape(n, n_l, 3, 4)[..., keep]  # (n, L, 3, G)
+    jpw = jp * w[:, None]
+    a = jpw @ jp.mT
+    a = a + torch.diag_embed(damping * a.diagonal(dim1=-2, dim2=-1) + 1e-9 + h)
+    b = torch.einsum("nklc,nlcg->nklg", jpw.reshape(n, 7, n_l, 3), jg).reshape(n, 7, -1)
+    bg = torch.cat((b, ((jpw @ r[..., None])[..., 0] + g)[..., None]), -1)
+    gram = torch.einsum("nki,nkj->ij", bg, torch.linalg.inv(a) @ bg)
+    c = torch.einsum("nlcg,nlc,nlch->lgh", jg, w.reshape(n, n_l, 3), jg)
+    gg = torch.einsum("nlcg,nlc->lg", jg, (w * r).reshape(n, n_l, 3)).reshape(-1)
+    return torch.block_diag(*c) - gram[:-1, :-1], gg - gram[:-1, -1], sigma2
+
+
+@pytest.mark.parametrize("keep", [slice(0, 4), slice(3, 4)])
+def test_the_reduced_light_system_is_the_schur_complement_of_each_pixels_unknowns(keep):
+    """The joint step's reduced normal equations equal the dense per-pixel formula.
+
+    ``Σ JgᵀWJg − Σ BᵀA⁻¹B`` and ``Σ JgᵀWr − Σ BᵀA⁻¹gp`` with ``A⁻¹`` a dense inverse per pixel,
+    float64 throughout, against the Cholesky factors with the pixels innermost, summed a
+    chunk at a time (64 pixels: chunks of 24, 24 and 16); positions and scales, and scales
+    alone. A pixel whose ``A`` is not positive definite (here a negative prior curvature) is
+    left out.
+    """
+    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
+    gen = torch.Generator().manual_seed(3)
+    data.log_obs = data.log_obs + 0.02 * torch.randn(data.log_obs.shape, generator=gen)
+    theta = theta + 0.05 * torch.randn(theta.shape, generator=gen)
+    n_l = data.pos_stated.shape[0]
+    r, cols = calibration._pixel_and_light_jacobians(
+        data, theta, metal, data.points, data.log_obs.permute(1, 0, 2), data.inten_stated, data.pos_stated,
+        torch.zeros(n_l), "principled")
+    prior = (1e-3 * torch.randn(theta.shape, generator=gen), torch.rand(theta.shape, generator=gen))
+    for leave_out in (None, torch.arange(theta.shape[0]) == 5):
+        if leave_out is not None:
+            prior[1][5, 2] = -1e6
+        schur, rhs, sigma2 = calibration._reduced_light_system(r, cols, keep, prior, 1e-3, chunk=24)
+        ref_schur, ref_rhs, ref_sigma2 = _reference_reduced_light_system(r, cols, keep, prior, 1e-3, leave_out)
+        assert schur.dtype == rhs.dtype == torch.float64 and sigma2 == ref_sigma2
+        assert schur.shape == (n_l * (keep.stop - keep.start),) * 2
+        scale = float(ref_schur.abs().max())
+        assert float((schur - ref_schur).abs().max()) < 1e-10 * scale, (schur - ref_schur).abs().max()
+        assert float((rhs - ref_rhs).abs().max()) < 1e-10 * float(ref_rhs.abs().max())
+    # the left-out pixel mattered: with it, the system differs
+    assert float((ref_schur - _reference_reduced_light_system(r, cols, keep, (prior[0], prior[1].abs()), 1e-3)[0])
+                 .abs().max()) > 1e-6 * scale
+
+
 def test_rig_free_directions_exclude_every_move_of_the_whole_rig():
     """``3L − 7`` orthonormal directions that exclude every move of all the lights together.
 
@@ -522,3 +580,73 @@ def test_coarse_dual_calibration_can_be_left_to_full_resolution(tiny):
         rec.tick()  # the full-resolution dual stage's first iteration estimates them
     assert float(rec.light_log_scale()[3] - rec.light_log_scale()[rec.train_idx].mean()) > 0.01
     assert float(rec.light_offset().abs().max()) > 0.0
+
+
+def test_the_light_steps_evidence_is_chi2_with_its_degrees_of_freedom():
+    """At the true lights, with the maps fitted, the step's ``δgᵀHδg / σ²`` is a χ² with K dof.
+
+    Noise alone puts the joint optimum about one posterior deviation per free direction from
+    the truth: over four noise draws the mean is within 0.6–1.5 K (26.7 of 28 here; with σ²
+    the median squared residual, not its Gaussian variance, it would be 2.2× lower). A light
+    estimate 2 cm from where the images were made gives a step far beyond that.
+    """
+    chi2 = []
+    for seed in range(4):
+        data, theta, metal = flat_level(size=16, lights=8, normal_tilt_deg=10.0)
+        gen = torch.Generator().manual_seed(seed)
+        data.log_obs = data.log_obs + 0.01 * torch.randn(data.log_obs.shape, generator=gen)
+        n_l = data.pos_stated.shape[0]
+        lam = torch.full((theta.shape[0], 1), 1e-3)
+        for _ in range(4):
+            theta, lam, _, _ = lm.lm_step(data, theta, metal, lam, Settings(), 1.0)
+        evidence = {}
+        calibration.light_joint_step(data, theta, metal, torch.zeros(n_l), torch.zeros(n_l, 3), list(range(n_l)),
+                                     "principled", evidence=evidence)
+        dof = evidence["dof"]
+        assert dof == 3 * n_l - 7 + n_l - 1  # the rig-free positions and the scales keeping their mean
+        chi2.append(evidence["chi2"])
+    assert 0.6 * dof < sum(chi2) / len(chi2) < 1.5 * dof, chi2
+    wrong = torch.zeros(n_l, 3)
+    wrong[2, 0] = 0.02  # the current estimate; the images were made at the stated place
+    evidence = {}
+    calibration.light_joint_step(data, theta, metal, torch.zeros(n_l), wrong, list(range(n_l)), "principled",
+                                 evidence=evidence)
+    assert evidence["chi2"] > 5 * dof, evidence  # 242 of 28 here
+
+
+@pytest.mark.parametrize("light_rest", [True, False])
+def test_the_light_step_rests_once_the_iterations_left_could_not_move_it_beyond_noise(tiny, monkeypatch,
+                                                                                       light_rest):
+    """With ``m`` planned iterations left in the stage, the joint light step rests exactly when
+    ``m²`` times its χ² is below its degrees of freedom: a stage's first step 2 % above that,
+    its second 2 % below (a count of ``m`` left off by one, ``m`` instead of ``m²``, or a fixed
+    fraction of K would rest elsewhere). The next stage steps the lights again; with
+    ``light_rest=False`` every iteration steps them."""
+    calls = []
+    dof = 5.0
+
+    def at_the_bound(*args, evidence=None, **kwargs):
+        st = rec.state
+        left = rec.plan[st["stage"]][2] - st["it"] - 1
+        factor = 0.98 if calls and calls[-1] == st["stage"] else 1.02
+        evidence.update(chi2=factor * dof / max(left, 1) ** 2, dof=dof)
+        calls.append(st["stage"])
+        return args[3], args[4]
+
+    monkeypatch.setattr(engine, "light_joint_step", at_the_bound)
+    rec = _recovery_with_a_brighter_light(tiny, light_rest=light_rest)
+    with torch.no_grad():
+        rec.init_state()
+        iterations = {}
+        while rec.state["stage"] < len(rec.plan) - 1:
+            stage = rec.state["stage"]
+            iterations[stage] = iterations.get(stage, 0) + 1
+            rec.tick()
+    calibrated = [s for s, (size, kind, _) in enumerate(rec.plan[:-1])
+                  if kind != "dual" or size == rec.plan[-1][0] or rec.cfg.dual_calibration_coarse]
+    if light_rest:  # 2 % above, then 2 % below the bound: two steps per stage
+        assert calls == [s for s in calibrated for _ in range(min(2, iterations[s]))]
+        assert len(calls) < sum(iterations[s] for s in calibrated)
+    else:
+        assert calls == [s for s in calibrated for _ in range(iterations[s])]
+        assert len(calls) > len(calibrated)

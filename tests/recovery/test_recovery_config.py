@@ -78,6 +78,7 @@ def test_checks_and_fingerprints_see_the_groups():
     assert base == settings_fingerprint(Settings())
     assert base != settings_fingerprint(RecoveryConfig(priors=PriorConfig(roughness=0.01)))
     assert base != settings_fingerprint(RecoveryConfig().settings(soft_metal_well=16.0))
+    assert base != settings_fingerprint(RecoveryConfig().settings(light_rest=False))
     assert base == settings_fingerprint(RecoveryConfig(threads=3))  # result-independent
 
 

@@ -17,6 +17,10 @@ from torchbrdf.recovery.levels import LevelData, log_residual
 from torchbrdf.recovery.params import N_PARAMS, decode
 
 
+#: The median of χ² with one degree of freedom: median(r²) = 0.455 σ² for Gaussian residuals.
+_CHI2_1_MEDIAN = 0.45493642311957283
+
+
 def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: Tensor, model: str,
                         prior_sigma: float = 0.01, stride: int = 4, at_camera: bool = True) -> Tensor:
     """One Gauss–Newton update of the per-light position offsets ``(L, 3)`` (world units).
@@ -111,7 +115,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
                      ref_idx: list[int], model: str, position: bool = True,
                      map_prior: tuple[Tensor, Tensor] | None = None, scale_sigma: float = 0.1,
                      position_sigma: float = 0.01, max_pixels: int = 8192,
-                     damping: float = 1e-3, at_camera: bool = True) -> tuple[Tensor, Tensor]:
+                     damping: float = 1e-3, at_camera: bool = True,
+                     evidence: dict[str, float] | None = None) -> tuple[Tensor, Tensor]:
     """One Gauss–Newton step on the lights' log scales and offsets, the pixels' unknowns eliminated.
 
     ``theta (P, 7)``, ``metal (P, 1)`` the maps; ``log_scale (L,)`` and ``offset (L, 3)`` the
@@ -139,6 +144,18 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     them; nor, with ``at_camera=False``, a light beside the camera (:func:`camera_lights`). With
     ``position=False``, or fewer than 3 lights, only the scales are stepped. The
     result has ``log_scale``'s and ``offset``'s dtype and device (CPU or CUDA alike).
+
+    ``evidence``, a dict, receives what the step could still buy: ``"chi2"`` = ``δgᵀ H δg / σ²``
+    and ``"dof"`` = K, the free directions (the basis). ``H`` is the reduced Hessian of
+    ``½ Σ wr²`` plus the priors, so ``H / σ²`` is the lights' posterior precision with the maps
+    eliminated: ``δgᵀ H δg / σ²`` is twice the cost decrease the step predicts, in noise
+    variances, and the step's squared length in posterior deviations. Noise alone puts the
+    data's optimum that far from the true lights with a ``χ²`` distribution of K degrees of
+    freedom (mean K): steps whose sum stays well below that move the lights less than their
+    own uncertainty (:meth:`~torchbrdf.recovery.engine.Recovery.step` skips the step for the
+    rest of a stage once ``m²`` times it is below K, ``m`` the stage's iterations left). ``σ²`` is
+    the noise variance: the median squared residual over 0.455, the median of ``χ²₁``. Left
+    empty when no step is taken.
     """
     idx = data.train_idx
     n_l = len(idx)
@@ -152,44 +169,19 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     s0 = log_scale[idx]
 
     r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model)
-    n = t0.shape[0]
-    ok = torch.isfinite(r).all(1) & torch.isfinite(cols).all(2).all(0)  # (n,)
-    if not bool(ok.any()):
-        return log_scale, offset
-    f64 = torch.float64
-    r = torch.nan_to_num(r, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
-    cols = torch.nan_to_num(cols, nan=0.0, posinf=0.0, neginf=0.0).to(f64)
-    jp = cols[:N_PARAMS].permute(1, 0, 2)  # (n, 7, M)
+    # One sum per pixel carries any NaN or inf among its residuals and derivatives (a sum that
+    # overflows float32 marks derivatives beyond any meaningful scale: left out as well).
+    ok = torch.isfinite(r.sum(1) + cols.sum((0, 2)))  # (n,)
+    if not bool(ok.all()):
+        if not bool(ok.any()):
+            return log_scale, offset
+        r, cols, rows = r[ok], cols[:, ok], rows[ok]
     position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
     keep = slice(0, 4) if position else slice(3, 4)  # the light unknowns: offset xyz, log scale
-    jg = cols[N_PARAMS:].permute(1, 2, 0).reshape(n, n_l, 3, 4)[..., keep]  # (n, L, 3, G)
-    n_g = jg.shape[-1]
-    sigma2 = float(r[ok].pow(2).median()) + 1e-12
-    w = (3.0 * math.sqrt(sigma2) / r.abs().clamp(min=1e-30)).clamp(max=1.0) * ok[:, None]  # Huber, (n, M)
-    jpw = jp * w[:, None, :]
-    a = torch.bmm(jpw, jp.transpose(1, 2))
-    a = a + torch.diag_embed(damping * torch.diagonal(a, dim1=-2, dim2=-1) + 1e-9)
-    # [B | gp] (n, 7, L G + 1) in one buffer, B = JpᵀW Jg a colour channel at a time (light-major,
-    # G inner): per light a (7, 3) by (3, G) product, too small for a batched matrix product.
-    jpw4, jgc = jpw.view(n, N_PARAMS, n_l, 3), jg.contiguous()
-    bg = jpw.new_empty(n, N_PARAMS, n_l * n_g + 1)
-    b, gp = bg[..., :-1], bg[..., -1]
-    b4 = b.view(n, N_PARAMS, n_l, n_g)
-    torch.mul(jpw4[..., 0, None], jgc[:, None, :, 0], out=b4)
-    for ch in (1, 2):
-        b4.addcmul_(jpw4[..., ch, None], jgc[:, None, :, ch])
-    torch.bmm(jpw, r[..., None], out=gp[..., None])  # (n, 7)
-    if map_prior is not None:
-        gp += torch.nan_to_num(map_prior[0][rows].to(f64)) * ok[:, None]
-        a = a + torch.diag_embed(torch.nan_to_num(map_prior[1][rows].to(f64)) * ok[:, None])
-    wr = (w * r).reshape(n, n_l, 3)
-    gg = torch.einsum("nlcg,nlc->lg", jg, wr).reshape(-1)  # (L G,)
-    c = torch.einsum("nlcg,nlc,nlch->lgh", jg, w.reshape(n, n_l, 3), jg)  # (L, G, G)
-    x = torch.linalg.inv(a) @ bg  # A⁻¹ [B | gp]: one inverse serves the 4 L + 1 right-hand sides
-    # Σ [B | gp]ᵀ A⁻¹ [B | gp] over every pixel's 7 rows, one matrix product: Σ BᵀA⁻¹B and Σ BᵀA⁻¹gp
-    gram = bg.view(-1, bg.shape[-1]).T @ x.view(-1, bg.shape[-1])
-    schur = torch.block_diag(*c) - gram[:-1, :-1]
-    rhs = gg - gram[:-1, -1]
+    prior_terms = None if map_prior is None else (map_prior[0][rows], map_prior[1][rows])
+    schur, rhs, sigma2 = _reduced_light_system(r, cols, keep, prior_terms, damping)
+    f64 = torch.float64
+    n_g = keep.stop - keep.start
     prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
                          device=r.device)[keep].repeat(n_l) * sigma2
     cur = torch.cat((offset[idx], s0[:, None]), -1)[:, keep].reshape(-1).to(f64)
@@ -197,7 +189,11 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
                                                                  data.points.mean(0))
     basis, n_pos = _light_step_basis(data, ref_idx, position, held)  # (L G, K): the directions a step takes
     h = basis.T @ (schur + torch.diag(prior)) @ basis
-    step = (basis @ torch.linalg.solve(h, -(basis.T @ (rhs + prior * cur)))).reshape(n_l, n_g)
+    grad = basis.T @ (rhs + prior * cur)
+    coef = torch.linalg.solve(h, -grad)
+    step = (basis @ coef).reshape(n_l, n_g)
+    if evidence is not None:  # δgᵀHδg = −δgᵀ(reduced gradient), over σ² = median r² / median χ²₁
+        evidence.update(chi2=float(-(coef @ grad)) / (sigma2 / _CHI2_1_MEDIAN), dof=float(basis.shape[1]))
     if not bool(torch.isfinite(step).all()):
         return log_scale, offset
     step = step.to(theta.dtype)
@@ -213,6 +209,117 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     new_s[idx] = log_scale[idx] + step[:, -1]
     new_s[ref_idx] = new_s[ref_idx] - new_s[ref_idx].mean()
     return new_s.clamp(-0.3, 0.3), new_off
+
+
+def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
+                          damping: float, chunk: int = 1024) -> tuple[Tensor, Tensor, float]:
+    """The lights' reduced normal equations, each pixel's 7 unknowns eliminated (:func:`light_joint_step`).
+
+    ``r (n, M)`` residuals and ``cols (11, n, M)`` derivatives (``M = 3 L``, light-major; every
+    one finite) from :func:`_pixel_and_light_jacobians`; ``keep`` the light unknowns stepped
+    (``G`` of offset xyz, log scale); ``map_prior`` the pixels' prior gradient and curvature,
+    both ``(n, 7)``. Returns the Schur complement ``(L G, L G)``, the reduced gradient
+    ``(L G,)`` (light-major, float64) and the residuals' robust variance σ².
+
+    Per pixel, with ``A = JpᵀWJp + H = LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` makes
+    ``Σ [B | gp]ᵀ A⁻¹ [B | gp] = Σ YᵀY`` one matrix product. The sums run ``chunk`` pixels at
+    a time (:func:`_reduced_light_terms`), so that a chunk's float64 working set (~4 MB at
+    1024 pixels and 17 lights) stays in cache; on a GPU in one chunk. Float64 from the
+    products on: the reduced system is a difference of two sums of positive terms,
+    ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the maps almost absorb.
+    """
+    n, m_cols = r.shape
+    n_l, n_g = m_cols // 3, keep.stop - keep.start
+    sigma2 = float(r.abs().median()) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
+    f64 = torch.float64
+    if r.device.type != "cpu":
+        chunk = n  # one launch per operation serves every pixel
+    per_light = torch.zeros(n_l, n_g + 1, n_g + 1, dtype=f64, device=r.device)
+    gram = torch.zeros(n_l * n_g + 1, n_l * n_g + 1, dtype=f64, device=r.device)
+    for lo in range(0, n, chunk):
+        part = slice(lo, lo + chunk)
+        prior = None if map_prior is None else (map_prior[0][part], map_prior[1][part])
+        _reduced_light_terms(r[part], cols[:, part], keep, prior, damping, sigma2, per_light, gram)
+    schur = torch.block_diag(*per_light[:, :n_g, :n_g]) - gram[:-1, :-1]
+    return schur, per_light[:, :n_g, n_g].reshape(-1) - gram[:-1, -1], sigma2
+
+
+def _reduced_light_terms(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
+                         damping: float, sigma2: float, per_light: Tensor, gram: Tensor) -> None:
+    """Add a chunk of pixels' terms of :func:`_reduced_light_system`: ``[JgᵀWJg | JgᵀWr]`` per
+    light to ``per_light (L, G + 1, G + 1)`` and ``Σ [B | gp]ᵀ A⁻¹ [B | gp]`` to ``gram
+    (L G + 1, L G + 1)``.
+
+    ``Y = L⁻¹ [B | gp]`` is formed as ``(L⁻¹ JpᵀW) Jg``, so the triangular solve runs on the 3L
+    residual columns rather than the 4L + 1 light ones. Pixels are the innermost dimension:
+    the 7×7 factorisations and solves are a few dozen vector operations, not one tiny one per
+    pixel. A pixel whose ``A`` is not positive definite to rounding (never, as ``A`` carries
+    the damping) is left out.
+    """
+    f64 = torch.float64
+    n, m_cols = r.shape
+    n_l, n_g = m_cols // 3, keep.stop - keep.start
+    rt = r.T.to(f64, memory_format=torch.contiguous_format)  # (M, n)
+    w = (3.0 * math.sqrt(sigma2) / rt.abs().clamp(min=1e-30)).clamp(max=1.0)  # Huber, (M, n)
+    x = cols.permute(2, 0, 1).to(f64, memory_format=torch.contiguous_format)  # (M, 11, n)
+    jp = x[:, :N_PARAMS]
+    jg = x.view(n_l, 3, -1, n)[:, :, N_PARAMS + keep.start:N_PARAMS + keep.stop]  # (L, 3, G, n)
+    jpw = jp * w[:, None]
+    a = x.new_empty(N_PARAMS, N_PARAMS, n)
+    gp = x.new_empty(N_PARAMS, n)
+    for i in range(N_PARAMS):
+        gp[i] = torch.linalg.vecdot(jpw[:, i], rt, dim=0)
+        for j in range(i + 1):
+            a[j, i] = a[i, j] = torch.linalg.vecdot(jpw[:, i], jp[:, j], dim=0)
+    diag = a.diagonal(0, 0, 1)  # (n, 7), a view
+    extra = damping * diag + 1e-9
+    if map_prior is not None:
+        extra += torch.nan_to_num(map_prior[1].to(f64))
+        gp += torch.nan_to_num(map_prior[0].T.to(f64))
+    diag += extra
+    low, good = _cholesky_pixels(a)
+    if not bool(good.all()):
+        w, jpw, gp = w * good, jpw * good, gp * good
+    # per light, the G unknowns and the residual as G + 1 rows over (colour, pixel)
+    aug = x.new_empty(n_l, n_g + 1, 3, n)
+    aug[:, :n_g] = jg.transpose(1, 2)
+    aug[:, n_g] = rt.view(n_l, 3, n)
+    per_light.baddbmm_((aug * w.view(n_l, 1, 3, n)).view(n_l, n_g + 1, -1), aug.view(n_l, n_g + 1, -1).mT)
+    # L⁻¹ JpᵀW (M, 7, n) and L⁻¹ gp (7, n) by forward substitution
+    z = torch.empty_like(jpw)
+    for k in range(N_PARAMS):
+        acc, acc_g = jpw[:, k].clone(), gp[k]
+        for j in range(k):
+            acc.addcmul_(z[:, j], low[k, j], value=-1.0)
+            acc_g.addcmul_(gp[j], low[k, j], value=-1.0)
+        torch.div(acc, low[k, k], out=z[:, k])
+        acc_g.div_(low[k, k])
+    # Y (L G + 1, 7, n): per light and unknown Σ over colours of (L⁻¹ JpᵀW) Jg, then L⁻¹ gp
+    y = x.new_empty(n_l * n_g + 1, N_PARAMS, n)
+    y4, zl = y[:-1].view(n_l, n_g, N_PARAMS, n), z.view(n_l, 3, N_PARAMS, n)
+    torch.mul(zl[:, None, 0], jg[:, 0, :, None], out=y4)
+    for ch in (1, 2):
+        y4.addcmul_(zl[:, None, ch], jg[:, ch, :, None])
+    y[-1] = gp
+    flat = y.view(y.shape[0], -1)
+    gram.addmm_(flat, flat.T)
+
+
+def _cholesky_pixels(a: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower Cholesky factors ``(k, k, n)`` of ``n`` symmetric ``a (k, k, n)``, pixels innermost,
+    and ``(n,)`` bool whether each is positive definite to rounding (a factor that is not has
+    a unit diagonal where it failed, so that solves with it stay finite)."""
+    k = a.shape[0]
+    low = torch.zeros_like(a)
+    good = torch.ones(a.shape[-1], dtype=torch.bool, device=a.device)
+    for j in range(k):
+        d = a[j, j] - low[j, :j].pow(2).sum(0)
+        ok = d > 0  # False for NaN too
+        good &= ok
+        low[j, j] = torch.where(ok, d, 1.0).sqrt()
+        if j + 1 < k:
+            low[j + 1:, j] = (a[j + 1:, j] - (low[j + 1:, :j] * low[j, :j]).sum(1)) / low[j, j]
+    return low, good
 
 
 def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,

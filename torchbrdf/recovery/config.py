@@ -310,6 +310,9 @@ class Settings:
     # one (held, a real error of it stays in the maps).
     dual_calibration_at_camera: bool = True
     light_joint: bool = True  # step the lights with the maps eliminated (alternating steps creep)
+    # ... and, within a stage, only until the iterations left could not move them beyond noise
+    # (m left, the step's χ² × m² below its degrees of freedom; off: a step at every iteration)
+    light_rest: bool = True
     # Non-local F0
     # The non-local F0 average as a unary prior of the fit from the polish stage on, not only
     # fused at the end: the light step then sees a weak metal's F0 held, not free along the

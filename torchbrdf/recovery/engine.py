@@ -356,11 +356,7 @@ class Recovery:
                                               extra, unary, self._take_stage_gn(data, theta, metal))
             self.fit_cost[h] = self._training_fit(extra, data)
             if calibrate and self.cfg.light_joint:
-                st["light_log_scale"], st["light_offset"] = light_joint_step(
-                    data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx,
-                    self.cfg.model, self.cfg.light_position,
-                    map_prior_terms(theta, metal, size, self.cfg, unary))
-                self._sync_light_scale()
+                self._light_joint_step(data, theta, metal, self.cfg.light_position, size, unary)
             elif calibrate:  # alternate: maps (LM step above), then each light's intensity scale
                 st["light_log_scale"] = light_scale_step(extra["residual"], data.train_idx,
                                                          self.light_log_scale(), self.train_idx)
@@ -388,12 +384,8 @@ class Recovery:
             if self.cfg.light_joint:
                 theta = torch.where(better, st["theta"][1], st["theta"][0])
                 metal = better.to(theta.dtype)
-                st["light_log_scale"], st["light_offset"] = light_joint_step(
-                    data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx,
-                    self.cfg.model, self.cfg.light_position and full,
-                    map_prior_terms(theta, metal, size, self.cfg),
-                    at_camera=self.cfg.dual_calibration_at_camera)
-                self._sync_light_scale()
+                self._light_joint_step(data, theta, metal, self.cfg.light_position and full, size, None,
+                                       at_camera=self.cfg.dual_calibration_at_camera)
             else:
                 better_res = torch.where(better, residuals[1], residuals[0])
                 st["light_log_scale"] = light_scale_step(better_res, data.train_idx, self.light_log_scale(),
@@ -419,6 +411,30 @@ class Recovery:
 
     #: Deprecated name of :meth:`step`.
     tick = step
+
+    def _light_joint_step(self, data: LevelData, theta: Tensor, metal: Tensor, position: bool, size: int,
+                          unary: tuple[Tensor, Tensor] | None, at_camera: bool = True) -> None:
+        """The joint light step (:func:`light_joint_step`) at ``theta (P, 7)``, ``metal (P, 1)``
+        of level ``size``, the maps' prior with the ``unary`` terms (or none).
+
+        Skipped for the rest of the stage once the ``m`` iterations it has left could not move the
+        lights beyond noise (with ``Settings.light_rest``): consecutive steps point the same way
+        while the maps still move, so resting leaves at most about ``m δg`` unapplied, whose cost
+        ``m² δgᵀHδg / σ²`` (the χ² of :func:`light_joint_step`) is then below its K degrees of
+        freedom, what noise alone puts between the data's optimum and the true lights.
+        """
+        st = self.state
+        if st.get("lights_settled") == st["stage"]:
+            return
+        evidence: dict[str, float] = {}
+        st["light_log_scale"], st["light_offset"] = light_joint_step(
+            data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx, self.cfg.model,
+            position, map_prior_terms(theta, metal, size, self.cfg, unary), at_camera=at_camera,
+            evidence=evidence)
+        left = self.plan[st["stage"]][2] - st["it"] - 1  # this stage's planned iterations after this one
+        if self.cfg.light_rest and evidence and left**2 * evidence["chi2"] < evidence["dof"]:
+            st["lights_settled"] = st["stage"]
+        self._sync_light_scale()
 
     def _take_stage_gn(self, data: LevelData, theta: Tensor, metal: Tensor
                        ) -> tuple[Tensor, Tensor, Tensor] | None:
