@@ -6,6 +6,7 @@ precision-weighted mean, the width their measured spread, and the fit fuses it w
 own data by precisions.
 """
 
+import pytest
 import torch
 
 from torchbrdf.recovery import params, priors
@@ -225,3 +226,25 @@ def test_material_estimate_sets_stuck_members_aside():
     a, b = priors.material_estimate(y0, v, s, span=priors.LOGIT_SPAN), priors.material_estimate(y0, v, s)
     assert all(torch.allclose(p, q, rtol=1e-3) for p, q in zip(a, b))
 
+
+
+def test_material_estimate_spread_with_stuck_members_from_a_robust_start():
+    """Groups of one material measured precisely, 5–10 % of the members stuck anywhere in the
+    logit range: a material without spread gets none (a start from every member's spread would
+    leave the stuck ones in it after the few EM rounds), one with spread gets its own."""
+    g = torch.Generator().manual_seed(5)
+    n, k = 200, 256
+    for tau in (0.0, 0.05):
+        v = 1e-6 * torch.exp(torch.randn(n, k, 1, generator=g))
+        y = 0.4 + tau * torch.randn(n, k, 1, generator=g) + v.sqrt() * torch.randn(n, k, 1, generator=g)
+        frac = 0.05 + 0.05 * torch.rand(n, 1, 1, generator=g)
+        stuck = torch.rand(n, k, 1, generator=g) < frac
+        y = torch.where(stuck, -0.5 * priors.LOGIT_SPAN + priors.LOGIT_SPAN * torch.rand(n, k, 1, generator=g), y)
+        s = 0.2 + 0.8 * torch.rand(n, k, 1, generator=g)
+        mu, tau2, _ = priors.material_estimate(y, v, s, span=priors.LOGIT_SPAN)
+        assert float((mu - 0.4).abs().max()) < 0.03
+        if tau == 0.0:
+            assert float(tau2.max()) < 1e-5  # the fit's own noise, 1e-6, is the scale of "none"
+        else:
+            assert float(tau2.median()) == pytest.approx(tau**2, rel=0.1)
+            assert float(tau2.max()) < 2.0 * tau**2
