@@ -139,16 +139,19 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
-def _robust_start(y: Tensor, w: Tensor, v_mean: Tensor) -> tuple[Tensor, Tensor]:
+def _robust_start(y: Tensor, w: Tensor, v_mean: Tensor, span: float) -> tuple[Tensor, Tensor]:
     """Centre and spread ``(N, C)`` of members ``y (N, K, C)`` under weights ``w`` that a minority
-    anywhere in the range moves neither: the weighted median and the weighted interquartile range
-    (``/ 1.349``, a normal's), less ``v_mean`` (the members' mean variance under ``w``), squared."""
-    ys, order = y.sort(1)
-    cw = w.gather(1, order).cumsum(1).transpose(1, 2).contiguous()  # (N, C, K)
+    anywhere in a range of width ``span`` moves neither: the weighted median and interquartile
+    range (``/ 1.349``, a normal's) of a histogram of ``K`` bins over the range (no sort), the
+    spread less ``v_mean`` (the members' mean variance under ``w``) plus a bin's own variance."""
+    k = y.shape[1]
+    h = span / k
+    lo = y.amin(1, keepdim=True)
+    bins = torch.nan_to_num((y - lo) / h).long().clamp_(0, k - 1)
+    cw = torch.zeros_like(y).scatter_add_(1, bins, w).cumsum(1).transpose(1, 2).contiguous()  # (N, C, K)
     q = cw[..., -1:] * torch.tensor([0.25, 0.5, 0.75], dtype=cw.dtype, device=cw.device)
-    idx = torch.searchsorted(cw, q.contiguous()).clamp(max=y.shape[1] - 1)  # (N, C, 3)
-    lo, mid, hi = ys.gather(1, idx.transpose(1, 2)).unbind(1)
-    return mid, (((hi - lo) / 1.349) ** 2 - v_mean).clamp(min=0.0)
+    at = lo[:, 0, :, None] + (torch.searchsorted(cw, q).clamp_(max=k - 1).to(y.dtype) + 0.5) * h
+    return at[..., 1], (((at[..., 2] - at[..., 0]) / 1.349) ** 2 - v_mean).clamp(min=0.0) + h * h / 12
 
 
 def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3,
@@ -192,16 +195,14 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
                 pi = (s.sum(1) / s0.sum(1).clamp(min=1e-30)).clamp(1e-6, 1 - 1e-6)
         su = s * u
         den = su.sum(1)
+        if it == 0 and span is not None:  # the start, with stuck members: their robust spread
+            mu, tau2 = _robust_start(y, su, s.sum(1) / den.clamp(min=1e-30), span)
+            d2 = (y - mu[:, None]) ** 2
+            continue
         mu = (su * y).sum(1) / den.clamp(min=1e-30)
         d2 = (y - mu[:, None]) ** 2
         if it == 0:  # the start: the fixed-effects spread of the members
             tau2 = (su * d2).sum(1) / den.clamp(min=1e-30)
-            if span is not None:  # or, with stuck members, the robust spread of the likeliest
-                # ⌈√K⌉ members (a start in the material's basin, at less than one round's cost)
-                w = torch.broadcast_to(weights, y.shape[:2] + weights.shape[-1:])
-                top = w.topk(math.isqrt(y.shape[1] - 1) + 1, 1).indices.expand(-1, -1, y.shape[-1])
-                mu, tau2 = _robust_start(y.gather(1, top), su.gather(1, top), s.sum(1) / den.clamp(min=1e-30))
-                d2 = (y - mu[:, None]) ** 2
             continue
         su2 = su * u
         tau2 = ((su2 * (d2 - v)).sum(1) / su2.sum(1).clamp(min=1e-30)).clamp(min=0.0)
