@@ -139,13 +139,16 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
-def _robust_start(y: Tensor, w: Tensor, v_mean: Tensor, span: float) -> tuple[Tensor, Tensor]:
-    """Centre and spread ``(N, C)`` of members ``y (N, K, C)`` under weights ``w`` that a minority
-    anywhere in a range of width ``span`` moves neither: the weighted median and interquartile
-    range (``/ 1.349``, a normal's) of a histogram of ``K`` bins over the range (no sort), the
-    spread less ``v_mean`` (the members' mean variance under ``w``) plus a bin's own variance."""
+def _robust_start(y: Tensor, v: Tensor, s: Tensor, span: float) -> tuple[Tensor, Tensor]:
+    """Centre and spread ``(N, C)`` of members ``y (N, K, C)`` (variances ``v``, memberships ``s``)
+    that a minority anywhere in a range of width ``span`` moves neither: the median and the
+    interquartile range (``/ 1.349``, a normal's) of a histogram of ``K`` bins of width ``h`` over
+    the range (no sort), each member weighted ``s / (v + h²/12)`` (members more precise than a bin
+    count alike), the spread less their mean variance plus a bin's own variance ``h²/12``."""
     k = y.shape[1]
     h = span / k
+    w = s / (v + h * h / 12)
+    v_mean = (w * v).sum(1) / w.sum(1).clamp(min=1e-30)
     lo = y.amin(1, keepdim=True)
     bins = torch.nan_to_num((y - lo) / h).long().clamp_(0, k - 1)
     cw = torch.zeros_like(y).scatter_add_(1, bins, w).cumsum(1).transpose(1, 2).contiguous()  # (N, C, K)
@@ -196,7 +199,7 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
         su = s * u
         den = su.sum(1)
         if it == 0 and span is not None:  # the start, with stuck members: their robust spread
-            mu, tau2 = _robust_start(y, su, s.sum(1) / den.clamp(min=1e-30), span)
+            mu, tau2 = _robust_start(y, v, s, span)
             d2 = (y - mu[:, None]) ** 2
             continue
         mu = (su * y).sum(1) / den.clamp(min=1e-30)
