@@ -168,7 +168,9 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
     ``τ² = Σ s u² ((y − μ)² − v) / Σ s u²`` with ``u = 1 / (τ² + v)`` (``iters`` rounds from
     the fixed-effects spread), so a member the data hardly see (``v`` large) counts neither in
     the mean nor in the spread. With ``span``, a member is instead, with a probability
-    ``1 − π`` estimated with the rest (EM, one update per round from ``π = ½``), a fit stuck
+    ``1 − π`` estimated with the rest (EM, one update per round from ``π = ½`` and from the
+    members' median and interquartile spread in a histogram over ``span``, a start the stuck
+    members move neither, so ``iters`` rounds suffice), a fit stuck
     anywhere in a range of that width (density ``1 / span``; a pixel in another basin, whose
     linearised ``v`` does not hold): its weight is multiplied by its responsibility
     ``π N(y; μ, τ² + v) / (π N(y; μ, τ² + v) + (1 − π) / span)``, so it widens neither the
