@@ -245,6 +245,8 @@ def test_material_estimate_spread_with_stuck_members_from_a_robust_start():
         assert float((mu - 0.4).abs().max()) < 0.03
         if tau == 0.0:
             assert float(tau2.max()) < 1e-5  # the fit's own noise, 1e-6, is the scale of "none"
+            _, tau2_fill, _ = priors.material_estimate(y, v, s, iters=2, span=priors.LOGIT_SPAN)
+            assert float(tau2_fill.max()) < 1e-5  # the fill's two rounds
         else:
             assert float(tau2.median()) == pytest.approx(tau**2, rel=0.1)
             assert float(tau2.max()) < 2.0 * tau**2

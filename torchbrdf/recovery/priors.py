@@ -321,7 +321,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
             rr = pool[s0:s0 + chunk]
             cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
             sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
-            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None], span=LOGIT_SPAN)
+            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None], iters=2, span=LOGIT_SPAN)
             ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
             tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
             prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
