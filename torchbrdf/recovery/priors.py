@@ -259,10 +259,8 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
     Why not the data's alone (:func:`marginal_information`): the fitted values the fill measures
     a material from were fitted with the ties, and a tie that pins one unknown (a constant
     specular, tied across the image) also pins those its data trade against it (roughness).
-    The data-only information understated the fitted values' precision (on a rough rubber
-    their squared errors were 0.07 of ``σ² / info`` at the median, where the χ²(1) median is
-    0.45), which took the measured spread ``τ²`` to 0.37 of the material's; with the ties the
-    median is 0.38 and ``τ²`` 0.94 of it (docs/recovery.md). ``jtj (P, 7, 7)``: the data
+    The data-only information understates the fitted values' precision, and so the material's
+    spread ``τ²`` (measured in docs/recovery.md, "The fill's measured spread"). ``jtj (P, 7, 7)``: the data
     normal matrices at ``theta`` when the caller has them (else computed); the result has
     ``theta``'s dtype and device.
     """
