@@ -13,12 +13,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchbrdf.recovery.classes import chi2_quantile
 from torchbrdf.recovery.levels import LevelData, log_residual
 from torchbrdf.recovery.params import N_PARAMS, decode
 
 
 #: The median of χ² with one degree of freedom: median(r²) = 0.455 σ² for Gaussian residuals.
-_CHI2_1_MEDIAN = 0.45493642311957283
+_CHI2_1_MEDIAN = chi2_quantile(1, 0.5)
 
 
 def light_position_step(data: LevelData, theta: Tensor, metal: Tensor, offset: Tensor, model: str,
