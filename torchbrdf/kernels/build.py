@@ -60,10 +60,10 @@ __all__ = ["load_kernel", "cache_root", "kernel_cache_dir", "available", "CACHE_
 # -ffp-contract=off: no FMA contraction, so float results round exactly like ATen's ops.
 # -fno-math-errno/-fno-trapping-math: lets sqrt and the selects vectorise (IEEE results kept).
 # The -fno-* passes below would otherwise thread jumps through the clamps of the backward and
-# leave boolean selects that gcc 12 cannot vectorise (measured: 3-4x slower without them).
+# leave boolean selects that gcc 12 cannot vectorise.
 # --param=vect-epilogues-nomask=0: the lane loop's few leftover lanes run scalar instead of in a
-# second, narrower vectorised copy of the loop body (a third less compile time; the blocks of
-# 512 lanes leave no leftover but the last block's).
+# second, narrower vectorised copy of the loop body (less to compile; the blocks of 512 lanes
+# leave no leftover but the last block's).
 CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno",
           "-fno-trapping-math", "-fno-tree-dominator-opts", "-fno-thread-jumps", "-fno-tree-pre",
           "-fno-code-hoisting", "--param=vect-epilogues-nomask=0", "-fPIC", "-std=c11"]

@@ -97,10 +97,9 @@ def run_jvp(plan: Plan, tensors: list[Tensor], tangents: list[Tensor], tidx: lis
     once per pass. Each direction carries only the tangents that are nonzero in it (the others
     are pruned from the kernel, tangent mode ``"zero"``): a Gauss–Newton Jacobian's directions
     are unit vectors in one unknown each (a base colour, the roughness, a normal slope), so its
-    six directions cost one primal and six narrow tangent chains — 14 ms at 16384 pixels ×
-    16 lights, where one pass per tangent input took 32 ms and one pass with every tangent in
-    every direction 45 ms (float32, 2 threads). A tangent that is zero in every direction (one
-    a caller passes explicitly; torch.func's own arrive as None, see
+    six directions cost one primal and six narrow tangent chains, less than one pass per tangent
+    input or one pass with every tangent in every direction. A tangent that is zero in every
+    direction (one a caller passes explicitly; torch.func's own arrive as None, see
     ``torchbrdf.kernels.autograd._PrincipledFunction.setup_context``) is dropped altogether
     before (:func:`torchbrdf.kernels.layout.nonzero_tangents` gives ``nz``).
     """

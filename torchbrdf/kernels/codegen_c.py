@@ -353,8 +353,8 @@ def _store_block(ctype: str) -> list:
     """Write a block's three planar output channels interleaved into ``out``.
 
     float32 with AVX-512: the interleave is done with two permutes per vector and written with
-    streaming stores (the output is not read back; skipping the read-for-ownership saves ~10 %
-    of the forward's memory traffic). Otherwise a plain loop.
+    streaming stores (the output is not read back, so the read-for-ownership is skipped).
+    Otherwise a plain loop.
     """
     plain = ["    for (long i = b0; i < b1; ++i) {",
              "      out[i * 3 + 0] = ob0[i - b0]; out[i * 3 + 1] = ob1[i - b0]; out[i * 3 + 2] = ob2[i - b0];",

@@ -167,8 +167,8 @@ class _BufferPool:
     """Recycles the large output/gradient buffers of the fused path (a small caching allocator).
 
     torch's CPU allocator returns every large block to the OS, so each call would pay a page
-    fault per 4 KiB of fresh output and gradient memory — measured ~300 ms for the 0.45 GiB of
-    gradients at N = 2^22, more than the kernels themselves. Buffers handed out here are
+    fault per 4 KiB of fresh output and gradient memory (0.45 GiB of gradients at N = 2^22),
+    which costs more than the kernels themselves. Buffers handed out here are
     anonymous ``mmap`` regions wrapped by ``torch.frombuffer``; when the last tensor using one
     is freed it comes back to the pool (at most ``TORCHBRDF_POOL_MB`` MiB, default 2048, are
     kept; :func:`empty_cache` drops them). Only blocks of at least 1 MiB are pooled.

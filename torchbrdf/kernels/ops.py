@@ -76,8 +76,7 @@ def capture_jvp(c: dict[str, Any], tangents: dict[str, Tensor], active: Iterable
     ``torch.func.vmap`` over ``torch.func.jvp`` reaches (``principled_fwd`` and
     ``principled_jvp`` with ``ntan = K``), called directly: without the transforms' work per
     call on the whole ``(K, *, 3)`` tangent (wrapping, batching rules, concatenations), which
-    took longer than the kernels themselves (a fit's 6-direction Jacobian of 16384 pixels ×
-    16 lights: 50 ms through the transforms, of which 14 ms kernel). Not differentiable: for a
+    costs more than the kernels themselves at a fit's sizes. Not differentiable: for a
     fit's Jacobian, whose inputs need no gradient.
     """
     tensor_names, tensors, floats, cfg = _operator_args(c, CAPTURE_INPUTS, active, need_tint, frame, backend,
