@@ -169,8 +169,8 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
             state is not finite, a full disk or another write failure (``rc`` 1; the previous
             outputs stay intact).
     """
-    # Backward compatibility: the old order was recover(capture, out, cfg). (The annotations give
-    # only the current order, so the type checker sees this branch as unreachable.)
+    # Backward compatibility: recover(capture, out, cfg), the earlier argument order, still works.
+    # (The annotations give only the current order, so the type checker sees this branch as unreachable.)
     if isinstance(config, (str, os.PathLike)) or isinstance(out, (RecoveryConfig, Settings)):
         config, out = out, config
     cfg = settings_of(config or RecoveryConfig())
@@ -207,7 +207,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
             held.enter_context(locked_out(out))
             clean_leftovers(out, log)
         rec = _start_or_resume(cap, cfg, out, fingerprint, resume, force, log, learned)
-        # torch imports torch._dynamo (about 1.4 s) on a process's first custom-op call and in its
+        # torch imports torch._dynamo (seconds) on a process's first custom-op call and in its
         # Python decompositions under torch.func: take that one-time library import before the
         # clock starts, so `seconds` is the fit's own time.
         importlib.import_module("torch._dynamo")

@@ -152,8 +152,8 @@ def _import_before_interrupts() -> None:
 
     Ray cancels a running task by interrupting its worker's main thread (a simulated SIGINT)
     and then reuses the worker. An interrupt that lands inside a first import leaves a
-    half-imported module behind, so the next task in that worker failed: "module
-    'triton.language' has no attribute 'core'" (``torch._dynamo``, 1.4 s to import, imports
+    half-imported module behind, so the next task in that worker fails: "module
+    'triton.language' has no attribute 'core'" (``torch._dynamo``, slow to import, imports
     Triton when it is installed). Held back here, the interrupt is raised once the imports are
     done; later imports (the plots at the end) then find their modules whole.
     """

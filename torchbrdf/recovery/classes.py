@@ -27,7 +27,7 @@ def rough_basin_tie(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int
 
     A dielectric whose highlights all fall between the lights fits its images as a glossy
     surface (the lobe unseen) and as a rough one (the lobe broad and dim) at the same cost: rough
-    dust specks on a metal came out glossy where the coarse levels blended them with the
+    dust specks on a metal end glossy where the coarse levels blend them with the
     metal, and with specular held the cost profile over roughness has two basins at the same
     height with a barrier of hundreds of noise variances between them (docs/recovery.md). The
     fit's path decides, and the confidence, linearised in the
@@ -142,10 +142,11 @@ def unconverged_dielectric_rows(cost_diel: Tensor, cost_metal: Tensor, sigma2: f
     one), the dielectric fits above ``factor`` × the median pixel's cost (``σ² n``) and the
     metal does not fit at the noise level either (> 2× it; a metal that does is a metal).
     These pick the pixels of a per-pixel refit, which replaces the dielectric only where it
-    fits better: they cost time, not accuracy. ``factor`` 5: a narrow grout line at the image
-    edge had its dielectric stuck at 7–11× the median. The χ²(n − 7) quantile at the class
-    test's rate (1.8× the median of 36 residuals) as both bounds refitted hundreds of true
-    metal pixels per choice (their dielectric fits badly because they are metal) at no gain.
+    fits better: they cost time, not accuracy. ``factor`` 5 is below where a dielectric stuck in
+    a narrow feature (a grout line at the image edge) fits, 7–11× the median. The χ²(n − 7)
+    quantile at the class test's rate (1.8× the median at 36 residuals) as both bounds would
+    also pick true metal pixels by the hundreds (their dielectric fits badly because they are
+    metal), at no gain.
     Returns int64 indices on the costs' device.
     """
     tau = evidence_threshold(N_PARAMS, false_positive_rate)

@@ -79,8 +79,8 @@ def keep_freed_memory(limit: int = 32 << 20) -> bool:
     A command that owns its process may call this (``torchbrdf-recover`` and
     ``training.evaluate`` do; the library never does). glibc serves a block above its mmap
     threshold with fresh pages, each page-faulted in on first touch, and raises the threshold
-    only as such blocks are freed: the fit's many 1-30 MB temporaries at 256² paid that anew
-    early in every process (0.2-0.5 s of an 11 s recovery, measured). Fixing the threshold at
+    only as such blocks are freed: the fit's many 1-30 MB temporaries at 256² pay that anew
+    early in every process (measured in docs/fast_path.md, "Threads"). Fixing the threshold at
     ``limit`` and keeping up to 8 × ``limit`` of freed memory in the heap avoids it. Returns
     whether it applied (False off glibc).
     """
@@ -100,7 +100,7 @@ def cli() -> NoReturn:
     """Run :func:`main` as the command line, then end the process without the interpreter's teardown.
 
     ``torchbrdf-recover`` and ``python -m training.recover_svbrdf`` run this. Freeing torch's
-    modules and the fit's objects one by one took ~1 s after a recovery; by then every output
+    modules and the fit's objects one by one is slow after a recovery, and by then every output
     is written, fsync'd and renamed into place, and nothing else is pending.
     """
     keep_freed_memory()

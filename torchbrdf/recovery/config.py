@@ -318,7 +318,7 @@ class Settings:
     # fused at the end: the light step then sees a weak metal's F0 held, not free along the
     # F0-roughness valley.
     fit_nonlocal_tie: bool = True
-    prior_nonlocal: float = 0.0  # precision of a non-local roughness prior: measured worse (docs), off
+    prior_nonlocal: float = 0.0  # precision of a non-local roughness prior (0: off; the fill does its job)
     nonlocal_range: float = 0.02  # base-colour range of that roughness prior
     nonlocal_sigma: float = 0.25  # the non-local window's radius, a fraction of the map size
     nonlocal_clusters: int = 12  # base-colour clusters per class guiding the roughness prior
@@ -327,7 +327,7 @@ class Settings:
     nonlocal_fit_weight: float = 1.0
     fuse_refit_iters: int = 3  # LM iterations taking a fused metal's other unknowns to the fused F0
     # Rounds of the fusion, each from the last one's average: a pixel's one-step estimate of its
-    # F0 optimum is better from nearer it; a third round moves no unknown by more than 3e-5.
+    # F0 optimum is better from nearer it; a third round barely moves any unknown.
     fuse_rounds: int = 2
     # Continuous metallic (the final stage, soft_metal_stage); σ² units throughout
     soft_metal_factor: float = 8.0  # candidates: a cost above this × the median (and boundaries)

@@ -75,10 +75,10 @@ def soft_metal_candidates(cost: Tensor, metal: Tensor, size: int, factor: float,
 
 #: :func:`blend_ends`' Gaussian widths in pixels, nearest first: the clear pixels beside a texel,
 #: else the same class further off. A small dust speck on a metal, or a partly rusted plateau, is
-#: mixed throughout, with no clear dielectric within the narrow widths' reach; the pixel's own
-#: values (a metal) made its blend a guess, and such specks came out 80-93 % metal for 10-40 %
-#: (docs/recovery.md, "Far ends"). The widest
-#: is also the context in which soft_metal_candidates finds a metal unlike the metal around it.
+#: mixed throughout, with no clear dielectric within the narrow widths' reach, and a blend from
+#: the pixel's own values (a metal) would call such a speck mostly metal (docs/recovery.md,
+#: "Continuous metallic"). The widest is also the context in which soft_metal_candidates finds a
+#: metal unlike the metal around it.
 BLEND_SIGMAS = (2.0, 6.0, 24.0)
 
 
@@ -133,7 +133,7 @@ def unmix_metallic(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     the nearest ones, or the same class further off where none is near (the core of a small
     dust speck is all candidates; a rust island inside a metal has no clear rust beside it;
     ``sigmas``, :data:`BLEND_SIGMAS`), else the pixel's own parameters (the blend is then a
-    guess, measured better than none: docs/recovery.md); the metal end takes the
+    guess, still a better start than none); the metal end takes the
     dielectric end's specular (a metal's is not observed). The normal is the pixel's own.
     Where no blend has a finite cost, ``t`` and its theta are NaN (no blend). ``theta (P, 7)``.
     Returns ``(theta of the blend (N, 7), t (N, 1))``, on ``theta``'s device and in its dtype.
@@ -182,10 +182,9 @@ def may_be_mixed(coverage: Tensor, metal: Tensor, cost: Tensor, quiet: float) ->
     :func:`unmix_metallic`) is its own class ``metal (N, 1)`` and whose data ``cost (N, 1)``
     is at most ``quiet`` (the caller's noise level: 1.5 × the median pixel's, the 98.5th
     percentile of 51 residuals' noise). Nothing in its data asks for a mixture, and one more
-    unknown would only fit noise: at the median, about 1 in 3000-7000 such pixels left their
-    class in the free fit; up to 1.5 × it, 2-3 % of them end fractional with no better
-    metallic, and leaving them out takes an eighth to a third of the stage's time
-    (docs/recovery.md). A candidate with no blend (NaN coverage) stays.
+    unknown would only fit noise: such a pixel rarely leaves its class in the free fit, and
+    one that ends fractional has no better metallic, so leaving them out saves part of the
+    stage's time. A candidate with no blend (NaN coverage) stays.
     """
     return ~((coverage == metal) & (cost <= quiet))[:, 0]
 
@@ -338,7 +337,7 @@ def soft_metal_fit(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     # The reference a fractional (or other-class) result must beat: the same per-pixel fit
     # with metallic held at the pixel's own value, so it wins by what it explains, not by the
     # refit of the other unknowns (the main fit's priors leave some pixels off their data
-    # optimum). Only where the free fit left the pixel's class (about 40 % of pass 1's pixels):
+    # optimum). Only where the free fit left the pixel's class:
     # one it returned to its own class has nothing to judge, and keeps the better of its old
     # unknowns and the free fit's (snapped to its class).
     # A refit only lowers the reference, so a pixel whose result does not beat even the
@@ -380,8 +379,8 @@ def soft_rough_tie(data: LevelData, theta: Tensor, metal: Tensor, rows: Tensor, 
     ``2 × glossy``) at a finite energy at most ``margin`` (in the energy's units: the caller scales
     it by the noise variance) above the first. A metallic within ``snap`` of 0 or 1 is set to it
     before that comparison (the other unknowns refitted with it held) and judged there. Roughness is
-    free on the rough side: held at one value, a rough metal's lobe misses (the rim's truth is
-    0.76-0.82). ``theta (P, 7)``, ``metal (P, 1)``.
+    free on the rough side: held at one value, a rough metal's lobe misses its own roughness.
+    ``theta (P, 7)``, ``metal (P, 1)``.
     Returns ``(theta (P, 7), metal (P, 1), moved (P,) bool)`` on ``theta``'s device, in its dtype.
     """
     moved = torch.zeros(theta.shape[0], dtype=torch.bool, device=theta.device)
@@ -566,13 +565,13 @@ def _candidate_passes(stage: _Stage, theta: Tensor, metal: Tensor, rows: Tensor,
         # after the first go on from the round before's answers: most pixels are settled
         # and leave the LM early, and the others continue where they were instead of
         # starting over from their neighbours' (moved) mean; a pixel the round before
-        # refused gets no new neighbour start (measured better maps without it, docs).
+        # refused gets no new neighbour start (its refusal stands).
         for k in range(cfg.soft_metal_passes if rows2.numel() else 0):
             theta[rows2], metal[rows2] = stage.neighbour_fit(theta, metal, rows2, gain2, warm=k > 0)
         t_new, m_new = theta[rows], metal[rows]
     # Only a fractional or other-class answer is taken: a pixel that stays its class
-    # keeps the fit it had, with the priors' regularisation (a data-only refit of a
-    # metal's weakly observed F0 doubled its base-colour error). One that changed class beat
+    # keeps the fit it had, with the priors' regularisation (a data-only refit would lose the
+    # ties that hold a metal's weakly observed F0). One that changed class beat
     # its own class in soft_metal_fit's judgement (in pass 1 its own class's refit; in the
     # second pass its answer before, the neighbours' pull included): a thin dielectric
     # scratch the binary choice called metal.
