@@ -43,7 +43,7 @@ def test_cli_writes_every_contract_file(tiny, tmp_path, capsys):
         assert names == (["R", "G", "B"] if ch == 3 else ["Y"])
     n = read_exr(out / "normal.exr")
     assert (n[2] > 0).all() and torch.allclose(n.norm(dim=0), torch.ones(32, 32), atol=1e-4)
-    conf, names = read_exr(out / "confidence.exr", return_names=True)  # issue 13
+    conf, names = read_exr(out / "confidence.exr", return_names=True)
     assert names == ["Y"] and conf.shape == (1, 32, 32) and bool(((conf >= 0) & (conf <= 1)).all())
     assert (out / "confidence.png").is_file() and len(rep["light_intensity_scale"]) == 9
 

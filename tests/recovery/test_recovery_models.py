@@ -1,4 +1,4 @@
-"""The recovery loop also fits with the SVBRDF-capture GGX model (issue 6 item 5)."""
+"""The recovery loop also fits with the SVBRDF-capture GGX model."""
 
 import json
 

@@ -1,4 +1,4 @@
-"""The glossy/rough ties of issue 18's wider held-out check.
+"""The glossy/rough ties, checked on held-out lights.
 
 ``rough_basin_tie`` runs after the class choice, ``soft_rough_tie`` in the final stage (metallic
 free).

@@ -1,4 +1,4 @@
-"""Continuous metallic (issue 18): the final soft-metal stage, the soft recipes, the report field.
+"""Continuous metallic: the final soft-metal stage, the soft recipes, the report field.
 
 Each test fails on the code before the stage: it had no soft-metal functions, no soft recipes,
 no ``fractional_metallic_fraction`` in the report, and its metallic map was only ever 0 or 1.
