@@ -173,7 +173,7 @@ def test_compile_fullgraph_uniform_gradients():
     torch.testing.assert_close(torch.autograd.grad(b, [u2])[0], torch.autograd.grad(a, [u1])[0])
 
 
-def test_torch_func_grad_wrt_a_light():
+def test_torch_func_grad_wrt_a_light(uniform_kernels):
     dtype = torch.float64
     g, _ = scene(dtype)
     g = GBuffer(g.position.detach(), g.normal.detach(), g.camera_position,
@@ -188,3 +188,22 @@ def test_torch_func_grad_wrt_a_light():
         torchbrdf.set_fast_path(fast)
         res[fast] = torch.func.grad(loss)(q0)
     torch.testing.assert_close(res[True], res[False], rtol=1e-10, atol=0)
+    assert uniform_kernels == [True]
+
+
+def test_without_a_kernel_the_op_differentiates_the_formula(monkeypatch):
+    """No kernel (no compiler): the operator's backward evaluates the formula's gradient itself,
+    for the per-pixel tensors and the uniforms alike."""
+    tensors, floats, uniforms, seg, cfg = _op_case(torch.float64)
+    go = rand(9, 3, seed=9)
+    ref = None
+    for kernel in (True, False):
+        if not kernel:
+            monkeypatch.setattr(shade_ops, "load", lambda spec, backward: None)
+        u, b = uniforms.clone().requires_grad_(), tensors[2].clone().requires_grad_()
+        out = shade_lights_fwd([tensors[0], tensors[1], b, tensors[3]], floats, u, seg, cfg)
+        got = torch.autograd.grad(out, [u, b], go)
+        if ref is None:
+            ref = got
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)

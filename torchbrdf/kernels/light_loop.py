@@ -395,10 +395,12 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
         post.append(f"tl.store({store_t(store)}, tl.broadcast_to({value}, [BLOCK]), mask=m)")
     post += [_triton_block_sum(lay, key, pnames[nd.id], None) for key, nd in post_sums]
     pid = "tl.program_id(0).to(tl.int64)" if wide else "tl.program_id(0)"
-    if post_sums or any(nd is not None for sums in sch.sums.values() for _, nd in sums):
+    summed = bool(post_sums) or any(nd is not None for sums in sch.sums.values() for _, nd in sums)
+    if summed:
         pre.insert(0, f"blk = {pid}")
     src = [
         TPRELUDE,
+        *([_TRITON_ADD] if summed else []),
         "@triton.jit",
         f"def {name}(n, P, U, {', '.join(args)}, BLOCK: tl.constexpr):",
         f"    i = {pid} * BLOCK + tl.arange(0, BLOCK)",
@@ -408,9 +410,18 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
     return "\n".join(src) + "\n"
 
 
+# The combine function of the block sums: tl.reduce is a builtin, while tl.sum is a jit function
+# of Triton's standard library, which the interpreter runs only if imported under TRITON_INTERPRET.
+_TRITON_ADD = """@triton.jit
+def _tb_add(a, b):
+    return a + b
+
+"""
+
+
 def _triton_block_sum(lay: Layout, key: tuple, value: str, light: str | None) -> str:
     """Triton: store the block's sum of ``value`` over its pixels (masked lanes are 0; double)."""
     if lay.sum_triton is None:
         raise ValueError("print_triton: the schedule sums over pixels but the layout has no sum_triton")
     lanes = f"tl.where(m, tl.broadcast_to({value}, [BLOCK]).to(tl.float64), 0.0)"
-    return f"tl.store({lay.sum_triton(key, light)}, tl.sum({lanes}, axis=0))"
+    return f"tl.store({lay.sum_triton(key, light)}, tl.reduce({lanes}, 0, _tb_add))"

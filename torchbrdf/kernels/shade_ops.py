@@ -202,10 +202,15 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
     else:
         lib = load(spec, backward=True)
     if lib is None:
-        with torch.enable_grad():
-            ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(inputs)]
-            out = _formula_eager(plan, ts[:T], plan.floats, ts[T], seg)
-            gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
+        # torch.func: autograd does not record inside a custom operator's implementation
+        def image(*wrt):
+            full = list(inputs)
+            for i, t in zip(need, wrt):
+                full[i] = t
+            return _formula_eager(plan, full[:T], plan.floats, full[T], seg)
+
+        _, pullback = torch.func.vjp(image, *[inputs[i].detach() for i in need])
+        gs = pullback(grad_out.to(plan.dtype))
         return [g.contiguous() if g is not None else _zeros(inputs[i]) for i, g in zip(need, gs)]
     written = lib[2]
     uniforms = uniforms.contiguous()
