@@ -209,7 +209,7 @@ def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need
                 full[i] = t
             return _formula_eager(plan, full[:T], plan.floats, full[T], seg)
 
-        _, pullback = torch.func.vjp(image, *[inputs[i].detach() for i in need])
+        pullback = torch.func.vjp(image, *[inputs[i].detach() for i in need])[1]
         gs = pullback(grad_out.to(plan.dtype))
         return [g.contiguous() if g is not None else _zeros(inputs[i]) for i, g in zip(need, gs)]
     written = lib[2]
