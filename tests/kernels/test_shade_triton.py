@@ -139,8 +139,8 @@ def test_light_loop_kernels_compile_for_a_gpu_without_one(monkeypatch):
     ne = codegen_normal_eq.NormalEqSpec("float", names, [k for k in SCALAR_PARAMS if k not in
                                                          ("metallic", "specular", "roughness")],
                                         ("diffuse", "specular"), False, 7, pat)
-    light_grad = codegen_shade.ShadeSpec("float", tensors, fl, ("diffuse", "specular", "clearcoat"), False, False,
-                                         ("point", "directional"), grad_mask=(2,), uniform_grad=True)
+    light_grad = codegen_shade.ShadeSpec("float", tensors, fl, ("diffuse", "specular", "clearcoat"), False,
+                                         False, ("point", "directional"), grad_mask=(2,), uniform_grad=True)
     sources = [(codegen_shade.generate_triton(spec, "fwd"), "tb_fwd"),
                (codegen_shade.generate_triton(spec, "bwd"), "tb_bwd"),
                (codegen_shade.generate_triton(light_grad, "bwd"), "tb_bwd"),
@@ -196,8 +196,9 @@ def _light_gradients(backend, dtype, batch):
     gb = sphere_gbuffer(9, 9, dtype=dtype)
     rough = (0.2 + 0.6 * torch.rand(batch, 1, 9, 9, generator=g, dtype=dtype)).requires_grad_()
     cam = (gb.camera_position + torch.zeros(batch, 3, dtype=dtype)).requires_grad_()
-    gb = torchbrdf.GBuffer(position=gb.position.expand(batch, -1, -1, -1), normal=gb.normal.expand(batch, -1, -1, -1),
-                           camera_position=cam, material={"roughness": rough, "base_color": 0.6, "clearcoat": 0.3})
+    gb = torchbrdf.GBuffer(position=gb.position.expand(batch, -1, -1, -1),
+                           normal=gb.normal.expand(batch, -1, -1, -1), camera_position=cam,
+                           material={"roughness": rough, "base_color": 0.6, "clearcoat": 0.3})
     lights = _lights(dtype, batch)
     leaves = [cam, rough] + [t.requires_grad_() for light in lights for t in light._light_tensors()]
     old = backend_mod.get_backend()
@@ -215,7 +216,8 @@ def test_triton_light_loop_light_and_camera_gradients(batch, light_loop_kernels,
     # The backward sums each uniform's gradient per block (masked lanes are 0) and per image.
     specs = []
     real = shade_ops._triton_kernel
-    monkeypatch.setattr(shade_ops, "_triton_kernel", lambda spec, kind, wide: specs.append(spec) or real(spec, kind, wide))
+    monkeypatch.setattr(shade_ops, "_triton_kernel",
+                        lambda spec, kind, wide: specs.append(spec) or real(spec, kind, wide))
     got = _light_gradients("triton", torch.float64, batch)
     assert any(s.uniform_grad for s in specs)
     ref = _light_gradients("eager", torch.float64, batch)

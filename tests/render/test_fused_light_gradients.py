@@ -110,8 +110,8 @@ def test_only_the_lights_require_grad(uniform_kernels):
 def _op_case(dtype, P=9, split=4):
     """The operator's inputs: two segments with their own camera and lights (1 point, 1 sun)."""
     pos = rand(P, 3, seed=1, dtype=dtype) * 0.3
-    n = torch.nn.functional.normalize(rand(P, 3, seed=2, dtype=dtype) + torch.tensor([0, 0, 2.0], dtype=dtype),
-                                      dim=-1)
+    up = torch.tensor([0, 0, 2.0], dtype=dtype)
+    n = torch.nn.functional.normalize(rand(P, 3, seed=2, dtype=dtype) + up, dim=-1)
     bc = rand(P, 3, seed=3, dtype=dtype)
     r = rand(P, 1, seed=4, dtype=dtype, lo=0.2, hi=0.8)
     floats = [0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 1.0]
@@ -119,7 +119,8 @@ def _op_case(dtype, P=9, split=4):
         [[0.1, 0.0, 3.0, 1.0, 0.5, 2.0, 4.0, 3.0, 2.0, 0.3, -0.2, 1.0, 1.0, 0.8, 1.2],
          [-0.2, 0.3, 2.5, -1.0, 0.4, 1.5, 2.0, 5.0, 3.0, -0.1, 0.4, 1.0, 0.5, 1.0, 0.7]], dtype=dtype)
     names = [k for k in NAMES if k != "roughness"]
-    cfg = make_cfg(["pos", "n", "base_color", "roughness"], names, ("diffuse", "specular"), False, False, True, 1, 1)
+    cfg = make_cfg(["pos", "n", "base_color", "roughness"], names, ("diffuse", "specular"), False, False, True,
+                   1, 1)
     return [pos, n, bc, r], floats, uniforms, [0, split, P], cfg
 
 

@@ -266,11 +266,11 @@ def light_grad_compare(size: int, lights: int, threads: int, rounds: int) -> str
     for i in range(lights):
         a = 2 * math.pi * i / lights
         if i < n_point:
-            light_list.append(PointLight(torch.tensor([1.5 * math.cos(a), 1.5 * math.sin(a), 2.0]).requires_grad_(),
-                                         torch.full((3,), 4.0).requires_grad_()))
+            q = torch.tensor([1.5 * math.cos(a), 1.5 * math.sin(a), 2.0])
+            light_list.append(PointLight(q.requires_grad_(), torch.full((3,), 4.0).requires_grad_()))
         else:
-            light_list.append(DirectionalLight(torch.tensor([0.5 * math.cos(a), 0.5 * math.sin(a), 1.0]).requires_grad_(),
-                                               torch.full((3,), 1.0).requires_grad_()))
+            d = torch.tensor([0.5 * math.cos(a), 0.5 * math.sin(a), 1.0])
+            light_list.append(DirectionalLight(d.requires_grad_(), torch.full((3,), 1.0).requires_grad_()))
     leaves = [cam] + [t for light in light_list for t in light._light_tensors()]
 
     from torchbrdf.render import prepare

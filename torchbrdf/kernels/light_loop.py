@@ -258,7 +258,8 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
     for store, val in sch.post:
         post.append(f"{lay.store_c(store)} = {post_names[val.id] if isinstance(val, Node) else '((R)0)'};")
     post += [f"sm{q}[i - b0] = {post_names[nd.id]};" for q, (_, nd) in enumerate(post_sums)]
-    n_sm = max([len(post_sums)] + [sum(nd is not None for _, nd in sch.sums.get(lp.name, [])) for lp in lay.loops])
+    n_sm = max([len(post_sums)]
+               + [sum(nd is not None for _, nd in sch.sums.get(lp.name, [])) for lp in lay.loops])
 
     B = lay.block
     src = [

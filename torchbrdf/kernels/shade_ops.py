@@ -427,7 +427,8 @@ class _ShadeLightsFunction(torch.autograd.Function):
         # torch.func.grad records every backward with grad mode on; only when something will
         # differentiate it again does it need the eager formula's differentiable gradient.
         with torch.set_grad_enabled(_differentiated_again([*tensors, uniforms, grad_out])):
-            *grads, grad_uniforms = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out, need)
+            *grads, grad_uniforms = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out,
+                                               need)
         return (grad_uniforms, None, None, None, *grads)
 
 
