@@ -23,7 +23,8 @@ memory before shading, peak during forward+backward, their difference and wall t
 (``set_fast_path(False)``: one checkpointed pass per light), the fused shader
 (``set_fast_path(True)``: all lights in one kernel pass) and a hand-written per-light torch
 loop (Lambert + GGX), and prints pixel-lights/s with the load average. ``--fused`` makes the
-memory children use the fused path (light intensities then do not require grad).
+memory children use the fused path (light intensities then do not require grad); without it they
+take one checkpointed pass per light (:func:`per_light_passes`).
 
 ``--light-grad`` times forward+backward w.r.t. the lights (half point lights: position and
 intensity; half directional: direction and irradiance) and the camera, the material fixed
@@ -37,6 +38,7 @@ quadrature on a small sphere (float64), the numbers quoted in ``docs/shading.md`
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -61,6 +63,21 @@ def _reset_peak() -> bool:
         return True
     except OSError:
         return False
+
+
+@contextlib.contextmanager
+def per_light_passes(on: bool = True):
+    """While ``on``: ``shade`` takes one checkpointed pass per light even where its fused light
+    loop applies (each pass still calls the principled kernels): the route being compared."""
+    from torchbrdf.render import prepare
+
+    rule = prepare.fused_lights_wanted
+    if on:
+        prepare.fused_lights_wanted = lambda *a, **k: False
+    try:
+        yield
+    finally:
+        prepare.fused_lights_wanted = rule
 
 
 def _child(
@@ -103,7 +120,8 @@ def _child(
     before = _status_mib("VmRSS")
     reset = _reset_peak()
     t0 = time.perf_counter()
-    img = shading.shade(gbuf, light_list, brdf)
+    with per_light_passes(not fused):
+        img = shading.shade(gbuf, light_list, brdf)
     img.sum().backward()
     seconds = time.perf_counter() - t0
     peak = _status_mib("VmHWM")
@@ -273,20 +291,13 @@ def light_grad_compare(size: int, lights: int, threads: int, rounds: int) -> str
             light_list.append(DirectionalLight(d.requires_grad_(), torch.full((3,), 1.0).requires_grad_()))
     leaves = [cam] + [t for light in light_list for t in light._light_tensors()]
 
-    from torchbrdf.render import prepare
-
-    fused_rule = prepare.fused_lights_wanted
-
     def run(mode):
         # "passes": the route light gradients took before the light loop differentiated the
         # uniforms: one checkpointed pass per light, each calling the fused principled kernels
         torchbrdf.set_fast_path(mode != "eager")
-        prepare.fused_lights_wanted = (lambda *a, **k: False) if mode == "passes" else fused_rule
-        try:
+        with per_light_passes(mode == "passes"):
             img = torchbrdf.shade(gbuf, light_list)
-            return torch.autograd.grad(img.sum(), leaves)
-        finally:
-            prepare.fused_lights_wanted = fused_rule
+        return torch.autograd.grad(img.sum(), leaves)
 
     methods = {"fused shade": "fused", "per-light passes, principled kernels": "passes",
                "eager shade (set_fast_path(False))": "eager"}
