@@ -137,18 +137,34 @@ def test_gradcheck_uniforms_float64(uniform_kernels):
 
 
 def test_uniform_gradient_is_deterministic():
-    """Per-block partial sums, added by torch: the same gradient, bit for bit, on every run."""
+    """Per-block partial sums, added by torch: the same gradient, bit for bit, on every run and
+    with any thread count."""
     dtype = torch.float32
     tensors, floats, uniforms, _, cfg = _op_case(dtype, P=5000)
     seg = [0, 2000, 5000]
     go = rand(5000, 3, seed=9, dtype=dtype)
     first = None
-    for _ in range(3):
-        u = uniforms.clone().requires_grad_()
-        (gu,) = torch.autograd.grad(shade_lights_fwd(tensors, floats, u, seg, cfg), [u], go)
-        if first is None:
-            first = gu
-        assert torch.equal(gu, first)
+    threads = torch.get_num_threads()
+    try:
+        for nt in (1, 2, 1, 2):
+            torch.set_num_threads(nt)
+            u = uniforms.clone().requires_grad_()
+            (gu,) = torch.autograd.grad(shade_lights_fwd(tensors, floats, u, seg, cfg), [u], go)
+            if first is None:
+                first = gu
+            assert torch.equal(gu, first)
+    finally:
+        torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_light_gradients(dtype, uniform_kernels):
+    """Half-precision lights and g-buffer: shaded in float32, each light's gradient in its dtype."""
+    g, _ = scene(dtype)
+    lights = points(dtype, 2) + dirs(dtype, 1)
+    wrt = light_leaves(lights)
+    res = compare(g, wrt, lights, 1e-2)
+    assert all(t.dtype == dtype for t in res[True]) and True in uniform_kernels
 
 
 def test_opcheck_with_uniforms_requiring_grad():
