@@ -37,8 +37,9 @@ def fused_lights_wanted(
     """Whether the point and directional lights go through the fused shading kernel.
 
     The principled BRDF, inputs the kernel reads (4-D maps or constants), and the fused
-    kernels' dispatch rule (``principled.fused_backend``, on ``elements`` pixel-lights) picking the C or the
-    Triton kernels (the shading kernel is printed in both).
+    kernels' dispatch rule (``principled.fused_backend``, on ``elements`` pixel-lights) picking
+    the C or the Triton kernels (the shading kernel is printed in both). The lights and ``cam``
+    may require grad: the kernel's backward differentiates them too.
     """
     if kind != "principled" or not (points or dirs):
         return False
