@@ -224,3 +224,40 @@ def test_without_a_kernel_the_op_differentiates_the_formula(monkeypatch):
             ref = got
     for a, b in zip(got, ref):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_second_order_through_a_light():
+    """Differentiating the light gradient again: the formula's differentiable gradient, as eager."""
+    dtype = torch.float64
+    g, leaves = scene(dtype)
+    lights = points(dtype, 2) + dirs(dtype, 1)
+    q, irradiance = lights[0].position.requires_grad_(), lights[2].irradiance.requires_grad_()
+    res = {}
+    for fast in (False, True):
+        torchbrdf.set_fast_path(fast)
+        (gq,) = torch.autograd.grad(shade(g, lights).square().sum(), [q], create_graph=True)
+        res[fast] = torch.autograd.grad(gq.sum(), [q, irradiance, leaves["roughness"]])
+    for a, b in zip(res[False], res[True]):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+
+
+def test_compiled_shade_light_gradients(uniform_kernels):
+    """shade under torch.compile(fullgraph=True) with a light and the camera requiring grad."""
+    dtype = torch.float32
+    g, _ = scene(dtype, h=16, w=16)
+    material = {k: v.detach() for k, v in g.material.items()}
+    lights = points(dtype, 2)
+    q = lights[1].position.requires_grad_()
+
+    def image(cam):
+        return shade(GBuffer(g.position.detach(), g.normal.detach(), cam, material), lights)
+
+    torchbrdf.set_fast_path(True)
+    compiled = torch.compile(image, fullgraph=True)
+    grads = []
+    for fn in (image, compiled):
+        cam = g.camera_position.clone().requires_grad_()
+        grads.append(torch.autograd.grad(fn(cam).square().sum(), [cam, q]))
+    for a, b in zip(*grads):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
+    assert True in uniform_kernels
