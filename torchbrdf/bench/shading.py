@@ -45,7 +45,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 
 def _status_mib(field: str) -> float:
@@ -66,7 +66,7 @@ def _reset_peak() -> bool:
 
 
 @contextlib.contextmanager
-def per_light_passes(on: bool = True):
+def per_light_passes(on: bool = True) -> Iterator[None]:
     """While ``on``: ``shade`` takes one checkpointed pass per light even where its fused light
     loop applies (each pass still calls the principled kernels): the route being compared."""
     from torchbrdf.render import prepare
