@@ -189,12 +189,14 @@ def test_anisotropy_with_tangents(dtype):
     both(g, leaves, points(dtype) + dirs(dtype, 1))
 
 
-def test_light_gradients_fall_back_to_eager():
+def test_light_gradients_stay_fused():
+    """Gradients w.r.t. a light keep the fused light loop (its backward differentiates the
+    uniforms too; tests/render/test_fused_light_gradients.py compares them with eager)."""
     dtype = torch.float64
     g, leaves = scene(dtype)
     inten = torch.tensor([4.0, 3.0, 2.0], dtype=dtype, requires_grad=True)
     lights = [PointLight(torch.tensor([0.5, 0.2, 2.0], dtype=dtype), inten)]
-    assert not uses_fused(g, lights)
+    assert uses_fused(g, lights)
     torchbrdf.set_fast_path(True)
     img = shade(g, lights)
     (gi,) = torch.autograd.grad(img.sum(), [inten])

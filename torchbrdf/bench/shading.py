@@ -8,6 +8,7 @@ Usage::
     python -m torchbrdf.bench.shading --env-errors   # error tables of the environment strategies
     python -m torchbrdf.bench.shading --fused-compare --size 512 --lights 16   # eager vs fused vs hand loop
     python -m torchbrdf.bench.shading --size 512 --lights 1 16 --fused   # fused peak memory vs lights
+    python -m torchbrdf.bench.shading --light-grad --size 256 --lights 8 --threads 1 --rounds 5
 
 Each configuration runs in a fresh subprocess so peak resident memory (``VmHWM`` from
 ``/proc/self/status``, Linux) belongs to that configuration alone. The scene is the flat
@@ -22,7 +23,13 @@ memory before shading, peak during forward+backward, their difference and wall t
 (``set_fast_path(False)``: one checkpointed pass per light), the fused shader
 (``set_fast_path(True)``: all lights in one kernel pass) and a hand-written per-light torch
 loop (Lambert + GGX), and prints pixel-lights/s with the load average. ``--fused`` makes the
-memory children use the fused path (light intensities then do not require grad).
+memory children use the fused path (light intensities then do not require grad); without it they
+take one checkpointed pass per light (:func:`per_light_passes`).
+
+``--light-grad`` times forward+backward w.r.t. the lights (half point lights: position and
+intensity; half directional: direction and irradiance) and the camera, the material fixed
+(light calibration): the fused shader against one checkpointed pass per light (with the
+principled kernels, and fully eager), alternating, CPU time and wall time (min / median / max).
 
 ``--env-errors`` prints the error of both environment strategies against brute-force
 quadrature on a small sphere (float64), the numbers quoted in ``docs/shading.md``.
@@ -31,13 +38,14 @@ quadrature on a small sphere (float64), the numbers quoted in ``docs/shading.md`
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 
 def _status_mib(field: str) -> float:
@@ -55,6 +63,21 @@ def _reset_peak() -> bool:
         return True
     except OSError:
         return False
+
+
+@contextlib.contextmanager
+def per_light_passes(on: bool = True) -> Iterator[None]:
+    """While ``on``: ``shade`` takes one checkpointed pass per light even where its fused light
+    loop applies (each pass still calls the principled kernels): the route being compared."""
+    from torchbrdf.render import prepare
+
+    rule = prepare.fused_lights_wanted
+    if on:
+        prepare.fused_lights_wanted = lambda *a, **k: False
+    try:
+        yield
+    finally:
+        prepare.fused_lights_wanted = rule
 
 
 def _child(
@@ -97,7 +120,8 @@ def _child(
     before = _status_mib("VmRSS")
     reset = _reset_peak()
     t0 = time.perf_counter()
-    img = shading.shade(gbuf, light_list, brdf)
+    with per_light_passes(not fused):
+        img = shading.shade(gbuf, light_list, brdf)
     img.sum().backward()
     seconds = time.perf_counter() - t0
     peak = _status_mib("VmHWM")
@@ -232,6 +256,83 @@ def fused_compare(size: int, lights: int, threads: int, rounds: int, eager: bool
     return "\n".join(lines)
 
 
+def light_grad_compare(size: int, lights: int, threads: int, rounds: int) -> str:
+    """Forward+backward w.r.t. lights and camera: fused vs eager shade, alternating."""
+    import statistics
+
+    import torch
+
+    import torchbrdf
+    from torchbrdf.render.gbuffer import GBuffer
+    from torchbrdf.render.geometry import plane_gbuffer
+    from torchbrdf.render.lights import DirectionalLight, PointLight
+
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(0)
+    nm = torch.randn(1, 3, size, size, generator=g) * 0.2
+    nm[:, 2] = 1.0
+    material = {
+        "base_color": torch.rand(1, 3, size, size, generator=g),
+        "roughness": 0.2 + 0.6 * torch.rand(1, 1, size, size, generator=g),
+        "metallic": torch.rand(1, 1, size, size, generator=g),
+    }
+    plane = plane_gbuffer(size, size)
+    cam = plane.camera_position.clone().requires_grad_()
+    gbuf = GBuffer(plane.position, nm, cam, material)
+    n_point = (lights + 1) // 2
+    light_list: list = []
+    for i in range(lights):
+        a = 2 * math.pi * i / lights
+        if i < n_point:
+            q = torch.tensor([1.5 * math.cos(a), 1.5 * math.sin(a), 2.0])
+            light_list.append(PointLight(q.requires_grad_(), torch.full((3,), 4.0).requires_grad_()))
+        else:
+            d = torch.tensor([0.5 * math.cos(a), 0.5 * math.sin(a), 1.0])
+            light_list.append(DirectionalLight(d.requires_grad_(), torch.full((3,), 1.0).requires_grad_()))
+    leaves = [cam] + [t for light in light_list for t in light._light_tensors()]
+
+    def run(mode):
+        # "passes": the route light gradients took before the light loop differentiated the
+        # uniforms: one checkpointed pass per light, each calling the fused principled kernels
+        torchbrdf.set_fast_path(mode != "eager")
+        with per_light_passes(mode == "passes"):
+            img = torchbrdf.shade(gbuf, light_list)
+        return torch.autograd.grad(img.sum(), leaves)
+
+    methods = {"fused shade": "fused", "per-light passes, principled kernels": "passes",
+               "eager shade (set_fast_path(False))": "eager"}
+    for mode in methods.values():  # warm-up: kernels built or loaded, first-call costs paid
+        run(mode)
+    cpu: dict[str, list[float]] = {k: [] for k in methods}
+    wall: dict[str, list[float]] = {k: [] for k in methods}
+    loads = [os.getloadavg()[0]]
+    for _ in range(rounds):
+        for name, mode in methods.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            run(mode)
+            cpu[name].append(time.process_time() - c0)
+            wall[name].append(time.perf_counter() - t0)
+        loads.append(os.getloadavg()[0])
+    torchbrdf.set_fast_path(None)
+
+    def mmm(ts):
+        return f"{min(ts):.3f} / {statistics.median(ts):.3f} / {max(ts):.3f}"
+
+    lines = [
+        f"{size}x{size}, {n_point} point + {lights - n_point} directional lights, float32, forward+backward "
+        f"w.r.t. the lights and the camera, {threads} thread(s), {rounds} alternating rounds; load average "
+        f"(1 min) during: {min(loads):.1f}-{max(loads):.1f} on {os.cpu_count()} CPUs",
+        "",
+        "| method | CPU s (min / median / max) | wall s (min / median / max) | fused speed-up (median CPU) |",
+        "|---|---|---|---|",
+    ]
+    fused_med = statistics.median(cpu["fused shade"])
+    for name in methods:
+        lines.append(f"| {name} | {mmm(cpu[name])} | {mmm(wall[name])} | "
+                     f"{statistics.median(cpu[name]) / fused_med:.1f}x |")
+    return "\n".join(lines)
+
+
 def env_errors() -> str:
     """Markdown tables: Monte Carlo and split-sum error against quadrature on a sphere."""
     import torch
@@ -338,12 +439,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds of --fused-compare")
     ap.add_argument("--no-eager", action="store_true", help="--fused-compare without the (slow) eager shader")
     ap.add_argument(
+        "--light-grad", action="store_true",
+        help="time forward+backward w.r.t. lights and camera, fused vs eager (first --lights count)",
+    )
+    ap.add_argument(
         "--fused", action="store_true", help="memory children use the fused path (lights without grad)"
     )
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.env_errors:
         print(env_errors())
+        return 0
+    if args.light_grad:
+        print(light_grad_compare(args.size, args.lights[-1], args.threads, args.rounds))
         return 0
     if args.fused_compare:
         print(fused_compare(args.size, args.lights[-1], args.threads, args.rounds, not args.no_eager))

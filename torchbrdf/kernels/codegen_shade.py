@@ -28,6 +28,11 @@ a block of pixels (each vectorised over the pixels by gcc):
    adjoints back to the per-pixel inputs (a second :func:`.trace.reverse` over the
    pixel-level part, recomputed) and writes each input's gradient once.
 
+With ``uniform_grad`` the backward also differentiates w.r.t. the uniforms: the adjoint of each
+light's six uniforms (from the loop body's reverse pass) and of the camera (from the post
+pass) are summed over each block's pixels (:attr:`.light_loop.LoopSchedule.sums`); the caller
+adds the blocks' partial sums.
+
 So each pixel's material is read once per pass, the per-light work is only what depends on the
 light, memory is flat in the number of lights, and the light count is a runtime argument (no
 rebuild per count). Nothing here knows a derivative rule or a formula.
@@ -40,7 +45,9 @@ Kernel ABI (same symbols and arguments as the principled kernels, see :mod:`.cod
 * ``P`` the runtime Python floats of ``spec.floats``, then ``Lp`` and ``Ld``;
 * ``out`` ``(n, 3)`` contiguous; ``go`` ``(n, 3)`` lane-dense, or one colour / one value for
   all pixels (``spec.go_mode`` ``"b1"`` / ``"b0"``: the gradient of a sum is read in place);
-  ``gout[k]`` a lane-dense ``(n, C_k)`` gradient.
+  ``gout[k]`` a lane-dense ``(n, C_k)`` gradient; with ``uniform_grad``, ``gout[T]`` the
+  uniforms' partial gradients, double ``(ceil(n / BLOCK), 3 + 6 (Lp + Ld))``, zero-filled by
+  the caller (block ``b``'s row: the sum over its pixels).
 """
 
 from __future__ import annotations
@@ -79,7 +86,8 @@ class ShadeSpec:
     ``frame``, ``base_color`` and the scalar maps); ``floats``: names of the material
     parameters passed as runtime floats; ``lights``: the light kinds present (each gets its
     loop); ``grad_mask``: backward, the inputs whose gradient is wanted; ``normalize_n``: ``n`` is the
-    raw normal, normalised in the kernel; ``go_mode``: the output gradient's layout.
+    raw normal, normalised in the kernel; ``go_mode``: the output gradient's layout;
+    ``uniform_grad``: backward, also the gradient w.r.t. the uniform row (camera and lights).
     """
 
     def __init__(
@@ -94,6 +102,7 @@ class ShadeSpec:
         grad_mask: Iterable[int] = (),
         normalize_n: bool = False,
         go_mode: str = "full",
+        uniform_grad: bool = False,
     ) -> None:
         self.ctype = ctype
         self.hi_double = ctype == "float"
@@ -106,6 +115,7 @@ class ShadeSpec:
         self.grad_mask = tuple(grad_mask)
         self.go_mode = go_mode
         self.normalize_n = bool(normalize_n)
+        self.uniform_grad = bool(uniform_grad)
         self.written: tuple[int, ...] = ()  # set by the backward's generator
 
     def key(self, backward: bool | str) -> tuple[Any, ...]:
@@ -122,7 +132,7 @@ class ShadeSpec:
             self.normalize_n,
             formula_token(),
         )
-        return base + (("bwd", self.grad_mask, self.go_mode) if backward else ("fwd",))
+        return base + (("bwd", self.grad_mask, self.go_mode, self.uniform_grad) if backward else ("fwd",))
 
     def generate(self, kind: str) -> str:
         return generate(self, kind)
@@ -136,7 +146,8 @@ def _in(role: str, kind="r", grad=False, **attr) -> Node:
 
 
 def _trace(spec: ShadeSpec):
-    """Trace the shading formula. Returns ``(graph, loads, {light kind: [3 output nodes]})``."""
+    """Trace the shading formula. Returns ``(graph, loads, {light kind: [3 output nodes]},
+    camera nodes, {light kind: its 6 uniform nodes})``."""
     g = Graph()
     with g:
         ops = TraceOps(spec.hi_double)
@@ -156,27 +167,29 @@ def _trace(spec: ShadeSpec):
         if spec.normalize_n:  # the raw normal: normalised per pixel, outside the light loop
             inp["n"] = formula.normalize(ops, inp["n"])
         n = inp["n"]
-        cam = Vec3(_in("cam", c=c) for c in range(3))
+        cam = Vec3(_in("cam", grad=spec.uniform_grad, c=c) for c in range(3))
         inp["v"] = formula.view_direction(ops, cam, pos)
 
         def brdf(l):
             return formula.principled(ops, {**inp, "l": l}, spec.active, spec.need_tint, spec.frame)
 
         outs = {}
+        uniforms = {}
         for kind in spec.lights:
-            u = [_in("light", c=c) for c in range(LIGHT_STRIDE)]
+            u = [_in("light", grad=spec.uniform_grad, c=c) for c in range(LIGHT_STRIDE)]
+            uniforms[kind] = u
             a, b = Vec3(u[:3]), Vec3(u[3:])
             if kind == "point":
                 out = formula.point_light(ops, pos, n, a, b, brdf)
             else:
                 out = formula.directional_light(ops, n, a, b, brdf)
             outs[kind] = list(out.c)
-    return g, loads, outs
+    return g, loads, outs, list(cam.c), uniforms
 
 
 def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
     """Trace the formula and build the forward (``"fwd"``) or backward (``"bwd"``) schedule."""
-    g, loads, outs = _trace(spec)
+    g, loads, outs, cam, uniforms = _trace(spec)
     accs: dict[str, list[tuple[tuple[Any, ...], Node]]]
     post: list[tuple[tuple[Any, ...], Node | None]]
     with g:
@@ -194,11 +207,14 @@ def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
         stop = frozenset(i for i in px if i not in lit)
         byid = {nd.id: nd for nd in g.nodes}
         accs = {}
+        sums: dict[str, list[tuple[tuple[Any, ...], Node | None]]] = {}
         bnd: set[int] = set()
         for lk in spec.lights:
             adj = reverse(g, outs[lk], go, stop=stop)
             accs[lk] = [(("adj", b), adj[b]) for b in sorted(stop) if b in adj]
             bnd |= {b for b in stop if b in adj}
+            if spec.uniform_grad:  # this light's uniforms: summed over the pixels, per light
+                sums[lk] = [(("light", c), adj.get(u.id)) for c, u in enumerate(uniforms[lk])]
         bnd_ids = sorted(bnd)
         acc_kind = {("adj", b): byid[b].kind for b in bnd_ids}
         seeds = [_in("acc", byid[b].kind, key=("adj", b)) for b in bnd_ids]
@@ -212,7 +228,8 @@ def schedule(spec: ShadeSpec, kind: str) -> LoopSchedule:
             for c in range(C):
                 nd = next(x for x in loads if x.attr["k"] == k and x.attr["c"] == c)
                 post.append((("grad", k, c), adj2.get(nd.id)))
-        return LoopSchedule(g, accs, acc_kind, post, written)
+        post_sums = [(("cam", c), adj2.get(nd.id)) for c, nd in enumerate(cam)] if spec.uniform_grad else []
+        return LoopSchedule(g, accs, acc_kind, post, written, sums=sums, post_sums=post_sums)
 
 
 def generate(spec: ShadeSpec, kind: str) -> str:
@@ -234,6 +251,9 @@ def generate(spec: ShadeSpec, kind: str) -> str:
         sig = "void tb_fwd(long n, void** in, const double* P, R* __restrict out, int nthreads)"
     else:
         decl += [f"R* __restrict gp{k} = (R*)gout[{k}];" for k in sch.written]
+        if spec.uniform_grad:
+            decl += [f"double* __restrict gU = (double*)gout[{T}];",
+                     f"const long W = {CAMERA} + {LIGHT_STRIDE} * (Lp + Ld);"]
         sig = (
             "void tb_bwd(long n, void** in, const double* P, const R* __restrict go, void** gout, "
             "int nthreads)"
@@ -245,16 +265,18 @@ def generate_triton(spec: ShadeSpec, kind: str, wide: bool = False) -> str:
     """Triton source of the forward (``"fwd"``) or backward (``"bwd"``) shading kernel.
 
     ``tb_fwd(n, P, U, x0 .. x{T-1}, out, Lp, Ld, BLOCK)``;
-    ``tb_bwd(n, P, U, x0 .. x{T-1}, go, g{k} for k in spec.written, Lp, Ld, BLOCK)``: ``x{k}``
+    ``tb_bwd(n, P, U, x0 .. x{T-1}, go, g{k} for k in spec.written[, gU], Lp, Ld, BLOCK)``: ``x{k}``
     the per-pixel inputs (``spec.tensors``), ``U`` the segment's uniform row (camera, then the
     lights, as in C), ``P`` the runtime floats (float64), ``Lp`` / ``Ld`` the light counts,
-    ``out`` / ``g{k}`` lane-dense ``(n, 3)`` / ``(n, C_k)``, ``go`` in ``spec.go_mode``. Sets
+    ``out`` / ``g{k}`` lane-dense ``(n, 3)`` / ``(n, C_k)``, ``go`` in ``spec.go_mode``, ``gU``
+    (with ``spec.uniform_grad``) the uniforms' per-block partial gradients as in C. Sets
     ``spec.written`` for ``"bwd"``.
     """
     sch = schedule(spec, kind)
     spec.written = sch.written
     args = [f"x{k}" for k in range(len(spec.tensors))]
     args += ["out"] if kind == "fwd" else ["go"] + [f"g{k}" for k in sch.written]
+    args += ["gU"] if kind == "bwd" and spec.uniform_grad else []
     return print_triton(spec.ctype, sch, _layout(spec), f"tb_{kind}", args + ["Lp", "Ld"], wide)
 
 
@@ -298,8 +320,18 @@ def _layout(spec: ShadeSpec) -> Layout:
         _, k, c = store
         return f"g{k} + (i * {spec.tensors[k][2]} + {c})"
 
+    def sum_offset(key: tuple, light: str | None) -> str:
+        # the uniform row's layout: camera, then LIGHT_STRIDE per light
+        return f"{key[1]}" if key[0] == "cam" else f"{CAMERA} + {LIGHT_STRIDE} * {light} + {key[1]}"
+
+    def sum_c(key: tuple, light: str | None) -> str:
+        return f"gU[blk * W + {sum_offset(key, light)}]"
+
+    def sum_t(key: tuple, light: str | None) -> str:
+        return f"gU + (blk * ({CAMERA} + {LIGHT_STRIDE} * (Lp + Ld)) + {sum_offset(key, light)})"
+
     loops = [LightLoop("point", "0", "Lp"), LightLoop("directional", "Lp", "Ld")]
     return Layout([lp for lp in loops if lp.name in spec.lights], load_c, store_c, load_t, store_t,
-                  skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK)
+                  skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK, sum_c=sum_c, sum_triton=sum_t)
 
 

@@ -11,6 +11,11 @@ the light's uniforms, a per-pixel-per-light observation) and roles that change w
    once per light), each root added into its accumulator;
 3. *post*: nodes over the accumulated values (read through ``acc`` inputs), stored.
 
+A value can also be *summed over the pixels* of a block (``sums``, per light inside the loop;
+``post_sums`` after it): each block stores its own partial sum (summed in double, in lane
+order) and the caller adds the blocks' partials, so the result does not depend on the thread
+count or the schedule (no atomics).
+
 A :class:`LoopSchedule` says what is accumulated and stored; :class:`Layout` how a kernel's
 loads and stores are addressed. :func:`print_c` prints C (OpenMP over blocks, the lane loops
 vectorised by gcc; the pre-loop's values in stack arrays), :func:`print_triton` a Triton
@@ -41,7 +46,10 @@ class LoopSchedule:
       accumulators through :func:`acc_input` nodes;
     * ``written``: inputs whose gradient a backward writes;
     * ``stores``: per light loop (by name), ``[(store, node)]``: ``node`` is stored once per
-      pixel and light, inside the loop (the layout's store address may use the light ``j``).
+      pixel and light, inside the loop (the layout's store address may use the light ``j``);
+    * ``sums``: per light loop (by name), ``[(key, node or None)]``: ``node`` summed over the
+      block's pixels, once per light, stored at ``Layout.sum_c/sum_triton(key, light)``;
+    * ``post_sums``: ``[(key, node or None)]``: the same after the loops (light ``None``).
     """
 
     def __init__(
@@ -52,6 +60,8 @@ class LoopSchedule:
         post: list[tuple[tuple[Any, ...], Node | None]],
         written: Iterable[int] = (),
         stores: dict[str, list[tuple[tuple[Any, ...], Node]]] | None = None,
+        sums: dict[str, list[tuple[tuple[Any, ...], Node | None]]] | None = None,
+        post_sums: list[tuple[tuple[Any, ...], Node | None]] | None = None,
     ) -> None:
         self.graph, self.accs, self.acc_kind, self.post, self.written = (
             graph,
@@ -61,6 +71,8 @@ class LoopSchedule:
             tuple(written),
         )
         self.stores = dict(stores or {})
+        self.sums = dict(sums or {})
+        self.post_sums = list(post_sums or [])
 
 
 def acc_input(key: tuple[Any, ...], kind: str = "r") -> Node:
@@ -86,7 +98,9 @@ class Layout:
     light, ``u`` the current light's uniforms); ``store_c(store)`` / ``store_triton(store)``:
     the address a post-loop value is stored to; ``lit_roles`` / ``px_roles``: the input roles
     that depend on the light / on the pixel; ``uniforms``: the expression of the uniform table,
-    ``stride`` uniforms per light after ``skip`` leading ones.
+    ``stride`` uniforms per light after ``skip`` leading ones. ``sum_c(key, light)`` /
+    ``sum_triton(key, light)``: where a block's partial sum goes (``blk`` the block, ``light``
+    the light's index expression, None after the loops).
     """
 
     loops: Sequence[LightLoop]
@@ -100,6 +114,8 @@ class Layout:
     stride: int = 6
     block: int = 128
     extra: dict = field(default_factory=dict)
+    sum_c: Callable[[tuple, str | None], str] | None = None
+    sum_triton: Callable[[tuple, str | None], str] | None = None
 
 
 def flags(g: Graph, lit_roles: Iterable[str] = ("light",), px_roles: Iterable[str] = ("px", "go")
@@ -161,6 +177,7 @@ def _phases(sch: LoopSchedule, lay: Layout):
     bnd_all: set[int] = set()
     for lp in lay.loops:
         roots = [nd for _, nd in sch.accs.get(lp.name, []) + sch.stores.get(lp.name, [])]
+        roots += [nd for _, nd in sch.sums.get(lp.name, []) if nd is not None]
         body, bnd = loop_nodes(roots, lit, px)
         loops[lp.name] = (body, bnd)
         bnd_all |= bnd
@@ -214,6 +231,8 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
              reads={b: f"bd{b}[i - b0]" for b in bnd})
         lane += [f"{_acc_name(key)}[i - b0] += {names[nd.id]};" for key, nd in sch.accs[lp.name]]
         lane += [f"{lay.store_c(key)} = {names[nd.id]};" for key, nd in sch.stores.get(lp.name, [])]
+        sums = [(key, nd) for key, nd in sch.sums.get(lp.name, []) if nd is not None]
+        lane += [f"sm{q}[i - b0] = {names[nd.id]};" for q, (_, nd) in enumerate(sums)]
         loops += [
             f"    for (long j = 0; j < {lp.count}; ++j) {{",
             f"      const R* __restrict u = U + {lay.skip} + {lay.stride} * ({lp.first} + j);",
@@ -222,6 +241,7 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
             "      for (long i = b0; i < b1; ++i) {",
             *("        " + s for s in lane),
             "      }",
+            *("      " + s for s in _c_block_sums(lay, sums, f"({lp.first} + j)")),
             "    }",
         ]
 
@@ -233,9 +253,13 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
 
     post_names: dict = {}
     post: list[str] = []
-    emit(live_order(g, [nd for _, nd in sch.post if isinstance(nd, Node)]), post_names, post)
+    post_sums = [(key, nd) for key, nd in sch.post_sums if nd is not None]
+    emit(live_order(g, [nd for _, nd in sch.post + post_sums if isinstance(nd, Node)]), post_names, post)
     for store, val in sch.post:
         post.append(f"{lay.store_c(store)} = {post_names[val.id] if isinstance(val, Node) else '((R)0)'};")
+    post += [f"sm{q}[i - b0] = {post_names[nd.id]};" for q, (_, nd) in enumerate(post_sums)]
+    n_sm = max([len(post_sums)]
+               + [sum(nd is not None for _, nd in sch.sums.get(lp.name, [])) for lp in lay.loops])
 
     B = lay.block
     src = [
@@ -249,6 +273,8 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
         f"    const long b1 = b0 + {B} < n ? b0 + {B} : n;",
         *(f"    {'R' if byid[b].kind == 'r' else 'double'} bd{b}[{B}];" for b in bnd_sorted),
         *(f"    {t} {name}[{B}];" for t, name in acc_arrays),
+        *(f"    double sm{q}[{B}];" for q in range(n_sm)),
+        *([f"    const long blk = b0 / {B};"] if n_sm else []),
         *(f"    for (long i = 0; i < {B}; ++i) {name}[i] = 0;" for _, name in acc_arrays),
         "    #pragma GCC ivdep",
         "    for (long i = b0; i < b1; ++i) {",
@@ -259,10 +285,29 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
         "    for (long i = b0; i < b1; ++i) {",
         *("      " + s for s in post),
         "    }",
+        *("    " + s for s in _c_block_sums(lay, post_sums, None)),
         "  }",
         "}",
     ]
     return "\n".join(src) + "\n"
+
+
+def _c_block_sums(lay: Layout, sums: Sequence[tuple[tuple, Node]], light: str | None) -> list[str]:
+    """C: add up the block's lanes of each summed value (``sm{q}``, in lane order, in double)
+    and store the block's partial sums."""
+    if not sums:
+        return []
+    if lay.sum_c is None:
+        raise ValueError("print_c: the schedule sums over pixels but the layout has no sum_c")
+    acc = ", ".join(f"t{q} = 0" for q in range(len(sums)))
+    return [
+        f"{{ double {acc};",
+        "  for (long i = b0; i < b1; ++i) {",
+        *(f"    t{q} += sm{q}[i - b0];" for q in range(len(sums))),
+        "  }",
+        *(f"  {lay.sum_c(key, light)} = t{q};" for q, (key, _) in enumerate(sums)),
+        "}",
+    ]
 
 
 def _namer(names):
@@ -335,6 +380,8 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
         lines += [f"{_acc_name(key)} += {lnames[nd.id]}" for key, nd in sch.accs[lp.name]]
         lines += [f"tl.store({store_t(key)}, tl.broadcast_to({lnames[nd.id]}, [BLOCK]), mask=m)"
                   for key, nd in sch.stores.get(lp.name, [])]
+        lines += [_triton_block_sum(lay, key, lnames[nd.id], "j")
+                  for key, nd in sch.sums.get(lp.name, []) if nd is not None]
         loops += [
             f"for j in range({lp.first}, {lp.first} + {lp.count}):",
             f"    u = U + {lay.skip} + {lay.stride} * j",
@@ -342,13 +389,19 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
         ]
     pnames: dict = {}
     post: list[str] = []
-    emit(live_order(g, [nd for _, nd in sch.post if isinstance(nd, Node)]), pnames, post)
+    post_sums = [(key, nd) for key, nd in sch.post_sums if nd is not None]
+    emit(live_order(g, [nd for _, nd in sch.post + post_sums if isinstance(nd, Node)]), pnames, post)
     for store, val in sch.post:
         value = pnames[val.id] if isinstance(val, Node) else f"tl.full([BLOCK], 0.0, {pr.DT})"
         post.append(f"tl.store({store_t(store)}, tl.broadcast_to({value}, [BLOCK]), mask=m)")
+    post += [_triton_block_sum(lay, key, pnames[nd.id], None) for key, nd in post_sums]
     pid = "tl.program_id(0).to(tl.int64)" if wide else "tl.program_id(0)"
+    summed = bool(post_sums) or any(nd is not None for sums in sch.sums.values() for _, nd in sums)
+    if summed:
+        pre.insert(0, f"blk = {pid}")
     src = [
         TPRELUDE,
+        *([_TRITON_ADD] if summed else []),
         "@triton.jit",
         f"def {name}(n, P, U, {', '.join(args)}, BLOCK: tl.constexpr):",
         f"    i = {pid} * BLOCK + tl.arange(0, BLOCK)",
@@ -356,3 +409,20 @@ def print_triton(ctype: str, sch: LoopSchedule, lay: Layout, name: str, args: Se
         *("    " + s for s in pre + inits + loops + post),
     ]
     return "\n".join(src) + "\n"
+
+
+# The combine function of the block sums: tl.reduce is a builtin, while tl.sum is a jit function
+# of Triton's standard library, which the interpreter runs only if imported under TRITON_INTERPRET.
+_TRITON_ADD = """@triton.jit
+def _tb_add(a, b):
+    return a + b
+
+"""
+
+
+def _triton_block_sum(lay: Layout, key: tuple, value: str, light: str | None) -> str:
+    """Triton: store the block's sum of ``value`` over its pixels (masked lanes are 0; double)."""
+    if lay.sum_triton is None:
+        raise ValueError("print_triton: the schedule sums over pixels but the layout has no sum_triton")
+    lanes = f"tl.where(m, tl.broadcast_to({value}, [BLOCK]).to(tl.float64), 0.0)"
+    return f"tl.store({lay.sum_triton(key, light)}, tl.reduce({lanes}, 0, _tb_add))"

@@ -4,7 +4,8 @@
   surface points summed over the point and directional lights, in one kernel pass
   (:mod:`torchbrdf.kernels.codegen_shade`);
 * ``shade_lights_bwd(tensors, floats, uniforms, seg, cfg, grad_out, need)``: the gradients of
-  ``tensors[i]`` for ``i`` in ``need``, by recomputation (nothing is saved but the inputs).
+  ``tensors[i]`` for ``i`` in ``need`` (``i = len(tensors)``: of ``uniforms``), by
+  recomputation (nothing is saved but the inputs).
 
 ``tensors`` are the per-pixel inputs named in ``cfg`` (``pos (P, 3)``, ``n (P, 3)``, ``x, y``
 when the anisotropic form is evaluated, ``base_color (P, 3)``, scalar maps ``(P, 1)``; each
@@ -12,8 +13,10 @@ may also be one value broadcast to all points), ``floats`` the material paramete
 Python numbers. ``uniforms`` ``(S, 3 + 6 (Lp + Ld))`` holds per segment of points (one per
 batch element when lights or camera differ between images) the camera position, then
 ``(q, I)`` per point light and ``(d, E)`` per directional light; ``seg`` (``S + 1`` offsets)
-are the segments' point ranges. Gradients flow to ``tensors`` only: a caller that needs
-gradients w.r.t. lights or camera uses the eager shader.
+are the segments' point ranges. Gradients flow to ``tensors`` and to ``uniforms`` (the
+camera and the lights, per segment): the kernel sums each uniform's per-pixel gradient over
+blocks of pixels, and the blocks' partial sums (float64, one row per block) are added by torch,
+so the result is deterministic.
 
 ``cfg`` = ``"tensor names|float names|lobes|tint|frame|normalize n|Lp|Ld"`` (normalize n: ``n``
 is the raw normal and the kernel normalises it, as the eager shader does). Autograd is registered on
@@ -32,7 +35,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._checks import active_transforms
-from torchbrdf.kernels.codegen_shade import CAMERA, LIGHT_STRIDE, ShadeSpec, generate_triton
+from torchbrdf.kernels.codegen_shade import BLOCK, CAMERA, LIGHT_STRIDE, ShadeSpec, generate_triton
 from torchbrdf.kernels.fused import buffer_pool, load
 from torchbrdf.kernels.layout import SCALAR_NAMES, dparams, flatten, ptrs, to_shape
 
@@ -81,7 +84,7 @@ class _Plan:
         modes = tuple((k, m, C) for k, (_, m), C in zip(self.tensor_names, out, self.C))
         return [f for f, _ in out], modes
 
-    def spec(self, modes, grad_mask=(), go_mode="full") -> ShadeSpec:
+    def spec(self, modes, grad_mask=(), go_mode="full", uniform_grad=False) -> ShadeSpec:
         ctype = "float" if self.dtype == torch.float32 else "double"
         lights = (("point",) if self.n_point else ()) + (("directional",) if self.n_dir else ())
         return ShadeSpec(
@@ -95,6 +98,7 @@ class _Plan:
             grad_mask,
             self.normalize_n,
             go_mode,
+            uniform_grad,
         )
 
     def params(self):
@@ -177,44 +181,73 @@ def _zeros(t: Tensor) -> Tensor:
 
 
 def _run_bwd(plan: _Plan, tensors, uniforms: Tensor, seg, grad_out: Tensor, need) -> list:
+    """Gradients of ``tensors[i]`` for ``i`` in ``need``; index ``len(tensors)``: of ``uniforms``."""
     N = plan.N
+    inputs = [*tensors, uniforms]
     if N == 0 or not need:
-        return [_zeros(tensors[i]) for i in need]
+        return [_zeros(inputs[i]) for i in need]
+    T = len(tensors)
     flat, modes = plan.flat(tensors)
     # The output gradient as lanes too: the gradient of a sum is one value for all pixels ('b0'),
     # read in place instead of being materialised.
     go, go_mode = flatten(grad_out.to(plan.dtype), 3, (N,), N)
-    spec = plan.spec(modes, grad_mask=tuple(need), go_mode=go_mode)
+    want_u = T in need
+    spec = plan.spec(modes, grad_mask=tuple(i for i in need if i < T), go_mode=go_mode, uniform_grad=want_u)
     lib = None
     if plan.backend == "triton":
         res = _run_triton(plan, spec, "bwd", flat, modes, uniforms, seg, go, go_mode)
         if res is not None:
             full = dict(zip(res[1], res[0]))
-            return [to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i])
-                    for i in need]
+            return _assemble(inputs, need, full, res[2])
     else:
         lib = load(spec, backward=True)
     if lib is None:
-        with torch.enable_grad():
-            ts = [t.detach().requires_grad_(i in need) for i, t in enumerate(tensors)]
-            out = _formula_eager(plan, ts, plan.floats, uniforms, seg)
-            gs = torch.autograd.grad(out, [ts[i] for i in need], grad_out, allow_unused=True)
-        return [g.contiguous() if g is not None else _zeros(tensors[i]) for i, g in zip(need, gs)]
+        # torch.func: autograd does not record inside a custom operator's implementation
+        def image(*wrt):
+            full = list(inputs)
+            for i, t in zip(need, wrt):
+                full[i] = t
+            return _formula_eager(plan, full[:T], plan.floats, full[T], seg)
+
+        pullback = torch.func.vjp(image, *[inputs[i].detach() for i in need])[1]
+        gs = pullback(grad_out.to(plan.dtype))
+        return [g.contiguous() if g is not None else _zeros(inputs[i]) for i, g in zip(need, gs)]
     written = lib[2]
     uniforms = uniforms.contiguous()
     item = go.element_size()
     full = {i: buffer_pool.empty((N, plan.C[i]), plan.dtype) for i in need if i in written}
     P = plan.params()
     nt = torch.get_num_threads()
+    partials = []
     for r, s, e in _segments(seg):
         ins = [f.data_ptr() + (s * C * item if mode == "full" else 0) for f, (_, mode, C) in zip(flat, modes)]
         ins.append(uniforms[r].data_ptr())
-        gouts = [
-            full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(len(tensors))
-        ]
+        gouts = [full[i].data_ptr() + s * plan.C[i] * item if i in full else None for i in range(T)]
+        if want_u:
+            part = uniforms.new_zeros(((e - s + BLOCK - 1) // BLOCK, uniforms.shape[1]), dtype=torch.float64)
+            partials.append((r, part))
+            gouts.append(part.data_ptr())
         go_ptr = go.data_ptr() + (s * 3 * item if go_mode == "full" else 0)
         lib[1](e - s, ptrs(ins), P, go_ptr, ptrs(gouts), nt)
-    return [to_shape(full[i], tensors[i]).contiguous() if i in full else _zeros(tensors[i]) for i in need]
+    return _assemble(inputs, need, full, partials)
+
+
+def _assemble(inputs: list[Tensor], need, full: dict[int, Tensor], partials: list[tuple[int, Tensor]]
+              ) -> list[Tensor]:
+    """The gradients in ``need``'s order: the kernels' per-pixel gradients ``full`` (zeros where
+    an input has no path to the output) and the uniforms' gradient, each segment's row the sum
+    of its blocks' partial sums."""
+    T = len(inputs) - 1
+    grads = []
+    for i in need:
+        if i == T:
+            gu = torch.zeros(inputs[T].shape, dtype=torch.float64, device=inputs[T].device)
+            for r, part in partials:
+                gu[r] = part.sum(0)
+            grads.append(gu.to(inputs[T].dtype))
+        else:
+            grads.append(to_shape(full[i], inputs[i]).contiguous() if i in full else _zeros(inputs[i]))
+    return grads
 
 
 _triton_lock = threading.Lock()
@@ -251,9 +284,10 @@ def _triton_kernel(spec: ShadeSpec, kind: str, wide: bool):
 
 
 def _run_triton(plan: _Plan, spec: ShadeSpec, kind: str, flat, modes, uniforms: Tensor, seg, go=None,
-                go_mode="full") -> tuple[list[Tensor], tuple[int, ...]] | None:
-    """One Triton launch per segment: ``([out (N, 3)], ())`` (``"fwd"``) or the gradients
-    ``(N, C_k)`` of the inputs ``written`` and ``written`` (``"bwd"``); None when the kernel
+                go_mode="full") -> tuple[list[Tensor], tuple[int, ...], list[tuple[int, Tensor]]] | None:
+    """One Triton launch per segment: ``([out (N, 3)], (), [])`` (``"fwd"``) or the gradients
+    ``(N, C_k)`` of the inputs ``written``, ``written`` and, with ``spec.uniform_grad``, each
+    segment's row and its blocks' partial uniform gradients (``"bwd"``); None when the kernel
     cannot be built."""
     from torchbrdf.kernels import codegen_triton
 
@@ -268,12 +302,18 @@ def _run_triton(plan: _Plan, spec: ShadeSpec, kind: str, flat, modes, uniforms: 
             else [torch.empty((N, plan.C[k]), dtype=plan.dtype, device=dev) for k in written])
     P = plan.triton_params(dev)
     uniforms = uniforms.to(device=dev).contiguous()
+    partials = []
     for r, s, e in _segments(seg):
         ins = [f[s:e] if mode == "full" else f for f, (_, mode, _) in zip(flat, modes)]
         if kind == "fwd":
             tail = [outs[0][s:e]]
         else:
             tail = [go[s:e] if go_mode == "full" else go] + [o[s:e] for o in outs]
+            if spec.uniform_grad:
+                blocks = -(-(e - s) // codegen_triton.block_size(kind))
+                part = torch.zeros((blocks, uniforms.shape[1]), dtype=torch.float64, device=dev)
+                partials.append((r, part))
+                tail.append(part)
         args = [uniforms[r], *ins, *tail, plan.n_point, plan.n_dir]
         try:
             codegen_triton.launch(kernel, kind, e - s, P, args)
@@ -284,7 +324,7 @@ def _run_triton(plan: _Plan, spec: ShadeSpec, kind: str, flat, modes, uniforms: 
             warnings.warn(f"torchbrdf: the Triton shading kernel failed; using eager.\n{exc!r}"[:2000],
                           RuntimeWarning, stacklevel=3)
             return None
-    return outs, written
+    return outs, written, partials
 
 
 @torch.library.custom_op("torchbrdf::shade_lights_fwd", mutates_args=())
@@ -310,19 +350,21 @@ def shade_lights_bwd(
     grad_out: Tensor,
     need: list[int],
 ) -> list[Tensor]:
-    """The fused recompute-backward: gradients of ``tensors[i]`` for ``i`` in ``need``."""
+    """The fused recompute-backward: gradients of ``tensors[i]`` for ``i`` in ``need``
+    (``i = len(tensors)``: of ``uniforms``)."""
     return _run_bwd(_Plan(cfg, tensors, floats), tensors, uniforms, list(seg), grad_out, list(need))
 
 
 @shade_lights_bwd.register_fake
 def _(tensors, floats, uniforms, seg, cfg, grad_out, need):
-    return [tensors[i].new_empty(tensors[i].shape) for i in need]
+    inputs = [*tensors, uniforms]
+    return [inputs[i].new_empty(inputs[i].shape) for i in need]
 
 
 def _setup_context(ctx, inputs, output):
     tensors, floats, uniforms, seg, cfg = inputs
     ctx.save_for_backward(*tensors, uniforms)
-    ctx.need = [i for i, t in enumerate(tensors) if t.requires_grad]
+    ctx.need = [i for i, t in enumerate([*tensors, uniforms]) if t.requires_grad]
     ctx.floats, ctx.seg, ctx.cfg = floats, seg, cfg
 
 
@@ -332,17 +374,19 @@ def _no_grad(floats):
 
 
 def _gradients(tensors, floats, uniforms, seg, cfg, grad_out, need) -> list[Tensor | None]:
-    """Gradients of ``tensors[i]`` for ``i`` in ``need`` (``None`` elsewhere)."""
-    grads: list[Tensor | None] = [None] * len(tensors)
+    """Gradients of ``tensors[i]`` for ``i`` in ``need`` and of ``uniforms`` (last; index
+    ``len(tensors)`` in ``need``), ``None`` elsewhere."""
+    inputs = [*tensors, uniforms]
+    grads: list[Tensor | None] = [None] * len(inputs)
     if not need:
         return grads
-    if torch.is_grad_enabled() and any(tensors[i].requires_grad for i in need):
+    if torch.is_grad_enabled() and any(inputs[i].requires_grad for i in need):
         # create_graph=True: a differentiable backward, eagerly from the same formula.
         plan = _Plan(cfg, tensors, floats)
         with torch.enable_grad():
             out = _formula_eager(plan, tensors, floats, uniforms, seg)
             gs = torch.autograd.grad(
-                out, [tensors[i] for i in need], grad_out, create_graph=True, allow_unused=True
+                out, [inputs[i] for i in need], grad_out, create_graph=True, allow_unused=True
             )
         for i, g in zip(need, gs):
             grads[i] = g
@@ -354,8 +398,8 @@ def _gradients(tensors, floats, uniforms, seg, cfg, grad_out, need) -> list[Tens
 
 def _backward(ctx, grad_out):
     *tensors, uniforms = ctx.saved_tensors
-    grads = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out, ctx.need)
-    return grads, _no_grad(ctx.floats), None, None, None
+    *grads, grad_uniforms = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out, ctx.need)
+    return grads, _no_grad(ctx.floats), grad_uniforms, None, None
 
 
 shade_lights_fwd.register_autograd(_backward, setup_context=_setup_context)
@@ -379,11 +423,13 @@ class _ShadeLightsFunction(torch.autograd.Function):
     def backward(ctx, grad_out):
         *tensors, uniforms = ctx.saved_tensors
         need = [i for i, wanted in enumerate(ctx.needs_input_grad[4:]) if wanted]
+        need += [len(tensors)] if ctx.needs_input_grad[0] else []
         # torch.func.grad records every backward with grad mode on; only when something will
         # differentiate it again does it need the eager formula's differentiable gradient.
-        with torch.set_grad_enabled(_differentiated_again([*tensors, grad_out])):
-            grads = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out, need)
-        return (None, None, None, None, *grads)
+        with torch.set_grad_enabled(_differentiated_again([*tensors, uniforms, grad_out])):
+            *grads, grad_uniforms = _gradients(tensors, ctx.floats, uniforms, ctx.seg, ctx.cfg, grad_out,
+                                               need)
+        return (grad_uniforms, None, None, None, *grads)
 
 
 def _differentiated_again(tensors: list[Tensor]) -> bool:

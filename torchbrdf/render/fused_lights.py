@@ -3,9 +3,9 @@
 With the principled BRDF on CPU, :func:`fused_lights_term` evaluates all point and
 directional lights through ONE fused kernel (the ``torchbrdf::shade_lights_fwd`` operator),
 forward and recompute-backward, generated from the same per-light formula the eager passes
-run (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``).
-:func:`fused_lights_wanted` is the rule that picks it; gradients w.r.t. light parameters or the
-camera keep the eager passes.
+run (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``), including the gradients
+w.r.t. the light parameters and the camera (the uniform table's gradient).
+:func:`fused_lights_wanted` is the rule that picks it.
 """
 
 from __future__ import annotations
@@ -36,10 +36,10 @@ def fused_lights_wanted(
 ) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
-    The principled BRDF, inputs the kernel reads (4-D maps or constants), no gradient wanted
-    w.r.t. lights or camera (those stay on the eager shader), and the fused kernels' dispatch
-    rule (``principled.fused_backend``, on ``elements`` pixel-lights) picking the C or the
-    Triton kernels (the shading kernel is printed in both).
+    The principled BRDF, inputs the kernel reads (4-D maps or constants), and the fused
+    kernels' dispatch rule (``principled.fused_backend``, on ``elements`` pixel-lights) picking
+    the C or the Triton kernels (the shading kernel is printed in both). The lights and ``cam``
+    may require grad: the kernel's backward differentiates them too.
     """
     if kind != "principled" or not (points or dirs):
         return False
@@ -59,10 +59,6 @@ def fused_lights_wanted(
         if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
             return False
         tensors.append(t)
-    if torch.is_grad_enabled():
-        uniform = [cam] + [t for light in [*points, *dirs] for t in light._light_tensors()]
-        if any(t.requires_grad for t in uniform):
-            return False
     return _pr.fused_backend(dev, cd, tensors, lambda: elements) in ("c", "triton")
 
 
@@ -70,7 +66,8 @@ def uniform_table(
     cam: Tensor, points: list[PointLight], dirs: list[DirectionalLight], dev: torch.device, cd: torch.dtype
 ) -> Tensor:
     """``(R, 3 + 6 L)``: camera, then ``(q, I)`` per point and ``(d, E)`` per directional light,
-    one row per batch element (``R = 1`` when nothing is batched)."""
+    one row per batch element (``R = 1`` when nothing is batched); differentiable w.r.t. the
+    camera and the lights' tensors."""
     parts = [cam.reshape(-1, 3)]
     for light in points:
         parts += [
@@ -83,7 +80,7 @@ def uniform_table(
             sun.irradiance.to(device=dev, dtype=cd).reshape(-1, 3),
         ]
     rows = max(p.shape[0] for p in parts)
-    return torch.cat([p.detach().expand(rows, 3) for p in parts], dim=1).contiguous()
+    return torch.cat([p.expand(rows, 3) for p in parts], dim=1).contiguous()
 
 
 def fused_lights_term(

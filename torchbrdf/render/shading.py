@@ -29,8 +29,7 @@ How it works, in order:
    lights instead go through ONE fused kernel per chunk (:mod:`torchbrdf.render.fused_lights`), forward and
    recompute-backward (the ``torchbrdf::shade_lights_fwd`` operator), generated from the same
    per-light formula the eager passes run (:func:`torchbrdf.brdf.formula.point_light`,
-   ``directional_light``); gradients w.r.t. light parameters or the camera keep the eager
-   passes.
+   ``directional_light``), gradients w.r.t. the light parameters and the camera included.
 
 Gradients reach every tensor input: material maps, normals, positions, camera position,
 tangents, light positions/directions/intensities and environment maps. Masked and
