@@ -6,7 +6,7 @@ what the data support. The profile makes that visible: the data cost with the ro
 each value of a grid and the pixel's other unknowns refitted. Summed over pixels known to share a
 material, it is the material's log-likelihood (``−cost / 2σ²``, Gaussian noise of variance
 ``σ²``) for a common roughness; its minimum is the value all of them support together, which
-none of them determines alone. ``docs/recovery.md`` ("Silent regions: the pooled profile")
+none of them determines alone. ``docs/recovery_silent.md``
 measures it on the recovery panel's tuning captures.
 """
 
