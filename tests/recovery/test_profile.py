@@ -91,4 +91,14 @@ def test_report_cases_are_refused():
     with pytest.raises(ValueError, match="report case"):
         sp.silent_profile(PanelCase("lacquer", 2, 17, "exact_fresnel", False), size=16)
     assert sp.main(["--case", "not a case"]) == 2
-    assert math.isfinite(GRID[0])
+
+
+def test_the_diagnostic_runs_on_a_tuning_case():
+    """End to end at 16²: a lacquer (one material) is one region, profiled and scored three ways."""
+    out = sp.silent_profile(PanelCase("lacquer", 1, 8, "principled", True), size=16)
+    assert [r["pixels"] for r in out["regions"]] == [256]
+    r = out["regions"][0]
+    assert sp.GRID[0] <= r["pooled"] <= sp.GRID[-1] and sp.GRID[0] <= r["posterior_mean"] <= sp.GRID[-1]
+    assert abs(r["true"] - r["fitted"]) < 0.1
+    for key in ("scores", "oracle_scores", "posterior_scores"):
+        assert math.isfinite(out[key]["roughness_rmse"]) and math.isfinite(out[key]["heldout_worst_db"])

@@ -26,8 +26,7 @@ from collections.abc import Sequence
 
 import torch
 
-from torchbrdf.bench.recovery_panel import (PanelCase, _recovery_config, case_seed, render_case,
-                                            score_maps)
+from torchbrdf.bench.recovery_panel import PanelCase, case_seed, render_case, score_maps
 from torchbrdf.capture.format import load_capture
 from torchbrdf.recovery.classes import residual_variance
 from torchbrdf.recovery.levels import LevelData
@@ -80,11 +79,12 @@ def silent_profile(case: PanelCase, size: int = 128, grid: Sequence[float] = GRI
     """
     if case.split != "tuning":
         raise ValueError(f"case: {case.name} is a report case; profile tuning cases only")
-    from torchbrdf.recovery import recover
+    from torchbrdf.recovery import RecoveryConfig, recover
 
     with tempfile.TemporaryDirectory(prefix="silent_") as tmp:
         truth, _ = render_case(case, tmp, size)
-        res = recover(tmp, _recovery_config(), progress=False, log=lambda m: None)
+        # as the panel recovers it: one thread, every captured light in the fit
+        res = recover(tmp, RecoveryConfig(threads=1, holdout=-1), progress=False, log=lambda m: None)
         cap = load_capture(tmp)
     maps = res.maps
     data = LevelData(cap, size, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
