@@ -28,7 +28,8 @@ from torchbrdf.kernels import build
 __all__ = ["light_schur", "light_schur_op", "available", "MAX_RESIDUALS"]
 
 #: The kernel keeps a block's ``(M, 7, 8)`` float64 working arrays on the thread's stack: at
-#: most this many residuals per pixel (``3 L``; 256 lights, ~0.5 MB of stack).
+#: most this many residuals per pixel (``3 L``; 256 lights, ~0.8 MB of stack, within the 2 MB
+#: or more an OpenMP worker thread gets).
 MAX_RESIDUALS = 768
 
 _SOURCE = r"""
