@@ -276,14 +276,15 @@ def test_the_reduced_light_system_is_the_schur_complement_of_each_pixels_unknown
     theta = theta + 0.05 * torch.randn(theta.shape, generator=gen)
     n_l = data.pos_stated.shape[0]
     keep = slice(0, 4) if position else slice(3, 4)
-    args = (data, theta, metal, data.points, data.log_obs.permute(1, 0, 2), data.inten_stated, data.pos_stated,
-            torch.zeros(n_l), "principled")
+    args = (data, theta, metal, data.points, data.log_obs.permute(1, 0, 2), data.inten_stated,
+            data.pos_stated, torch.zeros(n_l), "principled")
     r, cols = calibration._pixel_and_light_jacobians(*args)  # (11, n, M): offset xyz, log scale
     r1, cols1 = calibration._pixel_and_light_jacobians(*args, position=position)
     assert torch.equal(r1, r) and torch.equal(cols1, cols[list(range(7)) + list(range(7 + keep.start, 11))])
     prior = (1e-3 * torch.randn(theta.shape, generator=gen), torch.rand(theta.shape, generator=gen))
     if fused and build.available():  # the C pass runs here
-        assert capture_residual.light_schur(r, cols1, prior[0].double(), prior[1].double(), 1e-3, 1.0) is not None
+        g, h = prior[0].double(), prior[1].double()
+        assert capture_residual.light_schur(r, cols1, g, h, 1e-3, 1.0) is not None
     for leave_out in (None, torch.arange(theta.shape[0]) == 5):
         if leave_out is not None:
             prior[1][5, 2] = -1e6

@@ -119,7 +119,8 @@ void tb_light_schur(long n, long N, long M, long G, const R* cols, const R* res,
       for (long g = 0; g < G; ++g)  /* Y's rows of light l: sum over its colours of z Jg */
         for (int i = 0; i < 7; ++i) {
           _Pragma("omp simd") for (long q = 0; q < BP; ++q)
-            t[q] = z[3 * l][i][q] * v[g][0][q] + z[3 * l + 1][i][q] * v[g][1][q] + z[3 * l + 2][i][q] * v[g][2][q];
+            t[q] = z[3 * l][i][q] * v[g][0][q] + z[3 * l + 1][i][q] * v[g][1][q]
+                   + z[3 * l + 2][i][q] * v[g][2][q];
           double* o = y + ((l * G + g) * 7 + i) * n + b0;
           for (long q = 0; q < nb; ++q) o[q] = t[q];
         }
@@ -150,8 +151,8 @@ def _kernel(ctype: str):
         return _kernels[ctype]
     with _lock:
         if ctype not in _kernels:
-            args = [ctypes.c_long] * 4 + [ctypes.c_void_p] * 4 + [ctypes.c_double] * 2 + [ctypes.c_void_p] * 2 \
-                + [ctypes.c_int]
+            args = [ctypes.c_long] * 4 + [ctypes.c_void_p] * 4 + [ctypes.c_double] * 2 \
+                + [ctypes.c_void_p] * 2 + [ctypes.c_int]
             lib = build.load_kernel(_SOURCE % {"R": ctype}, "light_schur", {"tb_light_schur": (args, None)})
             # the library stays alive with its function
             _kernels[ctype] = None if lib is None else (lib, lib.tb_light_schur)
@@ -184,7 +185,7 @@ def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, da
         return _symmetric(per, G), gram
     fn = _kernel(_ctype(r.dtype))
     if fn is None:
-        raise RuntimeError("light_schur: the C kernel cannot be built here (check light_schur.available first)")
+        raise RuntimeError("light_schur: the C kernel cannot be built here (ask schur_ops.available first)")
     r, cols = r.contiguous(), cols.contiguous()
     pg, ph = prior_g.to(f64).contiguous(), prior_h.to(f64).contiguous()
     item, nt = r.element_size(), torch.get_num_threads()

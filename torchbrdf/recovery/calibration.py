@@ -137,9 +137,10 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
 
     One forward-mode pass with 7 + 4 tangents (7 + 1 for the scales alone) over at most
     ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals depend only
-    on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels ``Σ JgᵀWJg`` in the weak
-    directions). Huber weights ``W`` (3 noise deviations) as in :func:`light_position_step`;
-    pixels with a non-finite residual or derivative are left out. Gaussian priors of
+    on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
+    ``Σ JgᵀWJg`` in the weak directions). Huber weights ``W`` (3 noise deviations) as in
+    :func:`light_position_step`; pixels with a non-finite residual or derivative are left out.
+    Gaussian priors of
     ``scale_sigma`` (log) and ``position_sigma`` (world units). The step keeps the training
     lights' (``ref_idx``) mean log scale and, with ``position``, moves no light rig as a whole
     (:func:`rig_free_directions`): the maps absorb both, so the capture's stated values fix
@@ -213,8 +214,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     return new_s.clamp(-0.3, 0.3), new_off
 
 
-def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None,
-                          damping: float, chunk: int = 1024, fused: bool = True) -> tuple[Tensor, Tensor, float]:
+def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None, damping: float,
+                          chunk: int = 1024, fused: bool = True) -> tuple[Tensor, Tensor, float]:
     """The lights' reduced normal equations, each pixel's 7 unknowns eliminated (:func:`light_joint_step`).
 
     ``r (n, M)`` residuals and ``cols (7 + G, n, M)`` derivatives (``M = 3 L``, light-major;
