@@ -7,8 +7,10 @@ import time
 import pytest
 import torch
 
+from torchbrdf.brdf import capture_residual
 from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import read_exr
+from torchbrdf.kernels import build
 from torchbrdf.recovery import (calibration, classes, engine, levels, lm, map_ops, params, priors, search,
                                 smoothness_prior, soft_metal)
 from torchbrdf.recovery.config import Settings
@@ -256,29 +258,37 @@ def _reference_reduced_light_system(r, cols, keep, map_prior, damping, leave_out
     return torch.block_diag(*c) - gram[:-1, :-1], gg - gram[:-1, -1], sigma2
 
 
-@pytest.mark.parametrize("keep", [slice(0, 4), slice(3, 4)])
-def test_the_reduced_light_system_is_the_schur_complement_of_each_pixels_unknowns(keep):
+@pytest.mark.parametrize("fused", [True, False])
+@pytest.mark.parametrize("position", [True, False])
+def test_the_reduced_light_system_is_the_schur_complement_of_each_pixels_unknowns(position, fused):
     """The joint step's reduced normal equations equal the dense per-pixel formula.
 
     ``Σ JgᵀWJg − Σ BᵀA⁻¹B`` and ``Σ JgᵀWr − Σ BᵀA⁻¹gp`` with ``A⁻¹`` a dense inverse per pixel,
     float64 throughout, against the Cholesky factors with the pixels innermost, summed a
-    chunk at a time (64 pixels: chunks of 24, 24 and 16); positions and scales, and scales
-    alone. A pixel whose ``A`` is not positive definite (here a negative prior curvature) is
-    left out.
+    chunk at a time (64 pixels: chunks of 24, 24 and 16), in the C pass (``fused``) and in
+    PyTorch operations; positions and scales, and scales alone (the Jacobians' 7 + 1
+    directions equal the full pass's scale column). A pixel whose ``A`` is not positive
+    definite (here a negative prior curvature) is left out.
     """
     data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
     gen = torch.Generator().manual_seed(3)
     data.log_obs = data.log_obs + 0.02 * torch.randn(data.log_obs.shape, generator=gen)
     theta = theta + 0.05 * torch.randn(theta.shape, generator=gen)
     n_l = data.pos_stated.shape[0]
-    r, cols = calibration._pixel_and_light_jacobians(
-        data, theta, metal, data.points, data.log_obs.permute(1, 0, 2), data.inten_stated, data.pos_stated,
-        torch.zeros(n_l), "principled")
+    keep = slice(0, 4) if position else slice(3, 4)
+    args = (data, theta, metal, data.points, data.log_obs.permute(1, 0, 2), data.inten_stated,
+            data.pos_stated, torch.zeros(n_l), "principled")
+    r, cols = calibration._pixel_and_light_jacobians(*args)  # (11, n, M): offset xyz, log scale
+    r1, cols1 = calibration._pixel_and_light_jacobians(*args, position=position)
+    assert torch.equal(r1, r) and torch.equal(cols1, cols[list(range(7)) + list(range(7 + keep.start, 11))])
     prior = (1e-3 * torch.randn(theta.shape, generator=gen), torch.rand(theta.shape, generator=gen))
+    if fused and build.available():  # the C pass runs here
+        g, h = prior[0].double(), prior[1].double()
+        assert capture_residual.light_schur(r, cols1, g, h, 1e-3, 1.0) is not None
     for leave_out in (None, torch.arange(theta.shape[0]) == 5):
         if leave_out is not None:
             prior[1][5, 2] = -1e6
-        schur, rhs, sigma2 = calibration._reduced_light_system(r, cols, keep, prior, 1e-3, chunk=24)
+        schur, rhs, sigma2 = calibration._reduced_light_system(r, cols1, prior, 1e-3, chunk=24, fused=fused)
         ref_schur, ref_rhs, ref_sigma2 = _reference_reduced_light_system(r, cols, keep, prior, 1e-3, leave_out)
         assert schur.dtype == rhs.dtype == torch.float64 and sigma2 == ref_sigma2
         assert schur.shape == (n_l * (keep.stop - keep.start),) * 2

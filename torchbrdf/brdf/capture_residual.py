@@ -19,7 +19,8 @@ from torchbrdf import _checks
 from torchbrdf.brdf import formula
 from torchbrdf.brdf import principled as _p
 
-__all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp", "normal_equations"]
+__all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp", "normal_equations",
+           "light_schur"]
 
 #: ``(c, active lobes, need_tint, frame, backend)``: the formula's inputs ``c`` (per-pixel
 #: values as ``(P, 1, C)``, broadcast over the lights) and how to run it (backend None: eager).
@@ -127,3 +128,25 @@ def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: 
     cost, jtj, jtr, r = fused_normal_equations(p, tangents, points, camera, light_pos, light_int, log_obs, eps,
                                                pattern, unknowns, residuals=True)
     return r, cost, unpack_jtj(jtj, unknowns), jtr
+
+
+def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,
+                chunk: int = 1024) -> tuple[Tensor, Tensor] | None:
+    """A joint light step's per-pixel elimination in one C pass, or None.
+
+    :func:`torchbrdf.kernels.schur_ops.light_schur` (its arguments and results: the per-light
+    ``Σ [Jg | r]ᵀ W [Jg | r]`` ``(L, G+1, G+1)`` and ``Σ [B | gp]ᵀ A⁻¹ [B | gp]`` ``(L G + 1,
+    L G + 1)``, float64) where the fused path is on and the C kernel applies (CPU tensors,
+    float32 or float64); None elsewhere: the caller then eliminates with PyTorch operations.
+    """
+    import torch
+
+    if r.device.type != "cpu" or torch.is_grad_enabled() and (r.requires_grad or cols.requires_grad):
+        return None
+    if _p.fused_backend(r.device, r.dtype, [r, cols], lambda: _p.FAST_PATH_MIN_LANES) != "c":
+        return None
+    from torchbrdf.kernels import schur_ops
+
+    if not schur_ops.available(r):
+        return None
+    return schur_ops.light_schur(r, cols, prior_g, prior_h, damping, huber, chunk)

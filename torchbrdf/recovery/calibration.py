@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchbrdf.brdf import capture_residual
 from torchbrdf.recovery.classes import chi2_quantile
 from torchbrdf.recovery.levels import LevelData, log_residual
 from torchbrdf.recovery.params import N_PARAMS, decode
@@ -134,11 +135,12 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     block-Jacobi: the prior's coupling between pixels is left out): after an LM step the data
     gradient balances the prior's rather than vanishing.
 
-    One forward-mode pass with 7 + 4 tangents over at most ``max_pixels`` evenly strided
-    pixels gives both Jacobians (a light's residuals depend only on its own 4 numbers); the
-    reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels ``Σ JgᵀWJg`` in the weak
-    directions). Huber weights ``W`` (3 noise deviations) as in :func:`light_position_step`;
-    pixels with a non-finite residual or derivative are left out. Gaussian priors of
+    One forward-mode pass with 7 + 4 tangents (7 + 1 for the scales alone) over at most
+    ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals depend only
+    on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
+    ``Σ JgᵀWJg`` in the weak directions). Huber weights ``W`` (3 noise deviations) as in
+    :func:`light_position_step`; pixels with a non-finite residual or derivative are left out.
+    Gaussian priors of
     ``scale_sigma`` (log) and ``position_sigma`` (world units). The step keeps the training
     lights' (``ref_idx``) mean log scale and, with ``position``, moves no light rig as a whole
     (:func:`rig_free_directions`): the maps absorb both, so the capture's stated values fix
@@ -169,7 +171,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     pos0 = data.pos_stated[idx] + offset[idx]
     s0 = log_scale[idx]
 
-    r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model)
+    position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
+    r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position)
     # One sum per pixel carries any NaN or inf among its residuals and derivatives (a sum that
     # overflows float32 marks derivatives beyond any meaningful scale: left out as well).
     ok = torch.isfinite(r.sum(1) + cols.sum((0, 2)))  # (n,)
@@ -177,10 +180,9 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
         if not bool(ok.any()):
             return log_scale, offset
         r, cols, rows = r[ok], cols[:, ok], rows[ok]
-    position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
     keep = slice(0, 4) if position else slice(3, 4)  # the light unknowns: offset xyz, log scale
     prior_terms = None if map_prior is None else (map_prior[0][rows], map_prior[1][rows])
-    schur, rhs, sigma2 = _reduced_light_system(r, cols, keep, prior_terms, damping)
+    schur, rhs, sigma2 = _reduced_light_system(r, cols, prior_terms, damping)
     f64 = torch.float64
     n_g = keep.stop - keep.start
     prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
@@ -212,40 +214,52 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     return new_s.clamp(-0.3, 0.3), new_off
 
 
-def _reduced_light_system(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
-                          damping: float, chunk: int = 1024) -> tuple[Tensor, Tensor, float]:
+def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None, damping: float,
+                          chunk: int = 1024, fused: bool = True) -> tuple[Tensor, Tensor, float]:
     """The lights' reduced normal equations, each pixel's 7 unknowns eliminated (:func:`light_joint_step`).
 
-    ``r (n, M)`` residuals and ``cols (11, n, M)`` derivatives (``M = 3 L``, light-major; every
-    one finite) from :func:`_pixel_and_light_jacobians`; ``keep`` the light unknowns stepped
-    (``G`` of offset xyz, log scale); ``map_prior`` the pixels' prior gradient and curvature,
-    both ``(n, 7)``. Returns the Schur complement ``(L G, L G)``, the reduced gradient
-    ``(L G,)`` (light-major, float64) and the residuals' robust variance σ².
+    ``r (n, M)`` residuals and ``cols (7 + G, n, M)`` derivatives (``M = 3 L``, light-major;
+    every one finite) along the pixel's unknowns, then the ``G`` light unknowns stepped (offset
+    xyz and log scale, or the log scale alone), from :func:`_pixel_and_light_jacobians`;
+    ``map_prior`` the pixels' prior gradient and curvature, both ``(n, 7)``. Returns the Schur
+    complement ``(L G, L G)``, the reduced gradient ``(L G,)`` (light-major, float64) and the
+    residuals' robust variance σ².
 
     Per pixel, with ``A = JpᵀWJp + H = LLᵀ`` (Cholesky), ``Y = L⁻¹ [B | gp]`` makes
     ``Σ [B | gp]ᵀ A⁻¹ [B | gp] = Σ YᵀY`` one matrix product. The sums run ``chunk`` pixels at
-    a time (:func:`_reduced_light_terms`), so that a chunk's float64 working set (~4 MB at
-    1024 pixels and 17 lights) stays in cache; on a GPU in one chunk. Float64 from the
-    products on: the reduced system is a difference of two sums of positive terms,
-    ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the maps almost absorb.
+    a time, so that a chunk's float64 ``Y`` stays in cache; on the CPU each chunk's per-pixel
+    algebra is one C pass (:func:`torchbrdf.brdf.capture_residual.light_schur`, unless
+    ``fused=False``: it is half the step's time in vector operations, each a pass through
+    memory), elsewhere PyTorch operations (:func:`_reduced_light_terms`; on a GPU in one
+    chunk). Float64 from the products on: the reduced system is a difference of two sums of
+    positive terms, ``Σ JgᵀWJg − Σ BᵀA⁻¹B``, which nearly cancel along the directions the
+    maps almost absorb.
     """
     n, m_cols = r.shape
-    n_l, n_g = m_cols // 3, keep.stop - keep.start
+    n_l, n_g = m_cols // 3, cols.shape[0] - N_PARAMS
     sigma2 = float(r.abs().median()) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
     f64 = torch.float64
-    if r.device.type != "cpu":
-        chunk = n  # one launch per operation serves every pixel
-    per_light = torch.zeros(n_l, n_g + 1, n_g + 1, dtype=f64, device=r.device)
-    gram = torch.zeros(n_l * n_g + 1, n_l * n_g + 1, dtype=f64, device=r.device)
-    for lo in range(0, n, chunk):
-        part = slice(lo, lo + chunk)
-        prior = None if map_prior is None else (map_prior[0][part], map_prior[1][part])
-        _reduced_light_terms(r[part], cols[:, part], keep, prior, damping, sigma2, per_light, gram)
+    fast = None
+    if fused:
+        g, h = (r.new_zeros(n, N_PARAMS, dtype=f64),) * 2 if map_prior is None else \
+            (torch.nan_to_num(map_prior[0].to(f64)), torch.nan_to_num(map_prior[1].to(f64)))
+        fast = capture_residual.light_schur(r, cols, g, h, damping, 3.0 * math.sqrt(sigma2), chunk)
+    if fast is not None:
+        per_light, gram = fast
+    else:
+        if r.device.type != "cpu":
+            chunk = n  # one launch per operation serves every pixel
+        per_light = torch.zeros(n_l, n_g + 1, n_g + 1, dtype=f64, device=r.device)
+        gram = torch.zeros(n_l * n_g + 1, n_l * n_g + 1, dtype=f64, device=r.device)
+        for lo in range(0, n, chunk):
+            part = slice(lo, lo + chunk)
+            prior = None if map_prior is None else (map_prior[0][part], map_prior[1][part])
+            _reduced_light_terms(r[part], cols[:, part], prior, damping, sigma2, per_light, gram)
     schur = torch.block_diag(*per_light[:, :n_g, :n_g]) - gram[:-1, :-1]
     return schur, per_light[:, :n_g, n_g].reshape(-1) - gram[:-1, -1], sigma2
 
 
-def _reduced_light_terms(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[Tensor, Tensor] | None,
+def _reduced_light_terms(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None,
                          damping: float, sigma2: float, per_light: Tensor, gram: Tensor) -> None:
     """Add a chunk of pixels' terms of :func:`_reduced_light_system`: ``[JgᵀWJg | JgᵀWr]`` per
     light to ``per_light (L, G + 1, G + 1)`` and ``Σ [B | gp]ᵀ A⁻¹ [B | gp]`` to ``gram
@@ -259,12 +273,12 @@ def _reduced_light_terms(r: Tensor, cols: Tensor, keep: slice, map_prior: tuple[
     """
     f64 = torch.float64
     n, m_cols = r.shape
-    n_l, n_g = m_cols // 3, keep.stop - keep.start
+    n_l, n_g = m_cols // 3, cols.shape[0] - N_PARAMS
     rt = r.T.to(f64, memory_format=torch.contiguous_format)  # (M, n)
     w = (3.0 * math.sqrt(sigma2) / rt.abs().clamp(min=1e-30)).clamp(max=1.0)  # Huber, (M, n)
-    x = cols.permute(2, 0, 1).to(f64, memory_format=torch.contiguous_format)  # (M, 11, n)
+    x = cols.permute(2, 0, 1).to(f64, memory_format=torch.contiguous_format)  # (M, 7 + G, n)
     jp = x[:, :N_PARAMS]
-    jg = x.view(n_l, 3, -1, n)[:, :, N_PARAMS + keep.start:N_PARAMS + keep.stop]  # (L, 3, G, n)
+    jg = x.view(n_l, 3, -1, n)[:, :, N_PARAMS:]  # (L, 3, G, n)
     jpw = jp * w[:, None]
     a = x.new_empty(N_PARAMS, N_PARAMS, n)
     gp = x.new_empty(N_PARAMS, n)
@@ -324,10 +338,13 @@ def _cholesky_pixels(a: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,
-                               inten0: Tensor, pos0: Tensor, s0: Tensor, model: str) -> tuple[Tensor, Tensor]:
-    """Residuals ``(n, M)`` and their derivatives ``(11, n, M)`` (``M = 3 L``, light-major) along
-    each pixel's 7 unknowns and every light's offset xyz and log scale at once (a light's
-    residuals depend only on its own 4 numbers, so 4 shared directions cover all lights)."""
+                               inten0: Tensor, pos0: Tensor, s0: Tensor, model: str, position: bool = True
+                               ) -> tuple[Tensor, Tensor]:
+    """Residuals ``(n, M)`` and their derivatives ``(7 + G, n, M)`` (``M = 3 L``, light-major)
+    along each pixel's 7 unknowns and every light's offset xyz and log scale at once (``G = 4``;
+    a light's residuals depend only on its own 4 numbers, so 4 shared directions cover all
+    lights), or, without ``position``, its log scale alone (``G = 1``: 8 directions, one pass
+    of the fused JVP kernel rather than two)."""
     cam = data.camera
 
     def res(t, pos, s):  # (n, L * 3)
@@ -335,18 +352,18 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
         r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
         return r.reshape(t.shape[0], -1)
 
-    n, n_l = t0.shape[0], s0.shape[0]
+    n, n_l, n_g = t0.shape[0], s0.shape[0], 4 if position else 1
     eye7 = torch.eye(N_PARAMS, dtype=t0.dtype, device=t0.device)
-    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(4, n, N_PARAMS)))
-    tp = pos0.new_zeros(N_PARAMS + 4, *pos0.shape)
-    ts = s0.new_zeros(N_PARAMS + 4, n_l)
-    for k in range(3):
+    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(n_g, n, N_PARAMS)))
+    tp = pos0.new_zeros(N_PARAMS + n_g, *pos0.shape)
+    ts = s0.new_zeros(N_PARAMS + n_g, n_l)
+    for k in range(n_g - 1):
         tp[N_PARAMS + k, :, k] = 1.0
-    ts[N_PARAMS + 3] = 1.0
+    ts[-1] = 1.0
     out_dims: Any = (None, 0)
     pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
                                 out_dims=out_dims)(tt, tp, ts)
-    return pair  # (n, M), (11, n, M)
+    return pair  # (n, M), (7 + G, n, M)
 
 
 def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool, held: Tensor | None = None
