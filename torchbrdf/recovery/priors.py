@@ -184,9 +184,10 @@ def _random_effects(y: Tensor, v: Tensor, s0: Tensor, iters: int,
     for _ in range(iters):
         u = (v + tau2[..., None]).reciprocal_()
         if span is not None:  # E step: each member's responsibility of the material,
-            # π N / (π N + (1 − π) / span) as a sigmoid of its log-odds (one log, no exp of a ratio)
-            c = torch.log(pi * span / (1 - pi)) - 0.5 * math.log(2 * math.pi)
-            s = torch.log(u).sub_(d2.mul_(u)).mul_(0.5).add_(c[..., None]).sigmoid_().mul_(s0)
+            # π N / (π N + (1 − π) / span) = 1 / (1 + odds · √(τ² + v) · exp(d² u / 2)): each
+            # factor positive and at worst +inf (a member far off: responsibility 0), never NaN
+            odds = (1 - pi) / (pi * span) * math.sqrt(2 * math.pi)
+            s = d2.mul_(u).mul_(0.5).exp_().mul_(u.rsqrt()).mul_(odds[..., None]).add_(1).reciprocal_().mul_(s0)
             pi = (s.sum(-1) / s_total).clamp_(1e-6, 1 - 1e-6)
         su = s * u
         den = su.sum(-1)
