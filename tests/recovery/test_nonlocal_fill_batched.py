@@ -161,3 +161,18 @@ def test_fill_matches_the_per_class_loop():
     # A pixel estimated from another's candidates (rows shifted by one) fails the check.
     shifted = torch.roll(want[0][:, 4], 1)
     assert not torch.allclose(shifted, want[0][:, 4], rtol=1e-2)
+
+
+def test_fill_takes_the_callers_residuals():
+    """The residuals the caller has at ``theta`` (Gauss–Newton's) give the same prior as those
+    the fill computes, and they are the ones used: residuals twice as large, a 4× noise variance."""
+    from torchbrdf.recovery.lm import gauss_newton
+
+    data, theta, metal, info = _two_class_level(size=24)
+    cfg = Settings()
+    r = gauss_newton(data, theta, metal, data.train_idx, cfg.model)[0]
+    own = priors.nonlocal_fill(data, theta, metal, cfg, info=info)
+    given = priors.nonlocal_fill(data, theta, metal, cfg, info=info, residual=r)
+    assert all(torch.equal(a, b) for a, b in zip(own, given))
+    doubled = priors.nonlocal_fill(data, theta, metal, cfg, info=info, residual=2 * r)
+    assert not torch.allclose(doubled[1], own[1], rtol=0.5)

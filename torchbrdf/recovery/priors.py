@@ -305,7 +305,7 @@ def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor, cand: Tensor) 
 
 
 def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
-                  info: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                  info: Tensor | None = None, residual: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Targets and precisions ``(P, 7)`` of a unary prior that fills under-determined roughness and
     specular from same-material pixels the captured highlights do constrain: each pixel's
     Gaussian prior is what the pixels like it measured.
@@ -326,12 +326,14 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     was measured the prior vanishes.
     A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
     ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None:
-    computed); results in ``theta``'s dtype, on its device.
+    computed), ``residual (P, M)``: the residuals at ``theta`` on ``data.train_idx`` when the
+    caller has them (:func:`gauss_newton`'s first result; None: computed); results in
+    ``theta``'s dtype, on its device.
     """
     size = data.size
     if info is None:
         info = fit_information(data, theta, metal, cfg)
-    r = data.residual(theta, metal, data.train_idx, cfg.model)
+    r = data.residual(theta, metal, data.train_idx, cfg.model) if residual is None else residual
     sigma2 = residual_variance(pixel_cost(r), r.shape[-1])
     var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
     # Channel-major tables: a block of candidates is one index_select per table, and the
@@ -352,7 +354,8 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         block = max(1, 2**18 // k)  # ... per estimate: its tables stay in the cache
         for s0 in range(0, pool.numel(), draw):
             rows = pool[s0:s0 + draw]
-            drawn = pool.index_select(0, torch.randint(0, pool.numel(), (rows.numel() * k,), generator=gen))
+            draws = torch.randint(0, pool.numel(), (rows.numel() * k,), generator=gen)  # on the CPU
+            drawn = pool.index_select(0, draws.to(pool.device))
             for b0 in range(0, rows.numel(), block):
                 rr = rows[b0:b0 + block]
                 cand = drawn[b0 * k:(b0 + rr.numel()) * k]  # (n K,)
