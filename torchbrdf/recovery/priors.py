@@ -182,12 +182,14 @@ def _random_effects(y: Tensor, v: Tensor, s0: Tensor, iters: int,
         pi = torch.full_like(mu, 0.5)
         s_total = s0.sum(-1).clamp(min=1e-30)
     for _ in range(iters):
-        u = (v + tau2[..., None]).reciprocal_()
+        spread = v + tau2[..., None]
+        u = spread.reciprocal()
         if span is not None:  # E step: each member's responsibility of the material,
             # π N / (π N + (1 − π) / span) = 1 / (1 + odds · √(τ² + v) · exp(d² u / 2)): each
             # factor positive and at worst +inf (a member far off: responsibility 0), never NaN
-            odds = (1 - pi) / (pi * span) * math.sqrt(2 * math.pi)
-            s = d2.mul_(u).mul_(0.5).exp_().mul_(u.rsqrt()).mul_(odds[..., None]).add_(1).reciprocal_().mul_(s0)
+            log2_odds = torch.log2((1 - pi) / (pi * span) * math.sqrt(2 * math.pi))
+            odds_n = torch.addcmul(log2_odds[..., None], d2, u, value=0.5 / math.log(2), out=d2).exp2_()
+            s = torch.div(s0, odds_n.mul_(spread.sqrt_()).add_(1), out=odds_n)
             pi = (s.sum(-1) / s_total).clamp_(1e-6, 1 - 1e-6)
         su = s * u
         den = su.sum(-1)
@@ -298,7 +300,7 @@ def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor, cand: Tensor) 
     n, k = cand.shape
     flat = cand.flatten()
     diff = feat.index_select(1, flat).view(-1, n, k).sub_(feat[:, rows, None])
-    sim = diff.square_().sum(0).neg_().exp_().mul_(cand != rows[:, None])  # (n, K)
+    sim = diff.square_().sum(0).mul_(-1 / math.log(2)).exp2_().mul_(cand != rows[:, None])  # (n, K)
     m = members.index_select(1, flat).view(4, n, k)
     mu, tau2, var_mu = _random_effects(m[:2], m[2:], sim, iters=2, span=LOGIT_SPAN)
     return mu.T, tau2.T, var_mu.T
