@@ -33,7 +33,8 @@ def _reference_material_estimate(y, variances, weights, iters=3, span=None):
     """The random-effects EM member by member along dim 1 of ``(N, K, C)``."""
     s0 = weights.expand_as(y)
     s = s0
-    v = torch.nan_to_num(variances, nan=priors.VAR_MAX, posinf=priors.VAR_MAX).clamp(priors.VAR_MIN, priors.VAR_MAX)
+    v = torch.nan_to_num(variances, nan=priors.VAR_MAX, posinf=priors.VAR_MAX)
+    v = v.clamp(priors.VAR_MIN, priors.VAR_MAX)
     u = v.reciprocal()
     tau2 = torch.zeros_like(y[:, 0])
     pi = torch.full_like(y[:, 0], 0.5)
@@ -84,7 +85,8 @@ def _reference_fill(data, theta, metal, cfg, info):
             rr = pool[s0:s0 + chunk]
             cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]
             sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
-            mu, tau2, var_mu = _reference_material_estimate(sr[cand], var[cand], sim[..., None], 2, priors.LOGIT_SPAN)
+            mu, tau2, var_mu = _reference_material_estimate(sr[cand], var[cand], sim[..., None], 2,
+                                                            priors.LOGIT_SPAN)
             ok = torch.isfinite(mu) & (var_mu < priors.VAR_MAX)
             tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
             prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
@@ -96,11 +98,12 @@ def _members(n, k, c, seed, dtype):
     """Members of ``n`` materials whose ``c`` quantities differ in centre and spread, a tenth
     stuck anywhere in the logit range, variances from exact to silent (some non-finite)."""
     g = torch.Generator().manual_seed(seed)
-    centre = torch.linspace(-2, 2, c, dtype=torch.float64)[None, None] + torch.randn(n, 1, 1, generator=g, dtype=torch.float64)
+    f64 = torch.float64
+    centre = torch.linspace(-2, 2, c, dtype=f64)[None, None] + torch.randn(n, 1, 1, generator=g, dtype=f64)
     spread = torch.linspace(0.02, 0.5, c, dtype=torch.float64)[None, None]
     y = centre + spread * torch.randn(n, k, c, generator=g, dtype=torch.float64)
     stuck = torch.rand(n, k, c, generator=g) < 0.1
-    y = torch.where(stuck, priors.LOGIT_SPAN * (torch.rand(n, k, c, generator=g, dtype=torch.float64) - 0.5), y)
+    y = torch.where(stuck, priors.LOGIT_SPAN * (torch.rand(n, k, c, generator=g, dtype=f64) - 0.5), y)
     v = 10 ** (-8 + 10 * torch.rand(n, k, c, generator=g, dtype=torch.float64))
     v[:, :3, 0] = float("inf")
     v[:, 3, -1] = float("nan")

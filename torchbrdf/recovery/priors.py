@@ -139,11 +139,6 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
     return var.sqrt().reshape(-1, 1)
 
 
-def _weighted_sum(a: Tensor, b: Tensor) -> Tensor:
-    """``Σ a b`` over the last dim (members), without keeping the product."""
-    return torch.linalg.vecdot(a, b)
-
-
 def _robust_start(y: Tensor, v: Tensor, s: Tensor, span: float) -> tuple[Tensor, Tensor]:
     """Centre and spread ``(...)`` of members ``y (..., K)`` along the last dim (variances ``v``
     alike, memberships ``s`` broadcast to them) that a minority anywhere in a range of width
@@ -154,7 +149,7 @@ def _robust_start(y: Tensor, v: Tensor, s: Tensor, span: float) -> tuple[Tensor,
     k = y.shape[-1]
     h = span / k
     w = (v + h * h / 12).reciprocal_().mul_(s)
-    v_mean = _weighted_sum(w, v) / w.sum(-1).clamp_(min=1e-30)
+    v_mean = torch.linalg.vecdot(w, v) / w.sum(-1).clamp_(min=1e-30)
     lo = y.amin(-1, keepdim=True)
     # (clamped as floats: a bin beyond the range is the last, a NaN member's the first)
     bins = torch.nan_to_num_((y - lo).div_(h)).clamp_(0, k - 1).long()
@@ -168,14 +163,14 @@ def _random_effects(y: Tensor, v: Tensor, s0: Tensor, iters: int,
                     span: float | None) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`material_estimate` with the members along the last dim: ``y``, ``v (..., K)``
     (``v`` already clamped, overwritten), ``s0`` broadcast to them; returns ``(μ, τ², var(μ))``,
-    each ``(...)``. Products go in place: a fill's member tables are large."""
+    each ``(...)``. Products go in place where they can: a fill's member tables are large."""
     s = s0
     if span is None:  # the start: the fixed-effects mean and spread of the members
         su = s * v.reciprocal()
         den = su.sum(-1).clamp_(min=1e-30)
-        mu = _weighted_sum(su, y) / den
+        mu = torch.linalg.vecdot(su, y) / den
         d2 = (y - mu[..., None]).square_()
-        tau2 = _weighted_sum(su, d2) / den
+        tau2 = torch.linalg.vecdot(su, d2) / den
     else:  # the start, with stuck members: their robust centre and spread
         mu, tau2 = _robust_start(y, v, s, span)
         d2 = (y - mu[..., None]).square_()
@@ -193,11 +188,11 @@ def _random_effects(y: Tensor, v: Tensor, s0: Tensor, iters: int,
             pi = (s.sum(-1) / s_total).clamp_(1e-6, 1 - 1e-6)
         su = s * u
         den = su.sum(-1)
-        mu = _weighted_sum(su, y) / den.clamp_(min=1e-30)
+        mu = torch.linalg.vecdot(su, y) / den.clamp_(min=1e-30)
         d2 = (y - mu[..., None]).square_()
         su2 = su.mul_(u)
-        tau2 = (_weighted_sum(su2, d2 - v) / su2.sum(-1).clamp_(min=1e-30)).clamp_(min=0.0)
-    return mu, tau2, _weighted_sum(s, v.add_(tau2[..., None]).reciprocal_()).reciprocal_()
+        tau2 = (torch.linalg.vecdot(su2, d2 - v) / su2.sum(-1).clamp_(min=1e-30)).clamp_(min=0.0)
+    return mu, tau2, torch.linalg.vecdot(s, v.add_(tau2[..., None]).reciprocal_()).reciprocal_()
 
 
 def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3,
@@ -292,7 +287,8 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
     return marginal_information(data, theta, metal, cfg.model, jtj + torch.diag_embed(ties))
 
 
-def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor, cand: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor,
+                     cand: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`material_estimate` of each pixel ``rows (n,)`` from its candidates ``cand (n, K)``
     (pixel indices; a pixel is not its own), weighted by ``exp(−|Δfeat|²)``: ``feat (F, P)`` the
     similarity features, ``members (4, P)`` the specular / roughness logits and their clamped
@@ -300,6 +296,7 @@ def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor, cand: Tensor) 
     n, k = cand.shape
     flat = cand.flatten()
     diff = feat.index_select(1, flat).view(-1, n, k).sub_(feat[:, rows, None])
+    # exp(−x) as 2^(−x / ln 2): exp2 takes half exp's time here
     sim = diff.square_().sum(0).mul_(-1 / math.log(2)).exp2_().mul_(cand != rows[:, None])  # (n, K)
     m = members.index_select(1, flat).view(4, n, k)
     mu, tau2, var_mu = _random_effects(m[:2], m[2:], sim, iters=2, span=LOGIT_SPAN)
@@ -340,7 +337,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
     # Channel-major tables: a block of candidates is one index_select per table, and the
     # estimate's sums run along contiguous members.
-    members = torch.cat((theta[:, 3:5], _clamped_variance(var)), -1).T.contiguous()  # (4, P): logits, variances
+    members = torch.cat((theta[:, 3:5], _clamped_variance(var)), -1).T.contiguous()  # (4, P): logits, vars
     feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
                       _normal_texture(theta, size) / cfg.fill_texture), -1).T.contiguous()  # (4, P)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
