@@ -113,19 +113,20 @@ def _members(n, k, c, seed, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("span", [None, priors.LOGIT_SPAN])
-def test_material_estimate_matches_the_member_by_member_definition(dtype, span):
+@pytest.mark.parametrize("iters", [0, 2, 3])
+def test_material_estimate_matches_the_member_by_member_definition(dtype, span, iters):
     """Each material's and each quantity's estimate is its own: a swapped member order, a
     weight broadcast over the wrong dim or quantities mixed in one histogram all differ."""
     y, v, s = _members(7, 300, 3, seed=11, dtype=dtype)
     tol = {"rtol": 1e-9, "atol": 1e-12} if dtype == torch.float64 else {"rtol": 2e-4, "atol": 1e-6}
     for weights in (s, s.expand(-1, -1, 3) * torch.tensor([1.0, 0.3, 0.7], dtype=dtype)):
-        got = priors.material_estimate(y, v, weights, iters=2, span=span)
-        want = _reference_material_estimate(y, v, weights, iters=2, span=span)
+        got = priors.material_estimate(y, v, weights, iters=iters, span=span)
+        want = _reference_material_estimate(y, v, weights, iters=iters, span=span)
         for a, b in zip(got, want):
             assert a.shape == (7, 3) and a.dtype == dtype
             torch.testing.assert_close(a, b, **tol)
     # The check sees a batching error: the materials' quantities are far apart.
-    swapped = _reference_material_estimate(y.flip(2), v.flip(2), s, iters=2, span=span)
+    swapped = _reference_material_estimate(y.flip(2), v.flip(2), s, iters=iters, span=span)
     assert not torch.allclose(swapped[0], want[0], rtol=1e-2)
 
 
