@@ -538,7 +538,8 @@ class Recovery:
         self._sync_light_scale()
         th, mt, model = st["theta"][0], st["metal"], self.cfg.model
         gn = gauss_newton(d, th, mt, d.train_idx, model)
-        fill = nonlocal_fill(d, th, mt, self.cfg, info=fit_information(d, th, mt, self.cfg, gn[1]))
+        info = fit_information(d, th, mt, self.cfg, gn[1])
+        fill = nonlocal_fill(d, th, mt, self.cfg, info=info, residual=gn[0])
         st["fill"] = fill
         st["theta"][0] = fuse_fill(d, th, mt, sum_unary(fill, st.get("tie")) or fill, model, gn=gn)
 

@@ -140,21 +140,59 @@ def _normal_texture(theta: Tensor, size: int, radius: int = 2) -> Tensor:
 
 
 def _robust_start(y: Tensor, v: Tensor, s: Tensor, span: float) -> tuple[Tensor, Tensor]:
-    """Centre and spread ``(N, C)`` of members ``y (N, K, C)`` (variances ``v``, memberships ``s``)
-    that a minority anywhere in a range of width ``span`` moves neither: the median and the
-    interquartile range (``/ 1.349``, a normal's) of a histogram of ``K`` bins of width ``h`` over
-    the range (no sort), each member weighted ``s / (v + h²/12)`` (members more precise than a bin
-    count alike), the spread less their mean variance plus a bin's own variance ``h²/12``."""
-    k = y.shape[1]
+    """Centre and spread ``(...)`` of members ``y (..., K)`` along the last dim (variances ``v``
+    alike, memberships ``s`` broadcast to them) that a minority anywhere in a range of width
+    ``span`` moves neither: the median and the interquartile range (``/ 1.349``, a normal's) of a
+    histogram of ``K`` bins of width ``h`` over the range (no sort), each member weighted
+    ``s / (v + h²/12)`` (members more precise than a bin count alike), the spread less their
+    mean variance plus a bin's own variance ``h²/12``."""
+    k = y.shape[-1]
     h = span / k
-    w = s / (v + h * h / 12)
-    v_mean = (w * v).sum(1) / w.sum(1).clamp(min=1e-30)
-    lo = y.amin(1, keepdim=True)
-    bins = torch.nan_to_num((y - lo) / h).long().clamp_(0, k - 1)
-    cw = torch.zeros_like(y).scatter_add_(1, bins, w).cumsum(1).transpose(1, 2).contiguous()  # (N, C, K)
+    w = (v + h * h / 12).reciprocal_().mul_(s)
+    v_mean = torch.linalg.vecdot(w, v) / w.sum(-1).clamp_(min=1e-30)
+    lo = y.amin(-1, keepdim=True)
+    # (clamped as floats: a bin beyond the range is the last, a NaN member's the first)
+    bins = torch.nan_to_num_((y - lo).div_(h)).clamp_(0, k - 1).long()
+    cw = torch.zeros_like(y).scatter_add_(-1, bins, w).cumsum_(-1)  # (..., K)
     q = cw[..., -1:] * torch.tensor([0.25, 0.5, 0.75], dtype=cw.dtype, device=cw.device)
-    at = lo[:, 0, :, None] + (torch.searchsorted(cw, q).clamp_(max=k - 1).to(y.dtype) + 0.5) * h
-    return at[..., 1], (((at[..., 2] - at[..., 0]) / 1.349) ** 2 - v_mean).clamp(min=0.0) + h * h / 12
+    at = lo + (torch.searchsorted(cw, q).clamp_(max=k - 1).to(y.dtype) + 0.5) * h
+    return at[..., 1], (((at[..., 2] - at[..., 0]) / 1.349) ** 2 - v_mean).clamp_(min=0.0) + h * h / 12
+
+
+def _random_effects(y: Tensor, v: Tensor, s0: Tensor, iters: int,
+                    span: float | None) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`material_estimate` with the members along the last dim: ``y``, ``v (..., K)``
+    (``v`` already clamped, overwritten), ``s0`` broadcast to them; returns ``(μ, τ², var(μ))``,
+    each ``(...)``. Products go in place where they can: a fill's member tables are large."""
+    s = s0
+    if span is None:  # the start: the fixed-effects mean and spread of the members
+        su = s * v.reciprocal()
+        den = su.sum(-1).clamp_(min=1e-30)
+        mu = torch.linalg.vecdot(su, y) / den
+        d2 = (y - mu[..., None]).square_()
+        tau2 = torch.linalg.vecdot(su, d2) / den
+    else:  # the start, with stuck members: their robust centre and spread
+        mu, tau2 = _robust_start(y, v, s, span)
+        d2 = (y - mu[..., None]).square_()
+        pi = torch.full_like(mu, 0.5)
+        s_total = s0.sum(-1).clamp(min=1e-30)
+    for _ in range(iters):
+        spread = v + tau2[..., None]
+        u = spread.reciprocal()
+        if span is not None:  # E step: each member's responsibility of the material,
+            # π N / (π N + (1 − π) / span) = 1 / (1 + odds · √(τ² + v) · exp(d² u / 2)): each
+            # factor positive and at worst +inf (a member far off: responsibility 0), never NaN
+            log2_odds = torch.log2((1 - pi) / (pi * span) * math.sqrt(2 * math.pi))
+            odds_n = torch.addcmul(log2_odds[..., None], d2, u, value=0.5 / math.log(2), out=d2).exp2_()
+            s = torch.div(s0, odds_n.mul_(spread.sqrt_()).add_(1), out=odds_n)
+            pi = (s.sum(-1) / s_total).clamp_(1e-6, 1 - 1e-6)
+        su = s * u
+        den = su.sum(-1)
+        mu = torch.linalg.vecdot(su, y) / den.clamp_(min=1e-30)
+        d2 = (y - mu[..., None]).square_()
+        su2 = su.mul_(u)
+        tau2 = (torch.linalg.vecdot(su2, d2 - v) / su2.sum(-1).clamp_(min=1e-30)).clamp_(min=0.0)
+    return mu, tau2, torch.linalg.vecdot(s, v.add_(tau2[..., None]).reciprocal_()).reciprocal_()
 
 
 def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters: int = 3,
@@ -182,37 +220,14 @@ def material_estimate(values: Tensor, variances: Tensor, weights: Tensor, iters:
     Returns ``(μ, τ², var(μ) = 1 / Σ s u)`` of the material, each ``(N, C)`` in ``values``'
     dtype (``var(μ)`` is +inf where no member carries weight).
     """
-    y = values
-    s0 = weights.expand_as(y)
-    s = s0
-    v = torch.nan_to_num(variances, nan=VAR_MAX, posinf=VAR_MAX).clamp(VAR_MIN, VAR_MAX)
-    u = v.reciprocal()
-    tau2 = torch.zeros_like(y[:, 0])
-    pi = torch.full_like(y[:, 0], 0.5)
-    d2 = torch.zeros_like(y)
-    for it in range(iters + 1):
-        if it:
-            u = (tau2[:, None] + v).reciprocal()
-            if span is not None:  # E step: each member's responsibility of the material,
-                # π N / (π N + (1 − π) / span) as a sigmoid of its log-odds (one log, no exp of a ratio)
-                c = torch.log(pi * span / (1 - pi)) - 0.5 * math.log(2 * math.pi)
-                s = s0 * torch.sigmoid(c[:, None] + 0.5 * (torch.log(u) - d2 * u))
-                pi = (s.sum(1) / s0.sum(1).clamp(min=1e-30)).clamp(1e-6, 1 - 1e-6)
-        su = s * u
-        den = su.sum(1)
-        if it == 0 and span is not None:  # the start, with stuck members: their robust spread
-            mu, tau2 = _robust_start(y, v, s, span)
-            d2 = (y - mu[:, None]) ** 2
-            continue
-        mu = (su * y).sum(1) / den.clamp(min=1e-30)
-        d2 = (y - mu[:, None]) ** 2
-        if it == 0:  # the start: the fixed-effects spread of the members
-            tau2 = (su * d2).sum(1) / den.clamp(min=1e-30)
-            continue
-        su2 = su * u
-        tau2 = ((su2 * (d2 - v)).sum(1) / su2.sum(1).clamp(min=1e-30)).clamp(min=0.0)
-    u = (tau2[:, None] + v).reciprocal()
-    return mu, tau2, (s * u).sum(1).reciprocal()
+    s = weights.expand_as(values).transpose(1, 2)
+    v = _clamped_variance(variances.transpose(1, 2))
+    return _random_effects(values.transpose(1, 2).contiguous(), v, s.contiguous(), iters, span)
+
+
+def _clamped_variance(v: Tensor) -> Tensor:
+    """Variances in ``[VAR_MIN, VAR_MAX]``, a non-finite one ``VAR_MAX`` (a new, contiguous tensor)."""
+    return torch.nan_to_num(v, nan=VAR_MAX, posinf=VAR_MAX).clamp_(VAR_MIN, VAR_MAX).contiguous()
 
 
 @functools.lru_cache(maxsize=8)
@@ -272,8 +287,24 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
     return marginal_information(data, theta, metal, cfg.model, jtj + torch.diag_embed(ties))
 
 
+def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor,
+                     cand: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`material_estimate` of each pixel ``rows (n,)`` from its candidates ``cand (n, K)``
+    (pixel indices; a pixel is not its own), weighted by ``exp(−|Δfeat|²)``: ``feat (F, P)`` the
+    similarity features, ``members (4, P)`` the specular / roughness logits and their clamped
+    variances, channel-major. Returns ``(μ, τ², var(μ))``, each ``(n, 2)``."""
+    n, k = cand.shape
+    flat = cand.flatten()
+    diff = feat.index_select(1, flat).view(-1, n, k).sub_(feat[:, rows, None])
+    # exp(−x) as 2^(−x / ln 2): exp2 takes half exp's time here
+    sim = diff.square_().sum(0).mul_(-1 / math.log(2)).exp2_().mul_(cand != rows[:, None])  # (n, K)
+    m = members.index_select(1, flat).view(4, n, k)
+    mu, tau2, var_mu = _random_effects(m[:2], m[2:], sim, iters=2, span=LOGIT_SPAN)
+    return mu.T, tau2.T, var_mu.T
+
+
 def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
-                  info: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                  info: Tensor | None = None, residual: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Targets and precisions ``(P, 7)`` of a unary prior that fills under-determined roughness and
     specular from same-material pixels the captured highlights do constrain: each pixel's
     Gaussian prior is what the pixels like it measured.
@@ -294,17 +325,21 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     was measured the prior vanishes.
     A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
     ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None:
-    computed); results in ``theta``'s dtype, on its device.
+    computed), ``residual (P, M)``: the residuals at ``theta`` on ``data.train_idx`` when the
+    caller has them (:func:`gauss_newton`'s first result; None: computed); results in
+    ``theta``'s dtype, on its device.
     """
     size = data.size
     if info is None:
         info = fit_information(data, theta, metal, cfg)
-    r = data.residual(theta, metal, data.train_idx, cfg.model)
+    r = data.residual(theta, metal, data.train_idx, cfg.model) if residual is None else residual
     sigma2 = residual_variance(pixel_cost(r), r.shape[-1])
     var = sigma2 / info[:, 3:5].clamp(min=1e-30)  # (P, 2): specular, roughness logits
-    sr = theta[:, 3:5].contiguous()
+    # Channel-major tables: a block of candidates is one index_select per table, and the
+    # estimate's sums run along contiguous members.
+    members = torch.cat((theta[:, 3:5], _clamped_variance(var)), -1).T.contiguous()  # (4, P): logits, vars
     feat = torch.cat((torch.sigmoid(theta[:, 0:3]) / cfg.fill_range,
-                      _normal_texture(theta, size) / cfg.fill_texture), -1)  # (P, 4)
+                      _normal_texture(theta, size) / cfg.fill_texture), -1).T.contiguous()  # (4, P)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
     tgt = theta.clone()
     prec = torch.zeros_like(theta)
@@ -314,15 +349,19 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         if pool.numel() < 2 or sigma2 <= 0:
             continue
         k = min(cfg.fill_candidates, pool.numel())
-        chunk = max(1, 2**20 // k)
-        for s0 in range(0, pool.numel(), chunk):
-            rr = pool[s0:s0 + chunk]
-            cand = pool[torch.randint(0, pool.numel(), (rr.numel(), k), generator=gen)]  # (n, K)
-            sim = torch.exp(-((feat[cand] - feat[rr][:, None]) ** 2).sum(-1)) * (cand != rr[:, None])
-            mu, tau2, var_mu = material_estimate(sr[cand], var[cand], sim[..., None], iters=2, span=LOGIT_SPAN)
-            ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
-            tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
-            prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
+        draw = max(1, 2**20 // k)  # pixels per draw of candidates (the random stream's blocks)
+        block = max(1, 2**18 // k)  # ... per estimate: its tables stay in the cache
+        for s0 in range(0, pool.numel(), draw):
+            rows = pool[s0:s0 + draw]
+            draws = torch.randint(0, pool.numel(), (rows.numel() * k,), generator=gen)  # on the CPU
+            drawn = pool.index_select(0, draws.to(pool.device))
+            for b0 in range(0, rows.numel(), block):
+                rr = rows[b0:b0 + block]
+                cand = drawn[b0 * k:(b0 + rr.numel()) * k]  # (n K,)
+                mu, tau2, var_mu = _member_estimate(feat, members, rr, cand.view(-1, k))
+                ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
+                tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
+                prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
     if bool(ism.any()):
         prec[ism, 3] = 0.0  # a metal's specular is invisible and already tied to its neighbours
     return torch.nan_to_num(tgt), torch.nan_to_num(prec, posinf=0.0)
