@@ -67,7 +67,7 @@ def test_light_beside_the_camera_keeps_its_stated_position():
     """With ``at_camera=False`` the flash's position is held as capture.json states it.
 
     It is the lights' least determined position and took up what the two-hypothesis maps had
-    not yet fitted (docs/recovery.md, issue 18: the recovery holds it in that stage); by
+    not yet fitted (docs/recovery.md: the recovery holds it in that stage); by
     default both steps move it toward where it is.
     """
     from torchbrdf.capture.synthetic import render_capture

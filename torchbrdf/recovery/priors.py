@@ -29,7 +29,7 @@ def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     with ``cfg.prior_nonlocal > 0`` each pixel's roughness also gets the information-weighted
     average of same-class pixels of similar base colour (bilateral grid over k-means colour
     clusters) — off by default: rough pixels always carry little roughness information, so
-    the average is pulled toward nearby glossy pixels (rough grout came out too smooth).
+    the average is pulled toward nearby glossy pixels (rough grout would end too smooth).
     ``jtj (P, 7, 7)``: the normal matrices at ``theta`` when the caller has them (else computed);
     ``cost (P, 1)``: each pixel's data cost there (its squared residuals' sum; None: not used),
     which scales a metal's weight by ``min(1, cfg.nonlocal_fit_weight × median / cost)`` (the
@@ -99,7 +99,7 @@ def nonlocal_prior(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         if cost is not None and cfg.nonlocal_fit_weight > 0 and bool(finite.any()):
             # ... and by how well the model fits the pixel: one fitted far above the median
             # metal pixel (a rust front called metal, a blend of two materials) is no evidence
-            # of its neighbours' F0 (the average came out dark). A non-finite cost weighs 0.
+            # of its neighbours' F0 (it would darken the average). A non-finite cost weighs 0.
             ref = cfg.nonlocal_fit_weight * cost[finite].median()
             fit = torch.where(cost <= ref, torch.ones_like(cost), ref / cost)
             cb = cb * torch.nan_to_num(fit, nan=0.0, posinf=0.0)
