@@ -9,11 +9,12 @@ weighted graph Laplacian ``L θ`` and its Hessian ``L``, which couples pixels �
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
 from torch import Tensor
+
+from torchbrdf.recovery.pixel_systems import ldl_factor, ldl_solve, lower_solve, to_lanes, upper_solve
 
 
 def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Tensor, Tensor]:
@@ -107,99 +108,124 @@ def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
     return 0.5 * e.reshape(-1, 1)
 
 
-def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int) -> Tensor:
-    """Solve ``(blockdiag(hess) + L) x = rhs`` by preconditioned conjugate gradients.
+def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int,
+        diag: Tensor | None = None) -> Tensor:
+    """Solve ``(blockdiag(hess + diag) + L) x = rhs`` by preconditioned conjugate gradients.
 
-    ``hess (P, C, C)`` is each pixel's damped Gauss–Newton matrix, ``L`` the prior's weighted
-    Laplacian (pixels couple only through it), ``rhs (P, C)``; returns ``x (P, C)``. Unlike a
-    Jacobi prior (the neighbours frozen within an iteration), CG moves a whole region
-    together: a uniform shift costs no prior energy, so a weakly observed region is not held
-    at its start value.
+    ``hess (P, C, C)`` is each pixel's damped Gauss–Newton matrix (symmetric positive definite;
+    ``diag (P, C)``, when given, is added to its diagonal: the damping, without building a
+    second ``(P, C, C)``), ``L`` the prior's weighted Laplacian (pixels couple only through it),
+    ``rhs (P, C)``; returns ``x (P, C)`` in ``rhs``'s dtype, on its device. Unlike a Jacobi prior
+    (the neighbours frozen within an iteration), CG moves a whole region together: a uniform
+    shift costs no prior energy, so a weakly observed region is not held at its start value.
 
     Only the channels the prior joins (``a``: a range with non-zero edge weights somewhere —
     specular and roughness, and a metal's base colour) couple pixels. The others (``u``: the
     normal's slopes, a dielectric's base colour) are eliminated per pixel first, exactly:
     with ``hess = [[A, B], [Bᵀ, D]]`` over ``(a, u)``, CG runs on the Schur complement
-    ``(A − B D⁻¹ Bᵀ) + L_a`` (2 of 7 channels on a dielectric map, 5 with metal), and
+    ``S = (A − B D⁻¹ Bᵀ) + L_a`` (2 of 7 channels on a dielectric map, 5 with metal), and
     ``x_u = D⁻¹ (rhs_u − Bᵀ x_a)`` follows. That is the same solution with cheaper and
     better-conditioned iterations. The preconditioner is the exact inverse of the complement's
-    block diagonal (+ the Laplacian's diagonal); the per-pixel algebra runs in float64.
+    block diagonal (+ the Laplacian's diagonal), applied as its ``LDLᵀ`` factors.
 
-    The iteration runs channel-first (vectors ``(a, P)``, matrices ``(a, a, P)``): a block
-    product is then lane-dense multiply-adds over the pixels, much faster on CPU than a
-    batched ``einsum`` over ``P`` tiny matrices.
+    All the per-pixel algebra runs lane-wise (:mod:`~torchbrdf.recovery.pixel_systems`:
+    matrices ``(n, n, P)``, vectors ``(n, P)``), each step one multiply-add over all pixels;
+    the elimination and the factorisations in float64 (in float32 the elimination's
+    cancellation stalls CG at 1e-2), the iterations in ``rhs``'s dtype. The iterations never
+    wait for the host: a breakdown (``dᵀ A d`` not positive and finite) freezes ``x`` where it
+    is, as stopping would.
     """
     c = rhs.shape[1]
-    joined = ((wx != 0).flatten(0, 1).any(0) | (wy != 0).flatten(0, 1).any(0)).nonzero()[:, 0].tolist()
+    joined = ((wx != 0).reshape(-1, c).any(0) | (wy != 0).reshape(-1, c).any(0)).nonzero()[:, 0].tolist()
+    h = to_lanes(hess)  # (C, C, P) float64, a fresh copy: the diagonal is added in place
+    if diag is not None:
+        h.diagonal(dim1=0, dim2=1).add_(diag)
+    rhs64 = h.new_empty(c, rhs.shape[0]).copy_(rhs.T)  # (C, P), contiguous
     if not joined:  # no coupling: each pixel's block alone
-        return torch.linalg.solve(hess, rhs[..., None])[..., 0]
-    a = list(range(joined[0], joined[-1] + 1))
-    u = [k for k in range(c) if k < a[0] or k > a[-1]]
-    n, nu, lo = len(a), len(u), a[0]
-    # One gather puts the eliminated channels first (blocks are then views); the per-pixel
-    # algebra runs in float64: in float32 the elimination's cancellation stalls CG at 1e-2.
-    perm = torch.tensor(u + a, device=hess.device)
-    flat = (perm[:, None] * c + perm[None, :]).reshape(-1)  # one gather of the 49 entries: 3x faster
-    hp = hess.reshape(-1, c * c).index_select(1, flat).view(-1, c, c).double()
-    bp = rhs.index_select(1, perm).double()
-    s, b = hp[:, nu:, nu:], bp[:, nu:]
+        low, d = ldl_factor(h)
+        return ldl_solve(low, 1.0 / d, rhs64).T.to(rhs.dtype)
+    lo, hi = joined[0], joined[-1] + 1
+    n = hi - lo
+    u = [k for k in range(c) if k < lo or k > hi - 1]
+    s, b = h[lo:hi, lo:hi], rhs64[lo:hi]  # views, updated in place (h and rhs64 are our own)
     if u:
-        d_inv = torch.linalg.inv(hp[:, :nu, :nu])
-        bd = hp[:, nu:, :nu] @ d_inv  # B D⁻¹  (P, a, u)
-        s = s - bd @ hp[:, :nu, nu:]
-        b = b - (bd @ bp[:, :nu, None])[..., 0]
+        low_u, d_u = ldl_factor(h[u][:, u])
+        # S = A − B D⁻¹ Bᵀ = A − Σ_k v_k v_kᵀ with v = D^-½ L_u⁻¹ Bᵀ: symmetric as computed
+        v = lower_solve(low_u, h[u][:, lo:hi])  # (nu, n, P) (an index list's result: a copy)
+        y = lower_solve(low_u, rhs64[u])  # (nu, P)
+        scale = torch.rsqrt(d_u)
+        v.mul_(scale[:, None])
+        for k in range(len(u)):
+            s.addcmul_(v[k][:, None], v[k][None, :], value=-1.0)
+            b.addcmul_(v[k], y[k] * scale[k], value=-1.0)
     wxa, wya = wx.narrow(-1, lo, n), wy.narrow(-1, lo, n)
-    # The Laplacian's diagonal joins the blocks: the operator is then one block product plus
-    # the four neighbour terms, and the preconditioner is the exact inverse of its blocks.
-    s = s + torch.diag_embed(laplacian_diag(wxa, wya, size).double())
-    pre = torch.linalg.inv(s)
+    # The Laplacian's diagonal joins the blocks: the operator is then the blocks minus the
+    # neighbour terms, and the preconditioner the blocks' exact inverse, factored once here.
+    s.diagonal(dim1=0, dim2=1).add_(laplacian_diag(wxa, wya, size))  # (a (P, n) view)
+    low, d = ldl_factor(s)
     dt = rhs.dtype
-    s_cf, pre = s.to(dt).permute(1, 2, 0).contiguous(), pre.to(dt).permute(1, 2, 0).contiguous()
-    wxc, wyc = wxa.permute(2, 0, 1).contiguous(), wya.permute(2, 0, 1).contiguous()
-
-    def block(m, v):  # per-pixel (n, n) @ (n,) on (n, n, P) and (n, P), without an (n, n, P) temporary
-        out = m[:, 0] * v[0]
-        for j in range(1, n):
-            out.addcmul_(m[:, j], v[j])
-        return out
-
-    def apply(v):  # (blocks + diag L) v − Σ_q w_pq v_q: every product accumulates in place
-        out = block(s_cf, v)
-        o, w = out.view(n, size, size), v.view(n, size, size)
-        o[:, :, :-1].addcmul_(wxc, w[:, :, 1:], value=-1.0)
-        o[:, :, 1:].addcmul_(wxc, w[:, :, :-1], value=-1.0)
-        o[:, :-1].addcmul_(wyc, w[:, 1:], value=-1.0)
-        o[:, 1:].addcmul_(wyc, w[:, :-1], value=-1.0)
-        return out
-
-    def dot(a, b):
-        return torch.vdot(a.view(-1), b.view(-1))
-
-    rb = b.to(dt).T.contiguous()
-    x = block(pre, rb)
-    r = rb - apply(x)
-    d = block(pre, r)
-    rz = dot(r, d)
-    for _ in range(iters):
-        ad = apply(d)
-        dad = dot(d, ad)
-        dad_host = float(dad)  # one host sync per iteration (the stopping test needs it)
-        if not math.isfinite(dad_host) or dad_host <= 0:
-            break
-        alpha = rz / dad  # 0-d tensors: the updates queue without another sync
-        x.addcmul_(d, alpha)
-        r.addcmul_(ad, alpha, value=-1.0)
-        z = block(pre, r)
-        rz_new = dot(r, z)
-        d = z.addcmul_(d, torch.where(rz != 0, rz_new / rz, torch.zeros_like(rz)))
-        rz = rz_new
+    x = _cg_iterations(low.to(dt), torch.rsqrt(d).to(dt), wxa.permute(2, 0, 1).contiguous(),
+                       wya.permute(2, 0, 1).contiguous(), b.to(dt), size, iters)
     out = torch.empty_like(rhs)
-    xa = x.T.double()
-    out[:, lo:lo + n] = xa.to(dt)
+    out[:, lo:hi] = x.T
     if u:
-        xu = (d_inv @ (bp[:, :nu] - (hp[:, :nu, nu:] @ xa[..., None])[..., 0])[..., None])[..., 0]
-        out[:, u] = xu.to(dt)
+        xa = x.double()
+        t = rhs64[u] - (h[lo:hi][:, u] * xa[:, None]).sum(0)  # rhs_u − Bᵀ x_a  (nu, P)
+        out[:, u] = ldl_solve(low_u, 1.0 / d_u, t).T.to(dt)
     return out
+
+
+def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tensor, size: int,
+                   iters: int) -> Tensor:
+    """``iters`` CG iterations on ``(M − N) x = b``, preconditioned by ``M``, from ``x₀ = M⁻¹ b``.
+
+    Lane-wise: ``M = L D Lᵀ`` the blocks with the Laplacian's diagonal, given by ``low (n, n, P)``
+    (:func:`~torchbrdf.recovery.pixel_systems.ldl_factor`) and ``d_isqrt = D^-½ (n, P)``;
+    ``N v = Σ_q w_pq v_q`` the neighbour terms, edge weights ``wx (n, S, S-1)``, ``wy (n, S-1, S)``;
+    ``b (n, P)``; all in one dtype. Returns ``x (n, P)``.
+
+    CG runs on the split-preconditioned system ``(I − K) y = K_b`` with ``K = G⁻¹ N G⁻ᵀ``,
+    ``G = L D^½``, ``x = G⁻ᵀ y``: the same iterates as CG preconditioned by ``M⁻¹`` in exact
+    arithmetic, but an iteration needs the two triangular solves and no block product.
+    """
+    n = low.shape[0]
+
+    def neighbours(v):  # N v = Σ_q w_pq v_q
+        out = torch.zeros_like(v)
+        o, w = out.view(n, size, size), v.view(n, size, size)
+        o[:, :, :-1].addcmul_(wx, w[:, :, 1:])
+        o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
+        o[:, :-1].addcmul_(wy, w[:, 1:])
+        o[:, 1:].addcmul_(wy, w[:, :-1])
+        return out
+
+    def apply(v):  # (I − G⁻¹ N G⁻ᵀ) v
+        k = lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
+        return k.neg_().add_(v)
+
+    def dot(p, q):
+        return torch.vdot(p.view(-1), q.view(-1))
+
+    y = lower_solve(low, b.clone()).mul_(d_isqrt)  # y₀ = G⁻¹ b, i.e. x₀ = M⁻¹ b
+    r = apply(y).neg_().add_(y)
+    # One host synchronisation, before the loop: non-finite data stop CG at its start (every
+    # pixel's block solve alone), as a non-finite dᵀAd at the first iteration would.
+    if iters > 0 and bool(torch.isfinite(r).all()):
+        d = r.clone()
+        rr = dot(r, r)
+        zero = torch.zeros_like(rr)
+        going = torch.ones_like(rr, dtype=torch.bool)  # false from the first breakdown on
+        for _ in range(iters):
+            ad = apply(d)
+            dad = dot(d, ad)
+            going = going & torch.isfinite(dad) & (dad > 0)
+            alpha = torch.where(going, rr / dad, zero)  # 0-d tensors: the updates queue, no sync
+            y.addcmul_(d, alpha)
+            r.addcmul_(ad, alpha, value=-1.0)
+            rr_new = dot(r, r)
+            d = torch.addcmul(r, d, torch.where(going & (rr != 0), rr_new / rr, zero))
+            rr = rr_new
+    return upper_solve(low, y.mul_(d_isqrt))
 
 
 def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
