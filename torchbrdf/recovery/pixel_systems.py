@@ -24,14 +24,23 @@ from torch import Tensor
 PIVOT_FLOOR = 1e-12
 
 
-def to_lanes(m: Tensor, dtype: torch.dtype = torch.float64) -> Tensor:
-    """Batched matrices ``m (P, n, n)`` as lanes ``(n, n, P)`` in ``dtype``: always a fresh copy.
+def to_lanes(m: Tensor, dtype: torch.dtype = torch.float64, order: list[int] | None = None) -> Tensor:
+    """Batched matrices ``m (P, n, n)`` as lanes ``(k, k, P)`` in ``dtype``: always a fresh copy.
 
-    (Transposing in ``m``'s own dtype and then converting is twice as fast on CPU as one
-    converting, transposing copy.)
+    ``order``: the ``k`` rows and columns to keep, in that order (None: all ``n`` as they are),
+    so that the blocks of a reordered matrix are views. (Transposing in ``m``'s own dtype and
+    then converting, lane by lane where reordered, is several times faster on CPU than a
+    converting, transposing copy or a gather.)
     """
     n = m.shape[-1]
-    return m.reshape(-1, n * n).T.contiguous().to(dtype, copy=True).view(n, n, -1)
+    flat = m.reshape(-1, n * n).T.contiguous()  # (n², P)
+    if order is None:
+        return flat.to(dtype, copy=True).view(n, n, -1)
+    out = flat.new_empty((len(order), len(order), flat.shape[1]), dtype=dtype)
+    for i, a in enumerate(order):
+        for j, b in enumerate(order):
+            out[i, j].copy_(flat[a * n + b])
+    return out
 
 
 def ldl_factor(m: Tensor) -> tuple[Tensor, Tensor]:

@@ -137,28 +137,31 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     """
     c = rhs.shape[1]
     joined = ((wx != 0).reshape(-1, c).any(0) | (wy != 0).reshape(-1, c).any(0)).nonzero()[:, 0].tolist()
-    h = to_lanes(hess)  # (C, C, P) float64, a fresh copy: the diagonal is added in place
+    lo, hi = (joined[0], joined[-1] + 1) if joined else (c, c)
+    u = [k for k in range(c) if k < lo or k >= hi]
+    nu, order = len(u), u + list(range(lo, hi))
+    # Float64 lanes (C, C, P) in the order (u, a): D, Bᵀ, A are views; a fresh copy, updated in place.
+    h = to_lanes(hess, order=order)
+    rhs64 = h.new_empty(c, rhs.shape[0]).copy_(rhs[:, order].T)  # (C, P)
     if diag is not None:
-        h.diagonal(dim1=0, dim2=1).add_(diag)
-    rhs64 = h.new_empty(c, rhs.shape[0]).copy_(rhs.T)  # (C, P), contiguous
+        h.diagonal(dim1=0, dim2=1).add_(diag[:, order])  # (a (P, C) view)
+    out = torch.empty_like(rhs)
     if not joined:  # no coupling: each pixel's block alone
         low, d = ldl_factor(h)
-        return ldl_solve(low, 1.0 / d, rhs64).T.to(rhs.dtype)
-    lo, hi = joined[0], joined[-1] + 1
-    n = hi - lo
-    u = [k for k in range(c) if k < lo or k > hi - 1]
-    s, b = h[lo:hi, lo:hi], rhs64[lo:hi]  # views, updated in place (h and rhs64 are our own)
+        out[:, order] = ldl_solve(low, 1.0 / d, rhs64).T.to(rhs.dtype)
+        return out
+    s, b = h[nu:, nu:], rhs64[nu:]
     if u:
-        low_u, d_u = ldl_factor(h[u][:, u])
+        low_u, d_u = ldl_factor(h[:nu, :nu])
         # S = A − B D⁻¹ Bᵀ = A − Σ_k v_k v_kᵀ with v = D^-½ L_u⁻¹ Bᵀ: symmetric as computed
-        v = lower_solve(low_u, h[u][:, lo:hi])  # (nu, n, P) (an index list's result: a copy)
-        y = lower_solve(low_u, rhs64[u])  # (nu, P)
+        v = lower_solve(low_u, h[:nu, nu:].clone())  # (nu, n, P)
+        y = lower_solve(low_u, rhs64[:nu].clone())  # (nu, P)
         scale = torch.rsqrt(d_u)
         v.mul_(scale[:, None])
-        for k in range(len(u)):
+        for k in range(nu):
             s.addcmul_(v[k][:, None], v[k][None, :], value=-1.0)
             b.addcmul_(v[k], y[k] * scale[k], value=-1.0)
-    wxa, wya = wx.narrow(-1, lo, n), wy.narrow(-1, lo, n)
+    wxa, wya = wx[..., lo:hi], wy[..., lo:hi]
     # The Laplacian's diagonal joins the blocks: the operator is then the blocks minus the
     # neighbour terms, and the preconditioner the blocks' exact inverse, factored once here.
     s.diagonal(dim1=0, dim2=1).add_(laplacian_diag(wxa, wya, size))  # (a (P, n) view)
@@ -166,11 +169,9 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     dt = rhs.dtype
     x = _cg_iterations(low.to(dt), torch.rsqrt(d).to(dt), wxa.permute(2, 0, 1).contiguous(),
                        wya.permute(2, 0, 1).contiguous(), b.to(dt), size, iters)
-    out = torch.empty_like(rhs)
     out[:, lo:hi] = x.T
-    if u:
-        xa = x.double()
-        t = rhs64[u] - (h[lo:hi][:, u] * xa[:, None]).sum(0)  # rhs_u − Bᵀ x_a  (nu, P)
+    if u:  # x_u = D⁻¹ (rhs_u − Bᵀ x_a)
+        t = rhs64[:nu] - (h[:nu, nu:] * x.double()).sum(1)  # (nu, P)
         out[:, u] = ldl_solve(low_u, 1.0 / d_u, t).T.to(dt)
     return out
 
@@ -190,24 +191,28 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     """
     n = low.shape[0]
 
-    def neighbours(v):  # N v = Σ_q w_pq v_q
-        out = torch.zeros_like(v)
+    def neighbours(v):  # N v = Σ_q w_pq v_q (the first term written, not added to zeros)
+        out = torch.empty_like(v)
         o, w = out.view(n, size, size), v.view(n, size, size)
-        o[:, :, :-1].addcmul_(wx, w[:, :, 1:])
+        torch.mul(wx, w[:, :, 1:], out=o[:, :, :-1])
+        o[:, :, -1] = 0.0
         o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
         o[:, :-1].addcmul_(wy, w[:, 1:])
         o[:, 1:].addcmul_(wy, w[:, :-1])
         return out
 
-    def apply(v):  # (I − G⁻¹ N G⁻ᵀ) v
-        k = lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
-        return k.neg_().add_(v)
+    def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
+        return lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
+
+    def apply(v):  # (I − K) v
+        k = coupling(v)
+        return torch.sub(v, k, out=k)
 
     def dot(p, q):
         return torch.vdot(p.view(-1), q.view(-1))
 
     y = lower_solve(low, b.clone()).mul_(d_isqrt)  # y₀ = G⁻¹ b, i.e. x₀ = M⁻¹ b
-    r = apply(y).neg_().add_(y)
+    r = coupling(y)  # G⁻¹ b − (I − K) y₀
     # One host synchronisation, before the loop: non-finite data stop CG at its start (every
     # pixel's block solve alone), as a non-finite dᵀAd at the first iteration would.
     if iters > 0 and bool(torch.isfinite(r).all()):
