@@ -250,10 +250,10 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     if rows is None:  # every pixel: the edges are slices of the image (no gather)
         a, t = cand.reshape(*cand.shape[:-2], size, size, c), theta.reshape(size, size, c)
         e = torch.zeros(*a.shape[:-1], 1, dtype=cand.dtype, device=cand.device)
-        e[..., :, :-1, :] += (wx * (a[..., :, :-1, :] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
-        e[..., :, 1:, :] += (wx * (a[..., :, 1:, :] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
-        e[..., :-1, :, :] += (wy * (a[..., :-1, :, :] - t[1:]) ** 2).sum(-1, keepdim=True)
-        e[..., 1:, :, :] += (wy * (a[..., 1:, :, :] - t[:-1]) ** 2).sum(-1, keepdim=True)
+        e[..., :, :-1, :] += _edge_term(a[..., :, :-1, :], t[:, 1:], wx)
+        e[..., :, 1:, :] += _edge_term(a[..., :, 1:, :], t[:, :-1], wx)
+        e[..., :-1, :, :] += _edge_term(a[..., :-1, :, :], t[1:], wy)
+        e[..., 1:, :, :] += _edge_term(a[..., 1:, :, :], t[:-1], wy)
         return e.reshape(*cand.shape[:-1], 1)
     i, j = rows // size, rows % size
     last = size - 1
@@ -264,6 +264,13 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     terms = []
     for w, q, w_row, has in edges:
         wq = w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1))
-        term = (wq * (cand - theta.index_select(0, q.clamp(0, size * size - 1))) ** 2).sum(-1, keepdim=True)
+        term = _edge_term(cand, theta.index_select(0, q.clamp(0, size * size - 1)), wq)
         terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
     return terms[0] + terms[1] + terms[2] + terms[3]
+
+
+def _edge_term(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
+    """``Σ_c w (a − b)²`` over the last dim, keepdim: one temporary, squared and weighted in place
+    (the same values as the out-of-place products, in the same order)."""
+    d = a - b
+    return d.square_().mul_(w).sum(-1, keepdim=True)
