@@ -67,15 +67,14 @@ def _laplacian_image(img: Tensor, wx: Tensor, wy: Tensor, h: int, w: int) -> Ten
 
     ``wx``/``wy`` have ``img``'s layout with one column/row fewer: channel-last
     ``(S, S-1, C)``/``(S-1, S, C)`` for ``(S, S, C)`` images (``h, w = 0, 1``), or
-    channel-first ``(C, S, S-1)``/``(C, S-1, S)`` for ``(C, S, S)`` (``h, w = 1, 2``, what
-    :func:`pcg` iterates on).
+    channel-first ``(C, S, S-1)``/``(C, S-1, S)`` for ``(C, S, S)`` (``h, w = 1, 2``).
     """
     s = img.shape[w]
     out = torch.zeros_like(img)
-    fx = wx * (img.narrow(w, 0, s - 1) - img.narrow(w, 1, s - 1))
+    fx = (img.narrow(w, 0, s - 1) - img.narrow(w, 1, s - 1)).mul_(wx)  # (weighted in place)
     out.narrow(w, 0, s - 1).add_(fx)
     out.narrow(w, 1, s - 1).sub_(fx)
-    fy = wy * (img.narrow(h, 0, s - 1) - img.narrow(h, 1, s - 1))
+    fy = (img.narrow(h, 0, s - 1) - img.narrow(h, 1, s - 1)).mul_(wy)
     out.narrow(h, 0, s - 1).add_(fy)
     out.narrow(h, 1, s - 1).sub_(fy)
     return out
@@ -98,8 +97,8 @@ def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
     end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total).
     """
     img = theta.reshape(size, size, -1)
-    ex = (wx * (img[:, :-1] - img[:, 1:]) ** 2).sum(-1, keepdim=True)
-    ey = (wy * (img[:-1] - img[1:]) ** 2).sum(-1, keepdim=True)
+    ex = _edge_term(img[:, :-1], img[:, 1:], wx)
+    ey = _edge_term(img[:-1], img[1:], wy)
     e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
     e[:, :-1] += ex
     e[:, 1:] += ex
