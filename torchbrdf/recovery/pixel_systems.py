@@ -101,11 +101,20 @@ def ldl_solve(low: Tensor, d_inv: Tensor, v: Tensor) -> Tensor:
 def inverse_diagonal(m: Tensor) -> Tensor:
     """The diagonal ``(n, P)`` of each lane-wise matrix's inverse, ``m (n, n, P)`` positive definite.
 
-    ``diag(M⁻¹)_i = Σ_k (L⁻¹)_ki² / d_k`` with ``M = L D Lᵀ`` (:func:`ldl_factor`): one
-    triangular inverse, none of the off-diagonal entries of ``M⁻¹``. ``m``'s dtype and device.
+    ``diag(M⁻¹)_i = Σ_k X_ki² / d_k`` with ``M = L D Lᵀ`` (:func:`ldl_factor`) and ``X = L⁻¹``,
+    unit lower triangular like ``L``: only its strict lower triangle is computed, row by row
+    (``X_ij = −Σ_{j≤k<i} L_ik X_kj``), none of the off-diagonal entries of ``M⁻¹``. ``m``'s
+    dtype and device.
     """
     n = m.shape[0]
     low, d = ldl_factor(m)
-    eye = torch.eye(n, dtype=m.dtype, device=m.device)[:, :, None].expand(n, n, m.shape[-1])
-    x = lower_solve(low, eye.clone())  # (n, n, P): column j of L⁻¹ is x[:, j]
-    return (x * x / d[:, None]).sum(0)
+    d_inv = 1.0 / d
+    out = d_inv.clone()  # the k = i terms (X_ii = 1)
+    rows = []  # rows[i] = X[i, :i]  (i, P)
+    for i in range(n):
+        x = -low[i, :i]  # the k = j terms (X_jj = 1)
+        for k in range(1, i):
+            x[:k].addcmul_(low[i, k], rows[k], value=-1.0)
+        rows.append(x)
+        out[:i].addcmul_(x * x, d_inv[i])
+    return out
