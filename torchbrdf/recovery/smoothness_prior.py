@@ -131,8 +131,8 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     matrices ``(n, n, P)``, vectors ``(n, P)``), each step one multiply-add over all pixels;
     the elimination and the factorisations in float64 (in float32 the elimination's
     cancellation stalls CG at 1e-2), the iterations in ``rhs``'s dtype. The iterations never
-    wait for the host: a breakdown (``dᵀ A d`` not positive and finite) freezes ``x`` where it
-    is, as stopping would.
+    wait for the host (one check of the start's finiteness precedes them): a breakdown
+    (``dᵀ A d`` not positive and finite) freezes ``x`` where it is, as stopping would.
     """
     c = rhs.shape[1]
     joined = ((wx != 0).reshape(-1, c).any(0) | (wy != 0).reshape(-1, c).any(0)).nonzero()[:, 0].tolist()
@@ -184,7 +184,7 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     ``N v = Σ_q w_pq v_q`` the neighbour terms, edge weights ``wx (n, S, S-1)``, ``wy (n, S-1, S)``;
     ``b (n, P)``; all in one dtype. Returns ``x (n, P)``.
 
-    CG runs on the split-preconditioned system ``(I − K) y = K_b`` with ``K = G⁻¹ N G⁻ᵀ``,
+    CG runs on the split-preconditioned system ``(I − K) y = G⁻¹ b`` with ``K = G⁻¹ N G⁻ᵀ``,
     ``G = L D^½``, ``x = G⁻ᵀ y``: the same iterates as CG preconditioned by ``M⁻¹`` in exact
     arithmetic, but an iteration needs the two triangular solves and no block product.
     """
