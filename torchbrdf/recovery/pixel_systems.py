@@ -54,12 +54,12 @@ def ldl_factor(m: Tensor) -> tuple[Tensor, Tensor]:
     n = m.shape[0]
     low = torch.empty_like(m)  # (zeroing it costs as much as the factorisation at n = 5)
     d = torch.empty_like(m[0])
-    tiny = torch.finfo(m.dtype).tiny
+    floor = torch.diagonal(m).abs().T.mul_(PIVOT_FLOOR).add_(torch.finfo(m.dtype).tiny)  # (n, P)
     for j in range(n):
         col = m[j:, j].clone()  # (n - j, P): column j of L D, from the diagonal down
         for k in range(j):
             col.addcmul_(low[j:, k], low[j, k] * d[k], value=-1.0)
-        d[j] = torch.maximum(col[0], PIVOT_FLOOR * m[j, j].abs() + tiny)
+        d[j] = torch.maximum(col[0], floor[j])
         low[j + 1:, j] = col[1:] / d[j]
     return low, d
 

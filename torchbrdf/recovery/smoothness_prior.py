@@ -9,6 +9,7 @@ weighted graph Laplacian ``L θ`` and its Hessian ``L``, which couples pixels �
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -215,6 +216,10 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     # One host synchronisation, before the loop: non-finite data stop CG at its start (every
     # pixel's block solve alone), as a non-finite dᵀAd at the first iteration would.
     if iters > 0 and bool(torch.isfinite(r).all()):
+        # On CPU a host read is free and cheaper than the masks' 0-d operations (a small map's
+        # iterations are mostly fixed costs); elsewhere it would stall the queue. Both take
+        # the same steps: stopping at a breakdown leaves x as freezing it does.
+        on_host = r.device.type == "cpu"
         d = r.clone()
         rr = dot(r, r)
         zero = torch.zeros_like(rr)
@@ -222,12 +227,21 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
         for _ in range(iters):
             ad = apply(d)
             dad = dot(d, ad)
-            going = going & torch.isfinite(dad) & (dad > 0)
-            alpha = torch.where(going, rr / dad, zero)  # 0-d tensors: the updates queue, no sync
+            if on_host:
+                if not (math.isfinite(float(dad)) and float(dad) > 0):
+                    break
+                alpha = rr / dad
+            else:
+                going = going & torch.isfinite(dad) & (dad > 0)
+                alpha = torch.where(going, rr / dad, zero)  # 0-d tensors: the updates queue, no sync
             y.addcmul_(d, alpha)
             r.addcmul_(ad, alpha, value=-1.0)
             rr_new = dot(r, r)
-            d = torch.addcmul(r, d, torch.where(going & (rr != 0), rr_new / rr, zero))
+            if on_host:
+                beta = rr_new / rr if float(rr) != 0 else zero
+            else:
+                beta = torch.where(going & (rr != 0), rr_new / rr, zero)
+            d = torch.addcmul(r, d, beta)
             rr = rr_new
     return upper_solve(low, y.mul_(d_isqrt))
 
