@@ -163,3 +163,18 @@ def test_pcg_takes_the_preconditioned_iterates_of_its_definition(lo, hi):
         torch.testing.assert_close(x, ref, rtol=1e-8, atol=1e-10)
     far = smoothness_prior.pcg(hess, wx, wy, rhs, 5, 300)
     assert float((far - x).abs().max()) > 1e-3 * float(far.abs().max())  # 3 iterations: not converged yet
+
+
+@pytest.mark.parametrize("nan", [False, True])
+def test_pcg_takes_the_same_steps_with_host_reads_and_with_device_masks(nan, monkeypatch):
+    """The CPU path (step lengths read on the host, a break at a breakdown) and the device path
+    (masks, no synchronisation) give the same bits, with finite and non-finite data."""
+    hess, wx, wy, rhs = _coupled_case(size=5, seed=4)
+    hess, wx, wy, rhs = hess.float(), wx.float(), wy.float(), rhs.float()
+    if nan:
+        rhs[7, 4] = float("nan")
+    host = smoothness_prior.pcg(hess, wx, wy, rhs, 5, 12)
+    monkeypatch.setattr(smoothness_prior, "reads_host", lambda device: False)
+    masked = smoothness_prior.pcg(hess, wx, wy, rhs, 5, 12)
+    torch.testing.assert_close(masked, host, equal_nan=True, rtol=0.0, atol=0.0)
+    assert bool(torch.isfinite(host).all()) != nan

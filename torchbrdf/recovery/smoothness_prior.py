@@ -176,6 +176,12 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     return out
 
 
+def reads_host(device: torch.device) -> bool:
+    """Whether :func:`pcg` reads its step lengths on the host on ``device`` (CPU: free there)
+    rather than masking them on the device (elsewhere: no synchronisation per iteration)."""
+    return device.type == "cpu"
+
+
 def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tensor, size: int,
                    iters: int) -> Tensor:
     """``iters`` CG iterations on ``(M − N) x = b``, preconditioned by ``M``, from ``x₀ = M⁻¹ b``.
@@ -219,7 +225,7 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
         # On CPU a host read is free and cheaper than the masks' 0-d operations (a small map's
         # iterations are mostly fixed costs); elsewhere it would stall the queue. Both take
         # the same steps: stopping at a breakdown leaves x as freezing it does.
-        on_host = r.device.type == "cpu"
+        on_host = reads_host(r.device)
         d = r.clone()
         rr = dot(r, r)
         zero = torch.zeros_like(rr)
