@@ -110,7 +110,7 @@ def inverse_diagonal(m: Tensor) -> Tensor:
     low, d = ldl_factor(m)
     d_inv = 1.0 / d
     out = d_inv.clone()  # the k = i terms (X_ii = 1)
-    rows = []  # rows[i] = X[i, :i]  (i, P)
+    rows: list[Tensor] = []  # rows[i] = X[i, :i]  (i, P)
     for i in range(n):
         x = -low[i, :i]  # the k = j terms (X_jj = 1)
         for k in range(1, i):
