@@ -3,9 +3,10 @@
 A batch of ``n × n`` matrices is a tensor ``(n, n, P)``: entry ``(i, j)`` of every pixel's
 matrix is one contiguous lane of ``P`` values, and a vector batch is ``(n, ..., P)``. Each step
 of a factorisation or a substitution is then one multiply-add over all the pixels' lanes at
-once: for the recovery's 2×2 to 7×7 blocks that is several times faster on CPU than batched
-LAPACK calls (a fixed cost per small matrix) or a batched ``bmm``, and it runs unchanged on
-a GPU, with no host synchronisation.
+once: for the recovery's 2×2 to 7×7 blocks on maps of 128² pixels and more that is faster on
+CPU than batched LAPACK calls (a fixed cost per small matrix) or a batched ``bmm``, and it runs
+unchanged on a GPU, with no host synchronisation. (On a few thousand pixels the fixed cost of
+each operation dominates instead.)
 
 The factorisation is ``LDLᵀ`` (unit lower triangular ``L``, diagonal ``D``): no square root,
 and a pivot that rounding leaves at or below zero is raised to :data:`PIVOT_FLOOR` of its
