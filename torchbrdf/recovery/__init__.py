@@ -11,7 +11,7 @@ continuous metallic), ``classes`` (metal / dielectric), ``search`` (propagation,
 (the capture at one resolution), ``map_ops``, ``params`` (the unknowns) and ``config``
 (:class:`RecoveryConfig`); ``solver`` re-exports the former single module's names.
 ``prior`` is the learned prior; ``smoothness_prior`` the coupled spatial prior and the
-conjugate-gradient solve, ``batch`` many captures on Ray
+conjugate-gradient solve, ``pixel_systems`` the per-pixel linear algebra under both, ``batch`` many captures on Ray
 (``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit (``torchbrdf-fit-merl``).
 
 May import everything below it: ``torchbrdf.capture``, ``torchbrdf.render``,

@@ -17,6 +17,7 @@ from torch import Tensor
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.params import N_PARAMS
+from torchbrdf.recovery.pixel_systems import inverse_diagonal, to_lanes
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, pcg, prior_energy
 
 
@@ -96,9 +97,11 @@ def marginal_information(data: LevelData, theta: Tensor, metal: Tensor, model: s
     """
     if jtj is None:  # the normal matrices ``(P, 7, 7)`` at theta, when the caller has none
         jtj = gauss_newton(data, theta, metal, data.train_idx, model)[1]
-    jtj = jtj + 1e-6 * torch.eye(N_PARAMS, dtype=jtj.dtype, device=jtj.device)
-    cov = torch.linalg.inv(jtj.double())
-    return (1.0 / torch.diagonal(cov, dim1=-2, dim2=-1).clamp(min=1e-12)).to(theta.dtype)
+    # Only the inverse's diagonal is needed: one lane-wise LDLᵀ, in float64.
+    lanes = to_lanes(jtj)
+    lanes.diagonal(dim1=0, dim2=1).add_(1e-6)
+    cov_diag = inverse_diagonal(lanes).T  # (P, 7)
+    return (1.0 / cov_diag.clamp(min=1e-12)).to(theta.dtype)
 
 
 def prior_gradient(theta: Tensor, wx: Tensor, wy: Tensor, size: int,
@@ -144,11 +147,13 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Set
     fn = lambda t: data.residual(t, metal, idx, cfg.model)  # noqa: E731
     r0, jtj, jtr = gn if gn is not None else gauss_newton(data, theta, metal, idx, cfg.model)
     g = jtr + prior_gradient(theta, wx, wy, size, unary)
-    if unary is not None:
-        jtj = jtj + torch.diag_embed(unary[1])
+    # The blocks are JᵀJ + diag(unary precision + per-pixel Marquardt damping); pcg adds the
+    # diagonal itself, so no second (P, 7, 7) is built.
     hd = torch.diagonal(jtj, dim1=-2, dim2=-1) + laplacian_diag(wx, wy, size)
-    hess = jtj + torch.diag_embed(lam * (hd + 1e-6))  # per-pixel Marquardt damping
-    step = pcg(hess, wx, wy, -g, size, cfg.cg_iters)
+    if unary is not None:
+        hd = hd + unary[1]
+    damp = lam * (hd + 1e-6)
+    step = pcg(jtj, wx, wy, -g, size, cfg.cg_iters, diag=damp if unary is None else damp + unary[1])
     step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0).clamp(-3, 3)
     inf = float("inf")  # (a non-finite cost is +inf: it never wins, and n_nonfinite counts it)
     c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size) + unary_cost(theta, unary)

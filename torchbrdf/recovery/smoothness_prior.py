@@ -15,6 +15,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchbrdf.recovery.pixel_systems import ldl_factor, ldl_solve, lower_solve, to_lanes, upper_solve
+
 
 def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Tensor, Tensor]:
     """Smoothness-prior weights ``(S, S-1, 7)`` (horizontal edges) and ``(S-1, S, 7)`` (vertical).
@@ -66,15 +68,14 @@ def _laplacian_image(img: Tensor, wx: Tensor, wy: Tensor, h: int, w: int) -> Ten
 
     ``wx``/``wy`` have ``img``'s layout with one column/row fewer: channel-last
     ``(S, S-1, C)``/``(S-1, S, C)`` for ``(S, S, C)`` images (``h, w = 0, 1``), or
-    channel-first ``(C, S, S-1)``/``(C, S-1, S)`` for ``(C, S, S)`` (``h, w = 1, 2``, what
-    :func:`pcg` iterates on).
+    channel-first ``(C, S, S-1)``/``(C, S-1, S)`` for ``(C, S, S)`` (``h, w = 1, 2``).
     """
     s = img.shape[w]
     out = torch.zeros_like(img)
-    fx = wx * (img.narrow(w, 0, s - 1) - img.narrow(w, 1, s - 1))
+    fx = (img.narrow(w, 0, s - 1) - img.narrow(w, 1, s - 1)).mul_(wx)  # (weighted in place)
     out.narrow(w, 0, s - 1).add_(fx)
     out.narrow(w, 1, s - 1).sub_(fx)
-    fy = wy * (img.narrow(h, 0, s - 1) - img.narrow(h, 1, s - 1))
+    fy = (img.narrow(h, 0, s - 1) - img.narrow(h, 1, s - 1)).mul_(wy)
     out.narrow(h, 0, s - 1).add_(fy)
     out.narrow(h, 1, s - 1).sub_(fy)
     return out
@@ -97,8 +98,8 @@ def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
     end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total).
     """
     img = theta.reshape(size, size, -1)
-    ex = (wx * (img[:, :-1] - img[:, 1:]) ** 2).sum(-1, keepdim=True)
-    ey = (wy * (img[:-1] - img[1:]) ** 2).sum(-1, keepdim=True)
+    ex = _edge_term(img[:, :-1], img[:, 1:], wx)
+    ey = _edge_term(img[:-1], img[1:], wy)
     e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
     e[:, :-1] += ex
     e[:, 1:] += ex
@@ -107,99 +108,148 @@ def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
     return 0.5 * e.reshape(-1, 1)
 
 
-def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int) -> Tensor:
-    """Solve ``(blockdiag(hess) + L) x = rhs`` by preconditioned conjugate gradients.
+def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int,
+        diag: Tensor | None = None) -> Tensor:
+    """Solve ``(blockdiag(hess + diag) + L) x = rhs`` by preconditioned conjugate gradients.
 
-    ``hess (P, C, C)`` is each pixel's damped Gauss–Newton matrix, ``L`` the prior's weighted
-    Laplacian (pixels couple only through it), ``rhs (P, C)``; returns ``x (P, C)``. Unlike a
-    Jacobi prior (the neighbours frozen within an iteration), CG moves a whole region
-    together: a uniform shift costs no prior energy, so a weakly observed region is not held
-    at its start value.
+    ``hess (P, C, C)`` is each pixel's damped Gauss–Newton matrix (symmetric positive definite;
+    ``diag (P, C)``, when given, is added to its diagonal: the damping, without building a
+    second ``(P, C, C)``), ``L`` the prior's weighted Laplacian (pixels couple only through it),
+    ``rhs (P, C)``; returns ``x (P, C)`` in ``rhs``'s dtype, on its device. Unlike a Jacobi prior
+    (the neighbours frozen within an iteration), CG moves a whole region together: a uniform
+    shift costs no prior energy, so a weakly observed region is not held at its start value.
 
     Only the channels the prior joins (``a``: a range with non-zero edge weights somewhere —
     specular and roughness, and a metal's base colour) couple pixels. The others (``u``: the
     normal's slopes, a dielectric's base colour) are eliminated per pixel first, exactly:
     with ``hess = [[A, B], [Bᵀ, D]]`` over ``(a, u)``, CG runs on the Schur complement
-    ``(A − B D⁻¹ Bᵀ) + L_a`` (2 of 7 channels on a dielectric map, 5 with metal), and
+    ``S = (A − B D⁻¹ Bᵀ) + L_a`` (2 of 7 channels on a dielectric map, 5 with metal), and
     ``x_u = D⁻¹ (rhs_u − Bᵀ x_a)`` follows. That is the same solution with cheaper and
     better-conditioned iterations. The preconditioner is the exact inverse of the complement's
-    block diagonal (+ the Laplacian's diagonal); the per-pixel algebra runs in float64.
+    block diagonal (+ the Laplacian's diagonal), applied as its ``LDLᵀ`` factors.
 
-    The iteration runs channel-first (vectors ``(a, P)``, matrices ``(a, a, P)``): a block
-    product is then lane-dense multiply-adds over the pixels, much faster on CPU than a
-    batched ``einsum`` over ``P`` tiny matrices.
+    All the per-pixel algebra runs lane-wise (:mod:`~torchbrdf.recovery.pixel_systems`:
+    matrices ``(n, n, P)``, vectors ``(n, P)``), each step one multiply-add over all pixels;
+    the elimination and the factorisations in float64 (in float32 the elimination's
+    cancellation stalls CG at 1e-2), the iterations in ``rhs``'s dtype. The iterations never
+    wait for the host (one check of the start's finiteness precedes them): a breakdown
+    (``dᵀ A d`` not positive and finite) freezes ``x`` where it is, as stopping would.
     """
     c = rhs.shape[1]
-    joined = ((wx != 0).flatten(0, 1).any(0) | (wy != 0).flatten(0, 1).any(0)).nonzero()[:, 0].tolist()
-    if not joined:  # no coupling: each pixel's block alone
-        return torch.linalg.solve(hess, rhs[..., None])[..., 0]
-    a = list(range(joined[0], joined[-1] + 1))
-    u = [k for k in range(c) if k < a[0] or k > a[-1]]
-    n, nu, lo = len(a), len(u), a[0]
-    # One gather puts the eliminated channels first (blocks are then views); the per-pixel
-    # algebra runs in float64: in float32 the elimination's cancellation stalls CG at 1e-2.
-    perm = torch.tensor(u + a, device=hess.device)
-    flat = (perm[:, None] * c + perm[None, :]).reshape(-1)  # one gather of the 49 entries: 3x faster
-    hp = hess.reshape(-1, c * c).index_select(1, flat).view(-1, c, c).double()
-    bp = rhs.index_select(1, perm).double()
-    s, b = hp[:, nu:, nu:], bp[:, nu:]
-    if u:
-        d_inv = torch.linalg.inv(hp[:, :nu, :nu])
-        bd = hp[:, nu:, :nu] @ d_inv  # B D⁻¹  (P, a, u)
-        s = s - bd @ hp[:, :nu, nu:]
-        b = b - (bd @ bp[:, :nu, None])[..., 0]
-    wxa, wya = wx.narrow(-1, lo, n), wy.narrow(-1, lo, n)
-    # The Laplacian's diagonal joins the blocks: the operator is then one block product plus
-    # the four neighbour terms, and the preconditioner is the exact inverse of its blocks.
-    s = s + torch.diag_embed(laplacian_diag(wxa, wya, size).double())
-    pre = torch.linalg.inv(s)
-    dt = rhs.dtype
-    s_cf, pre = s.to(dt).permute(1, 2, 0).contiguous(), pre.to(dt).permute(1, 2, 0).contiguous()
-    wxc, wyc = wxa.permute(2, 0, 1).contiguous(), wya.permute(2, 0, 1).contiguous()
-
-    def block(m, v):  # per-pixel (n, n) @ (n,) on (n, n, P) and (n, P), without an (n, n, P) temporary
-        out = m[:, 0] * v[0]
-        for j in range(1, n):
-            out.addcmul_(m[:, j], v[j])
-        return out
-
-    def apply(v):  # (blocks + diag L) v − Σ_q w_pq v_q: every product accumulates in place
-        out = block(s_cf, v)
-        o, w = out.view(n, size, size), v.view(n, size, size)
-        o[:, :, :-1].addcmul_(wxc, w[:, :, 1:], value=-1.0)
-        o[:, :, 1:].addcmul_(wxc, w[:, :, :-1], value=-1.0)
-        o[:, :-1].addcmul_(wyc, w[:, 1:], value=-1.0)
-        o[:, 1:].addcmul_(wyc, w[:, :-1], value=-1.0)
-        return out
-
-    def dot(a, b):
-        return torch.vdot(a.view(-1), b.view(-1))
-
-    rb = b.to(dt).T.contiguous()
-    x = block(pre, rb)
-    r = rb - apply(x)
-    d = block(pre, r)
-    rz = dot(r, d)
-    for _ in range(iters):
-        ad = apply(d)
-        dad = dot(d, ad)
-        dad_host = float(dad)  # one host sync per iteration (the stopping test needs it)
-        if not math.isfinite(dad_host) or dad_host <= 0:
-            break
-        alpha = rz / dad  # 0-d tensors: the updates queue without another sync
-        x.addcmul_(d, alpha)
-        r.addcmul_(ad, alpha, value=-1.0)
-        z = block(pre, r)
-        rz_new = dot(r, z)
-        d = z.addcmul_(d, torch.where(rz != 0, rz_new / rz, torch.zeros_like(rz)))
-        rz = rz_new
+    joined = ((wx != 0).reshape(-1, c).any(0) | (wy != 0).reshape(-1, c).any(0)).nonzero()[:, 0].tolist()
+    lo, hi = (joined[0], joined[-1] + 1) if joined else (c, c)
+    u = [k for k in range(c) if k < lo or k >= hi]
+    nu, order = len(u), u + list(range(lo, hi))
+    # Float64 lanes (C, C, P) in the order (u, a): D, Bᵀ, A are views; a fresh copy, updated in place.
+    h = to_lanes(hess, order=order)
+    rhs64 = h.new_empty(c, rhs.shape[0]).copy_(rhs[:, order].T)  # (C, P)
+    if diag is not None:
+        h.diagonal(dim1=0, dim2=1).add_(diag[:, order])  # (a (P, C) view)
     out = torch.empty_like(rhs)
-    xa = x.T.double()
-    out[:, lo:lo + n] = xa.to(dt)
+    if not joined:  # no coupling: each pixel's block alone
+        low, d = ldl_factor(h)
+        out[:, order] = ldl_solve(low, 1.0 / d, rhs64).T.to(rhs.dtype)
+        return out
+    s, b = h[nu:, nu:], rhs64[nu:]
     if u:
-        xu = (d_inv @ (bp[:, :nu] - (hp[:, :nu, nu:] @ xa[..., None])[..., 0])[..., None])[..., 0]
-        out[:, u] = xu.to(dt)
+        low_u, d_u = ldl_factor(h[:nu, :nu])
+        # S = A − B D⁻¹ Bᵀ = A − Σ_k v_k v_kᵀ with v = D^-½ L_u⁻¹ Bᵀ: symmetric as computed
+        v = lower_solve(low_u, h[:nu, nu:].clone())  # (nu, n, P)
+        y = lower_solve(low_u, rhs64[:nu].clone())  # (nu, P)
+        scale = torch.rsqrt(d_u)
+        v.mul_(scale[:, None])
+        for k in range(nu):
+            s.addcmul_(v[k][:, None], v[k][None, :], value=-1.0)
+            b.addcmul_(v[k], y[k] * scale[k], value=-1.0)
+    wxa, wya = wx[..., lo:hi], wy[..., lo:hi]
+    # The Laplacian's diagonal joins the blocks: the operator is then the blocks minus the
+    # neighbour terms, and the preconditioner the blocks' exact inverse, factored once here.
+    s.diagonal(dim1=0, dim2=1).add_(laplacian_diag(wxa, wya, size))  # (a (P, n) view)
+    low, d = ldl_factor(s)
+    dt = rhs.dtype
+    x = _cg_iterations(low.to(dt), torch.rsqrt(d).to(dt), wxa.permute(2, 0, 1).contiguous(),
+                       wya.permute(2, 0, 1).contiguous(), b.to(dt), size, iters)
+    out[:, lo:hi] = x.T
+    if u:  # x_u = D⁻¹ (rhs_u − Bᵀ x_a)
+        t = rhs64[:nu] - (h[:nu, nu:] * x.double()).sum(1)  # (nu, P)
+        out[:, u] = ldl_solve(low_u, 1.0 / d_u, t).T.to(dt)
     return out
+
+
+def reads_host(device: torch.device) -> bool:
+    """Whether :func:`pcg` reads its step lengths on the host on ``device`` (CPU: free there)
+    rather than masking them on the device (elsewhere: no synchronisation per iteration)."""
+    return device.type == "cpu"
+
+
+def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tensor, size: int,
+                   iters: int) -> Tensor:
+    """``iters`` CG iterations on ``(M − N) x = b``, preconditioned by ``M``, from ``x₀ = M⁻¹ b``.
+
+    Lane-wise: ``M = L D Lᵀ`` the blocks with the Laplacian's diagonal, given by ``low (n, n, P)``
+    (:func:`~torchbrdf.recovery.pixel_systems.ldl_factor`) and ``d_isqrt = D^-½ (n, P)``;
+    ``N v = Σ_q w_pq v_q`` the neighbour terms, edge weights ``wx (n, S, S-1)``, ``wy (n, S-1, S)``;
+    ``b (n, P)``; all in one dtype. Returns ``x (n, P)``.
+
+    CG runs on the split-preconditioned system ``(I − K) y = G⁻¹ b`` with ``K = G⁻¹ N G⁻ᵀ``,
+    ``G = L D^½``, ``x = G⁻ᵀ y``: the same iterates as CG preconditioned by ``M⁻¹`` in exact
+    arithmetic, but an iteration needs the two triangular solves and no block product.
+    """
+    n = low.shape[0]
+
+    def neighbours(v):  # N v = Σ_q w_pq v_q (the first term written, not added to zeros)
+        out = torch.empty_like(v)
+        o, w = out.view(n, size, size), v.view(n, size, size)
+        torch.mul(wx, w[:, :, 1:], out=o[:, :, :-1])
+        o[:, :, -1] = 0.0
+        o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
+        o[:, :-1].addcmul_(wy, w[:, 1:])
+        o[:, 1:].addcmul_(wy, w[:, :-1])
+        return out
+
+    def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
+        return lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
+
+    def apply(v):  # (I − K) v
+        k = coupling(v)
+        return torch.sub(v, k, out=k)
+
+    def dot(p, q):
+        return torch.vdot(p.view(-1), q.view(-1))
+
+    y = lower_solve(low, b.clone()).mul_(d_isqrt)  # y₀ = G⁻¹ b, i.e. x₀ = M⁻¹ b
+    r = coupling(y)  # G⁻¹ b − (I − K) y₀
+    # One host synchronisation, before the loop: non-finite data stop CG at its start (every
+    # pixel's block solve alone), as a non-finite dᵀAd at the first iteration would.
+    if iters > 0 and bool(torch.isfinite(r).all()):
+        # On CPU a host read is free and cheaper than the masks' 0-d operations (a small map's
+        # iterations are mostly fixed costs); elsewhere it would stall the queue. Both take
+        # the same steps: stopping at a breakdown leaves x as freezing it does.
+        on_host = reads_host(r.device)
+        d = r.clone()
+        rr = dot(r, r)
+        zero = torch.zeros_like(rr)
+        going = torch.ones_like(rr, dtype=torch.bool)  # false from the first breakdown on
+        for _ in range(iters):
+            ad = apply(d)
+            dad = dot(d, ad)
+            if on_host:
+                if not (math.isfinite(float(dad)) and float(dad) > 0):
+                    break
+                alpha = rr / dad
+            else:
+                going = going & torch.isfinite(dad) & (dad > 0)
+                alpha = torch.where(going, rr / dad, zero)  # 0-d tensors: the updates queue, no sync
+            y.addcmul_(d, alpha)
+            r.addcmul_(ad, alpha, value=-1.0)
+            rr_new = dot(r, r)
+            if on_host:
+                beta = rr_new / rr if float(rr) != 0 else zero
+            else:
+                beta = torch.where(going & (rr != 0), rr_new / rr, zero)
+            d = torch.addcmul(r, d, beta)
+            rr = rr_new
+    return upper_solve(low, y.mul_(d_isqrt))
 
 
 def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
@@ -219,10 +269,10 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     if rows is None:  # every pixel: the edges are slices of the image (no gather)
         a, t = cand.reshape(*cand.shape[:-2], size, size, c), theta.reshape(size, size, c)
         e = torch.zeros(*a.shape[:-1], 1, dtype=cand.dtype, device=cand.device)
-        e[..., :, :-1, :] += (wx * (a[..., :, :-1, :] - t[:, 1:]) ** 2).sum(-1, keepdim=True)
-        e[..., :, 1:, :] += (wx * (a[..., :, 1:, :] - t[:, :-1]) ** 2).sum(-1, keepdim=True)
-        e[..., :-1, :, :] += (wy * (a[..., :-1, :, :] - t[1:]) ** 2).sum(-1, keepdim=True)
-        e[..., 1:, :, :] += (wy * (a[..., 1:, :, :] - t[:-1]) ** 2).sum(-1, keepdim=True)
+        e[..., :, :-1, :] += _edge_term(a[..., :, :-1, :], t[:, 1:], wx)
+        e[..., :, 1:, :] += _edge_term(a[..., :, 1:, :], t[:, :-1], wx)
+        e[..., :-1, :, :] += _edge_term(a[..., :-1, :, :], t[1:], wy)
+        e[..., 1:, :, :] += _edge_term(a[..., 1:, :, :], t[:-1], wy)
         return e.reshape(*cand.shape[:-1], 1)
     i, j = rows // size, rows % size
     last = size - 1
@@ -233,6 +283,13 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     terms = []
     for w, q, w_row, has in edges:
         wq = w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1))
-        term = (wq * (cand - theta.index_select(0, q.clamp(0, size * size - 1))) ** 2).sum(-1, keepdim=True)
+        term = _edge_term(cand, theta.index_select(0, q.clamp(0, size * size - 1)), wq)
         terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
     return terms[0] + terms[1] + terms[2] + terms[3]
+
+
+def _edge_term(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
+    """``Σ_c w (a − b)²`` over the last dim, keepdim: one temporary, squared and weighted in place
+    (the same values as the out-of-place products, in the same order)."""
+    d = a - b
+    return d.square_().mul_(w).sum(-1, keepdim=True)

@@ -1,0 +1,121 @@
+"""Small symmetric positive definite systems, one per pixel, stored lane-wise.
+
+A batch of ``n × n`` matrices is a tensor ``(n, n, P)``: entry ``(i, j)`` of every pixel's
+matrix is one contiguous lane of ``P`` values, and a vector batch is ``(n, ..., P)``. Each step
+of a factorisation or a substitution is then one multiply-add over all the pixels' lanes at
+once: for the recovery's 2×2 to 7×7 blocks on maps of 128² pixels and more that is faster on
+CPU than batched LAPACK calls (a fixed cost per small matrix) or a batched ``bmm``, and it runs
+unchanged on a GPU, with no host synchronisation. (On a few thousand pixels the fixed cost of
+each operation dominates instead.)
+
+The factorisation is ``LDLᵀ`` (unit lower triangular ``L``, diagonal ``D``): no square root,
+and a pivot that rounding leaves at or below zero is raised to :data:`PIVOT_FLOOR` of its
+diagonal entry, so a numerically singular block gives a large but finite solution instead
+of a NaN that a coupled solve would spread to every pixel.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+#: A pivot of ``LDLᵀ`` is at least this fraction of its matrix's diagonal entry (plus the
+#: dtype's smallest normal number). A positive definite block in float64 keeps its pivots far
+#: above it; only a numerically singular one (a direction with no data and no damping) meets it.
+PIVOT_FLOOR = 1e-12
+
+
+def to_lanes(m: Tensor, dtype: torch.dtype = torch.float64, order: list[int] | None = None) -> Tensor:
+    """Batched matrices ``m (P, n, n)`` as lanes ``(k, k, P)`` in ``dtype``: always a fresh copy.
+
+    ``order``: the ``k`` rows and columns to keep, in that order (None: all ``n`` as they are),
+    so that the blocks of a reordered matrix are views. (Transposing in ``m``'s own dtype and
+    then converting, lane by lane where reordered, is several times faster on CPU than a
+    converting, transposing copy or a gather.)
+    """
+    n = m.shape[-1]
+    flat = m.reshape(-1, n * n).T.contiguous()  # (n², P)
+    if order is None:
+        return flat.to(dtype, copy=True).view(n, n, -1)
+    out = flat.new_empty((len(order), len(order), flat.shape[1]), dtype=dtype)
+    for i, a in enumerate(order):
+        for j, b in enumerate(order):
+            out[i, j].copy_(flat[a * n + b])
+    return out
+
+
+def ldl_factor(m: Tensor) -> tuple[Tensor, Tensor]:
+    """``LDLᵀ`` of symmetric positive definite matrices stored lane-wise.
+
+    ``m (n, n, P)``: only its lower triangle is read. Returns ``low (n, n, P)``, whose strict
+    lower triangle is that of ``L`` (the entries on and above the diagonal are left unwritten:
+    the unit diagonal is implied, and no solve reads them), and ``d (n, P)``, the pivots, each
+    at least :data:`PIVOT_FLOOR` of its diagonal entry. ``m``'s dtype and device.
+    """
+    n = m.shape[0]
+    low = torch.empty_like(m)  # (zeroing it costs as much as the factorisation at n = 5)
+    d = torch.empty_like(m[0])
+    floor = torch.diagonal(m).abs().T.mul_(PIVOT_FLOOR).add_(torch.finfo(m.dtype).tiny)  # (n, P)
+    for j in range(n):
+        col = m[j:, j].clone()  # (n - j, P): column j of L D, from the diagonal down
+        for k in range(j):
+            col.addcmul_(low[j:, k], low[j, k] * d[k], value=-1.0)
+        d[j] = torch.maximum(col[0], floor[j])
+        low[j + 1:, j] = col[1:] / d[j]
+    return low, d
+
+
+def _lane(v: Tensor, like: Tensor) -> Tensor:
+    """``v (k, P)`` shaped to broadcast against ``like (k, ..., P)``."""
+    return v.reshape(v.shape[0], *([1] * (like.dim() - 2)), v.shape[-1])
+
+
+def lower_solve(low: Tensor, v: Tensor) -> Tensor:
+    """``v ← L⁻¹ v`` in place for the unit lower triangular ``L`` of :func:`ldl_factor`.
+
+    ``low (n, n, P)``, ``v (n, ..., P)`` (any number of right-hand sides per pixel between).
+    Returns ``v``.
+    """
+    n = low.shape[0]
+    for k in range(n - 1):
+        rest = v[k + 1:]
+        rest.addcmul_(_lane(low[k + 1:, k], rest), v[k:k + 1], value=-1.0)
+    return v
+
+
+def upper_solve(low: Tensor, v: Tensor) -> Tensor:
+    """``v ← L⁻ᵀ v`` in place, ``L`` and the shapes as in :func:`lower_solve`. Returns ``v``."""
+    for k in range(low.shape[0] - 1, 0, -1):
+        head = v[:k]
+        head.addcmul_(_lane(low[k, :k], head), v[k:k + 1], value=-1.0)
+    return v
+
+
+def ldl_solve(low: Tensor, d_inv: Tensor, v: Tensor) -> Tensor:
+    """``v ← (L D Lᵀ)⁻¹ v`` in place: ``low`` from :func:`ldl_factor`, ``d_inv (n, P)`` the
+    reciprocals of its pivots, ``v (n, ..., P)``. Returns ``v``."""
+    lower_solve(low, v)
+    v.mul_(_lane(d_inv, v))
+    return upper_solve(low, v)
+
+
+def inverse_diagonal(m: Tensor) -> Tensor:
+    """The diagonal ``(n, P)`` of each lane-wise matrix's inverse, ``m (n, n, P)`` positive definite.
+
+    ``diag(M⁻¹)_i = Σ_k X_ki² / d_k`` with ``M = L D Lᵀ`` (:func:`ldl_factor`) and ``X = L⁻¹``,
+    unit lower triangular like ``L``: only its strict lower triangle is computed, row by row
+    (``X_ij = −Σ_{j≤k<i} L_ik X_kj``), none of the off-diagonal entries of ``M⁻¹``. ``m``'s
+    dtype and device.
+    """
+    n = m.shape[0]
+    low, d = ldl_factor(m)
+    d_inv = 1.0 / d
+    out = d_inv.clone()  # the k = i terms (X_ii = 1)
+    rows: list[Tensor] = []  # rows[i] = X[i, :i]  (i, P)
+    for i in range(n):
+        x = -low[i, :i]  # the k = j terms (X_jj = 1)
+        for k in range(1, i):
+            x[:k].addcmul_(low[i, k], rows[k], value=-1.0)
+        rows.append(x)
+        out[:i].addcmul_(x * x, d_inv[i])
+    return out
