@@ -67,7 +67,7 @@ def gauss_newton(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], 
     pixel's Jacobian. It runs over blocks of ``chunk`` pixels and reduces each block to its 7×7 products at once, so the
     ``7 × lights × pixels`` Jacobian never exists whole: its blocks stay in cache and below
     the allocator's mmap threshold (a whole 256² Jacobian is 88 MB, and every fresh
-    allocation that size is page-faulted in anew: 0.5 s of a 1.4 s Jacobian, measured).
+    allocation that size is page-faulted in anew).
     """
     one_pass = data.normal_equations(theta, metal, idx, model, N_PARAMS) if fused else None
     if one_pass is not None:
@@ -342,8 +342,8 @@ def soft_lm(jvp: Callable[[Tensor, Tensor, PixelRows], tuple[Tensor, Tensor]],
 
     A pixel whose accepted step (at no more than the starting damping) lowered its finite cost by
     less than ``tol`` of it has converged and leaves the iterations (0: every pixel runs every
-    iteration): most of a warm-started refit's pixels settle in two or three (soft-metal stage:
-    40–60 % of its LM work saved, maps within measurement noise, docs/recovery.md).
+    iteration): most of a warm-started refit's pixels settle in two or three (in the soft-metal
+    stage most of its LM work is saved, with the maps within measurement noise).
     Returns ``(x, cost (N, 1))``, on ``x``'s device and in its dtype."""
     n_t = x.shape[1] - 1 if fix_metal else x.shape[1]  # the unknowns that move
     lam0 = 1e-2  # the starting damping
@@ -364,7 +364,7 @@ def soft_lm(jvp: Callable[[Tensor, Tensor, PixelRows], tuple[Tensor, Tensor]],
             c = pixel_cost(torch.cat((r, pr), -1))
             r = r.nan_to_num_()  # (a fresh tensor of the jvp: cleaned in place)
             # (the gradients, and the priors' few rows, as products and sums: a batch of small
-            # matrix-vector products is slower, 4.4 against 3.3 ms at 8500 pixels)
+            # matrix-vector products is slower)
             jtj = torch.bmm(jac, jac.transpose(1, 2))
             g = (jac * r[:, None, :]).sum(-1)
         if pj is not None:
