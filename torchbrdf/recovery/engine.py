@@ -333,7 +333,6 @@ class Recovery:
                 theta = torch.where(bad, torch.nan_to_num(fill, nan=0.0), theta)
                 st["lam"][h] = torch.where(bad, st["lam"][h] * 100, st["lam"][h])
                 st["lr"] = max(st["lr"] * 0.5, 0.05)
-            data_cost = None  # each pixel's after propagation (the normal search's start)
             if self.cfg.propagate and (st["it"] == 0 or (self.cfg.propagate_every and kind != "dual")):
                 # Single-class stages: a neighbour of the other class is a candidate, judged at
                 # the noise level measured at the class choice.
@@ -341,12 +340,11 @@ class Recovery:
                 # A stage's start (a new level, or the class choice) moves pixels far; "all"
                 # continues the converged polish at its size, like one more of its iterations.
                 passes = self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1
-                theta, metal, data_cost = propagate_passes(data, theta, metal, self.cfg, passes, class_sigma2=cross,
-                                                           unary=unary)
+                theta, metal = propagate_passes(data, theta, metal, self.cfg, passes, class_sigma2=cross, unary=unary)
                 if kind != "dual":
                     st["metal"] = metal
             if st["it"] == 0 and self.cfg.propagate and kind != "all":
-                theta, _ = normal_search(data, theta, metal, self.cfg.model, cost=data_cost)
+                theta, _ = normal_search(data, theta, metal, self.cfg.model)
             calibrate = self.cfg.light_scale and kind != "dual"
             extra: dict[str, Any] = {}
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],

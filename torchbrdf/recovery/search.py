@@ -46,60 +46,64 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
 
     Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
     """
-    best, best_metal, changed, _ = _pass(data, theta, metal, cfg, class_sigma2, unary, active, None)
-    return best, best_metal, changed
+    return _pass(data, theta, metal, cfg, class_sigma2, unary, active, None)
 
 
 def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, passes: int,
                      class_sigma2: float | None = None, unary: tuple[Tensor, Tensor] | None = None
-                     ) -> tuple[Tensor, Tensor, Tensor | None]:
+                     ) -> tuple[Tensor, Tensor]:
     """Up to ``passes`` passes of :func:`propagate`, each after the first on the pixels near the last one's changes.
 
-    The same maps as ``passes`` full passes (it stops early when a pass changes nothing).
-    A later pass renders only the candidates that are new: a neighbour's parameters that a
-    pass before rendered at the pixel (each pixel renders alone, at lights that do not change
-    between the passes) keep their cost, and a pixel's own cost is that of the candidate it
-    took. Arguments as for :func:`propagate`.
-
-    Returns ``(theta (P, 7), metal (P, 1), cost (P,) or None)``: ``cost`` each pixel's data cost
-    at the returned maps (the summed squared residuals on the training lights, NaN as +inf, as
-    :func:`search_bases` computes it), None when no pass ran.
+    The same maps as ``passes`` full passes (it stops when a pass changes nothing). A pass
+    after the second renders only what is new: a neighbour's parameters that a pass before
+    rendered at the pixel keep their cost (each pixel renders alone, at lights that do not
+    change between the passes), and so does the pixel's own. Arguments as for
+    :func:`propagate`; returns ``(theta (P, 7), metal (P, 1))``.
     """
     known, active = None, None
     for _ in range(passes):
-        theta, metal, changed, known = _pass(data, theta, metal, cfg, class_sigma2, unary, active, known)
+        theta, metal, changed = _pass(data, theta, metal, cfg, class_sigma2, unary, active, known)
         if not bool(changed.any()):
             break
+        if active is not None and known is None:
+            known = _PassCosts.empty(theta)
         active = dilate(changed, data.size)
-    return theta, metal, None if known is None else known.own[:, 0]
+    return theta, metal
 
 
 @dataclass
 class _PassCosts:
-    """The data costs a pass rendered: ``cost[k, p]`` is that of pixel ``p`` at ``values[k, p]``.
+    """Data costs the passes on some pixels rendered, for the next pass at the same lights.
 
-    ``own (P, 1)``: each pixel's at the parameters the pass returned; ``values (8, P, 7)`` and
-    ``metal (8, P, 1)``: the parameters rendered for each neighbour (:data:`NEIGHBOURS` order),
-    ``cost (8, P, 1)`` their data costs.
+    ``cost[k, p] (8, P, 1)`` is pixel ``p``'s at the parameters ``values[k, p] (8, P, 7)`` and
+    ``metal[k, p] (8, P, 1)`` of its neighbour ``k`` (:data:`NEIGHBOURS` order; NaN: none yet),
+    ``own[p] (P, 1)`` its at the parameters the last pass returned, where ``own_known[p]``.
+    Only renders of gathered pixel rows are kept: a full pass renders the maps in their own
+    layout, whose sums can round otherwise.
     """
     own: Tensor
+    own_known: Tensor
     values: Tensor
     metal: Tensor
     cost: Tensor
 
+    @staticmethod
+    def empty(theta: Tensor) -> "_PassCosts":
+        p_all, c = theta.shape
+        nan = torch.full((len(NEIGHBOURS), p_all, c + 1), float("nan"), dtype=theta.dtype, device=theta.device)
+        return _PassCosts(theta.new_zeros(p_all, 1), torch.zeros(p_all, dtype=torch.bool, device=theta.device),
+                          nan[..., :c], nan[..., c:], theta.new_zeros(len(NEIGHBOURS), p_all, 1))
+
 
 def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_sigma2: float | None,
           unary: tuple[Tensor, Tensor] | None, active: Tensor | None, known: _PassCosts | None
-          ) -> tuple[Tensor, Tensor, Tensor, _PassCosts | None]:
-    """:func:`propagate`, and the costs it rendered, reusing ``known`` (the pass before's, at ``theta``, ``metal``).
-
-    ``known`` is used (and updated in place) only with ``active``; without, every candidate is rendered.
-    """
+          ) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`propagate`; with ``active``, reusing and adding to ``known`` (the passes before's, at ``theta``, ``metal``)."""
     size = data.size
     p_all = theta.shape[0]
     rows = torch.arange(p_all, device=theta.device) if active is None else active.nonzero()[:, 0]
     if rows.numel() == 0:
-        return theta, metal, torch.zeros(p_all, dtype=torch.bool, device=theta.device), known
+        return theta, metal, torch.zeros(p_all, dtype=torch.bool, device=theta.device)
     un = unary if unary is None or active is None else (unary[0][rows], unary[1][rows])
     wx, wy = edge_weights(theta, metal, size, cfg)
     n, c = rows.numel(), theta.shape[1]
@@ -128,7 +132,6 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
         # targets, 192 bytes each at 16 lights: that took more time than the 8 calls it saved.)
         own_cost = _data_cost(data, own, own_metal, cfg.model, None)
         data_cost = torch.stack([_data_cost(data, cand[k], cm[k], cfg.model, None) for k in range(cand.shape[0])])
-        known = _PassCosts(own_cost, cand, cm, data_cost)
     else:
         own_cost, data_cost = _active_costs(data, rows, own, own_metal, cand, cm, cfg.model,
                                             class_sigma2 is not None, known)
@@ -148,58 +151,61 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
         best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
         best_cost = torch.where(better, data_cost[k], best_cost)
-    if active is None:
-        known.own = best_cost
-    else:
+    if active is not None:
         best = theta.index_copy(0, rows, best)
         best_metal = metal.index_copy(0, rows, best_metal)
         if known is not None:
             known.own.index_copy_(0, rows, best_cost)
-    return best, best_metal, (best != theta).any(-1), known
+            known.own_known[rows] = True
+    return best, best_metal, (best != theta).any(-1)
 
 
 def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor, cand: Tensor, cm: Tensor,
                   model: str, cross: bool, known: _PassCosts | None) -> tuple[Tensor, Tensor]:
-    """The data costs ``(N, 1)`` of pixels ``rows`` at their own parameters and ``(8, N, 1)`` at their candidates.
+    """The data costs of pixels ``rows (N,)`` at their own parameters ``(N, 1)`` and at their candidates ``(8, N, 1)``.
 
-    Every render in one fused call, the own parameters (unless ``known``) and then the
-    candidates stacked along the pixel axis (one gather of their targets). Not rendered
-    (+inf): a neighbour of the other class unless ``cross`` (it never competes), and one of
-    the pixel's class with the pixel's own parameters (a region that took one value in the
-    last pass): its score would equal the pixel's own, which a candidate must beat. Taken
-    from ``known`` (and written there when rendered): a candidate it rendered at the pixel.
+    Every render in one fused call, the own parameters and then the candidates stacked along
+    the pixel axis (one gather of their targets). Not rendered (+inf): a neighbour of the
+    other class unless ``cross`` (it never competes), and one of the pixel's class with the
+    pixel's own parameters (a region that took one value in the last pass): its score would
+    equal the pixel's own, which a candidate must beat. Taken from ``known`` (and written
+    there when rendered): the costs it holds at the same parameters.
     """
     n = rows.numel()
     same = cm == own_metal
     own_again = same & (cand == own).all(-1, keepdim=True)
     wanted = (torch.ones_like(same) if cross else same) & ~own_again
     if known is None:
-        fresh = wanted
+        own_rows = torch.arange(n, device=rows.device)
     else:
-        seen_values, seen_metal = known.values[:, rows], known.metal[:, rows]
-        seen = (cand == seen_values).all(-1, keepdim=True) & (cm == seen_metal)
-        fresh = wanted & ~seen
-    k_idx, n_idx = fresh[..., 0].nonzero(as_tuple=True)
-    renders = (cand[k_idx, n_idx], cm[k_idx, n_idx], rows.index_select(0, n_idx))
+        own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
+        seen = (cand == known.values[:, rows]).all(-1, keepdim=True) & (cm == known.metal[:, rows])
+        wanted, cached = wanted & ~seen, wanted & seen
+    k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
+    n_own = own_rows.numel()
+    c_all = _data_cost(data, torch.cat((own.index_select(0, own_rows), cand[k_idx, n_idx])),
+                       torch.cat((own_metal.index_select(0, own_rows), cm[k_idx, n_idx])), model,
+                       torch.cat((rows.index_select(0, own_rows), rows.index_select(0, n_idx))))
     if known is None:
-        renders = (torch.cat((own, renders[0])), torch.cat((own_metal, renders[1])), torch.cat((rows, renders[2])))
-    c_all = _data_cost(data, renders[0], renders[1], model, renders[2]) if renders[0].shape[0] else renders[0][:, :1]
-    if known is None:
-        own_cost, c_new, data_cost = c_all[:n], c_all[n:], torch.full_like(same, float("inf"), dtype=own.dtype)
+        own_cost, data_cost = c_all[:n], torch.full_like(same, float("inf"), dtype=own.dtype)
     else:
-        own_cost, c_new = known.own.index_select(0, rows), c_all
-        data_cost = torch.where(wanted, known.cost[:, rows], float("inf"))
-        known.values[k_idx, renders[2]] = renders[0]
-        known.metal[k_idx, renders[2]] = renders[1]
-        known.cost[k_idx, renders[2]] = c_new
-    data_cost[k_idx, n_idx] = c_new
+        own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, c_all[:n_own])
+        data_cost = torch.where(cached, known.cost[:, rows], float("inf"))
+        pix = rows.index_select(0, n_idx)
+        known.values[k_idx, pix] = cand[k_idx, n_idx]
+        known.metal[k_idx, pix] = cm[k_idx, n_idx]
+        known.cost[k_idx, pix] = c_all[n_own:]
+    data_cost[k_idx, n_idx] = c_all[n_own:]
     return own_cost, data_cost
 
 
 def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
     """The summed squared residuals ``(N, 1)`` on the training lights (NaN: +inf), as :meth:`LevelData.residual`."""
+    if theta.shape[0] == 0:
+        return theta.new_empty(0, 1)
     r = data.residual(theta, metal, data.train_idx, model, rows=rows)
-    return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+    # (squared in place: the same products, and no second buffer the size of the residuals)
+    return torch.nan_to_num(r.mul_(r).sum(-1, keepdim=True), nan=float("inf"))
 
 
 #: The 8 neighbours' offsets ``(dy, dx)`` in the order :func:`propagate` tries them.
@@ -229,8 +235,7 @@ def candidate_slopes(dtype: torch.dtype, device: torch.device | str,
 
 
 def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
-                 max_pixels: int = 4096, cost: Tensor | None = None
-                 ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+                 max_pixels: int = 4096) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
     """The pixels :func:`normal_search` searches and the parameters it starts from, or None (no such pixel).
 
     Arguments as there. Returns ``(cost (P,), bad (B,), bases (B, 9, 7), valid (B, 9))``: every
@@ -239,8 +244,7 @@ def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, fact
     """
     size = data.size
     idx = data.train_idx
-    if cost is None:
-        cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
     thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
     bad = torch.nonzero(cost > thr).flatten()
     if bad.numel() == 0:
@@ -257,7 +261,7 @@ def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, fact
 
 
 def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
-                  max_pixels: int = 4096, cost: Tensor | None = None) -> tuple[Tensor, int]:
+                  max_pixels: int = 4096) -> tuple[Tensor, int]:
     """Re-seed badly fitted pixels by a discrete search over normals and neighbours' parameters.
 
     Gauss–Newton only walks downhill: a glossy pixel whose normal starts 30° off (the steep
@@ -265,13 +269,12 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
     Pixels whose data cost exceeds ``factor`` × the median cost (the noise level) try every
     combination of {their own, their 8 same-class neighbours'} parameters × a grid of
     normals (flat, tilts 8–40°, 8 azimuths), and keep the best if it lowers their cost.
-    At most ``max_pixels`` (the worst) are searched per call. ``cost (P,)``: each pixel's data
-    cost at ``theta``, ``metal`` where the caller has it (:func:`propagate_passes`; else rendered).
+    At most ``max_pixels`` (the worst) are searched per call.
 
     Returns ``(theta (P, 7), number of pixels changed)``.
     """
     c, idx = theta.shape[1], data.train_idx
-    found = search_bases(data, theta, metal, model, factor, max_pixels, cost)
+    found = search_bases(data, theta, metal, model, factor, max_pixels)
     if found is None:
         return theta, 0
     cost, bad, bases, valid = found
