@@ -131,7 +131,6 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
         # (Stacking the 9 sets into one call renders the same lanes but gathers 9 × P rows of
         # targets, 192 bytes each at 16 lights: that took more time than the 8 calls it saved.)
         own_cost = _data_cost(data, own, own_metal, cfg.model, None)
-        data_cost = torch.stack([_data_cost(data, cand[k], cm[k], cfg.model, None) for k in range(cand.shape[0])])
     else:
         own_cost, data_cost = _active_costs(data, rows, own, own_metal, cand, cm, cfg.model,
                                             class_sigma2 is not None, known)
@@ -139,18 +138,26 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
     best_cost, best_score = own_cost, own_cost + own_prior
     tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
     n_res = 3 * len(data.train_idx)
+    if active is None:
+        # (becoming metal costs at least τ noise variances of the smallest the test allows)
+        floor = None if class_sigma2 is None else tau * max(class_sigma2, 1e-30)
+        renders = _BoundedRenders(data, cand, cm, same, prior, own_prior, best_score, cfg.model, floor)
     for k in range(cand.shape[0]):  # in the neighbours' order: the first of equal scores wins
+        if active is None:
+            data_cost_k = renders.cost(k, best_score)
+        else:
+            data_cost_k = data_cost[k]
         if class_sigma2 is None:
-            score = torch.where(same[k], data_cost[k] + prior[k], float("inf"))
+            score = torch.where(same[k], data_cost_k + prior[k], float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
-            price = tau * pixel_noise_variance(own_cost, data_cost[k], class_sigma2, n_res)
-            score = torch.where(same[k], data_cost[k] + prior[k],
-                                data_cost[k] + torch.where(cm[k] > 0.5, price, -price) + own_prior)
+            price = tau * pixel_noise_variance(own_cost, data_cost_k, class_sigma2, n_res)
+            score = torch.where(same[k], data_cost_k + prior[k],
+                                data_cost_k + torch.where(cm[k] > 0.5, price, -price) + own_prior)
         better = score < best_score
         best = torch.where(better, cand[k], best)
         best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
-        best_cost = torch.where(better, data_cost[k], best_cost)
+        best_cost = torch.where(better, data_cost_k, best_cost)
     if active is not None:
         best = theta.index_copy(0, rows, best)
         best_metal = metal.index_copy(0, rows, best_metal)
@@ -158,6 +165,110 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
             known.own.index_copy_(0, rows, best_cost)
             known.own_known[rows] = True
     return best, best_metal, (best != theta).any(-1)
+
+
+#: The rounding the light-subset bound allows, in units of the dtype's machine epsilon: two
+#: renders of one residual (another layout, another light set) differ by a few ulps of its log.
+BOUND_ULPS = 256.0
+
+
+class _BoundedRenders:
+    """A full pass's data costs of candidate set ``k`` ``(P, 1)``, rendered when the choice reaches it.
+
+    A candidate can win only with a score below the pixel's best so far. Where a few lights
+    (:func:`pruning_lights`) show for most candidates that their residuals there already
+    cost more than that allows, each set is rendered on those lights first and in full only
+    where that bound does not rule it out (+inf elsewhere: it would not have won). The
+    full renders keep the candidates' layout, so their costs are those of rendering all.
+    ``floor``: the least price of becoming metal (None: no candidate of the other class).
+    """
+
+    def __init__(self, data: LevelData, cand: Tensor, cm: Tensor, same: Tensor, prior: Tensor, own_prior: Tensor,
+                 own_score: Tensor, model: str, floor: float | None):
+        self.data, self.cand, self.cm, self.same, self.prior = data, cand, cm, same, prior
+        self.own_prior, self.model, self.floor = own_prior, model, floor
+        self.lights = pruning_lights(data, cand, cm, torch.where(same, own_score - prior, float("inf")), model)
+
+    def cost(self, k: int, best_score: Tensor) -> Tensor:
+        """Set ``k``'s data costs ``(P, 1)`` (+inf: cannot beat ``best_score (P, 1)``, or of the other class and not a candidate)."""
+        cand, cm, same = self.cand[k], self.cm[k], self.same[k]
+        consider = same if self.floor is None else torch.ones_like(same)
+        if self.lights is None:
+            keep = consider
+        else:
+            inf = torch.full_like(best_score, float("inf"))
+            bound = torch.where(same, best_score - self.prior[k], inf)
+            scale = torch.where(same, best_score.abs() + self.prior[k].abs(), inf)
+            if self.floor is not None:  # becoming metal: data + price + own prior must stay below
+                metal = ~same & (cm > 0.5)
+                bound = torch.where(metal, best_score - self.own_prior - self.floor, bound)
+                scale = torch.where(metal, best_score.abs() + self.own_prior.abs() + self.floor, scale)
+            r = self.data.residual(cand, cm, self.lights, self.model)
+            tol = BOUND_ULPS * torch.finfo(r.dtype).eps
+            keep = consider & ~(subset_cost_bound(r, tol) > bound + tol * scale)
+        return _kept_costs(self.data, cand, cm, keep[:, 0], self.model)
+
+
+def _kept_costs(data: LevelData, theta: Tensor, metal: Tensor, keep: Tensor, model: str) -> Tensor:
+    """The data costs ``(P, 1)`` of every pixel at ``theta (P, 7)``, ``metal (P, 1)`` where ``keep (P,)``, else +inf.
+
+    The kept rows are gathered in ``theta``'s own layout (rows or channel planes): the kernels'
+    sums round by it.
+    """
+    if bool(keep.all()):
+        return _data_cost(data, theta, metal, model, None)
+    out = torch.full_like(metal, float("inf"))
+    rows = keep.nonzero()[:, 0]
+    if rows.numel():
+        sub = theta.T.index_select(1, rows).T if theta.stride(0) == 1 else theta.index_select(0, rows)
+        out[rows] = _data_cost(data, sub, metal.index_select(0, rows), model, rows)
+    return out
+
+
+def subset_cost_bound(r: Tensor, tol: float) -> Tensor:
+    """A lower bound ``(N, 1)`` of a data cost from residuals ``r (N, M)`` on some of its lights.
+
+    Another render may round each residual ``r_i`` differently by up to ``tol (1 + |r_i|)``;
+    the bound holds for it: ``((1 − tol) |r| − tol √M)²``, less ``tol`` of itself for the sum's
+    rounding. NaN (a cost that is +inf): +inf.
+    """
+    norm = torch.linalg.vector_norm(r, dim=-1, keepdim=True)
+    low = (norm * (1 - tol) - tol * math.sqrt(r.shape[-1])).clamp(min=0)
+    return torch.nan_to_num(low * low * (1 - tol), nan=float("inf"))
+
+
+def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, model: str,
+                   most: int = 4, sample: int = 1024) -> list[int] | None:
+    """A few training lights whose residuals alone rule out most candidates, or None where that would not pay.
+
+    ``cand (K, P, 7)``, ``cm (K, P, 1)``: candidate sets of every pixel; ``need (K, P, 1)``: the
+    data cost each must stay below to win (+inf: no bound). Every ``K P / sample``-th candidate
+    is rendered on all training lights; up to ``most`` lights are picked greedily, each the one
+    that rules out the most of them with those before. Kept: the set with the least expected
+    render time (a render costs about 3 + its lights, in light units; a gathered one a tenth
+    more), if below 0.85 of rendering all.
+    """
+    k_all, n = cand.shape[:2]
+    lights_all = len(data.train_idx)
+    if lights_all <= most or k_all * n < 4 * sample:
+        return None
+    pick = torch.arange(0, k_all * n, max(1, k_all * n // sample), device=cand.device)
+    kk, pp = pick // n, pick % n
+    r = data.residual(cand[kk, pp], cm[kk, pp], data.train_idx, model, rows=pp)
+    per_light = torch.nan_to_num((r * r).reshape(pick.numel(), lights_all, 3).sum(-1), nan=float("inf"))
+    need_s = need[kk, pp, 0]
+    full = 3.0 + lights_all
+    best, chosen, partial, out = 0.85 * full, [], torch.zeros_like(need_s), None
+    for m in range(1, most + 1):
+        ruled = ((partial[:, None] + per_light) > need_s[:, None]).sum(0)
+        ruled[chosen] = -1
+        light = int(ruled.argmax())
+        chosen.append(light)
+        partial = partial + per_light[:, light]
+        time = 3.0 + m + float((partial <= need_s).float().mean()) * full * 1.1
+        if time < best:
+            best, out = time, sorted(chosen)
+    return None if out is None else [data.train_idx[i] for i in out]
 
 
 def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor, cand: Tensor, cm: Tensor,
