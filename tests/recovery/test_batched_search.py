@@ -194,7 +194,7 @@ def fitted_state(size=24, lights=8, dtype=torch.float32):
     """A level of bumpy normals and varying roughness, its exact maps with a few pixels broken and a metal patch.
 
     Most pixels hold their own exact parameters, so most neighbours' explain them worse; the
-    broken ones take a neighbour's. Training lights 1, 2, 4-7: not the first L lights.
+    broken ones take a neighbour's. Training lights: all but 0 and 3 (not the first L lights).
     """
     from torchbrdf.capture.format import Capture
     from torchbrdf.capture.synthetic import light_layout, render_capture
@@ -209,7 +209,7 @@ def fitted_state(size=24, lights=8, dtype=torch.float32):
     cap = Capture(images=imgs, light_positions=pos, light_intensities=inten,
                   camera_position=torch.tensor([0.0, 0.0, 3.0]), width=size, height=size,
                   files=tuple(f"{k}.exr" for k in range(len(pos))))
-    data = LevelData(cap, size, [1, 2, 4, 5, 6, 7], float(0.01 * imgs.mean()))
+    data = LevelData(cap, size, [k for k in range(lights) if k not in (0, 3)], float(0.01 * imgs.mean()))
     p = {k: v.reshape(v.shape[0], -1).T.contiguous() for k, v in maps.items()}
     metal = p.pop("metallic").reshape(size, size)
     metal[3:8, 10:16] = 1.0
@@ -302,6 +302,19 @@ def test_normal_search_without_repeated_candidates_equals_rendering_all():
     assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
     few = search.normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)
     assert few[1] == reference_normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)[1]
+
+
+def test_normal_search_bounded_on_a_few_lights_equals_rendering_all(monkeypatch):
+    # Broken normals among exact pixels: most grid normals cost more than a broken pixel's own.
+    data, theta, metal = fitted_state(size=24, lights=16)
+    theta[::7, 5:7] = torch.tensor([0.6, -0.5])
+    chosen = []
+    original = search.pruning_lights
+    monkeypatch.setattr(search, "pruning_lights", lambda *a, **k: chosen.append(original(*a, **k)) or chosen[-1])
+    got = search.normal_search(data, theta, metal, "principled", factor=1.5)
+    ref = reference_normal_search(data, theta, metal, "principled", factor=1.5)
+    assert chosen[0] is not None and set(chosen[0]) < set(data.train_idx)
+    assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
 
 
 def test_lm_step_counts_and_rejects_non_finite_costs():

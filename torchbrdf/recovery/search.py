@@ -237,12 +237,13 @@ def subset_cost_bound(r: Tensor, tol: float) -> Tensor:
     return torch.nan_to_num(low * low * (1 - tol), nan=float("inf"))
 
 
-def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, model: str,
+def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, model: str, rows: Tensor | None = None,
                    most: int = 4, sample: int = 1024) -> list[int] | None:
     """A few training lights whose residuals alone rule out most candidates, or None where that would not pay.
 
-    ``cand (K, P, 7)``, ``cm (K, P, 1)``: candidate sets of every pixel; ``need (K, P, 1)``: the
-    data cost each must stay below to win (+inf: no bound). Every ``K P / sample``-th candidate
+    ``cand (K, N, 7)``, ``cm (K, N, 1)``: candidate sets of pixels ``rows (N,)`` (None: every
+    pixel); ``need (K, N, 1)``: the data cost each must stay below to win (+inf: no bound).
+    Every ``K N / sample``-th candidate
     is rendered on all training lights; up to ``most`` lights are picked greedily, each the one
     that rules out the most of them with those before. Kept: the set with the least expected
     render time (a render costs about 3 + its lights, in light units; a gathered one a tenth
@@ -254,7 +255,7 @@ def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, mode
         return None
     pick = torch.arange(0, k_all * n, max(1, k_all * n // sample), device=cand.device)
     kk, pp = pick // n, pick % n
-    r = data.residual(cand[kk, pp], cm[kk, pp], data.train_idx, model, rows=pp)
+    r = data.residual(cand[kk, pp], cm[kk, pp], data.train_idx, model, rows=pp if rows is None else rows[pp])
     per_light = torch.nan_to_num((r * r).reshape(pick.numel(), lights_all, 3).sum(-1), nan=float("inf"))
     need_s = need[kk, pp, 0]
     full = 3.0 + lights_all
@@ -408,10 +409,18 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
     pix = bad.index_select(0, b_idx)
     flat = cand[b_idx, j_idx]
     m_flat = metal.index_select(0, pix)
-    cost_flat = torch.empty(b_idx.numel(), dtype=theta.dtype, device=theta.device)
+    cost_flat = torch.full((b_idx.numel(),), float("inf"), dtype=theta.dtype, device=theta.device)
+    # A candidate wins only below its pixel's cost: where a few lights show that for most,
+    # each chunk is rendered on them first and in full only where the bound leaves it open.
+    need = cost.index_select(0, pix)
+    lights = pruning_lights(data, flat[None], m_flat[None], need[None, :, None], model, pix)
+    tol = BOUND_ULPS * torch.finfo(theta.dtype).eps
     chunk = 65536  # candidate pixels per render
     for s0 in range(0, b_idx.numel(), chunk):
-        sl = slice(s0, s0 + chunk)
+        sl: slice | Tensor = slice(s0, s0 + chunk)
+        if lights is not None:
+            r = data.residual(flat[sl], m_flat[sl], lights, model, rows=pix[sl])
+            sl = (subset_cost_bound(r, tol)[:, 0] <= need[sl]).nonzero()[:, 0] + s0
         rr = data.residual(flat[sl], m_flat[sl], idx, model, rows=pix[sl])
         cost_flat[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf"))
     ccost = torch.full(cand.shape[:2], float("inf"), dtype=theta.dtype, device=theta.device)
