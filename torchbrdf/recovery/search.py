@@ -259,7 +259,9 @@ def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, mode
     per_light = torch.nan_to_num((r * r).reshape(pick.numel(), lights_all, 3).sum(-1), nan=float("inf"))
     need_s = need[kk, pp, 0]
     full = 3.0 + lights_all
-    best, chosen, partial, out = 0.85 * full, [], torch.zeros_like(need_s), None
+    chosen: list[int] = []
+    out: list[int] | None = None
+    best, partial = 0.85 * full, torch.zeros_like(need_s)
     for m in range(1, most + 1):
         ruled = ((partial[:, None] + per_light) > need_s[:, None]).sum(0)
         ruled[chosen] = -1
