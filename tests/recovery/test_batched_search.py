@@ -187,7 +187,7 @@ def test_passes_reusing_earlier_costs_equal_the_loop_of_passes(monkeypatch, cros
         if not bool(changed.any()):
             break
         active = map_ops.dilate(changed, size)
-    assert reused < 0.9 * rendered[0]
+    assert reused < 0.75 * rendered[0]
 
 
 def fitted_state(size=24, lights=8, dtype=torch.float32):

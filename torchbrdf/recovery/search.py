@@ -54,10 +54,10 @@ def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Setting
                      ) -> tuple[Tensor, Tensor]:
     """Up to ``passes`` passes of :func:`propagate`, each after the first on the pixels near the last one's changes.
 
-    The same maps as ``passes`` full passes (it stops when a pass changes nothing). A pass
-    after the second renders only what is new: a neighbour's parameters that a pass before
-    rendered at the pixel keep their cost (each pixel renders alone, at lights that do not
-    change between the passes), and so does the pixel's own. Arguments as for
+    The same maps as ``passes`` full passes (it stops when a pass changes nothing). From the
+    third on, a pass renders only what is new: a neighbour's parameters that a pass on some
+    pixels rendered at the pixel keep their cost (each pixel renders alone, at lights that do
+    not change between the passes), and so does the pixel's own. Arguments as for
     :func:`propagate`; returns ``(theta (P, 7), metal (P, 1))``.
     """
     known, active = None, None
@@ -65,7 +65,7 @@ def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Setting
         theta, metal, changed = _pass(data, theta, metal, cfg, class_sigma2, unary, active, known)
         if not bool(changed.any()):
             break
-        if active is not None and known is None:
+        if known is None:  # (the first pass renders all candidates in the maps' layout: none kept)
             known = _PassCosts.empty(theta)
         active = dilate(changed, data.size)
     return theta, metal
