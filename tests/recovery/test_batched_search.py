@@ -11,7 +11,9 @@ import torch.nn.functional as F
 
 from torchbrdf.recovery import classes, lm, map_ops, search, smoothness_prior
 from torchbrdf.recovery.config import Settings
-from torchbrdf.recovery.params import N_PARAMS
+
+from torchbrdf.recovery.levels import LevelData
+from torchbrdf.recovery.params import N_PARAMS, encode
 
 from tests.recovery.recovery_fixtures import flat_level
 
@@ -74,9 +76,9 @@ def reference_propagate(data, theta, metal, cfg, class_sigma2=None, unary=None, 
     return best, best_metal, (best != theta).any(-1)
 
 
-def rough_state(size=12, seed=0, dtype=torch.float32):
+def rough_state(size=12, seed=0, dtype=torch.float32, lights=6):
     """A level and a noisy fit of it with a metal patch: every neighbour a different candidate."""
-    data, theta, metal = flat_level(size=size, lights=6)
+    data, theta, metal = flat_level(size=size, lights=lights)
     gen = torch.Generator().manual_seed(seed)
     theta = theta + 0.6 * torch.randn(theta.shape, generator=gen)
     theta[:, 5:7] *= 0.3
@@ -138,6 +140,119 @@ def test_batched_propagation_with_a_unary_prior_and_active_pixels_equals_the_loo
     assert none[0] is theta and not bool(none[2].any())
 
 
+def reference_passes(data, theta, metal, cfg, passes, class_sigma2=None, unary=None):
+    """Passes of the per-candidate loop, each after the first on the pixels near the last one's changes."""
+    active = None
+    for _ in range(passes):
+        theta, metal, changed = reference_propagate(data, theta, metal, cfg, class_sigma2, unary, active)
+        if not bool(changed.any()):
+            break
+        active = map_ops.dilate(changed, data.size)
+    return theta, metal
+
+
+def count_rendered(monkeypatch):
+    """Patch :func:`search._data_cost` to count the pixels it renders; returns the running count (a list)."""
+    seen = [0]
+    original = search._data_cost
+
+    def counting(data, theta, metal, model, rows):
+        seen[0] += theta.shape[0]
+        return original(data, theta, metal, model, rows)
+
+    monkeypatch.setattr(search, "_data_cost", counting)
+    return seen
+
+
+@pytest.mark.parametrize("cross", [None, 1e-3])
+def test_passes_reusing_earlier_costs_equal_the_loop_of_passes(monkeypatch, cross):
+    # A wrong block over a rough map with a metal patch, repaired one ring per pass: from the
+    # third pass on, some of a pixel's neighbours are unchanged since a pass that rendered
+    # them at it (their costs reused) and some are new.
+    size = 16
+    data, theta, metal = rough_state(size=size, seed=7)
+    img = theta.view(size, size, 7)
+    img[4:12, 4:12, :5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])
+    gen = torch.Generator().manual_seed(8)
+    unary = (theta + 0.3 * torch.randn(theta.shape, generator=gen), torch.rand(theta.shape, generator=gen))
+    cfg = Settings()
+    ref = reference_passes(data, theta, metal, cfg, 6, cross, unary)
+    rendered = count_rendered(monkeypatch)
+    got = search.propagate_passes(data, theta, metal, cfg, 6, class_sigma2=cross, unary=unary)
+    assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
+    reused, rendered[0] = rendered[0], 0
+    t, m, active = theta, metal, None  # the same passes, each rendering all its candidates
+    for _ in range(6):
+        t, m, changed = search.propagate(data, t, m, cfg, class_sigma2=cross, unary=unary, active=active)
+        if not bool(changed.any()):
+            break
+        active = map_ops.dilate(changed, size)
+    assert reused < 0.75 * rendered[0]
+
+
+def fitted_state(size=24, lights=8, dtype=torch.float32):
+    """A level of bumpy normals and varying roughness, its exact maps with a few pixels broken and a metal patch.
+
+    Most pixels hold their own exact parameters, so most neighbours' explain them worse; the
+    broken ones take a neighbour's. Training lights: all but 0 and 3 (not the first L lights).
+    """
+    from torchbrdf.capture.format import Capture
+    from torchbrdf.capture.synthetic import light_layout, render_capture
+
+    y, x = torch.meshgrid(torch.linspace(-1, 1, size), torch.linspace(-1, 1, size), indexing="ij")
+    n = torch.stack((0.3 * torch.sin(5 * x), 0.3 * torch.cos(4 * y), torch.ones_like(x)))
+    maps = {"base_color": torch.stack((0.5 + 0.2 * x, 0.3 + 0.1 * y, 0.2 + 0 * x)),
+            "roughness": (0.3 + 0.15 * x * y)[None], "metallic": torch.zeros(1, size, size),
+            "specular": torch.full((1, size, size), 0.5), "normal": n / n.norm(dim=0)}
+    pos, inten = light_layout(lights)
+    imgs = render_capture(maps, (pos, inten), backend="compact")
+    cap = Capture(images=imgs, light_positions=pos, light_intensities=inten,
+                  camera_position=torch.tensor([0.0, 0.0, 3.0]), width=size, height=size,
+                  files=tuple(f"{k}.exr" for k in range(len(pos))))
+    data = LevelData(cap, size, [k for k in range(lights) if k not in (0, 3)], float(0.01 * imgs.mean()))
+    p = {k: v.reshape(v.shape[0], -1).T.contiguous() for k, v in maps.items()}
+    metal = p.pop("metallic").reshape(size, size)
+    metal[3:8, 10:16] = 1.0
+    theta = encode(p)
+    theta[::29] += 1.5 * torch.randn(theta[::29].shape, generator=torch.Generator().manual_seed(9))
+    data.points, data.camera = data.points.to(dtype), data.camera.to(dtype)
+    data.pos, data.inten, data._log_obs = data.pos.to(dtype), data.inten.to(dtype), data._log_obs.to(dtype)
+    return data, theta.to(dtype), metal.reshape(-1, 1).to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cross", [None, 1e-3])
+def test_a_full_pass_bounded_on_a_few_lights_equals_rendering_every_candidate(monkeypatch, dtype, cross):
+    # (a bound rendered on the wrong lights, or too tight, rules out candidates that win)
+    data, theta, metal = fitted_state(dtype=dtype)
+    chosen = []
+    original = search.pruning_lights
+    monkeypatch.setattr(search, "pruning_lights", lambda *a, **k: chosen.append(original(*a, **k)) or chosen[-1])
+    rendered = count_rendered(monkeypatch)
+    cfg = Settings()
+    got = search.propagate(data, theta, metal, cfg, class_sigma2=cross)
+    ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)
+    assert chosen[0] is not None and set(chosen[0]) < set(data.train_idx)
+    assert rendered[0] < 0.6 * 9 * theta.shape[0]  # most candidates ruled out on those lights
+    assert bool(ref[2].any())
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b) and a.stride() == b.stride()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_subset_cost_bound_stays_below_the_cost_of_any_rounding(dtype):
+    gen = torch.Generator().manual_seed(10)
+    r = (torch.randn(500, 12, generator=gen) * torch.logspace(-6, 1, 500)[:, None]).to(dtype)
+    tol = search.BOUND_ULPS * torch.finfo(dtype).eps
+    bound = search.subset_cost_bound(r, tol)
+    worst = r.abs() - tol * (1 + r.abs())  # every residual rounded as far towards 0 as allowed
+    assert bool((bound[:, 0] <= (worst.clamp(min=0) ** 2).sum(-1)).all())
+    big = (r * r).sum(-1) > 1e-3  # (residuals of 1 % noise and more: not much looser than the cost)
+    assert bool(big.any()) and bool((bound[big, 0] >= 0.99 * (r[big] * r[big]).sum(-1)).all())
+    r[3, 4] = float("nan")
+    assert search.subset_cost_bound(r, tol)[3, 0] == float("inf")
+
+
 def test_neighbour_rows_replicate_the_border():
     rows = torch.tensor([0, 2, 5, 15])  # corners, a top-edge pixel, an inside one of a 4x4 map
     assert search.neighbour_rows(rows, 4).T.tolist() == [[0, 0, 1, 0, 1, 4, 4, 5], [1, 2, 3, 1, 3, 5, 6, 7],
@@ -187,6 +302,19 @@ def test_normal_search_without_repeated_candidates_equals_rendering_all():
     assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
     few = search.normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)
     assert few[1] == reference_normal_search(data, theta, metal, "principled", factor=1.0, max_pixels=7)[1]
+
+
+def test_normal_search_bounded_on_a_few_lights_equals_rendering_all(monkeypatch):
+    # Broken normals among exact pixels: most grid normals cost more than a broken pixel's own.
+    data, theta, metal = fitted_state(size=24, lights=16)
+    theta[::7, 5:7] = torch.tensor([0.6, -0.5])
+    chosen = []
+    original = search.pruning_lights
+    monkeypatch.setattr(search, "pruning_lights", lambda *a, **k: chosen.append(original(*a, **k)) or chosen[-1])
+    got = search.normal_search(data, theta, metal, "principled", factor=1.5)
+    ref = reference_normal_search(data, theta, metal, "principled", factor=1.5)
+    assert chosen[0] is not None and set(chosen[0]) < set(data.train_idx)
+    assert ref[1] > 10 and got[1] == ref[1] and torch.equal(got[0], ref[0])
 
 
 def test_lm_step_counts_and_rejects_non_finite_costs():

@@ -100,11 +100,11 @@ from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.levels import LevelData, photometric_stereo
 from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map_prior_terms,
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
-from torchbrdf.recovery.map_ops import dilate, neighbour_mean, upsample
+from torchbrdf.recovery.map_ops import neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
 from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost
 from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
-from torchbrdf.recovery.search import normal_search, propagate
+from torchbrdf.recovery.search import normal_search, propagate_passes
 from torchbrdf.recovery.soft_metal import soft_metal_stage
 
 
@@ -337,15 +337,10 @@ class Recovery:
                 # Single-class stages: a neighbour of the other class is a candidate, judged at
                 # the noise level measured at the class choice.
                 cross = None if kind == "dual" else st.get("class_sigma2")
-                active = None  # a later pass needs only the pixels near the last one's changes
                 # A stage's start (a new level, or the class choice) moves pixels far; "all"
                 # continues the converged polish at its size, like one more of its iterations.
-                for _ in range(self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1):
-                    theta, metal, changed = propagate(data, theta, metal, self.cfg, class_sigma2=cross, unary=unary,
-                                                      active=active)
-                    if not bool(changed.any()):
-                        break
-                    active = dilate(changed, size)
+                passes = self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1
+                theta, metal = propagate_passes(data, theta, metal, self.cfg, passes, class_sigma2=cross, unary=unary)
                 if kind != "dual":
                     st["metal"] = metal
             if st["it"] == 0 and self.cfg.propagate and kind != "all":

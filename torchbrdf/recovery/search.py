@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -13,6 +14,7 @@ from torchbrdf.recovery.classes import evidence_threshold, pixel_noise_variance
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import unary_cost
+from torchbrdf.recovery.map_ops import dilate
 from torchbrdf.recovery.params import N_PARAMS
 from torchbrdf.recovery.smoothness_prior import edge_weights, local_prior
 
@@ -39,10 +41,64 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     shrink to them); the others keep their parameters. A pass after a pass can give a new
     answer only where something in the pixel's 3×3 neighbourhood changed (its candidates,
     the prior's neighbours and edge weights are all there), so ``active =``
-    :func:`dilate` ``(changed)`` gives the same result as a full pass.
+    :func:`dilate` ``(changed)`` gives the same result as a full pass
+    (:func:`propagate_passes` runs such passes).
 
     Returns ``(theta (P, 7), metal (P, 1), changed (P,) bool)``.
     """
+    return _pass(data, theta, metal, cfg, class_sigma2, unary, active, None)
+
+
+def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, passes: int,
+                     class_sigma2: float | None = None, unary: tuple[Tensor, Tensor] | None = None
+                     ) -> tuple[Tensor, Tensor]:
+    """Up to ``passes`` passes of :func:`propagate`, each after the first on the pixels near the last one's changes.
+
+    The same maps as ``passes`` full passes (it stops when a pass changes nothing). From the
+    third on, a pass renders only what is new: a neighbour's parameters that a pass on some
+    pixels rendered at the pixel keep their cost (each pixel renders alone, at lights that do
+    not change between the passes), and so does the pixel's own. Arguments as for
+    :func:`propagate`; returns ``(theta (P, 7), metal (P, 1))``.
+    """
+    known, active = None, None
+    for _ in range(passes):
+        theta, metal, changed = _pass(data, theta, metal, cfg, class_sigma2, unary, active, known)
+        if not bool(changed.any()):
+            break
+        if known is None:  # (the first pass renders all candidates in the maps' layout: none kept)
+            known = _PassCosts.empty(theta)
+        active = dilate(changed, data.size)
+    return theta, metal
+
+
+@dataclass
+class _PassCosts:
+    """Data costs the passes on some pixels rendered, for the next pass at the same lights.
+
+    ``cost[k, p] (8, P, 1)`` is pixel ``p``'s at the parameters ``values[k, p] (8, P, 7)`` and
+    ``metal[k, p] (8, P, 1)`` of its neighbour ``k`` (:data:`NEIGHBOURS` order; NaN: none yet),
+    ``own[p] (P, 1)`` its at the parameters the last pass returned, where ``own_known[p]``.
+    Only renders of gathered pixel rows are kept: a full pass renders the maps in their own
+    layout, whose sums can round otherwise.
+    """
+    own: Tensor
+    own_known: Tensor
+    values: Tensor
+    metal: Tensor
+    cost: Tensor
+
+    @staticmethod
+    def empty(theta: Tensor) -> "_PassCosts":
+        p_all, c = theta.shape
+        nan = torch.full((len(NEIGHBOURS), p_all, c + 1), float("nan"), dtype=theta.dtype, device=theta.device)
+        return _PassCosts(theta.new_zeros(p_all, 1), torch.zeros(p_all, dtype=torch.bool, device=theta.device),
+                          nan[..., :c], nan[..., c:], theta.new_zeros(len(NEIGHBOURS), p_all, 1))
+
+
+def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_sigma2: float | None,
+          unary: tuple[Tensor, Tensor] | None, active: Tensor | None, known: _PassCosts | None
+          ) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`propagate`; with ``active``, reusing and adding to ``known`` (the passes before's, at ``theta``, ``metal``)."""
     size = data.size
     p_all = theta.shape[0]
     rows = torch.arange(p_all, device=theta.device) if active is None else active.nonzero()[:, 0]
@@ -75,47 +131,195 @@ def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         # (Stacking the 9 sets into one call renders the same lanes but gathers 9 × P rows of
         # targets, 192 bytes each at 16 lights: that took more time than the 8 calls it saved.)
         own_cost = _data_cost(data, own, own_metal, cfg.model, None)
-        data_cost = torch.stack([_data_cost(data, cand[k], cm[k], cfg.model, None) for k in range(cand.shape[0])])
     else:
-        # Some pixels: every render of the pass in one fused call, the own parameters and then
-        # the candidates stacked along the pixel axis (one gather of their targets). Not
-        # rendered: a neighbour of the other class without class_sigma2 (it never competes),
-        # and one of the pixel's class with the pixel's own parameters (a region that took one
-        # value in the last pass): its score would equal the pixel's own, which a candidate
-        # must beat.
-        own_again = same & (cand == own).all(-1, keepdim=True)
-        wanted = (same if class_sigma2 is None else torch.ones_like(same)) & ~own_again
-        k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
-        c_all = _data_cost(data, torch.cat((own, cand[k_idx, n_idx])), torch.cat((own_metal, cm[k_idx, n_idx])),
-                           cfg.model, torch.cat((rows, rows.index_select(0, n_idx))))
-        own_cost = c_all[:n]
-        data_cost = torch.full_like(prior, float("inf"))
-        data_cost[k_idx, n_idx] = c_all[n:]
+        own_cost, data_cost = _active_costs(data, rows, own, own_metal, cand, cm, cfg.model,
+                                            class_sigma2 is not None, known)
     best, best_metal = own, own_metal
-    best_score = own_cost + own_prior
+    best_cost, best_score = own_cost, own_cost + own_prior
     tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
     n_res = 3 * len(data.train_idx)
+    if active is None:
+        # (becoming metal costs at least τ noise variances of the smallest the test allows)
+        floor = None if class_sigma2 is None else tau * max(class_sigma2, 1e-30)
+        renders = _BoundedRenders(data, cand, cm, same, prior, own_prior, best_score, cfg.model, floor)
     for k in range(cand.shape[0]):  # in the neighbours' order: the first of equal scores wins
+        if active is None:
+            data_cost_k = renders.cost(k, best_score)
+        else:
+            data_cost_k = data_cost[k]
         if class_sigma2 is None:
-            score = torch.where(same[k], data_cost[k] + prior[k], float("inf"))
+            score = torch.where(same[k], data_cost_k + prior[k], float("inf"))
         else:  # the prior's weights join pixels of one class: a class change is judged on data
-            price = tau * pixel_noise_variance(own_cost, data_cost[k], class_sigma2, n_res)
-            score = torch.where(same[k], data_cost[k] + prior[k],
-                                data_cost[k] + torch.where(cm[k] > 0.5, price, -price) + own_prior)
+            price = tau * pixel_noise_variance(own_cost, data_cost_k, class_sigma2, n_res)
+            score = torch.where(same[k], data_cost_k + prior[k],
+                                data_cost_k + torch.where(cm[k] > 0.5, price, -price) + own_prior)
         better = score < best_score
         best = torch.where(better, cand[k], best)
         best_metal = torch.where(better, cm[k], best_metal)
         best_score = torch.where(better, score, best_score)
+        best_cost = torch.where(better, data_cost_k, best_cost)
     if active is not None:
         best = theta.index_copy(0, rows, best)
         best_metal = metal.index_copy(0, rows, best_metal)
+        if known is not None:
+            known.own.index_copy_(0, rows, best_cost)
+            known.own_known[rows] = True
     return best, best_metal, (best != theta).any(-1)
+
+
+#: The rounding the light-subset bound allows, in units of the dtype's machine epsilon: two
+#: renders of one residual (another layout, another light set) differ by a few ulps of its log.
+BOUND_ULPS = 256.0
+
+
+class _BoundedRenders:
+    """A full pass's data costs of candidate set ``k`` ``(P, 1)``, rendered when the choice reaches it.
+
+    A candidate can win only with a score below the pixel's best so far. Where a few lights
+    (:func:`pruning_lights`) show for most candidates that their residuals there already
+    cost more than that allows, each set is rendered on those lights first and in full only
+    where that bound does not rule it out (+inf elsewhere: it would not have won). The
+    full renders keep the candidates' layout, so their costs are those of rendering all.
+    ``floor``: the least price of becoming metal (None: no candidate of the other class).
+    """
+
+    def __init__(self, data: LevelData, cand: Tensor, cm: Tensor, same: Tensor, prior: Tensor, own_prior: Tensor,
+                 own_score: Tensor, model: str, floor: float | None):
+        self.data, self.cand, self.cm, self.same, self.prior = data, cand, cm, same, prior
+        self.own_prior, self.model, self.floor = own_prior, model, floor
+        self.lights = pruning_lights(data, cand, cm, torch.where(same, own_score - prior, float("inf")), model)
+
+    def cost(self, k: int, best_score: Tensor) -> Tensor:
+        """Set ``k``'s data costs ``(P, 1)`` (+inf: cannot beat ``best_score (P, 1)``, or of the other class and not a candidate)."""
+        cand, cm, same = self.cand[k], self.cm[k], self.same[k]
+        consider = same if self.floor is None else torch.ones_like(same)
+        if self.lights is None:
+            keep = consider
+        else:
+            inf = torch.full_like(best_score, float("inf"))
+            bound = torch.where(same, best_score - self.prior[k], inf)
+            scale = torch.where(same, best_score.abs() + self.prior[k].abs(), inf)
+            if self.floor is not None:  # becoming metal: data + price + own prior must stay below
+                metal = ~same & (cm > 0.5)
+                bound = torch.where(metal, best_score - self.own_prior - self.floor, bound)
+                scale = torch.where(metal, best_score.abs() + self.own_prior.abs() + self.floor, scale)
+            r = self.data.residual(cand, cm, self.lights, self.model)
+            tol = BOUND_ULPS * torch.finfo(r.dtype).eps
+            keep = consider & ~(subset_cost_bound(r, tol) > bound + tol * scale)
+        return _kept_costs(self.data, cand, cm, keep[:, 0], self.model)
+
+
+def _kept_costs(data: LevelData, theta: Tensor, metal: Tensor, keep: Tensor, model: str) -> Tensor:
+    """The data costs ``(P, 1)`` of every pixel at ``theta (P, 7)``, ``metal (P, 1)`` where ``keep (P,)``, else +inf.
+
+    The kept rows are gathered in ``theta``'s own layout (rows or channel planes): the kernels'
+    sums round by it.
+    """
+    if bool(keep.all()):
+        return _data_cost(data, theta, metal, model, None)
+    out = torch.full_like(metal, float("inf"))
+    rows = keep.nonzero()[:, 0]
+    if rows.numel():
+        sub = theta.T.index_select(1, rows).T if theta.stride(0) == 1 else theta.index_select(0, rows)
+        out[rows] = _data_cost(data, sub, metal.index_select(0, rows), model, rows)
+    return out
+
+
+def subset_cost_bound(r: Tensor, tol: float) -> Tensor:
+    """A lower bound ``(N, 1)`` of a data cost from residuals ``r (N, M)`` on some of its lights.
+
+    Another render may round each residual ``r_i`` differently by up to ``tol (1 + |r_i|)``;
+    the bound holds for it: ``((1 − tol) |r| − tol √M)²``, less ``tol`` of itself for the sum's
+    rounding. NaN (a cost that is +inf): +inf.
+    """
+    norm = torch.linalg.vector_norm(r, dim=-1, keepdim=True)
+    low = (norm * (1 - tol) - tol * math.sqrt(r.shape[-1])).clamp(min=0)
+    return torch.nan_to_num(low * low * (1 - tol), nan=float("inf"))
+
+
+def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, model: str, rows: Tensor | None = None,
+                   most: int = 4, sample: int = 1024) -> list[int] | None:
+    """A few training lights whose residuals alone rule out most candidates, or None where that would not pay.
+
+    ``cand (K, N, 7)``, ``cm (K, N, 1)``: candidate sets of pixels ``rows (N,)`` (None: every
+    pixel); ``need (K, N, 1)``: the data cost each must stay below to win (+inf: no bound).
+    Every ``K N / sample``-th candidate
+    is rendered on all training lights; up to ``most`` lights are picked greedily, each the one
+    that rules out the most of them with those before. Kept: the set with the least expected
+    render time (a render costs about 3 + its lights, in light units; a gathered one a tenth
+    more), if below 0.85 of rendering all.
+    """
+    k_all, n = cand.shape[:2]
+    lights_all = len(data.train_idx)
+    if lights_all <= most or k_all * n < 4 * sample:
+        return None
+    pick = torch.arange(0, k_all * n, max(1, k_all * n // sample), device=cand.device)
+    kk, pp = pick // n, pick % n
+    r = data.residual(cand[kk, pp], cm[kk, pp], data.train_idx, model, rows=pp if rows is None else rows[pp])
+    per_light = torch.nan_to_num((r * r).reshape(pick.numel(), lights_all, 3).sum(-1), nan=float("inf"))
+    need_s = need[kk, pp, 0]
+    full = 3.0 + lights_all
+    chosen: list[int] = []
+    out: list[int] | None = None
+    best, partial = 0.85 * full, torch.zeros_like(need_s)
+    for m in range(1, most + 1):
+        ruled = ((partial[:, None] + per_light) > need_s[:, None]).sum(0)
+        ruled[chosen] = -1
+        light = int(ruled.argmax())
+        chosen.append(light)
+        partial = partial + per_light[:, light]
+        time = 3.0 + m + float((partial <= need_s).float().mean()) * full * 1.1
+        if time < best:
+            best, out = time, sorted(chosen)
+    return None if out is None else [data.train_idx[i] for i in out]
+
+
+def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor, cand: Tensor, cm: Tensor,
+                  model: str, cross: bool, known: _PassCosts | None) -> tuple[Tensor, Tensor]:
+    """The data costs of pixels ``rows (N,)`` at their own parameters ``(N, 1)`` and at their candidates ``(8, N, 1)``.
+
+    Every render in one fused call, the own parameters and then the candidates stacked along
+    the pixel axis (one gather of their targets). Not rendered (+inf): a neighbour of the
+    other class unless ``cross`` (it never competes), and one of the pixel's class with the
+    pixel's own parameters (a region that took one value in the last pass): its score would
+    equal the pixel's own, which a candidate must beat. Taken from ``known`` (and written
+    there when rendered): the costs it holds at the same parameters.
+    """
+    n = rows.numel()
+    same = cm == own_metal
+    own_again = same & (cand == own).all(-1, keepdim=True)
+    wanted = (torch.ones_like(same) if cross else same) & ~own_again
+    if known is None:
+        own_rows = torch.arange(n, device=rows.device)
+    else:
+        own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
+        seen = (cand == known.values[:, rows]).all(-1, keepdim=True) & (cm == known.metal[:, rows])
+        wanted, cached = wanted & ~seen, wanted & seen
+    k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
+    n_own = own_rows.numel()
+    c_all = _data_cost(data, torch.cat((own.index_select(0, own_rows), cand[k_idx, n_idx])),
+                       torch.cat((own_metal.index_select(0, own_rows), cm[k_idx, n_idx])), model,
+                       torch.cat((rows.index_select(0, own_rows), rows.index_select(0, n_idx))))
+    if known is None:
+        own_cost, data_cost = c_all[:n], torch.full_like(same, float("inf"), dtype=own.dtype)
+    else:
+        own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, c_all[:n_own])
+        data_cost = torch.where(cached, known.cost[:, rows], float("inf"))
+        pix = rows.index_select(0, n_idx)
+        known.values[k_idx, pix] = cand[k_idx, n_idx]
+        known.metal[k_idx, pix] = cm[k_idx, n_idx]
+        known.cost[k_idx, pix] = c_all[n_own:]
+    data_cost[k_idx, n_idx] = c_all[n_own:]
+    return own_cost, data_cost
 
 
 def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
     """The summed squared residuals ``(N, 1)`` on the training lights (NaN: +inf), as :meth:`LevelData.residual`."""
+    if theta.shape[0] == 0:
+        return theta.new_empty(0, 1)
     r = data.residual(theta, metal, data.train_idx, model, rows=rows)
-    return torch.nan_to_num((r ** 2).sum(-1, keepdim=True), nan=float("inf"))
+    # (squared in place: the same products, and no second buffer the size of the residuals)
+    return torch.nan_to_num(r.mul_(r).sum(-1, keepdim=True), nan=float("inf"))
 
 
 #: The 8 neighbours' offsets ``(dy, dx)`` in the order :func:`propagate` tries them.
@@ -207,10 +411,18 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
     pix = bad.index_select(0, b_idx)
     flat = cand[b_idx, j_idx]
     m_flat = metal.index_select(0, pix)
-    cost_flat = torch.empty(b_idx.numel(), dtype=theta.dtype, device=theta.device)
+    cost_flat = torch.full((b_idx.numel(),), float("inf"), dtype=theta.dtype, device=theta.device)
+    # A candidate wins only below its pixel's cost: where a few lights show that for most,
+    # each chunk is rendered on them first and in full only where the bound leaves it open.
+    need = cost.index_select(0, pix)
+    lights = pruning_lights(data, flat[None], m_flat[None], need[None, :, None], model, pix)
+    tol = BOUND_ULPS * torch.finfo(theta.dtype).eps
     chunk = 65536  # candidate pixels per render
     for s0 in range(0, b_idx.numel(), chunk):
-        sl = slice(s0, s0 + chunk)
+        sl: slice | Tensor = slice(s0, s0 + chunk)
+        if lights is not None:
+            r = data.residual(flat[sl], m_flat[sl], lights, model, rows=pix[sl])
+            sl = (subset_cost_bound(r, tol)[:, 0] <= need[sl]).nonzero()[:, 0] + s0
         rr = data.residual(flat[sl], m_flat[sl], idx, model, rows=pix[sl])
         cost_flat[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf"))
     ccost = torch.full(cand.shape[:2], float("inf"), dtype=theta.dtype, device=theta.device)
