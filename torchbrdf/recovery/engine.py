@@ -4,7 +4,7 @@
 principled maps — base colour, roughness, metallic, specular, normal — so that the capture format's
 image formation reproduces every captured image.
 
-Method (each choice measured, see ``docs/recovery.md``):
+Method (``docs/recovery.md``, with its measurements):
 
 * **Parameters in unconstrained spaces**: logits for base colour, specular and roughness, a
   2-D slope ``(p, q)`` for the normal (``n ∝ (p, q, 1)``, always z > 0). Metallic is not a
@@ -161,7 +161,7 @@ class Recovery:
         self.fit_cost: dict[int, Tensor] = {}
         # The Gauss–Newton pass made at a single-class stage's start for its F0 tie, with the
         # theta and metal it was made at: the stage's first LM step re-linearises only the
-        # pixels that moved since (its propagation moves 1–5 %). Not state: a resumed run
+        # pixels that moved since. Not state: a resumed run
         # computes the step's own.
         self._stage_gn: tuple[Tensor, Tensor, tuple[Tensor, Tensor, Tensor]] | None = None
         self.state: dict[str, Any] = {}  # filled by init_state / load_checkpoint
@@ -656,7 +656,7 @@ class Recovery:
         blended a narrow structure (a grout line at the image edge is half as wide as inside:
         one coarse pixel at S/4), the dielectric's start at this level is a glossy, flat local
         optimum that Gauss–Newton does not leave, while the metal start (rough, flat) reached the
-        rim's normal — and those pixels were called metal, a frame along the image border.
+        rim's normal — and without a refit those pixels would be called metal, a frame along the image border.
         They get a per-pixel LM (:func:`refit_pixels`, data only) from their own parameters
         and from the metal hypothesis's normal and roughness (geometry does not depend on the
         material) with specular 0.5; the better result replaces the dielectric where it fits
