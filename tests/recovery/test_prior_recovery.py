@@ -117,8 +117,12 @@ def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(paint
     # 0.6x as far from it as the plain fit, which is elsewhere ...
     far = (rough0[silent] - CONSTANT["roughness"]).abs().median()
     assert far > 0.4 and (rough1[silent] - CONSTANT["roughness"]).abs().median() < 0.6 * far
-    # ... where they do, the fit follows them as without the prior.
-    assert (rough1[measured] - rough0[measured]).abs().median() < 0.06
+    # ... where they do, the fit follows them as without the prior, within the prior's stated
+    # error (0.06), on the pixels both fits call dielectric: this capture's 4-light plain fit
+    # calls some of them metal, where a roughness means another lobe.
+    both = measured & (plain.maps["metallic"][0] < 0.5) & (guided.maps["metallic"][0] < 0.5)
+    assert both.sum() >= 8
+    assert (rough1[both] - rough0[both]).abs().median() < 0.06
     # The base colour is measured everywhere (the diffuse): the wrong grey prior does not move it.
     assert (guided.maps["base_color"] - truth).square().mean().sqrt() < 0.03
     assert guided.report["learned_prior"]["map_errors"]["roughness"] == pytest.approx(0.06)
