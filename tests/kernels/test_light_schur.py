@@ -73,3 +73,24 @@ def test_light_schur_names_a_bad_argument():
         schur_ops.light_schur(r, cols[:, :5], prior_g, prior_h, 1e-3, 0.1)
     with pytest.raises(ValueError, match="priors"):
         schur_ops.light_schur(r, cols, prior_g[:5], prior_h, 1e-3, 0.1)
+
+
+def test_light_schur_refuses_what_the_kernel_cannot_read():
+    """The C loop reads raw CPU memory as float32 or float64 and keeps a pixel's residuals on its
+    stack: another dtype, a tensor off the CPU, more than MAX_RESIDUALS residuals or no pixels
+    per chunk are refused by name before any memory is read (not read as garbage)."""
+    r, cols, prior_g, prior_h = _case(6, 2, 4, torch.float64)
+    with pytest.raises(ValueError, match="dtype"):
+        schur_ops.light_schur(r.half(), cols.half(), prior_g, prior_h, 1e-3, 0.1)
+    with pytest.raises(ValueError, match="dtype"):
+        torch.ops.torchbrdf.light_schur(r.half(), cols.half(), prior_g, prior_h, 1e-3, 0.1, 8)
+    with pytest.raises(ValueError, match="CPU"):
+        schur_ops.light_schur(r, cols, prior_g.to("meta"), prior_h, 1e-3, 0.1)
+    m_big = 3 * (schur_ops.MAX_RESIDUALS // 3 + 1)
+    with pytest.raises(ValueError, match="MAX_RESIDUALS"):
+        schur_ops.light_schur(torch.zeros(0, m_big), torch.zeros(8, 0, m_big), torch.zeros(0, 7),
+                              torch.zeros(0, 7), 1e-3, 0.1)
+    with pytest.raises(ValueError, match="chunk"):
+        schur_ops.light_schur(r, cols, prior_g, prior_h, 1e-3, 0.1, chunk=0)
+    with pytest.raises(ValueError, match=r"r must be \(n, M\)"):
+        schur_ops.light_schur(r[None], cols, prior_g, prior_h, 1e-3, 0.1)

@@ -175,6 +175,7 @@ def _ctype(dtype: torch.dtype) -> str:
 def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,
                    chunk: int) -> tuple[Tensor, Tensor]:
     """``(per_light (L, G+1, G+1), gram (L G + 1, L G + 1))``, float64: see :func:`light_schur`."""
+    _check_memory(r, cols, prior_g, prior_h, chunk)
     n, M = r.shape
     G, L = cols.shape[0] - 7, M // 3
     f64 = torch.float64
@@ -210,6 +211,22 @@ def _(r, cols, prior_g, prior_h, damping, huber, chunk):
             r.new_empty((L * G + 1, L * G + 1), dtype=torch.float64))
 
 
+def _check_memory(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, chunk: int) -> None:
+    """Refuse what the C loop would read wrongly: it takes raw CPU pointers of one float type
+    and keeps a block's residuals on its stack (shapes: :func:`light_schur`)."""
+    if r.dim() != 2:
+        raise ValueError(f"light_schur: r must be (n, M), got shape {tuple(r.shape)}")
+    if r.dtype not in (torch.float32, torch.float64) or cols.dtype != r.dtype:
+        raise ValueError(f"light_schur: r and cols must share a dtype, float32 or float64, got {r.dtype}, {cols.dtype}")
+    devices = {name: t.device for name, t in (("r", r), ("cols", cols), ("prior_g", prior_g), ("prior_h", prior_h))}
+    if any(d.type != "cpu" for d in devices.values()):
+        raise ValueError(f"light_schur: every tensor must be on the CPU (see available()), got {devices}")
+    if r.shape[1] > MAX_RESIDUALS:
+        raise ValueError(f"light_schur: at most MAX_RESIDUALS = {MAX_RESIDUALS} residuals per pixel, got {r.shape[1]}")
+    if chunk < 1:
+        raise ValueError(f"light_schur: chunk must be a positive number of pixels, got {chunk}")
+
+
 def _symmetric(packed: Tensor, G: int) -> Tensor:
     """``(L, G+1, G+1)`` symmetric matrices from their upper triangles ``(L, P)`` (row by row)."""
     iu = torch.triu_indices(G + 1, G + 1)
@@ -224,12 +241,12 @@ def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, dampi
     """The per-pixel elimination of a joint light step, summed over the pixels.
 
     Args:
-        r: ``(n, M)`` residuals, ``M = 3 L`` light-major (``3 l + c``), every one finite; CPU,
-            float32 or float64 (:func:`available`).
+        r: ``(n, M)`` residuals, ``M = 3 L ≤`` :data:`MAX_RESIDUALS` light-major (``3 l + c``),
+            every one finite; CPU, float32 or float64 (:func:`available`).
         cols: ``(7 + G, n, M)`` their derivatives along each pixel's 7 unknowns, then the ``G``
             unknowns of each light (a light's residuals depend only on its own), ``r``'s dtype.
         prior_g, prior_h: ``(n, 7)`` the pixels' prior gradient and Hessian diagonal (zeros:
-            none), finite.
+            none), finite, any float dtype, CPU.
         damping: ``A``'s diagonal grows by ``damping`` times itself plus ``1e-9``.
         huber: the Huber threshold: a residual's weight is ``min(1, huber / |r|)``.
         chunk: pixels per ``Σ YᵀY`` product (its float64 ``Y`` stays in cache).
@@ -240,11 +257,15 @@ def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, dampi
         ``A = JpᵀWJp + H`` (``H``: the damping and ``prior_h``), ``B = JpᵀWJg`` and ``gp =
         JpᵀWr + prior_g``, float64 on the CPU. A pixel whose ``A`` is not positive definite to
         rounding adds nothing.
+
+    Raises:
+        ValueError: a shape, dtype or device the kernel cannot read (named).
     """
+    _check_memory(r, cols, prior_g, prior_h, int(chunk))
     n, M = r.shape
     if cols.dim() != 3 or cols.shape[0] < 7 or tuple(cols.shape[1:]) != (n, M) or M % 3:
         raise ValueError(f"light_schur: cols must be (7 + G, {n}, {M}) with M = 3 L, got {tuple(cols.shape)}")
-    if cols.dtype != r.dtype or tuple(prior_g.shape) != (n, 7) or tuple(prior_h.shape) != (n, 7):
-        raise ValueError(f"light_schur: cols ({cols.dtype}) must have r's dtype ({r.dtype}) and the priors "
-                         f"shape ({n}, 7), got {tuple(prior_g.shape)}, {tuple(prior_h.shape)}")
+    if tuple(prior_g.shape) != (n, 7) or tuple(prior_h.shape) != (n, 7):
+        raise ValueError(f"light_schur: the priors must have shape ({n}, 7), got {tuple(prior_g.shape)}, "
+                         f"{tuple(prior_h.shape)}")
     return light_schur_op(r, cols, prior_g, prior_h, float(damping), float(huber), int(chunk))
