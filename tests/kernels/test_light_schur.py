@@ -90,6 +90,8 @@ def test_light_schur_refuses_what_the_kernel_cannot_read():
     with pytest.raises(ValueError, match="MAX_RESIDUALS"):
         schur_ops.light_schur(torch.zeros(0, m_big), torch.zeros(8, 0, m_big), torch.zeros(0, 7),
                               torch.zeros(0, 7), 1e-3, 0.1)
+    with pytest.raises(ValueError, match="MAX_RESIDUALS"):
+        schur_ops.light_schur(r[:, :0], cols[:, :, :0], prior_g, prior_h, 1e-3, 0.1)
     with pytest.raises(ValueError, match="chunk"):
         schur_ops.light_schur(r, cols, prior_g, prior_h, 1e-3, 0.1, chunk=0)
     with pytest.raises(ValueError, match=r"r must be \(n, M\)"):

@@ -221,8 +221,8 @@ def _check_memory(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, chu
     devices = {name: t.device for name, t in (("r", r), ("cols", cols), ("prior_g", prior_g), ("prior_h", prior_h))}
     if any(d.type != "cpu" for d in devices.values()):
         raise ValueError(f"light_schur: every tensor must be on the CPU (see available()), got {devices}")
-    if r.shape[1] > MAX_RESIDUALS:
-        raise ValueError(f"light_schur: at most MAX_RESIDUALS = {MAX_RESIDUALS} residuals per pixel, got {r.shape[1]}")
+    if not 0 < r.shape[1] <= MAX_RESIDUALS:  # (the loop's stack arrays have M rows: none is undefined in C)
+        raise ValueError(f"light_schur: 1 to MAX_RESIDUALS = {MAX_RESIDUALS} residuals per pixel, got {r.shape[1]}")
     if chunk < 1:
         raise ValueError(f"light_schur: chunk must be a positive number of pixels, got {chunk}")
 
