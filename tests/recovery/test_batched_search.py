@@ -326,3 +326,16 @@ def test_lm_step_counts_and_rejects_non_finite_costs():
     assert n_bad == int(bad.sum()) == 9 and bool(bad[[2, 3, 4, 15, 88, 99, 100, 101, 112]].all())
     assert bool(torch.isnan(new[[3, 100], 4]).all()) and bool((lam1[bad] > lam[bad]).all())
     assert bool(torch.isfinite(new[~bad]).all()) and bool(torch.isfinite(cost[~bad]).all())
+
+
+def test_normal_search_survives_a_chunk_the_bound_rules_out_entirely(monkeypatch):
+    # (every candidate of a chunk above its pixel's cost on the few lights: no pixel left to render)
+    data, theta, metal = fitted_state(size=24, lights=16)
+    empty = torch.zeros(0, dtype=torch.long)
+    assert data.residual(theta[empty], metal[empty], data.train_idx, "principled", rows=empty).shape == \
+        (0, 3 * len(data.train_idx))
+    theta[::7, 5:7] = torch.tensor([0.6, -0.5])
+    monkeypatch.setattr(search, "pruning_lights", lambda data, *a, **k: data.train_idx[:2])
+    monkeypatch.setattr(search, "subset_cost_bound", lambda r, tol: torch.full_like(r[:, :1], float("inf")))
+    got, changed = search.normal_search(data, theta, metal, "principled", factor=1.5)
+    assert changed == 0 and torch.equal(got, theta)

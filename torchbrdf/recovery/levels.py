@@ -125,7 +125,7 @@ class LevelData:
         points, log_obs, light = self._targets(idx, model, rows)
         r = log_residual(decode(theta, metal), points, self.camera, self.pos[idx], self.inten[idx], log_obs,
                          self.eps, model, light)
-        return r.reshape(theta.shape[0], -1)
+        return r.reshape(theta.shape[0], 3 * len(idx))  # (an explicit width: N may be 0)
 
     def residual_jvp(self, x: Tensor, metal: Tensor, idx: list[int], model: str, tangents: Tensor,
                      rows: Tensor | slice | None = None) -> tuple[Tensor, Tensor]:
@@ -149,7 +149,8 @@ class LevelData:
         p, dp = vmapped_jvp(lambda v: decode(*unknowns(v)))(x, tangents)
         r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
                                         log_obs, self.eps, dp, any_size=True)
-        return r.reshape(x.shape[0], -1), dr.reshape(tangents.shape[0], x.shape[0], -1)
+        m = 3 * len(idx)
+        return r.reshape(x.shape[0], m), dr.reshape(tangents.shape[0], x.shape[0], m)
 
     def normal_equations(self, x: Tensor, metal: Tensor, idx: list[int], model: str, n_t: int,
                          rows: Tensor | slice | None = None
