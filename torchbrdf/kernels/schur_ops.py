@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf.kernels import build
+from torchbrdf.kernels.normal_eq_ops import unpack_jtj
 
 __all__ = ["light_schur", "light_schur_op", "available", "MAX_RESIDUALS"]
 
@@ -183,7 +184,7 @@ def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, da
     per = torch.zeros(L, P, dtype=f64)
     gram = torch.zeros(L * G + 1, L * G + 1, dtype=f64)
     if n == 0:
-        return _symmetric(per, G), gram
+        return unpack_jtj(per, G + 1), gram
     fn = _kernel(_ctype(r.dtype))
     if fn is None:
         raise RuntimeError("light_schur: the C kernel cannot be built here (ask schur_ops.available first)")
@@ -201,7 +202,7 @@ def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, da
         flat = yc.view(L * G + 1, -1)
         gram.addmm_(flat, flat.T)
         per += pl[:m].sum(0)
-    return _symmetric(per, G), gram
+    return unpack_jtj(per, G + 1), gram
 
 
 @light_schur_op.register_fake
@@ -225,15 +226,6 @@ def _check_memory(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, chu
         raise ValueError(f"light_schur: 1 to MAX_RESIDUALS = {MAX_RESIDUALS} residuals per pixel, got {r.shape[1]}")
     if chunk < 1:
         raise ValueError(f"light_schur: chunk must be a positive number of pixels, got {chunk}")
-
-
-def _symmetric(packed: Tensor, G: int) -> Tensor:
-    """``(L, G+1, G+1)`` symmetric matrices from their upper triangles ``(L, P)`` (row by row)."""
-    iu = torch.triu_indices(G + 1, G + 1)
-    out = packed.new_empty(packed.shape[0], G + 1, G + 1)
-    out[:, iu[0], iu[1]] = packed
-    out[:, iu[1], iu[0]] = packed
-    return out
 
 
 def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,
