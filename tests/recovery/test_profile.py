@@ -76,6 +76,10 @@ def test_each_pixels_posterior_mean_weighs_its_likelihood_and_the_cells():
     assert float(sp.posterior_mean(grid, flat, 1.0)[0]) == pytest.approx(expected)
     sharp = torch.tensor([[100.0, 0.0, 100.0, 100.0]])
     assert float(sp.posterior_mean(grid, sharp, 1.0)[0]) == pytest.approx(0.2, abs=1e-9)
+    # No finite cost: no likelihood, the prior's mean; a non-finite cell among finite ones weighs 0.
+    inf, nan = float("inf"), float("nan")
+    means = sp.posterior_mean(grid, torch.tensor([[inf, nan, inf, inf], [inf, 0.0, nan, 100.0]]), 1.0)
+    assert float(means[0]) == pytest.approx(expected) and float(means[1]) == pytest.approx(0.2, abs=1e-9)
 
 
 def test_material_regions_are_the_large_sets_of_one_truth_value():

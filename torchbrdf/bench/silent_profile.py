@@ -56,10 +56,13 @@ def material_regions(specular: torch.Tensor, min_fraction: float = MIN_REGION) -
 def posterior_mean(grid: Sequence[float], costs: torch.Tensor, sigma2: float) -> torch.Tensor:
     """Each pixel's posterior mean roughness ``(N,)`` from its profile ``costs (N, K)`` on ``grid``
     (ascending, map units): likelihood ``exp(−cost / 2σ²)``, a uniform prior in map units (each
-    grid value weighs the width of its cell, halfway to its neighbours)."""
+    grid value weighs the width of its cell, halfway to its neighbours). A pixel with no finite
+    cost has no likelihood: its mean is the prior's."""
     g = torch.tensor([float(x) for x in grid], dtype=torch.float64)
     edges = torch.cat((g[:1], (g[1:] + g[:-1]) / 2, g[-1:]))
-    logw = torch.log(edges[1:] - edges[:-1]) - 0.5 * torch.nan_to_num(costs.double(), nan=float("inf")) / sigma2
+    c = torch.nan_to_num(costs.double(), nan=float("inf"), posinf=float("inf"), neginf=float("inf"))
+    c = torch.where(torch.isfinite(c).any(1, keepdim=True), c, torch.zeros_like(c))
+    logw = torch.log(edges[1:] - edges[:-1]) - 0.5 * c / sigma2
     return (torch.softmax(logw, 1) * g).sum(1)
 
 
