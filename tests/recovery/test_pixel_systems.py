@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from torchbrdf.recovery import lm, smoothness_prior
-from torchbrdf.recovery.pixel_systems import inverse_diagonal, ldl_factor, ldl_solve, to_lanes
+from torchbrdf.recovery.pixel_systems import cholesky_factor, inverse_diagonal, ldl_factor, ldl_solve, to_lanes
 
 
 def _spd(p, n, seed=0, cond=1e3):
@@ -15,6 +15,18 @@ def _spd(p, n, seed=0, cond=1e3):
     ev = torch.logspace(0, float(torch.log10(torch.tensor(cond))), n, dtype=torch.float64)
     ev = ev[torch.randperm(n, generator=gen)] * (1 + torch.rand(p, 1, generator=gen, dtype=torch.float64))
     return q @ torch.diag_embed(ev) @ q.transpose(-1, -2)
+
+
+def test_cholesky_factor_matches_a_batched_cholesky_and_marks_the_indefinite():
+    """Each pixel's factor is its own matrix's (lanes, rows and columns kept apart); a pixel that
+    is not positive definite is marked and keeps a finite factor."""
+    m = _spd(6, 7, seed=3)
+    m[2] = -m[2]
+    low, good = cholesky_factor(to_lanes(m))
+    assert good.tolist() == [True, True, False, True, True, True]
+    ref = torch.linalg.cholesky(m[good])  # (5, 7, 7)
+    torch.testing.assert_close(low.permute(2, 0, 1)[good], ref, rtol=1e-12, atol=1e-12)
+    assert torch.isfinite(low).all()
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 7])

@@ -17,6 +17,7 @@ from torchbrdf.brdf import capture_residual
 from torchbrdf.recovery.classes import chi2_quantile
 from torchbrdf.recovery.levels import LevelData, log_residual
 from torchbrdf.recovery.params import N_PARAMS, decode
+from torchbrdf.recovery.pixel_systems import cholesky_factor
 
 
 #: The median of χ² with one degree of freedom: median(r²) = 0.455 σ² for Gaussian residuals.
@@ -292,7 +293,7 @@ def _reduced_light_terms(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tenso
         extra += torch.nan_to_num(map_prior[1].to(f64))
         gp += torch.nan_to_num(map_prior[0].T.to(f64))
     diag += extra
-    low, good = _cholesky_pixels(a)
+    low, good = cholesky_factor(a)
     if not bool(good.all()):
         w, jpw, gp = w * good, jpw * good, gp * good
     # per light, the G unknowns and the residual as G + 1 rows over (colour, pixel)
@@ -318,23 +319,6 @@ def _reduced_light_terms(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tenso
     y[-1] = gp
     flat = y.view(y.shape[0], -1)
     gram.addmm_(flat, flat.T)
-
-
-def _cholesky_pixels(a: Tensor) -> tuple[Tensor, Tensor]:
-    """Lower Cholesky factors ``(k, k, n)`` of ``n`` symmetric ``a (k, k, n)``, pixels innermost,
-    and ``(n,)`` bool whether each is positive definite to rounding (a factor that is not has
-    a unit diagonal where it failed, so that solves with it stay finite)."""
-    k = a.shape[0]
-    low = torch.zeros_like(a)
-    good = torch.ones(a.shape[-1], dtype=torch.bool, device=a.device)
-    for j in range(k):
-        d = a[j, j] - low[j, :j].pow(2).sum(0)
-        ok = d > 0  # False for NaN too
-        good &= ok
-        low[j, j] = torch.where(ok, d, 1.0).sqrt()
-        if j + 1 < k:
-            low[j + 1:, j] = (a[j + 1:, j] - (low[j + 1:, :j] * low[j, :j]).sum(1)) / low[j, j]
-    return low, good
 
 
 def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,

@@ -65,6 +65,25 @@ def ldl_factor(m: Tensor) -> tuple[Tensor, Tensor]:
     return low, d
 
 
+def cholesky_factor(a: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower Cholesky factors ``(k, k, n)`` of ``n`` symmetric ``a (k, k, n)`` stored lane-wise,
+    and ``(n,)`` bool whether each is positive definite to rounding (a factor that is not has
+    a unit diagonal where it failed, so that solves with it stay finite). ``a``'s dtype and
+    device. For callers that leave such pixels out; :func:`ldl_factor` floors their pivots
+    instead."""
+    k = a.shape[0]
+    low = torch.zeros_like(a)
+    good = torch.ones(a.shape[-1], dtype=torch.bool, device=a.device)
+    for j in range(k):
+        d = a[j, j] - low[j, :j].pow(2).sum(0)
+        ok = d > 0  # False for NaN too
+        good &= ok
+        low[j, j] = torch.where(ok, d, 1.0).sqrt()
+        if j + 1 < k:
+            low[j + 1:, j] = (a[j + 1:, j] - (low[j + 1:, :j] * low[j, :j]).sum(1)) / low[j, j]
+    return low, good
+
+
 def _lane(v: Tensor, like: Tensor) -> Tensor:
     """``v (k, P)`` shaped to broadcast against ``like (k, ..., P)``."""
     return v.reshape(v.shape[0], *([1] * (like.dim() - 2)), v.shape[-1])
