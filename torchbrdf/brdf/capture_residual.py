@@ -75,7 +75,8 @@ def log_residual(inputs: ResidualInputs) -> Tensor:
 def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> tuple[Tensor, Tensor] | None:
     """The residual and its derivatives along ``K`` directions on the fused kernels, or None.
 
-    ``tangents``: ``{name: (K, P, C)}`` for ``"normal"`` and parameter names. Returns ``(r (P, L, 3),
+    ``tangents``: ``{name: (K, P, C)}`` for ``"normal"`` and parameter names, ``{name: (K, L, 3)}``
+    for ``"light_pos"`` and ``"light_int"``. Returns ``(r (P, L, 3),
     dr (K, P, L, 3))``, or None where the kernels do not apply (no backend, a tangent frame, or
     inputs that need a gradient): the caller then takes ``torch.func``'s ``vmap`` of ``jvp``.
     """
@@ -87,8 +88,9 @@ def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> 
         return None
     from torchbrdf.kernels.ops import capture_jvp
 
-    # the inputs' per-pixel (P, 1, C) layout, as residual_inputs gives them
-    tans = {"n" if k == "normal" else k: t[:, :, None] for k, t in tangents.items()}
+    # the inputs' layout as residual_inputs gives them: per pixel (P, 1, C), per light (1, L, 3)
+    tans = {"n" if k == "normal" else k: t[:, None] if k in ("light_pos", "light_int") else t[:, :, None]
+            for k, t in tangents.items()}
     return capture_jvp(c, tans, active, need_tint, frame, backend)
 
 

@@ -635,8 +635,8 @@ def log_residual_points_jvp(
     """:func:`log_residual_points` and its derivatives along ``K`` directions at once.
 
     ``tangents``: ``{name: (K, P, C)}``, the directions' tangents of ``"normal"`` and of
-    entries of ``params`` (each the shape of its input with a leading ``K``); every other input
-    is held. The other arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3),
+    entries of ``params``, and ``{name: (K, L, 3)}`` of ``"light_pos"`` and ``"light_int"``
+    (each the shape of its input with a leading ``K``); every other input is held. The other arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3),
     dr (K, P, L, 3))`` in ``log_obs``'s dtype, on its device, ``dr[k]`` what ``torch.func.jvp``
     of :func:`log_residual_points` along direction ``k`` gives. On the fused kernels, one
     forward and one JVP call of the operators (:func:`torchbrdf.brdf.capture_residual.log_residual_jvp`),
@@ -644,23 +644,25 @@ def log_residual_points_jvp(
     ``vmap``-of-``jvp`` transforms' work per call; otherwise (no kernel, or inputs that need a
     gradient) that ``vmap`` of ``jvp``.
     """
-    unknown = set(tangents) - {"normal", *params}
+    unknown = set(tangents) - {"normal", "light_pos", "light_int", *params}
     if unknown:
-        raise ValueError(f"log_residual_points_jvp: tangents for {sorted(unknown)}: expected 'normal' or "
-                         f"keys of params ({sorted(params)})")
+        raise ValueError(f"log_residual_points_jvp: tangents for {sorted(unknown)}: expected 'normal', "
+                         f"'light_pos', 'light_int' or keys of params ({sorted(params)})")
     fused = capture_residual.log_residual_jvp(
         _residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps, any_size), tangents)
     if fused is not None:
         return fused
     names = list(tangents)
 
+    held = {"normal": normal, "light_pos": light_pos, "light_int": light_int, **params}
+
     def res(*vals: Tensor) -> Tensor:
-        given = dict(zip(names, vals))
-        p = {k: given.get(k, v) for k, v in params.items()}
-        return log_residual_points(given.get("normal", normal), points, camera, light_pos, light_int, p,
+        given = {**held, **dict(zip(names, vals))}
+        p = {k: given[k] for k in params}
+        return log_residual_points(given["normal"], points, camera, given["light_pos"], given["light_int"], p,
                                    log_obs, eps, any_size)
 
-    primals = tuple(normal if k == "normal" else params[k] for k in names)
+    primals = tuple(held[k] for k in names)
     out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the directions
     pair: Any = torch.func.vmap(lambda *tg: torch.func.jvp(res, primals, tg), out_dims=out_dims)(
         *(tangents[k] for k in names))

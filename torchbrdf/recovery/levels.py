@@ -16,7 +16,7 @@ from torch import Tensor
 from torchbrdf.brdf import capture_residual
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import light_geometry, log_residual_points, log_residual_points_jvp
-from torchbrdf.recovery.params import decode, decode_pattern, decode_slots
+from torchbrdf.recovery.params import decode, decode_jvp, decode_pattern, decode_slots
 
 
 class LevelData:
@@ -136,8 +136,8 @@ class LevelData:
         :meth:`residual`. Returns ``(r (N, M), dr (K, N, M))``, ``M = 3 len(idx)``, ``dr[k]``
         = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``, in ``x``'s dtype, on its
         device. The principled model evaluates them in one call of the fused operators
-        (:func:`log_residual_points_jvp`, :func:`decode`'s own tangents by ``torch.func``); the
-        others through ``torch.func``.
+        (:func:`log_residual_points_jvp`, :func:`decode`'s tangents in closed form by
+        :func:`decode_jvp`); the others through ``torch.func``.
         """
         def unknowns(v: Tensor) -> tuple[Tensor, Tensor]:
             return (v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal)
@@ -146,7 +146,7 @@ class LevelData:
             return vmapped_jvp(lambda v: self.residual(*unknowns(v), idx, model, rows))(x, tangents)
         points, log_obs, _ = self._targets(idx, model, rows)
         # (a parameter the directions do not move has a zero tangent: the kernel drops it)
-        p, dp = vmapped_jvp(lambda v: decode(*unknowns(v)))(x, tangents)
+        p, dp = decode_jvp(x, metal, tangents)
         r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
                                         log_obs, self.eps, dp, any_size=True)
         m = 3 * len(idx)
@@ -162,7 +162,8 @@ class LevelData:
         of ``x``. Returns ``(r (N, M), cost (N,), JᵀJ (N, n_t, n_t), Jᵀr (N, n_t))`` (the
         residuals and their summed squares as they come, non-finite Jacobian entries and
         residuals counted as 0 in ``JᵀJ`` and ``Jᵀr``), in ``x``'s dtype, on its device: the
-        decode's tangents by ``torch.func`` (:func:`decode_slots`, three directions), then one
+        decode's tangents in closed form (:func:`decode_jvp`, three directions:
+        :func:`decode_slots`), then one
         light-loop kernel (:func:`torchbrdf.brdf.capture_residual.normal_equations`). None where
         that kernel does not apply (another model, no fused path for this dtype or device).
         """
@@ -173,8 +174,7 @@ class LevelData:
         dirs = torch.zeros(len(slots), x.shape[1], dtype=x.dtype, device=x.device)
         for s, cols in enumerate(slots):
             dirs[s, list(cols)] = 1.0
-        p, dp = vmapped_jvp(lambda v: decode(*((v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal))))(
-            x, dirs[:, None].expand(-1, *x.shape))
+        p, dp = decode_jvp(x, metal, dirs[:, None].expand(-1, *x.shape))
         pattern = decode_pattern(n_t)
         return capture_residual.normal_equations(p["normal"], points, self.camera, self.pos[idx], self.inten[idx],
                                                  p, log_obs, self.eps, {k: dp[k] for k in pattern}, pattern, n_t)

@@ -60,6 +60,36 @@ def decode(theta: Tensor, metal: Tensor) -> dict:
             "normal": n}
 
 
+def decode_jvp(x: Tensor, metal: Tensor, tangents: Tensor) -> tuple[dict, dict]:
+    """:func:`decode` and its derivatives along ``K`` directions of the unknowns, in closed form.
+
+    ``x (P, 7)``: theta, with ``metal (P, 1)``; or ``(P, 8)``: theta and a continuous metallic
+    (``metal`` is then unused); ``tangents (K, P, x's columns)``. Returns ``(params, dparams)``:
+    :func:`decode`'s dict and one of ``(K, P, C)`` tangents for each of its entries (metallic's
+    only with 8 columns), in ``x``'s dtype, on its device: what ``torch.func.vmap`` of
+    ``torch.func.jvp`` of :func:`decode` gives, without the transforms' work per call. Each
+    tangent is the derivative rule autograd's forward mode applies to that step of
+    :func:`decode`, in its order of operations, so the two agree to the last bit: per channel
+    ``σ' = (1 − σ) σ`` of the five logits (``sigmoid_backward``) and the roughness's
+    ``σ' (R_MAX − R_MIN)``; the normal ``n = u / |u|``, ``u = (p, q, 1)``, through
+    ``d|u|⁻¹ = −½ d(u·u) |u|⁻³``.
+    """
+    theta, metal_t = (x[:, :7], x[:, 7:8]) if x.shape[1] == 8 else (x, None)
+    p = decode(theta, x[:, 7:8] if metal_t is not None else metal)
+    ds = torch.ops.aten.sigmoid_backward(tangents[..., 0:5], torch.sigmoid(theta[:, 0:5]))
+    lo, hi = (torch.full((1,), v, dtype=x.dtype, device=x.device) for v in (R_MIN, R_MAX))
+    u = F.pad(theta[:, 5:7], (0, 1), value=1.0)
+    inv = torch.rsqrt((u * u).sum(-1, keepdim=True))
+    du = F.pad(tangents[..., 5:7], (0, 1), value=0.0)
+    d_uu = (du * u + du * u).sum(-1, keepdim=True)
+    d_inv = -0.5 * d_uu * inv.pow(3)
+    dp = {"base_color": ds[..., 0:3], "specular": ds[..., 3:4], "roughness": ds[..., 4:5] * (hi - lo),
+          "normal": d_inv * u + du * inv}
+    if metal_t is not None:
+        dp["metallic"] = tangents[..., 7:8]
+    return p, dp
+
+
 def encode(params: dict) -> Tensor:
     """Inverse of :func:`decode` for ``(P, C)`` parameter tensors."""
     n = params["normal"]
