@@ -17,7 +17,7 @@ from torchbrdf.brdf import capture_residual
 from torchbrdf.capture.synthetic import log_residual_points_jvp
 from torchbrdf.recovery.classes import chi2_quantile
 from torchbrdf.recovery.levels import LevelData, log_residual
-from torchbrdf.recovery.params import N_PARAMS, decode, decode_jvp
+from torchbrdf.recovery.params import N_PARAMS, decode, decode_directions
 from torchbrdf.recovery.pixel_systems import cholesky_factor
 
 
@@ -331,14 +331,13 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
     lights), or, without ``position``, its log scale alone (``G = 1``: 8 directions, one pass
     of the fused JVP kernel rather than two).
 
-    The principled model takes the decode's tangents in closed form (:func:`decode_jvp`) and
-    the residual's from one call of the fused operators (:func:`log_residual_points_jvp`):
-    ``torch.func``'s ``vmap`` of ``jvp`` of the same function, which the other models take,
-    gives the same numbers at several times the cost per call."""
+    The principled model takes the decode's tangents in closed form
+    (:func:`decode_directions`) and the residual's from one call of the fused operators
+    (:func:`log_residual_points_jvp`): ``torch.func``'s ``vmap`` of ``jvp`` of the same
+    function, which the other models take, gives the same numbers at several times the cost
+    per call."""
     cam = data.camera
     n, n_l, n_g = t0.shape[0], s0.shape[0], 4 if position else 1
-    eye7 = torch.eye(N_PARAMS, dtype=t0.dtype, device=t0.device)
-    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(n_g, n, N_PARAMS)))
     tp = pos0.new_zeros(N_PARAMS + n_g, *pos0.shape)
     ts = s0.new_zeros(N_PARAMS + n_g, n_l)
     for k in range(n_g - 1):
@@ -346,7 +345,7 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
     ts[-1] = 1.0
     if model == "principled":
         scale = torch.exp(s0)
-        p, dp = decode_jvp(t0, m, tt)
+        p, dp = decode_directions(t0, m, [[j] for j in range(N_PARAMS)] + [[]] * n_g)
         # the intensity inten0 · exp(s): its tangent by the chain rule, as forward mode forms it
         dp["light_pos"], dp["light_int"] = tp, (ts * scale)[..., None] * inten0
         r, dr = log_residual_points_jvp(p["normal"], pts, cam, pos0, inten0 * scale[:, None], p, log_obs,
@@ -358,6 +357,8 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
         r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
         return r.reshape(t.shape[0], -1)
 
+    eye7 = torch.eye(N_PARAMS, dtype=t0.dtype, device=t0.device)
+    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(n_g, n, N_PARAMS)))
     out_dims: Any = (None, 0)
     pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
                                 out_dims=out_dims)(tt, tp, ts)

@@ -16,7 +16,7 @@ from torch import Tensor
 from torchbrdf.brdf import capture_residual
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import light_geometry, log_residual_points, log_residual_points_jvp
-from torchbrdf.recovery.params import decode, decode_jvp, decode_pattern, decode_slots
+from torchbrdf.recovery.params import decode, decode_directions, decode_jvp, decode_pattern, decode_slots
 
 
 class LevelData:
@@ -162,7 +162,7 @@ class LevelData:
         of ``x``. Returns ``(r (N, M), cost (N,), JᵀJ (N, n_t, n_t), Jᵀr (N, n_t))`` (the
         residuals and their summed squares as they come, non-finite Jacobian entries and
         residuals counted as 0 in ``JᵀJ`` and ``Jᵀr``), in ``x``'s dtype, on its device: the
-        decode's tangents in closed form (:func:`decode_jvp`, three directions:
+        decode's tangents in closed form (:func:`decode_directions`, three directions:
         :func:`decode_slots`), then one
         light-loop kernel (:func:`torchbrdf.brdf.capture_residual.normal_equations`). None where
         that kernel does not apply (another model, no fused path for this dtype or device).
@@ -170,11 +170,7 @@ class LevelData:
         if model != "principled":
             return None
         points, log_obs, _ = self._targets(idx, model, rows)
-        slots = decode_slots(n_t)
-        dirs = torch.zeros(len(slots), x.shape[1], dtype=x.dtype, device=x.device)
-        for s, cols in enumerate(slots):
-            dirs[s, list(cols)] = 1.0
-        p, dp = decode_jvp(x, metal, dirs[:, None].expand(-1, *x.shape))
+        p, dp = decode_directions(x, metal, decode_slots(n_t))
         pattern = decode_pattern(n_t)
         return capture_residual.normal_equations(p["normal"], points, self.camera, self.pos[idx], self.inten[idx],
                                                  p, log_obs, self.eps, {k: dp[k] for k in pattern}, pattern, n_t)

@@ -7,6 +7,8 @@ Metallic is held apart (a class per pixel, or a continuous value in the final st
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -49,15 +51,40 @@ def logit(x: Tensor, lo: float = 0.0, hi: float = 1.0, eps: float = 1e-4) -> Ten
 
 def decode(theta: Tensor, metal: Tensor) -> dict:
     """Principled parameters ``(P, C)`` from unconstrained ``theta (P, 7)`` and ``metal (P, 1)``."""
+    return _decoded(theta, metal)[0]
+
+
+def _decoded(theta: Tensor, metal: Tensor) -> tuple[dict, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`decode`'s dict and the steps its tangents need: the logits' sigmoids ``s (P, 5)``,
+    ``u = (p, q, 1)`` and ``|u|⁻¹`` ``(P, 3)``, ``(P, 1)``, the roughness's span ``(1,)``."""
     s = torch.sigmoid(theta[:, 0:5])  # one op for the five logits (decode runs ~700 times a fit)
-    # (no arithmetic with Python numbers: under vmap of jvp, as the fit's Jacobian runs it, each
-    # such op takes a decomposition's slow path; this form halves that call's fixed cost)
+    # (no arithmetic with Python numbers: the fit's Jacobians took decode under vmap of jvp, where
+    # each such op takes a decomposition's slow path; the tensors are filled on the device: no
+    # copy from the host, no sync)
     lo, hi = (torch.full((1,), v, dtype=theta.dtype, device=theta.device) for v in (R_MIN, R_MAX))
-    rough = torch.lerp(lo, hi, s[:, 4:5])  # (filled on the device: no copy from the host, no sync)
-    n = F.pad(theta[:, 5:7], (0, 1), value=1.0)
-    n = n * torch.rsqrt((n * n).sum(-1, keepdim=True))
-    return {"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal,
-            "normal": n}
+    rough = torch.lerp(lo, hi, s[:, 4:5])
+    u = F.pad(theta[:, 5:7], (0, 1), value=1.0)
+    inv = torch.rsqrt((u * u).sum(-1, keepdim=True))
+    return ({"base_color": s[:, 0:3], "specular": s[:, 3:4], "roughness": rough, "metallic": metal,
+             "normal": u * inv}, s, u, inv, hi - lo)
+
+
+# The derivative rules of decode's steps, as autograd's forward mode applies them (derivatives.yaml,
+# in its order of operations: the same bits as torch.func.jvp of decode).
+
+def _logit_tangents(t: Tensor, s: Tensor, span: Tensor) -> tuple[Tensor, Tensor]:
+    """Tangents of the sigmoids ``(…, 5)`` along logit tangents ``t (…, 5)`` and the roughness's
+    ``(…, 1)`` (its lerp: the sigmoid's tangent times the span)."""
+    ds = torch.ops.aten.sigmoid_backward(t, s)  # t (1 − σ) σ
+    return ds, ds[..., 4:5] * span
+
+
+def _normal_tangent(t: Tensor, u: Tensor, inv: Tensor) -> Tensor:
+    """Tangent ``(…, 3)`` of ``n = u |u|⁻¹`` along slope tangents ``t (…, 2)``: ``du = (t, 0)``,
+    ``d|u|⁻¹ = −½ d(u·u) |u|⁻³``."""
+    du = F.pad(t, (0, 1), value=0.0)
+    d_inv = -0.5 * (du * u + du * u).sum(-1, keepdim=True) * inv.pow(3)
+    return d_inv * u + du * inv
 
 
 def decode_jvp(x: Tensor, metal: Tensor, tangents: Tensor) -> tuple[dict, dict]:
@@ -67,26 +94,57 @@ def decode_jvp(x: Tensor, metal: Tensor, tangents: Tensor) -> tuple[dict, dict]:
     (``metal`` is then unused); ``tangents (K, P, x's columns)``. Returns ``(params, dparams)``:
     :func:`decode`'s dict and one of ``(K, P, C)`` tangents for each of its entries (metallic's
     only with 8 columns), in ``x``'s dtype, on its device: what ``torch.func.vmap`` of
-    ``torch.func.jvp`` of :func:`decode` gives, without the transforms' work per call. Each
-    tangent is the derivative rule autograd's forward mode applies to that step of
-    :func:`decode`, in its order of operations, so the two agree to the last bit: per channel
-    ``σ' = (1 − σ) σ`` of the five logits (``sigmoid_backward``) and the roughness's
-    ``σ' (R_MAX − R_MIN)``; the normal ``n = u / |u|``, ``u = (p, q, 1)``, through
-    ``d|u|⁻¹ = −½ d(u·u) |u|⁻³``.
+    ``torch.func.jvp`` of :func:`decode` gives, to the last bit (each step's forward-mode rule
+    in autograd's order of operations), without the transforms' work per call.
     """
-    theta, metal_t = (x[:, :7], x[:, 7:8]) if x.shape[1] == 8 else (x, None)
-    p = decode(theta, x[:, 7:8] if metal_t is not None else metal)
-    ds = torch.ops.aten.sigmoid_backward(tangents[..., 0:5], torch.sigmoid(theta[:, 0:5]))
-    lo, hi = (torch.full((1,), v, dtype=x.dtype, device=x.device) for v in (R_MIN, R_MAX))
-    u = F.pad(theta[:, 5:7], (0, 1), value=1.0)
-    inv = torch.rsqrt((u * u).sum(-1, keepdim=True))
-    du = F.pad(tangents[..., 5:7], (0, 1), value=0.0)
-    d_uu = (du * u + du * u).sum(-1, keepdim=True)
-    d_inv = -0.5 * d_uu * inv.pow(3)
-    dp = {"base_color": ds[..., 0:3], "specular": ds[..., 3:4], "roughness": ds[..., 4:5] * (hi - lo),
-          "normal": d_inv * u + du * inv}
-    if metal_t is not None:
+    theta = x[:, :7]
+    p, s, u, inv, span = _decoded(theta, x[:, 7:8] if x.shape[1] == 8 else metal)
+    ds, d_rough = _logit_tangents(tangents[..., 0:5], s, span)
+    dp = {"base_color": ds[..., 0:3], "specular": ds[..., 3:4], "roughness": d_rough,
+          "normal": _normal_tangent(tangents[..., 5:7], u, inv)}
+    if x.shape[1] == 8:
         dp["metallic"] = tangents[..., 7:8]
+    return p, dp
+
+
+def decode_directions(x: Tensor, metal: Tensor, rows: Sequence[Sequence[int]]) -> tuple[dict, dict]:
+    """:func:`decode_jvp` along sums of unit directions, without forming the ``(K, P, C)`` products.
+
+    Direction ``k`` is the sum of the unit vectors of the unknowns (columns of ``x``) listed in
+    ``rows[k]`` (e.g. :func:`decode_slots`; an empty list: a zero direction); ``x``, ``metal`` as
+    for :func:`decode_jvp`. Returns the same ``(params, dparams)`` (contiguous tangents, zero
+    where a direction does not move a parameter; metallic's only with 8 columns), bit for bit:
+    each unknown's derivative is computed once per pixel (the per-channel ``(1 − σ) σ`` of a
+    logit, the normal's along each slope) and copied into the directions that move it.
+    """
+    theta, n_x = x[:, :7], x.shape[1]
+    p, s, u, inv, span = _decoded(theta, x[:, 7:8] if n_x == 8 else metal)
+    ds, d_rough = _logit_tangents(s.new_ones(1, 5), s, span)
+    K, P = len(rows), x.shape[0]
+    dp = {name: x.new_zeros(K, P, C) for name, C in (("base_color", 3), ("specular", 1), ("roughness", 1),
+                                                      ("normal", 3), ("metallic", 1)) if name != "metallic" or n_x == 8}
+    moved = [(k, [j in cols for j in (5, 6)]) for k, cols in enumerate(rows) if 5 in cols or 6 in cols]
+    if moved:
+        t = x.new_zeros(len(moved), 1, 2)
+        for i, (_, flags) in enumerate(moved):
+            for c, on in enumerate(flags):
+                if on:
+                    t[i, 0, c] = 1.0
+        dn = _normal_tangent(t, u, inv)
+        for i, (k, _) in enumerate(moved):
+            dp["normal"][k] = dn[i]
+    for k, cols in enumerate(rows):
+        for j in cols:
+            if j < 3:
+                dp["base_color"][k, :, j] = ds[:, j]
+            elif j == 3:
+                dp["specular"][k] = ds[:, 3:4]
+            elif j == 4:
+                dp["roughness"][k] = d_rough
+            elif j == 7 and n_x == 8:
+                dp["metallic"][k] = 1.0
+            elif j not in (5, 6):
+                raise ValueError(f"decode_directions: rows[{k}] lists unknown {j}; x has {n_x} columns")
     return p, dp
 
 
