@@ -1,0 +1,222 @@
+"""The decode's tangents in closed form, and the Jacobians built on them without ``torch.func``.
+
+:func:`~torchbrdf.recovery.params.decode_jvp` and :func:`~torchbrdf.recovery.params.decode_directions`
+against ``torch.func`` (``jacfwd`` in float64; ``vmap`` of ``jvp``, the fit's former way, bit
+for bit), the residual's tangents along the lights' positions and intensities, and the light
+step's and the normal equations' Jacobians, which no longer go through ``torch.func.vmap``.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchbrdf
+from torchbrdf.capture.synthetic import DEFAULT_CAMERA, light_layout, log_residual_points, log_residual_points_jvp
+from torchbrdf.capture.format import pixel_points
+from torchbrdf.recovery import calibration
+from torchbrdf.recovery.levels import log_residual, vmapped_jvp
+from torchbrdf.recovery.params import N_PARAMS, decode, decode_directions, decode_jvp, decode_slots
+
+from tests.recovery.recovery_fixtures import flat_level
+
+#: The decoded parameters in the order of the Jacobian's rows below (9 rows with metallic).
+ROWS = ("base_color", "specular", "roughness", "normal", "metallic")
+
+
+def _unknowns(dtype: torch.dtype, n_x: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x (P, n_x)`` and ``metal (P, 1)``: metal and dielectric pixels, a fractional metallic
+    (8 columns), extreme logits (the sigmoid saturated) and slopes (flat, steep)."""
+    gen = torch.Generator().manual_seed(5)
+    x = (2.0 * torch.randn(40, n_x, generator=gen)).to(dtype)
+    x[:4, 0:5], x[4:8, 0:5] = 30.0, -30.0  # σ' = e^-30 (float64) or its float32 rounding
+    x[8:12, 5:7], x[12:16, 5:7] = 0.0, torch.tensor([[40.0, -25.0]], dtype=dtype)
+    metal = (torch.arange(40) % 2).to(dtype)[:, None]
+    if n_x == 8:
+        x[:, 7] = torch.rand(40, generator=gen).to(dtype)  # fractional metallic
+    return x, metal
+
+
+def _reference(x: torch.Tensor, metal: torch.Tensor) -> dict:
+    """The decode's per-pixel Jacobian ``{name: (P, C, n_x)}`` by ``jacfwd``, one pixel at a time."""
+    def one(v: torch.Tensor, m: torch.Tensor) -> dict:
+        return decode(v[None, :7], v[None, 7:8] if v.shape[0] == 8 else m[None])
+
+    jac = torch.func.vmap(torch.func.jacfwd(one))(x, metal)
+    return {k: v[:, 0] for k, v in jac.items()}
+
+
+@pytest.mark.parametrize("n_x", [7, 8])
+def test_decode_jvp_is_the_jacobian_of_decode(n_x):
+    """Along the unit directions the closed-form tangents are ``jacfwd(decode)`` to 1e-12 (float64):
+    per-channel sigmoid derivatives, the roughness's span, the normal's 3×2 block, metallic's 1
+    (8 columns; none with 7), zeros elsewhere. The normal's block with its slopes swapped, or
+    a base colour's channels crossed, is told apart."""
+    x, metal = _unknowns(torch.float64, n_x)
+    p, dp = decode_jvp(x, metal, torch.eye(n_x, dtype=x.dtype)[:, None, :].expand(n_x, *x.shape))
+    want = _reference(x, metal)
+    assert set(dp) == ({"base_color", "specular", "roughness", "normal"} | ({"metallic"} if n_x == 8 else set()))
+    for k, v in decode(x[:, :7], x[:, 7:8] if n_x == 8 else metal).items():
+        assert torch.equal(p[k], v)
+    got = torch.cat([dp[k].permute(1, 2, 0) for k in ROWS if k in dp], 1)  # (P, C, n_x)
+    ref = torch.cat([want[k] for k in ROWS if k in dp], 1)
+    assert got.shape == (40, 9 if n_x == 8 else 8, n_x)
+    torch.testing.assert_close(got, ref, rtol=0.0, atol=1e-12)
+    assert float(got[:, 5:8, 5:7].abs().min(-1).values.max()) > 0.1  # the normal block is not trivial
+    for wrong in (got[:, :, [0, 1, 2, 3, 4, 6, 5, *range(7, n_x)]], got[:, [1, 0, *range(2, got.shape[1])]]):
+        assert float((wrong - ref).abs().max()) > 1e-3
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n_x", [7, 8])
+def test_decode_tangents_are_those_of_vmap_of_jvp_bit_for_bit(dtype, n_x):
+    """:func:`decode_jvp` (random tangents) and :func:`decode_directions` (the normal equations'
+    slots, the light step's unit directions with zero ones after, two slopes in one direction)
+    give ``vmap`` of ``jvp`` of :func:`decode` exactly, signed zeros included; the directions
+    in their order (reversed rows differ)."""
+    x, metal = _unknowns(dtype, n_x)
+    f = vmapped_jvp(lambda v: decode(*((v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal))))
+    gen = torch.Generator().manual_seed(1)
+    tangents = torch.randn(4, *x.shape, generator=gen).to(dtype)
+    _, want = f(x, tangents)
+    _, got = decode_jvp(x, metal, tangents)
+    for k in got:
+        assert torch.equal(got[k], want[k]), k
+    for rows in (decode_slots(n_x), [[j] for j in range(N_PARAMS)] + [[]] * 4, [[5, 6], [0, 4], [3]]):
+        unit = torch.zeros(len(rows), *x.shape, dtype=dtype)
+        for k, cols in enumerate(rows):
+            unit[k, :, list(cols)] = 1.0
+        _, want = f(x, unit)
+        _, got = decode_directions(x, metal, rows)
+        assert set(got) == set(want) - ({"metallic"} if n_x == 7 else set())
+        for k in got:
+            assert got[k].is_contiguous() and torch.equal(got[k], want[k]), (rows, k)
+            assert torch.equal(got[k].signbit(), want[k].signbit()), (rows, k)
+        _, flipped = decode_directions(x, metal, list(rows)[::-1])
+        assert not all(torch.equal(flipped[k], want[k]) for k in got)
+
+
+def test_decode_directions_refuses_an_unknown_it_does_not_have():
+    x, metal = _unknowns(torch.float32, 7)
+    with pytest.raises(ValueError, match=r"rows\[1\] lists unknown 7; x has 7 columns"):
+        decode_directions(x, metal, [[0], [7]])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_residual_tangents_along_light_positions_and_intensities(monkeypatch, dtype):
+    """``log_residual_points_jvp`` takes ``(K, L, 3)`` tangents of ``light_pos`` and ``light_int``
+    beside the per-pixel ones (L ≠ P: a per-pixel layout of them would not fit), in one call of
+    the fused operators, against ``torch.func.jvp`` of the eager formula one direction at a time."""
+    import torchbrdf.kernels.ops as ops
+
+    gen = torch.Generator().manual_seed(4)
+    pos, inten = (t.to(dtype) for t in light_layout(5))
+    P, L, K = 30, pos.shape[0], 3
+    n = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen).to(dtype) * 0.2
+                                      + torch.tensor([0.0, 0.0, 1.0], dtype=dtype), dim=-1)
+    mat = {"base_color": torch.rand(P, 3, generator=gen).to(dtype), "roughness": 0.2 + 0.5 * torch.rand(
+        P, 1, generator=gen).to(dtype), "metallic": torch.rand(P, 1, generator=gen).to(dtype)}
+    pts, cam = pixel_points(5, 6, dtype=dtype).reshape(-1, 3), torch.as_tensor(DEFAULT_CAMERA, dtype=dtype)
+    log_obs = torch.randn(P, L, 3, generator=gen).to(dtype) * 0.3 - 1.0
+    tangents = {"light_pos": torch.randn(K, L, 3, generator=gen).to(dtype),
+                "light_int": torch.randn(K, L, 3, generator=gen).to(dtype),
+                "normal": torch.randn(K, P, 3, generator=gen).to(dtype)}
+    tangents["light_int"][1] = 0.0
+
+    def res(lp, li, nn):
+        return log_residual_points(nn, pts, cam, lp, li, mat, log_obs, 0.01, any_size=True)
+
+    torchbrdf.set_fast_path(False)
+    try:
+        want = torch.stack([torch.func.jvp(res, (pos, inten, n), tuple(tangents[k][j] for k in tangents))[1]
+                            for j in range(K)])
+    finally:
+        torchbrdf.set_fast_path(None)
+    calls = []
+    direct = ops.capture_jvp
+    monkeypatch.setattr(ops, "capture_jvp", lambda *a, **k: calls.append(1) or direct(*a, **k))
+    tol = {"rtol": 1e-9, "atol": 1e-10} if dtype == torch.float64 else {"rtol": 2e-4, "atol": 2e-4}
+    r, dr = log_residual_points_jvp(n, pts, cam, pos, inten, mat, log_obs, 0.01, tangents, any_size=True)
+    assert calls == [1] and dr.shape == (K, P, L, 3)
+    torch.testing.assert_close(dr, want, **tol)
+    # inputs that need a gradient: torch.func's vmap of jvp, the same derivatives
+    _, dr2 = log_residual_points_jvp(n, pts, cam, pos.clone().requires_grad_(), inten, mat, log_obs, 0.01,
+                                     tangents, any_size=True)
+    assert calls == [1]
+    torch.testing.assert_close(dr2.detach(), want, **tol)
+
+
+def _light_jacobians_by_vmap(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position=True):
+    """The light step's Jacobians as ``torch.func.vmap`` of ``jvp`` of the residual (the reference)."""
+    def res(t, pos, s):
+        r = log_residual(decode(t, m), pts, data.camera, pos, inten0 * torch.exp(s)[:, None], log_obs, data.eps,
+                         model)
+        return r.reshape(t.shape[0], -1)
+
+    n, n_g = t0.shape[0], 4 if position else 1
+    tt = torch.zeros(N_PARAMS + n_g, n, N_PARAMS, dtype=t0.dtype)
+    tt[:N_PARAMS] = torch.eye(N_PARAMS, dtype=t0.dtype)[:, None, :]
+    tp = torch.zeros(N_PARAMS + n_g, *pos0.shape, dtype=t0.dtype)
+    ts = torch.zeros(N_PARAMS + n_g, s0.shape[0], dtype=t0.dtype)
+    for k in range(n_g - 1):
+        tp[N_PARAMS + k, :, k] = 1.0
+    ts[-1] = 1.0
+    return torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
+                           out_dims=(None, 0))(tt, tp, ts)
+
+
+def _no_vmap(monkeypatch):
+    def refuse(*a, **k):
+        raise AssertionError("torch.func.vmap called")
+
+    monkeypatch.setattr(torch.func, "vmap", refuse)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("position", [True, False])
+def test_light_step_jacobians_are_vmap_of_jvp_without_it(monkeypatch, dtype, position):
+    """The joint light step's residuals and ``7 + G`` derivative columns (offsets, log scales
+    away from 0 and from each other) equal ``vmap`` of ``jvp`` of the residual bit for bit,
+    computed without ``torch.func.vmap``."""
+    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
+    gen = torch.Generator().manual_seed(3)
+    n_l = data.pos_stated.shape[0]
+    data.camera = data.camera.to(dtype)
+    args = (data, (theta + 0.3 * torch.randn(theta.shape, generator=gen)).to(dtype), metal.to(dtype),
+            data.points.to(dtype), data.log_obs.permute(1, 0, 2).to(dtype), data.inten_stated.to(dtype),
+            (data.pos_stated + 0.01 * torch.randn(n_l, 3, generator=gen)).to(dtype),
+            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), "principled")
+    want_r, want = _light_jacobians_by_vmap(*args, position=position)
+    _no_vmap(monkeypatch)
+    r, cols = calibration._pixel_and_light_jacobians(*args, position=position)
+    assert cols.shape == (N_PARAMS + (4 if position else 1), 64, 3 * n_l)
+    assert torch.equal(r, want_r) and torch.equal(cols, want)
+    assert float(cols[-1].median()) > 0.5  # the log scale's column: pred / (pred + ε)
+
+
+@pytest.mark.parametrize("n_t", [7, 8])
+def test_normal_equations_without_vmap_are_those_of_the_vmapped_decode(monkeypatch, n_t):
+    """``LevelData.normal_equations`` (8 columns: the continuous-metallic stage, metallic
+    differentiated or held) gives the fused kernel's terms on the decode's tangents of ``vmap`` of
+    ``jvp`` bit for bit, without ``torch.func.vmap``."""
+    from torchbrdf.brdf import capture_residual
+    from torchbrdf.recovery.params import decode_pattern
+
+    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
+    gen = torch.Generator().manual_seed(2)
+    x = torch.cat((theta + 0.3 * torch.randn(theta.shape, generator=gen), torch.rand(64, 1, generator=gen)), -1)
+    idx = data.train_idx
+    slots = decode_slots(n_t)
+    dirs = torch.zeros(len(slots), 8)
+    for s, cols in enumerate(slots):
+        dirs[s, list(cols)] = 1.0
+    p, dp = vmapped_jvp(lambda v: decode(v[:, :7], v[:, 7:8]))(x, dirs[:, None].expand(-1, *x.shape))
+    pattern = decode_pattern(n_t)
+    want = capture_residual.normal_equations(p["normal"], data.points, data.camera, data.pos[idx], data.inten[idx],
+                                             p, data.log_obs[idx].permute(1, 0, 2).contiguous(), data.eps,
+                                             {k: dp[k] for k in pattern}, pattern, n_t)
+    _no_vmap(monkeypatch)
+    got = data.normal_equations(x, x[:, 7:8], idx, "principled", n_t)
+    assert want is not None and got is not None
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    assert float(got[2][:, n_t - 1, n_t - 1].abs().max()) > 0  # the last unknown moves the residuals
