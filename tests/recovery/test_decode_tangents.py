@@ -26,11 +26,12 @@ ROWS = ("base_color", "specular", "roughness", "normal", "metallic")
 
 def _unknowns(dtype: torch.dtype, n_x: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``x (P, n_x)`` and ``metal (P, 1)``: metal and dielectric pixels, a fractional metallic
-    (8 columns), extreme logits (the sigmoid saturated) and slopes (flat, steep)."""
+    (8 columns), extreme logits (the sigmoid saturated) and slopes (flat, steep, ``−0``)."""
     gen = torch.Generator().manual_seed(5)
     x = (2.0 * torch.randn(40, n_x, generator=gen)).to(dtype)
     x[:4, 0:5], x[4:8, 0:5] = 30.0, -30.0  # σ' = e^-30 (float64) or its float32 rounding
     x[8:12, 5:7], x[12:16, 5:7] = 0.0, torch.tensor([[40.0, -25.0]], dtype=dtype)
+    x[16:20, 5:7], x[20:22, 5], x[22:24, 6] = -0.0, -0.0, -0.0  # signed zeros: the tangents keep their signs
     metal = (torch.arange(40) % 2).to(dtype)[:, None]
     if n_x == 8:
         x[:, 7] = torch.rand(40, generator=gen).to(dtype)  # fractional metallic

@@ -108,6 +108,13 @@ def decode_jvp(x: Tensor, metal: Tensor, tangents: Tensor) -> tuple[dict, dict]:
     return p, dp
 
 
+#: The ``(parameter, channel)`` entries of :func:`decode`'s result each unknown moves (columns
+#: of ``theta``, then a continuous metallic): a logit its own channel, a slope the whole normal.
+_MOVES = {0: (("base_color", 0),), 1: (("base_color", 1),), 2: (("base_color", 2),), 3: (("specular", 0),),
+          4: (("roughness", 0),), 5: tuple(("normal", c) for c in range(3)),
+          6: tuple(("normal", c) for c in range(3)), 7: (("metallic", 0),)}
+
+
 def decode_directions(x: Tensor, metal: Tensor, rows: Sequence[Sequence[int]]) -> tuple[dict, dict]:
     """:func:`decode_jvp` along sums of unit directions, without forming the ``(K, P, C)`` products.
 
@@ -115,38 +122,51 @@ def decode_directions(x: Tensor, metal: Tensor, rows: Sequence[Sequence[int]]) -
     ``rows[k]`` (e.g. :func:`decode_slots`; an empty list: a zero direction); ``x``, ``metal`` as
     for :func:`decode_jvp`. Returns the same ``(params, dparams)`` (contiguous tangents, zero
     where a direction does not move a parameter; metallic's only with 8 columns), bit for bit:
-    each unknown's derivative is computed once per pixel (the per-channel ``(1 − σ) σ`` of a
-    logit, the normal's along each slope) and copied into the directions that move it.
+    each logit's ``(1 − σ) σ`` is computed once per pixel and copied into the direction that
+    moves it, and a direction along one slope takes the normal's rule with its zero terms
+    written out (:func:`_slope_tangent`).
     """
-    theta, n_x = x[:, :7], x.shape[1]
-    p, s, u, inv, span = _decoded(theta, x[:, 7:8] if n_x == 8 else metal)
-    ds, d_rough = _logit_tangents(s.new_ones(1, 5), s, span)
-    K, P = len(rows), x.shape[0]
-    dp = {name: x.new_zeros(K, P, C) for name, C in (("base_color", 3), ("specular", 1), ("roughness", 1),
-                                                      ("normal", 3), ("metallic", 1)) if name != "metallic" or n_x == 8}
-    moved = [(k, [j in cols for j in (5, 6)]) for k, cols in enumerate(rows) if 5 in cols or 6 in cols]
-    if moved:
-        t = x.new_zeros(len(moved), 1, 2)
-        for i, (_, flags) in enumerate(moved):
-            for c, on in enumerate(flags):
-                if on:
-                    t[i, 0, c] = 1.0
-        dn = _normal_tangent(t, u, inv)
-        for i, (k, _) in enumerate(moved):
-            dp["normal"][k] = dn[i]
+    n_x = x.shape[1]
     for k, cols in enumerate(rows):
+        for j in cols:
+            if j not in _MOVES or j >= n_x:
+                raise ValueError(f"decode_directions: rows[{k}] lists unknown {j}; x has {n_x} columns")
+    p, s, u, inv, span = _decoded(x[:, :7], x[:, 7:8] if n_x == 8 else metal)
+    ds, d_rough = _logit_tangents(s.new_ones(1, 5), s, span)
+    channels = {"base_color": 3, "specular": 1, "roughness": 1, "normal": 3, "metallic": 1 if n_x == 8 else 0}
+    dp = {name: x.new_empty(len(rows), x.shape[0], c) for name, c in channels.items() if c}
+    for k, cols in enumerate(rows):
+        written = {m for j in cols for m in _MOVES[j]}
+        for name, t in dp.items():  # zero what the direction does not move
+            if sum((name, c) in written for c in range(t.shape[2])) < t.shape[2]:
+                t[k].zero_()
         for j in cols:
             if j < 3:
                 dp["base_color"][k, :, j] = ds[:, j]
-            elif j == 3:
-                dp["specular"][k] = ds[:, 3:4]
-            elif j == 4:
-                dp["roughness"][k] = d_rough
-            elif j == 7 and n_x == 8:
+            elif j in (3, 4):
+                dp["specular" if j == 3 else "roughness"][k] = ds[:, 3:4] if j == 3 else d_rough
+            elif j == 7:
                 dp["metallic"][k] = 1.0
-            elif j not in (5, 6):
-                raise ValueError(f"decode_directions: rows[{k}] lists unknown {j}; x has {n_x} columns")
+        slopes = [j - 5 for j in cols if j in (5, 6)]
+        if len(slopes) == 1:
+            _slope_tangent(slopes[0], u, inv, dp["normal"][k])
+        elif slopes:
+            dp["normal"][k] = _normal_tangent(u.new_ones(2), u, inv)
     return p, dp
+
+
+def _slope_tangent(c: int, u: Tensor, inv: Tensor, out: Tensor) -> None:
+    """:func:`_normal_tangent` along slope ``c`` (0: p, 1: q) alone into ``out (P, 3)``, the same bits.
+
+    With ``du = e_c``: ``d(u·u)`` is ``u_c + u_c`` plus zeros (``+ 0``: a ``−0`` sum becomes
+    ``+0``, in any order of the sum), and ``du · |u|⁻¹`` adds ``|u|⁻¹`` to channel ``c`` and ``+0``
+    to the others.
+    """
+    uc = u[:, c:c + 1]
+    d_inv = -0.5 * (uc + uc + 0.0) * inv.pow(3)
+    torch.mul(d_inv, u, out=out)
+    out.add_(0.0)
+    out[:, c:c + 1] = d_inv * uc + inv
 
 
 def encode(params: dict) -> Tensor:
