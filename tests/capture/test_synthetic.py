@@ -126,9 +126,10 @@ def test_fit_residual_on_a_few_pixels_runs_fused_with_any_size(monkeypatch):
 def test_fit_residual_jvp_is_the_vmapped_jvp_of_the_residual(monkeypatch, dtype):
     """``log_residual_points_jvp``: the residual and its derivatives along K directions at once.
 
-    K = 5 directions, each moving some of base colour, roughness, metallic and the normal (one
-    all of them, one none), against ``torch.func.jvp`` of :func:`log_residual_points` one
-    direction at a time, on the eager formula. The fused path is one call of each operator
+    K = 5 directions, each moving some of base colour, roughness, metallic, the normal and the
+    lights' positions and intensities (``(K, L, 3)`` tangents, L ≠ P; one direction all of
+    them, one none), against ``torch.func.jvp`` of :func:`log_residual_points` one direction at
+    a time, on the eager formula. The fused path is one call of each operator
     (``capture_jvp``); inputs that need a gradient, or no fused kernel, take the transforms. A
     tangent of an input that is not there is refused by name.
     """
@@ -146,20 +147,24 @@ def test_fit_residual_jvp_is_the_vmapped_jvp_of_the_residual(monkeypatch, dtype)
     n = n / n.norm(dim=-1, keepdim=True)
     pts, cam = pixel_points(12, 12, dtype=dtype).reshape(-1, 3), torch.as_tensor(DEFAULT_CAMERA, dtype=dtype)
     log_obs = torch.randn(144, pos.shape[0], 3, generator=gen, dtype=dtype) * 0.3 - 1.0
-    K, moved = 5, ("base_color", "roughness", "metallic", "normal")
-    tangents = {k: torch.zeros(K, 144, 3 if k in ("base_color", "normal") else 1, dtype=dtype) for k in moved}
+    K, moved = 5, ("base_color", "roughness", "metallic", "normal", "light_pos", "light_int")
+    rows = {"light_pos": pos.shape[0], "light_int": pos.shape[0]}
+    tangents = {k: torch.zeros(K, rows.get(k, 144), 1 if k in ("roughness", "metallic") else 3, dtype=dtype)
+                for k in moved}
     tangents["base_color"][0] = torch.rand(144, 3, generator=gen, dtype=dtype)
     tangents["roughness"][1] = 1.0
+    tangents["light_int"][1] = inten
     tangents["normal"][2] = torch.randn(144, 3, generator=gen, dtype=dtype)
+    tangents["light_pos"][2, :, 1] = 1.0
     for k in moved:
         tangents[k][3] = torch.randn(tangents[k][3].shape, generator=gen, dtype=dtype)
     #                                   direction 4: nothing moves
 
-    def res(b, r, m, nn):
+    def res(b, r, m, nn, lp, li):
         mat = {**flat, "base_color": b, "roughness": r, "metallic": m}
-        return log_residual_points(nn, pts, cam, pos, inten, mat, log_obs, 0.01, any_size=True)
+        return log_residual_points(nn, pts, cam, lp, li, mat, log_obs, 0.01, any_size=True)
 
-    primals = tuple(n if k == "normal" else flat[k] for k in moved)
+    primals = tuple({"normal": n, "light_pos": pos, "light_int": inten}.get(k, flat.get(k)) for k in moved)
     torchbrdf.set_fast_path(False)
     try:
         want_r = res(*primals)

@@ -11,9 +11,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-import torchbrdf
-from torchbrdf.capture.synthetic import DEFAULT_CAMERA, light_layout, log_residual_points, log_residual_points_jvp
-from torchbrdf.capture.format import pixel_points
 from torchbrdf.recovery import calibration
 from torchbrdf.recovery.levels import log_residual, vmapped_jvp
 from torchbrdf.recovery.params import N_PARAMS, decode, decode_directions, decode_jvp, decode_slots
@@ -101,50 +98,6 @@ def test_decode_directions_refuses_an_unknown_it_does_not_have():
     x, metal = _unknowns(torch.float32, 7)
     with pytest.raises(ValueError, match=r"rows\[1\] lists unknown 7; x has 7 columns"):
         decode_directions(x, metal, [[0], [7]])
-
-
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_residual_tangents_along_light_positions_and_intensities(monkeypatch, dtype):
-    """``log_residual_points_jvp`` takes ``(K, L, 3)`` tangents of ``light_pos`` and ``light_int``
-    beside the per-pixel ones (L ≠ P: a per-pixel layout of them would not fit), in one call of
-    the fused operators, against ``torch.func.jvp`` of the eager formula one direction at a time."""
-    import torchbrdf.kernels.ops as ops
-
-    gen = torch.Generator().manual_seed(4)
-    pos, inten = (t.to(dtype) for t in light_layout(5))
-    P, L, K = 30, pos.shape[0], 3
-    n = torch.nn.functional.normalize(torch.randn(P, 3, generator=gen).to(dtype) * 0.2
-                                      + torch.tensor([0.0, 0.0, 1.0], dtype=dtype), dim=-1)
-    mat = {"base_color": torch.rand(P, 3, generator=gen).to(dtype), "roughness": 0.2 + 0.5 * torch.rand(
-        P, 1, generator=gen).to(dtype), "metallic": torch.rand(P, 1, generator=gen).to(dtype)}
-    pts, cam = pixel_points(5, 6, dtype=dtype).reshape(-1, 3), torch.as_tensor(DEFAULT_CAMERA, dtype=dtype)
-    log_obs = torch.randn(P, L, 3, generator=gen).to(dtype) * 0.3 - 1.0
-    tangents = {"light_pos": torch.randn(K, L, 3, generator=gen).to(dtype),
-                "light_int": torch.randn(K, L, 3, generator=gen).to(dtype),
-                "normal": torch.randn(K, P, 3, generator=gen).to(dtype)}
-    tangents["light_int"][1] = 0.0
-
-    def res(lp, li, nn):
-        return log_residual_points(nn, pts, cam, lp, li, mat, log_obs, 0.01, any_size=True)
-
-    torchbrdf.set_fast_path(False)
-    try:
-        want = torch.stack([torch.func.jvp(res, (pos, inten, n), tuple(tangents[k][j] for k in tangents))[1]
-                            for j in range(K)])
-    finally:
-        torchbrdf.set_fast_path(None)
-    calls = []
-    direct = ops.capture_jvp
-    monkeypatch.setattr(ops, "capture_jvp", lambda *a, **k: calls.append(1) or direct(*a, **k))
-    tol = {"rtol": 1e-9, "atol": 1e-10} if dtype == torch.float64 else {"rtol": 2e-4, "atol": 2e-4}
-    r, dr = log_residual_points_jvp(n, pts, cam, pos, inten, mat, log_obs, 0.01, tangents, any_size=True)
-    assert calls == [1] and dr.shape == (K, P, L, 3)
-    torch.testing.assert_close(dr, want, **tol)
-    # inputs that need a gradient: torch.func's vmap of jvp, the same derivatives
-    _, dr2 = log_residual_points_jvp(n, pts, cam, pos.clone().requires_grad_(), inten, mat, log_obs, 0.01,
-                                     tangents, any_size=True)
-    assert calls == [1]
-    torch.testing.assert_close(dr2.detach(), want, **tol)
 
 
 def _light_jacobians_by_vmap(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position=True):
