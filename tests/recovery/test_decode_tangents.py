@@ -2,8 +2,8 @@
 
 :func:`~torchbrdf.recovery.params.decode_jvp` and :func:`~torchbrdf.recovery.params.decode_directions`
 against ``torch.func`` (``jacfwd`` in float64; ``vmap`` of ``jvp``, the fit's former way, bit
-for bit), the residual's tangents along the lights' positions and intensities, and the light
-step's and the normal equations' Jacobians, which no longer go through ``torch.func.vmap``.
+for bit), and the light step's and the normal equations' Jacobians, which no longer go
+through ``torch.func.vmap`` (the residual's tangents along the lights: tests/capture/test_synthetic.py).
 """
 
 from __future__ import annotations
