@@ -15,7 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchbrdf.recovery.pixel_systems import ldl_factor, ldl_solve, lower_solve, to_lanes, upper_solve
+from torchbrdf.recovery.pixel_systems import c_kernels, ldl_factor, ldl_solve, lower_solve, to_lanes, upper_solve
 
 
 def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Tensor, Tensor]:
@@ -193,26 +193,21 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
 
     CG runs on the split-preconditioned system ``(I − K) y = G⁻¹ b`` with ``K = G⁻¹ N G⁻ᵀ``,
     ``G = L D^½``, ``x = G⁻ᵀ y``: the same iterates as CG preconditioned by ``M⁻¹`` in exact
-    arithmetic, but an iteration needs the two triangular solves and no block product.
+    arithmetic, but an iteration needs the two triangular solves and no block product. On the
+    CPU the operator ``K`` (or ``I − K``) is one C call
+    (:func:`torchbrdf.kernels.lane_ops.lane_coupling`, bit-identical to the PyTorch form below).
     """
     n = low.shape[0]
+    if c_kernels(low, d_isqrt, wx, wy, b):
+        from torchbrdf.kernels.lane_ops import lane_coupling
 
-    def neighbours(v):  # N v = Σ_q w_pq v_q (the first term written, not added to zeros)
-        out = torch.empty_like(v)
-        o, w = out.view(n, size, size), v.view(n, size, size)
-        torch.mul(wx, w[:, :, 1:], out=o[:, :, :-1])
-        o[:, :, -1] = 0.0
-        o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
-        o[:, :-1].addcmul_(wy, w[:, 1:])
-        o[:, 1:].addcmul_(wy, w[:, :-1])
-        return out
+        def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
+            return lane_coupling(low, d_isqrt, wx, wy, v, False)
 
-    def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
-        return lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
-
-    def apply(v):  # (I − K) v
-        k = coupling(v)
-        return torch.sub(v, k, out=k)
+        def apply(v):  # (I − K) v
+            return lane_coupling(low, d_isqrt, wx, wy, v, True)
+    else:
+        coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
 
     def dot(p, q):
         return torch.vdot(p.view(-1), q.view(-1))
@@ -250,6 +245,30 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
             d = torch.addcmul(r, d, beta)
             rr = rr_new
     return upper_solve(low, y.mul_(d_isqrt))
+
+
+def _torch_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, size: int):
+    """``(K, I − K)`` of :func:`_cg_iterations` as functions of ``v (n, P)``, in PyTorch operations."""
+    n = low.shape[0]
+
+    def neighbours(v):  # N v = Σ_q w_pq v_q (the first term written, not added to zeros)
+        out = torch.empty_like(v)
+        o, w = out.view(n, size, size), v.view(n, size, size)
+        torch.mul(wx, w[:, :, 1:], out=o[:, :, :-1])
+        o[:, :, -1] = 0.0
+        o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
+        o[:, :-1].addcmul_(wy, w[:, 1:])
+        o[:, 1:].addcmul_(wy, w[:, :-1])
+        return out
+
+    def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v (lower_solve and upper_solve: the PyTorch loops here)
+        return lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
+
+    def apply(v):  # (I − K) v
+        k = coupling(v)
+        return torch.sub(v, k, out=k)
+
+    return coupling, apply
 
 
 def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
