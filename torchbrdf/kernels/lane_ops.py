@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import ctypes
 import threading
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-__all__ = ["available", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling", "PIVOT_FLOOR",
-           "MAX_SIZE"]
+__all__ = ["available", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling", "coupling_operator",
+           "PIVOT_FLOOR", "MAX_SIZE"]
 
 #: A pivot of ``LDLᵀ`` is at least this fraction of its matrix's diagonal entry plus the dtype's
 #: smallest normal number (the value of :data:`torchbrdf.recovery.pixel_systems.PIVOT_FLOOR`).
@@ -237,18 +238,12 @@ def _fn(dtype: torch.dtype, which: int):
     return k[which]
 
 
-@torch.library.custom_op("torchbrdf::lane_ldl", mutates_args=())
-def _lane_ldl_op(m: Tensor) -> tuple[Tensor, Tensor]:
+def _ldl(m: Tensor) -> tuple[Tensor, Tensor]:
     n = _check_low(m)
     m = m.contiguous()
     low, d = torch.empty_like(m), torch.empty_like(m[0])
     _fn(m.dtype, 1)(n, m.shape[2], m.data_ptr(), low.data_ptr(), d.data_ptr(), torch.get_num_threads())
     return low, d
-
-
-@_lane_ldl_op.register_fake
-def _(m):
-    return torch.empty_like(m), torch.empty_like(m[0])
 
 
 def _solve(low: Tensor, v: Tensor, upper: bool) -> None:
@@ -263,6 +258,36 @@ def _solve(low: Tensor, v: Tensor, upper: bool) -> None:
                       int(upper), torch.get_num_threads())
 
 
+def _bind(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor) -> tuple[int, int, list[Tensor]]:
+    """``(n, S, contiguous [low, d_isqrt, wx, wy])`` of a coupling operator, checked."""
+    n, p = _check_low(low), low.shape[2]
+    size = int(round(p ** 0.5))
+    if size * size != p or p == 0:
+        raise ValueError(f"lane_ops: low's {p} pixels are not a square grid")
+    for name, t, shape in (("d_isqrt", d_isqrt, (n, p)), ("wx", wx, (n, size, size - 1)),
+                           ("wy", wy, (n, size - 1, size))):
+        _check(name, t, shape, low.dtype)
+    return n, size, [t.contiguous() for t in (low, d_isqrt, wx, wy)]
+
+
+def _couple(n: int, size: int, mats: list[Tensor], v: Tensor, subtract: bool) -> Tensor:
+    """The C call of :func:`lane_coupling` on checked, contiguous inputs."""
+    t, out = torch.empty_like(v), torch.empty_like(v)
+    _fn(v.dtype, 3)(n, size, *(m.data_ptr() for m in mats), v.data_ptr(), t.data_ptr(), out.data_ptr(),
+                    int(subtract), torch.get_num_threads())
+    return out
+
+
+@torch.library.custom_op("torchbrdf::lane_ldl", mutates_args=())
+def _lane_ldl_op(m: Tensor) -> tuple[Tensor, Tensor]:
+    return _ldl(m)
+
+
+@_lane_ldl_op.register_fake
+def _(m):
+    return torch.empty_like(m), torch.empty_like(m[0])
+
+
 @torch.library.custom_op("torchbrdf::lane_lower_solve_", mutates_args=("v",))
 def _lane_lower_op(low: Tensor, v: Tensor) -> None:
     _solve(low, v, False)
@@ -275,23 +300,21 @@ def _lane_upper_op(low: Tensor, v: Tensor) -> None:
 
 @torch.library.custom_op("torchbrdf::lane_coupling", mutates_args=())
 def _lane_coupling_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: Tensor, subtract: bool) -> Tensor:
-    n, p = _check_low(low), low.shape[2]
-    size = int(round(p ** 0.5))
-    if size * size != p:
-        raise ValueError(f"lane_ops: low's {p} pixels are not a square grid")
-    for name, t, shape in (("d_isqrt", d_isqrt, (n, p)), ("wx", wx, (n, size, size - 1)),
-                           ("wy", wy, (n, size - 1, size)), ("v", v, (n, p))):
-        _check(name, t, shape, low.dtype)
-    low, d_isqrt, wx, wy, v = (t.contiguous() for t in (low, d_isqrt, wx, wy, v))
-    t, out = torch.empty_like(v), torch.empty_like(v)
-    _fn(low.dtype, 3)(n, size, low.data_ptr(), d_isqrt.data_ptr(), wx.data_ptr(), wy.data_ptr(), v.data_ptr(),
-                      t.data_ptr(), out.data_ptr(), int(subtract), torch.get_num_threads())
-    return out
+    n, size, mats = _bind(low, d_isqrt, wx, wy)
+    _check("v", v, (n, size * size), low.dtype)
+    return _couple(n, size, mats, v.contiguous(), subtract)
 
 
 @_lane_coupling_op.register_fake
 def _(low, d_isqrt, wx, wy, v, subtract):
     return torch.empty_like(v)
+
+
+def _direct() -> bool:
+    """Whether to call the C loops directly (eager) rather than through the operator: the
+    dispatcher's work per call (~tens of µs) is a CG iteration's cost on a small map; under
+    torch.compile or a torch.func transform the operator is what they must see."""
+    return not torch.compiler.is_compiling() and not torch._C._are_functorch_transforms_active()
 
 
 def lane_ldl(m: Tensor) -> tuple[Tensor, Tensor]:
@@ -304,19 +327,19 @@ def lane_ldl(m: Tensor) -> tuple[Tensor, Tensor]:
     Raises:
         ValueError: a shape, dtype or device the kernel cannot read (named).
     """
-    return _lane_ldl_op(m)
+    return _ldl(m) if _direct() else _lane_ldl_op(m)
 
 
 def lane_lower_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻¹ v`` in place (``L`` unit lower triangular from :func:`lane_ldl`), ``low (n, n, P)``,
     ``v (n, ..., P)`` contiguous, ``low``'s dtype, CPU. Returns ``v``."""
-    _lane_lower_op(low, v)
+    _solve(low, v, False) if _direct() else _lane_lower_op(low, v)
     return v
 
 
 def lane_upper_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻ᵀ v`` in place, as :func:`lane_lower_solve`. Returns ``v``."""
-    _lane_upper_op(low, v)
+    _solve(low, v, True) if _direct() else _lane_upper_op(low, v)
     return v
 
 
@@ -327,10 +350,25 @@ def lane_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: Tenso
 
     ``low (n, n, P)`` the strict lower triangle of unit lower triangular ``L``, ``d_isqrt (n, P)``
     ``= D^-½``, ``N v = Σ_q w_pq v_q`` over each pixel's 4 neighbours with edge weights
-    ``wx (n, S, S-1)`` and ``wy (n, S-1, S)`` (channel-first), ``v (n, P)``, ``P = S²`` row-major;
-    one dtype (float32 or float64), CPU. Returns a new ``(n, P)`` tensor.
+    ``wx (n, S, S-1)`` and ``wy (n, S-1, S)`` (channel-first), ``v (n, P)``, ``P = S² > 0``
+    row-major; one dtype (float32 or float64), CPU. Returns a new ``(n, P)`` tensor.
 
     Raises:
         ValueError: a shape, dtype or device the kernel cannot read (named).
     """
-    return _lane_coupling_op(low, d_isqrt, wx, wy, v, bool(subtract))
+    return coupling_operator(low, d_isqrt, wx, wy)(v, subtract)
+
+
+def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor) -> Callable[[Tensor, bool], Tensor]:
+    """:func:`lane_coupling` bound to its matrices (checked once, for a CG loop's many calls):
+    a function of ``(v (n, P), subtract)``."""
+    n, size, mats = _bind(low, d_isqrt, wx, wy)
+
+    def apply(v: Tensor, subtract: bool) -> Tensor:
+        if not _direct():
+            return _lane_coupling_op(*mats, v, bool(subtract))
+        if v.shape != (n, size * size) or v.dtype != low.dtype or v.device != low.device:
+            _check("v", v, (n, size * size), low.dtype)  # raises, naming it
+        return _couple(n, size, mats, v.contiguous(), subtract)
+
+    return apply

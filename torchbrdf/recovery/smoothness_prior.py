@@ -199,13 +199,15 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     """
     n = low.shape[0]
     if c_kernels(low, d_isqrt, wx, wy, b):
-        from torchbrdf.kernels.lane_ops import lane_coupling
+        from torchbrdf.kernels.lane_ops import coupling_operator
+
+        op = coupling_operator(low, d_isqrt, wx, wy)
 
         def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
-            return lane_coupling(low, d_isqrt, wx, wy, v, False)
+            return op(v, False)
 
         def apply(v):  # (I − K) v
-            return lane_coupling(low, d_isqrt, wx, wy, v, True)
+            return op(v, True)
     else:
         coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
 
