@@ -25,8 +25,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["available", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling", "coupling_operator",
-           "PIVOT_FLOOR", "MAX_SIZE"]
+__all__ = ["available", "lane_schur", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling", "coupling_operator",
+           "PIVOT_FLOOR", "MAX_SIZE", "MAX_SCHUR"]
 
 #: A pivot of ``LDLᵀ`` is at least this fraction of its matrix's diagonal entry plus the dtype's
 #: smallest normal number (the value of :data:`torchbrdf.recovery.pixel_systems.PIVOT_FLOOR`).
@@ -35,15 +35,20 @@ PIVOT_FLOOR = 1e-12
 #: The largest ``n`` of an ``n × n`` lane-wise system (the recovery's blocks are 7 × 7 at most).
 MAX_SIZE = 16
 
+#: The largest block :func:`lane_schur` takes (its working arrays live on the thread's stack).
+MAX_SCHUR = 8
+
 _SOURCE = r"""
 #include <math.h>
 typedef %(R)s R;
-/* c + a b as ATen's addcmul rounds it on this CPU: one fused multiply-add where its kernels
+/* c + a b as ATen's addcmul rounds it on this CPU (MAC in R, MAC64 in float64): one fused multiply-add where its kernels
    are built with FMA (AVX2 and up), else a product and a sum */
 #if %(FMA)d
 #define MAC(a, b, c) %(FMAF)s((a), (b), (c))
+#define MAC64(a, b, c) fma((a), (b), (c))
 #else
 #define MAC(a, b, c) ((c) + (a) * (b))
+#define MAC64(a, b, c) ((c) + (a) * (b))
 #endif
 #define BLOCK 256
 #define MIN(a, b) ((a) < (b) ? (a) : (b))
@@ -169,6 +174,97 @@ void tb_lane_coupling(long n, long S, const R* low, const R* dis, const R* wx, c
     }
   }
 }
+/* LDL^T of the n x n float64 matrices a[i][j][q] (lower triangle read) of nb pixels: low (strict
+   lower triangle) and d, the pivots floored at PIVOT |a_jj| + DBL_MIN, as tb_lane_ldl */
+#define SB 64
+#define SC 8
+static void ldl_block(long n, long nb, double a[SC][SC][SB], double low[SC][SC][SB], double d[SC][SB]) {
+  double col[SC][SB], coef[SB];
+  for (long j = 0; j < n; ++j) {
+    for (long i = j; i < n; ++i)
+      for (long q = 0; q < nb; ++q) col[i][q] = a[i][j][q];
+    for (long k = 0; k < j; ++k) {
+      for (long q = 0; q < nb; ++q) coef[q] = low[j][k][q] * d[k][q];
+      for (long i = j; i < n; ++i)
+        for (long q = 0; q < nb; ++q) col[i][q] = MAC64(-low[i][k][q], coef[q], col[i][q]);
+    }
+    for (long q = 0; q < nb; ++q) {
+      const double m = a[j][j][q] < 0 ? -a[j][j][q] : a[j][j][q];
+      const double f = m * %(PIVOT)s + 2.22507385850720138309e-308, c = col[j][q];
+      d[j][q] = (c != c || f != f) ? c + f : (c > f ? c : f);
+    }
+    for (long i = j + 1; i < n; ++i)
+      for (long q = 0; q < nb; ++q) low[i][j][q] = col[i][q] / d[j][q];
+  }
+}
+
+/* The coupled solve's per-pixel elimination (smoothness_prior.pcg): the (c, c) blocks hess (P, c, c)
+   and rhs (P, c), reordered by order (the nu eliminated channels first), diag (P, c) (or NULL)
+   added to the diagonal, in float64; the complement S = A - B D^-1 B^T of the last na = c - nu
+   with lapd (P, na) on its diagonal, factored: low (na, na, P), dis = D^-1/2 (na, P) and
+   b = rhs_a - B D^-1 rhs_u (na, P) in R; for the back substitution low_u (nu, nu, P), d_u (nu, P),
+   bt = B^T (nu, na, P) and rhs_u (nu, P) in float64. */
+void tb_lane_schur(long P, long c, long nu, const long* order, const R* hess, const R* diag, const R* rhs,
+                   const R* lapd, double* low_u, double* d_u, double* bt, double* rhs_u, R* low, R* dis, R* b,
+                   int nthreads) {
+  const long na = c - nu;
+  #pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (long p0 = 0; p0 < P; p0 += SB) {
+    const long nb = MIN(SB, P - p0);
+    double h[SC][SC][SB], r[SC][SB], lu[SC][SC][SB], du[SC][SB], s[SC][SC][SB], ls[SC][SC][SB], ds[SC][SB];
+    double v[SC][SC][SB], sc[SB], coef[SB];
+    for (long i = 0; i < c; ++i) {
+      for (long j = 0; j < c; ++j)
+        for (long q = 0; q < nb; ++q) h[i][j][q] = (double)hess[(p0 + q) * c * c + order[i] * c + order[j]];
+      for (long q = 0; q < nb; ++q) r[i][q] = (double)rhs[(p0 + q) * c + order[i]];
+      if (diag)
+        for (long q = 0; q < nb; ++q) h[i][i][q] = h[i][i][q] + (double)diag[(p0 + q) * c + order[i]];
+    }
+    for (long i = 0; i < na; ++i)
+      for (long j = 0; j < na; ++j)
+        for (long q = 0; q < nb; ++q) s[i][j][q] = h[nu + i][nu + j][q];
+    if (nu > 0) {
+      ldl_block(nu, nb, h, lu, du);
+      for (long k = 0; k < nu; ++k) {
+        for (long i = 0; i < nu; ++i)
+          for (long q = 0; q < nb; ++q) low_u[(k * nu + i) * P + p0 + q] = i < k ? lu[k][i][q] : 0.0;
+        for (long q = 0; q < nb; ++q) d_u[k * P + p0 + q] = du[k][q];
+        for (long a = 0; a < na; ++a)
+          for (long q = 0; q < nb; ++q) v[k][a][q] = bt[(k * na + a) * P + p0 + q] = h[k][nu + a][q];
+        for (long q = 0; q < nb; ++q) rhs_u[k * P + p0 + q] = r[k][q];
+      }
+      for (long k = 0; k + 1 < nu; ++k)  /* V = L_u^-1 B^T, y = L_u^-1 rhs_u (y in r) */
+        for (long i = k + 1; i < nu; ++i) {
+          for (long a = 0; a < na; ++a)
+            for (long q = 0; q < nb; ++q) v[i][a][q] = MAC64(-lu[i][k][q], v[k][a][q], v[i][a][q]);
+          for (long q = 0; q < nb; ++q) r[i][q] = MAC64(-lu[i][k][q], r[k][q], r[i][q]);
+        }
+      for (long k = 0; k < nu; ++k) {
+        for (long q = 0; q < nb; ++q) sc[q] = 1.0 / sqrt(du[k][q]);
+        for (long a = 0; a < na; ++a)
+          for (long q = 0; q < nb; ++q) v[k][a][q] = v[k][a][q] * sc[q];
+        for (long q = 0; q < nb; ++q) du[k][q] = sc[q];  /* (the scale, for the next loop) */
+      }
+      for (long k = 0; k < nu; ++k) {
+        for (long i = 0; i < na; ++i)
+          for (long j = 0; j <= i; ++j)
+            for (long q = 0; q < nb; ++q) s[i][j][q] = MAC64(-v[k][i][q], v[k][j][q], s[i][j][q]);
+        for (long q = 0; q < nb; ++q) coef[q] = r[k][q] * du[k][q];
+        for (long i = 0; i < na; ++i)
+          for (long q = 0; q < nb; ++q) r[nu + i][q] = MAC64(-v[k][i][q], coef[q], r[nu + i][q]);
+      }
+    }
+    for (long i = 0; i < na; ++i)
+      for (long q = 0; q < nb; ++q) s[i][i][q] = s[i][i][q] + (double)lapd[(p0 + q) * na + i];
+    ldl_block(na, nb, s, ls, ds);
+    for (long i = 0; i < na; ++i) {
+      for (long j = 0; j < na; ++j)
+        for (long q = 0; q < nb; ++q) low[(i * na + j) * P + p0 + q] = j < i ? (R)ls[i][j][q] : (R)0;
+      for (long q = 0; q < nb; ++q) dis[i * P + p0 + q] = (R)(1.0 / sqrt(ds[i][q]));
+      for (long q = 0; q < nb; ++q) b[i * P + p0 + q] = (R)r[nu + i][q];
+    }
+  }
+}
 """
 
 _lock = threading.Lock()
@@ -178,7 +274,7 @@ _CTYPES = {torch.float32: ("float", "1.17549435082228750797e-38"),
 
 
 def _kernel(dtype: torch.dtype):
-    """``(library, ldl, solve, coupling)`` for ``dtype`` (built once; None: it cannot be built here)."""
+    """``(library, ldl, solve, coupling, schur)`` for ``dtype`` (built once; None: it cannot be built here)."""
     if dtype in _kernels:
         return _kernels[dtype]
     with _lock:
@@ -191,10 +287,11 @@ def _kernel(dtype: torch.dtype):
             p, lg, i = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
             symbols = {"tb_lane_ldl": ([lg, lg, p, p, p, i], None),
                        "tb_lane_solve": ([lg, lg, lg, p, p, i, i], None),
-                       "tb_lane_coupling": ([lg, lg, p, p, p, p, p, p, p, i, i], None)}
+                       "tb_lane_coupling": ([lg, lg, p, p, p, p, p, p, p, i, i], None),
+                       "tb_lane_schur": ([lg, lg, lg] + [p] * 12 + [i], None)}
             lib = build.load_kernel(src, "lane_ops", symbols)
             _kernels[dtype] = None if lib is None else (lib, lib.tb_lane_ldl, lib.tb_lane_solve,
-                                                        lib.tb_lane_coupling)
+                                                        lib.tb_lane_coupling, lib.tb_lane_schur)
         return _kernels[dtype]
 
 
@@ -278,6 +375,46 @@ def _couple(n: int, size: int, mats: list[Tensor], v: Tensor, subtract: bool) ->
     return out
 
 
+def _schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
+           ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    if hess.dim() != 3 or hess.shape[1] != hess.shape[2] or not 0 < hess.shape[1] <= MAX_SCHUR:
+        raise ValueError(f"lane_ops: hess must be (P, c, c) with 1 <= c <= MAX_SCHUR = {MAX_SCHUR}, "
+                         f"got {tuple(hess.shape)}")
+    p, c = hess.shape[0], hess.shape[1]
+    if sorted(order) != list(range(c)) or not 0 <= nu < c:
+        raise ValueError(f"lane_ops: order must be a permutation of range({c}) and 0 <= nu < {c}, got {order}, {nu}")
+    _check("hess", hess, (p, c, c), hess.dtype)
+    for name, t, shape in (("diag", diag, (p, c)), ("rhs", rhs, (p, c)), ("lapd", lapd, (p, c - nu))):
+        if t is not None:
+            _check(name, t, shape, hess.dtype)
+    na, f64 = c - nu, torch.float64
+    hess, rhs, lapd = hess.contiguous(), rhs.contiguous(), lapd.contiguous()
+    diag = None if diag is None else diag.contiguous()
+    idx = torch.tensor(order, dtype=torch.long)
+    low_u, d_u = hess.new_empty((nu, nu, p), dtype=f64), hess.new_empty((nu, p), dtype=f64)
+    bt, rhs_u = hess.new_empty((nu, na, p), dtype=f64), hess.new_empty((nu, p), dtype=f64)
+    low, dis, b = hess.new_empty((na, na, p)), hess.new_empty((na, p)), hess.new_empty((na, p))
+    _fn(hess.dtype, 4)(p, c, nu, idx.data_ptr(), hess.data_ptr(), None if diag is None else diag.data_ptr(),
+                       rhs.data_ptr(), lapd.data_ptr(), low_u.data_ptr(), d_u.data_ptr(), bt.data_ptr(),
+                       rhs_u.data_ptr(), low.data_ptr(), dis.data_ptr(), b.data_ptr(), torch.get_num_threads())
+    return low_u, d_u, bt, rhs_u, low, dis, b
+
+
+@torch.library.custom_op("torchbrdf::lane_schur", mutates_args=())
+def _lane_schur_op(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    return _schur(hess, diag, rhs, order, nu, lapd)
+
+
+@_lane_schur_op.register_fake
+def _(hess, diag, rhs, order, nu, lapd):
+    p, c = hess.shape[0], hess.shape[1]
+    na, f64 = c - nu, torch.float64
+    return (hess.new_empty((nu, nu, p), dtype=f64), hess.new_empty((nu, p), dtype=f64),
+            hess.new_empty((nu, na, p), dtype=f64), hess.new_empty((nu, p), dtype=f64),
+            hess.new_empty((na, na, p)), hess.new_empty((na, p)), hess.new_empty((na, p)))
+
+
 @torch.library.custom_op("torchbrdf::lane_ldl", mutates_args=())
 def _lane_ldl_op(m: Tensor) -> tuple[Tensor, Tensor]:
     return _ldl(m)
@@ -315,6 +452,37 @@ def _direct() -> bool:
     dispatcher's work per call (~tens of µs) is a CG iteration's cost on a small map; under
     torch.compile or a torch.func transform the operator is what they must see."""
     return not torch.compiler.is_compiling() and not torch._C._are_functorch_transforms_active()
+
+
+def lane_schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
+               ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The per-pixel elimination before :func:`torchbrdf.recovery.smoothness_prior.pcg`'s
+    iterations, in one pass (bit-identical to its PyTorch form).
+
+    Args:
+        hess: ``(P, c, c)`` each pixel's symmetric block, ``c ≤`` :data:`MAX_SCHUR`; float32 or
+            float64, CPU.
+        diag: ``(P, c)`` added to the blocks' diagonal, or None; ``hess``'s dtype.
+        rhs: ``(P, c)`` the right-hand sides; ``hess``'s dtype.
+        order: a permutation of ``range(c)``: the ``nu`` channels eliminated per pixel first,
+            then the ``na = c − nu`` coupled ones.
+        nu: how many channels are eliminated (``0 ≤ nu < c``).
+        lapd: ``(P, na)`` added to the complement's diagonal (the Laplacian's); ``hess``'s dtype.
+
+    Returns:
+        ``(low_u (nu, nu, P), d_u (nu, P), bt (nu, na, P), rhs_u (nu, P))`` in float64: the
+        eliminated block's ``LDLᵀ`` (:func:`lane_ldl`), the coupling ``Bᵀ`` and the right-hand
+        sides (for the back substitution); ``(low (na, na, P), d_isqrt (na, P), b (na, P))`` in
+        ``hess``'s dtype: the ``LDLᵀ`` of ``S = A − B D⁻¹ Bᵀ + diag(lapd)`` with ``d_isqrt =
+        D^-½``, and ``b = rhs_a − B D⁻¹ rhs_u``. Lane-wise, in the reordered channels.
+
+    Raises:
+        ValueError: a shape, dtype or device the kernel cannot read, or a bad ``order`` (named).
+    """
+    order = [int(a) for a in order]
+    if _direct():
+        return _schur(hess, diag, rhs, order, int(nu), lapd)
+    return _lane_schur_op(hess, diag, rhs, order, int(nu), lapd)
 
 
 def lane_ldl(m: Tensor) -> tuple[Tensor, Tensor]:

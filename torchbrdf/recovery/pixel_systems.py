@@ -32,25 +32,28 @@ from torchbrdf.brdf import principled
 PIVOT_FLOOR = 1e-12
 
 
-def c_kernels(*tensors: Tensor) -> bool:
-    """Whether the lane-wise C operators (:mod:`torchbrdf.kernels.lane_ops`) take these tensors:
-    all on the CPU in one dtype, float32 or float64, none needing a gradient, the fused
-    backend "c" (:func:`torchbrdf.brdf.principled.fused_backend`: the eager backend, tensor
-    subclasses or tracing keep the PyTorch forms) and a C compiler here. The first tensor is
-    a lane-wise matrix ``(n, n, P)`` or vector ``(n, ..., P)``, ``n`` at most
-    :data:`torchbrdf.kernels.lane_ops.MAX_SIZE`."""
-    t = tensors[0]
+def c_kernels(*tensors: Tensor | None, size: int) -> bool:
+    """Whether the lane-wise C operators (:mod:`torchbrdf.kernels.lane_ops`) take these tensors
+    (None entries are skipped) for ``size × size`` systems: all on the CPU in one dtype, float32
+    or float64, none needing a gradient, no torch.func transform active, the fused backend "c"
+    (:func:`torchbrdf.brdf.principled.fused_backend`: the eager backend, tensor subclasses or
+    tracing keep the PyTorch forms), ``size`` at most
+    :data:`torchbrdf.kernels.lane_ops.MAX_SIZE` and a C compiler here."""
+    ts = [x for x in tensors if x is not None]
+    t = ts[0]
     if t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64) or t.numel() == 0:
         return False
-    if any(x.device != t.device or x.dtype != t.dtype for x in tensors):
+    if any(x.device != t.device or x.dtype != t.dtype for x in ts):
         return False
-    if torch.is_grad_enabled() and any(x.requires_grad for x in tensors):
+    if torch.is_grad_enabled() and any(x.requires_grad for x in ts):
         return False
-    if principled.fused_backend(t.device, t.dtype, list(tensors), lambda: principled.FAST_PATH_MIN_LANES) != "c":
+    if torch._C._are_functorch_transforms_active():  # (the operators have no batching rules)
+        return False
+    if principled.fused_backend(t.device, t.dtype, ts, lambda: principled.FAST_PATH_MIN_LANES) != "c":
         return False
     from torchbrdf.kernels import lane_ops
 
-    return t.shape[0] <= lane_ops.MAX_SIZE and lane_ops.available(t)
+    return size <= lane_ops.MAX_SIZE and lane_ops.available(t)
 
 
 def to_lanes(m: Tensor, dtype: torch.dtype = torch.float64, order: list[int] | None = None) -> Tensor:
@@ -80,7 +83,7 @@ def ldl_factor(m: Tensor) -> tuple[Tensor, Tensor]:
     the unit diagonal is implied, and no solve reads them), and ``d (n, P)``, the pivots, each
     at least :data:`PIVOT_FLOOR` of its diagonal entry. ``m``'s dtype and device.
     """
-    if c_kernels(m):
+    if c_kernels(m, size=m.shape[0]):
         from torchbrdf.kernels import lane_ops
 
         return lane_ops.lane_ldl(m)
@@ -127,7 +130,7 @@ def lower_solve(low: Tensor, v: Tensor) -> Tensor:
     ``low (n, n, P)``, ``v (n, ..., P)`` (any number of right-hand sides per pixel between).
     Returns ``v``.
     """
-    if v.is_contiguous() and c_kernels(low, v):
+    if v.is_contiguous() and c_kernels(low, v, size=low.shape[0]):
         from torchbrdf.kernels import lane_ops
 
         return lane_ops.lane_lower_solve(low, v)
@@ -140,7 +143,7 @@ def lower_solve(low: Tensor, v: Tensor) -> Tensor:
 
 def upper_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻ᵀ v`` in place, ``L`` and the shapes as in :func:`lower_solve`. Returns ``v``."""
-    if v.is_contiguous() and c_kernels(low, v):
+    if v.is_contiguous() and c_kernels(low, v, size=low.shape[0]):
         from torchbrdf.kernels import lane_ops
 
         return lane_ops.lane_upper_solve(low, v)
