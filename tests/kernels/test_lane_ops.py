@@ -8,6 +8,8 @@ bit for bit with the forms of :mod:`torchbrdf.recovery.pixel_systems` and
 dense float64 reference that a wrong order, a wrong border or swapped weights would not match.
 """
 
+import contextlib
+
 import pytest
 import torch
 
@@ -20,18 +22,14 @@ pytestmark = pytest.mark.skipif(not build.available(), reason="needs the C kerne
 F64 = torch.float64
 
 
-@pytest.fixture
-def eager():
-    """Run the PyTorch forms (the fused path off) inside the block, restoring the default after."""
-    class Switch:
-        def __enter__(self):
-            principled.set_fast_path(False)
-
-        def __exit__(self, *exc):
-            principled.set_fast_path(None)
-
-    yield Switch()
-    principled.set_fast_path(None)
+@contextlib.contextmanager
+def pytorch_forms():
+    """The PyTorch forms inside the block (the fused path off), the default after it."""
+    principled.set_fast_path(False)
+    try:
+        yield
+    finally:
+        principled.set_fast_path(None)
 
 
 def _spd_lanes(n, p, seed=0, dtype=F64):
@@ -53,9 +51,9 @@ def _lower(low):
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 @pytest.mark.parametrize("n", [1, 3, 7])
-def test_lane_ldl_is_the_pytorch_form_bit_for_bit(n, dtype, eager):
+def test_lane_ldl_is_the_pytorch_form_bit_for_bit(n, dtype):
     m = _spd_lanes(n, 300, seed=n, dtype=dtype)  # 300 lanes: whole blocks of 256 and a partial one
-    with eager:
+    with pytorch_forms():
         low0, d0 = pixel_systems.ldl_factor(m)
     low1, d1 = lane_ops.lane_ldl(m)
     assert torch.equal(d0, d1) and torch.equal(_lower(low0), _lower(low1))
@@ -75,21 +73,21 @@ def test_lane_ldl_factors_each_pixels_own_matrix():
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
-def test_lane_solves_are_the_pytorch_forms_and_the_triangular_solves(dtype, eager):
+def test_lane_solves_are_the_pytorch_forms_and_the_triangular_solves(dtype):
     m = _spd_lanes(6, 70, seed=4)[..., :-1]
     low, _ = lane_ops.lane_ldl(m)
     low = low.to(dtype)
     v = torch.randn(6, 3, 69, generator=torch.Generator().manual_seed(5), dtype=dtype)
-    with eager:
+    with pytorch_forms():
         lo0, up0 = pixel_systems.lower_solve(low, v.clone()), pixel_systems.upper_solve(low, v.clone())
     lo1, up1 = lane_ops.lane_lower_solve(low, v.clone()), lane_ops.lane_upper_solve(low, v.clone())
     assert torch.equal(lo0, lo1) and torch.equal(up0, up1)
     ll = (torch.tril(low.permute(2, 0, 1), -1) + torch.eye(6, dtype=dtype)).double()
     ref = torch.linalg.solve_triangular(ll, v.permute(2, 0, 1).double(), upper=False, unitriangular=True)
-    torch.testing.assert_close(lo1.permute(2, 0, 1).double(), ref, rtol=1e-5 if dtype != F64 else 1e-12, atol=1e-6)
+    tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == F64 else {"rtol": 1e-5, "atol": 1e-6}
+    torch.testing.assert_close(lo1.permute(2, 0, 1).double(), ref, **tol)
     ref_up = torch.linalg.solve_triangular(ll.mT, v.permute(2, 0, 1).double(), upper=True, unitriangular=True)
-    torch.testing.assert_close(up1.permute(2, 0, 1).double(), ref_up, rtol=1e-5 if dtype != F64 else 1e-12,
-                               atol=1e-6)
+    torch.testing.assert_close(up1.permute(2, 0, 1).double(), ref_up, **tol)
 
 
 def _grid_case(n, size, seed=0, dtype=F64):
@@ -161,13 +159,13 @@ def _pcg_case(size, joined, dtype, seed=0):
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("joined", [[3, 4], [0, 1, 2, 3, 4], list(range(7)), []])
-def test_pcg_on_the_c_operators_is_the_pytorch_form_bit_for_bit(joined, dtype, eager):
+def test_pcg_on_the_c_operators_is_the_pytorch_form_bit_for_bit(joined, dtype):
     """The whole coupled solve (elimination, factorisation, CG iterations, back substitution) on a
     17×17 grid: the C path (``lane_schur``, ``lane_coupling``) gives exactly the PyTorch form's
     result, with the damping diagonal and without, and when no channel is coupled."""
     hess, wx, wy, rhs, diag = _pcg_case(17, joined, dtype, seed=len(joined))
     for d in (diag, None):
-        with eager:
+        with pytorch_forms():
             ref = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 25, diag=d)
         x = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 25, diag=d)
         assert d is None or torch.isfinite(x).all()  # (without damping pixel 3 has nothing on channel 5)
@@ -243,7 +241,7 @@ def test_lane_ops_refuse_what_the_kernels_cannot_read():
     with pytest.raises(ValueError, match="lapd must have shape"):
         lane_ops.lane_schur(hess, diag, rhs, [0, 1, 2, 5, 6, 3, 4], 5, torch.zeros(16, 3, dtype=F64))
     with pytest.raises(ValueError, match="MAX_SCHUR"):
-        lane_ops.lane_schur(torch.zeros(4, 9, 9, dtype=F64), None, torch.zeros(4, 9, dtype=F64), list(range(9)), 0,
-                            torch.zeros(4, 9, dtype=F64))
+        lane_ops.lane_schur(torch.zeros(4, 9, 9, dtype=F64), None, torch.zeros(4, 9, dtype=F64),
+                            list(range(9)), 0, torch.zeros(4, 9, dtype=F64))
     with pytest.raises(ValueError, match="rhs must be float32 or float64"):
         lane_ops.lane_schur(hess, diag, rhs.float(), [0, 1, 2, 5, 6, 3, 4], 5, torch.zeros(16, 2, dtype=F64))

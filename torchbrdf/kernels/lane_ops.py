@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import ctypes
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["available", "lane_schur", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling", "coupling_operator",
-           "PIVOT_FLOOR", "MAX_SIZE", "MAX_SCHUR"]
+__all__ = ["available", "lane_schur", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling",
+           "coupling_operator", "PIVOT_FLOOR", "MAX_SIZE", "MAX_SCHUR"]
 
 #: A pivot of ``LDLᵀ`` is at least this fraction of its matrix's diagonal entry plus the dtype's
 #: smallest normal number (the value of :data:`torchbrdf.recovery.pixel_systems.PIVOT_FLOOR`).
@@ -41,8 +42,8 @@ MAX_SCHUR = 8
 _SOURCE = r"""
 #include <math.h>
 typedef %(R)s R;
-/* c + a b as ATen's addcmul rounds it on this CPU (MAC in R, MAC64 in float64): one fused multiply-add where its kernels
-   are built with FMA (AVX2 and up), else a product and a sum */
+/* c + a b as ATen's addcmul rounds it on this CPU (MAC in R, MAC64 in float64): one fused
+   multiply-add where its kernels are built with FMA (AVX2 and up), else a product and a sum */
 #if %(FMA)d
 #define MAC(a, b, c) %(FMAF)s((a), (b), (c))
 #define MAC64(a, b, c) fma((a), (b), (c))
@@ -274,7 +275,7 @@ _CTYPES = {torch.float32: ("float", "1.17549435082228750797e-38"),
 
 
 def _kernel(dtype: torch.dtype):
-    """``(library, ldl, solve, coupling, schur)`` for ``dtype`` (built once; None: it cannot be built here)."""
+    """``(library, ldl, solve, coupling, schur)`` for ``dtype`` (built once; None: not here)."""
     if dtype in _kernels:
         return _kernels[dtype]
     with _lock:
@@ -285,7 +286,7 @@ def _kernel(dtype: torch.dtype):
             src = _SOURCE % {"R": ctype, "N": MAX_SIZE, "PIVOT": repr(PIVOT_FLOOR), "TINY": tiny,
                              "FMA": int(_aten_fuses()), "FMAF": "fmaf" if ctype == "float" else "fma"}
             p, lg, i = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
-            symbols = {"tb_lane_ldl": ([lg, lg, p, p, p, i], None),
+            symbols: dict[str, tuple[Sequence[Any], Any]] = {"tb_lane_ldl": ([lg, lg, p, p, p, i], None),
                        "tb_lane_solve": ([lg, lg, lg, p, p, i, i], None),
                        "tb_lane_coupling": ([lg, lg, p, p, p, p, p, p, p, i, i], None),
                        "tb_lane_schur": ([lg, lg, lg] + [p] * 12 + [i], None)}
@@ -382,7 +383,8 @@ def _schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu:
                          f"got {tuple(hess.shape)}")
     p, c = hess.shape[0], hess.shape[1]
     if sorted(order) != list(range(c)) or not 0 <= nu < c:
-        raise ValueError(f"lane_ops: order must be a permutation of range({c}) and 0 <= nu < {c}, got {order}, {nu}")
+        raise ValueError(f"lane_ops: order must be a permutation of range({c}) and 0 <= nu < {c}, "
+                         f"got {order}, {nu}")
     _check("hess", hess, (p, c, c), hess.dtype)
     for name, t, shape in (("diag", diag, (p, c)), ("rhs", rhs, (p, c)), ("lapd", lapd, (p, c - nu))):
         if t is not None:
@@ -396,7 +398,8 @@ def _schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu:
     low, dis, b = hess.new_empty((na, na, p)), hess.new_empty((na, p)), hess.new_empty((na, p))
     _fn(hess.dtype, 4)(p, c, nu, idx.data_ptr(), hess.data_ptr(), None if diag is None else diag.data_ptr(),
                        rhs.data_ptr(), lapd.data_ptr(), low_u.data_ptr(), d_u.data_ptr(), bt.data_ptr(),
-                       rhs_u.data_ptr(), low.data_ptr(), dis.data_ptr(), b.data_ptr(), torch.get_num_threads())
+                       rhs_u.data_ptr(), low.data_ptr(), dis.data_ptr(), b.data_ptr(),
+                       torch.get_num_threads())
     return low_u, d_u, bt, rhs_u, low, dis, b
 
 
@@ -436,7 +439,8 @@ def _lane_upper_op(low: Tensor, v: Tensor) -> None:
 
 
 @torch.library.custom_op("torchbrdf::lane_coupling", mutates_args=())
-def _lane_coupling_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: Tensor, subtract: bool) -> Tensor:
+def _lane_coupling_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: Tensor,
+                      subtract: bool) -> Tensor:
     n, size, mats = _bind(low, d_isqrt, wx, wy)
     _check("v", v, (n, size * size), low.dtype)
     return _couple(n, size, mats, v.contiguous(), subtract)
@@ -527,7 +531,8 @@ def lane_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: Tenso
     return coupling_operator(low, d_isqrt, wx, wy)(v, subtract)
 
 
-def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor) -> Callable[[Tensor, bool], Tensor]:
+def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor
+                      ) -> Callable[[Tensor, bool], Tensor]:
     """:func:`lane_coupling` bound to its matrices (checked once, for a CG loop's many calls):
     a function of ``(v (n, P), subtract)``."""
     n, size, mats = _bind(low, d_isqrt, wx, wy)

@@ -15,7 +15,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchbrdf.recovery.pixel_systems import c_kernels, ldl_factor, ldl_solve, lower_solve, to_lanes, upper_solve
+from torchbrdf.recovery.pixel_systems import (c_kernels, ldl_factor, ldl_solve, lower_solve, to_lanes,
+                                              upper_solve)
 
 
 def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Tensor, Tensor]:
