@@ -137,7 +137,8 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     (``dᵀ A d`` not positive and finite) freezes ``x`` where it is, as stopping would.
     """
     c = rhs.shape[1]
-    joined = ((wx != 0).reshape(-1, c).any(0) | (wy != 0).reshape(-1, c).any(0)).nonzero()[:, 0].tolist()
+    # (any over rows, then columns: twice as fast as one reduction of the flattened (S(S-1), C))
+    joined = ((wx != 0).any(0).any(0) | (wy != 0).any(0).any(0)).nonzero()[:, 0].tolist()
     lo, hi = (joined[0], joined[-1] + 1) if joined else (c, c)
     u = [k for k in range(c) if k < lo or k >= hi]
     nu, order = len(u), u + list(range(lo, hi))
