@@ -6,8 +6,9 @@ forward and the recompute-backward and builds it once per kernel family into a p
 ``c_runner``/``triton_runner``: the kernels' calls; ``registration``: the custom operators and
 their vmap rules; ``autograd``: their derivatives). ``codegen_triton`` prints the same graphs as Triton
 kernels for CUDA tensors; ``backend`` chooses between them (``torchbrdf.set_backend``).
-``schur_ops`` is the one hand-written C kernel: linear algebra, not a formula (the joint light
-step's per-pixel elimination).
+``schur_ops`` and ``lane_ops`` are the hand-written C kernels: linear algebra, not formulas (the
+joint light step's per-pixel elimination; the LM step's per-pixel ``LDLᵀ``, triangular solves
+and conjugate-gradient operator, bit-identical to their PyTorch forms).
 
 May import: ``torchbrdf._math``, ``torchbrdf._checks``, ``torchbrdf.io`` (the per-user cache
 folder) and ``torchbrdf.brdf.formula`` (the formulas it traces and their constants), never the

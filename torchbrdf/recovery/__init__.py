@@ -15,7 +15,8 @@ conjugate-gradient solve, ``pixel_systems`` the per-pixel linear algebra under b
 (``torchbrdf-recover-many``; Ray imported only when used), ``fit_measured`` the MERL fit (``torchbrdf-fit-merl``).
 
 May import everything below it: ``torchbrdf.capture``, ``torchbrdf.render``,
-``torchbrdf.brdf``, ``torchbrdf.io``, ``torchbrdf.parallel`` (the thread count) and the plumbing.
+``torchbrdf.brdf``, ``torchbrdf.io``, ``torchbrdf.parallel`` (the thread count), ``torchbrdf.kernels``
+(the lane-wise C linear algebra, lazily at dispatch) and the plumbing.
 """
 
 from torchbrdf.recovery.api import map_errors, recover

@@ -12,6 +12,11 @@ The factorisation is ``LDLᵀ`` (unit lower triangular ``L``, diagonal ``D``): n
 and a pivot that rounding leaves at or below zero is raised to :data:`PIVOT_FLOOR` of its
 diagonal entry, so a numerically singular block gives a large but finite solution instead
 of a NaN that a coupled solve would spread to every pixel.
+
+On CPU tensors (float32, float64) the factorisation and the substitutions run as the C operators
+of :mod:`torchbrdf.kernels.lane_ops` (every entry of a block of pixels in cache, one call instead
+of one per entry), with bit-identical results; the PyTorch forms here serve elsewhere (CUDA, no
+C compiler, the eager backend, autograd) and as the reference.
 """
 
 from __future__ import annotations
@@ -19,10 +24,36 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchbrdf.brdf import principled
+
 #: A pivot of ``LDLᵀ`` is at least this fraction of its matrix's diagonal entry (plus the
 #: dtype's smallest normal number). A positive definite block in float64 keeps its pivots far
 #: above it; only a numerically singular one (a direction with no data and no damping) meets it.
 PIVOT_FLOOR = 1e-12
+
+
+def c_kernels(*tensors: Tensor | None, size: int) -> bool:
+    """Whether the lane-wise C operators (:mod:`torchbrdf.kernels.lane_ops`) take these tensors
+    (None entries are skipped) for ``size × size`` systems: all on the CPU in one dtype, float32
+    or float64, none needing a gradient, no torch.func transform active, the fused backend "c"
+    (:func:`torchbrdf.brdf.principled.fused_backend`: the eager backend, tensor subclasses or
+    tracing keep the PyTorch forms), ``size`` at most
+    :data:`torchbrdf.kernels.lane_ops.MAX_SIZE` and a C compiler here."""
+    ts = [x for x in tensors if x is not None]
+    t = ts[0]
+    if t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64) or t.numel() == 0:
+        return False
+    if any(x.device != t.device or x.dtype != t.dtype for x in ts):
+        return False
+    if torch.is_grad_enabled() and any(x.requires_grad for x in ts):
+        return False
+    if torch._C._are_functorch_transforms_active():  # (the operators have no batching rules)
+        return False
+    if principled.fused_backend(t.device, t.dtype, ts, lambda: principled.FAST_PATH_MIN_LANES) != "c":
+        return False
+    from torchbrdf.kernels import lane_ops
+
+    return size <= lane_ops.MAX_SIZE and lane_ops.available(t)
 
 
 def to_lanes(m: Tensor, dtype: torch.dtype = torch.float64, order: list[int] | None = None) -> Tensor:
@@ -52,6 +83,10 @@ def ldl_factor(m: Tensor) -> tuple[Tensor, Tensor]:
     the unit diagonal is implied, and no solve reads them), and ``d (n, P)``, the pivots, each
     at least :data:`PIVOT_FLOOR` of its diagonal entry. ``m``'s dtype and device.
     """
+    if c_kernels(m, size=m.shape[0]):
+        from torchbrdf.kernels import lane_ops
+
+        return lane_ops.lane_ldl(m)
     n = m.shape[0]
     low = torch.empty_like(m)  # (zeroing it costs as much as the factorisation at n = 5)
     d = torch.empty_like(m[0])
@@ -95,6 +130,10 @@ def lower_solve(low: Tensor, v: Tensor) -> Tensor:
     ``low (n, n, P)``, ``v (n, ..., P)`` (any number of right-hand sides per pixel between).
     Returns ``v``.
     """
+    if v.is_contiguous() and c_kernels(low, v, size=low.shape[0]):
+        from torchbrdf.kernels import lane_ops
+
+        return lane_ops.lane_lower_solve(low, v)
     n = low.shape[0]
     for k in range(n - 1):
         rest = v[k + 1:]
@@ -104,6 +143,10 @@ def lower_solve(low: Tensor, v: Tensor) -> Tensor:
 
 def upper_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻ᵀ v`` in place, ``L`` and the shapes as in :func:`lower_solve`. Returns ``v``."""
+    if v.is_contiguous() and c_kernels(low, v, size=low.shape[0]):
+        from torchbrdf.kernels import lane_ops
+
+        return lane_ops.lane_upper_solve(low, v)
     for k in range(low.shape[0] - 1, 0, -1):
         head = v[:k]
         head.addcmul_(_lane(low[k, :k], head), v[k:k + 1], value=-1.0)

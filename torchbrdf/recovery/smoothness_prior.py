@@ -15,7 +15,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchbrdf.recovery.pixel_systems import ldl_factor, ldl_solve, lower_solve, to_lanes, upper_solve
+from torchbrdf.recovery.pixel_systems import (c_kernels, ldl_factor, ldl_solve, lower_solve, to_lanes,
+                                              upper_solve)
 
 
 def edge_weights(theta: Tensor, metal: Tensor, size: int, cfg: Any) -> tuple[Tensor, Tensor]:
@@ -136,22 +137,54 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     (``dᵀ A d`` not positive and finite) freezes ``x`` where it is, as stopping would.
     """
     c = rhs.shape[1]
-    joined = ((wx != 0).reshape(-1, c).any(0) | (wy != 0).reshape(-1, c).any(0)).nonzero()[:, 0].tolist()
+    # (any over rows, then columns: twice as fast as one reduction of the flattened (S(S-1), C))
+    joined = ((wx != 0).any(0).any(0) | (wy != 0).any(0).any(0)).nonzero()[:, 0].tolist()
     lo, hi = (joined[0], joined[-1] + 1) if joined else (c, c)
     u = [k for k in range(c) if k < lo or k >= hi]
     nu, order = len(u), u + list(range(lo, hi))
+    out = torch.empty_like(rhs)
+    if not joined:  # no coupling: each pixel's block alone
+        h = to_lanes(hess, order=order)
+        if diag is not None:
+            h.diagonal(dim1=0, dim2=1).add_(diag[:, order])  # (a (P, C) view)
+        low, d = ldl_factor(h)
+        out[:, order] = ldl_solve(low, 1.0 / d, rhs[:, order].T.to(h.dtype)).T.to(rhs.dtype)
+        return out
+    wxa, wya = wx[..., lo:hi], wy[..., lo:hi]
+    # The Laplacian's diagonal joins the blocks: the operator is then the blocks minus the
+    # neighbour terms, and the preconditioner the blocks' exact inverse, factored once here.
+    lapd = laplacian_diag(wxa, wya, size)
+    if c_kernels(hess, diag, rhs, lapd, size=c):
+        from torchbrdf.kernels.lane_ops import MAX_SCHUR, lane_schur
+
+        fast = c <= MAX_SCHUR
+    else:
+        fast = False
+    elim = lane_schur if fast else _eliminate
+    low_u, d_u, bt, rhs_u, low, d_isqrt, b = elim(hess, diag, rhs, order, nu, lapd)
+    dt = rhs.dtype
+    x = _cg_iterations(low, d_isqrt, wxa.permute(2, 0, 1).contiguous(), wya.permute(2, 0, 1).contiguous(), b,
+                       size, iters)
+    out[:, lo:hi] = x.T
+    if u:  # x_u = D⁻¹ (rhs_u − Bᵀ x_a)
+        t = rhs_u - (bt * x.double()).sum(1)  # (nu, P)
+        out[:, u] = ldl_solve(low_u, 1.0 / d_u, t).T.to(dt)
+    return out
+
+
+def _eliminate(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
+               ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`pcg`'s per-pixel elimination of the first ``nu`` channels of ``order``, in PyTorch
+    operations: :func:`torchbrdf.kernels.lane_ops.lane_schur` (arguments, results) is its one pass."""
+    c = rhs.shape[1]
     # Float64 lanes (C, C, P) in the order (u, a): D, Bᵀ, A are views; a fresh copy, updated in place.
     h = to_lanes(hess, order=order)
     rhs64 = h.new_empty(c, rhs.shape[0]).copy_(rhs[:, order].T)  # (C, P)
     if diag is not None:
         h.diagonal(dim1=0, dim2=1).add_(diag[:, order])  # (a (P, C) view)
-    out = torch.empty_like(rhs)
-    if not joined:  # no coupling: each pixel's block alone
-        low, d = ldl_factor(h)
-        out[:, order] = ldl_solve(low, 1.0 / d, rhs64).T.to(rhs.dtype)
-        return out
     s, b = h[nu:, nu:], rhs64[nu:]
-    if u:
+    low_u = d_u = h[:0, :0]
+    if nu:
         low_u, d_u = ldl_factor(h[:nu, :nu])
         # S = A − B D⁻¹ Bᵀ = A − Σ_k v_k v_kᵀ with v = D^-½ L_u⁻¹ Bᵀ: symmetric as computed
         v = lower_solve(low_u, h[:nu, nu:].clone())  # (nu, n, P)
@@ -161,19 +194,10 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
         for k in range(nu):
             s.addcmul_(v[k][:, None], v[k][None, :], value=-1.0)
             b.addcmul_(v[k], y[k] * scale[k], value=-1.0)
-    wxa, wya = wx[..., lo:hi], wy[..., lo:hi]
-    # The Laplacian's diagonal joins the blocks: the operator is then the blocks minus the
-    # neighbour terms, and the preconditioner the blocks' exact inverse, factored once here.
-    s.diagonal(dim1=0, dim2=1).add_(laplacian_diag(wxa, wya, size))  # (a (P, n) view)
+    s.diagonal(dim1=0, dim2=1).add_(lapd)  # (a (P, n) view)
     low, d = ldl_factor(s)
     dt = rhs.dtype
-    x = _cg_iterations(low.to(dt), torch.rsqrt(d).to(dt), wxa.permute(2, 0, 1).contiguous(),
-                       wya.permute(2, 0, 1).contiguous(), b.to(dt), size, iters)
-    out[:, lo:hi] = x.T
-    if u:  # x_u = D⁻¹ (rhs_u − Bᵀ x_a)
-        t = rhs64[:nu] - (h[:nu, nu:] * x.double()).sum(1)  # (nu, P)
-        out[:, u] = ldl_solve(low_u, 1.0 / d_u, t).T.to(dt)
-    return out
+    return low_u, d_u, h[:nu, nu:], rhs64[:nu], low.to(dt), torch.rsqrt(d).to(dt), b.to(dt)
 
 
 def reads_host(device: torch.device) -> bool:
@@ -193,26 +217,23 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
 
     CG runs on the split-preconditioned system ``(I − K) y = G⁻¹ b`` with ``K = G⁻¹ N G⁻ᵀ``,
     ``G = L D^½``, ``x = G⁻ᵀ y``: the same iterates as CG preconditioned by ``M⁻¹`` in exact
-    arithmetic, but an iteration needs the two triangular solves and no block product.
+    arithmetic, but an iteration needs the two triangular solves and no block product. On the
+    CPU the operator ``K`` (or ``I − K``) is one C call
+    (:func:`torchbrdf.kernels.lane_ops.lane_coupling`, bit-identical to the PyTorch form below).
     """
     n = low.shape[0]
+    if c_kernels(low, d_isqrt, wx, wy, b, size=n):
+        from torchbrdf.kernels.lane_ops import coupling_operator
 
-    def neighbours(v):  # N v = Σ_q w_pq v_q (the first term written, not added to zeros)
-        out = torch.empty_like(v)
-        o, w = out.view(n, size, size), v.view(n, size, size)
-        torch.mul(wx, w[:, :, 1:], out=o[:, :, :-1])
-        o[:, :, -1] = 0.0
-        o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
-        o[:, :-1].addcmul_(wy, w[:, 1:])
-        o[:, 1:].addcmul_(wy, w[:, :-1])
-        return out
+        op = coupling_operator(low, d_isqrt, wx, wy)
 
-    def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
-        return lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
+        def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
+            return op(v, False)
 
-    def apply(v):  # (I − K) v
-        k = coupling(v)
-        return torch.sub(v, k, out=k)
+        def apply(v):  # (I − K) v
+            return op(v, True)
+    else:
+        coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
 
     def dot(p, q):
         return torch.vdot(p.view(-1), q.view(-1))
@@ -250,6 +271,30 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
             d = torch.addcmul(r, d, beta)
             rr = rr_new
     return upper_solve(low, y.mul_(d_isqrt))
+
+
+def _torch_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, size: int):
+    """``(K, I − K)`` of :func:`_cg_iterations` as functions of ``v (n, P)``, in PyTorch operations."""
+    n = low.shape[0]
+
+    def neighbours(v):  # N v = Σ_q w_pq v_q (the first term written, not added to zeros)
+        out = torch.empty_like(v)
+        o, w = out.view(n, size, size), v.view(n, size, size)
+        torch.mul(wx, w[:, :, 1:], out=o[:, :, :-1])
+        o[:, :, -1] = 0.0
+        o[:, :, 1:].addcmul_(wx, w[:, :, :-1])
+        o[:, :-1].addcmul_(wy, w[:, 1:])
+        o[:, 1:].addcmul_(wy, w[:, :-1])
+        return out
+
+    def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v (lower_solve and upper_solve: the PyTorch loops here)
+        return lower_solve(low, neighbours(upper_solve(low, v * d_isqrt))).mul_(d_isqrt)
+
+    def apply(v):  # (I − K) v
+        k = coupling(v)
+        return torch.sub(v, k, out=k)
+
+    return coupling, apply
 
 
 def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,

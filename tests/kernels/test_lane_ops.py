@@ -1,0 +1,247 @@
+"""The LM step's lane-wise linear algebra in C (kernels/lane_ops.py) against the PyTorch forms and
+dense float64 references.
+
+The C operators repeat the PyTorch forms' floating-point operations in the same order per element
+(ATen's ``addcmul`` as one fused multiply-add where its kernels use them), so they are compared
+bit for bit with the forms of :mod:`torchbrdf.recovery.pixel_systems` and
+:func:`torchbrdf.recovery.smoothness_prior.pcg` (run with the fused path off), and each against a
+dense float64 reference that a wrong order, a wrong border or swapped weights would not match.
+"""
+
+import contextlib
+
+import pytest
+import torch
+
+from torchbrdf.brdf import principled
+from torchbrdf.kernels import build, lane_ops
+from torchbrdf.recovery import pixel_systems, smoothness_prior
+
+pytestmark = pytest.mark.skipif(not build.available(), reason="needs the C kernels")
+
+F64 = torch.float64
+
+
+@contextlib.contextmanager
+def pytorch_forms():
+    """The PyTorch forms inside the block (the fused path off), the default after it."""
+    principled.set_fast_path(False)
+    try:
+        yield
+    finally:
+        principled.set_fast_path(None)
+
+
+def _spd_lanes(n, p, seed=0, dtype=F64):
+    """``p`` SPD matrices as lanes ``(n, n, p)``, condition numbers up to 1e4; the last is
+    numerically singular (a direction with nothing on it: its last pivot meets the floor)."""
+    gen = torch.Generator().manual_seed(seed)
+    a = torch.randn(p, n, n + 2, generator=gen, dtype=F64)
+    m = a @ a.mT + 1e-4 * torch.eye(n, dtype=F64)
+    m[-1] = torch.ones(n, n, dtype=F64) + torch.diag(torch.linspace(1.0, 2.0, n, dtype=F64))
+    m[-1, :, -1] = m[-1, -1, :] = m[-1, :, 0]  # last row = first row: singular
+    m[-1, -1, -1] = m[-1, 0, 0]
+    return pixel_systems.to_lanes(m).to(dtype)
+
+
+def _lower(low):
+    n = low.shape[0]
+    return low[torch.tril(torch.ones(n, n, dtype=torch.bool), -1)]
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+@pytest.mark.parametrize("n", [1, 3, 7])
+def test_lane_ldl_is_the_pytorch_form_bit_for_bit(n, dtype):
+    m = _spd_lanes(n, 300, seed=n, dtype=dtype)  # 300 lanes: whole blocks of 256 and a partial one
+    with pytorch_forms():
+        low0, d0 = pixel_systems.ldl_factor(m)
+    low1, d1 = lane_ops.lane_ldl(m)
+    assert torch.equal(d0, d1) and torch.equal(_lower(low0), _lower(low1))
+    if n > 1:  # the singular block's last pivot is the floor, not a rounding residue or a NaN
+        floor = m[-1, -1, -1].abs() * lane_ops.PIVOT_FLOOR + torch.finfo(dtype).tiny
+        assert float(d1[-1, -1]) == float(floor) or float(d1[-1, -1]) > 0
+
+
+def test_lane_ldl_factors_each_pixels_own_matrix():
+    """``L D Lᵀ`` rebuilds every pixel's matrix (lanes, rows and columns kept apart) to 1e-14."""
+    m = _spd_lanes(5, 40, seed=2)[..., :-1]
+    low, d = lane_ops.lane_ldl(m)
+    ll = torch.tril(low.permute(2, 0, 1), -1) + torch.eye(5, dtype=F64)
+    rebuilt = ll @ torch.diag_embed(d.T) @ ll.mT
+    scale = m.permute(2, 0, 1).abs().amax((1, 2), keepdim=True)
+    assert float(((rebuilt - m.permute(2, 0, 1)) / scale).abs().max()) < 1e-14
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_lane_solves_are_the_pytorch_forms_and_the_triangular_solves(dtype):
+    m = _spd_lanes(6, 70, seed=4)[..., :-1]
+    low, _ = lane_ops.lane_ldl(m)
+    low = low.to(dtype)
+    v = torch.randn(6, 3, 69, generator=torch.Generator().manual_seed(5), dtype=dtype)
+    with pytorch_forms():
+        lo0, up0 = pixel_systems.lower_solve(low, v.clone()), pixel_systems.upper_solve(low, v.clone())
+    lo1, up1 = lane_ops.lane_lower_solve(low, v.clone()), lane_ops.lane_upper_solve(low, v.clone())
+    assert torch.equal(lo0, lo1) and torch.equal(up0, up1)
+    ll = (torch.tril(low.permute(2, 0, 1), -1) + torch.eye(6, dtype=dtype)).double()
+    ref = torch.linalg.solve_triangular(ll, v.permute(2, 0, 1).double(), upper=False, unitriangular=True)
+    tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == F64 else {"rtol": 1e-5, "atol": 1e-6}
+    torch.testing.assert_close(lo1.permute(2, 0, 1).double(), ref, **tol)
+    ref_up = torch.linalg.solve_triangular(ll.mT, v.permute(2, 0, 1).double(), upper=True, unitriangular=True)
+    torch.testing.assert_close(up1.permute(2, 0, 1).double(), ref_up, **tol)
+
+
+def _grid_case(n, size, seed=0, dtype=F64):
+    gen = torch.Generator().manual_seed(seed)
+    low, d = lane_ops.lane_ldl(_spd_lanes(n, size * size + 1, seed=seed)[..., :-1])
+    wx = torch.rand(n, size, size - 1, generator=gen, dtype=F64)
+    wy = 2.0 + torch.rand(n, size - 1, size, generator=gen, dtype=F64)  # unlike wx: a swap shows
+    v = torch.randn(n, size * size, generator=gen, dtype=F64)
+    return [t.to(dtype) for t in (low, torch.rsqrt(d), wx, wy, v)]
+
+
+def _dense_coupling(low, d_isqrt, wx, wy, v, wrap=False):
+    """``D^-½ L⁻¹ N L⁻ᵀ D^-½ v`` with ``N`` a dense ``(n P, n P)`` matrix built edge by edge
+    (``wrap``: a wrong border, also joining each row's last pixel to its first with ``wx[..., 0]``)."""
+    n, p = v.shape
+    size = wx.shape[1]
+    big = torch.zeros(n, p, n, p, dtype=F64)
+    for c in range(n):
+        for i in range(size):
+            for j in range(size):
+                here = i * size + j
+                if j + 1 < size:
+                    big[c, here, c, here + 1] = big[c, here + 1, c, here] = wx[c, i, j]
+                elif wrap:
+                    big[c, here, c, i * size] = big[c, i * size, c, here] = wx[c, i, 0]
+                if i + 1 < size:
+                    big[c, here, c, here + size] = big[c, here + size, c, here] = wy[c, i, j]
+    ll = torch.tril(low.double().permute(2, 0, 1), -1) + torch.eye(n, dtype=F64)  # (p, n, n)
+    t = torch.linalg.solve_triangular(ll.mT, (v.double() * d_isqrt.double()).T[..., None], upper=True,
+                                      unitriangular=True)[..., 0].T  # (n, p)
+    nb = (big.reshape(n * p, n * p) @ t.reshape(-1)).reshape(n, p)
+    return torch.linalg.solve_triangular(ll, nb.T[..., None], upper=False, unitriangular=True)[..., 0].T \
+        * d_isqrt.double()
+
+
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_lane_coupling_is_the_stencil(n):
+    """A 5×5 grid (border pixels with 2 and 3 neighbours, in blocks the C loop splits): the
+    operator is the dense definition to 1e-13; swapped ``wx``/``wy`` or a grid that wraps
+    around at its border would be far from it."""
+    low, d_isqrt, wx, wy, v = _grid_case(n, 5, seed=n)
+    k = lane_ops.lane_coupling(low, d_isqrt, wx, wy, v, False)
+    ref = _dense_coupling(low, d_isqrt, wx, wy, v)
+    torch.testing.assert_close(k, ref, rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(lane_ops.lane_coupling(low, d_isqrt, wx, wy, v, True), v - ref, rtol=1e-13,
+                               atol=1e-13)
+    swapped = _dense_coupling(low, d_isqrt, wy.transpose(1, 2), wx.transpose(1, 2), v)
+    assert float((swapped - k).abs().max()) > 1e-2
+    assert float((_dense_coupling(low, d_isqrt, wx, wy, v, wrap=True) - k).abs().max()) > 1e-2
+
+
+def _pcg_case(size, joined, dtype, seed=0):
+    """A coupled system like the LM step's: SPD blocks ``(P, 7, 7)`` float32/64, edge weights
+    non-zero only on the ``joined`` channels (the others are eliminated per pixel first)."""
+    gen = torch.Generator().manual_seed(seed)
+    p, c = size * size, 7
+    a = torch.randn(p, c, c + 3, generator=gen, dtype=F64)
+    hess = a @ a.mT
+    hess[3, :, 5] = hess[3, 5, :] = 0.0  # a pixel with no data on channel 5: held by its damping alone
+    hess[3, 5, 5] = 0.0
+    wx = torch.rand(size, size - 1, c, generator=gen, dtype=F64)
+    wy = torch.rand(size - 1, size, c, generator=gen, dtype=F64)
+    free = [k for k in range(c) if k not in joined]
+    wx[..., free], wy[..., free] = 0.0, 0.0
+    rhs = torch.randn(p, c, generator=gen, dtype=F64)
+    diag = 1e-3 * torch.rand(p, c, generator=gen, dtype=F64)
+    return [t.to(dtype) for t in (hess, wx, wy, rhs, diag)]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("joined", [[3, 4], [0, 1, 2, 3, 4], list(range(7)), []])
+def test_pcg_on_the_c_operators_is_the_pytorch_form_bit_for_bit(joined, dtype):
+    """The whole coupled solve (elimination, factorisation, CG iterations, back substitution) on a
+    17×17 grid: the C path (``lane_schur``, ``lane_coupling``) gives exactly the PyTorch form's
+    result, with the damping diagonal and without, and when no channel is coupled."""
+    hess, wx, wy, rhs, diag = _pcg_case(17, joined, dtype, seed=len(joined))
+    for d in (diag, None):
+        with pytorch_forms():
+            ref = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 25, diag=d)
+        x = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 25, diag=d)
+        assert d is None or torch.isfinite(x).all()  # (without damping pixel 3 has nothing on channel 5)
+        torch.testing.assert_close(x, ref, rtol=0, atol=0, equal_nan=True)
+
+
+def test_lane_schur_is_the_dense_elimination():
+    """The complement ``S = A − B D⁻¹ Bᵀ + diag(lapd)`` rebuilt from the factors, and
+    ``b = rhs_a − B D⁻¹ rhs_u``, against dense float64 algebra per pixel (the channels reordered)."""
+    hess, _, _, rhs, diag = _pcg_case(4, [0, 1, 2], F64, seed=3)
+    order, nu = [3, 4, 5, 6, 0, 1, 2], 4
+    lapd = torch.rand(16, 3, generator=torch.Generator().manual_seed(8), dtype=F64)
+    low_u, d_u, bt, rhs_u, low, d_isqrt, b = lane_ops.lane_schur(hess, diag, rhs, order, nu, lapd)
+    h = (hess + torch.diag_embed(diag))[:, order][:, :, order]
+    r = rhs[:, order]
+    dm, bm, am = h[:, :nu, :nu], h[:, :nu, nu:], h[:, nu:, nu:]
+    s_ref = am - bm.mT @ torch.linalg.solve(dm, bm) + torch.diag_embed(lapd)
+    b_ref = r[:, nu:] - (bm.mT @ torch.linalg.solve(dm, r[:, :nu, None]))[..., 0]
+    ll = torch.tril(low.permute(2, 0, 1), -1) + torch.eye(3, dtype=F64)
+    s = ll @ torch.diag_embed(d_isqrt.T ** -2) @ ll.mT
+    torch.testing.assert_close(s, s_ref, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(b.T, b_ref, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(bt.permute(2, 0, 1), bm, rtol=0, atol=0)
+    torch.testing.assert_close(rhs_u.T, r[:, :nu], rtol=0, atol=0)
+    lu = torch.tril(low_u.permute(2, 0, 1), -1) + torch.eye(nu, dtype=F64)
+    torch.testing.assert_close(lu @ torch.diag_embed(d_u.T) @ lu.mT, dm, rtol=1e-12, atol=1e-12)
+
+
+def _args():
+    low, d_isqrt, wx, wy, v = _grid_case(3, 4, seed=1)
+    hess, _, _, rhs, diag = _pcg_case(4, [3, 4], F64)
+    return low, d_isqrt, wx, wy, v, hess, rhs, diag
+
+
+def test_lane_ops_pass_opcheck():
+    low, d_isqrt, wx, wy, v, hess, rhs, diag = _args()
+    m = _spd_lanes(3, 16)
+    torch.library.opcheck(torch.ops.torchbrdf.lane_ldl, (m,))
+    torch.library.opcheck(torch.ops.torchbrdf.lane_lower_solve_, (low, v.clone()))
+    torch.library.opcheck(torch.ops.torchbrdf.lane_upper_solve_, (low, v.clone()))
+    torch.library.opcheck(torch.ops.torchbrdf.lane_coupling, (low, d_isqrt, wx, wy, v, True))
+    lapd = torch.rand(16, 2, dtype=F64)
+    torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, diag, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
+    torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, None, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
+
+
+def test_lane_ops_refuse_what_the_kernels_cannot_read():
+    """Raw CPU memory of one float type, read at the shapes given: another dtype, a tensor off
+    the CPU, a wrong shape or a bad channel order is refused by name before anything is read."""
+    low, d_isqrt, wx, wy, v, hess, rhs, diag = _args()
+    with pytest.raises(ValueError, match="low must be float32 or float64"):
+        lane_ops.lane_coupling(low.half(), d_isqrt, wx, wy, v, True)
+    with pytest.raises(ValueError, match="d_isqrt must be float32 or float64"):
+        lane_ops.lane_coupling(low, d_isqrt.float(), wx, wy, v, True)
+    with pytest.raises(ValueError, match="wx must be on the CPU"):
+        lane_ops.lane_coupling(low, d_isqrt, wx.to("meta"), wy, v, True)
+    with pytest.raises(ValueError, match=r"wy must have shape \(3, 3, 4\)"):
+        lane_ops.lane_coupling(low, d_isqrt, wx, wy.transpose(1, 2), v, True)
+    with pytest.raises(ValueError, match="wx must have shape"):  # wx and wy swapped
+        lane_ops.lane_coupling(low, d_isqrt, wy, wx, v, True)
+    with pytest.raises(ValueError, match="v must have shape"):
+        lane_ops.lane_coupling(low, d_isqrt, wx, wy, v[:, :-1], True)
+    with pytest.raises(ValueError, match="not a square grid"):
+        lane_ops.lane_coupling(low[..., :-1], d_isqrt, wx, wy, v, True)
+    with pytest.raises(ValueError, match="MAX_SIZE"):
+        lane_ops.lane_ldl(torch.zeros(17, 17, 4, dtype=F64))
+    with pytest.raises(ValueError, match="v must be contiguous"):
+        lane_ops.lane_lower_solve(low, torch.empty(16, 3, dtype=F64).T.copy_(v))
+    with pytest.raises(ValueError, match="v must be"):
+        lane_ops.lane_upper_solve(low, v.float())
+    with pytest.raises(ValueError, match="order must be a permutation"):
+        lane_ops.lane_schur(hess, diag, rhs, [0, 1, 2, 3, 4, 5, 5], 5, torch.zeros(16, 2, dtype=F64))
+    with pytest.raises(ValueError, match="lapd must have shape"):
+        lane_ops.lane_schur(hess, diag, rhs, [0, 1, 2, 5, 6, 3, 4], 5, torch.zeros(16, 3, dtype=F64))
+    with pytest.raises(ValueError, match="MAX_SCHUR"):
+        lane_ops.lane_schur(torch.zeros(4, 9, 9, dtype=F64), None, torch.zeros(4, 9, dtype=F64),
+                            list(range(9)), 0, torch.zeros(4, 9, dtype=F64))
+    with pytest.raises(ValueError, match="rhs must be float32 or float64"):
+        lane_ops.lane_schur(hess, diag, rhs.float(), [0, 1, 2, 5, 6, 3, 4], 5, torch.zeros(16, 2, dtype=F64))
