@@ -313,18 +313,26 @@ def _active_costs(data: LevelData, rows: Tensor, own: tuple[Tensor, Tensor, Tens
     it would not have won). Not rendered either (+inf): a neighbour of the other class where
     ``floor`` is None (it never competes), and one of the pixel's class with the pixel's own
     parameters (a region that took one value in the last pass): its score would equal the
-    pixel's own, which a candidate must beat. Taken from ``known`` (and written there when
-    rendered): the costs it holds at the same parameters.
+    pixel's own, which a candidate must beat; nor one that repeats an earlier candidate of its
+    pixel (a region that took one value): its score would equal that one's, which comes first.
+    Taken from ``known`` (and written there when rendered): the costs it holds at the same
+    parameters.
     """
     (own_theta, own_metal, own_prior), (cand, cm, prior) = own, cands
     same = cm == own_metal
     own_again = same & (cand == own_theta).all(-1, keepdim=True)
-    wanted = (same if floor is None else torch.ones_like(same)) & ~own_again
+    wanted = (same if floor is None else torch.ones_like(same)) & ~own_again & ~_repeats(cand, cm)
     if known is None:
         own_rows = torch.arange(rows.numel(), device=rows.device)
     else:
         own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
-        seen = (cand == known.values[:, rows]).all(-1, keepdim=True) & (cm == known.metal[:, rows])
+        # (the neighbour that held a value may have moved on: any neighbour's slot will do)
+        slots = torch.arange(cm.shape[0], device=cm.device)
+        k, j, n = _equal_pairs(cand, cm, known.values[:, rows], known.metal[:, rows],
+                               slots.repeat_interleave(len(slots)), slots.repeat(len(slots)))
+        seen_cost = torch.full_like(same, float("inf"), dtype=own_theta.dtype)
+        seen_cost[k, n] = known.cost[j, rows.index_select(0, n)]
+        seen = seen_cost < float("inf")
         wanted, cached = wanted & ~seen, wanted & seen
     own_new = _data_cost(data, own_theta.index_select(0, own_rows), own_metal.index_select(0, own_rows), model,
                          rows.index_select(0, own_rows))
@@ -332,7 +340,7 @@ def _active_costs(data: LevelData, rows: Tensor, own: tuple[Tensor, Tensor, Tens
         own_cost, data_cost = own_new, torch.full_like(same, float("inf"), dtype=own_theta.dtype)
     else:
         own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, own_new)
-        data_cost = torch.where(cached, known.cost[:, rows], float("inf"))
+        data_cost = torch.where(cached, seen_cost, float("inf"))
     k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
     flat, flat_m, pix = cand[k_idx, n_idx], cm[k_idx, n_idx], rows.index_select(0, n_idx)
     keep = _may_win_rows(data, flat, flat_m, pix, model, floor, (own_cost + own_prior).index_select(0, n_idx),
@@ -346,6 +354,32 @@ def _active_costs(data: LevelData, rows: Tensor, own: tuple[Tensor, Tensor, Tens
         known.cost[k_idx, pix] = cost
     data_cost[k_idx, n_idx] = cost
     return own_cost, data_cost
+
+
+def _repeats(cand: Tensor, cm: Tensor) -> Tensor:
+    """Whether candidate ``k`` of a pixel equals (parameters and class) one before it, ``(K, N, 1)`` bool.
+
+    ``cand (K, N, 7)``, ``cm (K, N, 1)``.
+    """
+    k_all, n = cm.shape[:2]
+    k, _, pix = _equal_pairs(cand, cm, cand, cm, *torch.tril_indices(k_all, k_all, -1, device=cand.device))
+    out = torch.zeros(k_all, n, 1, dtype=torch.bool, device=cand.device)
+    out[k, pix] = True
+    return out
+
+
+def _equal_pairs(cand: Tensor, cm: Tensor, other: Tensor, om: Tensor, later: Tensor, first: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """The equal pairs of ``cand[later[i], n]`` and ``other[first[i], n]`` (parameters and class).
+
+    ``cand``, ``other (K, N, 7)``; ``cm``, ``om (K, N, 1)``; ``later``, ``first (M,)`` int64.
+    Returns their ``(later, first, n)``, each ``(E,)`` int64. The pairs are compared on one
+    unknown first, in full only where that one agrees (rarely, but for equal pairs).
+    """
+    pair, pix = (cand[later, :, 0] == other[first, :, 0]).nonzero(as_tuple=True)
+    k, j = later.index_select(0, pair), first.index_select(0, pair)
+    equal = (cand[k, pix] == other[j, pix]).all(-1) & (cm[k, pix, 0] == om[j, pix, 0])
+    return k[equal], j[equal], pix[equal]
 
 
 def _may_win_rows(data: LevelData, cand: Tensor, cm: Tensor, rows: Tensor, model: str, floor: float | None,
