@@ -239,6 +239,55 @@ def test_a_full_pass_bounded_on_a_few_lights_equals_rendering_every_candidate(mo
         assert torch.equal(a, b) and a.stride() == b.stride()
 
 
+@pytest.mark.parametrize("cross", [None, 1e-3])
+def test_an_active_pass_bounded_on_a_few_lights_equals_the_loop(monkeypatch, cross):
+    # Exact pixels with a few broken ones and a block of one value: most neighbours' values
+    # cost more than a pixel's own on a few lights (ruled out unrendered), the block's
+    # neighbours repeat each other. (A bound against another pixel's score, or a cost given
+    # to the wrong candidate, changes the maps.)
+    size = 24
+    data, theta, metal = fitted_state(size=size)
+    theta.view(size, size, 7)[14:20, 2:9] = theta.view(size, size, 7)[16, 5]
+    cfg = Settings()
+    changed = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)[2]
+    active = map_ops.dilate(changed, size)
+    chosen = []
+    original = search.pruning_lights
+    monkeypatch.setattr(search, "pruning_lights",  # (on a small sample: this level is small)
+                        lambda *a, **k: chosen.append(original(*a, **{**k, "sample": 64})) or chosen[-1])
+    rendered = count_rendered(monkeypatch)
+    got = search.propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
+    ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
+    assert chosen[0] is not None and set(chosen[0]) < set(data.train_idx)
+    assert rendered[0] < 0.5 * 9 * int(active.sum())
+    assert bool(ref[2].any()) and not bool(ref[2].all())
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b) and a.stride() == b.stride()
+
+
+@pytest.mark.parametrize("cross", [None, 1e-3])
+def test_an_active_pass_renders_a_value_once_per_pixel(monkeypatch, cross):
+    # One value over the map but for a few lone pixels: each of these has 8 neighbours of that
+    # value and renders it once (and its own); where one neighbour holds it as metal, that
+    # one is another candidate when classes compete.
+    size = 12
+    data, theta, metal = rough_state(size=size, seed=11)
+    metal = torch.zeros_like(metal)
+    lone = torch.tensor([13, 40, 66, 100, 130])  # no two of them neighbours
+    metal[14] = 1.0  # right of the first
+    theta = theta[20].expand_as(theta).clone()
+    theta[lone] += torch.randn(len(lone), 7, generator=torch.Generator().manual_seed(12))
+    active = torch.zeros(size * size, dtype=torch.bool)
+    active[lone] = True
+    rendered = count_rendered(monkeypatch)
+    got = search.propagate(data, theta, metal, Settings(), class_sigma2=cross, active=active)
+    ref = reference_propagate(data, theta, metal, Settings(), class_sigma2=cross, active=active)
+    assert rendered[0] == 2 * len(lone) + (cross is not None)
+    assert bool(ref[2].any())
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_subset_cost_bound_stays_below_the_cost_of_any_rounding(dtype):
     gen = torch.Generator().manual_seed(10)
