@@ -240,26 +240,6 @@ def test_a_full_pass_bounded_on_a_few_lights_equals_rendering_every_candidate(mo
 
 
 @pytest.mark.parametrize("cross", [None, 1e-3])
-def test_a_full_pass_bounding_only_its_later_sets_equals_rendering_every_candidate(monkeypatch, cross):
-    # No lights pay at the pass's start (forced here); later sets are bounded against the best
-    # score so far, which a bound against the pixel's own score would not equal.
-    data, theta, metal = fitted_state()
-    calls = []
-    original = search.pruning_lights
-    monkeypatch.setattr(search, "pruning_lights",  # (on a small sample: this level is small)
-                        lambda *a, **k: calls.append(original(*a, **k, sample=64) if calls else None) or calls[-1])
-    rendered = count_rendered(monkeypatch)
-    cfg = Settings()
-    got = search.propagate(data, theta, metal, cfg, class_sigma2=cross)
-    ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)
-    assert calls[0] is None and calls[1] is not None and len(calls) == 2
-    assert rendered[0] < 0.8 * 9 * theta.shape[0]
-    assert bool(ref[2].any())
-    for a, b in zip(got, ref):
-        assert torch.equal(a, b) and a.stride() == b.stride()
-
-
-@pytest.mark.parametrize("cross", [None, 1e-3])
 def test_an_active_pass_bounded_on_a_few_lights_equals_the_loop(monkeypatch, cross):
     # Exact pixels with a few broken ones and a block of one value: most neighbours' values
     # cost more than a pixel's own on a few lights (ruled out unrendered), the block's

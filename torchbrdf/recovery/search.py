@@ -187,18 +187,11 @@ class _BoundedRenders:
                  own_score: Tensor, model: str, floor: float | None):
         self.data, self.cand, self.cm, self.same, self.prior = data, cand, cm, same, prior
         self.own_prior, self.model, self.floor = own_prior, model, floor
-        self.lights = self._pruning_lights(0, own_score)
-
-    def _pruning_lights(self, k: int, best_score: Tensor) -> list[int] | None:
-        """:func:`pruning_lights` for the sets from ``k`` on, against ``best_score (P, 1)``."""
-        need = score_bound(best_score, self.prior[k:], self.own_prior, self.same[k:], self.cm[k:], self.floor)[0]
-        return pruning_lights(self.data, self.cand[k:], self.cm[k:], need, self.model)
+        self.lights = pruning_lights(data, cand, cm, torch.where(same, own_score - prior, float("inf")), model)
 
     def cost(self, k: int, best_score: Tensor) -> Tensor:
         """Set ``k``'s data costs ``(P, 1)`` (+inf: cannot beat ``best_score (P, 1)``, or of the other class and not a candidate)."""
         cand, cm, same = self.cand[k], self.cm[k], self.same[k]
-        if self.lights is None and k > 0:  # (the best so far may have come down enough for a bound to pay)
-            self.lights = self._pruning_lights(k, best_score)
         consider = same if self.floor is None else torch.ones_like(same)
         if self.lights is None:
             keep = consider
