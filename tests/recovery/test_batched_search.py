@@ -240,27 +240,24 @@ def test_a_full_pass_bounded_on_a_few_lights_equals_rendering_every_candidate(mo
 
 
 @pytest.mark.parametrize("cross", [None, 1e-3])
-def test_an_active_pass_bounded_on_a_few_lights_equals_the_loop(monkeypatch, cross):
-    # Exact pixels with a few broken ones and a block of one value: most neighbours' values
-    # cost more than a pixel's own on a few lights (ruled out unrendered), the block's
-    # neighbours repeat each other. (A bound against another pixel's score, or a cost given
-    # to the wrong candidate, changes the maps.)
+def test_an_active_pass_over_repeated_values_equals_the_loop(monkeypatch, cross):
+    # Exact pixels with a few broken ones, a metal patch and a block of one value: the block's
+    # neighbours repeat each other, across the class boundary too. (A repeat matched to
+    # another pixel's or slot's candidate, or a cost given to the wrong one, changes the maps.)
     size = 24
     data, theta, metal = fitted_state(size=size)
-    theta.view(size, size, 7)[14:20, 2:9] = theta.view(size, size, 7)[16, 5]
+    img, metal_img = theta.view(size, size, 7), metal.view(size, size)
+    img[1:9, 8:14] = img[5, 11]  # one value over metal and dielectric pixels
+    img[14:20, 2:9] = img[16, 5]
     cfg = Settings()
     changed = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)[2]
     active = map_ops.dilate(changed, size)
-    chosen = []
-    original = search.pruning_lights
-    monkeypatch.setattr(search, "pruning_lights",  # (on a small sample: this level is small)
-                        lambda *a, **k: chosen.append(original(*a, **{**k, "sample": 64})) or chosen[-1])
+    active.view(size, size)[0:10, 7:15] = True
     rendered = count_rendered(monkeypatch)
     got = search.propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
     ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
-    assert chosen[0] is not None and set(chosen[0]) < set(data.train_idx)
-    assert rendered[0] < 0.5 * 9 * int(active.sum())
-    assert bool(ref[2].any()) and not bool(ref[2].all())
+    assert rendered[0] < 0.8 * 9 * int(active.sum())
+    assert bool(ref[2].any()) and not bool(ref[2].all()) and bool((metal_img[1:9, 8:14] > 0.5).any())
     for a, b in zip(got, ref):
         assert torch.equal(a, b) and a.stride() == b.stride()
 

@@ -126,21 +126,21 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
     at = None if active is None else rows
     own_prior = local_prior(own, theta, wx, wy, size, at) + unary_cost(own, un)
     prior = local_prior(cand, theta, wx, wy, size, at) + unary_cost(cand, un)  # (8, N, 1)
-    tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
-    n_res = 3 * len(data.train_idx)
-    # (becoming metal costs at least τ noise variances of the smallest the test allows)
-    floor = None if class_sigma2 is None else tau * max(class_sigma2, 1e-30)
     if active is None:
         # Every pixel: each candidate set is rendered at the level's own targets, with no gather.
         # (Stacking the 9 sets into one call renders the same lanes but gathers 9 × P rows of
         # targets, 192 bytes each at 16 lights: that took more time than the 8 calls it saved.)
         own_cost = _data_cost(data, own, own_metal, cfg.model, None)
     else:
-        own_cost, data_cost = _active_costs(data, rows, (own, own_metal, own_prior), (cand, cm, prior), cfg.model,
-                                            floor, known)
+        own_cost, data_cost = _active_costs(data, rows, own, own_metal, cand, cm, cfg.model,
+                                            class_sigma2 is not None, known)
     best, best_metal = own, own_metal
     best_cost, best_score = own_cost, own_cost + own_prior
+    tau = evidence_threshold(N_PARAMS, cfg.false_metal_rate)
+    n_res = 3 * len(data.train_idx)
     if active is None:
+        # (becoming metal costs at least τ noise variances of the smallest the test allows)
+        floor = None if class_sigma2 is None else tau * max(class_sigma2, 1e-30)
         renders = _BoundedRenders(data, cand, cm, same, prior, own_prior, best_score, cfg.model, floor)
     for k in range(cand.shape[0]):  # in the neighbours' order: the first of equal scores wins
         if active is None:
@@ -196,43 +196,17 @@ class _BoundedRenders:
         if self.lights is None:
             keep = consider
         else:
+            inf = torch.full_like(best_score, float("inf"))
+            bound = torch.where(same, best_score - self.prior[k], inf)
+            scale = torch.where(same, best_score.abs() + self.prior[k].abs(), inf)
+            if self.floor is not None:  # becoming metal: data + price + own prior must stay below
+                metal = ~same & (cm > 0.5)
+                bound = torch.where(metal, best_score - self.own_prior - self.floor, bound)
+                scale = torch.where(metal, best_score.abs() + self.own_prior.abs() + self.floor, scale)
             r = self.data.residual(cand, cm, self.lights, self.model)
-            keep = consider & may_win(subset_cost_bound(r, BOUND_ULPS * torch.finfo(r.dtype).eps), best_score,
-                                      self.prior[k], self.own_prior, same, cm, self.floor)
+            tol = BOUND_ULPS * torch.finfo(r.dtype).eps
+            keep = consider & ~(subset_cost_bound(r, tol) > bound + tol * scale)
         return _kept_costs(self.data, cand, cm, keep[:, 0], self.model)
-
-
-def may_win(low: Tensor, best_score: Tensor, prior: Tensor, own_prior: Tensor, same: Tensor, cm: Tensor,
-            floor: float | None) -> Tensor:
-    """Whether candidates whose data cost is at least ``low`` may still score below ``best_score`` (bool).
-
-    Every argument ``(..., 1)``, broadcast: ``low`` a :func:`subset_cost_bound`; the others as
-    for :func:`score_bound`. The comparison allows the bound's rounding, relative to the terms'
-    size.
-    """
-    bound, scale = score_bound(best_score, prior, own_prior, same, cm, floor)
-    return ~(low > bound + BOUND_ULPS * torch.finfo(low.dtype).eps * scale)
-
-
-def score_bound(best_score: Tensor, prior: Tensor, own_prior: Tensor, same: Tensor, cm: Tensor,
-                floor: float | None) -> tuple[Tensor, Tensor]:
-    """The data cost a candidate must stay below to score below ``best_score``, and its terms' size.
-
-    Every argument ``(..., 1)``, broadcast: ``prior`` the candidates' priors, ``own_prior`` the
-    pixels', ``same`` whether a candidate is of its pixel's class, ``cm`` its metal flag;
-    ``floor`` the least price of becoming metal (None: no candidate of the other class
-    competes). A candidate of the pixel's class must keep data + prior below the best score,
-    one becoming metal data + ``floor`` + own prior; one becoming dielectric is never ruled
-    out (+inf: its price lowers its score). Returns ``(bound, scale)``, shaped as broadcast.
-    """
-    inf = torch.full_like(best_score, float("inf"))
-    bound = torch.where(same, best_score - prior, inf)
-    scale = torch.where(same, best_score.abs() + prior.abs(), inf)
-    if floor is not None:  # becoming metal: data + price + own prior must stay below
-        metal = ~same & (cm > 0.5)
-        bound = torch.where(metal, best_score - own_prior - floor, bound)
-        scale = torch.where(metal, best_score.abs() + own_prior.abs() + floor, scale)
-    return bound, scale
 
 
 def _kept_costs(data: LevelData, theta: Tensor, metal: Tensor, keep: Tensor, model: str) -> Tensor:
@@ -300,105 +274,69 @@ def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, mode
     return None if out is None else [data.train_idx[i] for i in out]
 
 
-def _active_costs(data: LevelData, rows: Tensor, own: tuple[Tensor, Tensor, Tensor],
-                  cands: tuple[Tensor, Tensor, Tensor], model: str, floor: float | None,
-                  known: _PassCosts | None) -> tuple[Tensor, Tensor]:
+def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor, cand: Tensor, cm: Tensor,
+                  model: str, cross: bool, known: _PassCosts | None) -> tuple[Tensor, Tensor]:
     """The data costs of pixels ``rows (N,)`` at their own parameters ``(N, 1)`` and at their candidates ``(8, N, 1)``.
 
-    ``own``: the pixels' ``(theta (N, 7), metal (N, 1), prior (N, 1))``; ``cands``: their
-    candidates' ``(theta (8, N, 7), metal (8, N, 1), prior (8, N, 1))``; ``floor`` as for
-    :func:`score_bound`. The own parameters are rendered first (one gather of their targets), then
-    every candidate that may still win in one call, after one call on a few lights
-    (:func:`pruning_lights`) has ruled out those that cannot beat the pixel's own score (+inf:
-    it would not have won). Not rendered either (+inf): a neighbour of the other class where
-    ``floor`` is None (it never competes), and one of the pixel's class with the pixel's own
-    parameters (a region that took one value in the last pass): its score would equal the
-    pixel's own, which a candidate must beat; nor one that repeats an earlier candidate of its
-    pixel (a region that took one value): its score would equal that one's, which comes first.
-    Taken from ``known`` (and written there when rendered): the costs it holds at the same
-    parameters.
+    Every render in one fused call, the own parameters and then the candidates stacked along
+    the pixel axis (one gather of their targets). Not rendered (+inf): a neighbour of the
+    other class unless ``cross`` (it never competes), one of the pixel's class with the
+    pixel's own parameters (a region that took one value in the last pass): its score would
+    equal the pixel's own, which a candidate must beat, and one that repeats an earlier
+    neighbour's parameters and class (a region one value spreads over): its score would equal
+    that one's, which comes first. Taken from ``known`` (and written there when rendered): the
+    costs it holds at the pixel at the same parameters, from any neighbour's slot (the
+    neighbour that held them may have moved on).
     """
-    (own_theta, own_metal, own_prior), (cand, cm, prior) = own, cands
+    n = rows.numel()
     same = cm == own_metal
-    own_again = same & (cand == own_theta).all(-1, keepdim=True)
-    wanted = (same if floor is None else torch.ones_like(same)) & ~own_again & ~_repeats(cand, cm)
-    if known is None:
-        own_rows = torch.arange(rows.numel(), device=rows.device)
-    else:
-        own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
-        # (the neighbour that held a value may have moved on: any neighbour's slot will do)
-        slots = torch.arange(cm.shape[0], device=cm.device)
-        k, j, n = _equal_pairs(cand, cm, known.values[:, rows], known.metal[:, rows],
-                               slots.repeat_interleave(len(slots)), slots.repeat(len(slots)))
-        seen_cost = torch.full_like(same, float("inf"), dtype=own_theta.dtype)
-        seen_cost[k, n] = known.cost[j, rows.index_select(0, n)]
-        seen = seen_cost < float("inf")
-        wanted, cached = wanted & ~seen, wanted & seen
-    own_new = _data_cost(data, own_theta.index_select(0, own_rows), own_metal.index_select(0, own_rows), model,
-                         rows.index_select(0, own_rows))
-    if known is None:
-        own_cost, data_cost = own_new, torch.full_like(same, float("inf"), dtype=own_theta.dtype)
-    else:
-        own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, own_new)
-        data_cost = torch.where(cached, seen_cost, float("inf"))
+    own_again = same & (cand == own).all(-1, keepdim=True)
+    wanted = (torch.ones_like(same) if cross else same) & ~own_again
     k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
     flat, flat_m, pix = cand[k_idx, n_idx], cm[k_idx, n_idx], rows.index_select(0, n_idx)
-    keep = _may_win_rows(data, flat, flat_m, pix, model, floor, (own_cost + own_prior).index_select(0, n_idx),
-                         prior[k_idx, n_idx], own_prior.index_select(0, n_idx), same[k_idx, n_idx])
-    if keep is not None:
-        k_idx, n_idx, flat, flat_m, pix = k_idx[keep], n_idx[keep], flat[keep], flat_m[keep], pix[keep]
-    cost = _data_cost(data, flat, flat_m, model, pix)
-    if known is not None:
+    new = torch.ones_like(k_idx, dtype=torch.bool)
+    new[_slot_matches(flat, flat_m, cand, cm, n_idx, k_idx)[1]] = False
+    data_cost = torch.full_like(same, float("inf"), dtype=own.dtype)
+    if known is None:
+        own_rows = torch.arange(n, device=rows.device)
+    else:
+        own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
+        slot, i = _slot_matches(flat, flat_m, known.values, known.metal, pix)
+        data_cost[k_idx[i], n_idx[i]] = known.cost[slot, pix[i]]
+        new[i] = False
+    k_idx, n_idx, flat, flat_m, pix = k_idx[new], n_idx[new], flat[new], flat_m[new], pix[new]
+    n_own = own_rows.numel()
+    c_all = _data_cost(data, torch.cat((own.index_select(0, own_rows), flat)),
+                       torch.cat((own_metal.index_select(0, own_rows), flat_m)), model,
+                       torch.cat((rows.index_select(0, own_rows), pix)))
+    if known is None:
+        own_cost = c_all[:n]
+    else:
+        own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, c_all[:n_own])
         known.values[k_idx, pix] = flat
         known.metal[k_idx, pix] = flat_m
-        known.cost[k_idx, pix] = cost
-    data_cost[k_idx, n_idx] = cost
+        known.cost[k_idx, pix] = c_all[n_own:]
+    data_cost[k_idx, n_idx] = c_all[n_own:]
     return own_cost, data_cost
 
 
-def _repeats(cand: Tensor, cm: Tensor) -> Tensor:
-    """Whether candidate ``k`` of a pixel equals (parameters and class) one before it, ``(K, N, 1)`` bool.
+def _slot_matches(theta: Tensor, metal: Tensor, table: Tensor, table_metal: Tensor, at: Tensor,
+                  before: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """The slots of ``table`` that hold candidates ``theta (W, 7)``, ``metal (W, 1)`` (parameters and class).
 
-    ``cand (K, N, 7)``, ``cm (K, N, 1)``.
+    ``table (K, P, 7)``, ``table_metal (K, P, 1)``: per slot and pixel; candidate ``i`` is
+    looked up at pixel ``at[i]`` (``at (W,)`` int64), only in slots below ``before[i]`` if
+    given. Returns ``(slot, i)``, each ``(E,)`` int64, one pair per match. Compared on one
+    unknown first (one gather of it per slot), in full only where that one agrees.
     """
-    k_all, n = cm.shape[:2]
-    k, _, pix = _equal_pairs(cand, cm, cand, cm, *torch.tril_indices(k_all, k_all, -1, device=cand.device))
-    out = torch.zeros(k_all, n, 1, dtype=torch.bool, device=cand.device)
-    out[k, pix] = True
-    return out
-
-
-def _equal_pairs(cand: Tensor, cm: Tensor, other: Tensor, om: Tensor, later: Tensor, first: Tensor
-                 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The equal pairs of ``cand[later[i], n]`` and ``other[first[i], n]`` (parameters and class).
-
-    ``cand``, ``other (K, N, 7)``; ``cm``, ``om (K, N, 1)``; ``later``, ``first (M,)`` int64.
-    Returns their ``(later, first, n)``, each ``(E,)`` int64. The pairs are compared on one
-    unknown first, in full only where that one agrees (rarely, but for equal pairs).
-    """
-    pair, pix = (cand[later, :, 0] == other[first, :, 0]).nonzero(as_tuple=True)
-    k, j = later.index_select(0, pair), first.index_select(0, pair)
-    equal = (cand[k, pix] == other[j, pix]).all(-1) & (cm[k, pix, 0] == om[j, pix, 0])
-    return k[equal], j[equal], pix[equal]
-
-
-def _may_win_rows(data: LevelData, cand: Tensor, cm: Tensor, rows: Tensor, model: str, floor: float | None,
-                  own_score: Tensor, prior: Tensor, own_prior: Tensor, same: Tensor) -> Tensor | None:
-    """Which candidates ``cand (N, 7)``, ``cm (N, 1)`` at pixels ``rows (N,)`` may beat their pixel's ``own_score``.
-
-    ``(N,)`` bool from their residuals on a few lights (:func:`pruning_lights`,
-    :func:`may_win`; the other arguments ``(N, 1)`` as for :func:`score_bound`), or None
-    where such lights would not pay (every candidate is rendered).
-    """
-    if cand.shape[0] == 0:
-        return None
-    need = score_bound(own_score, prior, own_prior, same, cm, floor)[0]
-    lights = pruning_lights(data, cand[None], cm[None], need[None], model, rows)
-    if lights is None:
-        return None
-    r = data.residual(cand, cm, lights, model, rows=rows)
-    low = subset_cost_bound(r, BOUND_ULPS * torch.finfo(r.dtype).eps)
-    return may_win(low, own_score, prior, own_prior, same, cm, floor)[:, 0]
+    hit = table[..., 0].index_select(1, at) == theta[:, 0]  # (K, W)
+    if before is not None:
+        hit &= torch.arange(table.shape[0], device=at.device)[:, None] < before
+    slot, i = hit.nonzero(as_tuple=True)
+    at_slot = slot * table.shape[1] + at.index_select(0, i)  # (rows of the tables' (K P, C) views)
+    equal = (table.flatten(0, 1).index_select(0, at_slot) == theta.index_select(0, i)).all(-1) \
+        & (table_metal.flatten(0, 1).index_select(0, at_slot) == metal.index_select(0, i))[:, 0]
+    return slot[equal], i[equal]
 
 
 def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
