@@ -79,7 +79,7 @@ class _PassCosts:
     ``metal[k, p] (8, P, 1)`` of its neighbour ``k`` (:data:`NEIGHBOURS` order; NaN: none yet),
     ``own[p] (P, 1)`` its at the parameters the last pass returned, where ``own_known[p]``.
     Only renders of gathered pixel rows are kept: a full pass renders the maps in their own
-    layout, whose sums can round otherwise.
+    layout, whose sums can round otherwise. Each tensor is contiguous: written through row views.
     """
     own: Tensor
     own_known: Tensor
@@ -90,9 +90,10 @@ class _PassCosts:
     @staticmethod
     def empty(theta: Tensor) -> "_PassCosts":
         p_all, c = theta.shape
-        nan = torch.full((len(NEIGHBOURS), p_all, c + 1), float("nan"), dtype=theta.dtype, device=theta.device)
+        k = len(NEIGHBOURS)
         return _PassCosts(theta.new_zeros(p_all, 1), torch.zeros(p_all, dtype=torch.bool, device=theta.device),
-                          nan[..., :c], nan[..., c:], theta.new_zeros(len(NEIGHBOURS), p_all, 1))
+                          theta.new_full((k, p_all, c), float("nan")), theta.new_full((k, p_all, 1), float("nan")),
+                          theta.new_zeros(k, p_all, 1))
 
 
 def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_sigma2: float | None,
@@ -292,8 +293,11 @@ def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor,
     same = cm == own_metal
     own_again = same & (cand == own).all(-1, keepdim=True)
     wanted = (torch.ones_like(same) if cross else same) & ~own_again
-    k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
-    flat, flat_m, pix = cand[k_idx, n_idx], cm[k_idx, n_idx], rows.index_select(0, n_idx)
+    # (the wanted candidates as rows of (8 N, C) and (8 P, C) views: index_select, not indexing)
+    at = wanted.view(-1).nonzero()[:, 0]  # k N + n
+    k_idx, n_idx = at // n, at % n
+    flat, flat_m = cand.flatten(0, 1).index_select(0, at), cm.flatten(0, 1).index_select(0, at)
+    pix = rows.index_select(0, n_idx)
     new = torch.ones_like(k_idx, dtype=torch.bool)
     new[_slot_matches(flat, flat_m, cand, cm, n_idx, k_idx)[1]] = False
     data_cost = torch.full_like(same, float("inf"), dtype=own.dtype)
@@ -302,9 +306,10 @@ def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor,
     else:
         own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
         slot, i = _slot_matches(flat, flat_m, known.values, known.metal, pix)
-        data_cost[k_idx[i], n_idx[i]] = known.cost[slot, pix[i]]
+        data_cost.view(-1, 1).index_copy_(0, at[i], known.cost.view(-1, 1).index_select(
+            0, slot * known.cost.shape[1] + pix.index_select(0, i)))
         new[i] = False
-    k_idx, n_idx, flat, flat_m, pix = k_idx[new], n_idx[new], flat[new], flat_m[new], pix[new]
+    at, k_idx, flat, flat_m, pix = at[new], k_idx[new], flat[new], flat_m[new], pix[new]
     n_own = own_rows.numel()
     c_all = _data_cost(data, torch.cat((own.index_select(0, own_rows), flat)),
                        torch.cat((own_metal.index_select(0, own_rows), flat_m)), model,
@@ -313,10 +318,11 @@ def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor,
         own_cost = c_all[:n]
     else:
         own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, c_all[:n_own])
-        known.values[k_idx, pix] = flat
-        known.metal[k_idx, pix] = flat_m
-        known.cost[k_idx, pix] = c_all[n_own:]
-    data_cost[k_idx, n_idx] = c_all[n_own:]
+        at_known = k_idx * known.cost.shape[1] + pix
+        known.values.view(-1, flat.shape[1]).index_copy_(0, at_known, flat)
+        known.metal.view(-1, 1).index_copy_(0, at_known, flat_m)
+        known.cost.view(-1, 1).index_copy_(0, at_known, c_all[n_own:])
+    data_cost.view(-1, 1).index_copy_(0, at, c_all[n_own:])
     return own_cost, data_cost
 
 
