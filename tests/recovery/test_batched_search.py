@@ -240,10 +240,10 @@ def test_a_full_pass_bounded_on_a_few_lights_equals_rendering_every_candidate(mo
 
 
 @pytest.mark.parametrize("cross", [None, 1e-3])
-def test_an_active_pass_over_repeated_values_equals_the_loop(monkeypatch, cross):
+def test_an_active_pass_over_repeated_values_equals_the_loop(cross):
     # Exact pixels with a few broken ones, a metal patch and a block of one value: the block's
-    # neighbours repeat each other, across the class boundary too. (A repeat matched to
-    # another pixel's or slot's candidate, or a cost given to the wrong one, changes the maps.)
+    # neighbours repeat each other, across the class boundary too. (A candidate's cost given
+    # to another pixel or neighbour changes the maps.)
     size = 24
     data, theta, metal = fitted_state(size=size)
     img, metal_img = theta.view(size, size, 7), metal.view(size, size)
@@ -253,36 +253,11 @@ def test_an_active_pass_over_repeated_values_equals_the_loop(monkeypatch, cross)
     changed = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)[2]
     active = map_ops.dilate(changed, size)
     active.view(size, size)[0:10, 7:15] = True
-    rendered = count_rendered(monkeypatch)
     got = search.propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
     ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
-    assert rendered[0] < 0.8 * 9 * int(active.sum())
     assert bool(ref[2].any()) and not bool(ref[2].all()) and bool((metal_img[1:9, 8:14] > 0.5).any())
     for a, b in zip(got, ref):
         assert torch.equal(a, b) and a.stride() == b.stride()
-
-
-@pytest.mark.parametrize("cross", [None, 1e-3])
-def test_an_active_pass_renders_a_value_once_per_pixel(monkeypatch, cross):
-    # One value over the map but for a few lone pixels: each of these has 8 neighbours of that
-    # value and renders it once (and its own); where one neighbour holds it as metal, that
-    # one is another candidate when classes compete.
-    size = 12
-    data, theta, metal = rough_state(size=size, seed=11)
-    metal = torch.zeros_like(metal)
-    lone = torch.tensor([13, 40, 66, 100, 130])  # no two of them neighbours
-    metal[14] = 1.0  # right of the first
-    theta = theta[20].expand_as(theta).clone()
-    theta[lone] += torch.randn(len(lone), 7, generator=torch.Generator().manual_seed(12))
-    active = torch.zeros(size * size, dtype=torch.bool)
-    active[lone] = True
-    rendered = count_rendered(monkeypatch)
-    got = search.propagate(data, theta, metal, Settings(), class_sigma2=cross, active=active)
-    ref = reference_propagate(data, theta, metal, Settings(), class_sigma2=cross, active=active)
-    assert rendered[0] == 2 * len(lone) + (cross is not None)
-    assert bool(ref[2].any())
-    for a, b in zip(got, ref):
-        assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

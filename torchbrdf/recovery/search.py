@@ -79,7 +79,7 @@ class _PassCosts:
     ``metal[k, p] (8, P, 1)`` of its neighbour ``k`` (:data:`NEIGHBOURS` order; NaN: none yet),
     ``own[p] (P, 1)`` its at the parameters the last pass returned, where ``own_known[p]``.
     Only renders of gathered pixel rows are kept: a full pass renders the maps in their own
-    layout, whose sums can round otherwise. Each tensor is contiguous: written through row views.
+    layout, whose sums can round otherwise.
     """
     own: Tensor
     own_known: Tensor
@@ -90,10 +90,9 @@ class _PassCosts:
     @staticmethod
     def empty(theta: Tensor) -> "_PassCosts":
         p_all, c = theta.shape
-        k = len(NEIGHBOURS)
+        nan = torch.full((len(NEIGHBOURS), p_all, c + 1), float("nan"), dtype=theta.dtype, device=theta.device)
         return _PassCosts(theta.new_zeros(p_all, 1), torch.zeros(p_all, dtype=torch.bool, device=theta.device),
-                          theta.new_full((k, p_all, c), float("nan")), theta.new_full((k, p_all, 1), float("nan")),
-                          theta.new_zeros(k, p_all, 1))
+                          nan[..., :c], nan[..., c:], theta.new_zeros(len(NEIGHBOURS), p_all, 1))
 
 
 def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_sigma2: float | None,
@@ -281,68 +280,37 @@ def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor,
 
     Every render in one fused call, the own parameters and then the candidates stacked along
     the pixel axis (one gather of their targets). Not rendered (+inf): a neighbour of the
-    other class unless ``cross`` (it never competes), one of the pixel's class with the
+    other class unless ``cross`` (it never competes), and one of the pixel's class with the
     pixel's own parameters (a region that took one value in the last pass): its score would
-    equal the pixel's own, which a candidate must beat, and one that repeats an earlier
-    neighbour's parameters and class (a region one value spreads over): its score would equal
-    that one's, which comes first. Taken from ``known`` (and written there when rendered): the
-    costs it holds at the pixel at the same parameters, from any neighbour's slot (the
-    neighbour that held them may have moved on).
+    equal the pixel's own, which a candidate must beat. Taken from ``known`` (and written
+    there when rendered): the costs it holds at the same parameters.
     """
     n = rows.numel()
     same = cm == own_metal
     own_again = same & (cand == own).all(-1, keepdim=True)
     wanted = (torch.ones_like(same) if cross else same) & ~own_again
-    # (the wanted candidates as rows of (8 N, C) and (8 P, C) views: index_select, not indexing)
-    at = wanted.view(-1).nonzero()[:, 0]  # k N + n
-    k_idx, n_idx = at // n, at % n
-    flat, flat_m = cand.flatten(0, 1).index_select(0, at), cm.flatten(0, 1).index_select(0, at)
-    pix = rows.index_select(0, n_idx)
-    new = torch.ones_like(k_idx, dtype=torch.bool)
-    new[_slot_matches(flat, flat_m, cand, cm, n_idx, k_idx)[1]] = False
-    data_cost = torch.full_like(same, float("inf"), dtype=own.dtype)
     if known is None:
         own_rows = torch.arange(n, device=rows.device)
     else:
         own_rows = (~known.own_known.index_select(0, rows)).nonzero()[:, 0]
-        slot, i = _slot_matches(flat, flat_m, known.values, known.metal, pix)
-        data_cost.view(-1, 1).index_copy_(0, at[i], known.cost.view(-1, 1).index_select(
-            0, slot * known.cost.shape[1] + pix.index_select(0, i)))
-        new[i] = False
-    at, k_idx, flat, flat_m, pix = at[new], k_idx[new], flat[new], flat_m[new], pix[new]
+        seen = (cand == known.values[:, rows]).all(-1, keepdim=True) & (cm == known.metal[:, rows])
+        wanted, cached = wanted & ~seen, wanted & seen
+    k_idx, n_idx = wanted[..., 0].nonzero(as_tuple=True)
     n_own = own_rows.numel()
-    c_all = _data_cost(data, torch.cat((own.index_select(0, own_rows), flat)),
-                       torch.cat((own_metal.index_select(0, own_rows), flat_m)), model,
-                       torch.cat((rows.index_select(0, own_rows), pix)))
+    c_all = _data_cost(data, torch.cat((own.index_select(0, own_rows), cand[k_idx, n_idx])),
+                       torch.cat((own_metal.index_select(0, own_rows), cm[k_idx, n_idx])), model,
+                       torch.cat((rows.index_select(0, own_rows), rows.index_select(0, n_idx))))
     if known is None:
-        own_cost = c_all[:n]
+        own_cost, data_cost = c_all[:n], torch.full_like(same, float("inf"), dtype=own.dtype)
     else:
         own_cost = known.own.index_select(0, rows).index_copy_(0, own_rows, c_all[:n_own])
-        at_known = k_idx * known.cost.shape[1] + pix
-        known.values.view(-1, flat.shape[1]).index_copy_(0, at_known, flat)
-        known.metal.view(-1, 1).index_copy_(0, at_known, flat_m)
-        known.cost.view(-1, 1).index_copy_(0, at_known, c_all[n_own:])
-    data_cost.view(-1, 1).index_copy_(0, at, c_all[n_own:])
+        data_cost = torch.where(cached, known.cost[:, rows], float("inf"))
+        pix = rows.index_select(0, n_idx)
+        known.values[k_idx, pix] = cand[k_idx, n_idx]
+        known.metal[k_idx, pix] = cm[k_idx, n_idx]
+        known.cost[k_idx, pix] = c_all[n_own:]
+    data_cost[k_idx, n_idx] = c_all[n_own:]
     return own_cost, data_cost
-
-
-def _slot_matches(theta: Tensor, metal: Tensor, table: Tensor, table_metal: Tensor, at: Tensor,
-                  before: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """The slots of ``table`` that hold candidates ``theta (W, 7)``, ``metal (W, 1)`` (parameters and class).
-
-    ``table (K, P, 7)``, ``table_metal (K, P, 1)``: per slot and pixel; candidate ``i`` is
-    looked up at pixel ``at[i]`` (``at (W,)`` int64), only in slots below ``before[i]`` if
-    given. Returns ``(slot, i)``, each ``(E,)`` int64, one pair per match. Compared on one
-    unknown first (one gather of it per slot), in full only where that one agrees.
-    """
-    hit = table[..., 0].index_select(1, at) == theta[:, 0]  # (K, W)
-    if before is not None:
-        hit &= torch.arange(table.shape[0], device=at.device)[:, None] < before
-    slot, i = hit.nonzero(as_tuple=True)
-    at_slot = slot * table.shape[1] + at.index_select(0, i)  # (rows of the tables' (K P, C) views)
-    equal = (table.flatten(0, 1).index_select(0, at_slot) == theta.index_select(0, i)).all(-1) \
-        & (table_metal.flatten(0, 1).index_select(0, at_slot) == metal.index_select(0, i))[:, 0]
-    return slot[equal], i[equal]
 
 
 def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
