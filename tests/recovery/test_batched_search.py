@@ -239,6 +239,27 @@ def test_a_full_pass_bounded_on_a_few_lights_equals_rendering_every_candidate(mo
         assert torch.equal(a, b) and a.stride() == b.stride()
 
 
+@pytest.mark.parametrize("cross", [None, 1e-3])
+def test_an_active_pass_over_repeated_values_equals_the_loop(cross):
+    # Exact pixels with a few broken ones, a metal patch and a block of one value: the block's
+    # neighbours repeat each other, across the class boundary too. (A candidate's cost given
+    # to another pixel or neighbour changes the maps.)
+    size = 24
+    data, theta, metal = fitted_state(size=size)
+    img, metal_img = theta.view(size, size, 7), metal.view(size, size)
+    img[1:9, 8:14] = img[5, 11]  # one value over metal and dielectric pixels
+    img[14:20, 2:9] = img[16, 5]
+    cfg = Settings()
+    changed = reference_propagate(data, theta, metal, cfg, class_sigma2=cross)[2]
+    active = map_ops.dilate(changed, size)
+    active.view(size, size)[0:10, 7:15] = True
+    got = search.propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
+    ref = reference_propagate(data, theta, metal, cfg, class_sigma2=cross, active=active)
+    assert bool(ref[2].any()) and not bool(ref[2].all()) and bool((metal_img[1:9, 8:14] > 0.5).any())
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b) and a.stride() == b.stride()
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_subset_cost_bound_stays_below_the_cost_of_any_rounding(dtype):
     gen = torch.Generator().manual_seed(10)
