@@ -77,33 +77,25 @@ def test_no_prior_is_the_plain_fit_bit_for_bit(painted, without_prior):
     assert not torch.equal(rec.state["theta"][0], rec.state["theta"][1])
 
 
-def test_the_start_is_the_networks_maps_encoded(painted):
+def test_the_start_is_the_datas_own_with_or_without_the_prior(painted):
+    # A network wrong about a material would trap the fit in its basin (a glossy lacquer it calls
+    # rough stayed rough): the prior enters as a Gaussian term only, so both hypotheses start
+    # where they start without it, at every light count.
     cap = load_capture(painted)
     prior = Prior.default()
-    maps = prior.predict(cap)
-    learned = LearnedPrior(prior_maps_at(maps, 16), estimator_errors(prior.card))
-    rec = Recovery(cap, CFG, prior=learned)
-    rec.init_state()
-    s0 = rec.plan[0][0]
-    want = prior_maps_at(maps, s0)
-    bounds = {"roughness": (R_MIN, R_MAX)}
-    diel, metal = (decode(t, torch.zeros_like(t[:, :1])) for t in rec.state["theta"])
-    # The metal hypothesis starts from all of the network's maps; the dielectric from its roughness
-    # and specular, with the albedo and normal that the capture's four training lights determine.
-    for k in ("base_color", "roughness", "specular", "normal"):
-        torch.testing.assert_close(metal[k].T.reshape(-1, s0, s0), want[k].clamp(*bounds.get(k, (-1, 1))),
-                                   atol=2e-4, rtol=0, msg=k)
-    for k in ("roughness", "specular"):
-        torch.testing.assert_close(diel[k], metal[k], msg=k)
-    plain = Recovery(cap, CFG)
-    plain.init_state()
-    torch.testing.assert_close(rec.state["theta"][0][:, [0, 1, 2, 5, 6]], plain.state["theta"][0][:, [0, 1, 2, 5, 6]])
-    assert rec.state["prior_noise"] > 0
-    # With fewer than three lights in the fit, the network's maps are the whole start.
-    few = Recovery(cap, CFG.settings(holdout=-1), prior=learned)
-    few.train_idx = few.train_idx[:2]
-    few.init_state()
-    torch.testing.assert_close(few.state["theta"][0], few.state["theta"][1])
+    learned = LearnedPrior(prior_maps_at(prior.predict(cap), 16), estimator_errors(prior.card))
+    for train in (None, 2):
+        guided, plain = Recovery(cap, CFG, prior=learned), Recovery(cap, CFG)
+        for rec in (guided, plain):
+            if train:
+                rec.train_idx = rec.train_idx[:train]
+            rec.init_state()
+        for a, b in zip(guided.state["theta"], plain.state["theta"]):
+            assert torch.equal(a, b)
+    s0 = guided.plan[0][0]
+    assert guided.state["prior_noise"] > 0
+    info = guided.state["prior_information"]
+    assert len(info) == 2 and all(i.shape == (s0 * s0, 7) and bool((i >= 0).all()) for i in info)
 
 
 def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(painted, untied):

@@ -340,7 +340,7 @@ def _flat(m: Tensor) -> Tensor:
 
 
 def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
-                class_weight: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
+                class_weight: Tensor | float = 1.0, information: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The learned prior as a unary term ``(target, precision)`` ``(P, 7)`` of the recovery's unknowns.
 
     A Gaussian on each map, centred on the network's value ``m_p`` with the network's measured
@@ -362,6 +362,13 @@ def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, err
         errors: name -> ``σ_m`` (:func:`estimator_errors`).
         class_weight: ``(P, 1)`` or a float scaling the precision per pixel: the prior's
             probability of the hypothesis being fitted (its maps are conditional on the class).
+        information: the data's marginal information ``(P, 7)`` on each unknown
+            (:func:`~torchbrdf.recovery.lm.marginal_information`), or None. Given, each
+            precision ``π`` is scaled by its share of the posterior's, ``π / (π + info)``: whole
+            where the images are silent, vanishing (as ``π² / info``) where they determine the
+            unknown. The network's errors are shared across a material (a bias on a material
+            pulls all of its pixels alike), which a Gaussian of independent errors would let
+            shift every measured pixel by the same amount; the data decide there.
 
     Returns:
         ``target (P, 7)`` and ``precision (P, 7)`` (>= 0), in ``theta``'s dtype and device.
@@ -379,7 +386,11 @@ def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, err
     sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
                          dtype=theta.dtype, device=theta.device)
     precision = torch.cat(((slope / sigma) ** 2, torch.full_like(theta[:, 5:7], errors["normal"] ** -2.0)), -1)
-    return target, float(noise_var) * precision * class_weight
+    precision = float(noise_var) * precision * class_weight
+    if information is not None:
+        information = information.to(precision).clamp(min=0.0)
+        precision = precision * precision / (precision + information).clamp(min=1e-30)
+    return target, precision
 
 
 def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
@@ -422,10 +433,12 @@ class LearnedPrior:
         """The network's metallic ``(size², 1)`` at ``size``."""
         return _flat(self.at(size)["metallic"])
 
-    def unary(self, theta: Tensor, metal: Tensor, noise_var: float) -> tuple[Tensor, Tensor]:
+    def unary(self, theta: Tensor, metal: Tensor, noise_var: float,
+              information: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """:func:`prior_unary` at ``theta (P, 7)`` for the hypothesis ``metal (P, 1)`` (0 dielectric,
-        1 metal, or fractional): the prior's maps weighted by its probability of that class."""
+        1 metal, or fractional): the prior's maps weighted by its probability of that class, each
+        precision by its share of the posterior's where the data's ``information (P, 7)`` is given."""
         size = int(round(math.sqrt(theta.shape[0])))
         m = self.metallic(size).to(metal)
         agree = metal * m + (1 - metal) * (1 - m)
-        return prior_unary(theta, self.at(size), noise_var, self.errors, agree)
+        return prior_unary(theta, self.at(size), noise_var, self.errors, agree, information)
