@@ -39,7 +39,7 @@ from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
 from torchbrdf.recovery.params import R_MAX, R_MIN, encode
 
 __all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS",
-           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "class_prior_cost",
+           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error", "class_prior_cost",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
@@ -391,6 +391,32 @@ def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, err
         information = information.to(precision).clamp(min=0.0)
         precision = precision * precision / (precision + information).clamp(min=1e-30)
     return target, precision
+
+
+def measured_metallic_error(dielectric_cost: Tensor, metal_cost: Tensor, noise_var: float, metallic: Tensor,
+                            error: float) -> float:
+    """The network's metallic error on this capture, measured where the data decide the class.
+
+    The data's probability of metal per pixel is ``p = sigmoid((c_d − c_m) / 2σ²)`` (the
+    likelihood ratio of the two fits' costs at the noise variance ``σ²``); each pixel's squared
+    error ``(p − m_p)²`` counts with its decisiveness ``(2p − 1)²`` (1 where the data decide,
+    0 where the two fits tie). The result is the larger of that RMS and the card's ``error``: a
+    capture can show the network worse than on its training distribution (a material unlike
+    it called metal), never better.
+
+    Args:
+        dielectric_cost, metal_cost: each pixel's data cost ``(P, 1)`` under each hypothesis.
+        noise_var: ``σ²`` of one residual (> 0).
+        metallic: the network's metallic ``(P, 1)``.
+        error: the card's metallic error ``σ_m``.
+    """
+    diff = torch.nan_to_num(dielectric_cost - metal_cost, nan=0.0, posinf=1e30, neginf=-1e30)
+    p = torch.sigmoid(diff.double() / (2.0 * max(float(noise_var), 1e-30)))
+    w = (2 * p - 1) ** 2
+    if float(w.sum()) <= 0:
+        return float(error)
+    mse = float((w * (p - metallic.to(p)) ** 2).sum() / w.sum())
+    return max(float(error), math.sqrt(mse))
 
 
 def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
