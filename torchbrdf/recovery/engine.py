@@ -68,8 +68,10 @@ Method (``docs/recovery.md``, with its measurements):
   fit: silent pixels take the material's measured value, measured ones keep their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
-* **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
-  Gaussian unary toward them with its measured errors (:class:`~torchbrdf.recovery.prior.LearnedPrior`).
+* **Learned prior** (optional, ``recover(..., prior=...)``): a Gaussian unary toward a network's
+  maps with its measured errors, each precision weighed by its share against the data's
+  information, and its metallic as evidence in the class choice
+  (:class:`~torchbrdf.recovery.prior.LearnedPrior`); the start stays the data's own.
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 

@@ -11,8 +11,8 @@
   toward the prior's where the captured data are silent; :func:`prior_weight` makes its
   weight from a recovery confidence map.
 * :class:`LearnedPrior` -- a Prior's maps for one capture as :func:`~torchbrdf.recovery.recover`
-  uses them (``prior=``): the fit's start and a Gaussian unary term (:func:`prior_unary`,
-  :func:`class_prior_cost`) with the network's measured errors (:func:`estimator_errors`).
+  uses them (``prior=``): a Gaussian unary term (:func:`prior_unary`, :func:`class_prior_cost`)
+  with the network's measured errors (:func:`estimator_errors`, :func:`measured_metallic_error`).
 
 Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
 and multiplied by the squared light distance at the sample's centre (so the network sees
@@ -432,7 +432,7 @@ def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[
 
 
 class LearnedPrior:
-    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a start and a unary prior.
+    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a unary prior (and a start, :meth:`start`).
 
     Args:
         maps: the network's maps at the working size, ``(C, S, S)`` each (:func:`prior_maps_at`).
