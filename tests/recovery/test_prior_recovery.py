@@ -18,7 +18,7 @@ from torchbrdf.recovery.engine import Recovery
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_prior_cost, estimator_errors,
-                                      prior_maps_at, prior_unary)
+                                      measured_metallic_error, prior_maps_at, prior_unary)
 from torchbrdf.recovery.svbrdf import main
 
 from tests.recovery.recovery_fixtures import cap, copy_out, one_line_error, stopped  # noqa: F401  (fixtures)
@@ -30,12 +30,14 @@ CARD = {"heldout": {"base_color_rmse": 0.15, "roughness_rmse": 0.06, "metallic_r
                     "specular_rmse": 0.06, "normal_mean_deg": 2.0}}
 
 
-def constant_prior(lights: int = 1, card=CARD) -> Prior:
-    """A Prior whose network outputs :data:`CONSTANT` maps and flat normals at every pixel."""
+def constant_prior(lights: int = 1, card=CARD, **maps: float) -> Prior:
+    """A Prior whose network outputs :data:`CONSTANT` maps (``maps`` replacing some) and flat normals
+    at every pixel."""
     model = MapEstimator(lights=lights, width=8, depth=1)
+    const = CONSTANT | maps
     with torch.no_grad():
         model.head.weight.zero_()
-        values = [CONSTANT["base_color"]] * 3 + [CONSTANT[k] for k in ("roughness", "metallic", "specular")]
+        values = [const["base_color"]] * 3 + [const[k] for k in ("roughness", "metallic", "specular")]
         model.head.bias.copy_(torch.logit(torch.tensor(values + [0.5, 0.5])))
         model.head.bias[6:] = 0.0  # no tilt: flat normals
     return Prior(model, card)
@@ -77,33 +79,25 @@ def test_no_prior_is_the_plain_fit_bit_for_bit(painted, without_prior):
     assert not torch.equal(rec.state["theta"][0], rec.state["theta"][1])
 
 
-def test_the_start_is_the_networks_maps_encoded(painted):
+def test_the_start_is_the_datas_own_with_or_without_the_prior(painted):
+    # A network wrong about a material would trap the fit in its basin (a glossy lacquer it calls
+    # rough stayed rough): the prior enters as a Gaussian term only, so both hypotheses start
+    # where they start without it, at every light count.
     cap = load_capture(painted)
     prior = Prior.default()
-    maps = prior.predict(cap)
-    learned = LearnedPrior(prior_maps_at(maps, 16), estimator_errors(prior.card))
-    rec = Recovery(cap, CFG, prior=learned)
-    rec.init_state()
-    s0 = rec.plan[0][0]
-    want = prior_maps_at(maps, s0)
-    bounds = {"roughness": (R_MIN, R_MAX)}
-    diel, metal = (decode(t, torch.zeros_like(t[:, :1])) for t in rec.state["theta"])
-    # The metal hypothesis starts from all of the network's maps; the dielectric from its roughness
-    # and specular, with the albedo and normal that the capture's four training lights determine.
-    for k in ("base_color", "roughness", "specular", "normal"):
-        torch.testing.assert_close(metal[k].T.reshape(-1, s0, s0), want[k].clamp(*bounds.get(k, (-1, 1))),
-                                   atol=2e-4, rtol=0, msg=k)
-    for k in ("roughness", "specular"):
-        torch.testing.assert_close(diel[k], metal[k], msg=k)
-    plain = Recovery(cap, CFG)
-    plain.init_state()
-    torch.testing.assert_close(rec.state["theta"][0][:, [0, 1, 2, 5, 6]], plain.state["theta"][0][:, [0, 1, 2, 5, 6]])
-    assert rec.state["prior_noise"] > 0
-    # With fewer than three lights in the fit, the network's maps are the whole start.
-    few = Recovery(cap, CFG.settings(holdout=-1), prior=learned)
-    few.train_idx = few.train_idx[:2]
-    few.init_state()
-    torch.testing.assert_close(few.state["theta"][0], few.state["theta"][1])
+    learned = LearnedPrior(prior_maps_at(prior.predict(cap), 16), estimator_errors(prior.card))
+    for train in (None, 2):
+        guided, plain = Recovery(cap, CFG, prior=learned), Recovery(cap, CFG)
+        for rec in (guided, plain):
+            if train:
+                rec.train_idx = rec.train_idx[:train]
+            rec.init_state()
+        for a, b in zip(guided.state["theta"], plain.state["theta"]):
+            assert torch.equal(a, b)
+    s0 = guided.plan[0][0]
+    assert guided.state["prior_noise"] > 0
+    info = guided.state["prior_information"]
+    assert len(info) == 2 and all(i.shape == (s0 * s0, 7) and bool((i >= 0).all()) for i in info)
 
 
 def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(painted, untied):
@@ -156,6 +150,57 @@ def test_prior_unary_is_the_maps_gaussian_linearised_at_the_unknowns():
     assert errors["normal"] == pytest.approx(math.radians(2.0) / math.sqrt(math.pi / 2))
     diel, metal = class_prior_cost(torch.tensor([[0.25]]), 1e-4, 0.2)
     assert float(diel) == pytest.approx(1e-4 * 0.0625 / 0.04) and float(metal) == pytest.approx(1e-4 * 0.5625 / 0.04)
+
+
+def test_a_prior_wrong_about_the_class_does_not_make_a_dielectric_metal(painted, without_prior):
+    # A network calling the whole dielectric metal (0.95 everywhere, card error 0.2): its metallic
+    # is evidence weighed with its error measured on this capture, which the data's clear class
+    # decisions show to be 0.9, so a metal class needs the data's evidence as without the prior.
+    guided = recover(painted, CFG, progress=False, prior=constant_prior(metallic=0.95))
+    plain_fraction = float(without_prior.maps["metallic"].mean())
+    assert float(guided.maps["metallic"].mean()) <= plain_fraction + 0.02
+
+
+@pytest.fixture(scope="module")
+def many_lights(tmp_path_factory):
+    """The painted dielectric under sixteen ring lights and the flash: most of it is measured."""
+    folder = tmp_path_factory.mktemp("painted16_17")
+    generate_capture(folder, recipe="painted", seed=1, size=16, lights=16, noise=0.01)
+    return folder
+
+
+def test_at_many_lights_a_wrong_prior_moves_the_maps_less_than_the_fits_own_error(many_lights):
+    plain = recover(many_lights, CFG, progress=False)
+    guided = recover(many_lights, CFG, progress=False, prior=constant_prior())
+    for name in ("base_color", "roughness", "specular"):
+        truth = read_exr(many_lights / "gt" / f"{name}.exr")
+        moved = (guided.maps[name] - plain.maps[name]).abs().median()
+        own_error = (plain.maps[name] - truth).abs().median()
+        assert moved < own_error, name
+
+
+def test_the_prior_precision_is_weighed_by_its_share_against_the_data():
+    maps = {"base_color": torch.full((3, 1, 1), 0.5), "roughness": torch.full((1, 1, 1), 0.4),
+            "specular": torch.full((1, 1, 1), 0.5), "normal": torch.tensor([0.0, 0.0, 1.0]).reshape(3, 1, 1)}
+    theta = torch.tensor([[0.3, -1.0, 2.0, 0.5, -0.4, 0.0, 0.1]], dtype=torch.float64)
+    errors = estimator_errors(CARD)
+    target, prec = prior_unary(theta, maps, 1e-4, errors)
+    info = torch.tensor([[0.0, 1.0, 1e6, 0.0, 3.0, 1e-3, 1e3]], dtype=torch.float64) * prec
+    target2, prec2 = prior_unary(theta, maps, 1e-4, errors, information=info)
+    torch.testing.assert_close(target2, target)
+    # π / (π + info): whole where the data say nothing, half at equal information, ~π / info beyond
+    torch.testing.assert_close(prec2 / prec, 1 / (1 + info / prec))
+    assert float(prec2[0, 2] / prec[0, 2]) < 1e-5
+
+
+def test_the_metallic_error_is_measured_where_the_data_decide_the_class():
+    card = 0.2
+    decided = torch.tensor([[-1.0], [-1.0], [-1.0], [0.0]])  # three clear dielectrics, one tie
+    wrong = measured_metallic_error(torch.zeros(4, 1), -decided, 1e-3, torch.full((4, 1), 0.95), card)
+    assert wrong == pytest.approx(0.95, abs=1e-3)  # the tie counts for nothing
+    right = measured_metallic_error(torch.zeros(4, 1), -decided, 1e-3, torch.full((4, 1), 0.05), card)
+    assert right == card  # never better than the card
+    assert measured_metallic_error(torch.zeros(2, 1), torch.zeros(2, 1), 1e-3, torch.ones(2, 1), card) == card
 
 
 def test_a_prior_for_more_lights_than_the_capture_is_refused(painted):

@@ -9,7 +9,9 @@ its family and seed, with ``L`` lights: a ring of ``L − 1`` and the flash
 Each capture is recovered twice through :func:`torchbrdf.recovery.recover`, without and with
 the learned prior (``prior="default"`` unless ``--prior``), every light in the fit, one thread,
 and scored by the panel's :func:`~torchbrdf.bench.recovery_panel.score_maps`: maps RMSE,
-held-out worst of 8 random lights, and the recovery's wall time.
+held-out worst of 8 random lights, and the recovery's wall time. Any panel seed is accepted:
+choose settings on its tuning seeds (``--cases lacquer/0,rusted_metal/0``), report on its report
+seeds (the default cases).
 """
 
 from __future__ import annotations

@@ -153,10 +153,10 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
             untouched; the outputs are then committed file by file). Without it such an
             ``out`` is refused.
         prior: a learned prior (:class:`~torchbrdf.recovery.Prior`, a weights file, or
-            ``"default"`` for the shipped one). The fit then starts from the network's maps
-            and keeps a Gaussian pull toward them, with the network's measured error, that
-            the data outweigh wherever they determine a value (``docs/recovery.md``,
-            "Learned prior"). None: no learned prior.
+            ``"default"`` for the shipped one). The fit keeps a Gaussian pull toward the
+            network's maps, with the network's measured error, that vanishes wherever the
+            data determine a value, and weighs its metallic in the class choice
+            (``docs/recovery.md``, "Learned prior"). None: no learned prior.
 
     Returns:
         A :class:`RecoveryResult`: ``maps`` (``(C, H, W)`` tensors at the capture's size),
@@ -352,7 +352,8 @@ def _finish(rec: Recovery, cap: Capture, cfg: Settings, out: Path | None, gt: Pa
         "light_position_offset": rec.light_position_corrections(),  # estimated − stated, per image
     }
     if rec.prior is not None:  # the network's errors the prior's precision came from
-        report["learned_prior"] = {"map_errors": rec.prior.errors, "noise_variance": st.get("prior_noise")}
+        report["learned_prior"] = {"map_errors": rec.prior.errors, "noise_variance": st.get("prior_noise"),
+                                   "measured_metallic_error": st.get("prior_metallic_error")}
     cpu_maps = {k: v.cpu() for k, v in fin.items()}  # the ground truth and the files live on the CPU
     if gt is not None:
         report["errors"] = map_errors(cpu_maps, gt)

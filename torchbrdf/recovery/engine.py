@@ -68,8 +68,10 @@ Method (``docs/recovery.md``, with its measurements):
   fit: silent pixels take the material's measured value, measured ones keep their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
-* **Learned prior** (optional, ``recover(..., prior=...)``): the start from a network's maps and a
-  Gaussian unary toward them with its measured errors (:class:`~torchbrdf.recovery.prior.LearnedPrior`).
+* **Learned prior** (optional, ``recover(..., prior=...)``): a Gaussian unary toward a network's
+  maps with its measured errors, each precision weighed by its share against the data's
+  information, and its metallic as evidence in the class choice
+  (:class:`~torchbrdf.recovery.prior.LearnedPrior`); the start stays the data's own.
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 
@@ -102,7 +104,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
-from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost
+from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost, measured_metallic_error
 from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate_passes
 from torchbrdf.recovery.soft_metal import soft_metal_stage
@@ -177,32 +179,19 @@ class Recovery:
     def init_state(self) -> None:
         s0 = self.plan[0][0]
         d = self.data(s0)
-        if self.prior is not None:  # both hypotheses start from the network's maps ...
-            met = self.prior.start(s0).to(d.points)
-            diel = met.clone()
-            ones = torch.ones_like(diel[:, :1])
-            if len(self.train_idx) >= 3:
-                # ... but for the dielectric's albedo and normal, which three lights or more
-                # determine (Lambertian least squares), the data's own (17 lights: the network's
-                # start cost the held-out worst light 7 dB)
-                n, alb = photometric_stereo(d, self.train_idx)
-                ps = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
-                diel[:, 0:3], diel[:, 5:7] = ps[:, 0:3], ps[:, 5:7]
-        else:
-            n, alb = photometric_stereo(d, self.train_idx)
-            p = d.points.shape[0]
-            ones = torch.ones(p, 1, dtype=alb.dtype, device=alb.device)
-            diel = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
-            flat = torch.zeros_like(n)
-            flat[:, 2] = 1.0  # Lambertian normals mean nothing on a metal: start it flat
-            met = encode({"base_color": torch.full_like(alb, 0.7), "specular": 0.5 * ones,
-                          "roughness": 0.4 * ones, "normal": flat})
+        n, alb = photometric_stereo(d, self.train_idx)
+        ones = torch.ones(d.points.shape[0], 1, dtype=alb.dtype, device=alb.device)
+        diel = encode({"base_color": alb, "specular": 0.5 * ones, "roughness": 0.5 * ones, "normal": n})
+        flat = torch.zeros_like(n)
+        flat[:, 2] = 1.0  # Lambertian normals mean nothing on a metal: start it flat
+        met = encode({"base_color": torch.full_like(alb, 0.7), "specular": 0.5 * ones,
+                      "roughness": 0.4 * ones, "normal": flat})
         self.state = {
             "stage": 0, "it": 0, "global_it": 0, "lr": float(self.cfg.lr),
             "theta": [diel, met], "lam": [torch.full_like(ones, 1e-2), torch.full_like(ones, 1e-2)],
             "metal": None, "history": [], "events": [], "seconds": 0.0,
         }
-        if self.prior is not None:
+        if self.prior is not None:  # the prior is a Gaussian term of the fit, not its start (_prior_stage)
             self._prior_stage(s0)
 
     def _prior_stage(self, size: int) -> None:
@@ -210,7 +199,9 @@ class Recovery:
 
         ``prior_noise``, the fit's per-residual noise variance ``σ²``: the median pixel's mean
         squared residual on the training lights (each pixel's better hypothesis in a dual stage),
-        within [1e-6, ``prior_noise_cap``].
+        within [1e-6, ``prior_noise_cap``]; ``prior_information``, the data's marginal
+        information ``(P, 7)`` on each hypothesis' unknowns, against which the prior's
+        precisions are weighed (:func:`~torchbrdf.recovery.prior.prior_unary`).
         """
         st = self.state
         d = self.data(size)
@@ -221,15 +212,25 @@ class Recovery:
         costs = [pixel_cost(d.residual(t, m, d.train_idx, self.cfg.model)) for t, m in pairs]
         sigma2 = residual_variance(torch.stack(costs).amin(0), 3 * len(d.train_idx))
         st["prior_noise"] = min(max(sigma2, 1e-6), self.cfg.prior_noise_cap)
+        # what the images say about each unknown of each hypothesis fitted, for the prior's share
+        st["prior_information"] = [marginal_information(d, t, m, self.cfg.model) for t, m in pairs]
 
-    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` at the
-        level ``size`` (None: no prior)."""
+    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor, hypothesis: int = 0,
+                     capture_unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor] | None:
+        """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` of
+        ``hypothesis`` (its index in ``state["theta"]``) at the level ``size`` (None: no prior).
+
+        Each precision is weighted by its share against what the capture says: the data's
+        information at the stage's start plus the precision of ``capture_unary``, the unary
+        priors made from the same material's measured pixels (the F0 tie, the non-local fill)."""
         if self.prior is None:
             return None
-        if self.state.get("prior_noise") is None:  # a run resumed with a prior it did not have
+        if self.state.get("prior_information") is None:  # a run resumed with a prior it did not have
             self._prior_stage(size)
-        return self.prior.unary(theta, metal, self.state["prior_noise"])
+        info = self.state["prior_information"][hypothesis]
+        if capture_unary is not None:
+            info = info + capture_unary[1]
+        return self.prior.unary(theta, metal, self.state["prior_noise"], info)
 
     def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
@@ -322,7 +323,7 @@ class Recovery:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
             theta = st["theta"][h]
             # (linearised at this iteration's start, as the data are)
-            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal))
+            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal, h, shared_unary))
             bad = ~torch.isfinite(theta).all(-1, keepdim=True)
             if bad.any():  # a non-finite parameter: step back to its last finite neighbour value
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite parameters",
@@ -555,9 +556,11 @@ class Recovery:
         sigma2 = residual_variance(torch.minimum(scores[0], scores[1]), n_res)
         if self.cfg.refit_before_choice:
             scores[0] = self._refit_unconverged_dielectric(size, scores, lights, sigma2, n_res)
-        if self.prior is not None:  # the network's metallic, as a Gaussian with its measured error
-            prior_cost = class_prior_cost(self.prior.metallic(size).to(scores[0]), st["prior_noise"],
-                                          self.prior.errors["metallic"])
+        if self.prior is not None:  # the network's metallic, as a Gaussian with its error measured here
+            net = self.prior.metallic(size).to(scores[0])
+            st["prior_metallic_error"] = measured_metallic_error(scores[0], scores[1], sigma2, net,
+                                                                 self.prior.errors["metallic"])
+            prior_cost = class_prior_cost(net, st["prior_noise"], st["prior_metallic_error"])
             scores = [s + c for s, c in zip(scores, prior_cost)]
         # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
         # classes as an MRF prior: see choose_class.

@@ -11,8 +11,8 @@
   toward the prior's where the captured data are silent; :func:`prior_weight` makes its
   weight from a recovery confidence map.
 * :class:`LearnedPrior` -- a Prior's maps for one capture as :func:`~torchbrdf.recovery.recover`
-  uses them (``prior=``): the fit's start and a Gaussian unary term (:func:`prior_unary`,
-  :func:`class_prior_cost`) with the network's measured errors (:func:`estimator_errors`).
+  uses them (``prior=``): a Gaussian unary term (:func:`prior_unary`, :func:`class_prior_cost`)
+  with the network's measured errors (:func:`estimator_errors`, :func:`measured_metallic_error`).
 
 Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
 and multiplied by the squared light distance at the sample's centre (so the network sees
@@ -39,7 +39,7 @@ from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
 from torchbrdf.recovery.params import R_MAX, R_MIN, encode
 
 __all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS",
-           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "class_prior_cost",
+           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error", "class_prior_cost",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
@@ -340,7 +340,7 @@ def _flat(m: Tensor) -> Tensor:
 
 
 def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
-                class_weight: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
+                class_weight: Tensor | float = 1.0, information: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The learned prior as a unary term ``(target, precision)`` ``(P, 7)`` of the recovery's unknowns.
 
     A Gaussian on each map, centred on the network's value ``m_p`` with the network's measured
@@ -362,6 +362,13 @@ def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, err
         errors: name -> ``σ_m`` (:func:`estimator_errors`).
         class_weight: ``(P, 1)`` or a float scaling the precision per pixel: the prior's
             probability of the hypothesis being fitted (its maps are conditional on the class).
+        information: the data's marginal information ``(P, 7)`` on each unknown
+            (:func:`~torchbrdf.recovery.lm.marginal_information`), or None. Given, each
+            precision ``π`` is scaled by its share of the posterior's, ``π / (π + info)``: whole
+            where the images are silent, vanishing (as ``π² / info``) where they determine the
+            unknown. The network's errors are shared across a material (a bias on a material
+            pulls all of its pixels alike), which a Gaussian of independent errors would let
+            shift every measured pixel by the same amount; the data decide there.
 
     Returns:
         ``target (P, 7)`` and ``precision (P, 7)`` (>= 0), in ``theta``'s dtype and device.
@@ -379,7 +386,37 @@ def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, err
     sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
                          dtype=theta.dtype, device=theta.device)
     precision = torch.cat(((slope / sigma) ** 2, torch.full_like(theta[:, 5:7], errors["normal"] ** -2.0)), -1)
-    return target, float(noise_var) * precision * class_weight
+    precision = float(noise_var) * precision * class_weight
+    if information is not None:
+        information = information.to(precision).clamp(min=0.0)
+        precision = precision * precision / (precision + information).clamp(min=1e-30)
+    return target, precision
+
+
+def measured_metallic_error(dielectric_cost: Tensor, metal_cost: Tensor, noise_var: float, metallic: Tensor,
+                            error: float) -> float:
+    """The network's metallic error on this capture, measured where the data decide the class.
+
+    The data's probability of metal per pixel is ``p = sigmoid((c_d − c_m) / 2σ²)`` (the
+    likelihood ratio of the two fits' costs at the noise variance ``σ²``); each pixel's squared
+    error ``(p − m_p)²`` counts with its decisiveness ``(2p − 1)²`` (1 where the data decide,
+    0 where the two fits tie). The result is the larger of that RMS and the card's ``error``: a
+    capture can show the network worse than on its training distribution (a material unlike
+    it called metal), never better.
+
+    Args:
+        dielectric_cost, metal_cost: each pixel's data cost ``(P, 1)`` under each hypothesis.
+        noise_var: ``σ²`` of one residual (> 0).
+        metallic: the network's metallic ``(P, 1)``.
+        error: the card's metallic error ``σ_m``.
+    """
+    diff = torch.nan_to_num(dielectric_cost - metal_cost, nan=0.0, posinf=1e30, neginf=-1e30)
+    p = torch.sigmoid(diff.double() / (2.0 * max(float(noise_var), 1e-30)))
+    w = (2 * p - 1) ** 2
+    if float(w.sum()) <= 0:
+        return float(error)
+    mse = float((w * (p - metallic.to(p)) ** 2).sum() / w.sum())
+    return max(float(error), math.sqrt(mse))
 
 
 def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
@@ -395,7 +432,7 @@ def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[
 
 
 class LearnedPrior:
-    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a start and a unary prior.
+    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a unary prior (and a start, :meth:`start`).
 
     Args:
         maps: the network's maps at the working size, ``(C, S, S)`` each (:func:`prior_maps_at`).
@@ -422,10 +459,12 @@ class LearnedPrior:
         """The network's metallic ``(size², 1)`` at ``size``."""
         return _flat(self.at(size)["metallic"])
 
-    def unary(self, theta: Tensor, metal: Tensor, noise_var: float) -> tuple[Tensor, Tensor]:
+    def unary(self, theta: Tensor, metal: Tensor, noise_var: float,
+              information: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """:func:`prior_unary` at ``theta (P, 7)`` for the hypothesis ``metal (P, 1)`` (0 dielectric,
-        1 metal, or fractional): the prior's maps weighted by its probability of that class."""
+        1 metal, or fractional): the prior's maps weighted by its probability of that class, each
+        precision by its share of the posterior's where the data's ``information (P, 7)`` is given."""
         size = int(round(math.sqrt(theta.shape[0])))
         m = self.metallic(size).to(metal)
         agree = metal * m + (1 - metal) * (1 - m)
-        return prior_unary(theta, self.at(size), noise_var, self.errors, agree)
+        return prior_unary(theta, self.at(size), noise_var, self.errors, agree, information)
