@@ -176,3 +176,15 @@ def test_table_of_a_stored_run_and_size_mismatch(tmp_path, capsys):
     with pytest.raises(SystemExit):
         rp.main(["--table", str(run), "--compare", str(other)])
     assert "compare runs of one size" in capsys.readouterr().err
+
+
+def test_ulp_seed_moves_half_the_values_by_one_ulp(tmp_path):
+    # The same capture but for rounding: a random half of the values one float32 ulp up.
+    case = rp.PanelCase("rusted_metal", 1, 8, "principled", False)
+    rp.render_case(case, tmp_path / "a", size=16)
+    rp.render_case(case, tmp_path / "b", size=16, ulp_seed=3)
+    a, b = load_capture(tmp_path / "a").images, load_capture(tmp_path / "b").images
+    assert a.dtype == b.dtype == torch.float32
+    up = torch.nextafter(a, torch.tensor(float("inf")))
+    assert bool(((b == a) | (b == up)).all())
+    assert 0.45 < float((b != a).float().mean()) < 0.55

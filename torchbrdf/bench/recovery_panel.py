@@ -214,8 +214,12 @@ def case_seed(case: PanelCase) -> int:
 
 
 def render_case(case: PanelCase, folder: str | os.PathLike, size: int = 128,
-                noise_seed: int = 0) -> tuple[dict[str, Tensor], tuple[Tensor, Tensor]]:
+                noise_seed: int = 0, ulp_seed: int = 0) -> tuple[dict[str, Tensor], tuple[Tensor, Tensor]]:
     """Write the capture of ``case`` into ``folder`` (capture.json with the *stated* lights).
+
+    ``ulp_seed`` > 0: half the image values (a random half, by that seed) moved up by one ulp
+    of float32, the same capture but for rounding: what the recovery gives then differs from
+    the unmoved capture's only by how much it amplifies rounding.
 
     Returns the truth maps (:func:`~torchbrdf.capture.families.make_family_material`) and
     the true lights ``(positions (L, 3), intensities (L, 3))``.
@@ -225,6 +229,9 @@ def render_case(case: PanelCase, folder: str | os.PathLike, size: int = 128,
     with torch.no_grad():
         img = synthetic.render_capture(maps, (pos, inten), synthetic.DEFAULT_CAMERA, brdf=_brdf(case.model),
                                        noise=NOISE, seed=case_seed(case) + 100_000 * noise_seed)
+    if ulp_seed:
+        moved = torch.rand(img.shape, generator=torch.Generator().manual_seed(ulp_seed)) < 0.5
+        img = torch.where(moved, torch.nextafter(img, torch.tensor(math.inf, dtype=img.dtype)), img)
     stated = calibration_error(pos, inten, case_seed(case)) if case.calibration_error else (pos, inten)
     write_capture(folder, img, stated, synthetic.DEFAULT_CAMERA)
     return maps, (pos, inten)
@@ -272,13 +279,13 @@ def _recovery_config() -> Any:
 
 
 def run_case(case: PanelCase, size: int = 128, noise_seed: int = 0,
-             recover_fn: Callable[[Path], Mapping[str, Tensor]] | None = None) -> dict:
+             recover_fn: Callable[[Path], Mapping[str, Tensor]] | None = None, ulp_seed: int = 0) -> dict:
     """Render, recover and score one case; returns its row (``case`` fields + metrics + seconds).
 
     ``recover_fn(capture_folder) -> maps`` replaces :func:`torchbrdf.recovery.recover` (tests).
     """
     with tempfile.TemporaryDirectory(prefix="panel_") as tmp:
-        truth, _ = render_case(case, tmp, size, noise_seed)
+        truth, _ = render_case(case, tmp, size, noise_seed, ulp_seed)
         t0 = time.perf_counter()
         maps: Mapping[str, Tensor]
         if recover_fn is None:
@@ -298,14 +305,15 @@ def _worker_init() -> None:
     torch.set_num_threads(1)
 
 
-def _run_one(args: tuple[PanelCase, int, int]) -> dict:
-    return run_case(*args)
+def _run_one(args: tuple[PanelCase, int, int, int]) -> dict:
+    case, size, noise_seed, ulp_seed = args
+    return run_case(case, size, noise_seed, ulp_seed=ulp_seed)
 
 
 def run_panel(cases: Sequence[PanelCase], size: int = 128, workers: int = 1, noise_seed: int = 0,
-              on_row: Callable[[dict], None] | None = None) -> list[dict]:
+              on_row: Callable[[dict], None] | None = None, ulp_seed: int = 0) -> list[dict]:
     """Run ``cases`` (``workers`` processes, one thread each); rows in the order of ``cases``."""
-    jobs = [(c, size, noise_seed) for c in cases]
+    jobs = [(c, size, noise_seed, ulp_seed) for c in cases]
     rows: list[dict] = []
     if workers <= 1:
         _worker_init()
@@ -416,6 +424,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="captures in parallel processes, one thread each")
     ap.add_argument("--quick", action="store_true", help="four small cases: a smoke test of the whole path")
     ap.add_argument("--noise-seed", type=int, default=0, help="another noise draw of the same captures")
+    ap.add_argument("--ulp-seed", type=int, default=0, help="N > 0: half the image values one float32 ulp up "
+                    "(the same captures but for rounding)")
     ap.add_argument("--only", default="", help="only cases whose name contains this text (or any of several, "
                     "comma separated)")
     ap.add_argument("--json", help="write the rows (and the run's settings) here")
@@ -460,6 +470,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def write_json(complete: bool) -> None:
         meta = {"split": args.split, "size": args.size, "noise": NOISE, "noise_seed": args.noise_seed,
+                "ulp_seed": args.ulp_seed,
                 "workers": args.workers, "quick": args.quick, "only": args.only, "complete": complete,
                 "cases": len(cases), "wall_seconds": time.perf_counter() - t0,
                 "date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, "
@@ -477,7 +488,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.json:  # after every case, so an interrupted run keeps what it measured
             write_json(False)
 
-    rows = run_panel(cases, args.size, args.workers, args.noise_seed, on_row=progress)
+    rows = run_panel(cases, args.size, args.workers, args.noise_seed, on_row=progress, ulp_seed=args.ulp_seed)
     print(format_rows(rows, args.markdown))
     print(_summary(rows))
     if args.json:
