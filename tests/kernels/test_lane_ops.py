@@ -212,6 +212,16 @@ def test_lane_ops_pass_opcheck():
     torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, None, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
 
 
+def test_lane_ops_fake_outputs_are_laid_out_as_the_real_ones_for_strided_inputs():
+    """The C loops read a contiguous copy and write fresh contiguous outputs; the fake
+    implementations torch.compile plans with must give those strides too, not the input's."""
+    low, d_isqrt, wx, wy, v, *_ = _args()
+    m = _spd_lanes(3, 16).permute(2, 0, 1).contiguous().permute(1, 2, 0)  # (n, n, P), pixels outermost
+    torch.library.opcheck(torch.ops.torchbrdf.lane_ldl, (m,))
+    v_t = v.T.contiguous().T  # (n, P) with the channels innermost
+    torch.library.opcheck(torch.ops.torchbrdf.lane_coupling, (low, d_isqrt, wx, wy, v_t, False))
+
+
 def test_lane_ops_refuse_what_the_kernels_cannot_read():
     """Raw CPU memory of one float type, read at the shapes given: another dtype, a tensor off
     the CPU, a wrong shape or a bad channel order is refused by name before anything is read."""

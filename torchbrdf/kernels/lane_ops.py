@@ -339,7 +339,7 @@ def _fn(dtype: torch.dtype, which: int):
 def _ldl(m: Tensor) -> tuple[Tensor, Tensor]:
     n = _check_low(m)
     m = m.contiguous()
-    low, d = torch.empty_like(m), torch.empty_like(m[0])
+    low, d = m.new_empty(m.shape), m.new_empty(m.shape[1:])  # (contiguous, as the fake's)
     _fn(m.dtype, 1)(n, m.shape[2], m.data_ptr(), low.data_ptr(), d.data_ptr(), torch.get_num_threads())
     return low, d
 
@@ -370,7 +370,7 @@ def _bind(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor) -> tuple[int, in
 
 def _couple(n: int, size: int, mats: list[Tensor], v: Tensor, subtract: bool) -> Tensor:
     """The C call of :func:`lane_coupling` on checked, contiguous inputs."""
-    t, out = torch.empty_like(v), torch.empty_like(v)
+    t, out = v.new_empty(v.shape), v.new_empty(v.shape)
     _fn(v.dtype, 3)(n, size, *(m.data_ptr() for m in mats), v.data_ptr(), t.data_ptr(), out.data_ptr(),
                     int(subtract), torch.get_num_threads())
     return out
@@ -424,8 +424,8 @@ def _lane_ldl_op(m: Tensor) -> tuple[Tensor, Tensor]:
 
 
 @_lane_ldl_op.register_fake
-def _(m):
-    return torch.empty_like(m), torch.empty_like(m[0])
+def _(m):  # (contiguous whatever m's strides: the C loop writes fresh contiguous tensors)
+    return m.new_empty(m.shape), m.new_empty(m.shape[1:])
 
 
 @torch.library.custom_op("torchbrdf::lane_lower_solve_", mutates_args=("v",))
@@ -448,7 +448,7 @@ def _lane_coupling_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: T
 
 @_lane_coupling_op.register_fake
 def _(low, d_isqrt, wx, wy, v, subtract):
-    return torch.empty_like(v)
+    return v.new_empty(v.shape)
 
 
 def _direct() -> bool:
