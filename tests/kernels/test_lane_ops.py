@@ -222,6 +222,28 @@ def test_lane_ops_fake_outputs_are_laid_out_as_the_real_ones_for_strided_inputs(
     torch.library.opcheck(torch.ops.torchbrdf.lane_coupling, (low, d_isqrt, wx, wy, v_t, False))
 
 
+def test_lane_ops_do_not_drop_a_gradient_or_an_in_place_change_silently():
+    """The operators have no autograd: an input that needs a gradient gets the operator's
+    "no autograd" error at backward (not a result silently cut off the graph), and a solve in
+    place marks its ``v`` changed, so a backward that saved ``v`` refuses to run."""
+    low, d_isqrt, wx, wy, v, *_ = _args()
+    m = _spd_lanes(3, 16).requires_grad_()
+    low_m, d_m = lane_ops.lane_ldl(m)
+    assert low_m.requires_grad
+    with pytest.raises(RuntimeError):
+        low_m.sum().backward()
+    out = lane_ops.lane_coupling(low, d_isqrt, wx, wy, v.clone().requires_grad_(), True)
+    assert out.requires_grad
+    x = torch.ones_like(v, requires_grad=True)
+    rhs = v.clone()
+    y = (x * rhs).sum()  # saves rhs for its backward
+    lane_ops.lane_lower_solve(low, rhs)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        y.backward()
+    with torch.inference_mode():  # (no version counter there: the solve still runs)
+        lane_ops.lane_upper_solve(low, v.clone())
+
+
 def test_lane_ops_refuse_what_the_kernels_cannot_read():
     """Raw CPU memory of one float type, read at the shapes given: another dtype, a tensor off
     the CPU, a wrong shape or a bad channel order is refused by name before anything is read."""

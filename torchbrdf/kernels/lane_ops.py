@@ -352,6 +352,7 @@ def _solve(low: Tensor, v: Tensor, upper: bool) -> None:
     if not v.is_contiguous():
         raise ValueError("lane_ops: v must be contiguous (it is solved in place)")
     low = low.contiguous()
+    torch.autograd.graph.increment_version(v)  # (as an in-place operator marks its output)
     _fn(low.dtype, 2)(n, v[0].numel() // max(v.shape[-1], 1), low.shape[2], low.data_ptr(), v.data_ptr(),
                       int(upper), torch.get_num_threads())
 
@@ -451,11 +452,14 @@ def _(low, d_isqrt, wx, wy, v, subtract):
     return v.new_empty(v.shape)
 
 
-def _direct() -> bool:
+def _direct(*tensors: Tensor | None) -> bool:
     """Whether to call the C loops directly (eager) rather than through the operator: the
     dispatcher's work per call (~tens of µs) is a CG iteration's cost on a small map; under
-    torch.compile or a torch.func transform the operator is what they must see."""
-    return not torch.compiler.is_compiling() and not torch._C._are_functorch_transforms_active()
+    torch.compile or a torch.func transform the operator is what they must see, and with an
+    input that needs a gradient autograd must (its "no autograd" error, not a detached result)."""
+    if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
+        return False
+    return not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors))
 
 
 def lane_schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
@@ -484,7 +488,7 @@ def lane_schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int],
         ValueError: a shape, dtype or device the kernel cannot read, or a bad ``order`` (named).
     """
     order = [int(a) for a in order]
-    if _direct():
+    if _direct(hess, diag, rhs, lapd):
         return _schur(hess, diag, rhs, order, int(nu), lapd)
     return _lane_schur_op(hess, diag, rhs, order, int(nu), lapd)
 
@@ -499,19 +503,19 @@ def lane_ldl(m: Tensor) -> tuple[Tensor, Tensor]:
     Raises:
         ValueError: a shape, dtype or device the kernel cannot read (named).
     """
-    return _ldl(m) if _direct() else _lane_ldl_op(m)
+    return _ldl(m) if _direct(m) else _lane_ldl_op(m)
 
 
 def lane_lower_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻¹ v`` in place (``L`` unit lower triangular from :func:`lane_ldl`), ``low (n, n, P)``,
     ``v (n, ..., P)`` contiguous, ``low``'s dtype, CPU. Returns ``v``."""
-    _solve(low, v, False) if _direct() else _lane_lower_op(low, v)
+    _solve(low, v, False) if _direct(low, v) else _lane_lower_op(low, v)
     return v
 
 
 def lane_upper_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻ᵀ v`` in place, as :func:`lane_lower_solve`. Returns ``v``."""
-    _solve(low, v, True) if _direct() else _lane_upper_op(low, v)
+    _solve(low, v, True) if _direct(low, v) else _lane_upper_op(low, v)
     return v
 
 
@@ -538,7 +542,7 @@ def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor
     n, size, mats = _bind(low, d_isqrt, wx, wy)
 
     def apply(v: Tensor, subtract: bool) -> Tensor:
-        if not _direct():
+        if not _direct(v, *mats):
             return _lane_coupling_op(*mats, v, bool(subtract))
         if v.shape != (n, size * size) or v.dtype != low.dtype or v.device != low.device:
             _check("v", v, (n, size * size), low.dtype)  # raises, naming it
