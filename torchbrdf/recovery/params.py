@@ -122,10 +122,9 @@ def decode_directions(x: Tensor, metal: Tensor, rows: Sequence[Sequence[int]]) -
     ``rows[k]``, each at most once (e.g. :func:`decode_slots`; an empty list: a zero direction);
     ``x``, ``metal`` as for :func:`decode_jvp`. Returns the same ``(params, dparams)`` (contiguous
     tangents, zero where a direction does not move a parameter; metallic's only with 8 columns),
-    bit for bit:
-    each logit's ``(1 − σ) σ`` is computed once per pixel and copied into the direction that
-    moves it, and a direction along one slope takes the normal's rule with its zero terms
-    written out (:func:`_slope_tangent`).
+    bit for bit: each logit's ``(1 − σ) σ`` is computed once per pixel and copied into the
+    direction that moves it, and a direction along one slope takes the normal's rule with its
+    zero terms written out (:func:`_slope_tangent`).
     """
     n_x = x.shape[1]
     for k, cols in enumerate(rows):
