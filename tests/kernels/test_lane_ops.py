@@ -172,6 +172,19 @@ def test_pcg_on_the_c_operators_is_the_pytorch_form_bit_for_bit(joined, dtype):
         torch.testing.assert_close(x, ref, rtol=0, atol=0, equal_nan=True)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_pcg_without_coupling_solves_on_the_c_operators(monkeypatch, dtype):
+    """With no channel coupled each pixel's block is solved alone: its right-hand sides are laid
+    out contiguously, so the substitutions run in C too (a strided view kept the PyTorch loops)."""
+    hess, wx, wy, rhs, diag = _pcg_case(5, [], dtype)
+    calls = []
+    for name in ("lane_lower_solve", "lane_upper_solve"):
+        real = getattr(lane_ops, name)
+        monkeypatch.setattr(lane_ops, name, lambda low, v, real=real: calls.append(1) or real(low, v))
+    smoothness_prior.pcg(hess, wx, wy, rhs, 5, 10, diag=diag)
+    assert len(calls) == 2
+
+
 def test_lane_schur_is_the_dense_elimination():
     """The complement ``S = A − B D⁻¹ Bᵀ + diag(lapd)`` rebuilt from the factors, and
     ``b = rhs_a − B D⁻¹ rhs_u``, against dense float64 algebra per pixel (the channels reordered)."""
