@@ -540,9 +540,10 @@ def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor
     """:func:`lane_coupling` bound to its matrices (checked once, for a CG loop's many calls):
     a function of ``(v (n, P), subtract)``."""
     n, size, mats = _bind(low, d_isqrt, wx, wy)
+    bound_grad = any(m.requires_grad for m in mats)  # (once: a CG loop calls this many times)
 
     def apply(v: Tensor, subtract: bool) -> Tensor:
-        if not _direct(v, *mats):
+        if not _direct() or ((bound_grad or v.requires_grad) and torch.is_grad_enabled()):
             return _lane_coupling_op(*mats, v, bool(subtract))
         if v.shape != (n, size * size) or v.dtype != low.dtype or v.device != low.device:
             _check("v", v, (n, size * size), low.dtype)  # raises, naming it
