@@ -36,7 +36,8 @@ PIVOT_FLOOR = 1e-12
 #: The largest ``n`` of an ``n × n`` lane-wise system (the recovery's blocks are 7 × 7 at most).
 MAX_SIZE = 16
 
-#: The largest block :func:`lane_schur` takes (its working arrays live on the thread's stack).
+#: The largest block :func:`lane_schur` takes (its float64 working arrays, ~180 KB, live on the
+#: thread's stack: well within an OpenMP worker's, as :mod:`torchbrdf.kernels.schur_ops`'s).
 MAX_SCHUR = 8
 
 _SOURCE = r"""
