@@ -172,6 +172,19 @@ def test_pcg_on_the_c_operators_is_the_pytorch_form_bit_for_bit(joined, dtype):
         torch.testing.assert_close(x, ref, rtol=0, atol=0, equal_nan=True)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_pcg_without_coupling_solves_on_the_c_operators(monkeypatch, dtype):
+    """With no channel coupled each pixel's block is solved alone: its right-hand sides are laid
+    out contiguously, so the substitutions run in C too (a strided view kept the PyTorch loops)."""
+    hess, wx, wy, rhs, diag = _pcg_case(5, [], dtype)
+    calls = []
+    for name in ("lane_lower_solve", "lane_upper_solve"):
+        real = getattr(lane_ops, name)
+        monkeypatch.setattr(lane_ops, name, lambda low, v, real=real: calls.append(1) or real(low, v))
+    smoothness_prior.pcg(hess, wx, wy, rhs, 5, 10, diag=diag)
+    assert len(calls) == 2
+
+
 def test_lane_schur_is_the_dense_elimination():
     """The complement ``S = A − B D⁻¹ Bᵀ + diag(lapd)`` rebuilt from the factors, and
     ``b = rhs_a − B D⁻¹ rhs_u``, against dense float64 algebra per pixel (the channels reordered)."""
@@ -210,6 +223,38 @@ def test_lane_ops_pass_opcheck():
     lapd = torch.rand(16, 2, dtype=F64)
     torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, diag, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
     torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, None, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
+
+
+def test_lane_ops_fake_outputs_are_laid_out_as_the_real_ones_for_strided_inputs():
+    """The C loops read a contiguous copy and write fresh contiguous outputs; the fake
+    implementations torch.compile plans with must give those strides too, not the input's."""
+    low, d_isqrt, wx, wy, v, *_ = _args()
+    m = _spd_lanes(3, 16).permute(2, 0, 1).contiguous().permute(1, 2, 0)  # (n, n, P), pixels outermost
+    torch.library.opcheck(torch.ops.torchbrdf.lane_ldl, (m,))
+    v_t = v.T.contiguous().T  # (n, P) with the channels innermost
+    torch.library.opcheck(torch.ops.torchbrdf.lane_coupling, (low, d_isqrt, wx, wy, v_t, False))
+
+
+def test_lane_ops_do_not_drop_a_gradient_or_an_in_place_change_silently():
+    """The operators have no autograd: an input that needs a gradient gets the operator's
+    "no autograd" error at backward (not a result silently cut off the graph), and a solve in
+    place marks its ``v`` changed, so a backward that saved ``v`` refuses to run."""
+    low, d_isqrt, wx, wy, v, *_ = _args()
+    m = _spd_lanes(3, 16).requires_grad_()
+    low_m, d_m = lane_ops.lane_ldl(m)
+    assert low_m.requires_grad
+    with pytest.raises(RuntimeError):
+        low_m.sum().backward()
+    out = lane_ops.lane_coupling(low, d_isqrt, wx, wy, v.clone().requires_grad_(), True)
+    assert out.requires_grad
+    x = torch.ones_like(v, requires_grad=True)
+    rhs = v.clone()
+    y = (x * rhs).sum()  # saves rhs for its backward
+    lane_ops.lane_lower_solve(low, rhs)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        y.backward()
+    with torch.inference_mode():  # (no version counter there: the solve still runs)
+        lane_ops.lane_upper_solve(low, v.clone())
 
 
 def test_lane_ops_refuse_what_the_kernels_cannot_read():

@@ -100,6 +100,15 @@ def test_decode_directions_refuses_an_unknown_it_does_not_have():
         decode_directions(x, metal, [[0], [7]])
 
 
+def test_decode_directions_refuses_an_unknown_listed_twice():
+    """A row is a sum of unit vectors: an unknown listed twice would be a direction of length 2
+    along it, which the copies of each unknown's derivative cannot give (refused, not halved)."""
+    x, metal = _unknowns(torch.float64, 7)
+    for row in ([5, 5], [0, 0], [6, 5, 6]):
+        with pytest.raises(ValueError, match=r"rows\[1\] lists unknown \d twice"):
+            decode_directions(x, metal, [[0], row])
+
+
 def _light_jacobians_by_vmap(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position=True):
     """The light step's Jacobians as ``torch.func.vmap`` of ``jvp`` of the residual (the reference)."""
     def res(t, pos, s):

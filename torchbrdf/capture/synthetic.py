@@ -636,8 +636,9 @@ def log_residual_points_jvp(
 
     ``tangents``: ``{name: (K, P, C)}``, the directions' tangents of ``"normal"`` and of
     entries of ``params``, and ``{name: (K, L, 3)}`` of ``"light_pos"`` and ``"light_int"``
-    (each the shape of its input with a leading ``K``); every other input is held. The other arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3),
-    dr (K, P, L, 3))`` in ``log_obs``'s dtype, on its device, ``dr[k]`` what ``torch.func.jvp``
+    (each the shape of its input with a leading ``K``); every other input is held. The other
+    arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3), dr (K, P, L, 3))`` in
+    ``log_obs``'s dtype, on its device, ``dr[k]`` what ``torch.func.jvp``
     of :func:`log_residual_points` along direction ``k`` gives. On the fused kernels, one
     forward and one JVP call of the operators (:func:`torchbrdf.brdf.capture_residual.log_residual_jvp`),
     which prunes each direction to its own tangents: a fit's Gauss–Newton Jacobian without the

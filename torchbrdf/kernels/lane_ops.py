@@ -36,7 +36,8 @@ PIVOT_FLOOR = 1e-12
 #: The largest ``n`` of an ``n × n`` lane-wise system (the recovery's blocks are 7 × 7 at most).
 MAX_SIZE = 16
 
-#: The largest block :func:`lane_schur` takes (its working arrays live on the thread's stack).
+#: The largest block :func:`lane_schur` takes (its float64 working arrays, ~180 KB, live on the
+#: thread's stack: well within an OpenMP worker's, as :mod:`torchbrdf.kernels.schur_ops`'s).
 MAX_SCHUR = 8
 
 _SOURCE = r"""
@@ -339,7 +340,7 @@ def _fn(dtype: torch.dtype, which: int):
 def _ldl(m: Tensor) -> tuple[Tensor, Tensor]:
     n = _check_low(m)
     m = m.contiguous()
-    low, d = torch.empty_like(m), torch.empty_like(m[0])
+    low, d = m.new_empty(m.shape), m.new_empty(m.shape[1:])  # (contiguous, as the fake's)
     _fn(m.dtype, 1)(n, m.shape[2], m.data_ptr(), low.data_ptr(), d.data_ptr(), torch.get_num_threads())
     return low, d
 
@@ -352,6 +353,7 @@ def _solve(low: Tensor, v: Tensor, upper: bool) -> None:
     if not v.is_contiguous():
         raise ValueError("lane_ops: v must be contiguous (it is solved in place)")
     low = low.contiguous()
+    torch.autograd.graph.increment_version(v)  # (as an in-place operator marks its output)
     _fn(low.dtype, 2)(n, v[0].numel() // max(v.shape[-1], 1), low.shape[2], low.data_ptr(), v.data_ptr(),
                       int(upper), torch.get_num_threads())
 
@@ -370,7 +372,7 @@ def _bind(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor) -> tuple[int, in
 
 def _couple(n: int, size: int, mats: list[Tensor], v: Tensor, subtract: bool) -> Tensor:
     """The C call of :func:`lane_coupling` on checked, contiguous inputs."""
-    t, out = torch.empty_like(v), torch.empty_like(v)
+    t, out = v.new_empty(v.shape), v.new_empty(v.shape)
     _fn(v.dtype, 3)(n, size, *(m.data_ptr() for m in mats), v.data_ptr(), t.data_ptr(), out.data_ptr(),
                     int(subtract), torch.get_num_threads())
     return out
@@ -424,8 +426,8 @@ def _lane_ldl_op(m: Tensor) -> tuple[Tensor, Tensor]:
 
 
 @_lane_ldl_op.register_fake
-def _(m):
-    return torch.empty_like(m), torch.empty_like(m[0])
+def _(m):  # (contiguous whatever m's strides: the C loop writes fresh contiguous tensors)
+    return m.new_empty(m.shape), m.new_empty(m.shape[1:])
 
 
 @torch.library.custom_op("torchbrdf::lane_lower_solve_", mutates_args=("v",))
@@ -448,14 +450,17 @@ def _lane_coupling_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: T
 
 @_lane_coupling_op.register_fake
 def _(low, d_isqrt, wx, wy, v, subtract):
-    return torch.empty_like(v)
+    return v.new_empty(v.shape)
 
 
-def _direct() -> bool:
+def _direct(*tensors: Tensor | None) -> bool:
     """Whether to call the C loops directly (eager) rather than through the operator: the
     dispatcher's work per call (~tens of µs) is a CG iteration's cost on a small map; under
-    torch.compile or a torch.func transform the operator is what they must see."""
-    return not torch.compiler.is_compiling() and not torch._C._are_functorch_transforms_active()
+    torch.compile or a torch.func transform the operator is what they must see, and with an
+    input that needs a gradient autograd must (its "no autograd" error, not a detached result)."""
+    if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
+        return False
+    return not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors))
 
 
 def lane_schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
@@ -484,7 +489,7 @@ def lane_schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int],
         ValueError: a shape, dtype or device the kernel cannot read, or a bad ``order`` (named).
     """
     order = [int(a) for a in order]
-    if _direct():
+    if _direct(hess, diag, rhs, lapd):
         return _schur(hess, diag, rhs, order, int(nu), lapd)
     return _lane_schur_op(hess, diag, rhs, order, int(nu), lapd)
 
@@ -499,19 +504,19 @@ def lane_ldl(m: Tensor) -> tuple[Tensor, Tensor]:
     Raises:
         ValueError: a shape, dtype or device the kernel cannot read (named).
     """
-    return _ldl(m) if _direct() else _lane_ldl_op(m)
+    return _ldl(m) if _direct(m) else _lane_ldl_op(m)
 
 
 def lane_lower_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻¹ v`` in place (``L`` unit lower triangular from :func:`lane_ldl`), ``low (n, n, P)``,
     ``v (n, ..., P)`` contiguous, ``low``'s dtype, CPU. Returns ``v``."""
-    _solve(low, v, False) if _direct() else _lane_lower_op(low, v)
+    _solve(low, v, False) if _direct(low, v) else _lane_lower_op(low, v)
     return v
 
 
 def lane_upper_solve(low: Tensor, v: Tensor) -> Tensor:
     """``v ← L⁻ᵀ v`` in place, as :func:`lane_lower_solve`. Returns ``v``."""
-    _solve(low, v, True) if _direct() else _lane_upper_op(low, v)
+    _solve(low, v, True) if _direct(low, v) else _lane_upper_op(low, v)
     return v
 
 
@@ -536,9 +541,10 @@ def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor
     """:func:`lane_coupling` bound to its matrices (checked once, for a CG loop's many calls):
     a function of ``(v (n, P), subtract)``."""
     n, size, mats = _bind(low, d_isqrt, wx, wy)
+    bound_grad = any(m.requires_grad for m in mats)  # (once: a CG loop calls this many times)
 
     def apply(v: Tensor, subtract: bool) -> Tensor:
-        if not _direct():
+        if not _direct() or ((bound_grad or v.requires_grad) and torch.is_grad_enabled()):
             return _lane_coupling_op(*mats, v, bool(subtract))
         if v.shape != (n, size * size) or v.dtype != low.dtype or v.device != low.device:
             _check("v", v, (n, size * size), low.dtype)  # raises, naming it

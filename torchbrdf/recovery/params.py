@@ -119,18 +119,21 @@ def decode_directions(x: Tensor, metal: Tensor, rows: Sequence[Sequence[int]]) -
     """:func:`decode_jvp` along sums of unit directions, without forming the ``(K, P, C)`` products.
 
     Direction ``k`` is the sum of the unit vectors of the unknowns (columns of ``x``) listed in
-    ``rows[k]`` (e.g. :func:`decode_slots`; an empty list: a zero direction); ``x``, ``metal`` as
-    for :func:`decode_jvp`. Returns the same ``(params, dparams)`` (contiguous tangents, zero
-    where a direction does not move a parameter; metallic's only with 8 columns), bit for bit:
-    each logit's ``(1 − σ) σ`` is computed once per pixel and copied into the direction that
-    moves it, and a direction along one slope takes the normal's rule with its zero terms
-    written out (:func:`_slope_tangent`).
+    ``rows[k]``, each at most once (e.g. :func:`decode_slots`; an empty list: a zero direction);
+    ``x``, ``metal`` as for :func:`decode_jvp`. Returns the same ``(params, dparams)`` (contiguous
+    tangents, zero where a direction does not move a parameter; metallic's only with 8 columns),
+    bit for bit: each logit's ``(1 − σ) σ`` is computed once per pixel and copied into the
+    direction that moves it, and a direction along one slope takes the normal's rule with its
+    zero terms written out (:func:`_slope_tangent`).
     """
     n_x = x.shape[1]
     for k, cols in enumerate(rows):
         for j in cols:
             if j not in _MOVES or j >= n_x:
                 raise ValueError(f"decode_directions: rows[{k}] lists unknown {j}; x has {n_x} columns")
+            if list(cols).count(j) > 1:
+                raise ValueError(f"decode_directions: rows[{k}] lists unknown {j} twice (each row is a sum "
+                                 f"of distinct unit vectors)")
     p, s, u, inv, span = _decoded(x[:, :7], x[:, 7:8] if n_x == 8 else metal)
     ds, d_rough = _logit_tangents(s.new_ones(1, 5), s, span)
     channels = {"base_color": 3, "specular": 1, "roughness": 1, "normal": 3, "metallic": 1 if n_x == 8 else 0}

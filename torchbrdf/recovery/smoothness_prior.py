@@ -148,7 +148,8 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
         if diag is not None:
             h.diagonal(dim1=0, dim2=1).add_(diag[:, order])  # (a (P, C) view)
         low, d = ldl_factor(h)
-        out[:, order] = ldl_solve(low, 1.0 / d, rhs[:, order].T.to(h.dtype)).T.to(rhs.dtype)
+        rhs64 = h.new_empty(c, rhs.shape[0]).copy_(rhs[:, order].T)  # (contiguous: the C solves take it)
+        out[:, order] = ldl_solve(low, 1.0 / d, rhs64).T.to(rhs.dtype)
         return out
     wxa, wya = wx[..., lo:hi], wy[..., lo:hi]
     # The Laplacian's diagonal joins the blocks: the operator is then the blocks minus the
