@@ -78,6 +78,26 @@ def test_symmetries_keep_the_normal_map_consistent(code):
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
 
 
+def test_samples_render_with_the_fused_kernels_below_the_lane_threshold(monkeypatch):
+    """A dataset renders sample after sample: its small renderings take the fused kernels."""
+    from torchbrdf.brdf import principled as P
+    from torchbrdf.kernels import c_runner
+
+    calls = []
+    real = c_runner.run_fwd
+    monkeypatch.setattr(c_runner, "run_fwd", lambda plan, *a, **k: (calls.append(plan.N), real(plan, *a, **k))[1])
+    ds = MaterialDataset(length=2, size=16, extra_lights=1)
+    fused = ds[0]["images"]
+    assert calls == [2 * 16 * 16] and 2 * 16 * 16 < P.FAST_PATH_MIN_LANES
+    P.set_fast_path(False)  # the switch still wins
+    try:
+        eager = ds[0]["images"]
+    finally:
+        P.set_fast_path(None)
+    assert len(calls) == 1
+    torch.testing.assert_close(fused, eager, rtol=2e-6, atol=1e-7)
+
+
 def test_noise_and_gamma():
     clean = MaterialDataset(length=2, size=16, noise=0.0)[0]["images"]
     noisy = MaterialDataset(length=2, size=16, noise=0.05)[0]["images"]

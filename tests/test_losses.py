@@ -160,6 +160,30 @@ def test_gradients_reach_every_map():
     assert (grad.abs().sum(dim=(0, 2, 3)) > 0).all()  # each of the 9 channels gets a gradient
 
 
+def test_backward_kernel_runs_over_the_prediction_only(monkeypatch):
+    """The target needs no gradient: the backward kernel covers pred's lanes, not both renderings'."""
+    from torchbrdf.kernels import c_runner
+
+    seen = []
+    for name in ("run_fwd", "run_bwd"):
+        real = getattr(c_runner, name)
+        monkeypatch.setattr(c_runner, name, lambda plan, *a, _real=real, _name=name, **k: (
+            seen.append((_name, plan.N)), _real(plan, *a, **k))[1])
+    pred = _maps("principled", b=2, size=16, seed=13).requires_grad_()
+    target = _maps("principled", b=2, size=16, seed=14)
+    configs = L.random_configurations(2, generator=torch.Generator().manual_seed(0))
+    loss = L.rendering_loss(pred, target, configs=configs)
+    (grad,) = torch.autograd.grad(loss, pred)
+    half = 2 * 9 * 16 * 16  # 4608 lanes per rendering: fused, as the 9216 of both together
+    assert seen == [("run_fwd", half), ("run_fwd", half), ("run_bwd", half)]
+    # the same values as the one rendering of both (what a call without gradients runs)
+    seen.clear()
+    with torch.no_grad():
+        both = L.rendering_loss(pred, target, configs=configs)
+    assert seen == [("run_fwd", 2 * half)]
+    torch.testing.assert_close(loss.detach(), both, rtol=1e-6, atol=0)
+
+
 def test_compile_fullgraph_has_no_graph_breaks_and_runs_the_fused_operator():
     from torch._dynamo.utils import counters
 

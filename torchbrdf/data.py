@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
+from torchbrdf.brdf.principled import fused_at_every_size
 from torchbrdf.capture.synthetic import (
     DEFAULT_CAMERA,
     MAP_NAMES,
@@ -240,7 +241,8 @@ class MaterialDataset(Dataset):
         if self.extra_lights:
             extra = random_lights(self.extra_lights, seed=int(torch.randint(2**31 - 1, (), generator=gen)))
             pos, inten = torch.cat((pos, extra[0])), torch.cat((inten, extra[1]))
-        images = render_capture(maps, (pos, inten), DEFAULT_CAMERA, backend="compact")
+        with fused_at_every_size():  # a dataset renders one kind of call sample after sample
+            images = render_capture(maps, (pos, inten), DEFAULT_CAMERA, backend="compact")
         lo, hi = self.noise
         level = lo + (hi - lo) * float(torch.rand((), generator=gen))
         if level > 0:

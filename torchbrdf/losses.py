@@ -38,6 +38,7 @@ Normal maps are normalised before rendering (a network's output need not be unit
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import NamedTuple
 
@@ -46,7 +47,7 @@ from torch import Tensor, nn
 
 from torchbrdf._math import dot, safe_normalize
 from torchbrdf.brdf.svbrdf_ggx import ROUGHNESS_FLOOR_DESCHAINTRE, svbrdf_ggx
-from torchbrdf.brdf.principled import principled
+from torchbrdf.brdf.principled import FAST_PATH_MIN_LANES, fused_at_every_size, principled
 from torchbrdf.capture.format import pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES
 
@@ -262,10 +263,21 @@ def rendering_loss(
         # Drawn on the generator's device (a CPU generator may seed a CUDA loss), then moved.
         where = generator.device if generator is not None else pred.device
         configs = random_configurations(pred.shape[0], n_diffuse, n_specular, generator, pred.dtype, where)
-    both = render_configurations(torch.cat((pred, target)), Configurations(
-        configs.light.expand(pred.shape[0], -1, -1).repeat(2, 1, 1),
-        configs.view.expand(pred.shape[0], -1, -1).repeat(2, 1, 1), configs.positional), layout, intensity)
-    rp, rt = both.chunk(2)
+    b = pred.shape[0]
+    if torch.is_grad_enabled() and pred.requires_grad and not target.requires_grad:
+        # Two renderings, so that the backward (kernel and geometry) covers pred's half only;
+        # dispatched as the one rendering of both would be (the same lane count decides).
+        configs = Configurations(configs.light.expand(b, -1, -1), configs.view.expand(b, -1, -1), configs.positional)
+        large = not torch.compiler.is_compiling() and (
+            2 * b * configs.light.shape[1] * pred.shape[2] * pred.shape[3] >= FAST_PATH_MIN_LANES)
+        with fused_at_every_size() if large else contextlib.nullcontext():
+            rp = render_configurations(pred, configs, layout, intensity)
+            rt = render_configurations(target, configs, layout, intensity)
+    else:  # one rendering of both: one kernel call
+        both = render_configurations(torch.cat((pred, target)), Configurations(
+            configs.light.expand(b, -1, -1).repeat(2, 1, 1),
+            configs.view.expand(b, -1, -1).repeat(2, 1, 1), configs.positional), layout, intensity)
+        rp, rt = both.chunk(2)
     return (torch.log(rp + LOG_OFFSET) - torch.log(rt + LOG_OFFSET)).abs().mean()
 
 

@@ -21,8 +21,10 @@ Numerics (each pinned by ``tests/brdf/test_principled.py`` and ``tests/brdf/test
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 import numbers
 import os
 from collections.abc import Iterable
@@ -40,7 +42,7 @@ from torchbrdf.brdf.formula import active_lobes, is_const
 from torchbrdf.brdf.frames import frame_from_normal
 
 __all__ = ["principled", "PrincipledBRDF", "PRINCIPLED_DEFAULTS", "LOBES", "set_fast_path", "fast_path_enabled",
-           "FAST_PATH_MIN_LANES"]
+           "FAST_PATH_MIN_LANES", "fused_at_every_size"]
 
 
 
@@ -175,6 +177,29 @@ def fast_path_enabled() -> bool | None:
     return _fast_mode["enabled"]
 
 
+# Per thread and per asyncio task, unlike the process-wide set_fast_path switch.
+_every_size: contextvars.ContextVar[bool] = contextvars.ContextVar("torchbrdf_fused_at_every_size", default=False)
+
+
+@contextlib.contextmanager
+def fused_at_every_size() -> Iterator[None]:
+    """Within the block, the automatic mode uses the fused kernels below :data:`FAST_PATH_MIN_LANES` too.
+
+    For a caller that repeats one kind of small call many times (a dataset rendering each
+    sample, one of two halves of a batch): the threshold spares a one-off call the kernel's
+    first compile (once per machine: the kernel is cached on disk), which such a caller
+    repays after a few thousand calls (a 4096-lane forward is ~4x faster fused). It changes only the automatic mode: ``set_fast_path(False)``,
+    ``TORCHBRDF_EAGER``, the backend and the dtype/device rules still apply. Scoped to the
+    current thread (a ``contextvars`` variable); not traced by ``torch.compile``, which
+    always picks the fused operator.
+    """
+    token = _every_size.set(True)
+    try:
+        yield
+    finally:
+        _every_size.reset(token)
+
+
 def _fast_backend(c: dict) -> str | None:
     """``"c"`` or ``"triton"`` when fused kernels evaluate this ``principled`` call, else None."""
     tensors = [t for t in c.values() if isinstance(t, Tensor)]
@@ -200,7 +225,7 @@ def fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor
     :func:`torchbrdf.set_backend` / ``TORCHBRDF_BACKEND`` (see :mod:`torchbrdf.kernels.backend`);
     :func:`set_fast_path` says whether a fused one is used; in automatic mode with the
     ``"auto"`` backend, ``lanes()`` (the batch's lane count, None if it does not broadcast)
-    must reach :data:`FAST_PATH_MIN_LANES`.
+    must reach :data:`FAST_PATH_MIN_LANES` (any count inside :func:`fused_at_every_size`).
     """
     mode = _fast_mode["enabled"]
     if mode is False or os.environ.get("TORCHBRDF_EAGER", "") not in ("", "0"):
@@ -226,7 +251,7 @@ def fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor
         # transforms (vmap, grad, jvp) and forward-mode AD go through the operator's rules.
         if type(t) not in (Tensor, nn.Parameter):
             return None
-    if mode is None and _backend_setting() == "auto":
+    if mode is None and _backend_setting() == "auto" and not _every_size.get():
         n = lanes()
         if n is None or n < FAST_PATH_MIN_LANES:
             return None

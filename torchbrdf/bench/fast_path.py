@@ -1,0 +1,96 @@
+"""``python -m torchbrdf.bench.fast_path``: calls that the fused path now covers, before and after.
+
+Each row times two ways of the same work, alternating call by call
+(:func:`torchbrdf.bench.timing.time_alternating`) in **CPU seconds** of this process
+(steadier than wall time on a shared machine), float32:
+
+* ``rendering_loss`` forward + backward of ``(B, 9, S, S)`` maps: the target held constant (its
+  rendering needs no backward) against a target that requires grad (one rendering of both
+  map sets, the backward over every lane);
+* a :class:`torchbrdf.data.MaterialDataset` sample (one flash light, 64² pixels: below
+  :data:`~torchbrdf.brdf.principled.FAST_PATH_MIN_LANES`), fused against eager;
+* one ``principled`` forward of 4096 lanes, fused against eager.
+
+Prints a markdown table: median (min–max) CPU milliseconds and the ratio where the spreads
+are apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable, Sequence
+
+import torch
+
+import torchbrdf
+from torchbrdf import data, losses
+from torchbrdf.brdf import principled as P
+from torchbrdf.bench.timing import Spread, ratio_text, time_alternating
+
+
+def _ms(s: Spread) -> str:
+    return f"{s.median * 1e3:.3g} ({s.min * 1e3:.3g}–{s.max * 1e3:.3g})"
+
+
+def _eager(fn: Callable[[], object]) -> Callable[[], object]:
+    def run() -> object:
+        P.set_fast_path(False)
+        try:
+            return fn()
+        finally:
+            P.set_fast_path(None)
+    return run
+
+
+def rows(batch: int, size: int, sample_size: int, repeats: int) -> list[tuple[str, str, Spread, str, Spread]]:
+    """``(case, after, after's spread, before, before's spread)`` per measured case."""
+    g = torch.Generator().manual_seed(0)
+    pred, target = torch.rand(batch, 9, size, size, generator=g), torch.rand(batch, 9, size, size, generator=g)
+    configs = losses.random_configurations(batch, generator=g)
+
+    def loss(target_grad: bool) -> Callable[[], object]:
+        def run() -> object:
+            p, t = pred.clone().requires_grad_(), target.clone().requires_grad_(target_grad)
+            return torch.autograd.grad(losses.rendering_loss(p, t, configs=configs), p)
+        return run
+
+    ds = data.MaterialDataset(length=64, size=sample_size, noise=0.0)
+    ds[0]  # the material's synthesis is cached per material: time the rendering's share
+    lanes = 4096
+    up = torch.tensor([0.0, 0.0, 1.5])
+    l, v, n = (torch.nn.functional.normalize(torch.randn(lanes, 3, generator=g) + up, dim=-1) for _ in range(3))
+    base, rough = torch.rand(lanes, 3, generator=g), torch.rand(lanes, 1, generator=g)
+
+    def brdf() -> object:
+        with P.fused_at_every_size():
+            return torchbrdf.principled(l, v, n, base_color=base, roughness=rough)
+
+    out = []
+    for case, after, before in (
+            (f"`rendering_loss` fwd+bwd, {batch}×9×{size}²", ("target constant", loss(False)),
+             ("target requires grad (one rendering of both)", loss(True))),
+            (f"`MaterialDataset` sample, {sample_size}² (1 light)", ("fused", lambda: ds[1]), ("eager", _eager(lambda: ds[1]))),
+            ("`principled` forward, 4096 lanes", ("fused", brdf), ("eager", _eager(brdf)))):
+        t = time_alternating({"after": after[1], "before": before[1]}, repeats, clock=time.process_time)
+        out.append((case, after[0], t["after"], before[0], t["before"]))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=2, help="maps per rendering_loss call")
+    ap.add_argument("--size", type=int, default=128, help="rendering_loss map resolution S")
+    ap.add_argument("--sample-size", type=int, default=64, help="MaterialDataset sample resolution (its default)")
+    ap.add_argument("--reps", type=int, default=11, help="alternating rounds")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    print("| case | now: CPU ms | before: CPU ms | speed-up |")
+    print("|---|---|---|---|")
+    for case, an, at, bn, bt in rows(a.batch, a.size, a.sample_size, a.reps):
+        print(f"| {case} | {an}: {_ms(at)} | {bn}: {_ms(bt)} | {ratio_text(bt, at)} |")
+
+
+if __name__ == "__main__":
+    main()
