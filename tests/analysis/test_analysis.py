@@ -210,6 +210,25 @@ def test_render_sphere_lambert():
 # --------------------------------------------------------------------------------------
 
 
+def test_explore_refuses_a_parameter_the_model_does_not_take(capsys):
+    """A misspelt key is one line naming the spec, the key and the model's parameters, not a traceback
+    when the report is half drawn (and lambert, which swallows unknown keywords, no longer ignores it)."""
+    from torchbrdf.analysis import explore
+
+    with pytest.raises(ValueError, match=r"principled has no parameter 'rough'; it takes base_color.*roughness"):
+        explore.parse_spec("principled:rough=0.2")
+    with pytest.raises(ValueError, match=r"lambert has no parameter 'roughness'; it takes base_color \(and label\)"):
+        explore.parse_spec("lambert:roughness=0.2")
+    assert explore.parse_spec("microfacet:alpha=0.1,diffuse=0.5/0.5/0.5,label=x").label == "x"
+    with pytest.raises(SystemExit) as e:
+        explore.main(["--out", "unused", "--brdf", "principled:rough=0.2"])
+    assert e.value.code == 2 and "no parameter 'rough'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        explore.main(["--help"])
+    shown = capsys.readouterr().out  # the spec syntax and each model's keys are in --help
+    assert "r/g/b" in shown and "microfacet: alpha," in shown and "lambert: base_color;" in shown
+
+
 def test_explore_writes_report(tmp_path):
     from torchbrdf.analysis import explore
 

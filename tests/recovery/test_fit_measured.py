@@ -143,3 +143,23 @@ def test_demo_fits_a_tabulated_known_material(tmp_path, capsys):
     with pytest.raises(SystemExit):
         FM.main(["--out", str(out)])
     assert "one of the arguments --merl --demo is required" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--merl", "{tmp}/missing.binary"], "--merl: MERL file '{tmp}/missing.binary' not found"),
+    (["--merl", "{tmp}"], "is a directory, not a file"),
+    (["--merl", "{tmp}/short.binary"], "too short for the 12-byte header"),
+    (["--demo", "--extra", "shininess"], "--extra 'shininess': expected distinct names among clearcoat,"),
+    (["--demo", "--samples", "0"], "--samples must be at least 1, got 0"),
+    (["--demo", "--iters", "-1"], "--iters must be at least 0, got -1"),
+])
+def test_bad_input_is_one_line_naming_the_option(tmp_path, capsys, args, says):
+    """A missing or broken MERL file or an impossible option: exit status 2 and one line, no traceback,
+    and nothing written (the options are checked before --demo writes its file)."""
+    (tmp_path / "short.binary").write_bytes(b"garbage\n")
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as e:
+        FM.main([a.format(tmp=tmp_path) for a in args] + ["--out", str(out)])
+    assert e.value.code == 2
+    assert says.format(tmp=tmp_path) in capsys.readouterr().err
+    assert not out.exists()

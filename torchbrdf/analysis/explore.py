@@ -18,7 +18,7 @@ BRDF specs: ``MODEL[:key=value,key=value,...]``
 
 * ``MODEL`` is ``principled``, ``lambert``, ``microfacet``, ``merl`` (whose argument is the
   path of a MERL ``.binary`` file: ``merl:PATH``, optionally ``merl:PATH,label=NAME``) or
-  ``fit`` (the ``params.json`` written by ``python -m training.fit_measured``: ``fit:PATH``),
+  ``fit`` (the ``params.json`` written by ``torchbrdf-fit-merl``: ``fit:PATH``),
   so a fitted model can sit beside the measured data it was fitted to;
 * values are numbers, RGB triples written ``r/g/b`` (linear), or words (``fresnel=dielectric``);
 * ``label=NAME`` names the column; for ``microfacet``, ``diffuse=r/g/b`` adds a Lambert term.
@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import html
+import inspect
 import json
 import math
 import sys
@@ -43,7 +44,7 @@ from torchbrdf._types import BRDF
 from torchbrdf.analysis import measures as A
 from torchbrdf.analysis import plots as P
 
-__all__ = ["BRDFSpec", "parse_spec", "write_report", "main", "DEFAULT_SPECS"]
+__all__ = ["BRDFSpec", "parse_spec", "parameter_names", "write_report", "main", "DEFAULT_SPECS"]
 
 DEFAULT_SPECS = (
     "principled:roughness=0.2,base_color=0.8/0.25/0.1,label=principled r=0.2",
@@ -67,6 +68,35 @@ PRESETS = {
 MODELS = ("principled", "lambert", "microfacet", "merl", "fit")
 
 
+def _model_function(model: str) -> Callable[..., Any]:
+    if model == "principled":
+        from torchbrdf.brdf.principled import principled
+
+        return principled
+    if model == "lambert":
+        from torchbrdf.brdf.lambert import lambert
+
+        return lambert
+    from torchbrdf.brdf.microfacet import microfacet
+
+    return microfacet
+
+
+def parameter_names(model: str) -> tuple[str, ...]:
+    """The ``key=value`` names a ``--brdf`` spec of ``model`` takes (none for ``merl`` and ``fit``).
+
+    Example:
+        >>> parameter_names("lambert")
+        ('base_color',)
+    """
+    if model in ("merl", "fit"):
+        return ()
+    params = inspect.signature(_model_function(model)).parameters.values()
+    # keyword-only: the material; lambert's **ignored would otherwise swallow any typo silently
+    names = tuple(p.name for p in params if p.kind is inspect.Parameter.KEYWORD_ONLY)
+    return names + ("diffuse",) if model == "microfacet" else names
+
+
 @dataclass
 class BRDFSpec:
     """A parsed ``--brdf`` argument.
@@ -86,19 +116,13 @@ class BRDFSpec:
     def brdf(self) -> BRDF:
         """The parameter-free callable ``f(l, v, n, x=None, y=None) -> (*, 3)``."""
         if self.model == "principled":
-            from torchbrdf.brdf.principled import principled
-
-            return A.bind_brdf(principled, **self.params)
+            return A.bind_brdf(_model_function("principled"), **self.params)
         if self.model == "lambert":
-            from torchbrdf.brdf.lambert import lambert
-
-            return A.bind_brdf(lambert, **{"base_color": 0.8, **self.params})
+            return A.bind_brdf(_model_function("lambert"), **{"base_color": 0.8, **self.params})
         if self.model == "microfacet":
-            from torchbrdf.brdf.microfacet import microfacet
-
             params = dict(self.params)
             diffuse = params.pop("diffuse", None)
-            spec = A.bind_brdf(microfacet, **params)
+            spec = A.bind_brdf(_model_function("microfacet"), **params)
             if diffuse is None:
                 return spec
             kd = torch.as_tensor(diffuse, dtype=torch.float64) / math.pi
@@ -181,6 +205,9 @@ def parse_spec(spec: str) -> BRDFSpec:
         key, val = key.strip(), val.strip()
         if key == "label":
             out.label = val
+        elif key not in parameter_names(model):
+            raise ValueError(f"--brdf {spec!r}: {model} has no parameter {key!r}; it takes "
+                             f"{', '.join(parameter_names(model)) or 'only a file'} (and label)")
         else:
             out.params[key] = _value(val)
     if model == "principled":
@@ -326,7 +353,11 @@ error estimate; dotted: R, G, B).</p>
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point (see the module docstring)."""
-    ap = argparse.ArgumentParser(prog="torchbrdf-explore", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="torchbrdf-explore", description=__doc__.split("\n\n")[0],
+        epilog=__doc__[__doc__.index("BRDF specs:"):].replace("``", "") + "\nParameters per model: " + "; ".join(
+            f"{m}: {', '.join(parameter_names(m))}" for m in ("principled", "lambert", "microfacet")) + ".",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="explore_report", help="output folder (default: explore_report)")
     ap.add_argument("--brdf", action="append", default=[], metavar="SPEC", help="MODEL[:key=value,...]; repeat to compare")
     ap.add_argument("--preset", choices=sorted(PRESETS), help="a named comparison (added before any --brdf)")

@@ -407,14 +407,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the random subset of MERL nodes (--samples)")
     ap.add_argument("--no-figures", action="store_true", help="write params.json only")
     args = ap.parse_args(argv)
+    # refused before the MERL file (35 MB) is read or written, in one line each
+    names = list(DEFAULT_PARAMS) + [n.strip() for n in args.extra.split(",") if n.strip()]
+    extra = sorted(set(RANGES) - set(DEFAULT_PARAMS) - {"roughness2", "spec2_f0", "spec2_f90"})
+    if [n for n in names if n not in RANGES] or len(set(names)) < len(names):
+        ap.error(f"--extra {args.extra!r}: expected distinct names among {', '.join(extra)} (comma separated)")
+    for flag, value, least in (("--samples", args.samples, 1), ("--iters", args.iters, 0), ("--lbfgs", args.lbfgs, 0)):
+        if value < least:
+            ap.error(f"{flag} must be at least {least}, got {value}")
 
     t0 = time.perf_counter()
     if args.demo:
         args.merl = str(write_demo_merl(Path(args.out)))
         print(f"fit_measured: --demo wrote {args.merl} from {DEMO_MATERIAL}")
-    merl = MERLBRDF.from_file(args.merl)
+    try:
+        merl = MERLBRDF.from_file(args.merl)
+    except (OSError, ValueError) as e:
+        ap.error(f"--merl: {e}")
     samples = sample_merl(merl, args.samples, args.seed, args.max_theta)
-    names = list(DEFAULT_PARAMS) + [n.strip() for n in args.extra.split(",") if n.strip()]
     print(f"fit_measured: {merl.name}, {len(samples)} samples, fitting {names}{' + second lobe' if args.two_lobes else ''}")
     model = fit(samples, names=names, two_lobes=args.two_lobes, iters=args.iters, lbfgs_iters=args.lbfgs, eps=args.eps)
     errors = fit_errors(model, samples, args.eps)
