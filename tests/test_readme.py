@@ -21,8 +21,8 @@ def test_readme_python_blocks_run_verbatim(tmp_path, monkeypatch):
 
 
 def _readme_commands() -> list[tuple[str, ...]]:
-    """Every command of the README's and docs/recovery.md's bash blocks, as arguments after ``python``."""
-    pages = (README, ROOT / "docs" / "recovery.md")
+    """Every command of the bash blocks of the README and the recovery pages, as arguments after ``python``."""
+    pages = (README, ROOT / "docs" / "recovery.md", ROOT / "docs" / "recovery_measurements.md")
     text = "\n".join(b for p in pages for b in re.findall(r"```bash\n(.*?)```", p.read_text(), re.S))
     modules = [["-m", m] for m in re.findall(r"python -m ((?:torchbrdf|training)[\w.]*)", text)]
     files = [[f] for f in re.findall(r"python ((?:datasets|training)/\w+\.py)", text)]
