@@ -21,7 +21,7 @@ def test_readme_python_blocks_run_verbatim(tmp_path, monkeypatch):
 
 
 def _readme_commands() -> list[tuple[str, ...]]:
-    """Every command of the bash blocks of the README and the recovery pages, as arguments after ``python``."""
+    """Every command in the bash blocks of the README and the recovery pages, as arguments after python."""
     pages = (README, ROOT / "docs" / "recovery.md", ROOT / "docs" / "recovery_measurements.md")
     text = "\n".join(b for p in pages for b in re.findall(r"```bash\n(.*?)```", p.read_text(), re.S))
     modules = [["-m", m] for m in re.findall(r"python -m ((?:torchbrdf|training)[\w.]*)", text)]
@@ -107,7 +107,7 @@ def test_docs_have_no_work_log():
 
 
 def _anchor(heading: str, seen: dict[str, int]) -> str:
-    """GitHub's anchor of a Markdown heading: lower case, backticks and punctuation dropped, spaces to dashes."""
+    """GitHub's anchor of a heading: lower case, punctuation and backticks dropped, spaces to dashes."""
     slug = "".join(c for c in heading.strip().lower() if c.isalnum() or c in " -_").replace(" ", "-")
     n = seen.get(slug, 0)
     seen[slug] = n + 1
@@ -115,7 +115,7 @@ def _anchor(heading: str, seen: dict[str, int]) -> str:
 
 
 def test_docs_relative_links_and_anchors_resolve():
-    """Every relative link of the README and docs/*.md names a file that exists, and an anchor its page has."""
+    """Every relative link of the README and docs/*.md names an existing file, and an anchor its page has."""
     pages = [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
     anchors = {}
     for p in pages:
