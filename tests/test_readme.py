@@ -21,8 +21,8 @@ def test_readme_python_blocks_run_verbatim(tmp_path, monkeypatch):
 
 
 def _readme_commands() -> list[tuple[str, ...]]:
-    """Every command of the README's and docs/recovery.md's bash blocks, as arguments after ``python``."""
-    pages = (README, ROOT / "docs" / "recovery.md")
+    """Every command in the bash blocks of the README and the recovery pages, as arguments after python."""
+    pages = (README, ROOT / "docs" / "recovery.md", ROOT / "docs" / "recovery_measurements.md")
     text = "\n".join(b for p in pages for b in re.findall(r"```bash\n(.*?)```", p.read_text(), re.S))
     modules = [["-m", m] for m in re.findall(r"python -m ((?:torchbrdf|training)[\w.]*)", text)]
     files = [[f] for f in re.findall(r"python ((?:datasets|training)/\w+\.py)", text)]
@@ -98,11 +98,40 @@ def test_readme_layout_lists_every_script_and_folder():
 
 def test_docs_have_no_work_log():
     """Reference pages, not a lab notebook: no issue numbers, clock times or dated narration."""
-    pattern = re.compile(r"issue[ -]\d+|\d{2}:\d{2} UTC|\bsession\b|latest round|previous round", re.I)
+    pattern = re.compile(r"issue[ -]\d+|\d{2}:\d{2} UTC|\bsession\b|latest round|previous round"
+                         r"|before the last|\bused before|was landed|\| now \| before \|", re.I)
     pages = [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
     hits = [f"{p.name}: {m.group(0)}" for p in pages if p.exists() for m in pattern.finditer(p.read_text())]
     assert hits == []
     assert len((ROOT / "docs" / "recovery.md").read_text().splitlines()) <= 800
+
+
+def _anchor(heading: str, seen: dict[str, int]) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation and backticks dropped, spaces to dashes."""
+    slug = "".join(c for c in heading.strip().lower() if c.isalnum() or c in " -_").replace(" ", "-")
+    n = seen.get(slug, 0)
+    seen[slug] = n + 1
+    return slug if n == 0 else f"{slug}-{n}"
+
+
+def test_docs_relative_links_and_anchors_resolve():
+    """Every relative link of the README and docs/*.md names an existing file, and an anchor its page has."""
+    pages = [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
+    anchors = {}
+    for p in pages:
+        seen: dict[str, int] = {}
+        text = re.sub(r"```.*?```", "", p.read_text(), flags=re.S)
+        anchors[p.resolve()] = {_anchor(h, seen) for h in re.findall(r"(?m)^#{1,6} (.+)$", text)}
+    broken = []
+    for p in pages:
+        for target in re.findall(r"\]\(([^)\s]+)\)", p.read_text()):
+            if re.match(r"[a-z]+:", target):
+                continue
+            path, _, anchor = target.partition("#")
+            file = (p.parent / path).resolve() if path else p.resolve()
+            if not file.exists() or (anchor and file.suffix == ".md" and anchor not in anchors.get(file, ())):
+                broken.append(f"{p.name}: {target}")
+    assert broken == []
 
 
 def test_recovery_options_table_matches_the_config_and_the_cli(capsys):

@@ -1,7 +1,7 @@
 """``python -m torchbrdf.bench.soft_metal_cost``: the on/off timing of the metal refinements.
 
-Timings are in docs/recovery.md, not here: these tests check what is run, in which order, how
-the pairs are formed, and that bad arguments are refused.
+The command prints the timings; these tests check what is run, in which order, how the pairs are
+formed, and that bad arguments are refused.
 """
 
 import json

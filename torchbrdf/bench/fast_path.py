@@ -1,4 +1,4 @@
-"""``python -m torchbrdf.bench.fast_path``: calls that the fused path now covers, before and after.
+"""``python -m torchbrdf.bench.fast_path``: the route the library takes for a call against its alternative.
 
 Each row times two ways of the same work, alternating call by call
 (:func:`torchbrdf.bench.timing.time_alternating`) in **CPU seconds** of this process
@@ -44,7 +44,7 @@ def _eager(fn: Callable[[], object]) -> Callable[[], object]:
 
 
 def rows(batch: int, size: int, sample_size: int, repeats: int) -> list[tuple[str, str, Spread, str, Spread]]:
-    """``(case, after, after's spread, before, before's spread)`` per measured case."""
+    """``(case, the library's route, its spread, the alternative, its spread)`` per measured case."""
     g = torch.Generator().manual_seed(0)
     pred, target = torch.rand(batch, 9, size, size, generator=g), torch.rand(batch, 9, size, size, generator=g)
     configs = losses.random_configurations(batch, generator=g)
@@ -86,7 +86,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
-    print("| case | now: CPU ms | before: CPU ms | speed-up |")
+    print("| case | library's route: CPU ms | alternative: CPU ms | speed-up |")
     print("|---|---|---|---|")
     for case, an, at, bn, bt in rows(a.batch, a.size, a.sample_size, a.reps):
         print(f"| {case} | {an}: {_ms(at)} | {bn}: {_ms(bt)} | {ratio_text(bt, at)} |")

@@ -188,7 +188,8 @@ def fused_at_every_size() -> Iterator[None]:
     For a caller that repeats one kind of small call many times (a dataset rendering each
     sample, one of two halves of a batch): the threshold spares a one-off call the kernel's
     first compile (once per machine: the kernel is cached on disk), which such a caller
-    repays after a few thousand calls (a 4096-lane forward is ~4x faster fused). It changes only the automatic mode: ``set_fast_path(False)``,
+    repays after a few thousand calls (a 4096-lane forward is about 3× faster fused:
+    docs/fast_path.md). It changes only the automatic mode: ``set_fast_path(False)``,
     ``TORCHBRDF_EAGER``, the backend and the dtype/device rules still apply. Scoped to the
     current thread (a ``contextvars`` variable); not traced by ``torch.compile``, which
     always picks the fused operator.

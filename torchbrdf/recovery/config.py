@@ -22,7 +22,7 @@ __all__ = ["RecoveryConfig", "ScheduleConfig", "PriorConfig", "CalibrationConfig
 #: :class:`ScheduleConfig` fields each sets, the rest at their defaults. ``fast`` plans 18 LM
 #: iterations (the default plan's proportions) and stops a full-resolution stage at a 3 % change;
 #: ``thorough`` plans twice the default's 39 and stops only below 0.2 %, after at least 4.
-#: Time against held-out accuracy: docs/recovery.md, "Schedules".
+#: Time against held-out accuracy: docs/recovery_measurements.md, "Schedules: time against accuracy".
 SCHEDULES: dict[str, dict[str, Any]] = {
     "fast": {"iters": 18, "converge_tol": 0.03},
     "default": {},
@@ -114,7 +114,7 @@ class ClassConfig:
             (``torchbrdf.recovery.classes.evidence_threshold``). 1e-4: a fifth of the 0.05 %
             of a dielectric's pixels that may be called metal, leaving room for the misfit of
             a forward model the fit does not share; measured by
-            ``python -m torchbrdf.bench.false_metal`` (docs/recovery.md).
+            ``python -m torchbrdf.bench.false_metal`` (docs/recovery_measurements.md).
     """
 
     soft_metal: bool = True

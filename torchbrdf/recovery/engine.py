@@ -4,7 +4,7 @@
 principled maps — base colour, roughness, metallic, specular, normal — so that the capture format's
 image formation reproduces every captured image.
 
-Method (``docs/recovery.md``, with its measurements):
+Method (``docs/recovery.md``; its measurements in ``docs/recovery_measurements.md``):
 
 * **Parameters in unconstrained spaces**: logits for base colour, specular and roughness, a
   2-D slope ``(p, q)`` for the normal (``n ∝ (p, q, 1)``, always z > 0). Metallic is not a

@@ -275,9 +275,9 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
     a material from were fitted with the ties, and a tie that pins one unknown (a constant
     specular, tied across the image) also pins those its data trade against it (roughness).
     The data-only information understates the fitted values' precision, and so the material's
-    spread ``τ²`` (measured in docs/recovery.md, "The fill's measured spread"). ``jtj (P, 7, 7)``: the data
-    normal matrices at ``theta`` when the caller has them (else computed); the result has
-    ``theta``'s dtype and device.
+    spread ``τ²`` (measured in docs/recovery_measurements.md, "The fill's measured spread").
+    ``jtj (P, 7, 7)``: the data normal matrices at ``theta`` when the caller has them (else
+    computed); the result has ``theta``'s dtype and device.
     """
     if jtj is None:
         jtj = gauss_newton(data, theta, metal, data.train_idx, cfg.model)[1]
