@@ -21,6 +21,7 @@ from torch import Tensor
 from torchbrdf._math import half_safe
 from torchbrdf._types import Scalar
 from torchbrdf.brdf import formula  # GTR1 is written once there (the principled clearcoat)
+from torchbrdf.brdf.formula import ALPHA_MIN  # the principled model's floor (Burley 2012 code)
 
 __all__ = [
     "ALPHA_MIN",
@@ -35,9 +36,6 @@ __all__ = [
     "ndf_abc",
 ]
 
-# The principled model's alpha floor (Burley 2012 code): below it the peak exceeds 3e5 and
-# is no longer resolvable by any light sampling strategy.
-ALPHA_MIN = 1e-3
 # |x| below which the removable-singularity helpers switch to their Taylor series
 # (error ~x^4/720, far below float64 rounding for 1e-4).
 _SERIES_EPS = 1e-4

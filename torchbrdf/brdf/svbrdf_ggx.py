@@ -59,10 +59,10 @@ from torch import Tensor, nn
 from torchbrdf import _checks
 from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
 from torchbrdf._types import Color, Scalar
+from torchbrdf.brdf.formula import ALPHA_MIN  # the principled model's floor (Burley 2012 code)
 
 __all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN", "ROUGHNESS_FLOOR_DESCHAINTRE"]
 
-ALPHA_MIN = 1e-3
 """Default floor on ``alpha = roughness^2``: keeps the GGX peak ``1 / (pi alpha^2)`` below 3.2e5."""
 
 ROUGHNESS_FLOOR_DESCHAINTRE = 1e-3

@@ -36,6 +36,7 @@ from torch import Tensor
 
 from torchbrdf._math import dot, safe_normalize
 from torchbrdf._types import Device, Scalar
+from torchbrdf.brdf.formula import ALPHA_MIN  # the principled model's floor (Burley 2012 code)
 
 __all__ = [
     "hammersley",
@@ -59,8 +60,6 @@ __all__ = [
     "LatLongSampler",
 ]
 
-# Floor for alpha in the samplers: the principled model's own floor (Burley 2012 code).
-ALPHA_MIN = 1e-3
 # |α² - 1| below which GTR1 uses its α = 1 limit (uniform in cos² θ_h, D = 1/π); the
 # relative error of the general formula there is ~1e-6 in float64 and worse in float32.
 _GTR1_LIMIT_EPS = 1e-4
