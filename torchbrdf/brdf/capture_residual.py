@@ -4,7 +4,8 @@
 capture fit minimises (the point-light image formation with the principled BRDF, then the
 log). This module prepares its inputs (:func:`residual_inputs`) and runs it on the fused
 kernels when they apply, or eagerly (:func:`log_residual`, :func:`log_residual_jvp`), and a
-Gauss–Newton fit's per-pixel normal equations in one fused pass (:func:`normal_equations`); the
+Gauss–Newton fit's per-pixel normal equations or data costs in one fused pass
+(:func:`normal_equations`, :func:`data_cost`); the
 kernels are imported here, at dispatch, so the capture layer above never imports them.
 """
 
@@ -20,7 +21,7 @@ from torchbrdf.brdf import formula
 from torchbrdf.brdf import principled as _p
 
 __all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp", "normal_equations",
-           "light_schur"]
+           "data_cost", "light_schur"]
 
 #: ``(c, active lobes, need_tint, frame, backend)``: the formula's inputs ``c`` (per-pixel
 #: values as ``(P, 1, C)``, broadcast over the lights) and how to run it (backend None: eager).
@@ -112,16 +113,8 @@ def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: 
     gradient, or parameters other than the isotropic untinted ones): the caller then
     linearises by ``torch.func``.
     """
-    import torch
-
-    tensors = [t for t in (normal, points, camera, light_pos, light_int, log_obs, *params.values(),
-                           *tangents.values()) if isinstance(t, Tensor)]
-    if any(k in params for k in ("anisotropic", "specular_tint", "sheen_tint")):  # the kernel keeps their defaults
-        return None
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return None
-    lanes = log_obs.shape[0] * log_obs.shape[1]
-    if _p.fused_backend(log_obs.device, log_obs.dtype, tensors, lambda: max(lanes, _p.FAST_PATH_MIN_LANES)) is None:
+    if not _light_loop_applies(params, log_obs, (normal, points, camera, light_pos, light_int, log_obs,
+                                                 *params.values(), *tangents.values())):
         return None
     from torchbrdf.kernels.normal_eq_ops import normal_equations as fused_normal_equations
     from torchbrdf.kernels.normal_eq_ops import unpack_jtj
@@ -130,6 +123,40 @@ def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: 
     cost, jtj, jtr, r = fused_normal_equations(p, tangents, points, camera, light_pos, light_int, log_obs, eps,
                                                pattern, unknowns, residuals=True)
     return r, cost, unpack_jtj(jtj, unknowns), jtr
+
+
+def data_cost(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+              params: Mapping, log_obs: Tensor, eps: float) -> Tensor | None:
+    """Each pixel's data cost ``Σ r²`` over every light ``(P, 1)`` on the fused kernel, or None.
+
+    One pass of ``torch.ops.torchbrdf.data_cost`` (the light-loop kernel's cost-only variant):
+    the squared log residuals summed in float64 per pixel, a non-finite sum as +inf, in
+    ``log_obs``'s dtype and device, without the ``(P, L, 3)`` residuals in memory. The
+    arguments as for :func:`residual_inputs`. None where the kernel does not apply (as for
+    :func:`normal_equations`): the caller then sums :func:`log_residual`'s squares.
+    """
+    if not _light_loop_applies(params, log_obs, (normal, points, camera, light_pos, light_int, log_obs,
+                                                 *params.values())):
+        return None
+    from torchbrdf.kernels.normal_eq_ops import data_cost as fused_data_cost
+
+    return fused_data_cost({**params, "normal": normal}, points, camera, light_pos, light_int, log_obs, eps)
+
+
+def _light_loop_applies(params: Mapping, log_obs: Tensor, values: tuple) -> bool:
+    """Whether the light-loop kernels (normal equations, data cost) take these inputs: the fused
+    path on for ``log_obs``'s dtype and device, no input that needs a gradient, and the
+    isotropic untinted parameters (the kernels keep the others' defaults)."""
+    import torch
+
+    if any(k in params for k in ("anisotropic", "specular_tint", "sheen_tint")):
+        return False
+    tensors = [t for t in values if isinstance(t, Tensor)]
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return False
+    lanes = log_obs.shape[0] * log_obs.shape[1]
+    return _p.fused_backend(log_obs.device, log_obs.dtype, tensors,
+                            lambda: max(lanes, _p.FAST_PATH_MIN_LANES)) is not None
 
 
 def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,

@@ -28,6 +28,12 @@ then the residuals themselves, ``3 L`` values light-major (``3 j + c``), as they
 Non-finite values follow the solver's rule: the cost sums the residuals as they are (a
 non-finite one makes it non-finite), while ``JᵀJ`` and ``Jᵀr`` take a non-finite Jacobian
 entry or residual as 0 (a pixel-light the model cannot evaluate adds nothing to the step).
+
+The *cost-only* variant (``cost_only``, no unknowns) is what a search over candidate parameters
+needs: each pixel's ``Σ r²`` (one value, ``W = 1``), with no ``(pixels, 3 L)`` residuals written
+and read back. It sums the squares in float64 whatever the dtype (an accumulator per pixel in
+registers; the float32 residuals are widened before squaring), and writes a non-finite sum as
++inf, the recovery's rule for a cost (``pixel_cost``): it never wins a comparison.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from typing import Any
 from torchbrdf.brdf import formula
 from torchbrdf.brdf.formula import SCALAR_PARAMS
 from torchbrdf.kernels.light_loop import Layout, LightLoop, LoopSchedule, acc_input, print_c, print_triton
-from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, tangents
+from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, const, tangents
 
 __all__ = ["NormalEqSpec", "schedule", "generate", "generate_triton", "width", "LIGHT_STRIDE", "CAMERA"]
 
@@ -65,11 +71,13 @@ class NormalEqSpec:
     (default the direction; directions that move disjoint channels can share a row, so the
     caller computes fewer tangents). An input with none has no tangent tensor. ``residuals``:
     each pixel's row also holds its ``3 L`` residuals (see the module docstring).
+    ``cost_only``: only the cost, summed in float64, non-finite as +inf (``K`` must be 0).
     """
 
     def __init__(self, ctype: str, tensors: Iterable[tuple[str, int]], floats: Iterable[str],
                  active: Iterable[str], need_tint: bool, K: int,
-                 pattern: Iterable[Iterable[tuple[int, ...]]], residuals: bool = False) -> None:
+                 pattern: Iterable[Iterable[tuple[int, ...]]], residuals: bool = False,
+                 cost_only: bool = False) -> None:
         self.ctype = ctype
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
@@ -78,6 +86,9 @@ class NormalEqSpec:
         self.need_tint = bool(need_tint)
         self.K = int(K)
         self.residuals = bool(residuals)
+        self.cost_only = bool(cost_only)
+        if self.cost_only and (self.K or self.residuals):
+            raise ValueError("NormalEqSpec: a cost-only kernel has no unknowns and writes no residuals")
         # (direction, channel, slot): slot = the tangent tensor's row holding it (default the direction)
         self.pattern = tuple(tuple(sorted((e[0], e[1], e[2] if len(e) > 2 else e[0]) for e in p))
                              for p in pattern)
@@ -88,7 +99,7 @@ class NormalEqSpec:
 
     def key(self) -> tuple[Any, ...]:
         return ("normal_eq", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.K,
-                self.pattern, self.residuals, tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled")))
+                self.pattern, self.residuals, self.cost_only, tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled")))
 
 
 def _in(role: str, grad: bool = False, **attr) -> Node:
@@ -144,6 +155,8 @@ def schedule(spec: NormalEqSpec) -> LoopSchedule:
                 s = s + t
             return s
 
+        if spec.cost_only:
+            return _cost_schedule(g, ops, r)
         rf = [finite(x) for x in r]
         Jf = [[finite(x) for x in Ja] for Ja in J]
         values = [dot(r, r)]
@@ -155,6 +168,20 @@ def schedule(spec: NormalEqSpec) -> LoopSchedule:
             (("out", i), acc_input(("out", i)) if v is not None else None) for i, v in enumerate(values)]
         stores = {"point": [(("res", c), x) for c, x in enumerate(r)]} if spec.residuals else {}
     return LoopSchedule(g, {"point": accs}, acc_kind, post, stores=stores)
+
+
+def _cost_schedule(g: Graph, ops: TraceOps, r: list[Any]) -> LoopSchedule:
+    """The cost-only schedule: ``Σ r²`` over the lights in a float64 accumulator, non-finite as +inf.
+
+    Called while ``g`` is being built (its nodes join it)."""
+    hi = [ops.to_hi(x) for x in r]  # float32: widened to double before squaring (float64: as is)
+    kind = "d" if ops.hi_double else "r"
+    square = (hi[0] * hi[0] + hi[1] * hi[1]) + hi[2] * hi[2]
+    acc = acc_input(("out", 0), kind)
+    # +inf as 1/0 (a literal cannot print inf); NaN and +inf fail the comparison
+    inf = Node("recip", (const(0.0, kind),), kind)
+    cost = ops.to_compute(ops.where(acc <= 1.7976931348623157e308, acc, inf))
+    return LoopSchedule(g, {"point": [(("out", 0), square)]}, {("out", 0): kind}, [(("out", 0), cost)])
 
 
 def _layout(spec: NormalEqSpec) -> Layout:

@@ -7,7 +7,12 @@ tensors, Triton for CUDA tensors and under ``TRITON_INTERPRET=1``). A fake imple
 ``torch.compile`` trace it; it has no autograd (its outputs are already derivatives). Where no
 kernel can be built it evaluates the same formula eagerly (``torch.func.jvp`` per direction).
 
-:func:`normal_equations` is the entry point on the recovery's decoded maps.
+``data_cost(tensors, floats, uniforms, log_obs, cfg) -> (N, 1)``
+(``torch.ops.torchbrdf.data_cost``): the same kernel family's cost-only variant, each pixel's
+``Σ r²`` summed in float64 and non-finite as +inf (a search's candidate costs); eagerly, the
+residuals' sum of squares.
+
+:func:`normal_equations` and :func:`data_cost` are the entry points on the recovery's decoded maps.
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ from torchbrdf.brdf.formula import PRINCIPLED_DEFAULTS, SCALAR_PARAMS, active_lo
 from torchbrdf.kernels import build
 from torchbrdf.kernels.codegen_normal_eq import CAMERA, NormalEqSpec, generate, generate_triton, width
 
-__all__ = ["normal_equations", "normal_equations_op", "make_cfg", "unpack_jtj", "tangent_pattern"]
+__all__ = ["normal_equations", "normal_equations_op", "data_cost", "data_cost_op", "make_cfg", "unpack_jtj",
+           "tangent_pattern"]
 
 #: The per-pixel inputs in kernel order (those present).
 TENSOR_ORDER = ("pos", "n", "base_color") + SCALAR_PARAMS
@@ -38,24 +44,25 @@ _failed: set = set()
 
 def make_cfg(tensor_names: Sequence[str], float_names: Sequence[str], active: Sequence[str], need_tint: bool,
              K: int, pattern: Sequence[Sequence[tuple[int, ...]]], backend: str = "c",
-             residuals: bool = False) -> str:
-    """The ``cfg`` string of the operator; ``pattern[k]``: input ``k``'s non-zero ``(direction,
+             residuals: bool = False, cost_only: bool = False) -> str:
+    """The ``cfg`` string of the operators; ``pattern[k]``: input ``k``'s non-zero ``(direction,
     channel[, slot])`` tangents (:class:`~.codegen_normal_eq.NormalEqSpec`); ``backend`` ``"c"``
-    or ``"triton"``; ``residuals``: the rows hold the residuals too."""
+    or ``"triton"``; ``residuals``: the rows hold the residuals too; ``cost_only``: the
+    cost-only variant (``K`` 0, no pattern)."""
     pat = ";".join(",".join(".".join(str(int(x)) for x in e) for e in p) for p in pattern)
     return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-                     str(int(K)), pat, backend, str(int(residuals))])
+                     str(int(K)), pat, backend, str(int(residuals)), str(int(cost_only))])
 
 
 def _parse(cfg: str, dtype: torch.dtype) -> tuple[NormalEqSpec, str]:
-    tn, fn, act, tint, K, pat, backend, res = cfg.split("|")
+    tn, fn, act, tint, K, pat, backend, res, cost_only = cfg.split("|")
     names = tn.split(",") if tn else []
     C = [3 if k in ("pos", "n", "base_color") else 1 for k in names]
     pattern = [[tuple(int(x) for x in e.split(".")) for e in p.split(",") if e] for p in pat.split(";")]
     pattern += [[] for _ in range(len(names) - len(pattern))]
     ctype = "float" if dtype == torch.float32 else "double"
     spec = NormalEqSpec(ctype, list(zip(names, C)), fn.split(",") if fn else [],
-                        act.split(",") if act else [], tint == "1", int(K), pattern, res == "1")
+                        act.split(",") if act else [], tint == "1", int(K), pattern, res == "1", cost_only == "1")
     return spec, backend
 
 
@@ -121,6 +128,9 @@ def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> 
 
     tan_of = dict(zip(spec.tan_inputs, tangents))
     r = res(*tensors)
+    if spec.cost_only:
+        inf = float("inf")
+        return torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=inf, posinf=inf)
     J = []
     for a in range(K):
         dirs = []
@@ -251,45 +261,94 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
         ``JᵀJ`` and ``Jᵀr`` count a non-finite Jacobian entry or residual as 0; the cost and
         the residuals are as they come.
     """
-    if log_obs.dim() != 3 or log_obs.shape[-1] != 3:
-        raise ValueError(f"normal_equations: log_obs must be (N, L, 3), got {tuple(log_obs.shape)}")
-    N, L = log_obs.shape[:2]
     unknown = set(tangents) - set(params)
     if unknown:
         raise ValueError(f"normal_equations: tangents for {sorted(unknown)}, which params does not hold")
-    if params.get("anisotropic", 0.0) != 0.0 or "specular_tint" in params or "sheen_tint" in params:
-        raise ValueError("normal_equations: anisotropic, specular_tint and sheen_tint must keep their "
-                         "defaults")
     Ks = {t.shape[0] for t in tangents.values()}
     if unknowns is None and len(Ks) != 1:
         raise ValueError(f"normal_equations: every tangent needs the same number of directions, got "
                          f"{sorted(Ks)}")
     K = int(unknowns) if unknowns is not None else Ks.pop()
-    dtype, dev = log_obs.dtype, log_obs.device
-    c = {"pos": points, "n": params["normal"], **{k: v for k, v in params.items() if k != "normal"}}
+    names, tensors, floats, uniforms, head = _operator_inputs("normal_equations", params, points, camera,
+                                                              light_pos, light_int, log_obs, eps)
     tan = {("n" if k == "normal" else k): v for k, v in tangents.items()}
-    mat = {**PRINCIPLED_DEFAULTS, **{k: v for k, v in c.items() if k in SCALAR_PARAMS}}
-    active = active_lobes(mat)
-    for k, v in c.items():
-        if isinstance(v, Tensor) and (v.dtype != dtype or v.device != dev or v.shape[0] != N):
-            raise ValueError(f"normal_equations: {k!r} must be ({N}, C) {dtype} on {dev}, got "
-                             f"{tuple(v.shape)} {v.dtype} on {v.device}")
-    names = [k for k in TENSOR_ORDER if isinstance(c.get(k), Tensor)]
-    float_names = [k for k in SCALAR_PARAMS if k not in names]
-    floats = [float(mat[k]) for k in float_names] + [float(eps)]
     if pattern is None:
         pattern = tangent_pattern(tangents)
     pat_by = {("n" if k == "normal" else k): v for k, v in pattern.items()}
     pats = [sorted(pat_by.get(k, [])) if k in tan else [] for k in names]
-    tans = [tan[k].to(dtype) for k, p in zip(names, pats) if p]
-    uniforms = torch.cat((camera.reshape(3), torch.cat((light_pos, light_int), -1).reshape(-1))).to(dtype)
-    backend = "c" if dev.type == "cpu" and not _interpreted() else "triton"
-    # (specular_tint is 0: the tint is needed only by a tinted sheen, sheen_tint's default being 0.5)
-    cfg = make_cfg(names, float_names, active, "sheen" in active, K, pats, backend, residuals)
-    out = normal_equations_op([c[k] for k in names], tans, floats, uniforms, log_obs, cfg)
+    tans = [tan[k].to(log_obs.dtype) for k, p in zip(names, pats) if p]
+    cfg = make_cfg(*head, K, pats, _backend(log_obs), residuals)
+    out = normal_equations_op(tensors, tans, floats, uniforms, log_obs, cfg)
     nt = K * (K + 1) // 2
     sums = (out[:, 0], out[:, 1:1 + nt], out[:, 1 + nt:1 + nt + K])
     return (*sums, out[:, width(K):]) if residuals else sums
+
+
+@torch.library.custom_op("torchbrdf::data_cost", mutates_args=())
+def data_cost_op(tensors: list[Tensor], floats: list[float], uniforms: Tensor, log_obs: Tensor,
+                 cfg: str) -> Tensor:
+    """Per pixel ``Σ r²`` over every light and channel ``(N, 1)``, non-finite as +inf.
+
+    The arguments as for :func:`normal_equations_op` without tangents; ``cfg`` a cost-only
+    one (:func:`make_cfg` with ``cost_only``). The C and Triton kernels sum in float64; the
+    eager fallback in ``log_obs``'s dtype.
+    """
+    spec, backend = _parse(cfg, log_obs.dtype)
+    if not spec.cost_only:
+        raise ValueError("data_cost_op: cfg is not a cost-only configuration (make_cfg(..., cost_only=True))")
+    return _run(spec, backend, tensors, [], floats, uniforms, log_obs)
+
+
+@data_cost_op.register_fake
+def _(tensors, floats, uniforms, log_obs, cfg):
+    return log_obs.new_empty((log_obs.shape[0], 1))
+
+
+def data_cost(params: Mapping[str, Any], points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
+              log_obs: Tensor, eps: float) -> Tensor:
+    """Each pixel's data cost ``Σ r²`` over every light and channel of the capture's log residuals, in one fused pass.
+
+    The residuals are :func:`torchbrdf.capture.synthetic.log_residual_points`'s; the
+    arguments as for :func:`normal_equations` (no tangents). Returns ``(N, 1)`` in
+    ``log_obs``'s dtype, on its device: the squares summed in float64 in the kernels (so
+    float32 sums round less than ``(r * r).sum(-1)``), a non-finite sum as +inf — as
+    ``torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=inf, posinf=inf)`` of the residuals,
+    without writing them.
+    """
+    names, tensors, floats, uniforms, head = _operator_inputs("data_cost", params, points, camera, light_pos,
+                                                              light_int, log_obs, eps)
+    cfg = make_cfg(*head, 0, [], _backend(log_obs), cost_only=True)
+    return data_cost_op(tensors, floats, uniforms, log_obs, cfg)
+
+
+def _operator_inputs(caller: str, params: Mapping[str, Any], points: Tensor, camera: Tensor, light_pos: Tensor,
+                     light_int: Tensor, log_obs: Tensor, eps: float
+                     ) -> tuple[list[str], list[Tensor], list[float], Tensor, tuple[list[str], list[str], list[str], bool]]:
+    """Checked operator inputs: ``(tensor names, tensors, floats, uniforms, (tensor names, float
+    names, active lobes, need_tint))`` (the last :func:`make_cfg`'s leading arguments)."""
+    if log_obs.dim() != 3 or log_obs.shape[-1] != 3:
+        raise ValueError(f"{caller}: log_obs must be (N, L, 3), got {tuple(log_obs.shape)}")
+    if params.get("anisotropic", 0.0) != 0.0 or "specular_tint" in params or "sheen_tint" in params:
+        raise ValueError(f"{caller}: anisotropic, specular_tint and sheen_tint must keep their defaults")
+    N = log_obs.shape[0]
+    dtype, dev = log_obs.dtype, log_obs.device
+    c = {"pos": points, "n": params["normal"], **{k: v for k, v in params.items() if k != "normal"}}
+    mat = {**PRINCIPLED_DEFAULTS, **{k: v for k, v in c.items() if k in SCALAR_PARAMS}}
+    active = active_lobes(mat)
+    for k, v in c.items():
+        if isinstance(v, Tensor) and (v.dtype != dtype or v.device != dev or v.shape[0] != N):
+            raise ValueError(f"{caller}: {k!r} must be ({N}, C) {dtype} on {dev}, got "
+                             f"{tuple(v.shape)} {v.dtype} on {v.device}")
+    names = [k for k in TENSOR_ORDER if isinstance(c.get(k), Tensor)]
+    float_names = [k for k in SCALAR_PARAMS if k not in names]
+    floats = [float(mat[k]) for k in float_names] + [float(eps)]
+    uniforms = torch.cat((camera.reshape(3), torch.cat((light_pos, light_int), -1).reshape(-1))).to(dtype)
+    # (specular_tint is 0: the tint is needed only by a tinted sheen, sheen_tint's default being 0.5)
+    return names, [c[k] for k in names], floats, uniforms, (names, float_names, active, "sheen" in active)
+
+
+def _backend(log_obs: Tensor) -> str:
+    return "c" if log_obs.device.type == "cpu" and not _interpreted() else "triton"
 
 
 def _interpreted() -> bool:

@@ -127,6 +127,23 @@ class LevelData:
                          self.eps, model, light)
         return r.reshape(theta.shape[0], 3 * len(idx))  # (an explicit width: N may be 0)
 
+    def data_cost(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
+                  rows: Tensor | slice | None = None) -> Tensor | None:
+        """Each pixel's summed squared :meth:`residual` ``(N, 1)`` from the fused cost kernel, or None.
+
+        Arguments as for :meth:`residual`. The squares are summed in float64 per pixel (a float32
+        sum rounds less than ``(r * r).sum(-1)``) and a non-finite sum is +inf (``pixel_cost``'s
+        rule), in ``theta``'s dtype, on its device, without the ``(N, 3 len(idx))`` residuals in
+        memory (:func:`torchbrdf.brdf.capture_residual.data_cost`). None where that kernel does
+        not apply (another model, no fused path for this dtype or device).
+        """
+        if model != "principled":
+            return None
+        points, log_obs, _ = self._targets(idx, model, rows)
+        p = decode(theta, metal)
+        return capture_residual.data_cost(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
+                                          log_obs, self.eps)
+
     def residual_jvp(self, x: Tensor, metal: Tensor, idx: list[int], model: str, tangents: Tensor,
                      rows: Tensor | slice | None = None) -> tuple[Tensor, Tensor]:
         """:meth:`residual` and its derivatives along ``K`` directions of the unknowns at once.

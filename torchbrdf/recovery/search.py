@@ -13,7 +13,7 @@ from torch import Tensor
 from torchbrdf.recovery.classes import evidence_threshold, pixel_noise_variance
 from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
-from torchbrdf.recovery.lm import unary_cost
+from torchbrdf.recovery.lm import pixel_cost, unary_cost
 from torchbrdf.recovery.map_ops import dilate
 from torchbrdf.recovery.params import N_PARAMS
 from torchbrdf.recovery.smoothness_prior import edge_weights, local_prior
@@ -314,12 +314,17 @@ def _active_costs(data: LevelData, rows: Tensor, own: Tensor, own_metal: Tensor,
 
 
 def _data_cost(data: LevelData, theta: Tensor, metal: Tensor, model: str, rows: Tensor | None) -> Tensor:
-    """The summed squared residuals ``(N, 1)`` on the training lights (NaN: +inf), as :meth:`LevelData.residual`."""
+    """The summed squared residuals ``(N, 1)`` on the training lights (non-finite: +inf), as :meth:`LevelData.residual`.
+
+    From the fused cost kernel where it applies (:meth:`LevelData.data_cost`: no residuals
+    written, the squares summed in float64), else from the residuals.
+    """
     if theta.shape[0] == 0:
         return theta.new_empty(0, 1)
-    r = data.residual(theta, metal, data.train_idx, model, rows=rows)
-    # (squared in place: the same products, and no second buffer the size of the residuals)
-    return torch.nan_to_num(r.mul_(r).sum(-1, keepdim=True), nan=float("inf"))
+    cost = data.data_cost(theta, metal, data.train_idx, model, rows=rows)
+    if cost is not None:
+        return cost
+    return pixel_cost(data.residual(theta, metal, data.train_idx, model, rows=rows))
 
 
 #: The 8 neighbours' offsets ``(dy, dx)`` in the order :func:`propagate` tries them.
@@ -357,8 +362,7 @@ def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, fact
     (replicated border) and whether each base is of the pixel's class.
     """
     size = data.size
-    idx = data.train_idx
-    cost = torch.nan_to_num((data.residual(theta, metal, idx, model) ** 2).sum(-1), nan=float("inf"))
+    cost = _data_cost(data, theta, metal, model, None)[:, 0]
     thr = factor * float(cost[torch.isfinite(cost)].median()) if bool(torch.isfinite(cost).any()) else float("inf")
     bad = torch.nonzero(cost > thr).flatten()
     if bad.numel() == 0:
@@ -387,7 +391,7 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
 
     Returns ``(theta (P, 7), number of pixels changed)``.
     """
-    c, idx = theta.shape[1], data.train_idx
+    c = theta.shape[1]
     found = search_bases(data, theta, metal, model, factor, max_pixels)
     if found is None:
         return theta, 0
@@ -423,8 +427,7 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
         if lights is not None:
             r = data.residual(flat[sl], m_flat[sl], lights, model, rows=pix[sl])
             sl = (subset_cost_bound(r, tol)[:, 0] <= need[sl]).nonzero()[:, 0] + s0
-        rr = data.residual(flat[sl], m_flat[sl], idx, model, rows=pix[sl])
-        cost_flat[sl] = torch.nan_to_num((rr * rr).sum(-1), nan=float("inf"))
+        cost_flat[sl] = _data_cost(data, flat[sl], m_flat[sl], model, pix[sl])[:, 0]
     ccost = torch.full(cand.shape[:2], float("inf"), dtype=theta.dtype, device=theta.device)
     ccost[b_idx, j_idx] = cost_flat
     best_cost, best = ccost.min(1)
