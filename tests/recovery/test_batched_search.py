@@ -357,6 +357,6 @@ def test_normal_search_survives_a_chunk_the_bound_rules_out_entirely(monkeypatch
         (0, 3 * len(data.train_idx))
     theta[::7, 5:7] = torch.tensor([0.6, -0.5])
     monkeypatch.setattr(search, "pruning_lights", lambda data, *a, **k: data.train_idx[:2])
-    monkeypatch.setattr(search, "subset_cost_bound", lambda r, tol: torch.full_like(r[:, :1], float("inf")))
+    monkeypatch.setattr(search, "subset_cost_bound", lambda r, tol, m=None: torch.full_like(r[:, :1], float("inf")))
     got, changed = search.normal_search(data, theta, metal, "principled", factor=1.5)
     assert changed == 0 and torch.equal(got, theta)

@@ -50,3 +50,20 @@ def test_a_non_finite_residual_costs_inf():
     got = search._data_cost(data, theta, metal, "principled", None)[:, 0]
     assert got[7] == float("inf") and got[9] == float("inf")
     assert got[[0, 1, 8, 10]].isfinite().all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_subset_cost_bound_from_summed_squares_stays_below_any_rounding(dtype):
+    # the bound from the cost kernel's sums (float64 sums in the dtype) as from the residuals
+    gen = torch.Generator().manual_seed(10)
+    r = (torch.randn(500, 12, generator=gen) * torch.logspace(-6, 1, 500)[:, None]).to(dtype)
+    tol = search.BOUND_ULPS * torch.finfo(dtype).eps
+    sums = (r.double() ** 2).sum(-1, keepdim=True).to(dtype)
+    bound = search.subset_cost_bound(sums, tol, 12)
+    worst = r.abs() - tol * (1 + r.abs())  # every residual rounded as far towards 0 as allowed
+    assert bool((bound[:, 0] <= (worst.clamp(min=0) ** 2).sum(-1)).all())
+    # (near 0 the bound cancels: an absolute tolerance well below tol there)
+    torch.testing.assert_close(bound, search.subset_cost_bound(r, tol), rtol=8 * torch.finfo(dtype).eps,
+                               atol=1e-2 * tol)
+    sums[3, 0] = float("inf")  # (the kernel's non-finite cost: above any finite bound)
+    assert search.subset_cost_bound(sums, tol, 12)[3, 0] >= torch.finfo(dtype).max

@@ -203,9 +203,9 @@ class _BoundedRenders:
                 metal = ~same & (cm > 0.5)
                 bound = torch.where(metal, best_score - self.own_prior - self.floor, bound)
                 scale = torch.where(metal, best_score.abs() + self.own_prior.abs() + self.floor, scale)
-            r = self.data.residual(cand, cm, self.lights, self.model)
-            tol = BOUND_ULPS * torch.finfo(r.dtype).eps
-            keep = consider & ~(subset_cost_bound(r, tol) > bound + tol * scale)
+            tol = BOUND_ULPS * torch.finfo(cand.dtype).eps
+            low = _subset_bound(self.data, cand, cm, self.lights, self.model, None, tol)
+            keep = consider & ~(low > bound + tol * scale)
         return _kept_costs(self.data, cand, cm, keep[:, 0], self.model)
 
 
@@ -225,16 +225,26 @@ def _kept_costs(data: LevelData, theta: Tensor, metal: Tensor, keep: Tensor, mod
     return out
 
 
-def subset_cost_bound(r: Tensor, tol: float) -> Tensor:
+def subset_cost_bound(r: Tensor, tol: float, m: int | None = None) -> Tensor:
     """A lower bound ``(N, 1)`` of a data cost from residuals ``r (N, M)`` on some of its lights.
 
     Another render may round each residual ``r_i`` differently by up to ``tol (1 + |r_i|)``;
     the bound holds for it: ``((1 − tol) |r| − tol √M)²``, less ``tol`` of itself for the sum's
-    rounding. NaN (a cost that is +inf): +inf.
+    rounding. NaN (a cost that is +inf): +inf. With ``m``, ``r (N, 1)`` holds the summed
+    squares of ``M = m`` residuals (:meth:`LevelData.data_cost`; +inf where not finite).
     """
-    norm = torch.linalg.vector_norm(r, dim=-1, keepdim=True)
-    low = (norm * (1 - tol) - tol * math.sqrt(r.shape[-1])).clamp(min=0)
+    norm = torch.linalg.vector_norm(r, dim=-1, keepdim=True) if m is None else r.sqrt()
+    low = (norm * (1 - tol) - tol * math.sqrt(r.shape[-1] if m is None else m)).clamp(min=0)
     return torch.nan_to_num(low * low * (1 - tol), nan=float("inf"))
+
+
+def _subset_bound(data: LevelData, theta: Tensor, metal: Tensor, lights: list[int], model: str,
+                  rows: Tensor | None, tol: float) -> Tensor:
+    """:func:`subset_cost_bound` ``(N, 1)`` of the data costs on ``lights``, from the fused cost kernel where it applies."""
+    cost = data.data_cost(theta, metal, lights, model, rows=rows)
+    if cost is None:
+        return subset_cost_bound(data.residual(theta, metal, lights, model, rows=rows), tol)
+    return subset_cost_bound(cost, tol, 3 * len(lights))
 
 
 def pruning_lights(data: LevelData, cand: Tensor, cm: Tensor, need: Tensor, model: str, rows: Tensor | None = None,
@@ -425,8 +435,8 @@ def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, fac
     for s0 in range(0, b_idx.numel(), chunk):
         sl: slice | Tensor = slice(s0, s0 + chunk)
         if lights is not None:
-            r = data.residual(flat[sl], m_flat[sl], lights, model, rows=pix[sl])
-            sl = (subset_cost_bound(r, tol)[:, 0] <= need[sl]).nonzero()[:, 0] + s0
+            low = _subset_bound(data, flat[sl], m_flat[sl], lights, model, pix[sl], tol)
+            sl = (low[:, 0] <= need[sl]).nonzero()[:, 0] + s0
         cost_flat[sl] = _data_cost(data, flat[sl], m_flat[sl], model, pix[sl])[:, 0]
     ccost = torch.full(cand.shape[:2], float("inf"), dtype=theta.dtype, device=theta.device)
     ccost[b_idx, j_idx] = cost_flat
