@@ -200,6 +200,42 @@ def test_bad_inputs_name_the_argument():
         _cost(theta, metal, points.float(), cam, lpos, lint, log_obs)
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_other_dtypes_are_refused_before_a_kernel_runs(dtype):
+    # the kernels read and write float or double: a half tensor would be read past its end
+    # and the (N, 1) output written past it
+    case = [t.to(dtype) for t in _capture(4, 2)]
+    with pytest.raises(ValueError, match="data_cost: log_obs must be float32 or float64"):
+        _cost(*case)
+    names, tensors, floats, uniforms, head = ne_ops._operator_inputs("test", decode(*_capture(4, 2)[:2]),
+                                                                     *_capture(4, 2)[2:], EPS)
+    cfg = make_cfg(*head, 0, [], cost_only=True)
+    with pytest.raises(ValueError, match="data_cost_op: log_obs"):
+        torch.ops.torchbrdf.data_cost([t.to(dtype) for t in tensors], floats, uniforms.to(dtype),
+                                      case[-1], cfg)
+
+
+def test_inputs_the_kernel_would_read_past_are_refused():
+    # a light count or channel count other than log_obs' and cfg's: the kernel indexes them
+    # without bounds, so the call must fail rather than read other memory
+    theta, metal, points, cam, lpos, lint, log_obs = _capture(4, 3)
+    with pytest.raises(ValueError, match="light_pos must be \\(3, 3\\)"):
+        _cost(theta, metal, points, cam, lpos[:1], lint[:1], log_obs)
+    with pytest.raises(ValueError, match="light_int must be \\(3, 3\\)"):
+        _cost(theta, metal, points, cam, lpos, lint[:2], log_obs)
+    p = decode(theta, metal)
+    with pytest.raises(ValueError, match="'base_color' must be \\(4, 3\\)"):
+        data_cost({**p, "base_color": p["base_color"][:, :1]}, points, cam, lpos, lint, log_obs, EPS)
+    names, tensors, floats, uniforms, head = ne_ops._operator_inputs("test", p, points, cam, lpos, lint,
+                                                                     log_obs, EPS)
+    cfg = make_cfg(*head, 0, [], cost_only=True)
+    with pytest.raises(ValueError, match="data_cost_op: uniforms"):
+        torch.ops.torchbrdf.data_cost(tensors, floats, uniforms[:-6], log_obs, cfg)
+    bad = [t[:, :1] if name == "base_color" else t for name, t in zip(names, tensors)]
+    with pytest.raises(ValueError, match="data_cost_op: tensor 'base_color'"):
+        torch.ops.torchbrdf.data_cost(bad, floats, uniforms, log_obs, cfg)
+
+
 def test_generated_float32_cost_kernels_sum_in_float64():
     # (the float32 residuals are widened before squaring: the accumulator is a double in C and
     # a float64 tensor in Triton)

@@ -140,6 +140,34 @@ def test_bad_inputs_name_the_argument():
                          log_obs, EPS)
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_other_dtypes_and_short_operands_are_refused(dtype):
+    # the kernels read and write float or double rows of the sizes cfg names, without bounds
+    # checks: anything else must fail before a kernel runs
+    case = _capture(4, 2, torch.float64)
+    with pytest.raises(ValueError, match="normal_equations: log_obs must be float32 or float64"):
+        _fused(*[t.to(dtype) for t in case])
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    with pytest.raises(ValueError, match="light_pos must be \\(2, 3\\)"):
+        _fused(theta, metal, points, cam, lpos[:1], lint[:1], log_obs)
+    calls = []
+    real = ne_ops.normal_equations_op
+    ne_ops.normal_equations_op = lambda *args: calls.append(args) or real(*args)
+    try:
+        _fused(*case)
+    finally:
+        ne_ops.normal_equations_op = real
+    tensors, tangents, floats, uniforms, log_obs, cfg = calls[0]
+    op = torch.ops.torchbrdf.normal_equations
+    with pytest.raises(ValueError, match="normal_equations_op: log_obs"):
+        op([t.to(dtype) for t in tensors], [t.to(dtype) for t in tangents], floats, uniforms.to(dtype),
+           log_obs.to(dtype), cfg)
+    with pytest.raises(ValueError, match="normal_equations_op: the tangents of"):
+        op(tensors, [t[:1] for t in tangents], floats, uniforms, log_obs, cfg)
+    with pytest.raises(ValueError, match="normal_equations_op: uniforms"):
+        op(tensors, tangents, floats, uniforms[:-6], log_obs, cfg)
+
+
 def _interpreted_triton(monkeypatch, tmp_path, run):
     """``run()`` with the Triton kernels under the interpreter; returns its result and the
     kernels built ``[(spec, kernel or None)]``."""

@@ -149,6 +149,36 @@ def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> 
     return torch.cat(out + [r] if spec.residuals else out, -1)
 
 
+def _check_operands(op: str, spec: NormalEqSpec, tensors, tangents, uniforms, log_obs) -> None:
+    """Raise ValueError unless the operands have the layout the kernels index without bounds checks.
+
+    The kernels read ``(N, C)`` rows of each input, ``(S, N, C)`` tangents, ``3 + 6 L`` uniforms
+    and write ``log_obs``'s dtype as float or double: another layout would read or write
+    outside the tensors' memory, so it is refused here, for direct operator calls too.
+    """
+    if log_obs.dtype not in (torch.float32, torch.float64) or log_obs.dim() != 3 or log_obs.shape[-1] != 3:
+        raise ValueError(f"{op}: log_obs must be (N, L, 3) float32 or float64, got {tuple(log_obs.shape)} "
+                         f"{log_obs.dtype}")
+    N, L = log_obs.shape[0], log_obs.shape[1]
+    dtype, dev = log_obs.dtype, log_obs.device
+
+    def check(what: str, t: Tensor, shape: tuple) -> None:
+        if t.dtype != dtype or t.device != dev or tuple(t.shape) != shape:
+            raise ValueError(f"{op}: {what} must be {shape} {dtype} on {dev}, got {tuple(t.shape)} {t.dtype} "
+                             f"on {t.device}")
+
+    check("uniforms (camera, then each light's position and intensity)", uniforms, (3 + 6 * L,))
+    if len(tensors) != len(spec.tensors) or len(tangents) != len(spec.tan_inputs):
+        raise ValueError(f"{op}: cfg names {len(spec.tensors)} tensors with {len(spec.tan_inputs)} tangents, "
+                         f"got {len(tensors)} and {len(tangents)}")
+    for (name, C), t in zip(spec.tensors, tensors):
+        check(f"tensor {name!r}", t, (N, C))
+    for k, t in zip(spec.tan_inputs, tangents):
+        name, C = spec.tensors[k]
+        rows = max(e[2] for e in spec.pattern[k]) + 1  # the slots cfg's pattern reads
+        check(f"the tangents of {name!r}", t, (max(rows, t.shape[0] if t.dim() else 0), N, C))
+
+
 def _run(spec: NormalEqSpec, backend: str, tensors, tangents, floats, uniforms, log_obs) -> Tensor:
     N, L = log_obs.shape[0], log_obs.shape[1]
     W = width(spec.K) + (3 * L if spec.residuals else 0)
@@ -191,6 +221,7 @@ def normal_equations_op(tensors: list[Tensor], tangents: list[Tensor], floats: l
     With the residuals (``cfg``), ``(N, W + 3 L)``.
     """
     spec, backend = _parse(cfg, log_obs.dtype)
+    _check_operands("normal_equations_op", spec, tensors, tangents, uniforms, log_obs)
     return _run(spec, backend, tensors, tangents, floats, uniforms, log_obs)
 
 
@@ -296,6 +327,7 @@ def data_cost_op(tensors: list[Tensor], floats: list[float], uniforms: Tensor, l
     spec, backend = _parse(cfg, log_obs.dtype)
     if not spec.cost_only:
         raise ValueError("data_cost_op: cfg is not a cost-only configuration (make_cfg(..., cost_only=True))")
+    _check_operands("data_cost_op", spec, tensors, [], uniforms, log_obs)
     return _run(spec, backend, tensors, [], floats, uniforms, log_obs)
 
 
@@ -328,6 +360,14 @@ def _operator_inputs(caller: str, params: Mapping[str, Any], points: Tensor, cam
     names, active lobes, need_tint))`` (the last :func:`make_cfg`'s leading arguments)."""
     if log_obs.dim() != 3 or log_obs.shape[-1] != 3:
         raise ValueError(f"{caller}: log_obs must be (N, L, 3), got {tuple(log_obs.shape)}")
+    if log_obs.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"{caller}: log_obs must be float32 or float64 (the kernels' types), "
+                         f"got {log_obs.dtype}")
+    L = log_obs.shape[1]
+    for name, t, shape in (("light_pos", light_pos, (L, 3)), ("light_int", light_int, (L, 3))):
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{caller}: {name} must be {shape} (log_obs has {L} lights), "
+                             f"got {tuple(t.shape)}")
     if params.get("anisotropic", 0.0) != 0.0 or "specular_tint" in params or "sheen_tint" in params:
         raise ValueError(f"{caller}: anisotropic, specular_tint and sheen_tint must keep their defaults")
     N = log_obs.shape[0]
@@ -336,8 +376,9 @@ def _operator_inputs(caller: str, params: Mapping[str, Any], points: Tensor, cam
     mat = {**PRINCIPLED_DEFAULTS, **{k: v for k, v in c.items() if k in SCALAR_PARAMS}}
     active = active_lobes(mat)
     for k, v in c.items():
-        if isinstance(v, Tensor) and (v.dtype != dtype or v.device != dev or v.shape[0] != N):
-            raise ValueError(f"{caller}: {k!r} must be ({N}, C) {dtype} on {dev}, got "
+        shape = (N, 3 if k in ("pos", "n", "base_color") else 1)
+        if isinstance(v, Tensor) and (v.dtype != dtype or v.device != dev or tuple(v.shape) != shape):
+            raise ValueError(f"{caller}: {k!r} must be {shape} {dtype} on {dev}, got "
                              f"{tuple(v.shape)} {v.dtype} on {v.device}")
     names = [k for k in TENSOR_ORDER if isinstance(c.get(k), Tensor)]
     float_names = [k for k in SCALAR_PARAMS if k not in names]
