@@ -163,3 +163,16 @@ def test_bad_input_is_one_line_naming_the_option(tmp_path, capsys, args, says):
     assert e.value.code == 2
     assert says.format(tmp=tmp_path) in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["roughness2", "spec2_f0"])
+def test_extra_refuses_the_second_lobes_parameters(tmp_path, capsys, name):
+    """--two-lobes adds them; fitted through --extra alone they would not enter the model and
+    params.json would report a value the data never constrained."""
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as e:
+        FM.main(["--demo", "--extra", name, "--samples", "200", "--iters", "0", "--lbfgs", "0",
+                 "--no-figures", "--out", str(out)])
+    assert e.value.code == 2
+    assert f"--extra {name!r}: expected distinct names among clearcoat," in capsys.readouterr().err
+    assert not out.exists()

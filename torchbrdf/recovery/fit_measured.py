@@ -410,7 +410,8 @@ def main(argv: list[str] | None = None) -> int:
     # refused before the MERL file (35 MB) is read or written, in one line each
     names = list(DEFAULT_PARAMS) + [n.strip() for n in args.extra.split(",") if n.strip()]
     extra = sorted(set(RANGES) - set(DEFAULT_PARAMS) - {"roughness2", "spec2_f0", "spec2_f90"})
-    if [n for n in names if n not in RANGES] or len(set(names)) < len(names):
+    # (the second lobe's names are --two-lobes's: fitted alone they would not enter the model)
+    if [n for n in names if n not in (*DEFAULT_PARAMS, *extra)] or len(set(names)) < len(names):
         ap.error(f"--extra {args.extra!r}: expected distinct names among {', '.join(extra)} (comma separated)")
     for flag, value, least in (("--samples", args.samples, 1), ("--iters", args.iters, 0), ("--lbfgs", args.lbfgs, 0)):
         if value < least:
