@@ -229,6 +229,27 @@ def test_explore_refuses_a_parameter_the_model_does_not_take(capsys):
     assert "r/g/b" in shown and "microfacet: alpha," in shown and "lambert: base_color;" in shown
 
 
+def test_explore_lobes_key_selects_principled_lobes():
+    """``lobes`` is one of the keys --help lists for principled: its value names lobes (not a
+    word for principled to iterate letter by letter)."""
+    from torchbrdf.analysis import explore
+    from torchbrdf.brdf.principled import principled
+
+    spec = explore.parse_spec("principled:lobes=diffuse/specular,roughness=0.3")
+    assert spec.params["lobes"] == ("diffuse", "specular")
+    assert spec.label == "principled lobes=diffuse/specular roughness=0.3 base_color=0.8/0.8/0.8"
+    g = torch.Generator().manual_seed(0)
+    l, v = (torch.nn.functional.normalize(torch.rand(8, 3, generator=g, dtype=torch.float64) + 0.5, dim=-1)
+            for _ in range(2))
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(8, 3)
+    want = principled(l, v, n, base_color=0.8, roughness=0.3, lobes=("diffuse", "specular"), clearcoat=1.0)
+    got = explore.parse_spec("principled:lobes=diffuse/specular,roughness=0.3,clearcoat=1").brdf()(l, v, n)
+    torch.testing.assert_close(got, want)
+    assert not torch.allclose(got, principled(l, v, n, base_color=0.8, roughness=0.3, clearcoat=1.0))
+    only = explore.parse_spec("principled:lobes=diffuse").brdf()(l, v, n)
+    torch.testing.assert_close(only, principled(l, v, n, base_color=0.8, lobes=("diffuse",)))
+
+
 def test_explore_writes_report(tmp_path):
     from torchbrdf.analysis import explore
 

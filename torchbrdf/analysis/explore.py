@@ -21,7 +21,8 @@ BRDF specs: ``MODEL[:key=value,key=value,...]``
   ``fit`` (the ``params.json`` written by ``torchbrdf-fit-merl``: ``fit:PATH``),
   so a fitted model can sit beside the measured data it was fitted to;
 * values are numbers, RGB triples written ``r/g/b`` (linear), or words (``fresnel=dielectric``);
-* ``label=NAME`` names the column; for ``microfacet``, ``diffuse=r/g/b`` adds a Lambert term.
+* ``label=NAME`` names the column; for ``microfacet``, ``diffuse=r/g/b`` adds a Lambert term;
+  for ``principled``, ``lobes=diffuse/specular`` keeps only the named lobes.
 """
 
 from __future__ import annotations
@@ -208,6 +209,8 @@ def parse_spec(spec: str) -> BRDFSpec:
         elif key not in parameter_names(model):
             raise ValueError(f"--brdf {spec!r}: {model} has no parameter {key!r}; it takes "
                              f"{', '.join(parameter_names(model)) or 'only a file'} (and label)")
+        elif key == "lobes":  # names, not a colour: lobes=diffuse/specular
+            out.params[key] = tuple(w.strip() for w in val.split("/"))
         else:
             out.params[key] = _value(val)
     if model == "principled":
@@ -226,7 +229,8 @@ def parse_spec(spec: str) -> BRDFSpec:
 
 def _readable(params: dict) -> dict:
     return {
-        k: ("/".join(f"{x:g}" for x in v.tolist()) if isinstance(v, torch.Tensor) else v) for k, v in params.items()
+        k: ("/".join(f"{x:g}" for x in v.tolist()) if isinstance(v, torch.Tensor) else
+            "/".join(v) if isinstance(v, tuple) else v) for k, v in params.items()
     }
 
 
