@@ -2,6 +2,8 @@
 
 import time
 
+import pytest
+
 from torchbrdf.bench import fast_path, timing
 
 
@@ -17,3 +19,10 @@ def test_time_alternating_takes_the_clock_it_is_given():
     s = timing.time_alternating({"a": lambda: None}, 3, clock=lambda: float(next(ticks)))
     assert s["a"] == timing.Spread(1.0, 1.0, 1.0, 3)
     assert timing.time_alternating({"a": lambda: time.sleep(0.01)}, 1, clock=time.process_time)["a"].median < 0.01
+
+
+@pytest.mark.parametrize("flag", ["--batch", "--size", "--sample-size", "--reps", "--threads"])
+def test_a_non_positive_count_is_one_line_naming_the_flag(flag, capsys):
+    with pytest.raises(SystemExit) as e:
+        fast_path.main([flag, "0"])
+    assert e.value.code == 2 and f"{flag} must be at least 1, got 0" in capsys.readouterr().err

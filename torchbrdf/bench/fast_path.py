@@ -85,6 +85,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--reps", type=int, default=11, help="alternating rounds")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     a = ap.parse_args(argv)
+    for flag, value in (("--batch", a.batch), ("--size", a.size), ("--sample-size", a.sample_size),
+                        ("--reps", a.reps), ("--threads", a.threads)):
+        if value < 1:  # (before any work, in the flag's name rather than a helper's)
+            ap.error(f"{flag} must be at least 1, got {value}")
     torch.set_num_threads(a.threads)
     print("| case | library's route: CPU ms | alternative: CPU ms | speed-up |")
     print("|---|---|---|---|")
