@@ -104,6 +104,52 @@ def test_local_prior_of_stacked_candidates_equals_the_image_form():
     assert torch.equal(at, got[:, rows])
     assert torch.equal(smoothness_prior.local_prior(theta[:1], theta[:1], wx[:1, :0], wy[:0, :1], 1),
                        torch.zeros(1, 1))
+    around = smoothness_prior.row_neighbours(theta, wx, wy, size, rows)  # gathered once, for both calls
+    assert torch.equal(smoothness_prior.local_prior(cands[:, rows], theta, wx, wy, size, rows, around), at)
+    assert torch.equal(smoothness_prior.local_prior(theta[rows], theta, wx, wy, size, rows, around),
+                       reference_local_prior(theta, theta, wx, wy, size)[rows])
+
+
+def reference_choice(scores, own_score, cands, owns):
+    """The propagation's choice as a loop over candidates: a strictly lower score replaces the best."""
+    best_score, best = own_score, list(owns)
+    for k in range(scores.shape[0]):
+        better = scores[k] < best_score
+        best = [torch.where(better, c[k], b) for c, b in zip(cands, best)]
+        best_score = torch.where(better, scores[k], best_score)
+    return best
+
+
+def test_choosing_among_all_candidates_at_once_equals_trying_them_in_order():
+    # Scores on a coarse grid tie often (the first of equal scores must win, the pixel's own
+    # before any), with NaN (never wins, nor beats a NaN own score) and ±inf among them.
+    gen = torch.Generator().manual_seed(11)
+    k, n = 8, 4000
+    special = torch.tensor([float("nan"), float("inf"), -float("inf")])
+    scores = torch.randint(0, 4, (k, n, 1), generator=gen).float()
+    pick = torch.rand(k, n, 1, generator=gen) < 0.15
+    scores[pick] = special[torch.randint(0, 3, (int(pick.sum()),), generator=gen)]
+    own_score = torch.randint(0, 5, (n, 1), generator=gen).float()
+    own_score[::37] = float("nan")
+    own_score[5::41] = float("inf")
+    own_score[7::43] = -float("inf")
+    scores[:, 0], own_score[0] = float("inf"), float("inf")  # nothing beats +inf with +inf
+    scores[:, 1], scores[3, 1], own_score[1] = float("nan"), float("inf"), float("inf")
+    cands = (torch.randn(k, n, 7, generator=gen), torch.arange(k * n, dtype=torch.float32).view(k, n, 1))
+    owns = (torch.randn(n, 7, generator=gen), -torch.ones(n, 1))
+    got = search.choose_candidate(scores, own_score, cands, owns)
+    ref = reference_choice(scores, own_score, cands, owns)
+    assert bool((got[1] >= 0).any()) and bool((got[1] < 0).any())
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b)
+
+
+def test_rows_equal_compares_every_channel_as_floats():
+    a = torch.tensor([[1.0, 2.0, 3.0], [0.0, 2.0, float("nan")], [-0.0, 5.0, 6.0], [1.0, 2.0, 4.0]])
+    b = torch.tensor([[1.0, 2.0, 3.0], [0.0, 2.0, float("nan")], [0.0, 5.0, 6.0], [1.0, 2.0, 3.0]])
+    assert search.rows_equal(a, b)[:, 0].tolist() == [True, False, True, False]
+    stacked = torch.stack((a, b, a.flip(0)))  # (3, 4, 3) against (4, 3): broadcast over the sets
+    assert torch.equal(search.rows_equal(stacked, b), (stacked == b).all(-1, keepdim=True))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -299,7 +299,7 @@ def _torch_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, size: 
 
 
 def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
-                rows: Tensor | None = None) -> Tensor:
+                rows: Tensor | None = None, around: tuple | None = None) -> Tensor:
     """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(*, N, 1)``: the change
     of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``.
 
@@ -307,7 +307,9 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     order), any number of candidate sets at once along the leading dims; ``theta (P, C)`` the
     map the neighbours keep, ``wx``, ``wy`` its edge weights. The terms are added in one order
     (right, left, lower, upper neighbour) whatever the batch or the rows, so a candidate's
-    value does not depend on which others share the call. ``cand``'s dtype and device.
+    value does not depend on which others share the call. ``around``: :func:`row_neighbours`
+    of these ``rows`` when the caller has them (several calls on the same pixels gather them
+    once). ``cand``'s dtype and device.
     """
     c = theta.shape[1]
     if size < 2:  # a single pixel has no neighbours
@@ -320,18 +322,28 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
         e[..., :-1, :, :] += _edge_term(a[..., :-1, :, :], t[1:], wy)
         e[..., 1:, :, :] += _edge_term(a[..., 1:, :, :], t[:-1], wy)
         return e.reshape(*cand.shape[:-1], 1)
+    terms = []
+    for tq, wq, has in (around if around is not None else row_neighbours(theta, wx, wy, size, rows)):
+        term = _edge_term(cand, tq, wq)
+        terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
+    return terms[0] + terms[1] + terms[2] + terms[3]
+
+
+def row_neighbours(theta: Tensor, wx: Tensor, wy: Tensor, size: int,
+                   rows: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], ...]:
+    """The 4 neighbours of pixels ``rows (N,)`` (int64) in :func:`local_prior`'s order (right, left,
+    lower, upper): each ``(values (N, C), edge weights (N, C), exists (N,) bool)``, gathered from
+    ``theta (P, C)`` and ``wx``, ``wy`` of a ``size²`` map (``size ≥ 2``)."""
+    c = theta.shape[1]
     i, j = rows // size, rows % size
     last = size - 1
     # (neighbour, its edge's row in wx or wy, whether it exists): a missing neighbour's indices
     # are clamped into range and its term dropped (not weighted by 0: a non-finite value stays out).
     edges = ((wx, rows + 1, i * last + j, j < last), (wx, rows - 1, i * last + j - 1, j > 0),
              (wy, rows + size, i * size + j, i < last), (wy, rows - size, (i - 1) * size + j, i > 0))
-    terms = []
-    for w, q, w_row, has in edges:
-        wq = w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1))
-        term = _edge_term(cand, theta.index_select(0, q.clamp(0, size * size - 1)), wq)
-        terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
-    return terms[0] + terms[1] + terms[2] + terms[3]
+    return tuple((theta.index_select(0, q.clamp(0, size * size - 1)),
+                  w.reshape(-1, c).index_select(0, w_row.clamp(0, size * last - 1)), has)
+                 for w, q, w_row, has in edges)
 
 
 def _edge_term(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
