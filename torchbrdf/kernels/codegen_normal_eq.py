@@ -181,6 +181,7 @@ def _cost_schedule(g: Graph, ops: TraceOps, r: list[Any]) -> LoopSchedule:
     # +inf as 1/0 (a literal cannot print inf); NaN and +inf fail the comparison
     inf = Node("recip", (const(0.0, kind),), kind)
     cost = ops.to_compute(ops.where(acc <= 1.7976931348623157e308, acc, inf))
+    assert isinstance(cost, Node)  # (an accumulator's read is never folded to a constant)
     return LoopSchedule(g, {"point": [(("out", 0), square)]}, {("out", 0): kind}, [(("out", 0), cost)])
 
 

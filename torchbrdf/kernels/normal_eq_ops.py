@@ -385,7 +385,7 @@ def _operator_inputs(caller: str, params: Mapping[str, Any], points: Tensor, cam
     floats = [float(mat[k]) for k in float_names] + [float(eps)]
     uniforms = torch.cat((camera.reshape(3), torch.cat((light_pos, light_int), -1).reshape(-1))).to(dtype)
     # (specular_tint is 0: the tint is needed only by a tinted sheen, sheen_tint's default being 0.5)
-    return names, [c[k] for k in names], floats, uniforms, (names, float_names, active, "sheen" in active)
+    return names, [c[k] for k in names], floats, uniforms, (names, float_names, list(active), "sheen" in active)
 
 
 def _backend(log_obs: Tensor) -> str:
