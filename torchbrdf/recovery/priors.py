@@ -370,7 +370,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
 
 #: Most Gauss–Newton rounds of :func:`fuse_fill` for the pixels that walk the valley, and the
 #: most halvings of a round's step: a bound on the cost; on glossy captures the silent pixels
-#: settle within them (docs/recovery.md, "The fill's walk along the valley").
+#: settle within them (docs/recovery_measurements.md, "The fill's walk along the valley").
 FUSE_ROUNDS, FUSE_HALVINGS = 16, 4
 
 
