@@ -16,6 +16,7 @@ from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import gauss_newton, marginal_information, newton_step, pixel_cost, unary_cost
 from torchbrdf.recovery.map_ops import blur, kmeans
+from torchbrdf.recovery.search import BADLY_FITTED
 from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian_diag
 
 
@@ -367,27 +368,71 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     return torch.nan_to_num(tgt), torch.nan_to_num(prec, posinf=0.0)
 
 
+#: Most Gauss–Newton rounds of :func:`fuse_fill` for the pixels that walk the valley, and the
+#: most halvings of a round's step: a bound on the cost; on glossy captures the silent pixels
+#: settle within them (docs/recovery_measurements.md, "The fill's walk along the valley").
+FUSE_ROUNDS, FUSE_HALVINGS = 16, 4
+
+
 def fuse_fill(data: LevelData, theta: Tensor, metal: Tensor, unary: tuple[Tensor, Tensor], model: str,
               rounds: int = 2, gn: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
     """Each pixel moved to the mode of its data and a unary prior (the fill), all its unknowns
-    following: ``rounds`` Gauss–Newton steps of ``|r|² + Σ precision (θ − target)²``.
+    following: Gauss–Newton rounds on ``|r|² + Σ precision (θ − target)²``.
 
-    Where the data are silent the step takes roughness / specular to the prior's target and
+    Where the data are silent the steps take roughness / specular to the prior's target and
     the other unknowns to their conditional optimum there (along the specular–roughness valley,
     which the damped LM steps of the last stage descend only slowly); where the data pin a
-    value the step keeps it. A pixel takes a step only where it lowers that energy (a curved
-    valley). ``theta (P, 7)``, ``metal (P, 1)``, ``unary = (target, precision)`` ``(P, 7)`` each;
+    value they keep it. A pixel takes a step only where it lowers that energy.
+
+    Every pixel takes ``rounds`` full steps. The valley is curved: from a silent dielectric's
+    dim, rough extreme a full step overshoots and raises the energy, so a dielectric fitted at
+    the noise level (data cost at most :data:`~torchbrdf.recovery.search.BADLY_FITTED` × the
+    median pixel's) instead walks: each round halves its step (at most :data:`FUSE_HALVINGS`
+    times) until the energy falls, and it takes further rounds (at most :data:`FUSE_ROUNDS`)
+    while its last one lowered the energy by at least the noise variance ``σ²`` (the median
+    pixel's data cost per residual; a smaller gain is below what the data resolve). A badly
+    fitted pixel is not silent, its data reject the model there: a walk toward the prior
+    would move its normal instead (a glint on a steep bump).
+    ``theta (P, 7)``, ``metal (P, 1)``, ``unary = (target, precision)`` ``(P, 7)`` each;
     ``gn``: :func:`gauss_newton`'s result at ``theta`` on ``data.train_idx`` when the caller has
     it. Returns the new ``theta (P, 7)`` (same dtype and device).
     """
+    if rounds < 0:
+        raise ValueError(f"fuse_fill: rounds must be >= 0, got {rounds}")
     tgt, prec = unary
     idx = data.train_idx
-    x = theta
-    for k in range(rounds):
-        r0, jtj, jtr = gn if (k == 0 and gn is not None) else gauss_newton(data, x, metal, idx, model)
-        step = newton_step(jtj + torch.diag_embed(prec), jtr + prec * (x - tgt))
-        cand = x + step
-        e0 = pixel_cost(r0) + unary_cost(x, unary)
-        e1 = pixel_cost(data.residual(cand, metal, idx, model)) + unary_cost(cand, unary)
-        x = torch.where(e1 < e0, cand, x)
+    x = theta.clone()
+    rows = torch.arange(theta.shape[0], device=theta.device)
+    walk = torch.zeros(0, dtype=torch.bool)
+    sigma2 = 0.0
+    for k in range(max(rounds, FUSE_ROUNDS)):
+        sub = data if k == 0 else data.subset(rows)
+        xr, mr, un = x[rows], metal[rows], (tgt[rows], prec[rows])
+        r0, jtj, jtr = gn if (k == 0 and gn is not None) else gauss_newton(sub, xr, mr, idx, model)
+        e_data = pixel_cost(r0)
+        if k == 0:
+            sigma2 = residual_variance(e_data, r0.shape[-1])
+            finite = torch.isfinite(e_data[:, 0])
+            noise = float(e_data[finite, 0].median()) if bool(finite.any()) else 0.0
+            walk = (metal[:, 0] < 0.5) & (e_data[:, 0] <= BADLY_FITTED * noise)
+        step = newton_step(jtj + torch.diag_embed(un[1]), jtr + un[1] * (xr - un[0]))
+        e0 = e_data + unary_cost(xr, un)
+        best, e_best = xr, e0
+        todo = torch.ones_like(e0, dtype=torch.bool)
+        t = 1.0
+        for _ in range(FUSE_HALVINGS + 1):
+            cand = xr + t * step
+            e1 = pixel_cost(sub.residual(cand, mr, idx, model)) + unary_cost(cand, un)
+            ok = todo & (e1 < e0)
+            best, e_best = torch.where(ok, cand, best), torch.where(ok, e1, e_best)
+            todo &= ~ok & walk[rows, None]
+            if not bool(todo.any()):
+                break
+            t *= 0.5
+        x[rows] = best
+        # the next round: every pixel while its full steps last, then those walking on
+        keep = ((e0 - e_best)[:, 0] >= sigma2) & walk[rows] if k + 1 >= rounds else torch.ones_like(walk[rows])
+        rows = rows[keep]
+        if rows.numel() == 0:
+            break
     return x

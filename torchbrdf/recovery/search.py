@@ -396,7 +396,12 @@ def candidate_slopes(dtype: torch.dtype, device: torch.device | str,
     return torch.cat(out).to(dtype=dtype, device=device)
 
 
-def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
+#: A pixel whose data cost exceeds this × the median pixel's (the noise level) is badly fitted:
+#: the model misses it, not the noise (:func:`normal_search` re-seeds it).
+BADLY_FITTED = 10.0
+
+
+def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = BADLY_FITTED,
                  max_pixels: int = 4096) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
     """The pixels :func:`normal_search` searches and the parameters it starts from, or None (no such pixel).
 
@@ -421,7 +426,7 @@ def search_bases(data: LevelData, theta: Tensor, metal: Tensor, model: str, fact
     return cost, bad, torch.stack(base_list, 1), torch.stack(valid_list, 1)
 
 
-def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = 10.0,
+def normal_search(data: LevelData, theta: Tensor, metal: Tensor, model: str, factor: float = BADLY_FITTED,
                   max_pixels: int = 4096) -> tuple[Tensor, int]:
     """Re-seed badly fitted pixels by a discrete search over normals and neighbours' parameters.
 
