@@ -19,28 +19,10 @@ from torchbrdf.kernels.normal_eq_ops import data_cost, make_cfg
 from torchbrdf.recovery.lm import pixel_cost
 from torchbrdf.recovery.params import decode
 
+from tests.kernels.normal_eq_cases import EPS, capture_case as _capture, interpreted_triton, op_calls
+
 ne_ops = importlib.import_module("torchbrdf.kernels.normal_eq_ops")
-EPS = 1e-3
 needs_c = pytest.mark.skipif(not build.available(), reason="needs the C kernels")
-
-
-def _capture(N, L, seed=0):
-    """A float64 case ``(theta, metal, points, camera, light_pos, light_int, log_obs)`` of ``N``
-    pixels (half metal) under ``L`` lights, every light's targets different."""
-    g = torch.Generator().manual_seed(seed)
-    theta = torch.randn(N, 7, generator=g, dtype=torch.float64) * 1.5
-    theta[:, 5:7] *= 0.3  # normals within ~40° of +z
-    metal = (torch.rand(N, 1, generator=g, dtype=torch.float64) < 0.5).double()
-    points = torch.cat((torch.rand(N, 2, generator=g, dtype=torch.float64) * 2 - 1,
-                        torch.zeros(N, 1, dtype=torch.float64)), -1)
-    ang = torch.arange(L, dtype=torch.float64) * (6.283 / L)
-    lpos = torch.stack((2 * ang.cos(), 2 * ang.sin(), torch.full_like(ang, 2.0)), -1)
-    lint = torch.full((L, 3), 20.0, dtype=torch.float64) + torch.rand(L, 3, generator=g, dtype=torch.float64)
-    cam = torch.tensor([0.1, -0.2, 3.0], dtype=torch.float64)
-    obs = torch.rand(N, L, 3, generator=g, dtype=torch.float64) * 2.0
-    obs[0, 0] = -0.5 * EPS  # a pixel whose log residual is clamped under one light
-    log_obs = torch.log(torch.clamp(obs + EPS, min=0.5 * EPS))
-    return [theta, metal, points, cam, lpos, lint, log_obs]
 
 
 def _residuals(theta, metal, points, cam, lpos, lint, log_obs, backend=None):
@@ -131,25 +113,9 @@ def test_eager_fallback_is_pixel_cost_of_the_residuals(monkeypatch):
 
 
 def test_triton_kernel_matches_under_the_interpreter(monkeypatch, tmp_path):
-    pytest.importorskip("triton")
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
-    monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path))
-    built = []
-    real = ne_ops._triton_kernel
-
-    def spy(spec, wide):
-        hit = real(spec, wide)
-        built.append((spec, hit))
-        return hit
-
-    monkeypatch.setattr(ne_ops, "_triton_kernel", spy)
-    torchbrdf.set_backend("triton")
-    try:
-        case = [t.float() for t in _capture(70, 5, seed=4)]
-        got32 = _cost(*case)
-        got_nf = _cost(*_non_finite_case())
-    finally:
-        torchbrdf.set_backend(None)
+    case = [t.float() for t in _capture(70, 5, seed=4)]
+    (got32, got_nf), built = interpreted_triton(
+        monkeypatch, tmp_path, lambda: (_cost(*case), _cost(*_non_finite_case())))
     assert built and all(spec.cost_only and hit is not None for spec, hit in built)  # the Triton kernels ran
     _check(case, got32)
     _check_non_finite(got_nf)
@@ -158,18 +124,8 @@ def test_triton_kernel_matches_under_the_interpreter(monkeypatch, tmp_path):
 @needs_c
 def test_operator_passes_opcheck_and_refuses_other_configurations():
     case = _capture(8, 2, seed=3)
-    calls = []
+    calls = op_calls("data_cost_op", lambda: _cost(*case))
     real = ne_ops.data_cost_op
-
-    def spy(*args):
-        calls.append(args)
-        return real(*args)
-
-    ne_ops.data_cost_op = spy
-    try:
-        _cost(*case)
-    finally:
-        ne_ops.data_cost_op = real
     torch.library.opcheck(torch.ops.torchbrdf.data_cost, calls[0])
     tensors, floats, uniforms, log_obs, cfg = calls[0]
     not_cost = make_cfg(*[f.split(",") if f else [] for f in cfg.split("|")[:3]], False, 0, [])

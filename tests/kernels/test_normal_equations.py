@@ -17,26 +17,9 @@ from torchbrdf.kernels import build
 from torchbrdf.kernels.normal_eq_ops import normal_equations, unpack_jtj
 from torchbrdf.recovery.params import decode
 
+from tests.kernels.normal_eq_cases import EPS, capture_case as _capture, interpreted_triton, op_calls
+
 ne_ops = importlib.import_module("torchbrdf.kernels.normal_eq_ops")
-EPS = 1e-3
-
-
-def _capture(N, L, dtype, seed=0, metal_frac=0.5):
-    g = torch.Generator().manual_seed(seed)
-    theta = torch.randn(N, 7, generator=g, dtype=torch.float64) * 1.5
-    theta[:, 5:7] *= 0.3  # normals within ~40° of +z
-    metal = (torch.rand(N, 1, generator=g, dtype=torch.float64) < metal_frac).double()
-    points = torch.cat((torch.rand(N, 2, generator=g, dtype=torch.float64) * 2 - 1,
-                        torch.zeros(N, 1, dtype=torch.float64)), -1)
-    ang = torch.arange(L, dtype=torch.float64) * (6.283 / L)
-    lpos = torch.stack((2 * ang.cos(), 2 * ang.sin(), torch.full_like(ang, 2.0)), -1)
-    lint = torch.full((L, 3), 20.0, dtype=torch.float64) + torch.rand(L, 3, generator=g, dtype=torch.float64)
-    cam = torch.tensor([0.1, -0.2, 3.0], dtype=torch.float64)
-    obs = torch.rand(N, L, 3, generator=g, dtype=torch.float64) * 2.0
-    obs[0, 0] = -0.5 * EPS  # a pixel whose log residual is clamped under one light
-    log_obs = torch.log(torch.clamp(obs + EPS, min=0.5 * EPS))
-    cast = [t.to(dtype) for t in (theta, metal, points, cam, lpos, lint, log_obs)]
-    return cast
 
 
 def _reference(theta, metal, points, cam, lpos, lint, log_obs):
@@ -114,18 +97,7 @@ def test_eager_fallback_matches_jacfwd(monkeypatch):
 def test_operator_passes_opcheck_and_compiles():
     case = _capture(8, 2, torch.float64, seed=3)
     theta, metal, points, cam, lpos, lint, log_obs = case
-    calls = []
-    real = ne_ops.normal_equations_op
-
-    def spy(*args):
-        calls.append(args)
-        return real(*args)
-
-    ne_ops.normal_equations_op = spy
-    try:
-        _fused(*case)
-    finally:
-        ne_ops.normal_equations_op = real
+    calls = op_calls("normal_equations_op", lambda: _fused(*case))
     torch.library.opcheck(torch.ops.torchbrdf.normal_equations, calls[0])
 
 
@@ -168,31 +140,9 @@ def test_other_dtypes_and_short_operands_are_refused(dtype):
         op(tensors, tangents, floats, uniforms[:-6], log_obs, cfg)
 
 
-def _interpreted_triton(monkeypatch, tmp_path, run):
-    """``run()`` with the Triton kernels under the interpreter; returns its result and the
-    kernels built ``[(spec, kernel or None)]``."""
-    pytest.importorskip("triton")
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
-    monkeypatch.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path))
-    built = []
-    real = ne_ops._triton_kernel
-
-    def spy(spec, wide):
-        hit = real(spec, wide)
-        built.append((spec, hit))
-        return hit
-
-    monkeypatch.setattr(ne_ops, "_triton_kernel", spy)
-    torchbrdf.set_backend("triton")
-    try:
-        return run(), built
-    finally:
-        torchbrdf.set_backend(None)
-
-
 def test_triton_kernel_matches_jacfwd_under_the_interpreter(monkeypatch, tmp_path):
     case = _capture(24, 4, torch.float64, seed=4)
-    (cost, jtj, jtr), built = _interpreted_triton(monkeypatch, tmp_path, lambda: _fused(*case))
+    (cost, jtj, jtr), built = interpreted_triton(monkeypatch, tmp_path, lambda: _fused(*case))
     assert built and built[0][1] is not None  # the Triton kernel ran
     rc, rjtj, rjtr = _reference(*case)
     torch.testing.assert_close(cost, rc, rtol=1e-10, atol=1e-10)
@@ -271,6 +221,6 @@ def test_eager_fallback_returns_residuals_and_takes_non_finite_terms_as_zero(mon
 
 
 def test_triton_kernel_returns_residuals_under_the_interpreter(monkeypatch, tmp_path):
-    (got, ref), built = _interpreted_triton(monkeypatch, tmp_path, lambda: _non_finite_case(8))
+    (got, ref), built = interpreted_triton(monkeypatch, tmp_path, lambda: _non_finite_case(8))
     assert built and built[0][0].residuals and built[0][1] is not None  # the Triton kernel with residuals ran
     _check_non_finite(got, ref)
