@@ -33,7 +33,8 @@ def _case(n: int, lights: int, dtype: torch.dtype, seed: int, extra: bool = Fals
               "roughness": (0.02 + torch.rand(n, 1, generator=g)).clamp(max=1).to(dtype),
               "metallic": (torch.rand(n, 1, generator=g) > 0.6).to(dtype)}
     if extra:
-        params.update({k: torch.rand(n, 1, generator=g).to(dtype) for k in ("subsurface", "sheen", "clearcoat")})
+        params.update({k: torch.rand(n, 1, generator=g).to(dtype)
+                       for k in ("subsurface", "sheen", "clearcoat")})
         params["clearcoat_gloss"] = 0.3
     log_obs = (torch.randn(n, lights, 3, generator=g) * (4.0 if extra else 0.5) - 2).to(dtype)
     cam = torch.tensor([0.1, -0.2, 3.0], dtype=dtype)
@@ -64,8 +65,11 @@ def test_light_loop_residual_non_finite_targets_and_empty():
     normal, pts, cam, lpos, lint, params, log_obs = _case(40, 6, torch.float32, 7)
     log_obs[3, 2, 0], log_obs[5, 1, 1], log_obs[9, 0, 2] = float("nan"), float("inf"), float("-inf")
     params["roughness"][11] = 0.0  # a degenerate lobe
-    inputs = capture_residual.residual_inputs(normal, pts, cam, lpos, lint, params, log_obs, EPS, any_size=True)
-    assert torch.equal(capture_residual.log_residual(inputs).nan_to_num(), _per_lane(inputs).nan_to_num())
+    inputs = capture_residual.residual_inputs(normal, pts, cam, lpos, lint, params, log_obs, EPS,
+                                              any_size=True)
+    got, want = capture_residual.log_residual(inputs), _per_lane(inputs)
+    assert torch.equal(got.isnan(), want.isnan()) and got.isnan().any()
+    assert torch.equal(got.nan_to_num(), want.nan_to_num())
     empty = capture_residual.residual_inputs(*(t[:0] for t in (normal, pts)), cam, lpos, lint,
                                              {k: v[:0] for k, v in params.items()}, log_obs[:0], EPS,
                                              any_size=True)
@@ -76,16 +80,15 @@ def test_inputs_the_light_loop_does_not_take_stay_per_lane(monkeypatch):
     """A gradient, a tint, a broadcast map: the per-lane kernel, as before."""
     monkeypatch.setattr(normal_eq_ops, "normal_equations", lambda *a, **k: pytest.fail("light loop taken"))
     normal, pts, cam, lpos, lint, params, log_obs = _case(50, 4, torch.float64, 3)
-    grad = {**params, "roughness": params["roughness"].clone().requires_grad_()}
-    r = capture_residual.log_residual(capture_residual.residual_inputs(normal, pts, cam, lpos, lint, grad, log_obs,
-                                                                       EPS, any_size=True))
-    assert r.requires_grad
-    tinted = {**params, "sheen": 0.5, "sheen_tint": 0.9}
-    capture_residual.log_residual(capture_residual.residual_inputs(normal, pts, cam, lpos, lint, tinted, log_obs,
-                                                                   EPS, any_size=True))
-    shared = {**params, "specular": params["specular"][:1]}
-    capture_residual.log_residual(capture_residual.residual_inputs(normal, pts, cam, lpos, lint, shared, log_obs,
-                                                                   EPS, any_size=True))
+
+    def residual(p):
+        inputs = capture_residual.residual_inputs(normal, pts, cam, lpos, lint, p, log_obs, EPS,
+                                                  any_size=True)
+        return capture_residual.log_residual(inputs)
+
+    assert residual({**params, "roughness": params["roughness"].clone().requires_grad_()}).requires_grad
+    residual({**params, "sheen": 0.5, "sheen_tint": 0.9})
+    residual({**params, "specular": params["specular"][:1]})
 
 
 def test_forward_mode_keeps_the_differentiable_kernel():

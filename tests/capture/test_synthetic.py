@@ -117,7 +117,8 @@ def test_fit_residual_on_a_few_pixels_runs_fused_with_any_size(monkeypatch):
     calls = []
     fast, loop = ops.capture_fast, normal_eq_ops.normal_equations
     monkeypatch.setattr(ops, "capture_fast", lambda *a, **k: calls.append("lane") or fast(*a, **k))
-    monkeypatch.setattr(normal_eq_ops, "normal_equations", lambda *a, **k: calls.append("loop") or loop(*a, **k))
+    monkeypatch.setattr(normal_eq_ops, "normal_equations",
+                        lambda *a, **k: calls.append("loop") or loop(*a, **k))
     eager = log_residual_points(n, pts, cam, pos, inten, flat, log_obs, 0.01)
     assert calls == []
     fused = log_residual_points(n, pts, cam, pos, inten, flat, log_obs, 0.01, any_size=True)

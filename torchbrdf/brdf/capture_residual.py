@@ -3,7 +3,9 @@
 :func:`torchbrdf.brdf.formula.capture_log_residual` is the one definition of the residual a
 capture fit minimises (the point-light image formation with the principled BRDF, then the
 log). This module prepares its inputs (:func:`residual_inputs`) and runs it on the fused
-kernels when they apply, or eagerly (:func:`log_residual`, :func:`log_residual_jvp`), and a
+kernels when they apply (without a derivative taken, on the CPU, the light-loop kernel, which
+computes each pixel's terms once for all its lights), or eagerly (:func:`log_residual`,
+:func:`log_residual_jvp`), and a
 Gauss–Newton fit's per-pixel normal equations or data costs in one fused pass
 (:func:`normal_equations`, :func:`data_cost`); the
 kernels are imported here, at dispatch, so the capture layer above never imports them.
@@ -63,7 +65,11 @@ def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: T
 
 
 def log_residual(inputs: ResidualInputs) -> Tensor:
-    """The log residual ``(P, L, 3)`` of :func:`residual_inputs`' result, fused when it says so."""
+    """The log residual ``(P, L, 3)`` of :func:`residual_inputs`' result, fused when it says so.
+
+    On the C backend with no derivative taken, from the light-loop kernel (the same bits as the
+    per-lane kernel; the result is then a view of its ``(P, 1 + 3 L)`` rows, not contiguous).
+    """
     c, active, need_tint, frame, backend = inputs
     if backend == "c":
         r = _light_loop_residual(c, frame)
@@ -113,8 +119,8 @@ def _light_loop_residual(c: dict[str, Any], frame: bool) -> Tensor | None:
 
     p = {k: v[:, 0] if isinstance(v, Tensor) else v for k, v in per_pixel.items()}
     pos = p.pop("pos")
-    *_, r = fused_normal_equations(p, {}, pos, camera, c["light_pos"][0], c["light_int"][0], log_obs, c["eps"],
-                                   {}, 0, residuals=True)
+    *_, r = fused_normal_equations(p, {}, pos, camera, c["light_pos"][0], c["light_int"][0], log_obs,
+                                   c["eps"], {}, 0, residuals=True)
     return r.view(P, L, 3)
 
 
