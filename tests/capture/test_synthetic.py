@@ -98,7 +98,9 @@ def test_fit_residual_on_a_few_pixels_runs_fused_with_any_size(monkeypatch):
     """``any_size``: a call below the fused path's lane threshold runs on the fused kernels.
 
     As the fit's refits of a few pixels do, with the eager path's values; without it, eagerly.
+    (Without a derivative taken the fused residual is the light-loop kernel's.)
     """
+    import torchbrdf.kernels.normal_eq_ops as normal_eq_ops
     import torchbrdf.kernels.ops as ops
     from torchbrdf.brdf.principled import FAST_PATH_MIN_LANES
     from torchbrdf.capture.synthetic import log_residual_points, pixel_points
@@ -113,12 +115,14 @@ def test_fit_residual_on_a_few_pixels_runs_fused_with_any_size(monkeypatch):
     log_obs = torch.full((36, pos.shape[0], 3), -1.0)
     cam = torch.as_tensor(DEFAULT_CAMERA, dtype=torch.float32)
     calls = []
-    fast = ops.capture_fast
-    monkeypatch.setattr(ops, "capture_fast", lambda *a, **k: calls.append(1) or fast(*a, **k))
+    fast, loop = ops.capture_fast, normal_eq_ops.normal_equations
+    monkeypatch.setattr(ops, "capture_fast", lambda *a, **k: calls.append("lane") or fast(*a, **k))
+    monkeypatch.setattr(normal_eq_ops, "normal_equations",
+                        lambda *a, **k: calls.append("loop") or loop(*a, **k))
     eager = log_residual_points(n, pts, cam, pos, inten, flat, log_obs, 0.01)
     assert calls == []
     fused = log_residual_points(n, pts, cam, pos, inten, flat, log_obs, 0.01, any_size=True)
-    assert calls == [1]
+    assert calls == ["loop"]
     assert torch.allclose(fused, eager, atol=2e-5)
 
 

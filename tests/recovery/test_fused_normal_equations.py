@@ -26,12 +26,14 @@ needs_c = pytest.mark.skipif(not build.available(), reason="needs the C kernels"
 
 @pytest.fixture
 def op_calls(monkeypatch):
-    """The calls of the fused operator (counted, then run)."""
+    """The linearisations through the fused operator (counted, then run): its calls with
+    unknowns (those with none are the log residuals' evaluations)."""
     calls = []
     real = ne_ops.normal_equations_op
 
     def spy(*args):
-        calls.append(args[-1])
+        if args[-1].split("|")[4] != "0":
+            calls.append(args[-1])
         return real(*args)
 
     monkeypatch.setattr(ne_ops, "normal_equations_op", spy)

@@ -3,7 +3,9 @@
 :func:`torchbrdf.brdf.formula.capture_log_residual` is the one definition of the residual a
 capture fit minimises (the point-light image formation with the principled BRDF, then the
 log). This module prepares its inputs (:func:`residual_inputs`) and runs it on the fused
-kernels when they apply, or eagerly (:func:`log_residual`, :func:`log_residual_jvp`), and a
+kernels when they apply (without a derivative taken, on the CPU, the light-loop kernel, which
+computes each pixel's terms once for all its lights), or eagerly (:func:`log_residual`,
+:func:`log_residual_jvp`), and a
 Gauss–Newton fit's per-pixel normal equations or data costs in one fused pass
 (:func:`normal_equations`, :func:`data_cost`); the
 kernels are imported here, at dispatch, so the capture layer above never imports them.
@@ -63,14 +65,80 @@ def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: T
 
 
 def log_residual(inputs: ResidualInputs) -> Tensor:
-    """The log residual ``(P, L, 3)`` of :func:`residual_inputs`' result, fused when it says so."""
+    """The log residual ``(P, L, 3)`` of :func:`residual_inputs`' result, fused when it says so.
+
+    On the C backend with no derivative taken, from the light-loop kernel (the same bits as the
+    per-lane kernel; the result is then a view of its ``(P, 1 + 3 L)`` rows, not contiguous).
+    """
     c, active, need_tint, frame, backend = inputs
+    if backend == "c":
+        r = _light_loop_residual(c, frame)
+        if r is not None:
+            return r
     if backend is not None:
         from torchbrdf.kernels.ops import capture_fast
 
         return capture_fast(c, active, need_tint, frame, backend)
     ops = formula.TorchOps(c["log_obs"].dtype, c["log_obs"].device)
     return formula.capture_log_residual(ops, c, active, need_tint, frame)
+
+
+def _light_loop_residual(c: dict[str, Any], frame: bool) -> Tensor | None:
+    """The log residual ``(P, L, 3)`` from the light-loop kernel (C), or None where it does not apply.
+
+    Its pixel-level terms are computed once per pixel, not once per pixel-light as in the
+    per-lane kernel: twice the pixel-lights per second at a fit's sizes, with the same bits
+    (both print the one traced formula in the same order of operations). It applies to
+    per-pixel inputs ``(P, 1, C)``, per-light ones ``(1, L, 3)``, no derivative taken, no
+    tangent frame, and the anisotropy and tints at their defaults (the kernel's constants).
+    The result is a view of the kernel's rows (each pixel's cost comes first).
+    """
+    log_obs, camera = c["log_obs"], c["camera"]
+    if frame or log_obs.dim() != 3 or log_obs.shape[-1] != 3 or camera.shape != (3,):
+        return None
+    P, L = log_obs.shape[0], log_obs.shape[1]
+    if any(not isinstance(c[k], Tensor) or c[k].shape != (1, L, 3) for k in ("light_pos", "light_int")):
+        return None
+    params: dict[str, Any] = {}
+    for k in ("base_color", *_p.PRINCIPLED_DEFAULTS):
+        v = c.get(k, _p.PRINCIPLED_DEFAULTS.get(k))
+        if k in ("anisotropic", "specular_tint", "sheen_tint"):
+            if isinstance(v, Tensor) or v != _p.PRINCIPLED_DEFAULTS[k]:
+                return None
+        elif v is not None:
+            params[k] = v
+    per_pixel = {"pos": c["pos"], "normal": c["n"], **params}
+    if not all(isinstance(per_pixel.get(k), Tensor) for k in ("pos", "normal", "base_color")):
+        return None
+    for k, v in per_pixel.items():
+        if isinstance(v, Tensor) and v.shape != (P, 1, 3 if k in ("pos", "normal", "base_color") else 1):
+            return None
+    if _differentiated([t for t in c.values() if isinstance(t, Tensor)]):
+        return None
+    from torchbrdf.kernels.normal_eq_ops import normal_equations as fused_normal_equations
+
+    p = {k: v[:, 0] if isinstance(v, Tensor) else v for k, v in per_pixel.items()}
+    pos = p.pop("pos")
+    *_, r = fused_normal_equations(p, {}, pos, camera, c["light_pos"][0], c["light_int"][0], log_obs,
+                                   c["eps"], {}, 0, residuals=True)
+    return r.view(P, L, 3)
+
+
+def _differentiated(tensors: list[Tensor]) -> bool:
+    """Whether a derivative of these tensors is being taken (the light-loop kernel has none):
+    an input that needs a gradient, forward-mode dual tensors, ``torch.func`` transforms, or
+    ``torch.compile`` tracing (which keeps the per-lane operators it knows)."""
+    import torch
+
+    if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
+        return True
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return True
+    if torch._C._is_fwd_grad_enabled():
+        from torch.autograd import forward_ad
+
+        return any(forward_ad.unpack_dual(t).tangent is not None for t in tensors)
+    return False
 
 
 def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> tuple[Tensor, Tensor] | None:
