@@ -10,7 +10,7 @@ from torchbrdf.kernels import build
 def test_rows_time_every_call_and_compare_the_routes():
     out, same = residual_rate.rows(256, 3, repeats=1)
     assert same
-    assert len(out) == 7 and all(s.repeats == 1 and s.median > 0 for _, s in out)
+    assert len(out) == 10 and all(s.repeats == 1 and s.median > 0 for _, s in out)
 
 
 @pytest.mark.parametrize("args, message", [

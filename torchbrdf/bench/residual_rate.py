@@ -11,6 +11,13 @@ model's decoded maps, float32), alternating call by call
   the light-loop kernel) and by the per-lane kernel (:func:`torchbrdf.kernels.ops.capture_fast`,
   the route of a differentiated call), checked bit-identical;
 * the cost-only kernel (``torch.ops.torchbrdf.data_cost``) on the same inputs;
+* ``LevelData.normal_equations``' work (the ``rows`` gathers, the decode's tangents
+  (:func:`~torchbrdf.recovery.params.decode_directions`), the normal equations of the 7
+  unknowns with the residuals, ``JᵀJ`` unpacked), and the normal equations alone on pre-decoded,
+  pre-gathered inputs (``torch.ops.torchbrdf.normal_equations``), with ``JᵀJ`` unpacked;
+* a joint light step's elimination (``torch.ops.torchbrdf.light_schur``: each pixel's 7
+  unknowns eliminated, 4 unknowns per light) on the residuals and Jacobian columns of as many
+  pixel-lights (random, float32), its ``Σ YᵀY`` products included;
 * :func:`torchbrdf.shade`'s fused forward on as many pixel-lights (a ``N/128 × 128`` plane).
 
 Prints a markdown table per ``N``: CPU milliseconds min / median / max and millions of
@@ -30,7 +37,7 @@ import torchbrdf
 from torchbrdf.bench.timing import Spread, time_alternating
 from torchbrdf.brdf import capture_residual
 from torchbrdf.recovery.levels import log_residual
-from torchbrdf.recovery.params import decode
+from torchbrdf.recovery.params import decode, decode_directions, decode_pattern, decode_slots
 
 EPS = 1e-3  # the log's ε (the fit's default order of magnitude)
 
@@ -68,6 +75,21 @@ def _shade(n: int, lights: int) -> Callable[[], object]:
     return lambda: torchbrdf.shade(gbuf, ring)
 
 
+def _light_schur(n: int, lights: int) -> Callable[[], object] | None:
+    """A joint light step's elimination of ``n`` pixels under ``lights`` lights (offset and log
+    scale per light), or None where its C kernel is not available."""
+    from torchbrdf.kernels import schur_ops
+
+    g = torch.Generator().manual_seed(2)
+    m = 3 * lights
+    r = torch.randn(n, m, generator=g) * 0.05
+    if not schur_ops.available(r):
+        return None
+    cols = torch.randn(7 + 4, n, m, generator=g)
+    prior = torch.zeros(n, 7, dtype=torch.float64)
+    return lambda: schur_ops.light_schur(r, cols, prior, prior, 1e-3, 0.15)
+
+
 def rows(n: int, lights: int, repeats: int) -> tuple[list[tuple[str, Spread]], bool]:
     """``([(call, its CPU-time spread)], whether both residual routes gave the same bits)``."""
     from torchbrdf.kernels.ops import capture_fast
@@ -82,6 +104,16 @@ def rows(n: int, lights: int, repeats: int) -> tuple[list[tuple[str, Spread]], b
         q, lq = pts.index_select(0, idx), log_all.index_select(0, idx)
         return log_residual(decode(theta, metal), q, cam, lpos, lint, lq, EPS)
 
+    pattern = decode_pattern(7)
+    dp = decode_directions(theta, metal, decode_slots(7))[1]
+    tangents = {k: dp[k] for k in pattern}
+
+    def level_normal_equations() -> object:  # LevelData.normal_equations' work
+        q, lq = pts.index_select(0, idx), log_all.index_select(0, idx)
+        pd, dpd = decode_directions(theta, metal, decode_slots(7))
+        return capture_residual.normal_equations(pd["normal"], q, cam, lpos, lint, pd, lq, EPS,
+                                                 {k: dpd[k] for k in pattern}, pattern, 7)
+
     calls: dict[str, Callable[[], object]] = {
         "`LevelData.residual` (gathers, decode, residual)": level_residual,
         "gathers (`rows` of points and targets)": lambda: (pts.index_select(0, idx),
@@ -91,8 +123,16 @@ def rows(n: int, lights: int, repeats: int) -> tuple[list[tuple[str, Spread]], b
         "residual, per-lane kernel": lambda: capture_fast(c, active, need_tint, frame, backend or "c"),
         "`data_cost` kernel": lambda: capture_residual.data_cost(p["normal"], pp, cam, lpos, lint, p, lo,
                                                                  EPS),
+        "`LevelData.normal_equations`'s work (gathers, decode's tangents, normal equations)":
+            level_normal_equations,
+        "normal equations, 7 unknowns and the residuals (`capture_residual.normal_equations`)": lambda: (
+            capture_residual.normal_equations(
+                p["normal"], pp, cam, lpos, lint, p, lo, EPS, tangents, pattern, 7)),
         "`shade` fused forward": _shade(n, lights),
     }
+    schur = _light_schur(n, lights)
+    if schur is not None:
+        calls["`light_schur` (4 unknowns per light)"] = schur
     with torch.no_grad():
         lane = capture_fast(c, active, need_tint, frame, backend or "c")
         same = torch.equal(capture_residual.log_residual(inputs), lane)

@@ -51,7 +51,9 @@ __all__ = ["NormalEqSpec", "schedule", "generate", "generate_triton", "width", "
 CAMERA = 3  # uniforms before the lights: the camera position
 LIGHT_STRIDE = 6  # per light: position (3), intensity (3)
 # Pixels per block of the C kernel: ~K × the pixel-level nodes' tangents live in stack arrays
-# of this length (a few hundred arrays × 64 × 8 B: well inside a thread's stack).
+# of this length (a few hundred arrays × 64 × 8 B: well inside a thread's stack). The inputs'
+# interleaved (n, C) rows are copied into such arrays too (carry_loads): read once per pixel
+# instead of with a stride once per pixel-light (docs/fast_path.md has the rates).
 BLOCK = 64
 
 
@@ -218,7 +220,7 @@ def _layout(spec: NormalEqSpec) -> Layout:
     return Layout(
         [LightLoop("point", "0", "L")], load_c, lambda s: f"out[i * {row} + {slot(s)}]", load_t,
         lambda s: f"out + (i * {row} + {slot(s)})", lit_roles=("light", "obs"), px_roles=("px", "tan", "obs"),
-        skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK)
+        skip=CAMERA, stride=LIGHT_STRIDE, block=BLOCK, carry_loads=True)
 
 
 def generate(spec: NormalEqSpec) -> str:

@@ -100,7 +100,11 @@ class Layout:
     that depend on the light / on the pixel; ``uniforms``: the expression of the uniform table,
     ``stride`` uniforms per light after ``skip`` leading ones. ``sum_c(key, light)`` /
     ``sum_triton(key, light)``: where a block's partial sum goes (``blk`` the block, ``light``
-    the light's index expression, None after the loops).
+    the light's index expression, None after the loops). ``carry_loads``: the per-pixel loads
+    the light loops read are copied once per block into lane-contiguous arrays, as the pre-loop's
+    values are (worth it where a pixel's channels are interleaved: the loop's loads are then
+    contiguous instead of strided, once per pixel instead of once per pixel-light); otherwise
+    they are re-read from their tensors inside the loops.
     """
 
     loops: Sequence[LightLoop]
@@ -116,6 +120,7 @@ class Layout:
     extra: dict = field(default_factory=dict)
     sum_c: Callable[[tuple, str | None], str] | None = None
     sum_triton: Callable[[tuple, str | None], str] | None = None
+    carry_loads: bool = False
 
 
 def flags(g: Graph, lit_roles: Iterable[str] = ("light",), px_roles: Iterable[str] = ("px", "go")
@@ -141,15 +146,16 @@ def flags(g: Graph, lit_roles: Iterable[str] = ("light",), px_roles: Iterable[st
     return lit, px
 
 
-def _is_boundary(nd: Node, lit, px) -> bool:
-    """A pixel-level value the light loop reads from the pre-loop (loads are re-read from their
-    tensor and masks are printed inline, so neither is carried)."""
-    return nd.id in px and nd.id not in lit and nd.op != "in" and nd.kind != "b"
+def _is_boundary(nd: Node, lit, px, carry_loads: bool) -> bool:
+    """A pixel-level value the light loop reads from the pre-loop (masks are printed inline, so
+    never carried; loads only with ``carry_loads``, else re-read from their tensor)."""
+    return nd.id in px and nd.id not in lit and (carry_loads or nd.op != "in") and nd.kind != "b"
 
 
-def loop_nodes(roots: Iterable[Node | float | None], lit: set[int], px: set[int]
+def loop_nodes(roots: Iterable[Node | float | None], lit: set[int], px: set[int], carry_loads: bool = False
                ) -> tuple[set[int], set[int]]:
-    """Nodes of a light-loop body (ids) and the boundary nodes it reads (ids)."""
+    """Nodes of a light-loop body (ids) and the boundary nodes it reads (ids); ``carry_loads``
+    as for :class:`Layout`."""
     body: set[int] = set()
     bnd: set[int] = set()
     stack = [r for r in roots if isinstance(r, Node)]
@@ -157,7 +163,7 @@ def loop_nodes(roots: Iterable[Node | float | None], lit: set[int], px: set[int]
         nd = stack.pop()
         if nd.id in body or nd.id in bnd:
             continue
-        if _is_boundary(nd, lit, px):
+        if _is_boundary(nd, lit, px, carry_loads):
             bnd.add(nd.id)
             continue
         body.add(nd.id)
@@ -178,7 +184,7 @@ def _phases(sch: LoopSchedule, lay: Layout):
     for lp in lay.loops:
         roots = [nd for _, nd in sch.accs.get(lp.name, []) + sch.stores.get(lp.name, [])]
         roots += [nd for _, nd in sch.sums.get(lp.name, []) if nd is not None]
-        body, bnd = loop_nodes(roots, lit, px)
+        body, bnd = loop_nodes(roots, lit, px, lay.carry_loads)
         loops[lp.name] = (body, bnd)
         bnd_all |= bnd
     return lit, px, loops, bnd_all

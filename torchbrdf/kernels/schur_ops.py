@@ -48,18 +48,20 @@ void tb_light_schur(long n, long N, long M, long G, const R* cols, const R* res,
     const long nb = n - b0 < BP ? n - b0 : BP;
     double jp[M][7][BP], z[M][7][BP], rt[M][BP], w[M][BP];
     double a[7][7][BP], gp[7][BP], low[7][7][BP], f[BP], t[BP];
+    /* each pixel's rows read in memory order (a loop over the pixels inside would stride by M) */
+    for (long q = 0; q < BP; ++q) {
+      for (long m = 0; m < M; ++m) rt[m][q] = q < nb ? (double)res[(b0 + q) * M + m] : 0.0;
+      for (int i = 0; i < 7; ++i)
+        for (long m = 0; m < M; ++m) jp[m][i][q] = q < nb ? (double)cols[(i * N + b0 + q) * M + m] : 0.0;
+    }
     for (long m = 0; m < M; ++m) {
       _Pragma("omp simd") for (long q = 0; q < BP; ++q) {
-        double r = q < nb ? (double)res[(b0 + q) * M + m] : 0.0;
+        double r = rt[m][q];
         double h = huber / (fabs(r) > 1e-30 ? fabs(r) : 1e-30);
-        rt[m][q] = r;
         w[m][q] = h < 1.0 ? h : 1.0;  /* Huber: 3 noise deviations */
       }
       for (int i = 0; i < 7; ++i)
-        _Pragma("omp simd") for (long q = 0; q < BP; ++q) {
-          jp[m][i][q] = q < nb ? (double)cols[(i * N + b0 + q) * M + m] : 0.0;
-          z[m][i][q] = jp[m][i][q] * w[m][q];
-        }
+        _Pragma("omp simd") for (long q = 0; q < BP; ++q) z[m][i][q] = jp[m][i][q] * w[m][q];
     }
     for (int i = 0; i < 7; ++i)
       _Pragma("omp simd") for (long q = 0; q < BP; ++q) {
@@ -111,19 +113,22 @@ void tb_light_schur(long n, long N, long M, long G, const R* cols, const R* res,
     }
     for (long l = 0; l < L; ++l) {
       double v[G + 1][3][BP], acc[P][BP];
-      for (int c = 0; c < 3; ++c) {
+      for (long q = 0; q < BP; ++q)
         for (long g = 0; g < G; ++g)
-          _Pragma("omp simd") for (long q = 0; q < BP; ++q)
+          for (int c = 0; c < 3; ++c)
             v[g][c][q] = q < nb ? (double)cols[((7 + g) * N + b0 + q) * M + 3 * l + c] : 0.0;
+      for (int c = 0; c < 3; ++c)
         _Pragma("omp simd") for (long q = 0; q < BP; ++q) v[G][c][q] = rt[3 * l + c][q];
-      }
       for (long g = 0; g < G; ++g)  /* Y's rows of light l: sum over its colours of z Jg */
         for (int i = 0; i < 7; ++i) {
           _Pragma("omp simd") for (long q = 0; q < BP; ++q)
             t[q] = z[3 * l][i][q] * v[g][0][q] + z[3 * l + 1][i][q] * v[g][1][q]
                    + z[3 * l + 2][i][q] * v[g][2][q];
           double* o = y + ((l * G + g) * 7 + i) * n + b0;
-          for (long q = 0; q < nb; ++q) o[q] = t[q];
+          if (nb == BP)  /* a whole block: vector stores */
+            _Pragma("omp simd") for (long q = 0; q < BP; ++q) o[q] = t[q];
+          else
+            for (long q = 0; q < nb; ++q) o[q] = t[q];
         }
       for (long u = 0; u < P; ++u) _Pragma("omp simd") for (long q = 0; q < BP; ++q) acc[u][q] = 0.0;
       for (int c = 0; c < 3; ++c) {
