@@ -23,7 +23,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lights", type=int, default=16, help="number of ring lights (plus one beside the camera)")
     ap.add_argument("--noise", type=float, default=0.01, help="relative sensor noise (0.01 = 1 %%)")
     a = ap.parse_args(argv)
-    path = generate_capture(a.out, recipe=a.recipe, seed=a.seed, size=a.size, lights=a.lights, noise=a.noise)
+    try:
+        path = generate_capture(a.out, recipe=a.recipe, seed=a.seed, size=a.size, lights=a.lights,
+                                noise=a.noise)
+    except ValueError as e:  # a bad --size, --lights or --noise: one line and exit status 2, no traceback
+        ap.error(str(e))
     print(f"wrote {path.parent}")
     return 0
 

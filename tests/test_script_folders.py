@@ -48,3 +48,13 @@ def test_training_runs_as_a_namespace_folder():
     assert res.returncode == 0, res.stderr[-2000:]
     assert "--capture" in res.stdout
 
+
+
+@pytest.mark.parametrize("args, words", [(["--size", "0"], "size must be >= 4, got 0"),
+                                         (["--noise", "-0.5"], "add_noise: level")])
+def test_generate_refuses_a_bad_option_in_one_line(tmp_path, args, words):
+    # a bad --size ended in a ValueError traceback; now argparse's one-line error, exit status 2
+    res = _run([str(ROOT / "datasets" / "generate.py"), "--out", str(tmp_path / "cap"), *args])
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert words in res.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "cap" / "capture.json").exists()

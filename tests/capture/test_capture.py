@@ -126,6 +126,12 @@ def test_write_half(tmp_path):
         ({"lights": (torch.zeros(L, 2), torch.ones(L, 3))}, "shape"),
         ({"camera_position": [0, 0]}, "camera_position"),
         ({"files": ["a.exr", "a.exr", "b.exr"]}, "distinct"),
+        # a mapping with other keys was a bare KeyError naming neither the argument nor the keys
+        ({"lights": {"positions": torch.ones(L, 3), "intensity": torch.ones(L, 3)}},
+         r"lights must have the keys 'position' and 'intensity'; 'position' missing "
+         r"\(it has \['intensity', 'positions'\]\)"),
+        ({"lights": [{"position": [0, 0, 2.0], "intensity": [1.0] * 3}] * 2 + [{"position": [0, 0, 2.0]}]},
+         r"lights\[2\] must have the keys 'position' and 'intensity'; 'intensity' missing"),
     ],
 )
 def test_write_errors(tmp_path, kwargs, match):

@@ -41,6 +41,14 @@ def test_unknown_recipe_is_a_clear_error():
         make_material("velvet")
 
 
+@pytest.mark.parametrize("noise", [-0.01, float("nan"), float("inf")])
+def test_negative_or_non_finite_noise_is_refused(tmp_path, noise):
+    # noise=-1 wrote a capture with 100 % noise (the sign of a Gaussian does not matter)
+    with pytest.raises(ValueError, match=r"add_noise: level \(the relative noise, e\.g\. 0\.01\) must be"):
+        generate_capture(tmp_path / "cap", recipe="tiles", seed=1, size=8, lights=2, noise=noise)
+    assert not (tmp_path / "cap" / "capture.json").exists()
+
+
 @pytest.mark.parametrize("fast", [False, True])
 @pytest.mark.parametrize("recipe", ["metal_inlay", "tiles", "scratched_metal"])
 def test_compact_renderer_equals_principled(recipe, fast):

@@ -224,6 +224,30 @@ def test_bad_gt_capture_and_out_are_refused(cap, tmp_path, capsys):
     assert "not a folder" in _one_line_error(capsys)
 
 
+@pytest.mark.parametrize("name, channels, value, words", [
+    ("roughness", 1, float("nan"),
+     "roughness.exr: 1 non-finite value(s) (NaN or inf), first at row 2, column 3"),
+    ("normal", 3, float("inf"), "normal.exr: 1 non-finite value(s)"),
+    ("base_color", 4, 0.5, "base_color.exr: expected 3 channel(s) for the base_color map, got 4"),
+])
+def test_gt_map_that_is_not_finite_or_has_other_channels_is_refused(cap, tmp_path, capsys, name,
+                                                                     channels, value, words):
+    # A NaN in a ground-truth map ran the whole fit and wrote NaN into report.json's errors; a
+    # 4-channel base colour failed on broadcasting only after the fit.
+    from torchbrdf.io import write_exr
+    gt = tmp_path / "gt"
+    shutil.copytree(cap / "gt", gt)
+    m = read_exr(gt / f"{name}.exr")
+    m = torch.cat([m, m[:1]])[:channels] if channels > m.shape[0] else m.clone()
+    m[0, 2, 3] = value
+    write_exr(gt / f"{name}.exr", m)
+    out = tmp_path / "o"
+    assert main(["--capture", str(cap), "--out", str(out), "--gt", str(gt), *FAST]) == 2
+    err = _one_line_error(capsys)
+    assert "--gt" in err and words in err
+    assert not out.exists()
+
+
 def test_read_only_out_is_one_line(cap, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(os, "access", lambda *a, **k: False)
     monkeypatch.setattr(outputs, "_read_only", lambda p: True)

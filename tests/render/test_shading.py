@@ -661,6 +661,22 @@ def test_non_finite_gbuffer_or_light_under_validation():
             shade(g, light)
 
 
+@pytest.mark.parametrize("make, name", [
+    (lambda: PointLight(torch.tensor([0.0, 0.0, 5.0], dtype=D), torch.tensor([1.0, -0.5, 1.0], dtype=D)),
+     "intensity"),
+    (lambda: DirectionalLight(torch.tensor([0.0, 0.0, 1.0], dtype=D), -1.0), "irradiance"),
+    (lambda: EnvironmentLight(-torch.ones(3, 4, 8, dtype=D)), "radiance"),
+])
+def test_negative_light_under_validation(make, name):
+    """numerics.md promised negative intensities are refused under validation; they shaded."""
+    good = PointLight(torch.tensor([0.0, 0.0, 5.0], dtype=D), torch.ones(3, dtype=D))
+    g = sphere_gbuffer(4, 4, dtype=D)
+    shade(g, [good, make()])  # validation off: no data read
+    with torchbrdf.validation(True), pytest.raises(ValueError,
+                                                    match=rf"^lights\[1\]\.{name}: expected non-negative"):
+        shade(g, [good, make()])
+
+
 def test_shade_under_torch_compile_has_no_graph_break_and_no_recompile():
     # Value-dependent pruning (which pixels, constant maps) is skipped while compiling: each
     # decision would be a graph break and a guard on the data (a recompile per new input).

@@ -459,10 +459,20 @@ def _as_rows(value, what: str, count: int | None = None) -> np.ndarray:
     return arr
 
 
+def _light_fields(light: Mapping, where: str):
+    """``light["position"], light["intensity"]``, or a ValueError naming ``where`` and its keys."""
+    missing = [k for k in ("position", "intensity") if k not in light]
+    if missing:
+        raise ValueError(f"write_capture: {where} must have the keys 'position' and 'intensity'; "
+                         f"{' and '.join(repr(k) for k in missing)} missing "
+                         f"(it has {sorted(map(str, light))})")
+    return light["position"], light["intensity"]
+
+
 def _split_lights(lights) -> tuple[np.ndarray, np.ndarray]:
     """Light positions and intensities ``(L, 3)`` from any accepted ``lights`` form."""
     if isinstance(lights, Mapping):
-        positions, intensities = lights["position"], lights["intensity"]
+        positions, intensities = _light_fields(lights, "lights")
         return _as_rows(positions, "light positions"), _as_rows(intensities, "light intensities")
     items = list(lights)
 
@@ -477,7 +487,7 @@ def _split_lights(lights) -> tuple[np.ndarray, np.ndarray]:
             kind = light.get("type", "point")
             if kind not in _LIGHT_TYPES:
                 raise ValueError(f"write_capture: lights[{k}] has unsupported type {kind!r}")
-            pos, inten = light["position"], light["intensity"]
+            pos, inten = _light_fields(light, f"lights[{k}]")
         elif hasattr(light, "position") and hasattr(light, "intensity"):
             pos, inten = light.position, light.intensity  # e.g. torchbrdf.PointLight
         elif isinstance(light, (tuple, list)) and len(light) == 2:

@@ -762,6 +762,13 @@ def add_noise(images: Tensor, level: float = 0.01, seed: int = 0) -> Tensor:
     The relative part models photon noise of a well-exposed sensor; the small floor lets a
     few dark values fall slightly below 0, as real captures do. Deterministic in ``seed``.
     """
+    try:
+        lv = float(level)
+    except (TypeError, ValueError):
+        lv = math.nan
+    if not (math.isfinite(lv) and lv >= 0):  # a negative level would pass as its absolute value
+        raise ValueError(f"add_noise: level (the relative noise, e.g. 0.01) must be a finite number >= 0, "
+                         f"got {level!r}")
     gen = torch.Generator().manual_seed(int(seed) + 17)
     z = torch.randn(images.shape, generator=gen, dtype=torch.float32).to(images)
     floor = 0.01 * images.detach().abs().mean(dim=(-3, -2, -1), keepdim=True)

@@ -115,7 +115,12 @@ def check_config(cfg: RecoveryConfig | Settings) -> None:
 
 
 def check_gt(gt: str | os.PathLike) -> Path:
-    """The ground-truth folder must exist and hold at least one readable map EXR."""
+    """The ground-truth folder must exist and hold at least one readable map EXR.
+
+    Each map present must have its map's channel count (3 for ``base_color`` and ``normal``,
+    1 for the scalar maps) and finite values: a wrong count would broadcast against the
+    recovered map and a NaN would make its error NaN in ``report.json``.
+    """
     gt = Path(gt)
     if not gt.is_dir():
         raise RecoveryError(f"--gt {gt}: {'not a folder' if gt.exists() else 'does not exist'}")
@@ -123,9 +128,18 @@ def check_gt(gt: str | os.PathLike) -> Path:
     if not found:
         raise RecoveryError(f"--gt {gt}: holds none of the maps {', '.join(n + '.exr' for n in MAP_NAMES)}")
     for n in found:
+        f = gt / f"{n}.exr"
         try:
-            read_exr(gt / f"{n}.exr")
+            m = read_exr(f)
         except (OSError, ValueError) as e:
-            raise RecoveryError(f"--gt {gt / (n + '.exr')}: unreadable ({e})") from e
+            raise RecoveryError(f"--gt {f}: unreadable ({e})") from e
+        if m.shape[0] != MAP_NAMES[n]:
+            raise RecoveryError(f"--gt {f}: expected {MAP_NAMES[n]} channel(s) for the {n} map, "
+                                f"got {m.shape[0]}")
+        bad = ~torch.isfinite(m)
+        if bad.any():
+            c, i, j = (int(k) for k in bad.nonzero()[0])
+            raise RecoveryError(f"--gt {f}: {int(bad.sum())} non-finite value(s) (NaN or inf), first at "
+                                f"row {i}, column {j}, channel {c}; a ground-truth map must be finite")
     return gt
 

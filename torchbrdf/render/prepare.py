@@ -28,7 +28,7 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from torchbrdf._checks import check_finite, validation_enabled
+from torchbrdf._checks import check_finite, check_nonnegative, validation_enabled
 from torchbrdf._math import is_zero
 from torchbrdf._types import BRDF
 from torchbrdf.brdf.principled import LOBES
@@ -129,9 +129,10 @@ def _as_light_list(lights) -> list[Light]:
     return out
 
 
-def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
-    """Under validation: NaN/inf in a shaded pixel's g-buffer data or in a light raises,
-    naming it. Pixels outside the mask are not shaded, so they may hold anything."""
+def _check_input_values(gbuf: GBuffer, lights: list) -> None:
+    """Under validation: NaN/inf in a shaded pixel's g-buffer data or in a light, or a negative
+    light intensity, irradiance or radiance, raises, naming it. Pixels outside the mask are not
+    shaded, so they may hold anything."""
     keep = gbuf.mask
     if keep is not None and keep.dtype != torch.bool:
         keep = keep != 0
@@ -154,6 +155,9 @@ def _check_finite_inputs(gbuf: GBuffer, lights: list) -> None:
             if isinstance(t, Tensor):
                 named[f"lights[{i}].{attr}"] = t
     check_finite(named)
+    for name, t in named.items():  # a negative emitter gives negative radiance: no physical light
+        if name.startswith("lights[") and name.rsplit(".", 1)[1] in ("intensity", "irradiance", "radiance"):
+            check_nonnegative(name, t)
 
 
 def _is_count(value: object, minimum: int = 1) -> bool:
@@ -201,7 +205,7 @@ def validate(
                 f"but the g-buffer holds {b}"
             )
     if validation_enabled():
-        _check_finite_inputs(gbuf, lights)
+        _check_input_values(gbuf, lights)
     kind = brdf_kind(brdf)
     has_env = any(isinstance(x, EnvironmentLight) for x in lights)
     if env_strategy == "split_sum" and kind == "custom" and has_env:

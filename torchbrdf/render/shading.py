@@ -333,8 +333,9 @@ def shade(
     Raises:
         TypeError / ValueError: with the offending argument named. Under
             :func:`torchbrdf.set_validation` also NaN/inf in a shaded pixel of the g-buffer
-            (masked-out pixels may hold anything) or in a light; without validation such a
-            pixel's value follows ``docs/numerics.md`` ("Non-finite inputs").
+            (masked-out pixels may hold anything) or in a light, and a negative light
+            intensity, irradiance or radiance; without validation such a pixel's value
+            follows ``docs/numerics.md`` ("Non-finite inputs").
 
     Note:
         float16 / bfloat16 g-buffers are shaded in float32 and the result is cast back
