@@ -177,13 +177,13 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
     log = log or (lambda msg: print(msg, file=sys.stderr))
     check_config(cfg)
     out = check_out(out, allow_other_files) if out is not None else None
-    if gt is not None:
-        gt = check_gt(gt)
     try:
         cap = capture if isinstance(capture, Capture) else load_capture(capture)
         capture_warnings = check_capture(cap)
     except (OSError, ValueError) as e:
         raise RecoveryError(str(e)) from e
+    if gt is not None:
+        gt = check_gt(gt, (cap.height, cap.width))
     cap = cap.to(device=cfg.device, dtype=torch.float32)
     if cfg.holdout is not None and not -1 <= cfg.holdout < len(cap):
         raise RecoveryError(f"--holdout {cfg.holdout}: the capture has {len(cap)} lights "

@@ -114,12 +114,13 @@ def check_config(cfg: RecoveryConfig | Settings) -> None:
         raise RecoveryError(f"--device {cfg.device}: CUDA is not available on this machine")
 
 
-def check_gt(gt: str | os.PathLike) -> Path:
+def check_gt(gt: str | os.PathLike, size: tuple[int, int] | None = None) -> Path:
     """The ground-truth folder must exist and hold at least one readable map EXR.
 
     Each map present must have its map's channel count (3 for ``base_color`` and ``normal``,
-    1 for the scalar maps) and finite values: a wrong count would broadcast against the
-    recovered map and a NaN would make its error NaN in ``report.json``.
+    1 for the scalar maps), the capture's ``size = (H, W)`` when given, and finite values: a
+    wrong count would broadcast against the recovered map, a truth of another size would be
+    resampled into a different truth, and a NaN would make its error NaN in ``report.json``.
     """
     gt = Path(gt)
     if not gt.is_dir():
@@ -136,6 +137,9 @@ def check_gt(gt: str | os.PathLike) -> Path:
         if m.shape[0] != MAP_NAMES[n]:
             raise RecoveryError(f"--gt {f}: expected {MAP_NAMES[n]} channel(s) for the {n} map, "
                                 f"got {m.shape[0]}")
+        if size is not None and tuple(m.shape[-2:]) != tuple(size):
+            raise RecoveryError(f"--gt {f}: expected the capture's size {size[0]}x{size[1]} (height x width), "
+                                f"got {m.shape[-2]}x{m.shape[-1]}")
         bad = ~torch.isfinite(m)
         if bad.any():
             c, i, j = (int(k) for k in bad.nonzero()[0])
