@@ -353,6 +353,7 @@ def _finish(rec: Recovery, cap: Capture, cfg: Settings, out: Path | None, gt: Pa
     }
     if rec.prior is not None:  # the network's errors the prior's precision came from
         report["learned_prior"] = {"map_errors": rec.prior.errors, "noise_variance": st.get("prior_noise"),
+                                   "measured_map_errors": st.get("prior_map_errors"),
                                    "measured_metallic_error": st.get("prior_metallic_error")}
     cpu_maps = {k: v.cpu() for k, v in fin.items()}  # the ground truth and the files live on the CPU
     if gt is not None:

@@ -68,10 +68,11 @@ Method (``docs/recovery.md``; its measurements in ``docs/recovery_measurements.m
   fit: silent pixels take the material's measured value, measured ones keep their own.
 * **Confidence** (``Recovery.confidence_map``): the posterior variance of roughness and
   specular from the marginal information, mapped to [0, 1].
-* **Learned prior** (optional, ``recover(..., prior=...)``): a Gaussian unary toward a network's
-  maps with its measured errors, each precision weighed by its share against the data's
-  information, and its metallic as evidence in the class choice
-  (:class:`~torchbrdf.recovery.prior.LearnedPrior`); the start stays the data's own.
+* **Learned prior** (optional, ``recover(..., prior=...)``): its metallic as evidence in the
+  class choice; once each pixel's class is chosen, a Gaussian unary toward the network's maps
+  with its errors measured on the capture, each precision weighed by its share against the
+  data's information (:class:`~torchbrdf.recovery.prior.LearnedPrior`); the start stays the
+  data's own.
 * **Validation**: the held-out light's PSNR is reported (``report.json``:
   ``validation_psnr``); the last iterations then use every light.
 
@@ -104,7 +105,7 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
-from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost, measured_metallic_error
+from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost, measured_map_errors, measured_metallic_error
 from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate_passes
 from torchbrdf.recovery.soft_metal import soft_metal_stage
@@ -192,16 +193,17 @@ class Recovery:
             "metal": None, "history": [], "events": [], "seconds": 0.0,
         }
         if self.prior is not None:  # the prior is a Gaussian term of the fit, not its start (_prior_stage)
-            self._prior_stage(s0)
+            self._prior_stage(s0, self.plan[0][1])
 
-    def _prior_stage(self, size: int) -> None:
-        """At a stage's start (level ``size``): what the learned prior's weight rests on, in the state.
+    def _prior_stage(self, size: int, kind: str) -> None:
+        """At a stage's start (level ``size``, ``kind``): what the learned prior's weight rests on, in the state.
 
         ``prior_noise``, the fit's per-residual noise variance ``σ²``: the median pixel's mean
         squared residual on the training lights (each pixel's better hypothesis in a dual stage),
-        within [1e-6, ``prior_noise_cap``]; ``prior_information``, the data's marginal
-        information ``(P, 7)`` on each hypothesis' unknowns, against which the prior's
-        precisions are weighed (:func:`~torchbrdf.recovery.prior.prior_unary`).
+        within [1e-6, ``prior_noise_cap``]; in a single-class stage ``prior_information``, the
+        data's marginal information ``(P, 7)`` on the unknowns, against which the prior's
+        precisions are weighed (:func:`~torchbrdf.recovery.prior.prior_unary`); None in a dual
+        stage, where the maps' term is off (:meth:`_prior_unary`).
         """
         st = self.state
         d = self.data(size)
@@ -213,24 +215,37 @@ class Recovery:
         sigma2 = residual_variance(torch.stack(costs).amin(0), 3 * len(d.train_idx))
         st["prior_noise"] = min(max(sigma2, 1e-6), self.cfg.prior_noise_cap)
         # what the images say about each unknown of each hypothesis fitted, for the prior's share
-        st["prior_information"] = [marginal_information(d, t, m, self.cfg.model) for t, m in pairs]
+        st["prior_information"] = None if kind == "dual" else \
+            [marginal_information(d, t, m, self.cfg.model) for t, m in pairs]
+        if st["prior_information"] is not None:  # the network's errors shown by this capture's measured pixels
+            st["prior_map_errors"] = measured_map_errors(pairs[0][0], self.prior.at(size), st["prior_noise"],
+                                                         self.prior.errors, st["prior_information"][0])
 
-    def _prior_unary(self, size: int, theta: Tensor, metal: Tensor, hypothesis: int = 0,
+    def _prior_unary(self, size: int, kind: str, theta: Tensor, metal: Tensor, hypothesis: int = 0,
                      capture_unary: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor] | None:
         """The learned prior's unary term at ``theta (P, 7)`` for the classes ``metal (P, 1)`` of
-        ``hypothesis`` (its index in ``state["theta"]``) at the level ``size`` (None: no prior).
+        ``hypothesis`` (its index in ``state["theta"]``) at the level ``size`` of a stage of
+        ``kind`` (None: no prior, or a dual stage).
 
         Each precision is weighted by its share against what the capture says: the data's
         information at the stage's start plus the precision of ``capture_unary``, the unary
-        priors made from the same material's measured pixels (the F0 tie, the non-local fill)."""
-        if self.prior is None:
+        priors made from the same material's measured pixels (the F0 tie, the non-local fill).
+
+        Off in the dual stages, where each pixel's class is still open: there the network enters
+        through its metallic in the class choice only. Its maps pulling both hypotheses' fits
+        (each by the network's probability of that class) made the two fits unequal, and the
+        class test, which compares their data costs, then chose the hypothesis the network
+        pulled less (a dielectric it calls dielectric, pulled to its wrong maps, lost to the
+        free metal fit); and before a dual stage has converged, the residual variance that sets
+        the prior's weight is the fit's own misfit, not the capture's noise."""
+        if self.prior is None or kind == "dual":
             return None
         if self.state.get("prior_information") is None:  # a run resumed with a prior it did not have
-            self._prior_stage(size)
+            self._prior_stage(size, kind)
         info = self.state["prior_information"][hypothesis]
         if capture_unary is not None:
             info = info + capture_unary[1]
-        return self.prior.unary(theta, metal, self.state["prior_noise"], info)
+        return self.prior.unary(theta, metal, self.state["prior_noise"], info, self.state.get("prior_map_errors"))
 
     def save_checkpoint(self) -> None:
         """Write ``OUT/checkpoint.pt`` atomically (nothing when there is no ``out``).
@@ -323,7 +338,8 @@ class Recovery:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
             theta = st["theta"][h]
             # (linearised at this iteration's start, as the data are)
-            unary = sum_unary(shared_unary, self._prior_unary(size, torch.nan_to_num(theta), metal, h, shared_unary))
+            learned = self._prior_unary(size, kind, torch.nan_to_num(theta), metal, h, shared_unary)
+            unary = sum_unary(shared_unary, learned)
             bad = ~torch.isfinite(theta).all(-1, keepdim=True)
             if bad.any():  # a non-finite parameter: step back to its last finite neighbour value
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite parameters",
@@ -509,7 +525,7 @@ class Recovery:
                 if st["metal"] is not None:
                     st["metal"] = (upsample(st["metal"], size, s1) > 0.5).to(st["theta"][0].dtype)
             if self.prior is not None:  # the prior's weight follows the fit's noise level, stage by stage
-                self._prior_stage(s1)
+                self._prior_stage(s1, kind1)
             if kind1 != "dual" and st["metal"] is not None and self.cfg.fit_nonlocal_tie \
                     and self.cfg.prior_nonlocal_base > 0:
                 self._renew_tie(s1, kind1)

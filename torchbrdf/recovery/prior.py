@@ -12,7 +12,8 @@
   weight from a recovery confidence map.
 * :class:`LearnedPrior` -- a Prior's maps for one capture as :func:`~torchbrdf.recovery.recover`
   uses them (``prior=``): a Gaussian unary term (:func:`prior_unary`, :func:`class_prior_cost`)
-  with the network's measured errors (:func:`estimator_errors`, :func:`measured_metallic_error`).
+  with the network's measured errors (:func:`estimator_errors`, raised to what the capture shows
+  by :func:`measured_map_errors` and :func:`measured_metallic_error`).
 
 Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
 and multiplied by the squared light distance at the sample's centre (so the network sees
@@ -39,7 +40,8 @@ from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
 from torchbrdf.recovery.params import R_MAX, R_MIN, encode
 
 __all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS",
-           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error", "class_prior_cost",
+           "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error",
+           "measured_map_errors", "class_prior_cost",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
@@ -419,6 +421,48 @@ def measured_metallic_error(dielectric_cost: Tensor, metal_cost: Tensor, noise_v
     return max(float(error), math.sqrt(mse))
 
 
+def measured_map_errors(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
+                        information: Tensor) -> dict[str, float]:
+    """The network's error ``σ_m`` on each map of this capture, measured where the data decide the map.
+
+    Each pixel's deviation of the fit's value from the network's, ``g(θ) − m_p``, counts with the
+    data's share of the posterior, ``info / (info + π)`` (``π`` the prior's precision at the
+    card's error, as in :func:`prior_unary`): 1 where the images determine the value, 0 where
+    they are silent. Per map the result is the larger of that weighted RMS and the card's
+    error: the network's errors are mostly a bias shared by a material's pixels, which its
+    measured pixels show, and a capture can show it worse than its card, never better (as
+    :func:`measured_metallic_error`). The normal keeps the card's error.
+
+    Args:
+        theta: the fit's unknowns ``(P, 7)``.
+        maps: the network's maps at the level (``(C, S, S)``, ``S² = P``; :func:`prior_maps_at`).
+        noise_var: ``σ²`` as in :func:`prior_unary`; errors: the card's (:func:`estimator_errors`).
+        information: the data's marginal information ``(P, 7)`` on ``theta``.
+
+    Returns:
+        name -> ``σ_m``, the keys of ``errors``.
+    """
+    rows = {k: _flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness")}
+    s = torch.sigmoid(theta[:, :5])
+    lo = torch.tensor([0.0] * 4 + [R_MIN], dtype=theta.dtype, device=theta.device)
+    span = torch.tensor([1.0] * 4 + [R_MAX - R_MIN], dtype=theta.dtype, device=theta.device)
+    value = lo + span * s
+    slope = (span * s * (1 - s)).clamp(min=1e-6)  # d value / d logit, as prior_unary
+    want = torch.cat((rows["base_color"], rows["specular"], rows["roughness"]), -1)
+    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
+                         dtype=theta.dtype, device=theta.device)
+    prec = float(noise_var) * (slope / sigma) ** 2
+    info = torch.nan_to_num(information[:, :5].to(prec), nan=0.0).clamp(min=0.0)
+    share = info / (info + prec).clamp(min=1e-30)
+    sq = share * torch.nan_to_num(value - want, nan=0.0) ** 2
+    out = dict(errors)
+    for name, cols in (("base_color", slice(0, 3)), ("specular", slice(3, 4)), ("roughness", slice(4, 5))):
+        weight = float(share[:, cols].sum())
+        if weight > 0:
+            out[name] = max(float(errors[name]), math.sqrt(float(sq[:, cols].sum()) / weight))
+    return out
+
+
 def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
     """The prior's share ``(P, 1)`` each of a dielectric's and a metal's cost (``σ² (h − m_p)² / σ_m²``).
 
@@ -459,12 +503,13 @@ class LearnedPrior:
         """The network's metallic ``(size², 1)`` at ``size``."""
         return _flat(self.at(size)["metallic"])
 
-    def unary(self, theta: Tensor, metal: Tensor, noise_var: float,
-              information: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def unary(self, theta: Tensor, metal: Tensor, noise_var: float, information: Tensor | None = None,
+              errors: Mapping[str, float] | None = None) -> tuple[Tensor, Tensor]:
         """:func:`prior_unary` at ``theta (P, 7)`` for the hypothesis ``metal (P, 1)`` (0 dielectric,
         1 metal, or fractional): the prior's maps weighted by its probability of that class, each
-        precision by its share of the posterior's where the data's ``information (P, 7)`` is given."""
+        precision by its share of the posterior's where the data's ``information (P, 7)`` is given;
+        ``errors`` replaces the card's (e.g. :func:`measured_map_errors`)."""
         size = int(round(math.sqrt(theta.shape[0])))
         m = self.metallic(size).to(metal)
         agree = metal * m + (1 - metal) * (1 - m)
-        return prior_unary(theta, self.at(size), noise_var, self.errors, agree, information)
+        return prior_unary(theta, self.at(size), noise_var, errors or self.errors, agree, information)
