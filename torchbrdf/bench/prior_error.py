@@ -78,7 +78,7 @@ def panel_errors(prior: Prior, split: str = "tuning", lights: int = 4, size: int
     if split not in ("tuning", "report"):
         raise ValueError(f"split: expected 'tuning' or 'report', got {split!r}")
     seeds = TUNING_SEEDS if split == "tuning" else REPORT_SEEDS
-    rows = []
+    rows: list[dict[str, Any]] = []
     for seed in seeds:
         for family in FAMILIES:
             with tempfile.TemporaryDirectory(prefix="prior_error_") as tmp:

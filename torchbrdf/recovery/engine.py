@@ -217,7 +217,7 @@ class Recovery:
         # what the images say about each unknown of each hypothesis fitted, for the prior's share
         st["prior_information"] = None if kind == "dual" else \
             [marginal_information(d, t, m, self.cfg.model) for t, m in pairs]
-        if st["prior_information"] is not None:  # the network's errors shown by this capture's measured pixels
+        if st["prior_information"] is not None and self.prior is not None:  # its errors on the measured pixels
             st["prior_map_errors"] = measured_map_errors(pairs[0][0], self.prior.at(size), st["prior_noise"],
                                                          self.prior.errors, st["prior_information"][0])
 
