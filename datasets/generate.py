@@ -22,11 +22,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=256, help="image width and height in pixels")
     ap.add_argument("--lights", type=int, default=16, help="number of ring lights (plus one beside the camera)")
     ap.add_argument("--noise", type=float, default=0.01, help="relative sensor noise (0.01 = 1 %%)")
+    ap.add_argument("--overwrite", action="store_true", help="replace a capture already in --out (refused without it)")
     a = ap.parse_args(argv)
     try:
         path = generate_capture(a.out, recipe=a.recipe, seed=a.seed, size=a.size, lights=a.lights,
-                                noise=a.noise)
-    except ValueError as e:  # a bad --size, --lights or --noise: one line and exit status 2, no traceback
+                                noise=a.noise, overwrite=a.overwrite)
+    except ValueError as e:  # a bad option or an existing capture: one line and exit status 2, no traceback
         ap.error(str(e))
     print(f"wrote {path.parent}")
     return 0

@@ -484,3 +484,33 @@ def test_check_capture_warns_about_too_few_lights_and_a_degenerate_layout():
     good = Capture(images[[0] * n], spread, torch.ones(n, 3), torch.tensor([0.0, 0.0, 3.0]), W, H,
                    tuple(str(k) for k in range(n)))
     assert check_capture(good) == []
+
+
+def test_write_capture_refuses_an_existing_capture_and_overwrite_replaces_it_whole(capture_dir):
+    # Writing over a capture silently replaced it and left its other images behind.
+    before = {p.name: p.read_bytes() for p in capture_dir.iterdir()}
+    with pytest.raises(ValueError, match=r"capture\.json already exists; pass overwrite=True"):
+        write_capture(capture_dir, _images(1), _lights(), [0.0, 0.0, 3.0])
+    with pytest.raises(ValueError, match=r"img_000\.exr already exists"):  # an image alone is refused too
+        (capture_dir / CAPTURE_JSON).unlink()
+        write_capture(capture_dir, _images(1), _lights(), [0.0, 0.0, 3.0])
+    (capture_dir / CAPTURE_JSON).write_bytes(before[CAPTURE_JSON])
+    assert {p.name: p.read_bytes() for p in capture_dir.iterdir()} == before
+    (capture_dir / "notes.txt").write_text("mine")
+    write_capture(capture_dir, _images(1)[:2], (_lights()[0][:2], _lights()[1][:2]), [0.0, 0.0, 3.0],
+                  files=["a.exr", "img_001.exr"], overwrite=True)
+    assert sorted(p.name for p in capture_dir.iterdir()) == ["a.exr", CAPTURE_JSON, "img_001.exr", "notes.txt"]
+    cap = load_capture(capture_dir)
+    assert len(cap) == 2 and torch.allclose(cap.images, _images(1)[:2], atol=1e-6)
+
+
+def test_generate_capture_refuses_an_existing_capture_before_writing(tmp_path):
+    from torchbrdf.capture import generate_capture
+    folder = tmp_path / "cap"
+    generate_capture(folder, recipe="tiles", seed=1, size=16, lights=3)
+    before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    with pytest.raises(ValueError, match="overwrite=True"):
+        generate_capture(folder, recipe="painted", seed=2, size=16, lights=3)
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before  # gt/ untouched too
+    generate_capture(folder, recipe="painted", seed=2, size=16, lights=3, overwrite=True)
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} != before

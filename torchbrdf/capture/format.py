@@ -22,8 +22,8 @@ from torch import Tensor
 from torchbrdf._checks import excerpt
 from torchbrdf.io import atomic_path, read_exr, write_exr
 
-__all__ = ["CAPTURE_JSON", "Capture", "check_capture", "image_path", "load_capture", "pixel_points",
-           "write_capture", "MAX_RADIANCE", "MAX_COORDINATE"]
+__all__ = ["CAPTURE_JSON", "Capture", "check_capture", "check_capture_destination", "default_file_names",
+           "image_path", "load_capture", "pixel_points", "write_capture", "MAX_RADIANCE", "MAX_COORDINATE"]
 
 #: Name of the description file inside a capture folder.
 CAPTURE_JSON = "capture.json"
@@ -512,6 +512,7 @@ def write_capture(
     *,
     files: Sequence[str] | None = None,
     half: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Write a capture folder (docs/capture_format.md): one RGB EXR per light, then ``capture.json``.
 
@@ -531,6 +532,9 @@ def write_capture(
             paths inside ``folder``, with no ``..`` and no symlink leading out (see
             :func:`image_path`).
         half: store the images as half floats.
+        overwrite: replace a capture already in ``folder`` (its ``capture.json``, the images it
+            lists and any image file this call writes). Without it such a folder is refused, so
+            an earlier capture is never lost or mixed with this one.
 
     Returns:
         The path of the written ``capture.json``.
@@ -538,8 +542,9 @@ def write_capture(
     Raises:
         ValueError: on inconsistent counts or shapes, non-finite values, negative or zero
             intensities, no light above the sample plane, an all-zero image, or a file name
-            that would leave ``folder`` — whatever :func:`load_capture` would refuse. Nothing
-            is written then.
+            that would leave ``folder`` — whatever :func:`load_capture` would refuse — and a
+            ``folder`` that already holds a capture or one of the image files, without
+            ``overwrite``. Nothing is written then.
     """
     images = _image_stack(images)
     count, _, height, width = images.shape
@@ -556,6 +561,7 @@ def write_capture(
                          f"±{MAX_COORDINATE:g} / {MAX_RADIANCE:g}; the loader would reject it")
     folder = Path(folder)
     files = _file_names(files, count, folder)
+    replaced = check_capture_destination(folder, files, overwrite)
     entries = []
     for k, name in enumerate(files):
         write_exr(folder / name, images[k], half=half)
@@ -583,7 +589,54 @@ def write_capture(
     json_path = folder / CAPTURE_JSON
     with atomic_path(json_path) as tmp:
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    for name in sorted(set(replaced) - set(files)):  # the replaced capture's images: not left stale
+        (folder / name).unlink(missing_ok=True)
     return json_path
+
+
+def default_file_names(count: int) -> list[str]:
+    """The image names :func:`write_capture` uses by default: ``img_000.exr`` ... (``count`` of them)."""
+    digits = max(3, len(str(count - 1)))
+    return [f"img_{k:0{digits}d}.exr" for k in range(count)]
+
+
+def check_capture_destination(folder: str | os.PathLike, files: Sequence[str], overwrite: bool) -> list[str]:
+    """Refuse to write a capture over another unless ``overwrite``.
+
+    Args:
+        folder: the capture folder about to be written.
+        files: the image names about to be written (relative to ``folder``).
+        overwrite: whether replacing an existing capture (and image files) is allowed.
+
+    Returns:
+        The image names the existing ``capture.json`` lists (empty when there is none, or when it
+        is unreadable): with ``overwrite`` they belong to the capture being replaced.
+
+    Raises:
+        ValueError: without ``overwrite``, when ``folder`` holds ``capture.json`` or a file of
+            ``files``, naming it.
+    """
+    folder = Path(folder)
+    json_path = folder / CAPTURE_JSON
+    clash = [json_path] if json_path.exists() else []
+    clash += [folder / os.fspath(f) for f in files if (folder / os.fspath(f)).exists()]
+    if clash and not overwrite:
+        raise ValueError(f"write_capture: {clash[0]} already exists; pass overwrite=True to replace the "
+                         f"capture in {folder}, or write to another folder")
+    if not json_path.is_file():
+        return []
+    try:
+        listed = [e["file"] for e in json.loads(json_path.read_text(encoding="utf-8"))["images"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    inside = []
+    for name in listed:  # only names that stay inside the folder (image_path's rule) are removed
+        try:
+            image_path(folder, name, "capture.json")
+        except ValueError:
+            continue
+        inside.append(name)
+    return inside
 
 
 def _image_stack(images: Tensor | Sequence) -> Tensor:
@@ -640,8 +693,7 @@ def _file_names(files: Sequence[str] | None, count: int, folder: Path) -> list[s
     """``count`` distinct image names inside ``folder`` (default ``img_000.exr`` ...); creates the
     folder only after every name is checked, then checks again for symlinks inside it."""
     if files is None:
-        digits = max(3, len(str(count - 1)))
-        files = [f"img_{k:0{digits}d}.exr" for k in range(count)]
+        files = default_file_names(count)
     files = [os.fspath(f) if isinstance(f, os.PathLike) else f for f in files]
     if len(files) != count or len(set(files)) != count:
         raise ValueError(f"write_capture: need {count} distinct file names, got {excerpt(files)}")

@@ -37,7 +37,8 @@ from torchbrdf.brdf import capture_residual
 from torchbrdf.brdf.principled import principled
 from torchbrdf.io import cache_root, write_exr, write_png
 
-from torchbrdf.capture.format import Capture, pixel_points, write_capture
+from torchbrdf.capture.format import (Capture, check_capture_destination, default_file_names, pixel_points,
+                                      write_capture)
 
 # Point lights as render_capture takes them: a pair (positions, intensities) of (L, 3), a mapping
 # {"position", "intensity"}, or a Capture (its light_positions / light_intensities).
@@ -810,6 +811,7 @@ def generate_capture(
     noise: float = 0.01,
     camera_position: Tensor | Sequence[float] = DEFAULT_CAMERA,
     backend: str = "principled",
+    overwrite: bool = False,
 ) -> Path:
     """Generate a synthetic capture folder: images + ``capture.json`` + ``gt/`` maps.
 
@@ -819,17 +821,20 @@ def generate_capture(
         lights: number of ring lights (plus the flash when ``near_camera``).
         noise: relative sensor noise (0.01 = 1 %).
         backend: renderer for the images (``"principled"`` is the reference).
+        overwrite: replace a capture already in ``folder`` (see :func:`write_capture`); without
+            it such a folder is refused before anything is written.
 
     Returns:
         The path of ``capture.json``.
     """
-    maps = make_material(recipe, seed, size)
     pos, inten = light_layout(lights, near_camera=near_camera, camera_position=camera_position)
+    check_capture_destination(folder, default_file_names(len(pos)), overwrite)
+    maps = make_material(recipe, seed, size)
     with torch.no_grad():
         img = render_capture(maps, (pos, inten), camera_position, backend=backend, noise=noise, seed=seed)
     folder = Path(folder)
     write_maps(folder / "gt", maps, previews=False)
-    return write_capture(folder, img, (pos, inten), camera_position)
+    return write_capture(folder, img, (pos, inten), camera_position, overwrite=overwrite)
 
 
 def default_capture(folder: str | os.PathLike | None = None, size: int = 128) -> Path:
@@ -848,5 +853,6 @@ def default_capture(folder: str | os.PathLike | None = None, size: int = 128) ->
         folder = root / f"default_capture_{size}"
     folder = Path(folder)
     if not (folder / "capture.json").is_file():
-        generate_capture(folder, recipe="metal_inlay", seed=0, size=size, lights=16, noise=0.01)
+        # overwrite: another process may finish the same deterministic capture meanwhile
+        generate_capture(folder, recipe="metal_inlay", seed=0, size=size, lights=16, noise=0.01, overwrite=True)
     return folder
