@@ -71,8 +71,8 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
 
     suffix = ("" if calibration else "_nocal") + ("" if diffuse == "lambert" else f"_{diffuse}")
     cap_dir = folder / f"photo_{name}_s{seed}_L{lights}{suffix}"
-    if not (cap_dir / "capture.json").is_file():
-        photo_capture(cap_dir, name, seed, size, lights, noise, calibration, diffuse)
+    if not (cap_dir / "capture.json").is_file():  # overwrite: what an interrupted run left
+        photo_capture(cap_dir, name, seed, size, lights, noise, calibration, diffuse, overwrite=True)
     t0 = time.perf_counter()
     rep = recover(cap_dir, None, cfg or RecoveryConfig(), progress=False)
     seconds = time.perf_counter() - t0
@@ -99,8 +99,9 @@ def evaluate_photo(folder: Path, name: str, seed: int, size: int, lights: int, n
 def evaluate_one(folder: Path, recipe: str, seed: int, size: int, lights: int, noise: float, test_lights: int,
                  cfg: RecoveryConfig | None = None) -> dict:
     cap_dir = folder / f"{recipe}_s{seed}_L{lights}"
-    if not (cap_dir / "capture.json").is_file():
-        generate_capture(cap_dir, recipe=recipe, seed=seed, size=size, lights=lights, noise=noise)
+    if not (cap_dir / "capture.json").is_file():  # overwrite: what an interrupted run left
+        generate_capture(cap_dir, recipe=recipe, seed=seed, size=size, lights=lights, noise=noise,
+                         overwrite=True)
     t0 = time.perf_counter()
     res = recover(cap_dir, cfg or RecoveryConfig(), progress=False)
     seconds = time.perf_counter() - t0

@@ -32,7 +32,7 @@ from torch import Tensor
 
 import torchbrdf
 from torchbrdf.brdf.diffuse import diffuse_burley
-from torchbrdf.capture.format import pixel_points, write_capture
+from torchbrdf.capture.format import check_capture_destination, default_file_names, pixel_points, write_capture
 from torchbrdf.capture.synthetic import DEFAULT_CAMERA, add_noise, light_layout, write_maps
 
 PHOTO_MATERIALS = ("glazed_brick", "coffee", "coins", "gravel", "grass")
@@ -195,17 +195,19 @@ def calibrated_lights(seed: int, lights: int = 16, error: bool = True):
 
 
 def photo_capture(folder, name: str, seed: int, size: int = 256, lights: int = 16, noise: float = 0.01,
-                  calibration: bool = True, diffuse: str = "lambert") -> Path:
+                  calibration: bool = True, diffuse: str = "lambert", overwrite: bool = False) -> Path:
     """Write a photo-derived capture folder (``capture.json`` states the nominal lights); returns it.
 
-    ``diffuse``: the forward model's diffuse lobe (:func:`render_other_model`)."""
+    ``diffuse``: the forward model's diffuse lobe (:func:`render_other_model`); ``overwrite``:
+    replace a capture already in ``folder`` (refused without it, see ``write_capture``)."""
     folder = Path(folder)
-    maps = photo_material(name, seed, size)
     nominal, true = calibrated_lights(seed, lights, calibration)
+    check_capture_destination(folder, default_file_names(len(nominal[0])), overwrite)  # before gt/ is written
+    maps = photo_material(name, seed, size)
     with torch.no_grad():
         img = render_other_model(maps, true, diffuse=diffuse)
         img = add_noise(img, noise, seed)
     write_maps(folder / "gt", maps, previews=False)
-    write_capture(folder, img, nominal, DEFAULT_CAMERA)
+    write_capture(folder, img, nominal, DEFAULT_CAMERA, overwrite=overwrite)
     torch.save({"true_intensity": true[1], "true_position": true[0]}, folder / "true_lights.pt")
     return folder
