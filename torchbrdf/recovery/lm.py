@@ -18,7 +18,8 @@ from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.params import N_PARAMS
 from torchbrdf.recovery.pixel_systems import inverse_diagonal, to_lanes
-from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, pcg, prior_energy
+from torchbrdf.recovery.smoothness_prior import (edge_weights, joined_channels, laplacian, laplacian_diag, pcg,
+                                                 prior_energy)
 
 
 def fit_jacobian(jvp: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tensor, n_t: int
@@ -156,11 +157,12 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Set
     step = pcg(jtj, wx, wy, -g, size, cfg.cg_iters, diag=damp if unary is None else damp + unary[1])
     step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0).clamp(-3, 3)
     inf = float("inf")  # (a non-finite cost is +inf: it never wins, and n_nonfinite counts it)
-    c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size) + unary_cost(theta, unary)
+    ch = joined_channels(wx, wy)
+    c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size, ch) + unary_cost(theta, unary)
     c0 = torch.nan_to_num(c0, nan=inf, posinf=inf, neginf=inf)
     cand = theta + lr * step
     r1 = fn(cand)
-    c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size) + unary_cost(cand, unary)
+    c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size, ch) + unary_cost(cand, unary)
     c1 = torch.nan_to_num(c1, nan=inf, posinf=inf, neginf=inf)
     better = c1 < c0
     theta = torch.where(better, cand, theta)
