@@ -540,10 +540,10 @@ def test_the_polish_stage_first_step_reuses_the_ties_linearisation(tiny):
     seen = []
     step = engine.lm_step
 
-    def spy(data, theta, metal, lam, cfg_, lr, extra=None, unary=None, gn=None):
+    def spy(data, theta, metal, lam, cfg_, lr, extra=None, unary=None, gn=None, residual=True):
         own = lm.gauss_newton(data, theta, metal, data.train_idx, cfg_.model)
         seen.append((gn, own, bool((theta != th0).any())))
-        return step(data, theta, metal, lam, cfg_, lr, extra, unary, gn)
+        return step(data, theta, metal, lam, cfg_, lr, extra, unary, gn, residual)
 
     engine.lm_step = spy
     try:

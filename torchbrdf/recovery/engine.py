@@ -352,7 +352,7 @@ class Recovery:
             # a stage with more than the training lights; the summed squares serve the rest)
             keep_r = self.cfg.light_scale and not self.cfg.light_joint or list(data.train_idx) != self.train_idx
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
-                                              extra, unary, self._take_stage_gn(data, theta, metal), keep_r)
+                                              extra, unary, self._take_stage_gn(data, theta, metal), residual=keep_r)
             self.fit_cost[h] = self._training_fit(extra, data)
             if calibrate and self.cfg.light_joint:
                 self._light_joint_step(data, theta, metal, self.cfg.light_position, size, unary)
