@@ -88,6 +88,36 @@ def rough_state(size=12, seed=0, dtype=torch.float32, lights=6):
     return data, theta.to(dtype), metal.reshape(-1, 1).to(dtype)
 
 
+@pytest.mark.parametrize("metal_share, joined", [(0.0, slice(3, 5)), (0.3, slice(0, 5))])
+def test_prior_terms_sum_only_the_joined_channels_with_the_same_bits(metal_share, joined):
+    """The prior's edge weights join specular and roughness, and a metal's base colour, never the
+    normal's slopes: ``joined_channels`` finds them, and ``local_prior`` and ``prior_energy``,
+    summing those channels alone, give the bits of the sums over every channel."""
+    size = 9
+    gen = torch.Generator().manual_seed(3)
+    theta = torch.randn(size * size, 7, generator=gen)
+    metal = (torch.rand(size * size, 1, generator=gen) < metal_share).to(theta.dtype)
+    wx, wy = smoothness_prior.edge_weights(theta, metal, size, Settings())
+    assert smoothness_prior.joined_channels(wx, wy) == joined
+    cands = torch.randn(8, size * size, 7, generator=gen)
+    got = smoothness_prior.local_prior(cands, theta, wx, wy, size)
+    for k in range(8):
+        assert torch.equal(got[k], reference_local_prior(cands[k], theta, wx, wy, size))
+    rows = torch.tensor([80, 0, 8, 40, 72, 3])
+    assert torch.equal(smoothness_prior.local_prior(cands[:, rows], theta, wx, wy, size, rows), got[:, rows])
+    img = theta.reshape(size, size, 7)
+    e = torch.zeros(size, size, 1)
+    for w, a, b, at in ((wx, img[:, :-1], img[:, 1:], (slice(None), slice(0, -1))),
+                        (wx, img[:, :-1], img[:, 1:], (slice(None), slice(1, None))),
+                        (wy, img[:-1], img[1:], (slice(0, -1),)), (wy, img[:-1], img[1:], (slice(1, None),))):
+        e[at] += (w * (a - b) ** 2).sum(-1, keepdim=True)
+    assert torch.equal(smoothness_prior.prior_energy(theta, wx, wy, size), 0.5 * e.reshape(-1, 1))
+    # no weight at all: no term
+    zero = torch.zeros_like(wx), torch.zeros_like(wy)
+    assert smoothness_prior.joined_channels(*zero) == slice(7, 7)
+    assert torch.equal(smoothness_prior.local_prior(cands, theta, *zero, size), torch.zeros(8, size * size, 1))
+
+
 def test_local_prior_of_stacked_candidates_equals_the_image_form():
     size = 7
     gen = torch.Generator().manual_seed(1)

@@ -489,6 +489,26 @@ def test_a_pixel_subset_gathers_its_levels_targets(tiny):
     assert torch.allclose(data.subset(rows).residual(theta[rows], metal[rows], idx), full[rows] - 1.0)
 
 
+def test_log_targets_are_the_observed_logs_of_the_lights_at_the_rows(tiny):
+    """``LevelData.log_targets``: ``log_obs`` on a light set, pixel-major ``(N, L, 3)``, at the
+    listed rows (every pixel without rows), on a level and on a pixel subset, and anew once the
+    level is given new targets."""
+    from torchbrdf.capture.format import load_capture
+    from torchbrdf.recovery.levels import LevelData
+
+    cap = load_capture(tiny)
+    data = LevelData(cap, 32, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    idx, rows = [3, 1, 4], torch.tensor([9, 2, 2, 1023, 0])
+    want = data.log_obs[idx].permute(1, 0, 2)
+    assert torch.equal(data.log_targets(idx), want) and data.log_targets(idx).is_contiguous()
+    assert torch.equal(data.log_targets(idx, rows), want[rows])
+    sub = data.subset(rows)
+    assert torch.equal(sub.log_targets(idx), want[rows])
+    assert torch.equal(sub.log_targets(idx, torch.tensor([4, 0])), want[rows[[4, 0]]])
+    data.log_obs = data.log_obs + 1.0
+    assert torch.equal(data.log_targets(idx, rows), want[rows] + 1.0)
+
+
 def test_two_unary_priors_sum_to_one():
     """``sum_unary``: the target and precision whose quadratic is the two priors' sum (up to a constant)."""
     from torchbrdf.recovery.lm import sum_unary, unary_cost

@@ -20,6 +20,25 @@ def test_the_threshold_is_the_chi2_quantile_of_the_extra_unknowns():
     assert classes.evidence_threshold(7, 1e-6) > classes.evidence_threshold(7, RATE)
 
 
+def test_a_threshold_is_computed_once_per_unknowns_and_rate(monkeypatch):
+    """Each propagation pass asks for the class test's threshold: a ``(dof, p)`` quantile is
+    bisected once and then remembered (the same float), and bad arguments still raise."""
+    calls = []
+    gammainc = torch.special.gammainc
+
+    def counted(*args):
+        calls.append(1)
+        return gammainc(*args)
+
+    monkeypatch.setattr(torch.special, "gammainc", counted)
+    classes.chi2_quantile.cache_clear()
+    first = classes.evidence_threshold(7, 3e-3)
+    bisected = len(calls)
+    assert bisected > 10 and classes.evidence_threshold(7, 3e-3) == first and len(calls) == bisected
+    with pytest.raises(ValueError, match="dof > 0"):
+        classes.chi2_quantile(0, 0.5)
+
+
 def test_double_the_noise_deviation_needs_four_times_the_cost_drop():
     """A pixel whose metal fit is better by a drop between τσ² and 4τσ² is metal at σ and
     not at 2σ: the richer class needs four times the cost drop at twice the noise."""

@@ -540,10 +540,10 @@ def test_the_polish_stage_first_step_reuses_the_ties_linearisation(tiny):
     seen = []
     step = engine.lm_step
 
-    def spy(data, theta, metal, lam, cfg_, lr, extra=None, unary=None, gn=None):
+    def spy(data, theta, metal, lam, cfg_, lr, extra=None, unary=None, gn=None, residual=True):
         own = lm.gauss_newton(data, theta, metal, data.train_idx, cfg_.model)
         seen.append((gn, own, bool((theta != th0).any())))
-        return step(data, theta, metal, lam, cfg_, lr, extra, unary, gn)
+        return step(data, theta, metal, lam, cfg_, lr, extra, unary, gn, residual)
 
     engine.lm_step = spy
     try:
@@ -557,3 +557,26 @@ def test_the_polish_stage_first_step_reuses_the_ties_linearisation(tiny):
     assert gn is not None and gn2 is None and rec._stage_gn is None
     for a, b in zip(gn, own):
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_lm_step_hands_on_the_summed_squares_of_the_residuals_it_returns():
+    """``extra["data_cost"]`` is each pixel's summed squared ``extra["residual"]`` at the returned
+    unknowns, bit for bit (the fit loss takes it instead of summing the residuals again), for
+    pixels whose step was taken and pixels whose step was rejected; ``residual=False`` leaves
+    the residuals out and changes nothing else."""
+    from tests.recovery.recovery_fixtures import flat_level
+
+    data, theta, metal = flat_level(size=12)
+    gen = torch.Generator().manual_seed(5)
+    theta = theta + 0.3 * torch.randn(theta.shape, generator=gen)
+    theta[::7, 4] += 6.0  # far off in roughness: some steps are rejected
+    lam = torch.full((theta.shape[0], 1), 1e-2)
+    extra, lean = {}, {}
+    out = lm.lm_step(data, theta, metal, lam, Settings(), 1.0, extra)
+    lean_out = lm.lm_step(data, theta, metal, lam, Settings(), 1.0, lean, residual=False)
+    moved = (out[0] != theta).any(-1)
+    assert bool(moved.any()) and not bool(moved.all())
+    r = extra["residual"]
+    assert torch.equal(extra["data_cost"], (r * r).sum(-1, keepdim=True))
+    assert "residual" not in lean and torch.equal(lean["data_cost"], extra["data_cost"])
+    assert all(torch.equal(a, b) for a, b in zip(out[:3], lean_out[:3])) and out[3] == lean_out[3]

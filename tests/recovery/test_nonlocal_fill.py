@@ -252,15 +252,14 @@ def test_material_estimate_spread_with_stuck_members_from_a_robust_start():
             assert float(tau2.max()) < 2.0 * tau**2
 
 
-def test_fuse_walks_a_silent_pixel_out_of_the_dim_rough_extreme():
+def _dim_extreme(size=24):
     """A silent island held at a dim, rough extreme that fits its images (base colour and normal
-    refitted there) and a fill prior at the truth: a full Gauss–Newton step overshoots the
-    curved valley and raises the energy, the backtracked rounds reach the prior's value."""
+    refitted there) and a fill prior at the truth: ``(data, x, metal, unary, truth, island,
+    sigma2)``."""
     from torchbrdf.recovery.classes import residual_variance
     from torchbrdf.recovery.levels import LevelData
-    from torchbrdf.recovery.lm import gauss_newton, newton_step, pixel_cost, unary_cost
+    from torchbrdf.recovery.lm import gauss_newton, newton_step, pixel_cost
 
-    size = 24
     cap, island, strip = _island_capture(size)
     data = LevelData(cap, size, list(range(len(cap.files))), float(0.01 * cap.images.mean()))
     isl, st = island.flatten(), strip.flatten()
@@ -283,7 +282,17 @@ def test_fuse_walks_a_silent_pixel_out_of_the_dim_rough_extreme():
     sigma2 = residual_variance(pixel_cost(r), r.shape[-1])
     prec = torch.zeros_like(x)
     prec[:, 3:5] = sigma2 / 0.5**2  # the material's spread: 0.5 in logit
-    unary = (truth, prec)
+    return data, x, metal, (truth, prec), truth, isl, sigma2
+
+
+def test_fuse_walks_a_silent_pixel_out_of_the_dim_rough_extreme():
+    """A silent island held at a dim, rough extreme that fits its images and a fill prior at the
+    truth (:func:`_dim_extreme`): a full Gauss–Newton step overshoots the curved valley and
+    raises the energy, the backtracked rounds reach the prior's value."""
+    from torchbrdf.recovery.lm import gauss_newton, newton_step, pixel_cost, unary_cost
+
+    data, x, metal, unary, truth, isl, sigma2 = _dim_extreme()
+    prec, idx = unary[1], data.train_idx
 
     def energy(y):
         return (pixel_cost(data.residual(y, metal, idx, "principled")) + unary_cost(y, unary))[:, 0] / sigma2
@@ -303,3 +312,72 @@ def test_fuse_walks_a_silent_pixel_out_of_the_dim_rough_extreme():
     # (a few pixels beside the strip sit in a local minimum of their own: 4 of 216)
     assert float(((spec - 0.5).abs() < 0.05).float().mean()) > 0.95 and abs(float(spec.median()) - 0.5) < 0.01
     assert bool((energy(fused) <= energy(x)).all()) and float((energy(fused) - energy(x))[isl].median()) < -10
+
+
+def _fuse_fill_rendering_all(data, theta, metal, unary, rounds=2):
+    """:func:`priors.fuse_fill` as it reads, every round's pixels rendered at every halving: the
+    reference of the one that renders only the walkers a halving can still move."""
+    from torchbrdf.recovery.classes import residual_variance
+    from torchbrdf.recovery.lm import gauss_newton, newton_step, pixel_cost, unary_cost
+    from torchbrdf.recovery.search import BADLY_FITTED
+
+    tgt, prec = unary
+    idx, model = data.train_idx, "principled"
+    x = theta.clone()
+    rows = torch.arange(theta.shape[0])
+    for k in range(max(rounds, priors.FUSE_ROUNDS)):
+        sub = data if k == 0 else data.subset(rows)
+        xr, mr, un = x[rows], metal[rows], (tgt[rows], prec[rows])
+        r0, jtj, jtr = gauss_newton(sub, xr, mr, idx, model)
+        e_data = pixel_cost(r0)
+        if k == 0:
+            sigma2 = residual_variance(e_data, r0.shape[-1])
+            noise = float(e_data[torch.isfinite(e_data[:, 0]), 0].median())
+            walk = (metal[:, 0] < 0.5) & (e_data[:, 0] <= BADLY_FITTED * noise)
+        step = newton_step(jtj + torch.diag_embed(un[1]), jtr + un[1] * (xr - un[0]))
+        e0 = e_data + unary_cost(xr, un)
+        best, e_best, todo, t = xr, e0, torch.ones_like(e0, dtype=torch.bool), 1.0
+        for _ in range(priors.FUSE_HALVINGS + 1):
+            cand = xr + t * step
+            e1 = pixel_cost(sub.residual(cand, mr, idx, model)) + unary_cost(cand, un)
+            ok = todo & (e1 < e0)
+            best, e_best = torch.where(ok, cand, best), torch.where(ok, e1, e_best)
+            todo &= ~ok & walk[rows, None]
+            if not bool(todo.any()):
+                break
+            t *= 0.5
+        x[rows] = best
+        keep = ((e0 - e_best)[:, 0] >= sigma2) & walk[rows] if k + 1 >= rounds else torch.ones_like(walk[rows])
+        rows = rows[keep]
+        if rows.numel() == 0:
+            break
+    return x
+
+
+def test_fuse_halvings_render_only_the_walkers_they_can_still_move(monkeypatch):
+    """A round's halvings render only its walking pixels that no earlier step of the round
+    lowered, each fewer than the round's full step; the result is bit for bit that of rendering
+    every pixel at every halving."""
+    from torchbrdf.recovery.levels import LevelData
+
+    data, x, metal, unary, *_ = _dim_extreme()
+    reference = _fuse_fill_rendering_all(data, x, metal, unary)
+    log = []
+    residual, gauss_newton = LevelData.residual, priors.gauss_newton
+
+    def spy_residual(self, theta, *args, **kwargs):
+        log[-1].append(theta.shape[0])
+        return residual(self, theta, *args, **kwargs)
+
+    def spy_gauss_newton(*args, **kwargs):  # a round's start
+        log.append([])
+        return gauss_newton(*args, **kwargs)
+
+    monkeypatch.setattr(LevelData, "residual", spy_residual)
+    monkeypatch.setattr(priors, "gauss_newton", spy_gauss_newton)
+    fused = priors.fuse_fill(data, x, metal, unary, "principled")
+    monkeypatch.undo()
+    assert torch.equal(fused, reference)
+    halvings = [n for full, *rest in log for n in rest]
+    assert halvings, "the island's full steps overshoot: some pixels halve their step"
+    assert all(n < full for full, *rest in log for n in rest), log

@@ -168,8 +168,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     rows = torch.arange(0, theta.shape[0], stride, device=theta.device)
     t0, m = theta[rows], metal[rows]
     pts = data.points[rows]
-    # (the strided pixels first: a quarter of the time of gathering every pixel's lights)
-    log_obs = data.log_obs.index_select(1, rows)[idx].permute(1, 0, 2)  # (n, L, 3)
+    # (rows of the light set's cached targets, which the LM steps use: one contiguous gather)
+    log_obs = data.log_targets(idx, rows)  # (n, L, 3)
     inten0 = data.inten_stated[idx]
     pos0 = data.pos_stated[idx] + offset[idx]
     s0 = log_scale[idx]

@@ -332,7 +332,7 @@ class Recovery:
         shared_unary = sum_unary(st.get("fill") if kind == "all" else None,
                                   st.get("tie") if kind != "dual" else None)
         self.fit_cost = {}
-        residuals: dict[int, Tensor] = {}
+        residuals: dict[int, Tensor | None] = {}
         total = 0.0
         for h in hyps:
             metal = torch.full_like(st["lam"][h], float(h)) if kind == "dual" else st["metal"]
@@ -364,8 +364,11 @@ class Recovery:
                 theta, _ = normal_search(data, theta, metal, self.cfg.model)
             calibrate = self.cfg.light_scale and kind != "dual"
             extra: dict[str, Any] = {}
+            # (the residuals themselves feed the alternating light-scale steps and the fit loss of
+            # a stage with more than the training lights; the summed squares serve the rest)
+            keep_r = self.cfg.light_scale and not self.cfg.light_joint or list(data.train_idx) != self.train_idx
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
-                                              extra, unary, self._take_stage_gn(data, theta, metal))
+                                              extra, unary, self._take_stage_gn(data, theta, metal), residual=keep_r)
             self.fit_cost[h] = self._training_fit(extra, data)
             if calibrate and self.cfg.light_joint:
                 self._light_joint_step(data, theta, metal, self.cfg.light_position, size, unary)
@@ -381,7 +384,7 @@ class Recovery:
                 st["events"].append({"iteration": st["global_it"], "event": "non-finite loss", "pixels": n_bad,
                                      "action": "step rejected, damping raised"})
             st["theta"][h], st["lam"][h] = theta, lam
-            residuals[h] = extra["residual"]
+            residuals[h] = extra.get("residual")
             if h == 0 or kind != "dual":
                 total = float(cost.mean()) / max(1, len(data.train_idx) * 3)
         full = size == self.plan[-1][0]
@@ -399,7 +402,9 @@ class Recovery:
                 self._light_joint_step(data, theta, metal, self.cfg.light_position and full, size, None,
                                        at_camera=self.cfg.dual_calibration_at_camera)
             else:
-                better_res = torch.where(better, residuals[1], residuals[0])
+                r0, r1 = residuals[0], residuals[1]
+                assert r0 is not None and r1 is not None  # (kept: light_scale without light_joint)
+                better_res = torch.where(better, r1, r0)
                 st["light_log_scale"] = light_scale_step(better_res, data.train_idx, self.light_log_scale(),
                                                          self.train_idx)
                 self._sync_light_scale()
@@ -479,13 +484,17 @@ class Recovery:
 
     def _training_fit(self, extra: dict, data: LevelData) -> Tensor:
         """Data cost ``(P,)`` per training light and channel (non-finite: inf) from an LM step's
-        residuals ``extra["residual"] (P, 3 · len(data.train_idx))``; the "all" stage also fits
-        the held-out light, which the fit loss leaves out."""
-        r = extra["residual"]
-        if list(data.train_idx) != list(self.train_idx):
+        summed squares ``extra["data_cost"] (P, 1)``, or, in the "all" stage, which also fits
+        the held-out light the fit loss leaves out, from its residuals ``extra["residual"]
+        (P, 3 · len(data.train_idx))``."""
+        if list(data.train_idx) == list(self.train_idx):
+            cost = extra["data_cost"][:, 0]
+        else:
+            r = extra["residual"]
             cols = [3 * data.train_idx.index(k) + c for k in self.train_idx for c in range(3)]
             r = r.index_select(1, torch.tensor(cols, device=r.device))
-        return torch.nan_to_num((r * r).sum(-1), nan=float("inf")) / max(1, len(self.train_idx) * 3)
+            cost = (r * r).sum(-1)
+        return torch.nan_to_num(cost, nan=float("inf")) / max(1, len(self.train_idx) * 3)
 
     def _converged(self, size: int, fit: float) -> bool:
         """Whether the stage at ``size`` is done: its fit loss ``fit`` (this iteration's; in a

@@ -192,6 +192,11 @@ class LevelData:
         return capture_residual.normal_equations(p["normal"], points, self.camera, self.pos[idx], self.inten[idx],
                                                  p, log_obs, self.eps, {k: dp[k] for k in pattern}, pattern, n_t)
 
+    def log_targets(self, idx: list[int], rows: Tensor | None = None) -> Tensor:
+        """The log targets ``(N, len(idx), 3)`` on lights ``idx`` of pixels ``rows (N,)`` (int64;
+        None: every pixel), gathered from the light set's cached ``(P, L, 3)``."""
+        return self._targets(idx, "principled", rows)[1]
+
     def _targets(self, idx: list[int], model: str, rows: Tensor | slice | None
                  ) -> tuple[Tensor, Tensor, dict | None]:
         """The pixels' points ``(N, 3)``, log targets ``(N, L, 3)`` and light geometry.

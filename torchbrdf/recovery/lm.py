@@ -18,7 +18,8 @@ from torchbrdf.recovery.config import Settings
 from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.params import N_PARAMS
 from torchbrdf.recovery.pixel_systems import inverse_diagonal, to_lanes
-from torchbrdf.recovery.smoothness_prior import edge_weights, laplacian, laplacian_diag, pcg, prior_energy
+from torchbrdf.recovery.smoothness_prior import (edge_weights, joined_channels, laplacian, laplacian_diag, pcg,
+                                                 prior_energy)
 
 
 def fit_jacobian(jvp: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tensor, n_t: int
@@ -131,13 +132,16 @@ def map_prior_terms(theta: Tensor, metal: Tensor, size: int, cfg: Settings,
 
 def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Settings, lr: float,
             extra: dict | None = None, unary: tuple[Tensor, Tensor] | None = None,
-            gn: tuple[Tensor, Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor, int]:
+            gn: tuple[Tensor, Tensor, Tensor] | None = None, residual: bool = True
+            ) -> tuple[Tensor, Tensor, Tensor, int]:
     """One Levenberg–Marquardt iteration with the coupled smoothness prior.
 
     ``theta (P, 7)`` unknowns, ``metal (P, 1)`` classes, ``lam (P, 1)`` per-pixel damping;
     ``lr`` scales the step. Returns ``(theta, lam, cost (P, 1), n_nonfinite)``; when ``extra``
-    (a dict) is given, ``extra["residual"]`` receives the residuals ``(P, M)`` at the returned
-    ``theta`` (for the light-scale update and the fit loss, without another render). ``unary = (target, precision)``
+    (a dict) is given, ``extra["data_cost"]`` receives each pixel's summed squared residuals
+    ``(P, 1)`` and, unless ``residual`` is false, ``extra["residual"]`` the residuals ``(P, M)``,
+    both at the returned ``theta`` (for the light-scale update and the fit loss, without
+    another render; the summed squares are those of the residuals). ``unary = (target, precision)``
     ``(P, 7)`` each adds ``½ Σ precision (θ − target)²`` (the non-local fill, :func:`nonlocal_fill`,
     and the metals' F0 tie, :func:`nonlocal_prior`). ``gn``: :func:`gauss_newton`'s result at
     ``theta`` on these lights when the caller has it (else computed).
@@ -156,18 +160,23 @@ def lm_step(data: LevelData, theta: Tensor, metal: Tensor, lam: Tensor, cfg: Set
     step = pcg(jtj, wx, wy, -g, size, cfg.cg_iters, diag=damp if unary is None else damp + unary[1])
     step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0).clamp(-3, 3)
     inf = float("inf")  # (a non-finite cost is +inf: it never wins, and n_nonfinite counts it)
-    c0 = (r0 * r0).sum(-1, keepdim=True) + prior_energy(theta, wx, wy, size) + unary_cost(theta, unary)
+    ch = joined_channels(wx, wy)
+    d0 = (r0 * r0).sum(-1, keepdim=True)
+    c0 = d0 + prior_energy(theta, wx, wy, size, ch) + unary_cost(theta, unary)
     c0 = torch.nan_to_num(c0, nan=inf, posinf=inf, neginf=inf)
     cand = theta + lr * step
     r1 = fn(cand)
-    c1 = (r1 * r1).sum(-1, keepdim=True) + prior_energy(cand, wx, wy, size) + unary_cost(cand, unary)
+    d1 = (r1 * r1).sum(-1, keepdim=True)
+    c1 = d1 + prior_energy(cand, wx, wy, size, ch) + unary_cost(cand, unary)
     c1 = torch.nan_to_num(c1, nan=inf, posinf=inf, neginf=inf)
     better = c1 < c0
     theta = torch.where(better, cand, theta)
     lam = torch.where(better, (lam * 0.3).clamp(min=1e-5), (lam * 10).clamp(max=1e6))
     cost = torch.where(better, c1, c0)
     if extra is not None:
-        extra["residual"] = torch.where(better, r1, r0)
+        extra["data_cost"] = torch.where(better, d1, d0)
+        if residual:
+            extra["residual"] = torch.where(better, r1, r0)
     return theta, lam, cost, int((c1 == inf).sum())
 
 

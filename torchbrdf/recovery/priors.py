@@ -417,18 +417,25 @@ def fuse_fill(data: LevelData, theta: Tensor, metal: Tensor, unary: tuple[Tensor
             walk = (metal[:, 0] < 0.5) & (e_data[:, 0] <= BADLY_FITTED * noise)
         step = newton_step(jtj + torch.diag_embed(un[1]), jtr + un[1] * (xr - un[0]))
         e0 = e_data + unary_cost(xr, un)
-        best, e_best = xr, e0
-        todo = torch.ones_like(e0, dtype=torch.bool)
+        # The full step on every pixel; each halving only on the walkers it has not yet lowered
+        # (the others' values are final: rendering them again changed nothing).
+        cand = xr + step
+        e1 = pixel_cost(sub.residual(cand, mr, idx, model)) + unary_cost(cand, un)
+        ok = e1 < e0
+        best, e_best = torch.where(ok, cand, xr), torch.where(ok, e1, e0)
+        at = (~ok[:, 0] & walk[rows]).nonzero()[:, 0]  # (of this round's rows)
         t = 1.0
-        for _ in range(FUSE_HALVINGS + 1):
-            cand = xr + t * step
-            e1 = pixel_cost(sub.residual(cand, mr, idx, model)) + unary_cost(cand, un)
-            ok = todo & (e1 < e0)
-            best, e_best = torch.where(ok, cand, best), torch.where(ok, e1, e_best)
-            todo &= ~ok & walk[rows, None]
-            if not bool(todo.any()):
+        for _ in range(FUSE_HALVINGS):
+            if at.numel() == 0:
                 break
             t *= 0.5
+            cand = xr[at] + t * step[at]
+            e1 = (pixel_cost(sub.residual(cand, mr[at], idx, model, rows=at))
+                  + unary_cost(cand, (un[0][at], un[1][at])))
+            ok = e1 < e0[at]
+            best[at] = torch.where(ok, cand, best[at])
+            e_best[at] = torch.where(ok, e1, e_best[at])
+            at = at[~ok[:, 0]]
         x[rows] = best
         # the next round: every pixel while its full steps last, then those walking on
         keep = ((e0 - e_best)[:, 0] >= sigma2) & walk[rows] if k + 1 >= rounds else torch.ones_like(walk[rows])

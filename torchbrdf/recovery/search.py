@@ -16,7 +16,7 @@ from torchbrdf.recovery.levels import LevelData
 from torchbrdf.recovery.lm import pixel_cost, unary_cost
 from torchbrdf.recovery.map_ops import dilate
 from torchbrdf.recovery.params import N_PARAMS
-from torchbrdf.recovery.smoothness_prior import edge_weights, local_prior, row_neighbours
+from torchbrdf.recovery.smoothness_prior import edge_weights, joined_channels, local_prior, row_neighbours
 
 
 def propagate(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
@@ -126,8 +126,9 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
     at = None if active is None else rows
     # (the neighbours of the active rows, gathered once for the own and the candidates' terms)
     around = None if active is None or size < 2 else row_neighbours(theta, wx, wy, size, rows)
-    own_prior = local_prior(own, theta, wx, wy, size, at, around) + unary_cost(own, un)
-    prior = local_prior(cand, theta, wx, wy, size, at, around) + unary_cost(cand, un)  # (8, N, 1)
+    ch = joined_channels(wx, wy)
+    own_prior = local_prior(own, theta, wx, wy, size, at, around, ch) + unary_cost(own, un)
+    prior = local_prior(cand, theta, wx, wy, size, at, around, ch) + unary_cost(cand, un)  # (8, N, 1)
     if active is None:
         # Every pixel: each candidate set is rendered at the level's own targets, with no gather.
         # (Stacking the 9 sets into one call renders the same lanes but gathers 9 × P rows of

@@ -92,13 +92,28 @@ def laplacian_diag(wx: Tensor, wy: Tensor, size: int) -> Tensor:
     return d.reshape(-1, wx.shape[-1])
 
 
-def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int) -> Tensor:
+def joined_channels(wx: Tensor, wy: Tensor) -> slice:
+    """The channels ``lo:hi`` outside which every edge weight of ``wx``, ``wy`` is 0 (empty: all are).
+
+    Only these channels carry prior terms (a dielectric map's specular and roughness; with
+    metals, their base colour too; never the normal's slopes). One host read.
+    """
+    c = wx.shape[-1]
+    # (any over rows, then columns: twice as fast as one reduction of the flattened (S(S-1), C))
+    joined = ((wx != 0).any(0).any(0) | (wy != 0).any(0).any(0)).nonzero()[:, 0].tolist()
+    return slice(joined[0], joined[-1] + 1) if joined else slice(c, c)
+
+
+def prior_energy(theta: Tensor, wx: Tensor, wy: Tensor, size: int, channels: slice | None = None) -> Tensor:
     """Per-pixel share ``(P, 1)`` of the prior energy, on the scale of the ``|r|²`` data cost.
 
     The objective is ``½|r|² + ½ Σ_edges w Δθ²``; twice it, split half of each edge to each
-    end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total).
+    end, gives ``|r|² + ½ Σ_q w_pq Δθ²`` per pixel (summing to the total). ``channels``:
+    :func:`joined_channels` of ``wx``, ``wy`` when the caller has it (else found here).
     """
-    img = theta.reshape(size, size, -1)
+    ch = joined_channels(wx, wy) if channels is None else channels
+    img = theta.reshape(size, size, -1)[..., ch]
+    wx, wy = wx[..., ch], wy[..., ch]
     ex = _edge_term(img[:, :-1], img[:, 1:], wx)
     ey = _edge_term(img[:-1], img[1:], wy)
     e = torch.zeros(size, size, 1, dtype=theta.dtype, device=theta.device)
@@ -137,13 +152,12 @@ def pcg(hess: Tensor, wx: Tensor, wy: Tensor, rhs: Tensor, size: int, iters: int
     (``dᵀ A d`` not positive and finite) freezes ``x`` where it is, as stopping would.
     """
     c = rhs.shape[1]
-    # (any over rows, then columns: twice as fast as one reduction of the flattened (S(S-1), C))
-    joined = ((wx != 0).any(0).any(0) | (wy != 0).any(0).any(0)).nonzero()[:, 0].tolist()
-    lo, hi = (joined[0], joined[-1] + 1) if joined else (c, c)
+    ch = joined_channels(wx, wy)
+    lo, hi = ch.start, ch.stop
     u = [k for k in range(c) if k < lo or k >= hi]
     nu, order = len(u), u + list(range(lo, hi))
     out = torch.empty_like(rhs)
-    if not joined:  # no coupling: each pixel's block alone
+    if lo == hi:  # no coupling: each pixel's block alone
         h = to_lanes(hess, order=order)
         if diag is not None:
             h.diagonal(dim1=0, dim2=1).add_(diag[:, order])  # (a (P, C) view)
@@ -299,7 +313,8 @@ def _torch_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, size: 
 
 
 def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
-                rows: Tensor | None = None, around: tuple | None = None) -> Tensor:
+                rows: Tensor | None = None, around: tuple | None = None,
+                channels: slice | None = None) -> Tensor:
     """``Σ_q w_pq (cand_p − θ_q)²`` over each pixel's 4 neighbours ``q`` ``(*, N, 1)``: the change
     of (twice) the prior energy, up to a constant, if pixel ``p`` alone took ``cand_p``.
 
@@ -309,13 +324,17 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
     (right, left, lower, upper neighbour) whatever the batch or the rows, so a candidate's
     value does not depend on which others share the call. ``around``: :func:`row_neighbours`
     of these ``rows`` when the caller has them (several calls on the same pixels gather them
-    once). ``cand``'s dtype and device.
+    once); ``channels``: :func:`joined_channels` of ``wx``, ``wy`` when the caller has it (else
+    found here). Only those channels are summed: elsewhere every weight is 0, and so is each
+    term of finite values. ``cand``'s dtype and device.
     """
     c = theta.shape[1]
     if size < 2:  # a single pixel has no neighbours
         return cand.new_zeros(*cand.shape[:-1], 1)
+    ch = joined_channels(wx, wy) if channels is None else channels
     if rows is None:  # every pixel: the edges are slices of the image (no gather)
-        a, t = cand.reshape(*cand.shape[:-2], size, size, c), theta.reshape(size, size, c)
+        a, t = cand.reshape(*cand.shape[:-2], size, size, c)[..., ch], theta.reshape(size, size, c)[..., ch]
+        wx, wy = wx[..., ch], wy[..., ch]
         e = torch.zeros(*a.shape[:-1], 1, dtype=cand.dtype, device=cand.device)
         e[..., :, :-1, :] += _edge_term(a[..., :, :-1, :], t[:, 1:], wx)
         e[..., :, 1:, :] += _edge_term(a[..., :, 1:, :], t[:, :-1], wx)
@@ -324,7 +343,7 @@ def local_prior(cand: Tensor, theta: Tensor, wx: Tensor, wy: Tensor, size: int,
         return e.reshape(*cand.shape[:-1], 1)
     terms = []
     for tq, wq, has in (around if around is not None else row_neighbours(theta, wx, wy, size, rows)):
-        term = _edge_term(cand, tq, wq)
+        term = _edge_term(cand[..., ch], tq[..., ch], wq[..., ch])
         terms.append(torch.where(has[:, None], term, torch.zeros_like(term)))
     return terms[0] + terms[1] + terms[2] + terms[3]
 

@@ -1,0 +1,23 @@
+"""torchbrdf.bench.fit_time: the table of alternated fits, and its flags."""
+
+import pytest
+
+from torchbrdf.bench import fit_time
+
+
+def test_table_gives_min_median_max_per_capture_threads_and_tree():
+    rows = [{"capture": "demo", "threads": 1, "tree": t, "rep": k, "seconds": s, "cpu": c, "psnr": 70.5}
+            for k, (s, c) in enumerate([(3.0, 2.9), (2.0, 1.9), (4.0, 3.5)]) for t in ("base", "new")]
+    rows.append({"capture": "/tmp/cap256", "threads": 2, "tree": "new", "rep": 0, "seconds": 5.0, "cpu": 8.0,
+                 "psnr": None})
+    lines = fit_time.table(rows).splitlines()
+    assert len(lines) == 5
+    assert lines[2] == "| demo | 1 | base | 2.00 / 3.00 / 4.00 | 1.90 / 2.90 / 3.50 | 70.500000 |"
+    assert lines[4] == "| cap256 | 2 | new | 5.00 / 5.00 / 5.00 | 8.00 / 8.00 / 8.00 |  |"
+
+
+@pytest.mark.parametrize("tree", ["nodir", "x=/nonexistent/tree", "=/tmp"])
+def test_a_bad_tree_is_one_line_naming_the_flag(tree, capsys):
+    with pytest.raises(SystemExit) as e:
+        fit_time.main(["--tree", tree])
+    assert e.value.code == 2 and "--tree: expected NAME=DIR" in capsys.readouterr().err

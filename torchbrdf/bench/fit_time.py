@@ -1,0 +1,119 @@
+"""``python -m torchbrdf.bench.fit_time``: a recovery's time, one source tree against another, alternated.
+
+Each repetition runs, for each capture and thread count asked for, one fit per source tree
+(``--tree NAME=DIR``, at least one; each fit a fresh process with ``PYTHONPATH=DIR``, the trees
+in alternating order), and records the fit's wall time (``seconds`` of its ``report.json``)
+and its CPU time (the process's, all threads, around the iterations alone: less sensitive
+to other processes' load than wall time on a shared machine). The table gives min / median /
+max over the repetitions and the held-out PSNRs seen (one value per row when every fit of a
+tree took the same decisions). ``--busy`` runs everything beside one
+``python -c "while True: pass"``.
+
+Captures: ``demo`` (the CLI's ``--demo``, 128²) or a capture folder (e.g. the 256² 17-light
+``generate_capture(folder, recipe="tiles", seed=7)``). Results: docs/recovery_measurements.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+#: The child: the CLI, with the fit's process CPU time written to argv[1] (only the public CLI
+#: and ``api``'s loop are used, so any tree of the project runs it).
+_CHILD = r"""
+import sys, time
+import torchbrdf.recovery.api as api
+inner = api._iterate_until_done_or_stopped
+def timed(*a, **k):
+    c = time.process_time()
+    try:
+        return inner(*a, **k)
+    finally:
+        open(sys.argv[1], "w").write(repr(time.process_time() - c))
+api._iterate_until_done_or_stopped = timed
+from torchbrdf.recovery.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def run_fit(tree: str, capture: str, threads: int) -> dict:
+    """One fit of ``capture`` (``"demo"`` or a folder) with the sources of ``tree`` in a fresh process:
+    ``{"seconds", "cpu", "psnr"}``."""
+    with tempfile.TemporaryDirectory(prefix="fit_time_") as d:
+        cpu_file = os.path.join(d, "cpu")
+        args = ["--demo"] if capture == "demo" else ["--capture", capture]
+        subprocess.run([sys.executable, "-c", _CHILD, cpu_file, *args, "--out", os.path.join(d, "out"),
+                        "--threads", str(threads), "--quiet"], cwd=tree, check=True,
+                       env=dict(os.environ, PYTHONPATH=tree), stdout=subprocess.DEVNULL)
+        report = json.loads(Path(d, "out", "report.json").read_text())
+        return {"seconds": float(report["seconds"]), "cpu": float(Path(cpu_file).read_text()),
+                "psnr": (report.get("held_out_light") or {}).get("psnr")}
+
+
+def _mmm(xs: Sequence[float]) -> str:
+    return f"{min(xs):.2f} / {statistics.median(xs):.2f} / {max(xs):.2f}"
+
+
+def table(rows: Sequence[dict]) -> str:
+    """Markdown rows: capture, threads, tree, seconds and CPU seconds (min / median / max), PSNRs."""
+    out = ["| capture | threads | tree | seconds (min / median / max) | CPU s (min / median / max) | held-out PSNR |",
+           "|---|---|---|---|---|---|"]
+    keys = dict.fromkeys((r["capture"], r["threads"], r["tree"]) for r in rows)
+    for cap, th, tree in keys:
+        sel = [r for r in rows if (r["capture"], r["threads"], r["tree"]) == (cap, th, tree)]
+        psnr = ", ".join(f"{p:.6f}" for p in sorted({r["psnr"] for r in sel if r["psnr"] is not None}))
+        out.append(f"| {Path(cap).name} | {th} | {tree} | {_mmm([r['seconds'] for r in sel])} | "
+                   f"{_mmm([r['cpu'] for r in sel])} | {psnr} |")
+    return "\n".join(out)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m torchbrdf.bench.fit_time", description=__doc__.split("\n")[0])
+    ap.add_argument("--tree", action="append", required=True, metavar="NAME=DIR",
+                    help="a source tree to time (repeat: the trees alternate)")
+    ap.add_argument("--capture", action="append", default=None,
+                    help="'demo' or a capture folder (repeat; default: demo)")
+    ap.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
+    ap.add_argument("--reps", type=int, default=5, help="repetitions (default 5)")
+    ap.add_argument("--busy", action="store_true", help="beside one busy Python process")
+    ap.add_argument("--json", default=None, help="write the fits' rows to this file")
+    args = ap.parse_args(argv)
+    trees = {}
+    for spec in args.tree:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not Path(path, "torchbrdf").is_dir():
+            ap.error(f"--tree: expected NAME=DIR with DIR/torchbrdf a folder, got {spec!r}")
+        trees[name] = str(Path(path).resolve())
+    threads = [int(t) for t in args.threads.split(",")]
+    captures = args.capture or ["demo"]
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.busy else None
+    rows = []
+    try:
+        for rep in range(args.reps):
+            for cap in captures:
+                for k, th in enumerate(threads):
+                    names = list(trees)
+                    order = names if (rep + k) % 2 == 0 else names[::-1]
+                    for name in order:
+                        rows.append({"capture": cap, "threads": th, "tree": name, "rep": rep,
+                                     **run_fit(trees[name], cap, th)})
+                        print(json.dumps(rows[-1]), flush=True)
+    finally:
+        if busy is not None:
+            busy.kill()
+            busy.wait()
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
