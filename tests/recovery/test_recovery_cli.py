@@ -75,6 +75,22 @@ def test_fingerprint_ignores_threads_and_checkpoint_frequency(stopped, cap, tmp_
     assert main(argv) == 0
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_resume_on_another_thread_count_warns_that_the_rounding_differs(stopped, cap, tmp_path, threads):
+    # Another thread count reorders torch's reductions: the resumed maps are not the
+    # uninterrupted run's bit for bit, which the docs promise only for the same count.
+    out = _copy(stopped, tmp_path)  # made with one thread
+    logged: list[str] = []
+    before = torch.get_num_threads()
+    try:
+        recover(cap, RecoveryConfig(iters=4, threads=threads), out=out, resume=True, log=logged.append,
+                progress=False)
+    finally:
+        torch.set_num_threads(before)
+    warnings = [m for m in logged if "made with 1 thread(s), this run has 2" in m]
+    assert len(warnings) == (threads == 2), logged
+
+
 # --------------------------------------------------------------------------------------
 # Outputs are one unit
 # --------------------------------------------------------------------------------------

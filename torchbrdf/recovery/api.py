@@ -248,6 +248,8 @@ def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint:
     torch.manual_seed(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    # not a setting of the result, but its rounding: a resume on another count is told so
+    fingerprint["threads"] = torch.get_num_threads()
     rec = Recovery(cap, cfg, out, log, prior)
     rec.fingerprint = fingerprint  # type: ignore[attr-defined]  # stored by save_checkpoint
     if not resume:
@@ -276,6 +278,10 @@ def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint:
             raise RecoveryError(f"--resume --force: {ck} has another schedule ({', '.join(sdiff)}); "
                                 "iterations, size and levels cannot change in a resumed run")
         forced.extend(sdiff)
+        if old.get("threads", fingerprint["threads"]) != fingerprint["threads"]:
+            log(f"warning: --resume: {ck} was made with {old['threads']} thread(s), this run has "
+                f"{fingerprint['threads']}; the maps will differ from an uninterrupted run's by rounding "
+                "(--threads repeats a run bit for bit)")
 
     try:
         rec.load_checkpoint(cast(Path, ck), check=check)

@@ -26,7 +26,8 @@ __all__ = ["RESULT_INDEPENDENT", "capture_fingerprint", "settings_fingerprint", 
            "settings_differences", "digest", "sha256_file", "folder_fingerprint", "state_checksum",
            "checkpoint_problems"]
 
-#: Settings that do not change the result (excluded from the fingerprint).
+#: Settings excluded from the fingerprint: they change the result at most by rounding (threads,
+#: device: another reduction order) or not at all, so a checkpoint made with others resumes.
 RESULT_INDEPENDENT = frozenset({"threads", "device", "checkpoint_every", "signal_at"})
 
 
