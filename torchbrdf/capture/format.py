@@ -589,8 +589,9 @@ def write_capture(
     json_path = folder / CAPTURE_JSON
     with atomic_path(json_path) as tmp:
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    for name in sorted(set(replaced) - set(files)):  # the replaced capture's images: not left stale
-        (folder / name).unlink(missing_ok=True)
+    for name in sorted(set(replaced) - set(files) - {CAPTURE_JSON}):  # the replaced capture's images
+        if (folder / name).is_file():
+            (folder / name).unlink()
     return json_path
 
 
