@@ -231,13 +231,10 @@ class Recovery:
         information at the stage's start plus the precision of ``capture_unary``, the unary
         priors made from the same material's measured pixels (the F0 tie, the non-local fill).
 
-        Off in the dual stages, where each pixel's class is still open: there the network enters
-        through its metallic in the class choice only. Its maps pulling both hypotheses' fits
-        (each by the network's probability of that class) made the two fits unequal, and the
-        class test, which compares their data costs, then chose the hypothesis the network
-        pulled less (a dielectric it calls dielectric, pulled to its wrong maps, lost to the
-        free metal fit); and before a dual stage has converged, the residual variance that sets
-        the prior's weight is the fit's own misfit, not the capture's noise."""
+        Off in the dual stages, where the network enters through its metallic in the class choice
+        only: a pull on both hypotheses' fits makes their data costs unequal, so the class test
+        would favour the one pulled less, and before they converge the residual variance that
+        weights the prior is the fit's misfit, not the noise (docs/recovery.md, Learned prior)."""
         if self.prior is None or kind == "dual":
             return None
         if self.state.get("prior_information") is None:  # a run resumed with a prior it did not have
