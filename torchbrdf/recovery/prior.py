@@ -341,6 +341,20 @@ def _flat(m: Tensor) -> Tensor:
     return m.reshape(m.shape[0], -1).T
 
 
+def _scalar_terms(theta: Tensor, maps: Mapping[str, Tensor], errors: Mapping[str, float]
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The five scalar map channels (base colour RGB, specular, roughness) of ``theta (P, 7)``:
+    their values ``(P, 5)``, slopes ``d value / d logit`` ``(P, 5)`` (at least 1e-6), the
+    network's values ``(P, 5)`` from ``maps`` and its errors ``(5,)`` from ``errors``."""
+    s = torch.sigmoid(theta[:, :5])
+    lo = torch.tensor([0.0] * 4 + [R_MIN], dtype=theta.dtype, device=theta.device)
+    span = torch.tensor([1.0] * 4 + [R_MAX - R_MIN], dtype=theta.dtype, device=theta.device)
+    want = torch.cat([_flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness")], -1)
+    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
+                         dtype=theta.dtype, device=theta.device)
+    return lo + span * s, (span * s * (1 - s)).clamp(min=1e-6), want, sigma
+
+
 def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, errors: Mapping[str, float],
                 class_weight: Tensor | float = 1.0, information: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The learned prior as a unary term ``(target, precision)`` ``(P, 7)`` of the recovery's unknowns.
@@ -375,18 +389,10 @@ def prior_unary(theta: Tensor, maps: Mapping[str, Tensor], noise_var: float, err
     Returns:
         ``target (P, 7)`` and ``precision (P, 7)`` (>= 0), in ``theta``'s dtype and device.
     """
-    rows = {k: _flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness", "normal")}
-    prior_theta = encode(rows)
-    s = torch.sigmoid(theta[:, :5])
-    lo = torch.tensor([0.0] * 4 + [R_MIN], dtype=theta.dtype, device=theta.device)
-    span = torch.tensor([1.0] * 4 + [R_MAX - R_MIN], dtype=theta.dtype, device=theta.device)
-    value = lo + span * s
-    slope = (span * s * (1 - s)).clamp(min=1e-6)  # d value / d logit
-    want = torch.cat((rows["base_color"], rows["specular"], rows["roughness"]), -1)
+    prior_theta = encode({k: _flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness", "normal")})
+    value, slope, want, sigma = _scalar_terms(theta, maps, errors)
     # (a logit far out in a saturated tail is moved at most 8 by one linearisation)
     target = torch.cat((theta[:, :5] - ((value - want) / slope).clamp(-8.0, 8.0), prior_theta[:, 5:7]), -1)
-    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
-                         dtype=theta.dtype, device=theta.device)
     precision = torch.cat(((slope / sigma) ** 2, torch.full_like(theta[:, 5:7], errors["normal"] ** -2.0)), -1)
     precision = float(noise_var) * precision * class_weight
     if information is not None:
@@ -442,15 +448,7 @@ def measured_map_errors(theta: Tensor, maps: Mapping[str, Tensor], noise_var: fl
     Returns:
         name -> ``σ_m``, the keys of ``errors``.
     """
-    rows = {k: _flat(maps[k]).to(theta) for k in ("base_color", "specular", "roughness")}
-    s = torch.sigmoid(theta[:, :5])
-    lo = torch.tensor([0.0] * 4 + [R_MIN], dtype=theta.dtype, device=theta.device)
-    span = torch.tensor([1.0] * 4 + [R_MAX - R_MIN], dtype=theta.dtype, device=theta.device)
-    value = lo + span * s
-    slope = (span * s * (1 - s)).clamp(min=1e-6)  # d value / d logit, as prior_unary
-    want = torch.cat((rows["base_color"], rows["specular"], rows["roughness"]), -1)
-    sigma = torch.tensor([errors["base_color"]] * 3 + [errors["specular"], errors["roughness"]],
-                         dtype=theta.dtype, device=theta.device)
+    value, slope, want, sigma = _scalar_terms(theta, maps, errors)
     prec = float(noise_var) * (slope / sigma) ** 2
     info = torch.nan_to_num(information[:, :5].to(prec), nan=0.0).clamp(min=0.0)
     share = info / (info + prec).clamp(min=1e-30)
