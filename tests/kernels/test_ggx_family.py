@@ -39,7 +39,7 @@ def _unit(x):
 
 def _case(seed, count, dtype=torch.float64):
     """Random directions mostly above the horizon, with the model's edge lanes first: normal
-    incidence (``h = n``, where the GGX denominator's floor ties), ``l = -v`` (no half vector),
+    incidence (``h = n``: the cosines' clamps at 1 kink there), ``l = -v`` (no half vector),
     below the horizon, roughness 0 and 1."""
     g = torch.Generator().manual_seed(seed)
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -104,13 +104,30 @@ def test_fused_equals_eager_values_and_gradients(monkeypatch, floor, dtype, vtol
     for k in inputs:
         scale = float(g_e[k].abs().max())
         torch.testing.assert_close(g_f[k], g_e[k], rtol=0, atol=gtol * scale, msg=k)
-    # normal incidence (a tie of the denominator's floor: ATen's maximum halves the gradient)
-    torch.testing.assert_close(g_f["n"][:4], g_e["n"][:4], rtol=1e-12 if dtype == torch.float64 else 1e-5, atol=0)
+
+
+def test_maximum_ties_split_the_gradient_as_aten(monkeypatch):
+    """With the denominator's floor raised to its tie value (``min(alpha^2, 1)``, reached at
+    normal incidence and at roughness 1), the kernels' ``maximum`` gives each side half the
+    gradient at a tie, as ATen's does on the eager path."""
+    monkeypatch.setattr(_fast, "_libs", {})
+    monkeypatch.setattr(formula, "GGX_DEN_FLOOR", 1.0)
+    inputs = _case(18, 64)
+    go = torch.ones(64, 3, dtype=torch.float64)
+    out_f, g_f = _eval(True, inputs, go)
+    out_e, g_e = _eval(False, inputs, go)
+    lanes = list(range(4)) + [10, 11]  # h = n, roughness 1
+    for k in inputs:
+        torch.testing.assert_close(g_f[k][lanes], g_e[k][lanes], rtol=1e-12, atol=1e-12, msg=k)
+    # and the tie is real: the default floor gives another gradient in those lanes
+    monkeypatch.undo()
+    _, g_smooth = _eval(False, inputs, go)
+    assert not torch.allclose(g_smooth["roughness"][[10, 11]], g_e["roughness"][[10, 11]], rtol=1e-3)
 
 
 def test_gradcheck_float64_on_the_fused_path(fast, monkeypatch):
-    # past the edge lanes: at normal incidence the denominator's floor ties (a kink)
-    inputs = {k: t[12:].clone().requires_grad_() for k, t in _case(3, 36).items()}
+    # past the normal-incidence lanes (the cosines' clamps at 1 kink there)
+    inputs = {k: t[4:].clone().requires_grad_() for k, t in _case(3, 28).items()}
     names = list(inputs)
 
     def f(*ts):
@@ -303,8 +320,8 @@ def test_torch_compile_fullgraph_runs_the_fused_operator():
     module = torch.compile(torchbrdf.SVBRDFGGX(roughness_floor=1e-3), fullgraph=True, backend=backend)
     counters.clear()
     for lanes in (100, 8192):
-        # past the edge lanes: where the denominator's floor ties, float32 rounding picks the branch
-        c = {k: t[12:] for k, t in _case(15, lanes + 12, torch.float32).items()}
+        # past the normal-incidence lanes: at the cosines' kinks float32 rounding picks the branch
+        c = {k: t[4:] for k, t in _case(15, lanes + 4, torch.float32).items()}
         args = [c["l"], c["v"], c["n"], c["diffuse_albedo"], c["specular_albedo"].requires_grad_(),
                 c["roughness"].requires_grad_()]
         graphs.clear()

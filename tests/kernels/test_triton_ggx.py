@@ -69,9 +69,9 @@ def _run(backend, inputs, grad_out=None, **extra):
 @pytest.mark.parametrize("dtype, vtol, gtol", [(torch.float64, 1e-13, 1e-10), (torch.float32, 2e-6, 2e-6)],
                          ids=["float64", "float32"])
 def test_values_gradients_and_jvp_match_eager(dtype, vtol, gtol, launches):
-    # Without the lanes at normal incidence and roughness 1: there the denominator's floor ties,
-    # and NumPy's rounding may pick the other branch of the kink (another subgradient).
-    inputs = {k: torch.cat([t[4:8], t[12:]]) for k, t in _case(20, 520, dtype).items()}
+    # Without the normal-incidence lanes: the cosines' clamps at 1 kink there, and NumPy's
+    # rounding may pick the other branch (another subgradient).
+    inputs = {k: t[4:] for k, t in _case(20, 516, dtype).items()}
     go = torch.rand(512, 3, generator=torch.Generator().manual_seed(21), dtype=dtype)
     out_t, g_t = _run("triton", inputs, go, roughness_floor=1e-3)
     assert launches == ["fwd", "bwd"]

@@ -468,6 +468,8 @@ def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, fram
 # Unreal's spherical-Gaussian fit of Schlick's (1 - c)^5: 2^((SG_A c + SG_B) c) (Karis 2013).
 SG_A = -5.55473
 SG_B = -6.98316
+# The GGX denominator's floor as a fraction of its least value for unit vectors, min(alpha^2, 1).
+GGX_DEN_FLOOR = 0.5
 
 
 def fresnel_sg(ops: Ops, f0: Value, v_dot_h: Value) -> Value:
@@ -507,8 +509,9 @@ def svbrdf_ggx(ops: Ops, c: dict, active: tuple = (), need_tint: bool = False, f
         alpha = ops.clamp_min(r * r, c.get("alpha_floor", ALPHA_MIN))
     a2 = alpha * alpha
     base = ops.cross_norm2(n, h) + a2 * nh * nh  # = (n.h)^2 (a2 - 1) + 1, without cancellation
-    # For unit h, base >= min(a2, 1); the floor only acts where h degenerates (l = -v).
-    base = ops.maximum(base, ops.clamp(a2, 0.0, 1.0))
+    # For unit h, base >= min(a2, 1) (equal at roughness 1 and at h = n); the floor, half that so
+    # it never ties there, only acts where h degenerates (l = -v): d stays below 4 / (pi a2).
+    base = ops.maximum(base, GGX_DEN_FLOOR * ops.clamp(a2, 0.0, 1.0))
     d = a2 / (math.pi * base * base)
     k = 0.5 * alpha
     vis = 1.0 / (4.0 * (nl * (1.0 - k) + k) * (nv * (1.0 - k) + k))  # G / (4 n.l n.v), cancelled
