@@ -368,3 +368,31 @@ def test_zero_lanes_forward_and_backward(fast, monkeypatch):
     assert out.shape == (0, 3) and len(fwd) == 1
     out.sum().backward()
     assert c["roughness"].grad.shape == (0, 1)
+
+
+def test_c_exp2_is_within_two_ulp_over_the_normal_range():
+    """The kernels' branch-free ``tb_exp2`` / ``tb_exp2f`` against the correctly rounded value
+    (float64 ``exp2`` of the float32 argument for ``tb_exp2f``), over the whole normal range and
+    the Fresnel fit's ``[-12.54, 0]``."""
+    import ctypes
+
+    from torchbrdf.kernels import build, codegen_c
+
+    src = codegen_c.PRELUDE + codegen_c.EXP2_PRELUDE + """
+void e64(long n, const double* x, double* y) { for (long i = 0; i < n; ++i) y[i] = tb_exp2(x[i]); }
+void e32(long n, const float* x, float* y) { for (long i = 0; i < n; ++i) y[i] = tb_exp2f(x[i]); }
+"""
+    args = [ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
+    lib = build.load_kernel(src, "test_exp2", {"e64": (args, None), "e32": (args, None)})
+    assert lib is not None
+    g = torch.Generator().manual_seed(19)
+    for dtype, fn, lo, hi in ((torch.float64, lib.e64, -1022.0, 1023.0), (torch.float32, lib.e32, -126.0, 127.0)):
+        x = torch.cat([torch.rand(20000, generator=g, dtype=torch.float64) * (hi - lo) + lo,
+                       -12.54 * torch.rand(20000, generator=g, dtype=torch.float64),
+                       torch.tensor([lo, hi, 0.0, -0.5, 0.5, -1.0, 1.0], dtype=torch.float64)]).to(dtype)
+        y = torch.empty_like(x)
+        fn(x.numel(), x.data_ptr(), y.data_ptr())
+        exact = torch.exp2(x.double())
+        ulp = torch.finfo(dtype).eps
+        err = ((y.double() - exact).abs() / exact).max().item()
+        assert err <= 2 * ulp, (dtype, err / ulp)
