@@ -365,3 +365,22 @@ def test_bad_floors(floors, match):
         svbrdf_ggx(n, n, n, diffuse_albedo=0.5, specular_albedo=0.04, roughness=0.5, **floors)
     with pytest.raises(ValueError, match=match):
         SVBRDFGGX(**floors)
+
+
+def test_roughness_gradient_at_one_is_the_smooth_one():
+    """The floor under ``|n x h|^2 + alpha^2 (n.h)^2`` (for ``l = -v``) must not tie with it for
+    unit vectors: at roughness 1 the sum is ``|h|^2 = 1 = min(alpha^2, 1)``, so a floor of
+    ``min(alpha^2, 1)`` lets rounding pick the floor's gradient (or half of each) in most lanes.
+    The model is smooth there: the gradient is the limit of its neighbours'."""
+    rng = np.random.default_rng(7)
+    count = 400
+    n = _unit(random_dirs(rng, count, upper=True) + np.array([0.0, 0.0, 1.0]))
+    l, v = _unit(n + 0.6 * random_dirs(rng, count)), _unit(n + 0.6 * random_dirs(rng, count))
+    maps = {"diffuse_albedo": t64(np.full((count, 3), 0.5)), "specular_albedo": t64(np.full((count, 3), 0.04))}
+
+    def grad(r):
+        rr = t64(np.full((count, 1), r)).requires_grad_()
+        f = svbrdf_ggx(t64(l), t64(v), t64(n), roughness=rr, **maps)
+        return torch.autograd.grad(f.sum(), rr)[0]
+
+    torch.testing.assert_close(grad(1.0), grad(1.0 - 1e-6), rtol=1e-4, atol=0)

@@ -1,4 +1,5 @@
-"""The principled BRDF written once, over an ``ops`` namespace.
+"""The BRDF formulas written once, over an ``ops`` namespace: the principled BRDF, the
+shader's light terms, the recovery's residual and the SVBRDF-capture GGX.
 
 Every function here takes ``ops`` as its first argument and uses only Python arithmetic
 operators (``+ - * /``, comparisons, ``&`` on masks) and the methods of ``ops``. The same
@@ -6,7 +7,7 @@ source therefore runs
 
 * on torch tensors with :class:`TorchOps` — this *is* the eager path of
   :func:`torchbrdf.principled` (and of ``burley_retro_factor``, ``subsurface_factor``,
-  ``ndf_gtr1``), and
+  ``ndf_gtr1``) and of :func:`torchbrdf.svbrdf_ggx`, and
 * on the tracer's graph nodes with ``torchbrdf.kernels.trace.TraceOps`` — from which the
   fused kernels (forward, reverse-mode backward, forward-mode JVP) are generated.
 
@@ -16,7 +17,9 @@ The ``ops`` namespace (shapes for :class:`TorchOps`; vectors ``(*, 3)``, scalars
 
 ==========================  ========================================================
 ``sqrt, rsqrt, log, log1p``  elementwise (``sqrt`` of a Python number is ``math.sqrt``)
+``exp2``                     ``2^x`` elementwise
 ``abs(x)``                   ``|x|``
+``maximum(a, b)``            ``torch.maximum`` (a tie splits the gradient in halves, as ATen)
 ``clamp(x, lo, hi)``         ``torch.clamp``
 ``clamp_min(x, lo)``         ``torch.clamp(x, min=lo)``; ``max(x, lo)`` on numbers
 ``where(c, a, b)``           ``torch.where`` (``a``/``b`` may be numbers)
@@ -59,7 +62,9 @@ class Ops(Protocol):
     def rsqrt(self, x: Value, /) -> Value: ...
     def log(self, x: Value, /) -> Value: ...
     def log1p(self, x: Value, /) -> Value: ...
+    def exp2(self, x: Value, /) -> Value: ...
     def abs(self, x: Value, /) -> Value: ...
+    def maximum(self, a: Value, b: Value, /) -> Value: ...
     def dot(self, a: Value, b: Value, /) -> Value: ...
     def cross_norm2(self, a: Value, b: Value, /) -> Value: ...
     def clamp(self, x: Value, lo: float, hi: float, /) -> Value: ...
@@ -155,7 +160,9 @@ class TorchOps:
     rsqrt = staticmethod(torch.rsqrt)
     log = staticmethod(torch.log)
     log1p = staticmethod(torch.log1p)
+    exp2 = staticmethod(torch.exp2)
     abs = staticmethod(torch.abs)
+    maximum = staticmethod(torch.maximum)
     dot = staticmethod(dot)
     cross_norm2 = staticmethod(cross_norm2)
 
@@ -454,5 +461,65 @@ def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, fram
     return ops.log(ops.clamp_min(rad + eps, 0.5 * eps)) - c["log_obs"]
 
 
+# ---------------------------------------------------------------------------------------------
+# The GGX model of the SVBRDF-capture literature (torchbrdf.brdf.svbrdf_ggx)
+# ---------------------------------------------------------------------------------------------
+
+# Unreal's spherical-Gaussian fit of Schlick's (1 - c)^5: 2^((SG_A c + SG_B) c) (Karis 2013).
+SG_A = -5.55473
+SG_B = -6.98316
+# The GGX denominator's floor as a fraction of its least value for unit vectors, min(alpha^2, 1).
+GGX_DEN_FLOOR = 0.5
+
+
+def fresnel_sg(ops: Ops, f0: Value, v_dot_h: Value) -> Value:
+    """Unreal's spherical-Gaussian Schlick Fresnel ``f0 + (1 - f0) 2^((a c + b) c)``, ``(*, 3)``."""
+    return f0 + (1.0 - f0) * ops.exp2((SG_A * v_dot_h + SG_B) * v_dot_h)
+
+
+def svbrdf_ggx(ops: Ops, c: dict, active: tuple = (), need_tint: bool = False, frame: bool = False) -> Value:
+    """The SVBRDF-capture GGX ``f(l, v)`` (without the ``n·l`` cosine); see :mod:`torchbrdf.brdf.svbrdf_ggx`.
+
+    Args:
+        ops: :class:`TorchOps` or the tracer's ops.
+        c: ``l, v, n`` ``(*, 3)``; ``diffuse_albedo``, ``specular_albedo`` ``(*, 3)`` and
+            ``roughness`` ``(*, 1)`` in the compute dtype; one floor, ``alpha_floor``
+            (``alpha = max(r², floor)``) or ``roughness_floor`` (``alpha = max(r, floor)²``),
+            a number.
+        active, need_tint, frame: unused (the kernel families' common signature).
+
+    Returns:
+        ``(*, 3)``; exactly 0 where ``n·l <= 0`` or ``n·v <= 0``.
+    """
+    l, v, n = c["l"], c["v"], c["n"]
+    rho_d, rho_s, r = ops.as_color(c["diffuse_albedo"]), ops.as_color(c["specular_albedo"]), c["roughness"]
+    n_dot_l, n_dot_v = ops.dot(n, l), ops.dot(n, v)
+    valid = (n_dot_l > 0.0) & (n_dot_v > 0.0)
+    # Clamped copies: every branch below stays finite, so masking leaves zero gradients.
+    nl = ops.clamp(n_dot_l, 0.0, 1.0)
+    nv = ops.clamp(n_dot_v, 0.0, 1.0)
+    h = normalize(ops, l + v)
+    nh = ops.clamp(ops.dot(n, h), 0.0, 1.0)
+    vh = ops.clamp(ops.dot(v, h), 0.0, 1.0)
+
+    if c.get("roughness_floor") is not None:
+        r_floored = ops.clamp_min(r, c["roughness_floor"])
+        alpha = r_floored * r_floored
+    else:
+        alpha = ops.clamp_min(r * r, c.get("alpha_floor", ALPHA_MIN))
+    a2 = alpha * alpha
+    base = ops.cross_norm2(n, h) + a2 * nh * nh  # = (n.h)^2 (a2 - 1) + 1, without cancellation
+    # For unit h, base >= min(a2, 1) (equal at roughness 1 and at h = n); the floor, half that so
+    # it never ties there, only acts where h degenerates (l = -v): d stays below 4 / (pi a2).
+    base = ops.maximum(base, GGX_DEN_FLOOR * ops.clamp(a2, 0.0, 1.0))
+    d = a2 / (math.pi * base * base)
+    k = 0.5 * alpha
+    vis = 1.0 / (4.0 * (nl * (1.0 - k) + k) * (nv * (1.0 - k) + k))  # G / (4 n.l n.v), cancelled
+    spec = d * vis * fresnel_sg(ops, rho_s, vh)
+    diffuse = rho_d * (1.0 - rho_s) / math.pi
+    return ops.mask(valid, diffuse + spec)
+
+
 #: The formulas a fused kernel family can be built from (``_KernelSpec.family``).
-FAMILIES: dict[str, Callable[..., Value]] = {"principled": principled, "capture": capture_log_residual}
+FAMILIES: dict[str, Callable[..., Value]] = {"principled": principled, "capture": capture_log_residual,
+                                             "svbrdf_ggx": svbrdf_ggx}

@@ -134,7 +134,7 @@ def principled(
         raise ValueError(f"anisotropic={anisotropic} needs a tangent frame: pass x (and optionally y)")
     dtype, c = _prepare(l, v, n, x, y, params, base_color)
     active = active_lobes(params, lobes)
-    backend = _fast_backend(c)
+    backend = fast_backend(c)
     f = _principled_fast_or_none(c, active, backend) if backend is not None else None
     if f is None:
         f = principled_eager(c, active)
@@ -154,7 +154,7 @@ _fast_mode: dict = {"enabled": None}
 
 
 def set_fast_path(enabled: bool | None) -> None:
-    """Choose how :func:`principled` evaluates.
+    """Choose how :func:`principled` (and :func:`torchbrdf.svbrdf_ggx`) evaluates.
 
     Args:
         enabled: ``True`` uses the fused kernels (of the backend in force, see
@@ -201,8 +201,12 @@ def fused_at_every_size() -> Iterator[None]:
         _every_size.reset(token)
 
 
-def _fast_backend(c: dict) -> str | None:
-    """``"c"`` or ``"triton"`` when fused kernels evaluate this ``principled`` call, else None."""
+def fast_backend(c: dict) -> str | None:
+    """``"c"`` or ``"triton"`` when fused kernels evaluate this BRDF call, else None.
+
+    ``c``: the call's checked, compute-dtype inputs by name (``l`` among them); its tensors'
+    broadcast batch is the lane count (``principled`` and ``svbrdf_ggx`` share the rule).
+    """
     tensors = [t for t in c.values() if isinstance(t, Tensor)]
 
     def lanes() -> int | None:

@@ -45,6 +45,12 @@ Convention notes:
 The value is exactly 0, with zero gradients, where ``n.l <= 0`` or ``n.v <= 0``. The model is
 isotropic: ``x``/``y`` are accepted for the common BRDF signature and ignored. Half-precision
 inputs are evaluated in float32 and cast back (saturating).
+
+The formula is written once, :func:`torchbrdf.brdf.formula.svbrdf_ggx`: on torch tensors it is
+the eager path, traced it is the ``svbrdf_ggx`` family of fused kernels (C on CPU, Triton on
+CUDA), which a call uses under the rules of :func:`torchbrdf.principled`
+(:data:`~torchbrdf.brdf.principled.FAST_PATH_MIN_LANES`, ``set_fast_path``,
+``fused_at_every_size``, the backend; docs/fast_path.md).
 """
 
 from __future__ import annotations
@@ -57,9 +63,11 @@ import torch
 from torch import Tensor, nn
 
 from torchbrdf import _checks
-from torchbrdf._math import cast_back, compute_dtype, cross_norm2, dot, safe_normalize
+from torchbrdf._math import cast_back, compute_dtype
 from torchbrdf._types import Color, Scalar
+from torchbrdf.brdf import formula
 from torchbrdf.brdf.formula import ALPHA_MIN  # the principled model's floor (Burley 2012 code)
+from torchbrdf.brdf.principled import fast_backend
 
 __all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN", "ROUGHNESS_FLOOR_DESCHAINTRE"]
 
@@ -67,13 +75,6 @@ __all__ = ["SVBRDFGGX", "svbrdf_ggx", "ALPHA_MIN", "ROUGHNESS_FLOOR_DESCHAINTRE"
 
 ROUGHNESS_FLOOR_DESCHAINTRE = 1e-3
 """Floor on ``roughness`` (not ``alpha``) in Deschaintre et al.'s renderer: ``alpha >= 1e-6``."""
-
-
-def _floored_alpha(r: Tensor, alpha_floor, roughness_floor) -> Tensor:
-    """``alpha = r^2`` with the floor convention chosen (see the module docstring)."""
-    if roughness_floor is not None:
-        return torch.square(torch.clamp(r, min=roughness_floor))
-    return torch.clamp(r * r, min=ALPHA_MIN if alpha_floor is None else alpha_floor)
 
 
 def _check_floors(alpha_floor: float | None, roughness_floor: float | None) -> None:
@@ -86,15 +87,6 @@ def _check_floors(alpha_floor: float | None, roughness_floor: float | None) -> N
             continue
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0 < value <= 1):
             raise ValueError(f"{name}: expected a number in (0, 1], got {_checks.excerpt(value)}")
-
-_SG_A = -5.55473
-_SG_B = -6.98316
-
-
-def _fresnel_sg(f0: Tensor, v_dot_h: Tensor) -> Tensor:
-    """Unreal's spherical-Gaussian Schlick Fresnel ``f0 + (1 - f0) 2^((a c + b) c)``."""
-    return f0 + (1.0 - f0) * torch.exp2((_SG_A * v_dot_h + _SG_B) * v_dot_h)
-
 
 def svbrdf_ggx(
     l: Tensor,
@@ -167,34 +159,26 @@ def svbrdf_ggx(
         _checks.check_finite(named)
     out_dtype = l.dtype
     cdt = compute_dtype(l.dtype)
-    l, v, n = l.to(cdt), v.to(cdt), n.to(cdt)
-    rho_d = torch.as_tensor(diffuse_albedo, dtype=cdt, device=l.device)
-    rho_s = torch.as_tensor(specular_albedo, dtype=cdt, device=l.device)
-    r = torch.as_tensor(roughness, dtype=cdt, device=l.device)
+    c: dict[str, Any] = {
+        "l": l.to(cdt),
+        "v": v.to(cdt),
+        "n": n.to(cdt),
+        "diffuse_albedo": torch.as_tensor(diffuse_albedo, dtype=cdt, device=l.device),
+        "specular_albedo": torch.as_tensor(specular_albedo, dtype=cdt, device=l.device),
+        "roughness": torch.as_tensor(roughness, dtype=cdt, device=l.device),
+    }
+    if roughness_floor is not None:
+        c["roughness_floor"] = float(roughness_floor)
+    else:
+        c["alpha_floor"] = ALPHA_MIN if alpha_floor is None else float(alpha_floor)
+    # The fused kernels under principled's rules (lanes, set_fast_path, backend, dtype), else eager.
+    backend = fast_backend(c)
+    if backend is not None:
+        from torchbrdf.kernels import ops as _kernel_ops
 
-    n_dot_l = dot(n, l)
-    n_dot_v = dot(n, v)
-    valid = (n_dot_l > 0) & (n_dot_v > 0)
-    # Clamped copies: every branch below stays finite, so masking leaves zero gradients.
-    nl = torch.clamp(n_dot_l, 0.0, 1.0)
-    nv = torch.clamp(n_dot_v, 0.0, 1.0)
-    h = safe_normalize(l + v)
-    nh = torch.clamp(dot(n, h), 0.0, 1.0)
-    vh = torch.clamp(dot(v, h), 0.0, 1.0)
-
-    alpha = _floored_alpha(r, alpha_floor, roughness_floor)
-    a2 = alpha * alpha
-    base = cross_norm2(n, h) + a2 * nh * nh  # = (n.h)^2 (a2 - 1) + 1
-    # For unit h, base >= min(a2, 1); the floor only acts where h degenerates (l = -v).
-    base = torch.maximum(base, torch.clamp(a2, max=1.0))
-    d = a2 / (math.pi * base * base)
-    k = 0.5 * alpha
-    vis = 1.0 / (4.0 * (nl * (1.0 - k) + k) * (nv * (1.0 - k) + k))  # G / (4 n.l n.v)
-    spec = d * vis * _fresnel_sg(rho_s, vh)
-    diffuse = rho_d * (1.0 - rho_s) / math.pi
-    f = diffuse + spec
-    f = torch.where(valid, f, torch.zeros((), dtype=cdt, device=l.device))
-    f = torch.broadcast_to(f, (*f.shape[:-1], 3))
+        f = _kernel_ops.svbrdf_ggx_fast(c, backend=backend)
+    else:
+        f = formula.svbrdf_ggx(formula.TorchOps(cdt, l.device), c)
     return cast_back(f, out_dtype)
 
 

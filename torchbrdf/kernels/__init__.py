@@ -1,6 +1,7 @@
 """Fused kernels generated from the BRDF formulas: tracing, code generation, build and cache.
 
-``fused`` traces the principled formula into a small expression graph, emits C for the
+``fused`` traces a formula of ``formula.FAMILIES`` (the principled BRDF, the SVBRDF-capture GGX, the
+recovery's residual) into a small expression graph, emits C for the
 forward and the recompute-backward and builds it once per kernel family into a per-user cache;
 ``ops`` is the entry point of the operators (``layout``: one call's memory layout;
 ``c_runner``/``triton_runner``: the kernels' calls; ``registration``: the custom operators and

@@ -60,7 +60,7 @@ if TYPE_CHECKING:  # fused imports the kernels package at run time
 __all__ = ["generate", "print_kernel", "compile_source", "load", "launch", "interpret_mode", "available",
            "block_size"]
 
-_CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<="}
+_CMP = {"gt": ">", "lt": "<", "ge": ">=", "le": "<=", "eq": "=="}
 _ARITH = {"add": "+", "sub": "-", "mul": "*"}
 
 PRELUDE = '''import triton
@@ -139,8 +139,12 @@ class Printer:
         if op in ("log", "log1p"):
             fn = "tl.log" if op == "log" else "_log1p64"
             return f"{fn}({a[0]}.to(tl.float64)).to(tl.float32)" if hi32 else f"{fn}({a[0]})"
+        if op == "exp2":  # float32: in float64, rounded once (tl.exp2 of float32 is approximate on GPUs)
+            return f"tl.exp2({a[0]}.to(tl.float64)).to(tl.float32)" if hi32 else f"tl.exp2({a[0]})"
         if op == "abs":
             return f"tl.where({a[0]} < 0.0, -{a[0]}, {a[0]})"
+        if op == "max2":
+            return f"tl.where({a[0]} < {a[1]}, {a[1]}, {a[0]})"
         if op == "maxc":
             return f"tl.where({a[0]} < {a[1]}, {a[1]}, {a[0]})"
         if op == "pmax":

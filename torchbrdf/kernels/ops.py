@@ -1,4 +1,5 @@
-"""The fused kernels' entry points: :func:`principled_fast`, :func:`capture_fast`, :func:`capture_jvp`.
+"""The fused kernels' entry points: :func:`principled_fast`, :func:`svbrdf_ggx_fast`, :func:`capture_fast`,
+:func:`capture_jvp`.
 
 They turn a call's inputs into the operators' arguments (tensors, runtime floats, an encoded
 :class:`~torchbrdf.kernels.layout.KernelConfig`) and call the operators of
@@ -26,8 +27,8 @@ from torchbrdf.kernels.autograd import apply_principled
 from torchbrdf.kernels.layout import SCALAR_NAMES, KernelConfig
 from torchbrdf.kernels.registration import principled_bwd, principled_fwd, principled_jvp
 
-__all__ = ["principled_fast", "capture_fast", "capture_jvp", "CAPTURE_INPUTS", "make_cfg", "principled_fwd",
-           "principled_bwd", "principled_jvp", "SCALAR_NAMES"]
+__all__ = ["principled_fast", "svbrdf_ggx_fast", "capture_fast", "capture_jvp", "CAPTURE_INPUTS", "GGX_INPUTS",
+           "make_cfg", "principled_fwd", "principled_bwd", "principled_jvp", "SCALAR_NAMES"]
 
 
 def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
@@ -49,6 +50,22 @@ def principled_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, f
     Returns ``(*, 3)``.
     """
     return _fused(c, ("l", "v", "n"), active, need_tint, frame, backend, "principled")
+
+
+#: The inputs of :func:`torchbrdf.brdf.formula.svbrdf_ggx`, in the kernels' slot order (the floor
+#: that is given travels as a runtime float).
+GGX_INPUTS = ("l", "v", "n", "diffuse_albedo", "specular_albedo", "roughness", "alpha_floor", "roughness_floor")
+
+
+def svbrdf_ggx_fast(c: dict[str, Any], backend: str = "c") -> Tensor:
+    """Fused :func:`torchbrdf.brdf.formula.svbrdf_ggx` on checked, compute-dtype inputs ``c``.
+
+    ``c``: ``l, v, n``, ``diffuse_albedo``, ``specular_albedo`` ``(*, 3)`` and ``roughness``
+    ``(*, 1)`` tensors, and one floor (``alpha_floor`` or ``roughness_floor``, a number).
+    Returns ``(*, 3)``; reverse and forward mode as for :func:`principled_fast`.
+    """
+    c = {k: x for k, x in c.items() if x is not None}
+    return _fused(c, GGX_INPUTS, (), False, False, backend, "svbrdf_ggx", material=())
 
 
 #: The non-material inputs of the recovery's residual
@@ -97,10 +114,14 @@ def capture_jvp(c: dict[str, Any], tangents: dict[str, Tensor], active: Iterable
 
 
 def _operator_args(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need_tint: bool,
-                   frame: bool, backend: str, family: str
+                   frame: bool, backend: str, family: str, material: tuple[str, ...] = ("base_color",) + SCALAR_NAMES
                    ) -> tuple[list[str], list[Tensor], list[float], str]:
-    """The operators' ``(tensor names, tensors, floats, cfg)`` for inputs ``c``."""
-    names = [k for k in lead + (("x", "y") if frame else ()) + ("base_color",) + SCALAR_NAMES]
+    """The operators' ``(tensor names, tensors, floats, cfg)`` for inputs ``c``.
+
+    ``lead``, then the frame (when ``frame``), then ``material``: the slot order; names that
+    ``c`` lacks are left out.
+    """
+    names = [k for k in lead + (("x", "y") if frame else ()) + material if k in c]
     if torch.compiler.is_compiling():
         # Python floats enter as one-element tensors: once torch.compile makes a float symbolic
         # (a value that changed between calls), a float argument of an operator would
@@ -118,8 +139,8 @@ def _operator_args(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[st
 
 
 def _fused(c: dict[str, Any], lead: tuple[str, ...], active: Iterable[str], need_tint: bool, frame: bool,
-           backend: str, family: str) -> Tensor:
-    _, tensors, floats, cfg = _operator_args(c, lead, active, need_tint, frame, backend, family)
+           backend: str, family: str, material: tuple[str, ...] = ("base_color",) + SCALAR_NAMES) -> Tensor:
+    _, tensors, floats, cfg = _operator_args(c, lead, active, need_tint, frame, backend, family, material)
     if torch.compiler.is_compiling():
         return principled_fwd(tensors, floats, cfg)
     return apply_principled(cfg, floats, tensors)

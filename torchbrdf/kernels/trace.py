@@ -12,9 +12,9 @@ exactly as the eager code folds them.
 
 Ops: ``in`` (attr: ``{"k": input index, "c": channel, "role": "x"|"t"|"go", ...}``), ``P``
 (runtime float ``attr``), ``const`` (attr: the value), ``add sub mul div neg recip sqrt rsqrt
-log log1p abs``, ``maxc`` (clamp_min of a tensor), ``pmax`` (max of runtime floats), ``clamp``
-(x, lo, hi), ``where`` (mask, a, b), ``gt lt ge le and`` (masks), ``tod``/``tor`` (convert to
-double / to the compute type).
+log log1p exp2 abs``, ``maxc`` (clamp_min of a tensor), ``max2`` (``torch.maximum`` of two
+values), ``pmax`` (max of runtime floats), ``clamp`` (x, lo, hi), ``where`` (mask, a, b),
+``gt lt ge le eq and`` (masks), ``tod``/``tor`` (convert to double / to the compute type).
 
 Vectors are :class:`Vec3` (three nodes) with broadcasting arithmetic, so the formula's
 ``base * w`` means the same per channel as on ``(*, 3)`` tensors.
@@ -115,6 +115,10 @@ class Node:
 
     def __le__(self, o: Node | float) -> Node:
         return _cmp("le", self, o)
+
+    def eq(self, o: Node | float) -> Node:
+        """The mask ``self == o`` (a method: ``__eq__`` stays identity, nodes are dict keys)."""
+        return _cmp("eq", self, o)
 
     def __and__(self, o: Node) -> Node:
         return Node("and", (self, o), "b")
@@ -250,9 +254,20 @@ class TraceOps:
         return _un("log1p", a)
 
     @staticmethod
+    def exp2(a: Node | Vec3) -> Node | Vec3:
+        """``2^x``."""
+        return _un("exp2", a)
+
+    @staticmethod
     def abs(a: Node | Vec3) -> Node | Vec3:
         """``|x|``."""
         return _un("abs", a)
+
+    @staticmethod
+    def maximum(a: Node, b: Node | float) -> Node:
+        """``torch.maximum(a, b)`` of two per-lane values."""
+        t = _target(a, b)
+        return Node("max2", (_to_kind(a, t), _to_kind(b, t)), t)
 
     @overload
     @staticmethod
@@ -419,6 +434,11 @@ def _adjoint(nd: Node, g: Node) -> list:
         return [(0, g / a[0])]
     if op == "log1p":
         return [(0, g / (a[0] + const(1.0, k)))]
+    if op == "exp2":  # ATen: grad * result * ln 2
+        return [(0, g * nd * const(math.log(2.0), k))]
+    if op == "max2":  # ATen: a tie gives each argument half the gradient
+        half = _sel(a[0].eq(a[1]), g / const(2.0, k), g)
+        return [(0, _sel(a[0] < a[1], _zero(k), half)), (1, _sel(a[0] > a[1], _zero(k), half))]
     if op == "abs":
         return [(0, _sel(a[0] < _zero(k), -g, _sel(a[0] > _zero(k), g, _zero(k))))]
     if op == "maxc":
@@ -502,6 +522,13 @@ def _tangent(nd: Node, t: list):
         return t[0] / a[0]
     if op == "log1p":
         return t[0] / (a[0] + const(1.0, k))
+    if op == "exp2":
+        return t[0] * nd * const(math.log(2.0), k)
+    if op == "max2":  # ATen: t_b + w (t_a - t_b), w = 1, 0 or 1/2 at a tie
+        ta = t[0] if t[0] is not None else _zero(k)
+        tb = t[1] if t[1] is not None else _zero(k)
+        w = _sel(a[0].eq(a[1]), const(0.5, k), _sel(a[0] > a[1], const(1.0, k), _zero(k)))
+        return tb + w * (ta - tb)
     if op == "abs":
         return _sel(a[0] < _zero(k), -t[0], _sel(a[0] > _zero(k), t[0], _zero(k)))
     if op == "maxc":
