@@ -198,6 +198,41 @@ class Prior:
         self.model.to(device)
         return self
 
+    @property
+    def layout(self) -> str:
+        """The extra lights it was trained with (the card's ``data.layout``): ``"ring"``, the ring of
+        :func:`~torchbrdf.capture.synthetic.light_layout`, or ``"random"`` (cards without it)."""
+        data = self.card.get("data")
+        return str(data.get("layout", "random")) if isinstance(data, Mapping) else "random"
+
+    def capture_lights(self, capture: Capture) -> Tensor:
+        """Indices ``(L,)`` of the capture's lights the estimator takes, the flash first.
+
+        The flash is the light nearest the camera. An estimator trained on the ring of
+        :func:`~torchbrdf.capture.synthetic.light_layout` (:attr:`layout`) then takes, for each
+        light of the ring of ``L − 1``, the unused capture light nearest it in direction from the
+        sample's centre: a 4-light capture gives its own lights, a 17-light ring the four nearest
+        the layout the network learned (not three neighbours). Otherwise the next nearest the camera.
+
+        Raises:
+            ValueError: if the capture has fewer than ``L`` lights.
+        """
+        pos = capture.light_positions.double().cpu()
+        if len(pos) < self.lights:
+            raise ValueError(f"Prior.predict: the estimator takes {self.lights} images, the capture has "
+                             f"{len(pos)}")
+        order = torch.argsort((pos - capture.camera_position.double().cpu()).norm(dim=-1), stable=True)
+        if self.layout != "ring" or self.lights == 1:
+            return order[: self.lights]
+        chosen = [int(order[0])]
+        dirs = pos / pos.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        ring, _ = light_layout(self.lights - 1, near_camera=False)
+        for q in ring.double():
+            cos = dirs @ (q / q.norm())
+            cos[chosen] = -math.inf
+            chosen.append(int(torch.argmax(cos)))
+        return torch.tensor(chosen)
+
     @torch.no_grad()
     def predict(
         self,
@@ -209,8 +244,8 @@ class Prior:
 
         Args:
             images: ``(B, L, 3, H, W)`` linear radiance (``L`` = :attr:`lights`, the flash
-                first), or a :class:`~torchbrdf.capture.Capture`, whose ``L`` lights nearest
-                its camera are used (nearest first).
+                first), or a :class:`~torchbrdf.capture.Capture`, whose lights
+                :meth:`capture_lights` chooses.
             light_positions: ``(B, L, 3)`` or ``(L, 3)``; default the flash of
                 :func:`~torchbrdf.capture.synthetic.light_layout` (required for ``L > 1``).
             light_intensities: like ``light_positions``; default that flash's intensity.
@@ -220,11 +255,7 @@ class Prior:
             ``(B, 1, H, W)`` and ``normal (B, 3, H, W)``, on the images' device, float32.
         """
         if isinstance(images, Capture):
-            d = (images.light_positions - images.camera_position).norm(dim=-1)
-            order = torch.argsort(d)[: self.lights]
-            if len(order) < self.lights:
-                raise ValueError(f"Prior.predict: the estimator takes {self.lights} images, the capture has "
-                                 f"{len(images.images)}")
+            order = self.capture_lights(images)
             light_positions, light_intensities = images.light_positions[order], images.light_intensities[order]
             images = images.images[order][None]
         if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[1:3] != (self.lights, 3):
