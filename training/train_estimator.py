@@ -229,18 +229,19 @@ def model_card_markdown(card: dict) -> str:
         f"| normal (mean angle, deg) | {h['normal_mean_deg']:.2f} | {h['normal_mean_deg_flat']:.2f} (flat) |\n\n"
         f"Rendering loss on the held-out samples: {h['rendering_loss']:.4f}.\n\n"
         f"Command: `{card['command']}`\n"
-        + (_panel_markdown(card["panel"]) if "panel" in card else "")
+        + (_panel_markdown(card["panel"], d["source"]) if "panel" in card else "")
     )
 
 
-def _panel_markdown(panel: dict) -> str:
+def _panel_markdown(panel: dict, source: str = "") -> str:
     """The card's error on recovery-panel materials (``python -m torchbrdf.bench.prior_error``)."""
     rows = "\n".join(f"| {m} | {panel[f'{m}_rmse']:.3f} | {panel[f'{m}_bias_share']:.2f} |"
                       for m in ("base_color", "roughness", "metallic", "specular"))
+    seen = ("its training families, panel seeds it never saw" if "FamilySource" in source
+            else "torchbrdf.capture.families, not the recipes it was trained on")
     return (
         f"\nAccuracy on the recovery panel's {panel['split']} materials ({panel['materials']} captures of "
-        f"{panel['size']}x{panel['size']} px, {panel['lights']} lights; materials of "
-        "torchbrdf.capture.families, not the recipes it was trained on):\n\n"
+        f"{panel['size']}x{panel['size']} px, {panel['lights']} lights; materials of {seen}):\n\n"
         "| map | RMSE | share that is each capture's mean error |\n|---|---|---|\n" + rows + "\n"
         f"| normal (mean angle, deg) | {panel['normal_mean_deg']:.2f} | |\n\n"
         f"Command: `{panel['command']}`\n"

@@ -155,3 +155,30 @@ def test_shipped_estimator_beats_the_best_constant_on_held_out_samples():
         rmse = (pred[:, sl] - gt[:, sl]).square().mean().sqrt()
         assert rmse < ratio * (const[:, sl] - gt[:, sl]).square().mean().sqrt()
     assert math.isfinite(card["heldout"]["base_color_rmse"])
+
+
+def test_the_default_prior_is_the_shipped_estimator_for_the_captures_light_count():
+    assert Prior.default().lights == 1 and Prior.default(1).lights == 1 and Prior.default(3).lights == 1
+    for lights in (4, 8, 17):
+        prior = Prior.default(lights)
+        assert prior.lights == 4 and prior.layout == "ring"
+    with pytest.raises(ValueError, match="lights must be >= 1"):
+        Prior.default(0)
+
+
+def test_shipped_ring_estimator_beats_the_best_constant_on_its_held_out_samples():
+    from torchbrdf.data import FamilySource
+
+    prior = Prior.default(4)
+    assert prior.card["data"]["lights"] == 4 and "FamilySource" in prior.card["data"]["source"]
+    # neither training's seeds nor the card's; FamilySource's material seeds are far above the panel's 0-3
+    ds = MaterialDataset(length=8, size=64, seed=31_337, variants=1, extra_lights=3, ring_lights=True,
+                         source=FamilySource())
+    samples = [ds[k] for k in range(8)]
+    pred = torch.cat([torch.cat(list(prior.predict(s["images"][None], s["light_positions"],
+                                                   s["light_intensities"]).values()), 1) for s in samples])
+    gt = torch.stack([s["maps"] for s in samples])
+    const = gt.mean(dim=(0, 2, 3), keepdim=True)
+    for sl in (slice(0, 3), slice(3, 4), slice(4, 5)):  # base colour, roughness, metallic
+        rmse = (pred[:, sl] - gt[:, sl]).square().mean().sqrt()
+        assert rmse < 0.8 * (const[:, sl] - gt[:, sl]).square().mean().sqrt()

@@ -39,13 +39,16 @@ from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
 from torchbrdf.recovery.params import R_MAX, R_MIN, encode
 
-__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS",
+__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS", "SHIPPED_WEIGHTS",
            "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error",
            "measured_map_errors", "class_prior_cost",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
-"""File name of the shipped weights inside the ``torchbrdf.weights`` package."""
+"""File name of the shipped one-image weights inside the ``torchbrdf.weights`` package."""
+
+#: The shipped weights by the images their estimator takes (:meth:`Prior.default`).
+SHIPPED_WEIGHTS = {1: DEFAULT_WEIGHTS, 4: "estimator_ring4.pt"}
 
 _LOG_OFFSET = 0.01  # as the rendering loss's log transform: compresses highlights, keeps dark detail
 
@@ -180,9 +183,21 @@ class Prior:
         return cls(model, json.loads(card) if isinstance(card, str) else card)
 
     @classmethod
-    def default(cls) -> Prior:
-        """The estimator shipped in the package (``torchbrdf/weights/estimator.pt``; its card beside it)."""
-        ref = resources.files("torchbrdf.weights").joinpath(DEFAULT_WEIGHTS)
+    def default(cls, lights: int | None = None) -> Prior:
+        """An estimator shipped in the package (``torchbrdf/weights/``, :data:`SHIPPED_WEIGHTS`).
+
+        Args:
+            lights: the capture's light count: the shipped estimator taking the most images
+                it has (4 lights or more: the one trained on the 4-light ring; fewer: the
+                flash-image one). None: the flash-image one (``estimator.pt``).
+
+        Raises:
+            ValueError: if ``lights`` is below 1.
+        """
+        if lights is not None and lights < 1:
+            raise ValueError(f"Prior.default: lights must be >= 1, got {lights}")
+        name = SHIPPED_WEIGHTS[max(k for k in SHIPPED_WEIGHTS if k <= (lights or 1))]
+        ref = resources.files("torchbrdf.weights").joinpath(name)
         with resources.as_file(ref) as path:
             return cls.from_file(path)
 
