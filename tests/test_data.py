@@ -147,3 +147,22 @@ def test_renders_on_the_gpu_when_asked():
     gpu = MaterialDataset(length=2, size=16, noise=0.0, device="cuda")[1]
     assert gpu["images"].is_cuda and gpu["maps"].is_cuda
     torch.testing.assert_close(gpu["images"].cpu(), cpu["images"], rtol=1e-4, atol=1e-6)
+
+
+def test_ring_lights_are_the_capture_layout_in_a_random_order():
+    ds = MaterialDataset(length=6, size=8, seed=5, extra_lights=3, ring_lights=True)
+    ring, ring_inten = light_layout(3, near_camera=False)
+    flash, _ = light_layout(0)
+    orders = set()
+    for k in range(6):
+        s = ds[k]
+        torch.testing.assert_close(s["light_positions"][0], flash[0])  # the flash first
+        got = s["light_positions"][1:]
+        match = [int((ring - p).norm(dim=-1).argmin()) for p in got]
+        assert sorted(match) == [0, 1, 2]  # each ring light once, not random lights
+        torch.testing.assert_close(got, ring[match])
+        torch.testing.assert_close(s["light_intensities"][1:], ring_inten)  # twice the flash's, as light_layout's
+        orders.add(tuple(match))
+    assert len(orders) > 1  # the order changes from sample to sample
+    random_ds = MaterialDataset(length=1, size=8, seed=5, extra_lights=3)
+    assert not torch.allclose(random_ds[0]["light_positions"][1:].sort(0).values, ring.sort(0).values)

@@ -5,7 +5,9 @@
 * ``maps`` ``(9, S, S)``: the ground truth in :data:`torchbrdf.losses.PRINCIPLED_LAYOUT` order
   (base_color 3, roughness 1, metallic 1, specular 1, normal 3);
 * ``images`` ``(L, 3, S, S)``: the sample rendered in the capture format
-  (``docs/capture_format.md``) under the flash first, then ``extra_lights`` random point lights;
+  (``docs/capture_format.md``) under the flash first, then ``extra_lights`` random point lights
+  (or, with ``ring_lights``, the ring of :func:`torchbrdf.capture.synthetic.light_layout`, in a
+  random order per sample);
 * ``light_positions``, ``light_intensities`` ``(L, 3)`` and ``camera_position`` ``(3,)``;
 * ``index``: the sample's index.
 
@@ -177,6 +179,9 @@ class MaterialDataset(Dataset):
         source: a :class:`MaterialSource` (default :class:`RecipeSource`).
         variants: samples per material (1..8, its symmetries of the square).
         extra_lights: random point lights after the flash (:func:`~torchbrdf.capture.synthetic.random_lights`).
+        ring_lights: the extra lights are instead the ring of ``light_layout(extra_lights)`` (the
+            capture layout an estimator is trained for), in a random order per sample: the
+            estimator learns that layout, not an order a capture file may not keep.
         noise: relative sensor-noise level, or a ``(low, high)`` range drawn per sample.
         flash_intensity: the flash's radiant intensity (grey).
         gamma: camera response: ``None`` keeps linear radiance; a value clips at 1 and applies
@@ -199,6 +204,7 @@ class MaterialDataset(Dataset):
         source: MaterialSource | None = None,
         variants: int = 4,
         extra_lights: int = 0,
+        ring_lights: bool = False,
         noise: float | tuple[float, float] = (0.0, 0.02),
         flash_intensity: float = 15.0,
         gamma: float | None = None,
@@ -213,7 +219,7 @@ class MaterialDataset(Dataset):
                              f"got {extra_lights}, {flash_intensity}, {gamma}")
         self.length, self.size, self.seed = int(length), int(size), int(seed)
         self.source: MaterialSource = source if source is not None else RecipeSource()
-        self.variants, self.extra_lights = int(variants), int(extra_lights)
+        self.variants, self.extra_lights, self.ring_lights = int(variants), int(extra_lights), bool(ring_lights)
         self.noise = _range("noise", noise)
         self.flash_intensity, self.gamma = float(flash_intensity), gamma
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -238,8 +244,14 @@ class MaterialDataset(Dataset):
         gen = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + index + 7)
         flash_pos, _ = light_layout(0, near_camera=True)
         pos, inten = flash_pos, torch.full((1, 3), self.flash_intensity)
-        if self.extra_lights:
+        if self.extra_lights and self.ring_lights:
+            ring = light_layout(self.extra_lights, near_camera=False)
+            order = torch.randperm(self.extra_lights, generator=gen)
+            # the ring at twice the flash's intensity, as light_layout makes it
+            extra = (ring[0][order], torch.full((self.extra_lights, 3), 2.0 * self.flash_intensity))
+        elif self.extra_lights:
             extra = random_lights(self.extra_lights, seed=int(torch.randint(2**31 - 1, (), generator=gen)))
+        if self.extra_lights:
             pos, inten = torch.cat((pos, extra[0])), torch.cat((inten, extra[1]))
         with fused_at_every_size():  # a dataset renders one kind of call sample after sample
             images = render_capture(maps, (pos, inten), DEFAULT_CAMERA, backend="compact")

@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import DataLoader
 
 import torchbrdf
-from torchbrdf.data import MaterialDataset, MaterialStream
+from torchbrdf.data import FamilySource, MaterialDataset, MaterialStream, RecipeSource
 from torchbrdf.losses import map_loss, rendering_loss
 from torchbrdf.recovery.prior import MapEstimator, Prior
 
@@ -38,6 +38,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=64, help="training crop size S")
     p.add_argument("--batch", type=int, default=8, help="samples per training step")
     p.add_argument("--lights", type=int, default=1, help="images per sample: the flash, then random lights")
+    p.add_argument("--ring", action="store_true",
+                   help="the extra lights are light_layout's ring (the capture layout), not random lights")
+    p.add_argument("--source", choices=("recipes", "families"), default="recipes",
+                   help="materials: the synthetic recipes or torchbrdf.capture.families")
     p.add_argument("--width", type=int, default=16, help="U-Net channels of the first level")
     p.add_argument("--depth", type=int, default=3, help="U-Net downsamplings")
     p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate")
@@ -52,8 +56,13 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _source(args) -> FamilySource | RecipeSource:
+    return FamilySource() if args.source == "families" else RecipeSource()
+
+
 def _loader(args, seed: int, length: int | None = None, start: int = 0) -> DataLoader:
-    stream = MaterialStream(length=length, start=start, size=args.size, seed=seed, extra_lights=args.lights - 1)
+    stream = MaterialStream(length=length, start=start, size=args.size, seed=seed, extra_lights=args.lights - 1,
+                            ring_lights=args.ring, source=_source(args))
     return DataLoader(stream, batch_size=args.batch, num_workers=args.workers,
                       persistent_workers=args.workers > 0 and length is None)
 
@@ -69,6 +78,22 @@ def _step(model, opt, batch, args, gen: torch.Generator) -> dict:
     loss.backward()
     opt.step()
     return {"loss": float(loss.detach()), "rendering": float(rl.detach()), "map": float(ml.detach())}
+
+
+def widen_lights(state: dict, lights: int, new_lights: int) -> dict:
+    """A state dict of a ``lights``-image estimator for ``new_lights`` images: the first conv's
+    weights of the images the two share are kept (the flash first), those of new images start
+    at zero (the network starts as the old one and learns what the new images add), the pixel
+    coordinates' channels move behind them."""
+    if new_lights == lights:
+        return dict(state)
+    key = "down.0.0.weight"  # the first conv: (out, 3 L + 2, 3, 3)
+    w = state[key]
+    keep = 3 * min(lights, new_lights)
+    new = torch.zeros(w.shape[0], 3 * new_lights + 2, *w.shape[2:], dtype=w.dtype)
+    new[:, :keep] = w[:, :keep]
+    new[:, -2:] = w[:, -2:]
+    return {**state, key: new}
 
 
 @torch.no_grad()
@@ -130,15 +155,16 @@ def train(args) -> dict:
     previous = None
     if args.init is not None:
         init = Prior.from_file(args.init)
-        if init.model.config != model.config:
+        if {k: v for k, v in init.model.config.items() if k != "lights"} != \
+                {k: v for k, v in model.config.items() if k != "lights"}:
             raise SystemExit(f"train_estimator: --init {args.init} is a {init.model.config} estimator, "
                              f"not {model.config}")
-        model.load_state_dict(init.model.state_dict())
+        model.load_state_dict(widen_lights(init.model.state_dict(), init.lights, args.lights))
         previous = init.card.get("training")
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     gen = torch.Generator().manual_seed(args.seed)
     heldout_ds = MaterialDataset(length=args.heldout, size=args.size, seed=HELDOUT_SEED, variants=1,
-                                 extra_lights=args.lights - 1)
+                                 extra_lights=args.lights - 1, ring_lights=args.ring, source=_source(args))
     heldout = [heldout_ds[k] for k in range(args.heldout)]
     budget = 60.0 * args.minutes
     start = time.perf_counter()
@@ -163,8 +189,9 @@ def train(args) -> dict:
     card = {
         "model": {"class": "torchbrdf.recovery.prior.MapEstimator", **model.config,
                   "parameters": sum(p.numel() for p in model.parameters()), "storage": "float16"},
-        "data": {"dataset": "torchbrdf.data.MaterialStream", "source": repr(MaterialDataset(size=4).source),
-                 "size": args.size, "lights": args.lights, "noise": [0.0, 0.02], "seed": args.seed,
+        "data": {"dataset": "torchbrdf.data.MaterialStream", "source": repr(_source(args)),
+                 "size": args.size, "lights": args.lights, "layout": "ring" if args.ring else "random",
+                 "noise": [0.0, 0.02], "seed": args.seed,
                  "samples_seen": seen},
         "training": {"steps": steps, "batch": args.batch, "seconds": round(seconds, 1), "device": args.device,
                      "threads": args.threads, "workers": args.workers, "loader_wait_fraction": round(wait / seconds, 3),
@@ -202,18 +229,19 @@ def model_card_markdown(card: dict) -> str:
         f"| normal (mean angle, deg) | {h['normal_mean_deg']:.2f} | {h['normal_mean_deg_flat']:.2f} (flat) |\n\n"
         f"Rendering loss on the held-out samples: {h['rendering_loss']:.4f}.\n\n"
         f"Command: `{card['command']}`\n"
-        + (_panel_markdown(card["panel"]) if "panel" in card else "")
+        + (_panel_markdown(card["panel"], d["source"]) if "panel" in card else "")
     )
 
 
-def _panel_markdown(panel: dict) -> str:
+def _panel_markdown(panel: dict, source: str = "") -> str:
     """The card's error on recovery-panel materials (``python -m torchbrdf.bench.prior_error``)."""
     rows = "\n".join(f"| {m} | {panel[f'{m}_rmse']:.3f} | {panel[f'{m}_bias_share']:.2f} |"
                       for m in ("base_color", "roughness", "metallic", "specular"))
+    seen = ("its training families, panel seeds it never saw" if "FamilySource" in source
+            else "torchbrdf.capture.families, not the recipes it was trained on")
     return (
         f"\nAccuracy on the recovery panel's {panel['split']} materials ({panel['materials']} captures of "
-        f"{panel['size']}x{panel['size']} px, {panel['lights']} lights; materials of "
-        "torchbrdf.capture.families, not the recipes it was trained on):\n\n"
+        f"{panel['size']}x{panel['size']} px, {panel['lights']} lights; materials of {seen}):\n\n"
         "| map | RMSE | share that is each capture's mean error |\n|---|---|---|\n" + rows + "\n"
         f"| normal (mean angle, deg) | {panel['normal_mean_deg']:.2f} | |\n\n"
         f"Command: `{panel['command']}`\n"

@@ -263,3 +263,16 @@ def test_a_checkpoint_made_without_the_prior_is_not_resumed_with_it(cap, stopped
     out = copy_out(stopped, tmp_path)
     with pytest.raises(RecoveryError, match="other settings.*learned_prior"):
         recover(cap, Settings(iters=4, threads=1), out, resume=True, progress=False, prior=constant_prior())
+
+
+def test_the_default_prior_is_the_shipped_estimator_for_the_captures_lights(painted, monkeypatch):
+    asked = []
+    shipped = Prior.default.__func__
+
+    def spy(cls, lights=None):
+        asked.append(lights)
+        return shipped(cls, lights)
+
+    monkeypatch.setattr(Prior, "default", classmethod(spy))
+    recover(painted, CFG.settings(iters=2), progress=False, prior="default")
+    assert asked == [5]  # the flash and four ring lights: the ring-trained estimator (Prior.default(5).lights == 4)

@@ -113,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.card and args.split != "tuning":
         ap.error("--card: the card's panel error is measured on the tuning split only")
     torch.set_num_threads(1)
-    prior = Prior.default() if args.prior == "default" else Prior.from_file(args.prior)
+    prior = Prior.default(args.lights) if args.prior == "default" else Prior.from_file(args.prior)
     res = panel_errors(prior, args.split, args.lights, args.size)
     print(f"| map | RMSE ({res['materials']} {args.split} materials, {args.lights} lights) | mean-error share |")
     print("|---|---|---|")

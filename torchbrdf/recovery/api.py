@@ -153,7 +153,8 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
             untouched; the outputs are then committed file by file). Without it such an
             ``out`` is refused.
         prior: a learned prior (:class:`~torchbrdf.recovery.Prior`, a weights file, or
-            ``"default"`` for the shipped one). The fit keeps a Gaussian pull toward the
+            ``"default"`` for the shipped one for the capture's light count,
+            :meth:`~torchbrdf.recovery.Prior.default`). The fit keeps a Gaussian pull toward the
             network's maps, with the network's measured error, that vanishes wherever the
             data determine a value, and weighs its metallic in the class choice
             (``docs/recovery.md``, "Learned prior"). None: no learned prior.
@@ -226,12 +227,12 @@ def _learned_prior(prior: Prior | PathLike, cap: Capture, size: int) -> LearnedP
         if not isinstance(prior, (str, os.PathLike)):
             raise RecoveryError(f"prior: expected a Prior, a weights file or 'default', got {type(prior).__name__}")
         try:
-            prior = Prior.default() if str(prior) == "default" else Prior.from_file(prior)
+            prior = Prior.default(len(cap)) if str(prior) == "default" else Prior.from_file(prior)
         except (OSError, ValueError) as e:
             raise RecoveryError(f"prior: {e}") from e
     if len(cap) < prior.lights:
-        raise RecoveryError(f"prior: the estimator was trained on {prior.lights} images per capture (the lights "
-                            f"nearest the camera), the capture has {len(cap)}; use a prior trained for "
+        raise RecoveryError(f"prior: the estimator was trained on {prior.lights} images per capture "
+                            f"(Prior.capture_lights), the capture has {len(cap)}; use a prior trained for "
                             f"{len(cap)} or fewer lights")
     with torch.no_grad():
         maps = prior.predict(cap)

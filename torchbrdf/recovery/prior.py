@@ -39,13 +39,16 @@ from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
 from torchbrdf.recovery.params import R_MAX, R_MIN, encode
 
-__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS",
+__all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS", "SHIPPED_WEIGHTS",
            "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error",
            "measured_map_errors", "class_prior_cost",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
-"""File name of the shipped weights inside the ``torchbrdf.weights`` package."""
+"""File name of the shipped one-image weights inside the ``torchbrdf.weights`` package."""
+
+#: The shipped weights by the images their estimator takes (:meth:`Prior.default`).
+SHIPPED_WEIGHTS = {1: DEFAULT_WEIGHTS, 4: "estimator_ring4.pt"}
 
 _LOG_OFFSET = 0.01  # as the rendering loss's log transform: compresses highlights, keeps dark detail
 
@@ -180,9 +183,21 @@ class Prior:
         return cls(model, json.loads(card) if isinstance(card, str) else card)
 
     @classmethod
-    def default(cls) -> Prior:
-        """The estimator shipped in the package (``torchbrdf/weights/estimator.pt``; its card beside it)."""
-        ref = resources.files("torchbrdf.weights").joinpath(DEFAULT_WEIGHTS)
+    def default(cls, lights: int | None = None) -> Prior:
+        """An estimator shipped in the package (``torchbrdf/weights/``, :data:`SHIPPED_WEIGHTS`).
+
+        Args:
+            lights: the capture's light count: the shipped estimator taking the most images
+                it has (4 lights or more: the one trained on the 4-light ring; fewer: the
+                flash-image one). None: the flash-image one (``estimator.pt``).
+
+        Raises:
+            ValueError: if ``lights`` is below 1.
+        """
+        if lights is not None and lights < 1:
+            raise ValueError(f"Prior.default: lights must be >= 1, got {lights}")
+        name = SHIPPED_WEIGHTS[max(k for k in SHIPPED_WEIGHTS if k <= (lights or 1))]
+        ref = resources.files("torchbrdf.weights").joinpath(name)
         with resources.as_file(ref) as path:
             return cls.from_file(path)
 
@@ -198,6 +213,41 @@ class Prior:
         self.model.to(device)
         return self
 
+    @property
+    def layout(self) -> str:
+        """The extra lights it was trained with (the card's ``data.layout``): ``"ring"``, the ring of
+        :func:`~torchbrdf.capture.synthetic.light_layout`, or ``"random"`` (cards without it)."""
+        data = self.card.get("data")
+        return str(data.get("layout", "random")) if isinstance(data, Mapping) else "random"
+
+    def capture_lights(self, capture: Capture) -> Tensor:
+        """Indices ``(L,)`` of the capture's lights the estimator takes, the flash first.
+
+        The flash is the light nearest the camera. An estimator trained on the ring of
+        :func:`~torchbrdf.capture.synthetic.light_layout` (:attr:`layout`) then takes, for each
+        light of the ring of ``L − 1``, the unused capture light nearest it in direction from the
+        sample's centre: a 4-light capture gives its own lights, a 17-light ring the four nearest
+        the layout the network learned (not three neighbours). Otherwise the next nearest the camera.
+
+        Raises:
+            ValueError: if the capture has fewer than ``L`` lights.
+        """
+        pos = capture.light_positions.double().cpu()
+        if len(pos) < self.lights:
+            raise ValueError(f"Prior.predict: the estimator takes {self.lights} images, the capture has "
+                             f"{len(pos)}")
+        order = torch.argsort((pos - capture.camera_position.double().cpu()).norm(dim=-1), stable=True)
+        if self.layout != "ring" or self.lights == 1:
+            return order[: self.lights]
+        chosen = [int(order[0])]
+        dirs = pos / pos.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        ring, _ = light_layout(self.lights - 1, near_camera=False)
+        for q in ring.double():
+            cos = dirs @ (q / q.norm())
+            cos[chosen] = -math.inf
+            chosen.append(int(torch.argmax(cos)))
+        return torch.tensor(chosen)
+
     @torch.no_grad()
     def predict(
         self,
@@ -209,8 +259,8 @@ class Prior:
 
         Args:
             images: ``(B, L, 3, H, W)`` linear radiance (``L`` = :attr:`lights`, the flash
-                first), or a :class:`~torchbrdf.capture.Capture`, whose ``L`` lights nearest
-                its camera are used (nearest first).
+                first), or a :class:`~torchbrdf.capture.Capture`, whose lights
+                :meth:`capture_lights` chooses.
             light_positions: ``(B, L, 3)`` or ``(L, 3)``; default the flash of
                 :func:`~torchbrdf.capture.synthetic.light_layout` (required for ``L > 1``).
             light_intensities: like ``light_positions``; default that flash's intensity.
@@ -220,11 +270,7 @@ class Prior:
             ``(B, 1, H, W)`` and ``normal (B, 3, H, W)``, on the images' device, float32.
         """
         if isinstance(images, Capture):
-            d = (images.light_positions - images.camera_position).norm(dim=-1)
-            order = torch.argsort(d)[: self.lights]
-            if len(order) < self.lights:
-                raise ValueError(f"Prior.predict: the estimator takes {self.lights} images, the capture has "
-                                 f"{len(images.images)}")
+            order = self.capture_lights(images)
             light_positions, light_intensities = images.light_positions[order], images.light_intensities[order]
             images = images.images[order][None]
         if not isinstance(images, Tensor) or images.dim() != 5 or images.shape[1:3] != (self.lights, 3):
