@@ -95,8 +95,10 @@ def test_fill_moves_a_pixel_by_its_information():
     assert bool((moved[silent] > 0.999).all())
 
 
-def test_fill_keeps_materials_apart_and_leaves_a_metal_specular_alone():
-    """Another base colour is another material; a metal's specular gets no prior."""
+def test_fill_keeps_materials_apart_and_gives_a_metal_no_prior():
+    """Another base colour is another material. A metal gets no prior, roughness included: the
+    F0 tie already pools the metal's valley, and a second pooled prior on its roughness would
+    pull it along the valley away from the F0 its neighbours share."""
     data, theta, metal, info, silent, _ = _material(0.1)
     p = theta.shape[0]
     other = torch.arange(p) >= p // 2
@@ -106,8 +108,13 @@ def test_fill_keeps_materials_apart_and_leaves_a_metal_specular_alone():
     assert float((tgt[silent, 4] - theta[~silent & ~other, 4].mean()).abs().max()) < 0.05
     assert torch.allclose(tgt[other, 4], torch.full((int(other.sum()),), 2.0), atol=1e-4)
     metal = torch.ones_like(metal)
+    tgt, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
+    assert bool((prec == 0).all()) and torch.equal(tgt, theta)
+    # Half metal: the dielectric half keeps its prior, the metal half has none.
+    metal[: metal.shape[0] // 2] = 0.0
     _, prec = priors.nonlocal_fill(data, theta, metal, Settings(), info=info)
-    assert bool((prec[:, 3] == 0).all()) and bool((prec[silent, 4] > 0).all())
+    diel = metal[:, 0] < 0.5
+    assert bool((prec[diel][:, 3:5] > 0).all()) and bool((prec[~diel] == 0).all())
 
 
 def _island_capture(size=24):

@@ -282,8 +282,9 @@ class Settings:
     # per-residual cost, at most this (a 3 % log error); a fit far from the data early on
     # would otherwise make the prior's pull as strong as its own misfit.
     prior_noise_cap: float = 1e-3
-    # Non-local fill of roughness / specular (nonlocal_fill): each pixel's Gaussian prior is the
-    # same material's measured value, its width the material's measured spread (docs/recovery.md)
+    # Non-local fill of roughness / specular (nonlocal_fill): each dielectric pixel's Gaussian prior
+    # is the same material's measured value, its width the material's measured spread; a metal's
+    # valley is held by the F0 tie alone (docs/recovery.md)
     fill: bool = True
     fill_range: float = 0.04  # base-colour similarity scale
     fill_texture: float = 0.05  # normal-spread similarity scale (slope units)

@@ -324,7 +324,12 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     with each pixel's data (precision ``info``): a pixel whose data pin it (``σ²/info ≪ τ²``)
     keeps its value, one the data leave free takes the material's, and where no similar pixel
     was measured the prior vanishes.
-    A pixel is not its own candidate; a metal's specular (invisible) gets no prior.
+    A pixel is not its own candidate. Metals get no prior (precision 0, target their own
+    value): a metal's silent direction is its F0–roughness valley (the GGX tail pins
+    F0·α²), whose F0 end the non-local F0 tie (:func:`nonlocal_prior`) already pools from the
+    same metal pixels; a second pooled prior on its roughness end would count those pixels
+    twice, and where a metal's roughness varies across the image while its F0 does not, it
+    pulls the pixel along the valley away from the F0 its metal neighbours share.
     ``theta (P, 7)``, ``metal (P, 1)``, ``info (P, 7)`` (:func:`fit_information`; None:
     computed), ``residual (P, M)``: the residuals at ``theta`` on ``data.train_idx`` when the
     caller has them (:func:`gauss_newton`'s first result; None: computed); results in
@@ -344,27 +349,23 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
     gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)
     tgt = theta.clone()
     prec = torch.zeros_like(theta)
-    ism = metal[:, 0] > 0.5
-    for cls in (~ism, ism):
-        pool = torch.nonzero(cls).flatten()
-        if pool.numel() < 2 or sigma2 <= 0:
-            continue
-        k = min(cfg.fill_candidates, pool.numel())
-        draw = max(1, 2**20 // k)  # pixels per draw of candidates (the random stream's blocks)
-        block = max(1, 2**18 // k)  # ... per estimate: its tables stay in the cache
-        for s0 in range(0, pool.numel(), draw):
-            rows = pool[s0:s0 + draw]
-            draws = torch.randint(0, pool.numel(), (rows.numel() * k,), generator=gen)  # on the CPU
-            drawn = pool.index_select(0, draws.to(pool.device))
-            for b0 in range(0, rows.numel(), block):
-                rr = rows[b0:b0 + block]
-                cand = drawn[b0 * k:(b0 + rr.numel()) * k]  # (n K,)
-                mu, tau2, var_mu = _member_estimate(feat, members, rr, cand.view(-1, k))
-                ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
-                tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
-                prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
-    if bool(ism.any()):
-        prec[ism, 3] = 0.0  # a metal's specular is invisible and already tied to its neighbours
+    pool = torch.nonzero(metal[:, 0] <= 0.5).flatten()  # dielectrics only (see above)
+    if pool.numel() < 2 or sigma2 <= 0:
+        return torch.nan_to_num(tgt), prec
+    k = min(cfg.fill_candidates, pool.numel())
+    draw = max(1, 2**20 // k)  # pixels per draw of candidates (the random stream's blocks)
+    block = max(1, 2**18 // k)  # ... per estimate: its tables stay in the cache
+    for s0 in range(0, pool.numel(), draw):
+        rows = pool[s0:s0 + draw]
+        draws = torch.randint(0, pool.numel(), (rows.numel() * k,), generator=gen)  # on the CPU
+        drawn = pool.index_select(0, draws.to(pool.device))
+        for b0 in range(0, rows.numel(), block):
+            rr = rows[b0:b0 + block]
+            cand = drawn[b0 * k:(b0 + rr.numel()) * k]  # (n K,)
+            mu, tau2, var_mu = _member_estimate(feat, members, rr, cand.view(-1, k))
+            ok = torch.isfinite(mu) & (var_mu < VAR_MAX)
+            tgt[rr, 3:5] = torch.where(ok, mu, theta[rr, 3:5])
+            prec[rr, 3:5] = torch.where(ok, sigma2 / (tau2 + var_mu), 0.0)
     return torch.nan_to_num(tgt), torch.nan_to_num(prec, posinf=0.0)
 
 
