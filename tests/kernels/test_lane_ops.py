@@ -142,6 +142,19 @@ def test_lane_coupling_is_the_stencil(n):
     assert float((_dense_coupling(low, d_isqrt, wx, wy, v, wrap=True) - k).abs().max()) > 1e-2
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_lane_coupling_is_the_pytorch_form_bit_for_bit(n, dtype):
+    """The operator ``K v`` and ``(I − K) v`` of one CG iteration: exactly the PyTorch form's bits
+    (on a 17×17 grid: rows longer than the vector width, blocks the C loop splits)."""
+    low, d_isqrt, wx, wy, v = _grid_case(n, 17, seed=n, dtype=dtype)
+    with pytorch_forms():
+        k_ref, apply_ref = smoothness_prior._torch_coupling(low, d_isqrt, wx, wy, 17)
+        ref, ref_sub = k_ref(v), apply_ref(v)
+    assert torch.equal(lane_ops.lane_coupling(low, d_isqrt, wx, wy, v, False), ref)
+    assert torch.equal(lane_ops.lane_coupling(low, d_isqrt, wx, wy, v, True), ref_sub)
+
+
 def _pcg_case(size, joined, dtype, seed=0):
     """A coupled system like the LM step's: SPD blocks ``(P, 7, 7)`` float32/64, edge weights
     non-zero only on the ``joined`` channels (the others are eliminated per pixel first)."""
