@@ -3,9 +3,12 @@ dense float64 references.
 
 The C operators repeat the PyTorch forms' floating-point operations in the same order per element
 (ATen's ``addcmul`` as one fused multiply-add where its kernels use them), so they are compared
-bit for bit with the forms of :mod:`torchbrdf.recovery.pixel_systems` and
-:func:`torchbrdf.recovery.smoothness_prior.pcg` (run with the fused path off), and each against a
-dense float64 reference that a wrong order, a wrong border or swapped weights would not match.
+bit for bit with the forms of :mod:`torchbrdf.recovery.pixel_systems` (run with the fused path
+off), and each against a dense float64 reference that a wrong order, a wrong border or swapped
+weights would not match. The CG loop in one call (``lane_cg``) sums its dot products in float64
+in its own order: :func:`torchbrdf.recovery.smoothness_prior.pcg` on it is compared with the
+PyTorch loop to rounding, after each of the first iterations (where a wrong step length or
+direction would show).
 """
 
 import contextlib
@@ -139,6 +142,19 @@ def test_lane_coupling_is_the_stencil(n):
     assert float((_dense_coupling(low, d_isqrt, wx, wy, v, wrap=True) - k).abs().max()) > 1e-2
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_lane_coupling_is_the_pytorch_form_bit_for_bit(n, dtype):
+    """The operator ``K v`` and ``(I − K) v`` of one CG iteration: exactly the PyTorch form's bits
+    (on a 17×17 grid: rows longer than the vector width, blocks the C loop splits)."""
+    low, d_isqrt, wx, wy, v = _grid_case(n, 17, seed=n, dtype=dtype)
+    with pytorch_forms():
+        k_ref, apply_ref = smoothness_prior._torch_coupling(low, d_isqrt, wx, wy, 17)
+        ref, ref_sub = k_ref(v), apply_ref(v)
+    assert torch.equal(lane_ops.lane_coupling(low, d_isqrt, wx, wy, v, False), ref)
+    assert torch.equal(lane_ops.lane_coupling(low, d_isqrt, wx, wy, v, True), ref_sub)
+
+
 def _pcg_case(size, joined, dtype, seed=0):
     """A coupled system like the LM step's: SPD blocks ``(P, 7, 7)`` float32/64, edge weights
     non-zero only on the ``joined`` channels (the others are eliminated per pixel first)."""
@@ -157,19 +173,71 @@ def _pcg_case(size, joined, dtype, seed=0):
     return [t.to(dtype) for t in (hess, wx, wy, rhs, diag)]
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("joined", [[3, 4], [0, 1, 2, 3, 4], list(range(7)), []])
-def test_pcg_on_the_c_operators_is_the_pytorch_form_bit_for_bit(joined, dtype):
+def test_pcg_on_the_c_operators_is_the_pytorch_form(joined):
     """The whole coupled solve (elimination, factorisation, CG iterations, back substitution) on a
-    17×17 grid: the C path (``lane_schur``, ``lane_coupling``) gives exactly the PyTorch form's
-    result, with the damping diagonal and without, and when no channel is coupled."""
-    hess, wx, wy, rhs, diag = _pcg_case(17, joined, dtype, seed=len(joined))
+    17×17 grid, float64: the C path (``lane_schur``, ``lane_cg``) gives the PyTorch form's
+    iterates to rounding after 1, 2, 3, 5 and 25 iterations (the early ones far from the
+    solution, so a wrong step length or search direction would be off by far more), with the
+    damping diagonal and without, and when no channel is coupled."""
+    hess, wx, wy, rhs, diag = _pcg_case(17, joined, F64, seed=len(joined))
     for d in (diag, None):
-        with pytorch_forms():
-            ref = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 25, diag=d)
-        x = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 25, diag=d)
-        assert d is None or torch.isfinite(x).all()  # (without damping pixel 3 has nothing on channel 5)
-        torch.testing.assert_close(x, ref, rtol=0, atol=0, equal_nan=True)
+        for iters in (1, 2, 3, 5, 25):
+            with pytorch_forms():
+                ref = smoothness_prior.pcg(hess, wx, wy, rhs, 17, iters, diag=d)
+            x = smoothness_prior.pcg(hess, wx, wy, rhs, 17, iters, diag=d)
+            if d is None:  # (without damping pixel 3 has nothing on channel 5: a huge value)
+                torch.testing.assert_close(x, ref, rtol=1e-10, atol=0, equal_nan=True)
+                continue
+            assert torch.isfinite(x).all()
+            torch.testing.assert_close(x, ref, rtol=1e-10, atol=1e-10 * float(ref.abs().max()))
+            if joined and iters < 5:  # an early iterate is not the solution: the comparison bites
+                later = smoothness_prior.pcg(hess, wx, wy, rhs, 17, 200, diag=d)
+                assert float((later - ref).abs().max()) > 1e-6 * float(ref.abs().max())
+
+
+def _cg_case(n=2, size=6, seed=0):
+    """A split-preconditioned CG system of :func:`lane_ops.lane_cg` (``I − K`` positive definite:
+    ``K``'s weights small against the blocks) and its start ``y₀ = G⁻¹ b``, ``r₀ = K y₀``."""
+    low, d_isqrt, wx, wy, b = _grid_case(n, size, seed=seed)
+    wx, wy = 0.01 * wx, 0.01 * wy  # (I − K positive definite: K's spectrum within ±0.3)
+    y0 = pixel_systems.lower_solve(low, b.clone()).mul_(d_isqrt)
+    return low, d_isqrt, wx, wy, y0, lane_ops.lane_coupling(low, d_isqrt, wx, wy, y0, False)
+
+
+def test_lane_cg_solves_the_split_system_and_its_sums_do_not_depend_on_the_threads():
+    """Enough iterations solve ``(I − K) y = G⁻¹ b`` (checked with the dense operator); the
+    result has the same bits at 1 and 2 threads (the dot products are summed by grid rows,
+    then over the rows in order); ``y`` and ``r`` are left as they were."""
+    low, d_isqrt, wx, wy, y0, r0 = _cg_case()
+    y0_copy, r0_copy = y0.clone(), r0.clone()
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = lane_ops.lane_cg(low, d_isqrt, wx, wy, y0, r0, 60)
+        torch.set_num_threads(2)
+        two = lane_ops.lane_cg(low, d_isqrt, wx, wy, y0, r0, 60)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
+    assert torch.equal(y0, y0_copy) and torch.equal(r0, r0_copy)
+    g_inv_b = y0  # (y₀ = G⁻¹ b)
+    residual = one - _dense_coupling(low, d_isqrt, wx, wy, one) - g_inv_b
+    assert float(residual.abs().max()) < 1e-10 * float(g_inv_b.abs().max())
+    start = y0 - _dense_coupling(low, d_isqrt, wx, wy, y0) - g_inv_b
+    assert float(start.abs().max()) > 1e-3  # (y₀ is not the solution)
+
+
+def test_lane_cg_stops_at_a_breakdown():
+    """No coupling (zero weights): the start is the solution, ``r₀ = 0`` and ``dᵀ(I − K)d = 0`` at
+    the first iteration: CG stops there and returns the start, not a NaN step (0 / 0); no iteration
+    returns the start too."""
+    low, d_isqrt, wx, wy, y0, _ = _cg_case(seed=2)
+    zero_x, zero_y = torch.zeros_like(wx), torch.zeros_like(wy)
+    r0 = lane_ops.lane_coupling(low, d_isqrt, zero_x, zero_y, y0, False)
+    assert not r0.any()
+    assert torch.equal(lane_ops.lane_cg(low, d_isqrt, zero_x, zero_y, y0, r0, 10), y0)
+    assert torch.equal(lane_ops.lane_cg(low, d_isqrt, wx, wy, y0, r0, 0), y0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
@@ -220,6 +288,7 @@ def test_lane_ops_pass_opcheck():
     torch.library.opcheck(torch.ops.torchbrdf.lane_lower_solve_, (low, v.clone()))
     torch.library.opcheck(torch.ops.torchbrdf.lane_upper_solve_, (low, v.clone()))
     torch.library.opcheck(torch.ops.torchbrdf.lane_coupling, (low, d_isqrt, wx, wy, v, True))
+    torch.library.opcheck(torch.ops.torchbrdf.lane_cg, (*_cg_case(3, 4, seed=1), 5))
     lapd = torch.rand(16, 2, dtype=F64)
     torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, diag, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
     torch.library.opcheck(torch.ops.torchbrdf.lane_schur, (hess, None, rhs, [0, 1, 2, 5, 6, 3, 4], 5, lapd))
@@ -281,6 +350,13 @@ def test_lane_ops_refuse_what_the_kernels_cannot_read():
         lane_ops.lane_lower_solve(low, torch.empty(16, 3, dtype=F64).T.copy_(v))
     with pytest.raises(ValueError, match="v must be"):
         lane_ops.lane_upper_solve(low, v.float())
+    y0, r0 = v, v.clone()
+    with pytest.raises(ValueError, match="iters must be >= 0"):
+        lane_ops.lane_cg(low, d_isqrt, wx, wy, y0, r0, -1)
+    with pytest.raises(ValueError, match="r must have shape"):
+        lane_ops.lane_cg(low, d_isqrt, wx, wy, y0, r0[:, :-1], 3)
+    with pytest.raises(ValueError, match="y must be float32 or float64"):
+        lane_ops.lane_cg(low, d_isqrt, wx, wy, y0.float(), r0, 3)
     with pytest.raises(ValueError, match="order must be a permutation"):
         lane_ops.lane_schur(hess, diag, rhs, [0, 1, 2, 3, 4, 5, 5], 5, torch.zeros(16, 2, dtype=F64))
     with pytest.raises(ValueError, match="lapd must have shape"):

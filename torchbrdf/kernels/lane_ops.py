@@ -1,5 +1,5 @@
 """Lane-wise per-pixel linear algebra in C: ``torch.ops.torchbrdf.lane_ldl``, ``lane_lower_solve_``,
-``lane_upper_solve_`` and ``lane_coupling``.
+``lane_upper_solve_``, ``lane_coupling``, ``lane_schur`` and ``lane_cg``.
 
 The recovery's Levenberg–Marquardt step solves, per pixel, small symmetric positive definite
 systems stored lane-wise (matrices ``(n, n, P)``, vectors ``(n, ..., P)``: one contiguous lane
@@ -10,9 +10,10 @@ substitution is one multiply-add over every pixel, a pass through memory per ent
 loop does every entry of a block of pixels in cache (pixels innermost, so it vectorises), on
 PyTorch's OpenMP threads.
 
-Each operator performs the PyTorch form's floating-point operations in the same order per
-element, compiled without FMA contraction (:data:`torchbrdf.kernels.build.CFLAGS`), so the
-results are bit-identical to it. CPU only, float32 or float64; no autograd (the solves are
+Each operator but ``lane_cg`` performs the PyTorch form's floating-point operations in the same
+order per element, compiled without FMA contraction (:data:`torchbrdf.kernels.build.CFLAGS`), so
+the results are bit-identical to it; ``lane_cg`` (the whole CG loop in one call) sums its dot
+products in float64 in an order of its own. CPU only, float32 or float64; no autograd (the solves are
 linear algebra on already second-order terms); fake implementations for ``torch.compile``.
 """
 
@@ -27,7 +28,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["available", "lane_schur", "lane_ldl", "lane_lower_solve", "lane_upper_solve", "lane_coupling",
-           "coupling_operator", "PIVOT_FLOOR", "MAX_SIZE", "MAX_SCHUR"]
+           "lane_cg", "coupling_operator", "PIVOT_FLOOR", "MAX_SIZE", "MAX_SCHUR"]
 
 #: A pivot of ``LDLᵀ`` is at least this fraction of its matrix's diagonal entry plus the dtype's
 #: smallest normal number (the value of :data:`torchbrdf.recovery.pixel_systems.PIVOT_FLOOR`).
@@ -119,62 +120,131 @@ void tb_lane_solve(long n, long r, long P, const R* low, R* v, int upper, int nt
 
 /* out = K v (subtract = 0) or v - K v (subtract = 1), K = D^-1/2 L^-1 N L^-T D^-1/2, where
    N v = sum over the 4 neighbours q of w_pq v_q on the S x S grid: vectors (n, P), low (n, n, P),
-   dis = D^-1/2 (n, P), wx (n, S, S-1), wy (n, S-1, S); t (n, P) is scratch. */
+   dis = D^-1/2 (n, P), wx (n, S, S-1), wy (n, S-1, S); t (n, P) is scratch. The work-sharing loops
+   of an enclosing parallel region. For the conjugate gradients (tb_lane_cg): with r, v is first
+   set to r + beta v (the new search direction, a block at a time, as t reads it), and with part,
+   part[row] gets the float64 sum over the grid row of v out (a dot product's share). */
+/* The float64 sum over the n channels of a grid row (S values each, channel stride P) of a b: the
+   compiler's vector lanes as separate partial sums (a dependent chain of additions would run at
+   their latency), each channel's added in order: the same bits for a row whichever thread sums it. */
+static double row_dot(long n, long S, long P, const R* a, const R* b) {
+  double acc = 0.0;
+  for (long c = 0; c < n; ++c) {
+    const R* x = a + c * P;
+    const R* y = b + c * P;
+    double sum = 0.0;
+    _Pragma("omp simd reduction(+:sum)") for (long j = 0; j < S; ++j) sum += (double)x[j] * (double)y[j];
+    acc += sum;
+  }
+  return acc;
+}
+
+static void coupling_body(long n, long S, const R* low, const R* dis, const R* wx, const R* wy, R* v,
+                          R* t, R* out, int subtract, const R* r, R beta, double* part) {
+  const long P = S * S;
+  #pragma omp for schedule(static)
+  for (long p0 = 0; p0 < P; p0 += BLOCK) {  /* t = L^-T D^-1/2 v */
+    const long nb = MIN(BLOCK, P - p0);
+    if (r)
+      for (long c = 0; c < n; ++c)
+        for (long q = 0; q < nb; ++q) v[c * P + p0 + q] = MAC(v[c * P + p0 + q], beta, r[c * P + p0 + q]);
+    for (long c = 0; c < n; ++c)
+      for (long q = 0; q < nb; ++q) t[c * P + p0 + q] = v[c * P + p0 + q] * dis[c * P + p0 + q];
+    for (long k = n - 1; k > 0; --k)
+      for (long i = 0; i < k; ++i) {
+        const R* l = low + (k * n + i) * P + p0;
+        R* ti = t + i * P + p0;
+        const R* tk = t + k * P + p0;
+        for (long q = 0; q < nb; ++q) ti[q] = MAC(-l[q], tk[q], ti[q]);
+      }
+  }
+  #pragma omp for schedule(static)
+  for (long row = 0; row < S; ++row) {  /* out = D^-1/2 L^-1 N t, a grid row at a time */
+    const long p0 = row * S;
+    for (long c = 0; c < n; ++c) {
+      R* o = out + c * P + p0;
+      const R* tr = t + c * P + p0;
+      const R* w = wx + (c * S + row) * (S - 1);
+      for (long j = 0; j + 1 < S; ++j) o[j] = w[j] * tr[j + 1];
+      o[S - 1] = 0;
+      for (long j = 1; j < S; ++j) o[j] = MAC(w[j - 1], tr[j - 1], o[j]);
+      if (row + 1 < S) {
+        const R* wd = wy + (c * (S - 1) + row) * S;
+        for (long j = 0; j < S; ++j) o[j] = MAC(wd[j], tr[S + j], o[j]);
+      }
+      if (row > 0) {
+        const R* wu = wy + (c * (S - 1) + row - 1) * S;
+        for (long j = 0; j < S; ++j) o[j] = MAC(wu[j], tr[j - S], o[j]);
+      }
+    }
+    for (long k = 0; k + 1 < n; ++k)
+      for (long i = k + 1; i < n; ++i) {
+        const R* l = low + (i * n + k) * P + p0;
+        R* oi = out + i * P + p0;
+        const R* ok = out + k * P + p0;
+        for (long j = 0; j < S; ++j) oi[j] = MAC(-l[j], ok[j], oi[j]);
+      }
+    for (long c = 0; c < n; ++c) {
+      R* o = out + c * P + p0;
+      const R* s = dis + c * P + p0;
+      const R* vr = v + c * P + p0;
+      if (subtract)
+        for (long j = 0; j < S; ++j) o[j] = vr[j] - o[j] * s[j];
+      else
+        for (long j = 0; j < S; ++j) o[j] = o[j] * s[j];
+    }
+    if (part) part[row] = row_dot(n, S, P, v + p0, out + p0);
+  }
+}
+
 void tb_lane_coupling(long n, long S, const R* low, const R* dis, const R* wx, const R* wy, const R* v,
                       R* t, R* out, int subtract, int nthreads) {
-  const long P = S * S;
   #pragma omp parallel num_threads(nthreads)
-  {
-    #pragma omp for schedule(static)
-    for (long p0 = 0; p0 < P; p0 += BLOCK) {  /* t = L^-T D^-1/2 v */
-      const long nb = MIN(BLOCK, P - p0);
-      for (long c = 0; c < n; ++c)
-        for (long q = 0; q < nb; ++q) t[c * P + p0 + q] = v[c * P + p0 + q] * dis[c * P + p0 + q];
-      for (long k = n - 1; k > 0; --k)
-        for (long i = 0; i < k; ++i) {
-          const R* l = low + (k * n + i) * P + p0;
-          R* ti = t + i * P + p0;
-          const R* tk = t + k * P + p0;
-          for (long q = 0; q < nb; ++q) ti[q] = MAC(-l[q], tk[q], ti[q]);
-        }
-    }
-    #pragma omp for schedule(static)
-    for (long row = 0; row < S; ++row) {  /* out = D^-1/2 L^-1 N t, a grid row at a time */
-      const long p0 = row * S;
-      for (long c = 0; c < n; ++c) {
-        R* o = out + c * P + p0;
-        const R* tr = t + c * P + p0;
-        const R* w = wx + (c * S + row) * (S - 1);
-        for (long j = 0; j + 1 < S; ++j) o[j] = w[j] * tr[j + 1];
-        o[S - 1] = 0;
-        for (long j = 1; j < S; ++j) o[j] = MAC(w[j - 1], tr[j - 1], o[j]);
-        if (row + 1 < S) {
-          const R* wd = wy + (c * (S - 1) + row) * S;
-          for (long j = 0; j < S; ++j) o[j] = MAC(wd[j], tr[S + j], o[j]);
-        }
-        if (row > 0) {
-          const R* wu = wy + (c * (S - 1) + row - 1) * S;
-          for (long j = 0; j < S; ++j) o[j] = MAC(wu[j], tr[j - S], o[j]);
-        }
-      }
-      for (long k = 0; k + 1 < n; ++k)
-        for (long i = k + 1; i < n; ++i) {
-          const R* l = low + (i * n + k) * P + p0;
-          R* oi = out + i * P + p0;
-          const R* ok = out + k * P + p0;
-          for (long j = 0; j < S; ++j) oi[j] = MAC(-l[j], ok[j], oi[j]);
-        }
-      for (long c = 0; c < n; ++c) {
-        R* o = out + c * P + p0;
-        const R* s = dis + c * P + p0;
-        const R* vr = v + c * P + p0;
-        if (subtract)
-          for (long j = 0; j < S; ++j) o[j] = vr[j] - o[j] * s[j];
-        else
-          for (long j = 0; j < S; ++j) o[j] = o[j] * s[j];
-      }
-    }
+  coupling_body(n, S, low, dis, wx, wy, (R*)v, t, out, subtract, 0, (R)0, 0);
+}
+
+/* Up to iters conjugate-gradient iterations on (I - K) y = G^-1 b (smoothness_prior._cg_iterations)
+   from y (n, P) and its residual r (n, P), both updated in place; d, t, ad (n, P) and part (S)
+   are scratch. The dot products are float64 sums per grid row, then over the rows in order: the
+   same bits at any thread count. A breakdown (d^T A d not positive and finite) stops the
+   iterations where they are. Returns the number of iterations taken. */
+long tb_lane_cg(long n, long S, const R* low, const R* dis, const R* wx, const R* wy, R* y, R* r,
+                R* d, R* t, R* ad, double* part, long iters, int nthreads) {
+  const long P = S * S;
+  double rr = 0.0;
+  #pragma omp parallel for schedule(static) num_threads(nthreads)
+  for (long row = 0; row < S; ++row) {
+    for (long c = 0; c < n; ++c)
+      for (long j = 0; j < S; ++j) d[c * P + row * S + j] = r[c * P + row * S + j];
+    part[row] = row_dot(n, S, P, r + row * S, r + row * S);
   }
+  for (long row = 0; row < S; ++row) rr += part[row];
+  R beta = 0;
+  long it = 0;
+  for (; it < iters; ++it) {
+    #pragma omp parallel num_threads(nthreads)
+    coupling_body(n, S, low, dis, wx, wy, d, t, ad, 1, it > 0 ? r : 0, beta, part);
+    double dad = 0.0;
+    for (long row = 0; row < S; ++row) dad += part[row];
+    if (!(isfinite(dad) && dad > 0)) break;
+    const R alpha = (R)(rr / dad);
+    #pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (long row = 0; row < S; ++row) {
+      for (long c = 0; c < n; ++c) {
+        const long o = c * P + row * S;
+        for (long j = 0; j < S; ++j) {
+          y[o + j] = MAC(d[o + j], alpha, y[o + j]);
+          r[o + j] = MAC(-ad[o + j], alpha, r[o + j]);
+        }
+      }
+      part[row] = row_dot(n, S, P, r + row * S, r + row * S);
+    }
+    double rr_new = 0.0;
+    for (long row = 0; row < S; ++row) rr_new += part[row];
+    beta = rr != 0 ? (R)(rr_new / rr) : (R)0;
+    rr = rr_new;
+  }
+  return it;
 }
 /* LDL^T of the n x n float64 matrices a[i][j][q] (lower triangle read) of nb pixels: low (strict
    lower triangle) and d, the pivots floored at PIVOT |a_jj| + DBL_MIN, as tb_lane_ldl */
@@ -276,7 +346,7 @@ _CTYPES = {torch.float32: ("float", "1.17549435082228750797e-38"),
 
 
 def _kernel(dtype: torch.dtype):
-    """``(library, ldl, solve, coupling, schur)`` for ``dtype`` (built once; None: not here)."""
+    """``(library, ldl, solve, coupling, schur, cg)`` for ``dtype`` (built once; None: not here)."""
     if dtype in _kernels:
         return _kernels[dtype]
     with _lock:
@@ -290,10 +360,12 @@ def _kernel(dtype: torch.dtype):
             symbols: dict[str, tuple[Sequence[Any], Any]] = {"tb_lane_ldl": ([lg, lg, p, p, p, i], None),
                        "tb_lane_solve": ([lg, lg, lg, p, p, i, i], None),
                        "tb_lane_coupling": ([lg, lg, p, p, p, p, p, p, p, i, i], None),
-                       "tb_lane_schur": ([lg, lg, lg] + [p] * 12 + [i], None)}
+                       "tb_lane_schur": ([lg, lg, lg] + [p] * 12 + [i], None),
+                       "tb_lane_cg": ([lg, lg] + [p] * 10 + [lg, i], lg)}
             lib = build.load_kernel(src, "lane_ops", symbols)
             _kernels[dtype] = None if lib is None else (lib, lib.tb_lane_ldl, lib.tb_lane_solve,
-                                                        lib.tb_lane_coupling, lib.tb_lane_schur)
+                                                        lib.tb_lane_coupling, lib.tb_lane_schur,
+                                                        lib.tb_lane_cg)
         return _kernels[dtype]
 
 
@@ -378,6 +450,16 @@ def _couple(n: int, size: int, mats: list[Tensor], v: Tensor, subtract: bool) ->
     return out
 
 
+def _cg(n: int, size: int, mats: list[Tensor], y: Tensor, r: Tensor, iters: int) -> Tensor:
+    """The C call of :func:`lane_cg` on checked, contiguous matrices: a new ``y``."""
+    y, r = y.contiguous().clone(), r.contiguous().clone()
+    scratch = [y.new_empty(y.shape) for _ in range(3)]
+    part = y.new_empty(size, dtype=torch.float64)
+    _fn(y.dtype, 5)(n, size, *(m.data_ptr() for m in mats), y.data_ptr(), r.data_ptr(),
+                    *(t.data_ptr() for t in scratch), part.data_ptr(), int(iters), torch.get_num_threads())
+    return y
+
+
 def _schur(hess: Tensor, diag: Tensor | None, rhs: Tensor, order: list[int], nu: int, lapd: Tensor
            ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     if hess.dim() != 3 or hess.shape[1] != hess.shape[2] or not 0 < hess.shape[1] <= MAX_SCHUR:
@@ -451,6 +533,20 @@ def _lane_coupling_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: T
 @_lane_coupling_op.register_fake
 def _(low, d_isqrt, wx, wy, v, subtract):
     return v.new_empty(v.shape)
+
+
+@torch.library.custom_op("torchbrdf::lane_cg", mutates_args=())
+def _lane_cg_op(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, y: Tensor, r: Tensor,
+                iters: int) -> Tensor:
+    n, size, mats = _bind(low, d_isqrt, wx, wy)
+    _check("y", y, (n, size * size), low.dtype)
+    _check("r", r, (n, size * size), low.dtype)
+    return _cg(n, size, mats, y, r, iters)
+
+
+@_lane_cg_op.register_fake
+def _(low, d_isqrt, wx, wy, y, r, iters):
+    return y.new_empty(y.shape)
 
 
 def _direct(*tensors: Tensor | None) -> bool:
@@ -534,6 +630,33 @@ def lane_coupling(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, v: Tenso
         ValueError: a shape, dtype or device the kernel cannot read (named).
     """
     return coupling_operator(low, d_isqrt, wx, wy)(v, subtract)
+
+
+def lane_cg(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, y: Tensor, r: Tensor, iters: int) -> Tensor:
+    """Conjugate-gradient iterations on ``(I − K) y = G⁻¹ b`` (:func:`lane_coupling`'s ``K``) in one
+    call: the loop of :func:`torchbrdf.recovery.smoothness_prior.pcg`.
+
+    ``low``, ``d_isqrt``, ``wx``, ``wy`` as for :func:`lane_coupling`; ``y (n, P)`` the start and
+    ``r (n, P)`` its residual ``G⁻¹ b − (I − K) y``, finite; ``iters ≥ 0`` iterations at most.
+    Each iteration is two passes over the vectors (the operator with the new search direction
+    and ``dᵀ(I − K)d``; the updates of ``y`` and ``r`` with ``rᵀr``); the dot products are summed
+    in float64 by grid rows, then over the rows in order, so the result has the same bits at any
+    thread count (not those of the PyTorch loop, whose float32 BLAS dot products round
+    otherwise). A breakdown (``dᵀ(I − K)d`` not positive and finite) stops the iterations there,
+    as the PyTorch loop does. One dtype (float32 or float64), CPU. Returns a new ``(n, P)``
+    tensor; ``y`` and ``r`` are left as they are.
+
+    Raises:
+        ValueError: a shape, dtype or device the kernel cannot read, or ``iters < 0`` (named).
+    """
+    if int(iters) < 0:
+        raise ValueError(f"lane_cg: iters must be >= 0, got {iters}")
+    if not _direct(low, d_isqrt, wx, wy, y, r):
+        return _lane_cg_op(low, d_isqrt, wx, wy, y, r, int(iters))
+    n, size, mats = _bind(low, d_isqrt, wx, wy)
+    _check("y", y, (n, size * size), low.dtype)
+    _check("r", r, (n, size * size), low.dtype)
+    return _cg(n, size, mats, y, r, int(iters))
 
 
 def coupling_operator(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor

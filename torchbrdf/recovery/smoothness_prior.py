@@ -233,22 +233,21 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     CG runs on the split-preconditioned system ``(I − K) y = G⁻¹ b`` with ``K = G⁻¹ N G⁻ᵀ``,
     ``G = L D^½``, ``x = G⁻ᵀ y``: the same iterates as CG preconditioned by ``M⁻¹`` in exact
     arithmetic, but an iteration needs the two triangular solves and no block product. On the
-    CPU the operator ``K`` (or ``I − K``) is one C call
-    (:func:`torchbrdf.kernels.lane_ops.lane_coupling`, bit-identical to the PyTorch form below).
+    CPU the whole loop is one C call (:func:`torchbrdf.kernels.lane_ops.lane_cg`: two passes
+    over the vectors an iteration, instead of a dozen small operations and a host read; its dot
+    products summed in float64, so its iterates differ from the PyTorch loop below by rounding).
     """
     n = low.shape[0]
     if c_kernels(low, d_isqrt, wx, wy, b, size=n):
-        from torchbrdf.kernels.lane_ops import coupling_operator
+        from torchbrdf.kernels.lane_ops import coupling_operator, lane_cg
 
-        op = coupling_operator(low, d_isqrt, wx, wy)
-
-        def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
-            return op(v, False)
-
-        def apply(v):  # (I − K) v
-            return op(v, True)
-    else:
-        coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
+        y = lower_solve(low, b.clone()).mul_(d_isqrt)  # y₀ = G⁻¹ b, i.e. x₀ = M⁻¹ b
+        r = coupling_operator(low, d_isqrt, wx, wy)(y, False)  # G⁻¹ b − (I − K) y₀ = K y₀
+        # (non-finite data stop CG at its start, as below)
+        if iters > 0 and bool(torch.isfinite(r).all()):
+            y = lane_cg(low, d_isqrt, wx, wy, y, r, iters)
+        return upper_solve(low, y.mul_(d_isqrt))
+    coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
 
     def dot(p, q):
         return torch.vdot(p.view(-1), q.view(-1))
