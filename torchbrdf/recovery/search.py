@@ -54,8 +54,9 @@ def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Setting
                      active: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Up to ``passes`` passes of :func:`propagate`, each after the first on the pixels near the last one's changes.
 
-    The same maps as ``passes`` full passes (it stops when a pass changes nothing). From the
-    third on, a pass renders only what is new: a neighbour's parameters that a pass on some
+    The same maps as ``passes`` full passes (it stops when a pass changes nothing; but for
+    rounding where a pass on more than :data:`FULL_PASS_SHARE` of the pixels runs as a full
+    one). From the third on, a pass renders only what is new: a neighbour's parameters that a pass on some
     pixels rendered at the pixel keep their cost (each pixel renders alone, at lights that do
     not change between the passes), and so does the pixel's own. Arguments as for
     :func:`propagate` (``active (P,)`` bool: the first pass only on these pixels; None: all);
@@ -63,13 +64,23 @@ def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Setting
     """
     known = None
     for _ in range(passes):
+        if active is not None and int(active.sum()) > FULL_PASS_SHARE * active.numel():
+            active = None
         theta, metal, changed = _pass(data, theta, metal, cfg, class_sigma2, unary, active, known)
         if not bool(changed.any()):
             break
         if known is None:  # (the first pass renders all candidates in the maps' layout: none kept)
             known = _PassCosts.empty(theta)
+        elif active is None:  # (a full pass keeps no cost: the own ones of the pixels it moved are stale)
+            known.own_known &= ~changed
         active = dilate(changed, data.size)
     return theta, metal
+
+
+#: A pass on more than this share of the pixels runs as a full pass: a pass on some pixels
+#: renders every candidate of theirs, a full one bounds them on a few lights first (at 256²,
+#: 17 lights, a pass on 97 % of the pixels took 2.4× a full pass's time).
+FULL_PASS_SHARE = 0.5
 
 
 @dataclass
