@@ -56,8 +56,8 @@ def propagate_passes(data: LevelData, theta: Tensor, metal: Tensor, cfg: Setting
 
     The same maps as ``passes`` full passes (it stops when a pass changes nothing; but for
     rounding where a pass on more than :data:`FULL_PASS_SHARE` of the pixels runs as a full
-    one). From the third on, a pass renders only what is new: a neighbour's parameters that a pass on some
-    pixels rendered at the pixel keep their cost (each pixel renders alone, at lights that do
+    one). From the third on, a pass renders only what is new: a neighbour's parameters that a
+    pass on some pixels rendered at the pixel keep their cost (each pixel renders alone, at lights that do
     not change between the passes), and so does the pixel's own. Arguments as for
     :func:`propagate` (``active (P,)`` bool: the first pass only on these pixels; None: all);
     returns ``(theta (P, 7), metal (P, 1))``.
@@ -186,7 +186,7 @@ def _pass(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings, class_si
 
 
 def unexplained(cost: Tensor, sigma2: float, n_residuals: int, rate: float) -> Tensor:
-    """Pixels ``(P,)`` bool whose data cost ``cost (P, 1)`` noise alone exceeds with probability below ``rate``.
+    """Pixels ``(P,)`` bool whose data cost ``cost (P, 1)`` noise alone reaches with probability < ``rate``.
 
     A converged pixel's cost is ``σ²`` times a χ² of ``n_residuals − 7`` degrees of freedom
     (``sigma2``: the noise variance of one residual, measured); above that χ²'s ``1 − rate``
