@@ -253,6 +253,7 @@ def test_passes_reusing_earlier_costs_equal_the_loop_of_passes(monkeypatch, cros
     unary = (theta + 0.3 * torch.randn(theta.shape, generator=gen), torch.rand(theta.shape, generator=gen))
     cfg = Settings()
     ref = reference_passes(data, theta, metal, cfg, 6, cross, unary)
+    monkeypatch.setattr(search, "FULL_PASS_SHARE", 1.0)  # (every pass after the first on some pixels)
     rendered = count_rendered(monkeypatch)
     got = search.propagate_passes(data, theta, metal, cfg, 6, class_sigma2=cross, unary=unary)
     assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
@@ -436,3 +437,31 @@ def test_normal_search_survives_a_chunk_the_bound_rules_out_entirely(monkeypatch
     monkeypatch.setattr(search, "subset_cost_bound", lambda r, tol, m=None: torch.full_like(r[:, :1], float("inf")))
     got, changed = search.normal_search(data, theta, metal, "principled", factor=1.5)
     assert changed == 0 and torch.equal(got, theta)
+
+
+def test_a_pass_on_most_of_the_map_runs_as_a_full_pass(monkeypatch):
+    # A pass on some pixels renders every candidate of theirs; beyond FULL_PASS_SHARE of the
+    # map the full pass (its candidates bounded on a few lights) is the faster, and its maps
+    # are the full pass's own.
+    size = 16
+    data, theta, metal = rough_state(size=size, seed=7)
+    img = theta.view(size, size, 7)
+    img[2:14, 2:14, :5] = torch.tensor([-3.0, 2.0, 1.0, -4.0, 2.0])
+    seen = []
+    plain = search._pass
+
+    def recording(data, theta, metal, cfg, class_sigma2, unary, active, known):
+        seen.append(None if active is None else int(active.sum()))
+        return plain(data, theta, metal, cfg, class_sigma2, unary, active, known)
+
+    monkeypatch.setattr(search, "_pass", recording)
+    most = torch.zeros(size * size, dtype=torch.bool)
+    most[: int(search.FULL_PASS_SHARE * size * size) + 1] = True
+    got = search.propagate_passes(data, theta, metal, Settings(), 1, active=most)
+    assert seen == [None]
+    full = search.propagate(data, theta, metal, Settings())
+    assert torch.equal(got[0], full[0]) and torch.equal(got[1], full[1])
+    seen.clear()
+    few = ~most
+    search.propagate_passes(data, theta, metal, Settings(), 1, active=few)
+    assert seen == [int(few.sum())]

@@ -171,6 +171,43 @@ def test_propagation_repairs_a_pixel_from_its_neighbours():
     assert float(new_metal[40]) == 0.0 and torch.allclose(fixed[40], theta[40], atol=1e-5)
 
 
+def test_unexplained_flags_the_noise_tail_at_its_rate():
+    """Noise alone (σ² × χ² of ``n − 7`` degrees of freedom) is called unexplained at the rate asked
+    for; a misfit far above the noise, and a non-finite cost, always."""
+    sigma2, n, rate = 1e-4, 36, 0.05
+    gen = torch.Generator().manual_seed(0)
+    noise = torch.randn(200_000, n - params.N_PARAMS, generator=gen, dtype=torch.float64)
+    cost = sigma2 * (noise * noise).sum(-1, keepdim=True)
+    flagged = search.unexplained(cost, sigma2, n, rate)
+    assert flagged.shape == (cost.shape[0],) and flagged.dtype == torch.bool
+    assert abs(float(flagged.double().mean()) - rate) < 0.003
+    odd = torch.tensor([[10 * n * sigma2], [float("nan")], [float("inf")], [0.0]], dtype=torch.float64)
+    assert search.unexplained(odd, sigma2, n, rate).tolist() == [True, True, True, False]
+
+
+def test_a_stages_later_passes_try_only_the_unexplained_pixels(tiny, monkeypatch):
+    """Within a single-class stage, a propagation pass runs only on the pixels whose data cost at
+    the last LM step the noise does not explain (``search.unexplained``); the others keep their
+    parameters. A stage's first pass tries every pixel."""
+    calls = []
+    plain = engine.propagate_passes
+
+    def recording(data, theta, metal, cfg, passes, class_sigma2=None, unary=None, active=None):
+        out = plain(data, theta, metal, cfg, passes, class_sigma2=class_sigma2, unary=unary,
+                    **({} if active is None else {"active": active}))
+        calls.append((class_sigma2 is not None, passes, active, (out[0] != theta).any(-1)))
+        return out
+
+    monkeypatch.setattr(engine, "propagate_passes", recording)
+    recover(tiny, RecoveryConfig(seed=0, threads=2, converge_tol=0.0), None, progress=False)
+    later = [c for c in calls if c[0] and c[1] == 1 and c[2] is not None]
+    assert later, "no restricted pass within a single-class stage"
+    for _, _, active, moved in later:
+        assert active.dtype == torch.bool and bool(active.any()) and not bool(active.all())
+        assert not bool((moved & ~active).any())
+    assert all(c[2] is None for c in calls if not c[0])  # (the two-hypothesis stages: every pixel)
+
+
 def test_normal_search_finds_a_steep_normal():
     data, theta, metal = flat_level(normal_tilt_deg=24.0)
     rows = torch.arange(100, 110)

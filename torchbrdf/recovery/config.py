@@ -276,7 +276,9 @@ class Settings:
     # Propagation and search
     propagate: bool = True  # PatchMatch-style neighbour propagation: Gauss–Newton only walks downhill
     propagate_passes: int = 6  # passes at a stage's start, one pixel further per pass
-    propagate_every: bool = True  # and one pass before every LM iteration of the single-class stages
+    # ... and one pass before every later LM iteration of the single-class stages, on the pixels
+    # whose cost the noise does not explain (search.unexplained)
+    propagate_every: bool = True
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     # The learned prior's noise variance σ² (its precision is σ² / σ_map²): the fit's median
     # per-residual cost, at most this (a 3 % log error); a fit far from the data early on

@@ -107,7 +107,7 @@ from torchbrdf.recovery.map_ops import neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
 from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost, measured_map_errors, measured_metallic_error
 from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
-from torchbrdf.recovery.search import normal_search, propagate_passes
+from torchbrdf.recovery.search import normal_search, propagate_passes, unexplained
 from torchbrdf.recovery.soft_metal import soft_metal_stage
 
 
@@ -354,7 +354,14 @@ class Recovery:
                 # A stage's start (a new level, or the class choice) moves pixels far; "all"
                 # continues the converged polish at its size, like one more of its iterations.
                 passes = self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1
-                theta, metal = propagate_passes(data, theta, metal, self.cfg, passes, class_sigma2=cross, unary=unary)
+                # Within a stage only the pixels the last LM step left fitting worse than the
+                # noise explains try their neighbours: elsewhere a neighbour rarely wins.
+                last = st.get("data_cost") if st["it"] > 0 and cross is not None else None
+                active = None if last is None else unexplained(last, cross, 3 * len(data.train_idx),
+                                                               self.cfg.false_metal_rate)
+                if active is None or bool(active.any()):
+                    theta, metal = propagate_passes(data, theta, metal, self.cfg, passes, class_sigma2=cross,
+                                                    unary=unary, active=active)
                 if kind != "dual":
                     st["metal"] = metal
             if st["it"] == 0 and self.cfg.propagate and kind != "all":
@@ -367,6 +374,8 @@ class Recovery:
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
                                               extra, unary, self._take_stage_gn(data, theta, metal), residual=keep_r)
             self.fit_cost[h] = self._training_fit(extra, data)
+            if kind != "dual":  # (each pixel's, for the next iteration's propagation)
+                st["data_cost"] = extra["data_cost"]
             if calibrate and self.cfg.light_joint:
                 self._light_joint_step(data, theta, metal, self.cfg.light_position, size, unary)
             elif calibrate:  # alternate: maps (LM step above), then each light's intensity scale
