@@ -356,8 +356,8 @@ class Recovery:
                 passes = self.cfg.propagate_passes if st["it"] == 0 and kind != "all" else 1
                 # Within a stage only the pixels the last LM step left fitting worse than the
                 # noise explains try their neighbours: elsewhere a neighbour rarely wins.
-                last = st.get("data_cost") if st["it"] > 0 and cross is not None else None
-                active = None if last is None else unexplained(last, cross, 3 * len(data.train_idx),
+                last = st.get("data_cost") if st["it"] > 0 else None
+                active = None if last is None or cross is None else unexplained(last, cross, 3 * len(data.train_idx),
                                                                self.cfg.false_metal_rate)
                 if active is None or bool(active.any()):
                     theta, metal = propagate_passes(data, theta, metal, self.cfg, passes, class_sigma2=cross,
