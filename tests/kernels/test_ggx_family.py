@@ -16,21 +16,14 @@ from torchbrdf.brdf.svbrdf_ggx import svbrdf_ggx
 from torchbrdf.kernels import fused as _fast
 from torchbrdf.kernels import ops as _ops
 
+from tests.kernels.test_fast_path import fast  # noqa: F401  (fixture: the fused path at every size)
+
 P = importlib.import_module("torchbrdf.brdf.principled")
 
 pytestmark = pytest.mark.skipif(not _fast.available(), reason="no C compiler: the fused path is unavailable")
 
 MAPS = ("diffuse_albedo", "specular_albedo", "roughness")
 FLOORS = [{}, {"roughness_floor": 1e-3}, {"alpha_floor": 0.02}]
-
-
-@pytest.fixture
-def fast():
-    """Force the fused path for every batch size during the test."""
-    old = P.fast_path_enabled()
-    P.set_fast_path(True)
-    yield
-    P.set_fast_path(old)
 
 
 def _unit(x):

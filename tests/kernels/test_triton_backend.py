@@ -22,40 +22,14 @@ from tests.brdf.test_principled import SCALARS, random_case, to_t
 
 triton = pytest.importorskip("triton")
 
+from tests.kernels.triton_interpreter import interpreter, launches  # noqa: E402,F401  (fixtures)
+
 P = importlib.import_module("torchbrdf.brdf.principled")
 formula = importlib.import_module("torchbrdf.brdf.formula")
 ct = importlib.import_module("torchbrdf.kernels.codegen_triton")
 ops_mod = importlib.import_module("torchbrdf.kernels.ops")
 triton_runner = importlib.import_module("torchbrdf.kernels.triton_runner")
 backend_mod = importlib.import_module("torchbrdf.kernels.backend")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def interpreter(tmp_path_factory):
-    """Triton's interpreter and the ``triton`` backend for every test of this module."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("TRITON_INTERPRET", "1")
-    mp.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path_factory.mktemp("kernels")))
-    mp.delenv("TORCHBRDF_BACKEND", raising=False)
-    mp.delenv("TORCHBRDF_EAGER", raising=False)
-    torchbrdf.set_backend("triton")
-    yield
-    torchbrdf.set_backend(None)
-    mp.undo()
-
-
-@pytest.fixture
-def launches(monkeypatch):
-    """Records the kinds of the Triton kernels launched (proves the Triton path really ran)."""
-    calls = []
-    real = ct.launch
-
-    def spy(kernel, kind, n, P_, args):
-        calls.append(kind)
-        return real(kernel, kind, n, P_, args)
-
-    monkeypatch.setattr(ct, "launch", spy)
-    return calls
 
 
 def _case(seed, count, dtype, min_cos=0.0):

@@ -17,37 +17,11 @@ from tests.kernels.test_ggx_family import MAPS, _case
 
 triton = pytest.importorskip("triton")
 
+from tests.kernels.triton_interpreter import interpreter, launches  # noqa: E402,F401  (fixtures)
+
 ct = importlib.import_module("torchbrdf.kernels.codegen_triton")
 ops_mod = importlib.import_module("torchbrdf.kernels.ops")
 backend_mod = importlib.import_module("torchbrdf.kernels.backend")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def interpreter(tmp_path_factory):
-    """Triton's interpreter and the ``triton`` backend for every test of this module."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("TRITON_INTERPRET", "1")
-    mp.setenv("TORCHBRDF_CACHE_DIR", str(tmp_path_factory.mktemp("kernels")))
-    mp.delenv("TORCHBRDF_BACKEND", raising=False)
-    mp.delenv("TORCHBRDF_EAGER", raising=False)
-    torchbrdf.set_backend("triton")
-    yield
-    torchbrdf.set_backend(None)
-    mp.undo()
-
-
-@pytest.fixture
-def launches(monkeypatch):
-    """The kinds of the Triton kernels launched (proves the Triton path really ran)."""
-    calls = []
-    real = ct.launch
-
-    def spy(kernel, kind, n, P_, args):
-        calls.append(kind)
-        return real(kernel, kind, n, P_, args)
-
-    monkeypatch.setattr(ct, "launch", spy)
-    return calls
 
 
 def _run(backend, inputs, grad_out=None, **extra):

@@ -17,12 +17,13 @@ import argparse
 import json
 import os
 import shlex
-import statistics
 import subprocess
 import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+
+from torchbrdf.bench.fit_time import min_median_max, source_trees
 
 #: The saving child: the CLI with the LM step's ``pcg`` wrapped (argv: folder, every, CLI options).
 _SAVE = r"""
@@ -82,10 +83,6 @@ def time_tree(tree: str, folder: str, threads: int) -> dict:
         return torch.load(out)
 
 
-def _mmm(xs: Sequence[float]) -> str:
-    return f"{min(xs):.4f} / {statistics.median(xs):.4f} / {max(xs):.4f}"
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m torchbrdf.bench.cg_time", description=__doc__.split("\n")[0])
     ap.add_argument("--save", default=None, metavar="DIR", help="run a fit and save its pcg calls here")
@@ -106,12 +103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         n = save_calls(args.save, args.capture, args.every, shlex.split(args.cli))
         print(f"{n} calls saved to {args.save}")
         return 0
-    trees = {}
-    for spec in args.tree:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not Path(path, "torchbrdf").is_dir():
-            ap.error(f"--tree: expected NAME=DIR with DIR/torchbrdf a folder, got {spec!r}")
-        trees[name] = str(Path(path).resolve())
+    trees = source_trees(args.tree or [], ap)
     if not trees:
         ap.error("--args needs at least one --tree NAME=DIR")
     if not any(Path(args.args).glob("pcg_*.pt")):
@@ -129,7 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name in names:
         diff = max(float((x - x0).abs().max() / x0.abs().max().clamp(min=1e-30))
                    for x, x0 in zip(runs[name][0]["x"], first, strict=True))
-        cpu, wall = _mmm([r["cpu"] for r in runs[name]]), _mmm([r["wall"] for r in runs[name]])
+        cpu = min_median_max([r["cpu"] for r in runs[name]], 4)
+        wall = min_median_max([r["wall"] for r in runs[name]], 4)
         print(f"| {name} | {cpu} | {wall} | {diff:.1e} |")
     return 0
 

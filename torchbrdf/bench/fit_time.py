@@ -57,8 +57,20 @@ def run_fit(tree: str, capture: str, threads: int) -> dict:
                 "psnr": (report.get("held_out_light") or {}).get("psnr")}
 
 
-def _mmm(xs: Sequence[float]) -> str:
-    return f"{min(xs):.2f} / {statistics.median(xs):.2f} / {max(xs):.2f}"
+def source_trees(specs: Sequence[str], ap: argparse.ArgumentParser) -> dict[str, str]:
+    """``--tree NAME=DIR`` options as ``{name: absolute DIR}``; a bad one is an ``ap.error``."""
+    trees = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not Path(path, "torchbrdf").is_dir():
+            ap.error(f"--tree: expected NAME=DIR with DIR/torchbrdf a folder, got {spec!r}")
+        trees[name] = str(Path(path).resolve())
+    return trees
+
+
+def min_median_max(xs: Sequence[float], digits: int = 2) -> str:
+    """``"min / median / max"`` of ``xs``, ``digits`` decimals each."""
+    return f"{min(xs):.{digits}f} / {statistics.median(xs):.{digits}f} / {max(xs):.{digits}f}"
 
 
 def table(rows: Sequence[dict]) -> str:
@@ -69,8 +81,8 @@ def table(rows: Sequence[dict]) -> str:
     for cap, th, tree in keys:
         sel = [r for r in rows if (r["capture"], r["threads"], r["tree"]) == (cap, th, tree)]
         psnr = ", ".join(f"{p:.6f}" for p in sorted({r["psnr"] for r in sel if r["psnr"] is not None}))
-        out.append(f"| {Path(cap).name} | {th} | {tree} | {_mmm([r['seconds'] for r in sel])} | "
-                   f"{_mmm([r['cpu'] for r in sel])} | {psnr} |")
+        out.append(f"| {Path(cap).name} | {th} | {tree} | {min_median_max([r['seconds'] for r in sel])} | "
+                   f"{min_median_max([r['cpu'] for r in sel])} | {psnr} |")
     return "\n".join(out)
 
 
@@ -85,12 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--busy", action="store_true", help="beside one busy Python process")
     ap.add_argument("--json", default=None, help="write the fits' rows to this file")
     args = ap.parse_args(argv)
-    trees = {}
-    for spec in args.tree:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not Path(path, "torchbrdf").is_dir():
-            ap.error(f"--tree: expected NAME=DIR with DIR/torchbrdf a folder, got {spec!r}")
-        trees[name] = str(Path(path).resolve())
+    trees = source_trees(args.tree, ap)
     threads = [int(t) for t in args.threads.split(",")]
     captures = args.capture or ["demo"]
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.busy else None

@@ -93,34 +93,25 @@ def _exp2_source() -> str:
     0.1 ulp), ``2^k`` written into the exponent bits. ``x`` is clamped to the normal range
     ([-1022, 1023], float [-126, 127]): a smaller argument gives the smallest normal, not a
     subnormal or 0."""
-    def horner(deg: int, suffix: str) -> str:
+    def one(name: str, real: str, bits: str, nbytes: int, lo: int, hi: int, shift: str,
+            mantissa: int, deg: int, suffix: str) -> str:
         cs = [math.log(2.0) ** i / math.factorial(i) for i in range(deg + 1)]
-        lines = [f"p = {lit(cs[deg])}{suffix};"]
-        lines += [f"p = p * f + {lit(c)}{suffix};" for c in reversed(cs[:deg])]
-        return " ".join(lines)
+        horner = " ".join([f"p = {lit(cs[deg])}{suffix};"]
+                          + [f"p = p * f + {lit(c)}{suffix};" for c in reversed(cs[:deg])])
+        return rf"""
+static inline {real} {name}({real} x) {{
+    x = x < {lo}.0{suffix} ? {lo}.0{suffix} : (x > {hi}.0{suffix} ? {hi}.0{suffix} : x);
+    const {real} kk = x + {shift}{suffix};
+    const {real} f = x - (kk - {shift}{suffix});
+    {bits} b; memcpy(&b, &kk, {nbytes});
+    b = (b + {hi}) << {mantissa};
+    {real} s; memcpy(&s, &b, {nbytes});
+    {real} p; {horner}
+    return p * s;
+}}"""
 
-    return rf"""
-static inline double tb_exp2(double x) {{
-    x = x < -1022.0 ? -1022.0 : (x > 1023.0 ? 1023.0 : x);
-    const double kk = x + 6755399441055744.0;
-    const double f = x - (kk - 6755399441055744.0);
-    uint64_t b; memcpy(&b, &kk, 8);
-    b = (b + 1023) << 52;
-    double s; memcpy(&s, &b, 8);
-    double p; {horner(13, "")}
-    return p * s;
-}}
-static inline float tb_exp2f(float x) {{
-    x = x < -126.0f ? -126.0f : (x > 127.0f ? 127.0f : x);
-    const float kk = x + 12582912.0f;
-    const float f = x - (kk - 12582912.0f);
-    uint32_t b; memcpy(&b, &kk, 4);
-    b = (b + 127) << 23;
-    float s; memcpy(&s, &b, 4);
-    float p; {horner(7, "f")}
-    return p * s;
-}}
-"""
+    return (one("tb_exp2", "double", "uint64_t", 8, -1022, 1023, "6755399441055744.0", 52, 13, "")
+            + one("tb_exp2f", "float", "uint32_t", 4, -126, 127, "12582912.0", 23, 7, "f") + "\n")
 
 
 def lit(x: float) -> str:
