@@ -149,6 +149,11 @@ def test_renders_on_the_gpu_when_asked():
     torch.testing.assert_close(gpu["images"].cpu(), cpu["images"], rtol=1e-4, atol=1e-6)
 
 
+def test_ring_lights_without_extra_lights_is_refused():
+    with pytest.raises(ValueError, match="ring_lights needs extra_lights"):
+        MaterialDataset(length=2, size=8, ring_lights=True)
+
+
 def test_ring_lights_are_the_capture_layout_in_a_random_order():
     ds = MaterialDataset(length=6, size=8, seed=5, extra_lights=3, ring_lights=True)
     ring, ring_inten = light_layout(3, near_camera=False)

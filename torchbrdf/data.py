@@ -217,6 +217,8 @@ class MaterialDataset(Dataset):
         if extra_lights < 0 or not flash_intensity > 0 or (gamma is not None and not gamma > 0):
             raise ValueError(f"MaterialDataset: need extra_lights >= 0, flash_intensity > 0 and gamma > 0 or None; "
                              f"got {extra_lights}, {flash_intensity}, {gamma}")
+        if ring_lights and extra_lights == 0:
+            raise ValueError("MaterialDataset: ring_lights needs extra_lights > 0 (the ring's light count)")
         self.length, self.size, self.seed = int(length), int(size), int(seed)
         self.source: MaterialSource = source if source is not None else RecipeSource()
         self.variants, self.extra_lights, self.ring_lights = int(variants), int(extra_lights), bool(ring_lights)
@@ -245,10 +247,10 @@ class MaterialDataset(Dataset):
         flash_pos, _ = light_layout(0, near_camera=True)
         pos, inten = flash_pos, torch.full((1, 3), self.flash_intensity)
         if self.extra_lights and self.ring_lights:
-            ring = light_layout(self.extra_lights, near_camera=False)
+            # light_layout's ring and flash, scaled so that its flash is this one
+            ring_pos, ring_int = light_layout(self.extra_lights, intensity=2.0 * self.flash_intensity)
             order = torch.randperm(self.extra_lights, generator=gen)
-            # the ring at twice the flash's intensity, as light_layout makes it
-            extra = (ring[0][order], torch.full((self.extra_lights, 3), 2.0 * self.flash_intensity))
+            extra = (ring_pos[:-1][order], ring_int[:-1].to(torch.float32))
         elif self.extra_lights:
             extra = random_lights(self.extra_lights, seed=int(torch.randint(2**31 - 1, (), generator=gen)))
         if self.extra_lights:

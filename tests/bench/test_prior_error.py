@@ -66,3 +66,24 @@ def test_card_gets_the_tuning_measurement_and_refuses_the_report_split(tmp_path,
     with pytest.raises(SystemExit):
         prior_error.main(["--split", "report", "--card", str(path)])
     assert "tuning split only" in capsys.readouterr().err
+
+
+def test_card_measures_its_own_weights_not_the_default_for_the_light_count(tmp_path, monkeypatch, capsys):
+    path, other = tmp_path / "w.pt", tmp_path / "other.pt"
+    _constant_prior().save(path)
+    _constant_prior().save(other)
+    measured = []
+
+    def fake(prior, *a, **k):
+        measured.append(prior)
+        return {"split": "tuning", "lights": 4, "size": 16, "materials": 20, "normal_mean_deg": 2.0, "cases": [{}],
+                **{f"{m}_rmse": 0.1 for m in prior_error.SCALAR_MAPS},
+                **{f"{m}_bias_share": 0.5 for m in prior_error.SCALAR_MAPS}}
+
+    monkeypatch.setattr(prior_error, "panel_errors", fake)
+    monkeypatch.setattr(prior_error.Prior, "default", lambda *a, **k: pytest.fail("--card measured Prior.default"))
+    assert prior_error.main(["--lights", "4", "--card", str(path)]) == 0
+    assert len(measured) == 1
+    with pytest.raises(SystemExit):
+        prior_error.main(["--prior", str(other), "--card", str(path)])
+    assert "another file" in capsys.readouterr().err

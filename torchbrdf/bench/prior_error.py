@@ -112,8 +112,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.card and args.split != "tuning":
         ap.error("--card: the card's panel error is measured on the tuning split only")
+    if args.card and args.prior not in ("default", args.card):
+        ap.error(f"--card: the card gets its own weights' error; --prior names another file ({args.prior!r})")
     torch.set_num_threads(1)
-    prior = Prior.default(args.lights) if args.prior == "default" else Prior.from_file(args.prior)
+    if args.card:  # (the card's own weights, whatever Prior.default would pick for --lights)
+        prior = Prior.from_file(args.card)
+    else:
+        prior = Prior.default(args.lights) if args.prior == "default" else Prior.from_file(args.prior)
     res = panel_errors(prior, args.split, args.lights, args.size)
     print(f"| map | RMSE ({res['materials']} {args.split} materials, {args.lights} lights) | mean-error share |")
     print("|---|---|---|")

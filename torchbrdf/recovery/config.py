@@ -114,7 +114,9 @@ class ClassConfig:
             (``torchbrdf.recovery.classes.evidence_threshold``). 1e-4: a fifth of the 0.05 %
             of a dielectric's pixels that may be called metal, leaving room for the misfit of
             a forward model the fit does not share; measured by
-            ``python -m torchbrdf.bench.false_metal`` (docs/recovery_measurements.md).
+            ``python -m torchbrdf.bench.false_metal`` (docs/recovery_measurements.md). The same
+            rate marks the pixels whose misfit the noise does not explain: the ones the
+            propagation within a stage tries (``torchbrdf.recovery.search.unexplained``).
     """
 
     soft_metal: bool = True
@@ -277,7 +279,8 @@ class Settings:
     propagate: bool = True  # PatchMatch-style neighbour propagation: Gauss–Newton only walks downhill
     propagate_passes: int = 6  # passes at a stage's start, one pixel further per pass
     # ... and one pass before every later LM iteration of the single-class stages, on the pixels
-    # whose cost the noise does not explain (search.unexplained)
+    # whose cost the noise does not explain (search.unexplained, at false_metal_rate; on every
+    # pixel where those are over search.FULL_PASS_SHARE of the map)
     propagate_every: bool = True
     cg_iters: int = 30  # conjugate-gradient iterations per LM step (the coupled prior)
     # The learned prior's noise variance σ² (its precision is σ² / σ_map²): the fit's median

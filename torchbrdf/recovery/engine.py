@@ -374,7 +374,9 @@ class Recovery:
             theta, lam, cost, n_bad = lm_step(data, theta, metal, st["lam"][h], self.cfg, st["lr"],
                                               extra, unary, self._take_stage_gn(data, theta, metal), residual=keep_r)
             self.fit_cost[h] = self._training_fit(extra, data)
-            if kind != "dual":  # (each pixel's, for the next iteration's propagation)
+            # (each pixel's, for the next iteration's propagation gate: at the lights before this
+            # iteration's light step, which moves them by little once the fit has settled)
+            if kind != "dual":
                 st["data_cost"] = extra["data_cost"]
             if calibrate and self.cfg.light_joint:
                 self._light_joint_step(data, theta, metal, self.cfg.light_position, size, unary)

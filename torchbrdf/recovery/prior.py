@@ -234,7 +234,7 @@ class Prior:
         """
         pos = capture.light_positions.double().cpu()
         if len(pos) < self.lights:
-            raise ValueError(f"Prior.predict: the estimator takes {self.lights} images, the capture has "
+            raise ValueError(f"Prior.capture_lights: the estimator takes {self.lights} images, the capture has "
                              f"{len(pos)}")
         order = torch.argsort((pos - capture.camera_position.double().cpu()).norm(dim=-1), stable=True)
         if self.layout != "ring" or self.lights == 1:
