@@ -238,16 +238,16 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     products summed in float64, so its iterates differ from the PyTorch loop below by rounding).
     """
     n = low.shape[0]
-    if c_kernels(low, d_isqrt, wx, wy, b, size=n):
+    in_c = c_kernels(low, d_isqrt, wx, wy, b, size=n)
+    if in_c:
         from torchbrdf.kernels.lane_ops import coupling_operator, lane_cg
 
-        y = lower_solve(low, b.clone()).mul_(d_isqrt)  # y₀ = G⁻¹ b, i.e. x₀ = M⁻¹ b
-        r = coupling_operator(low, d_isqrt, wx, wy)(y, False)  # G⁻¹ b − (I − K) y₀ = K y₀
-        # (non-finite data stop CG at its start, as below)
-        if iters > 0 and bool(torch.isfinite(r).all()):
-            y = lane_cg(low, d_isqrt, wx, wy, y, r, iters)
-        return upper_solve(low, y.mul_(d_isqrt))
-    coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
+        op = coupling_operator(low, d_isqrt, wx, wy)
+
+        def coupling(v):  # K v = G⁻¹ N G⁻ᵀ v
+            return op(v, False)
+    else:
+        coupling, apply = _torch_coupling(low, d_isqrt, wx, wy, size)
 
     def dot(p, q):
         return torch.vdot(p.view(-1), q.view(-1))
@@ -256,7 +256,9 @@ def _cg_iterations(low: Tensor, d_isqrt: Tensor, wx: Tensor, wy: Tensor, b: Tens
     r = coupling(y)  # G⁻¹ b − (I − K) y₀
     # One host synchronisation, before the loop: non-finite data stop CG at its start (every
     # pixel's block solve alone), as a non-finite dᵀAd at the first iteration would.
-    if iters > 0 and bool(torch.isfinite(r).all()):
+    if in_c and iters > 0 and bool(torch.isfinite(r).all()):
+        y = lane_cg(low, d_isqrt, wx, wy, y, r, iters)
+    elif iters > 0 and bool(torch.isfinite(r).all()):
         # On CPU a host read is free and cheaper than the masks' 0-d operations (a small map's
         # iterations are mostly fixed costs); elsewhere it would stall the queue. Both take
         # the same steps: stopping at a breakdown leaves x as freezing it does.
