@@ -644,14 +644,61 @@ def test_the_light_steps_evidence_is_chi2_with_its_degrees_of_freedom():
     assert evidence["chi2"] > 5 * dof, evidence  # 242 of 28 here
 
 
+@pytest.mark.parametrize("ratio, rest", [(1.0, 0), (3.0, 0), (0.3, 1), (0.25, 1), (0.2499, 2), (0.11, 3),
+                                         (0.1112, 2), (1e-3, 31)])
+def test_the_light_step_rests_the_most_iterations_whose_drift_stays_below_its_dof(ratio, rest):
+    """``s`` iterations without a step leave about ``s δg`` unapplied, ``s² χ²``: the rest is the
+    most ``s`` with ``s² χ² < K`` (``χ² = ratio · K``; at ``s² χ² = K`` exactly one fewer)."""
+    for dof in (15.0, 56.0):
+        assert calibration.rest_iterations(ratio * dof, dof) == rest
+
+
+def test_the_light_steps_rest_has_its_ends():
+    """No rest after a step beyond noise or one whose χ² is not a number; without end at χ² = 0."""
+    import sys
+
+    assert calibration.rest_iterations(0.0, 56.0) == sys.maxsize
+    assert calibration.rest_iterations(1e-300, 56.0) == sys.maxsize
+    for chi2 in (float("nan"), float("inf"), -1.0):
+        assert calibration.rest_iterations(chi2, 56.0) == 0
+
+
+def test_the_light_step_rests_within_a_stage_and_steps_again(tiny, monkeypatch):
+    """A step whose χ² is 0.3 K rests one iteration (``4 · 0.3 K ≥ K``) and then steps again,
+    within the stage: every other iteration of a long stage steps the lights (resting only
+    once the stage's remaining iterations ``m`` had ``m² χ² < K`` would step at every one)."""
+    steps = []
+    dof = 5.0
+
+    def step(*args, evidence=None, **kwargs):
+        evidence.update(chi2=0.3 * dof, dof=dof)
+        steps.append((rec.state["stage"], rec.state["it"]))
+        return args[3], args[4]
+
+    monkeypatch.setattr(engine, "light_joint_step", step)
+    rec = _recovery_with_a_brighter_light(tiny, converge_tol=0.0)
+    with torch.no_grad():
+        rec.init_state()
+        iterations = {}
+        while rec.state["stage"] < len(rec.plan) - 1:
+            stage = rec.state["stage"]
+            iterations[stage] = iterations.get(stage, 0) + 1
+            rec.tick()
+    stages = sorted({s for s, _ in steps})
+    assert any(iterations[s] >= 4 for s in stages)
+    for s in stages:
+        assert [it for t, it in steps if t == s] == list(range(0, iterations[s], 2))
+
+
 @pytest.mark.parametrize("light_rest", [True, False])
 def test_the_light_step_rests_once_the_iterations_left_could_not_move_it_beyond_noise(tiny, monkeypatch,
                                                                                        light_rest):
-    """With ``m`` planned iterations left in the stage, the joint light step rests exactly when
-    ``m²`` times its χ² is below its degrees of freedom: a stage's first step 2 % above that,
-    its second 2 % below (a count of ``m`` left off by one, ``m`` instead of ``m²``, or a fixed
-    fraction of K would rest elsewhere). The next stage steps the lights again; with
-    ``light_rest=False`` every iteration steps them."""
+    """With ``m`` planned iterations left in the stage, the joint light step rests to the stage's
+    end exactly when ``m²`` times its χ² is below its degrees of freedom: a stage's first step
+    2 % above that (it rests until the stage's last iteration), its second 2 % below (a count
+    of ``m`` left off by one, ``m`` instead of ``m²``, or a fixed fraction of K would rest
+    elsewhere). The next stage steps the lights again; with ``light_rest=False`` every
+    iteration steps them."""
     calls = []
     dof = 5.0
 
@@ -664,7 +711,7 @@ def test_the_light_step_rests_once_the_iterations_left_could_not_move_it_beyond_
         return args[3], args[4]
 
     monkeypatch.setattr(engine, "light_joint_step", at_the_bound)
-    rec = _recovery_with_a_brighter_light(tiny, light_rest=light_rest)
+    rec = _recovery_with_a_brighter_light(tiny, light_rest=light_rest, converge_tol=0.0)
     with torch.no_grad():
         rec.init_state()
         iterations = {}

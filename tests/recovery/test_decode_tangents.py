@@ -157,6 +157,38 @@ def test_light_step_jacobians_are_vmap_of_jvp_without_it(monkeypatch, dtype, pos
     assert float(cols[-1].median()) > 0.5  # the log scale's column: pred / (pred + ε)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_light_step_jacobians_run_in_one_pass_with_the_bits_of_several(monkeypatch, dtype):
+    """The joint light step's 7 + 4 directions run in one pass of the JVP kernel (one primal,
+    not two) and give the bits of passes of 4, 4 and 3 directions."""
+    from torchbrdf.kernels import c_runner
+
+    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
+    gen = torch.Generator().manual_seed(4)
+    n_l = data.pos_stated.shape[0]
+    data.camera = data.camera.to(dtype)
+    args = (data, (theta + 0.3 * torch.randn(theta.shape, generator=gen)).to(dtype), metal.to(dtype),
+            data.points.to(dtype), data.log_obs.permute(1, 0, 2).to(dtype), data.inten_stated.to(dtype),
+            (data.pos_stated + 0.01 * torch.randn(n_l, 3, generator=gen)).to(dtype),
+            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), "principled")
+    passes = []
+    load = c_runner.load
+
+    def counted(spec, backward=False):
+        if backward == "jvp":
+            passes.append(spec.ntan)
+        return load(spec, backward=backward)
+
+    monkeypatch.setattr(c_runner, "load", counted)
+    r, cols = calibration._pixel_and_light_jacobians(*args)
+    assert passes == [N_PARAMS + 4]
+    monkeypatch.setattr(c_runner, "TANGENTS_PER_PASS", 4)
+    passes.clear()
+    r4, cols4 = calibration._pixel_and_light_jacobians(*args)
+    assert passes == [4, 4, 3]
+    assert torch.equal(r, r4) and torch.equal(cols, cols4)
+
+
 @pytest.mark.parametrize("n_t", [7, 8])
 def test_normal_equations_without_vmap_are_those_of_the_vmapped_decode(monkeypatch, n_t):
     """``LevelData.normal_equations`` (8 columns: the continuous-metallic stage, metallic

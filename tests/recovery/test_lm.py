@@ -501,6 +501,19 @@ def test_fit_jacobian_benchmark_times_both_ways(tiny):
     assert torch.get_num_threads() == threads  # restored
 
 
+def test_light_step_bench_alternates_the_passes_and_restores_them(tiny):
+    """``python -m torchbrdf.bench.jvp --light-step``: passes of 8 and 12 tangents, each timed
+    ``reps`` times, CPU and wall; the thread count and the pass size are restored."""
+    from torchbrdf.bench.jvp import light_step_times
+    from torchbrdf.kernels import c_runner
+
+    threads, per_pass = torch.get_num_threads(), c_runner.TANGENTS_PER_PASS
+    res = light_step_times(threads=1, reps=2, capture=str(tiny))
+    assert set(res) == {8, 12}
+    assert all(len(row[k]) == 2 and min(row[k]) > 0 for row in res.values() for k in ("cpu", "wall"))
+    assert torch.get_num_threads() == threads and c_runner.TANGENTS_PER_PASS == per_pass
+
+
 def test_blur_is_the_truncated_normalised_gaussian():
     """``blur`` is the truncated, normalised Gaussian, against a direct double sum.
 

@@ -16,6 +16,10 @@ reported.
 on the demo capture (128², 16 lights and the flash) for a few pixel counts: the fused operators
 called directly (:meth:`~torchbrdf.recovery.levels.LevelData.residual_jvp`) against
 ``torch.func.vmap`` over ``torch.func.jvp`` of the residual, side by side; medians of ``reps``.
+
+``python -m torchbrdf.bench.jvp --light-step [--threads 1]`` times one joint light step
+(7 + 4 directions) on the demo capture with the JVP kernel's passes of 8 and of 12 tangents
+alternated, CPU and wall seconds.
 """
 
 from __future__ import annotations
@@ -126,6 +130,54 @@ def _fit_jacobian_times(cap, sizes: Sequence[int], threads: int, reps: int) -> d
     return res
 
 
+def light_step_times(threads: int = 1, reps: int = 9, capture: str | None = None) -> dict:
+    """CPU and wall seconds ``{tangents per pass: {"cpu": [...], "wall": [...]}}`` of one joint
+    light step (:func:`torchbrdf.recovery.calibration.light_joint_step`, positions and scales:
+    7 + 4 directions) on every pixel of ``capture`` (default: the demo capture), with the JVP
+    kernel's passes of 8 and of 12 tangents alternated. Prints min / median / max.
+    """
+    import statistics
+
+    from torchbrdf.capture import default_capture, load_capture
+    from torchbrdf.kernels import c_runner
+    from torchbrdf.recovery.calibration import light_joint_step
+    from torchbrdf.recovery.levels import LevelData
+
+    cap = load_capture(capture or default_capture())
+    data = LevelData(cap, cap.width, list(range(len(cap))), float(0.01 * cap.images.clamp(min=0).mean()))
+    g = torch.Generator().manual_seed(0)
+    theta = torch.randn(data.points.shape[0], 7, generator=g) * 0.5
+    metal = torch.zeros(theta.shape[0], 1)
+    n_l = len(cap)
+    before, kept = torch.get_num_threads(), c_runner.TANGENTS_PER_PASS
+    torch.set_num_threads(threads)
+    res: dict = {}
+    try:
+        for per_pass in (8, 12):  # kernel build or load, warm-up
+            c_runner.TANGENTS_PER_PASS = per_pass
+            light_joint_step(data, theta, metal, torch.zeros(n_l), torch.zeros(n_l, 3), data.train_idx, "principled")
+        for _ in range(reps):
+            for per_pass in (8, 12):
+                c_runner.TANGENTS_PER_PASS = per_pass
+                c0, t0 = time.process_time(), time.perf_counter()
+                light_joint_step(data, theta, metal, torch.zeros(n_l), torch.zeros(n_l, 3), data.train_idx,
+                                 "principled")
+                row = res.setdefault(per_pass, {"cpu": [], "wall": []})
+                row["cpu"].append(time.process_time() - c0)
+                row["wall"].append(time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(before)
+        c_runner.TANGENTS_PER_PASS = kept
+    print(f"joint light step, {n_l} lights, {data.points.shape[0]} pixels (8192 used), {threads} thread(s), "
+          f"{reps} alternated runs: ms min / median / max")
+    for per_pass, row in res.items():
+        cpu, wall = sorted(row["cpu"]), sorted(row["wall"])
+        print(f"  passes of {per_pass:2d}: CPU {cpu[0] * 1e3:.1f} / {statistics.median(cpu) * 1e3:.1f} / "
+              f"{cpu[-1] * 1e3:.1f}   wall {wall[0] * 1e3:.1f} / {statistics.median(wall) * 1e3:.1f} / "
+              f"{wall[-1] * 1e3:.1f}")
+    return res
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -133,8 +185,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--fit", action="store_true", help="time the recovery's Jacobian instead")
+    ap.add_argument("--light-step", action="store_true",
+                    help="time a joint light step with the JVP kernel's passes of 8 and 12 tangents alternated")
     a = ap.parse_args(argv)
-    if a.fit:
+    if a.light_step:
+        light_step_times(threads=a.threads, reps=max(a.reps, 9))
+    elif a.fit:
         fit_jacobian_times(threads=a.threads, reps=max(a.reps, 7))
     else:
         run(a.log2n, a.threads, a.reps)

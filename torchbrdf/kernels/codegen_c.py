@@ -237,8 +237,8 @@ def _gathers(spec, order) -> tuple[list[str], list[str], list[str]]:
     inputs, then the tangents). A scalar pre-loop gathers a block's values into per-thread
     buffers, so the main loop (which an integer division would stop gcc from vectorising)
     reads them lane-dense. The buffers are one heap block per thread (``gs``, see
-    :func:`_print`), not stack arrays: a JVP pass gathers up to 8 tangents × every 's2'
-    input's channels (~130 buffers, 0.5 MiB in double), more than a small thread stack holds.
+    :func:`_print`), not stack arrays: a JVP pass gathers up to ``TANGENTS_PER_PASS`` (12) tangents × every 's2'
+    input's channels (~200 buffers, 0.8 MiB in double), more than a small thread stack holds.
     """
     slots: dict[tuple, int] = {}
     for k, (_, mode, _) in enumerate(spec.tensors):

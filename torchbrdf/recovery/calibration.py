@@ -8,6 +8,7 @@ camera are held (:func:`rig_free_directions`, :func:`camera_lights`).
 from __future__ import annotations
 
 import math
+import sys
 from typing import Any
 
 import torch
@@ -215,6 +216,29 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     new_s[idx] = log_scale[idx] + step[:, -1]
     new_s[ref_idx] = new_s[ref_idx] - new_s[ref_idx].mean()
     return new_s.clamp(-0.3, 0.3), new_off
+
+
+def rest_iterations(chi2: float, dof: float) -> int:
+    """How many iterations the joint light step may rest after a step of ``chi2`` (floats): the
+    most ``s`` with ``s² χ² < K``, ``K = dof``.
+
+    ``χ² = δgᵀHδg / σ²`` and K are :func:`light_joint_step`'s ``evidence``. While the maps move,
+    consecutive steps point the same way, so ``s`` iterations without one leave about ``s δg``
+    unapplied, a cost of ``s² χ²`` noise variances; below K, what noise alone puts between the
+    data's optimum and the true lights, the lights lag by less than their own uncertainty. A
+    step of ``χ² ≥ K`` rests none, nor does a negative or non-finite ``χ²``; ``χ² = 0`` (or so
+    small that ``K/χ²`` passes 1e18) rests without end (``sys.maxsize``).
+    """
+    if not (chi2 >= 0 and math.isfinite(chi2)):
+        return 0
+    if chi2 == 0 or not dof / chi2 < 1e18:
+        return sys.maxsize
+    s = math.isqrt(int(dof / chi2))  # a lower bound: ⌊√⌊K/χ²⌋⌋
+    while (s + 1) ** 2 * chi2 < dof:  # (float rounding of the quotient, and the floor)
+        s += 1
+    while s > 0 and s * s * chi2 >= dof:
+        s -= 1
+    return s
 
 
 def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None, damping: float,

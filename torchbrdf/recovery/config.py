@@ -316,8 +316,8 @@ class Settings:
     # one (held, a real error of it stays in the maps).
     dual_calibration_at_camera: bool = True
     light_joint: bool = True  # step the lights with the maps eliminated (alternating steps creep)
-    # ... and, within a stage, only until the iterations left could not move them beyond noise
-    # (m left, the step's χ² × m² below its degrees of freedom; off: a step at every iteration)
+    # ... resting after a step as many iterations as could not move them beyond noise (s of
+    # them, the step's χ² × s² below its degrees of freedom; off: a step at every iteration)
     light_rest: bool = True
     # Non-local F0
     # The non-local F0 average as a unary prior of the fit from the polish stage on, not only

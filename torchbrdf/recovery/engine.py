@@ -96,7 +96,7 @@ from torch import Tensor
 from torchbrdf.capture.format import Capture
 from torchbrdf.capture.synthetic import render_capture
 from torchbrdf.io import atomic_path
-from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step
+from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step, rest_iterations
 from torchbrdf.recovery.classes import (choose_class, residual_variance, rough_basin_tie,
                                         unconverged_dielectric_rows)
 from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
@@ -442,23 +442,25 @@ class Recovery:
         """The joint light step (:func:`light_joint_step`) at ``theta (P, 7)``, ``metal (P, 1)``
         of level ``size``, the maps' prior with the ``unary`` terms (or none).
 
-        Skipped for the rest of the stage once the ``m`` iterations it has left could not move the
-        lights beyond noise (with ``Settings.light_rest``): consecutive steps point the same way
-        while the maps still move, so resting leaves at most about ``m δg`` unapplied, whose cost
-        ``m² δgᵀHδg / σ²`` (the χ² of :func:`light_joint_step`) is then below its K degrees of
-        freedom, what noise alone puts between the data's optimum and the true lights.
+        With ``Settings.light_rest`` a step is followed by as many iterations without one as
+        could not move the lights beyond noise: consecutive steps point the same way while the
+        maps still move, so resting ``s`` iterations leaves at most about ``s δg`` unapplied,
+        whose cost ``s² δgᵀHδg / σ²`` (the χ² of :func:`light_joint_step`) stays below its K
+        degrees of freedom, what noise alone puts between the data's optimum and the true
+        lights. The next step re-measures; a rest that reaches past the ``m`` planned iterations
+        the stage has left (``m² χ² < K``) ends the stage's light steps.
         """
         st = self.state
-        if st.get("lights_settled") == st["stage"]:
+        rest = st.get("lights_rest")  # (stage, the first iteration that steps again)
+        if rest is not None and rest[0] == st["stage"] and st["it"] < rest[1]:
             return
         evidence: dict[str, float] = {}
         st["light_log_scale"], st["light_offset"] = light_joint_step(
             data, theta, metal, self.light_log_scale(), self.light_offset(), self.train_idx, self.cfg.model,
             position, map_prior_terms(theta, metal, size, self.cfg, unary), at_camera=at_camera,
             evidence=evidence)
-        left = self.plan[st["stage"]][2] - st["it"] - 1  # this stage's planned iterations after this one
-        if self.cfg.light_rest and evidence and left**2 * evidence["chi2"] < evidence["dof"]:
-            st["lights_settled"] = st["stage"]
+        if self.cfg.light_rest and evidence:
+            st["lights_rest"] = (st["stage"], st["it"] + 1 + rest_iterations(evidence["chi2"], evidence["dof"]))
         self._sync_light_scale()
 
     def _take_stage_gn(self, data: LevelData, theta: Tensor, metal: Tensor
