@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from torch import Tensor
 
 from torchbrdf.capture.format import load_capture
 from torchbrdf.capture.synthetic import generate_capture
@@ -17,7 +18,9 @@ from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.engine import Recovery
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode
 from torchbrdf.recovery.config import Settings
-from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_prior_cost, estimator_errors,
+from torchbrdf.recovery.classes import choose_class, evidence_threshold
+from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_costs_with_prior, class_prior_cost,
+                                      estimator_errors,
                                       measured_map_errors, measured_metallic_error, prior_maps_at, prior_unary)
 from torchbrdf.recovery.svbrdf import main
 
@@ -245,6 +248,30 @@ def test_the_map_errors_are_measured_where_the_data_decide_the_map():
     _, prec = prior_unary(theta, net, 1e-4, errors)
     half = measured_map_errors(theta, net, 1e-4, errors, torch.cat((prec[:2], torch.zeros(2, 7, dtype=prec.dtype))))
     assert half["roughness"] == pytest.approx(0.3, abs=1e-4)
+
+
+def _class_choice_with_prior(evidence: float, metallic: float, size: int = 8) -> Tensor:
+    """The class test's labels ``(P, 1)`` on ``size²`` pixels whose data give ``evidence`` for metal
+    (noise variances) with a network saying ``metallic`` everywhere (card error 0.1, the prior's
+    σ² ten times the class test's, as where a stage starts unconverged)."""
+    sigma2, n_res, rate = 1e-4, 51, 1e-4
+    metal = torch.full((size * size, 1), sigma2 * n_res, dtype=torch.float64)
+    diel = metal + evidence * sigma2
+    prior_cost = class_prior_cost(torch.full_like(metal, metallic), 1e-3, 0.1)
+    costs = class_costs_with_prior(diel, metal, prior_cost, sigma2, n_res, rate)
+    return choose_class(costs[0], costs[1], size, sigma2, n_res, rate)
+
+
+def test_a_confidently_wrong_network_does_not_outweigh_data_that_decide_dielectric():
+    # Data rejecting metal at 3 τ (a glossy dielectric under 17 lights) against a network calling
+    # it metal at 0.99: its Gaussian class cost (ε²/σ_m² scaled by its σ²) is worth ~1000 σ², far
+    # above what the network knows; the data decide.
+    tau = evidence_threshold(7, 1e-4)
+    assert float(_class_choice_with_prior(-3 * tau, 0.99).sum()) == 0
+    # Where the data leave the class open, the network's metal decides; its dielectric outweighs
+    # even data deciding metal (the test's null hypothesis: it can only lower the false-metal rate).
+    assert bool((_class_choice_with_prior(-0.5 * tau, 0.99) == 1).all())
+    assert float(_class_choice_with_prior(2 * tau, 0.01).sum()) == 0
 
 
 def test_a_prior_for_more_lights_than_the_capture_is_refused(painted):

@@ -105,7 +105,8 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
-from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost, measured_map_errors, measured_metallic_error
+from torchbrdf.recovery.prior import (LearnedPrior, class_costs_with_prior, class_prior_cost, measured_map_errors,
+                                      measured_metallic_error)
 from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate_passes, unexplained
 from torchbrdf.recovery.soft_metal import soft_metal_stage
@@ -594,7 +595,8 @@ class Recovery:
             st["prior_metallic_error"] = measured_metallic_error(scores[0], scores[1], sigma2, net,
                                                                  self.prior.errors["metallic"])
             prior_cost = class_prior_cost(net, st["prior_noise"], st["prior_metallic_error"])
-            scores = [s + c for s, c in zip(scores, prior_cost)]
+            scores = list(class_costs_with_prior(scores[0], scores[1], prior_cost, sigma2, n_res,
+                                                 self.cfg.false_metal_rate))
         # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
         # classes as an MRF prior: see choose_class.
         st["metal"] = choose_class(scores[0], scores[1], size, sigma2, n_res, self.cfg.false_metal_rate)

@@ -37,11 +37,12 @@ from torch import Tensor, nn
 
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
-from torchbrdf.recovery.params import R_MAX, R_MIN, encode
+from torchbrdf.recovery.classes import class_evidence, evidence_threshold
+from torchbrdf.recovery.params import N_PARAMS, R_MAX, R_MIN, encode
 
 __all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS", "SHIPPED_WEIGHTS",
            "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error",
-           "measured_map_errors", "class_prior_cost",
+           "measured_map_errors", "class_prior_cost", "class_costs_with_prior",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
@@ -517,6 +518,35 @@ def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[
     m = _flat(metallic) if metallic.dim() == 3 else metallic
     scale = float(noise_var) / error**2
     return scale * m**2, scale * (1 - m) ** 2
+
+
+def class_costs_with_prior(dielectric_cost: Tensor, metal_cost: Tensor, prior_cost: tuple[Tensor, Tensor],
+                           sigma2: float, n_residuals: int, false_metal_rate: float) -> tuple[Tensor, Tensor]:
+    """Each class's cost ``(P, 1)`` for the class test: the data's plus the prior's, the prior's vote
+    for metal dropped where the data decide dielectric.
+
+    The class test (:func:`~torchbrdf.recovery.classes.choose_class`) calls a pixel metal only
+    on evidence noise alone gives at most at ``false_metal_rate``; a pixel whose data evidence
+    for metal (:func:`~torchbrdf.recovery.classes.class_evidence`) is below ``−τ``
+    (:func:`~torchbrdf.recovery.classes.evidence_threshold`) is dielectric whatever its
+    neighbours. There the data reject metal beyond what noise explains, and a network's metal
+    is a false metal the test's rate does not bound (a confidently wrong network outweighs any
+    likelihood ratio through ``σ_m``), so the prior's metal-favouring difference is removed:
+    its cost advantage for metal is set to none. Its vote for dielectric, the test's null
+    hypothesis, always counts (it can only lower the false-metal rate).
+
+    Args:
+        dielectric_cost, metal_cost: the data costs ``(P, 1)`` of the two fits (``n_residuals``
+            residuals each).
+        prior_cost: the prior's ``(dielectric, metal)`` costs ``(P, 1)`` (:func:`class_prior_cost`).
+        sigma2: the capture's noise variance of one residual (the class test's).
+        false_metal_rate: the class test's rate, which sets ``τ``.
+    """
+    tau = evidence_threshold(N_PARAMS, false_metal_rate)
+    decided_dielectric = class_evidence(dielectric_cost, metal_cost, sigma2, n_residuals) < -tau
+    prior_diel, prior_metal = prior_cost
+    prior_diel = torch.where(decided_dielectric & (prior_diel > prior_metal), prior_metal, prior_diel)
+    return dielectric_cost + prior_diel, metal_cost + prior_metal
 
 
 class LearnedPrior:
