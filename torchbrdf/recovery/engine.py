@@ -590,11 +590,11 @@ class Recovery:
         sigma2 = residual_variance(torch.minimum(scores[0], scores[1]), n_res)
         if self.cfg.refit_before_choice:
             scores[0] = self._refit_unconverged_dielectric(size, scores, lights, sigma2, n_res)
-        if self.prior is not None:  # the network's metallic, as a Gaussian with its error measured here
+        if self.prior is not None:  # the network's metallic as its (bounded) odds; its error here is reported
             net = self.prior.metallic(size).to(scores[0])
             st["prior_metallic_error"] = measured_metallic_error(scores[0], scores[1], sigma2, net,
                                                                  self.prior.errors["metallic"])
-            prior_cost = class_prior_cost(net, st["prior_noise"], st["prior_metallic_error"])
+            prior_cost = class_prior_cost(net, st["prior_noise"])
             scores = list(class_costs_with_prior(scores[0], scores[1], prior_cost, sigma2, n_res,
                                                  self.cfg.false_metal_rate))
         # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
