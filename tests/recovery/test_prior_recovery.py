@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from torch import Tensor
 
 from torchbrdf.capture.format import load_capture
 from torchbrdf.capture.synthetic import generate_capture
@@ -17,7 +18,9 @@ from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.engine import Recovery
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode
 from torchbrdf.recovery.config import Settings
-from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_prior_cost, estimator_errors,
+from torchbrdf.recovery.classes import choose_class, evidence_threshold
+from torchbrdf.recovery.prior import (LearnedPrior, MapEstimator, Prior, class_costs_with_prior, class_prior_cost,
+                                      estimator_errors,
                                       measured_map_errors, measured_metallic_error, prior_maps_at, prior_unary)
 from torchbrdf.recovery.svbrdf import main
 
@@ -171,14 +174,21 @@ def test_prior_unary_is_the_maps_gaussian_linearised_at_the_unknowns():
     torch.testing.assert_close(target[0, 5:], torch.tensor([0.3, -0.2], dtype=torch.float64))
     torch.testing.assert_close(prec[0, 5:], torch.full((2,), 0.5e-4 / errors["normal"] ** 2, dtype=torch.float64))
     assert errors["normal"] == pytest.approx(math.radians(2.0) / math.sqrt(math.pi / 2))
-    diel, metal = class_prior_cost(torch.tensor([[0.25]]), 1e-4, 0.2)
-    assert float(diel) == pytest.approx(1e-4 * 0.0625 / 0.04) and float(metal) == pytest.approx(1e-4 * 0.5625 / 0.04)
+
+
+
+def test_the_class_prior_is_the_networks_bounded_log_odds():
+    # −2 σ² log q per class: the evidence it adds is 2 logit(q) noise variances, at most 2 ln 999.
+    diel, metal = class_prior_cost(torch.tensor([[0.25], [1.0], [0.0]], dtype=torch.float64), 1e-4)
+    assert float(diel[0]) == pytest.approx(-2e-4 * math.log(0.75)) and float(metal[0]) == pytest.approx(-2e-4 * math.log(0.25))
+    assert float((diel - metal)[1] / 1e-4) == pytest.approx(2 * math.log(999))
+    assert float((diel - metal)[2] / 1e-4) == pytest.approx(-2 * math.log(999))
 
 
 def test_a_prior_wrong_about_the_class_does_not_make_a_dielectric_metal(painted, without_prior):
-    # A network calling the whole dielectric metal (0.95 everywhere, card error 0.2): its metallic
-    # is evidence weighed with its error measured on this capture, which the data's clear class
-    # decisions show to be 0.9, so a metal class needs the data's evidence as without the prior.
+    # A network calling the whole dielectric metal (0.95 everywhere): its metallic is worth its
+    # odds, 2 logit(0.95) ≈ 5.9 noise variances, and nothing where the data reject metal, so a
+    # metal class needs the data's evidence as without the prior.
     guided = recover(painted, CFG, progress=False, prior=constant_prior(metallic=0.95))
     plain_fraction = float(without_prior.maps["metallic"].mean())
     assert float(guided.maps["metallic"].mean()) <= plain_fraction + 0.02
@@ -245,6 +255,29 @@ def test_the_map_errors_are_measured_where_the_data_decide_the_map():
     _, prec = prior_unary(theta, net, 1e-4, errors)
     half = measured_map_errors(theta, net, 1e-4, errors, torch.cat((prec[:2], torch.zeros(2, 7, dtype=prec.dtype))))
     assert half["roughness"] == pytest.approx(0.3, abs=1e-4)
+
+
+def _class_choice_with_prior(evidence: float, metallic: float, size: int = 8) -> Tensor:
+    """The class test's labels ``(P, 1)`` on ``size²`` pixels whose data give ``evidence`` for metal
+    (noise variances) with a network saying ``metallic`` everywhere (the prior's σ² ten times the
+    class test's, as where a stage starts unconverged)."""
+    sigma2, n_res, rate = 1e-4, 51, 1e-4
+    metal = torch.full((size * size, 1), sigma2 * n_res, dtype=torch.float64)
+    diel = metal + evidence * sigma2
+    prior_cost = class_prior_cost(torch.full_like(metal, metallic), 1e-3)
+    costs = class_costs_with_prior(diel, metal, prior_cost, sigma2, n_res, rate)
+    return choose_class(costs[0], costs[1], size, sigma2, n_res, rate)
+
+
+def test_a_confidently_wrong_network_does_not_outweigh_data_that_decide_dielectric():
+    # Data rejecting metal at 3 τ (a glossy dielectric under 17 lights) against a network calling
+    # it metal at 0.999 (worth 2 ln 999 × 10 ≈ 138 σ² of the test's at the prior's σ²): the data decide.
+    tau = evidence_threshold(7, 1e-4)
+    assert float(_class_choice_with_prior(-3 * tau, 0.999).sum()) == 0
+    # Where the data leave the class open, the network's metal decides; its dielectric outweighs
+    # even data deciding metal (the test's null hypothesis: it can only lower the false-metal rate).
+    assert bool((_class_choice_with_prior(-0.5 * tau, 0.999) == 1).all())
+    assert float(_class_choice_with_prior(2 * tau, 0.01).sum()) == 0
 
 
 def test_a_prior_for_more_lights_than_the_capture_is_refused(painted):

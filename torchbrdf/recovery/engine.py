@@ -105,7 +105,8 @@ from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import neighbour_mean, upsample
 from torchbrdf.recovery.params import R_MAX, R_MIN, decode, encode
-from torchbrdf.recovery.prior import LearnedPrior, class_prior_cost, measured_map_errors, measured_metallic_error
+from torchbrdf.recovery.prior import (LearnedPrior, class_costs_with_prior, class_prior_cost, measured_map_errors,
+                                      measured_metallic_error)
 from torchbrdf.recovery.priors import fit_information, fuse_fill, nonlocal_fill, nonlocal_prior
 from torchbrdf.recovery.search import normal_search, propagate_passes, unexplained
 from torchbrdf.recovery.soft_metal import soft_metal_stage
@@ -591,12 +592,13 @@ class Recovery:
         sigma2 = residual_variance(torch.minimum(scores[0], scores[1]), n_res)
         if self.cfg.refit_before_choice:
             scores[0] = self._refit_unconverged_dielectric(size, scores, lights, sigma2, n_res)
-        if self.prior is not None:  # the network's metallic, as a Gaussian with its error measured here
+        if self.prior is not None:  # the network's metallic as its (bounded) odds; its error here is reported
             net = self.prior.metallic(size).to(scores[0])
             st["prior_metallic_error"] = measured_metallic_error(scores[0], scores[1], sigma2, net,
                                                                  self.prior.errors["metallic"])
-            prior_cost = class_prior_cost(net, st["prior_noise"], st["prior_metallic_error"])
-            scores = [s + c for s, c in zip(scores, prior_cost)]
+            prior_cost = class_prior_cost(net, st["prior_noise"])
+            scores = list(class_costs_with_prior(scores[0], scores[1], prior_cost, sigma2, n_res,
+                                                 self.cfg.false_metal_rate))
         # Evidence decides (a likelihood-ratio test at the measured noise), with the neighbours'
         # classes as an MRF prior: see choose_class.
         st["metal"] = choose_class(scores[0], scores[1], size, sigma2, n_res, self.cfg.false_metal_rate)

@@ -11,9 +11,10 @@
   toward the prior's where the captured data are silent; :func:`prior_weight` makes its
   weight from a recovery confidence map.
 * :class:`LearnedPrior` -- a Prior's maps for one capture as :func:`~torchbrdf.recovery.recover`
-  uses them (``prior=``): a Gaussian unary term (:func:`prior_unary`, :func:`class_prior_cost`)
-  with the network's measured errors (:func:`estimator_errors`, raised to what the capture shows
-  by :func:`measured_map_errors` and :func:`measured_metallic_error`).
+  uses them (``prior=``): a Gaussian unary term (:func:`prior_unary`) with the network's measured
+  errors (:func:`estimator_errors`, raised to what the capture shows by :func:`measured_map_errors`;
+  :func:`measured_metallic_error` is reported), and its metallic as bounded odds in the class
+  choice (:func:`class_prior_cost`, :func:`class_costs_with_prior`).
 
 Input normalisation (:func:`estimator_inputs`): each image is divided by its light's intensity
 and multiplied by the squared light distance at the sample's centre (so the network sees
@@ -37,11 +38,12 @@ from torch import Tensor, nn
 
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import MAP_NAMES, light_layout
-from torchbrdf.recovery.params import R_MAX, R_MIN, encode
+from torchbrdf.recovery.classes import class_evidence, evidence_threshold
+from torchbrdf.recovery.params import N_PARAMS, R_MAX, R_MIN, encode
 
 __all__ = ["MapEstimator", "Prior", "estimator_inputs", "prior_penalty", "prior_weight", "DEFAULT_WEIGHTS", "SHIPPED_WEIGHTS",
            "FALLBACK_MAP_ERRORS", "estimator_errors", "prior_maps_at", "prior_unary", "measured_metallic_error",
-           "measured_map_errors", "class_prior_cost",
+           "measured_map_errors", "class_prior_cost", "class_costs_with_prior", "METALLIC_ODDS_FLOOR",
            "LearnedPrior"]
 
 DEFAULT_WEIGHTS = "estimator.pt"
@@ -507,16 +509,60 @@ def measured_map_errors(theta: Tensor, maps: Mapping[str, Tensor], noise_var: fl
     return out
 
 
-def class_prior_cost(metallic: Tensor, noise_var: float, error: float) -> tuple[Tensor, Tensor]:
-    """The prior's share ``(P, 1)`` each of a dielectric's and a metal's cost (``σ² (h − m_p)² / σ_m²``).
+#: The network's metallic read as a probability is believed to odds of at most 999:1. It is a
+#: sigmoid trained on an L1 map loss and a rendering loss, not a calibrated probability (L1 pulls
+#: a binary map to its median, 0 or 1): beyond 1e-3 its tails say nothing it was taught.
+METALLIC_ODDS_FLOOR = 1e-3
+
+
+def class_prior_cost(metallic: Tensor, noise_var: float) -> tuple[Tensor, Tensor]:
+    """The prior's share ``(P, 1)`` each of a dielectric's and a metal's cost: ``−2 σ² log q_h``.
+
+    The network's metallic ``m_p`` as its probability of metal, ``q_1 = m_p``, ``q_0 = 1 − m_p``,
+    each within [:data:`METALLIC_ODDS_FLOOR`, 1 − it]: ``−2 log q_h`` is the class's prior cost in
+    noise variances (a data cost is ``−2 σ² log L``), so the prior moves the class test's
+    evidence by ``2 logit(q)``, at most ``2 ln 999 ≈ 13.8`` noise variances of ``σ²``. (A Gaussian
+    ``σ² (h − m_p)² / σ_m²`` on the binary class moves it by ``(2 m_p − 1) / σ_m²``, unbounded as
+    the network's error ``σ_m`` is small: a network wrong on a few pixels with 0.93 outweighed
+    data rejecting metal at 200 noise variances.)
 
     Args:
         metallic: the network's metallic ``(1, S, S)`` (or ``(P, 1)``).
-        noise_var: ``σ²`` as in :func:`prior_unary`; error: the metallic's ``σ_m``.
+        noise_var: ``σ²`` as in :func:`prior_unary` (> 0).
     """
     m = _flat(metallic) if metallic.dim() == 3 else metallic
-    scale = float(noise_var) / error**2
-    return scale * m**2, scale * (1 - m) ** 2
+    q = m.clamp(METALLIC_ODDS_FLOOR, 1.0 - METALLIC_ODDS_FLOOR)
+    scale = -2.0 * float(noise_var)
+    return scale * torch.log1p(-q), scale * torch.log(q)
+
+
+def class_costs_with_prior(dielectric_cost: Tensor, metal_cost: Tensor, prior_cost: tuple[Tensor, Tensor],
+                           sigma2: float, n_residuals: int, false_metal_rate: float) -> tuple[Tensor, Tensor]:
+    """Each class's cost ``(P, 1)`` for the class test: the data's plus the prior's, the prior's vote
+    for metal dropped where the data decide dielectric.
+
+    The class test (:func:`~torchbrdf.recovery.classes.choose_class`) calls a pixel metal only
+    on evidence noise alone gives at most at ``false_metal_rate``; a pixel whose data evidence
+    for metal (:func:`~torchbrdf.recovery.classes.class_evidence`) is below ``−τ``
+    (:func:`~torchbrdf.recovery.classes.evidence_threshold`) is dielectric whatever its
+    neighbours. There the data reject metal beyond what noise explains, and a network's metal
+    is a false metal the test's rate does not bound (a confidently wrong network outweighs any
+    likelihood ratio where its σ² exceeds the test's), so the prior's metal-favouring difference is removed:
+    its cost advantage for metal is set to none. Its vote for dielectric, the test's null
+    hypothesis, always counts (it can only lower the false-metal rate).
+
+    Args:
+        dielectric_cost, metal_cost: the data costs ``(P, 1)`` of the two fits (``n_residuals``
+            residuals each).
+        prior_cost: the prior's ``(dielectric, metal)`` costs ``(P, 1)`` (:func:`class_prior_cost`).
+        sigma2: the capture's noise variance of one residual (the class test's).
+        false_metal_rate: the class test's rate, which sets ``τ``.
+    """
+    tau = evidence_threshold(N_PARAMS, false_metal_rate)
+    decided_dielectric = class_evidence(dielectric_cost, metal_cost, sigma2, n_residuals) < -tau
+    prior_diel, prior_metal = prior_cost
+    prior_diel = torch.where(decided_dielectric & (prior_diel > prior_metal), prior_metal, prior_diel)
+    return dielectric_cost + prior_diel, metal_cost + prior_metal
 
 
 class LearnedPrior:
