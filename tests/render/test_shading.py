@@ -470,6 +470,27 @@ def test_torch_func_grad_and_vjp_through_shade_equal_autograd():
     torch.testing.assert_close(pullback(2 * image(rough))[0], leaf.grad, rtol=1e-12, atol=0)
 
 
+@pytest.mark.parametrize("name, value", [("roughness", 0.4), ("metallic", 0.0)], ids=["uniform", "zeros"])
+def test_forward_mode_through_a_uniform_or_zero_map_keeps_its_tangent(name, value):
+    """A map with a forward-mode tangent does not require grad; pruning it to a Python float
+    (uniform or all-zero maps) would drop the tangent and give a zero jvp."""
+    g = sphere_gbuffer(6, 6, material={"base_color": torch.full((1, 3, 6, 6), 0.5), "roughness": 0.3},
+                       dtype=torch.float64)
+
+    def image(m):
+        return shade(g.replace(material={**g.material, name: m}), LIGHTS)
+
+    m0 = torch.full((1, 1, 6, 6), value, dtype=torch.float64)
+    rev = torch.func.jacrev(image)(m0)
+    assert float(rev.abs().sum()) > 0
+    torch.testing.assert_close(torch.func.jacfwd(image)(m0), rev, rtol=1e-10, atol=1e-12)
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():
+        tangent = fwAD.unpack_dual(image(fwAD.make_dual(m0, torch.ones_like(m0)))).tangent
+    torch.testing.assert_close(tangent, rev.sum((-4, -3, -2, -1)), rtol=1e-10, atol=1e-12)
+
+
 def test_shader_module():
     brdf = LambertBRDF()
     s = Shader(brdf, env_strategy="split_sum")
