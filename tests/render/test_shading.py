@@ -470,6 +470,22 @@ def test_torch_func_grad_and_vjp_through_shade_equal_autograd():
     torch.testing.assert_close(pullback(2 * image(rough))[0], leaf.grad, rtol=1e-12, atol=0)
 
 
+def test_vmap_over_the_gbuffer_or_a_light_is_refused_naming_it():
+    """shade selects pixels by their values, which vmap cannot carry: a clear error instead of
+    torch's about `.item()`; jacfwd (vmap over the tangents only) still runs."""
+    cam = torch.tensor([0.0, 0.0, 3.0])
+    with pytest.raises(ValueError, match=r"gbuf\.position is batched by torch\.func\.vmap.*batch dimension B"):
+        torch.func.vmap(lambda p: shade(GBuffer(position=p, normal=p, camera_position=cam,
+                                                material={"base_color": 0.5}), LIGHTS))(torch.rand(2, 1, 3, 4, 4))
+    with pytest.raises(ValueError, match=r"lights\[0\]\.position is batched by torch\.func\.vmap"):
+        torch.func.vmap(lambda q: shade(sphere_gbuffer(4, 4), [PointLight(q, [20.0, 20.0, 20.0])]))(
+            torch.rand(2, 3) + 3)
+    g = sphere_gbuffer(4, 4, material={"base_color": torch.full((1, 3, 4, 4), 0.5), "roughness": 0.3})
+    jac = torch.func.jacfwd(lambda r: shade(g.replace(material={**g.material, "roughness": r}), LIGHTS))(
+        torch.full((1, 1, 4, 4), 0.4))
+    assert jac.shape == (1, 3, 4, 4, 1, 1, 4, 4) and bool(jac.abs().sum() > 0)
+
+
 @pytest.mark.parametrize("name, value", [("roughness", 0.4), ("metallic", 0.0)], ids=["uniform", "zeros"])
 def test_forward_mode_through_a_uniform_or_zero_map_keeps_its_tangent(name, value):
     """A map with a forward-mode tangent does not require grad; pruning it to a Python float

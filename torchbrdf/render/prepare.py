@@ -164,6 +164,25 @@ def _is_count(value: object, minimum: int = 1) -> bool:
     return not isinstance(value, bool) and isinstance(value, numbers.Integral) and int(value) >= minimum
 
 
+def _refuse_vmap(gbuf: GBuffer, lights: list[Light]) -> None:
+    """Refuse a g-buffer or light batched by ``torch.func.vmap``: the shader selects pixels and
+    prunes the material by their values, which vmap cannot carry (its own error names ``.item()``).
+    ``jacfwd`` (a vmap over the tangents only) passes."""
+    from torch._C._functorch import is_batchedtensor
+
+    tensors = [("gbuf.position", gbuf.position), ("gbuf.normal", gbuf.normal),
+               ("gbuf.camera_position", gbuf.camera_position), ("gbuf.tangent", gbuf.tangent),
+               ("gbuf.mask", gbuf.mask), *((f"gbuf.material[{k!r}]", v) for k, v in gbuf.material.items())]
+    for i, light in enumerate(lights):
+        tensors += [(f"lights[{i}].{k}", t) for k, t in (*light.named_parameters(), *light.named_buffers())]
+    for name, t in tensors:
+        if isinstance(t, Tensor) and is_batchedtensor(t):
+            raise ValueError(
+                f"shade: {name} is batched by torch.func.vmap, which shade does not support (it selects "
+                "pixels by their values); stack the images along the g-buffer's batch dimension B instead"
+            )
+
+
 def validate(
     gbuf: GBuffer,
     lights: Light | Sequence[Light] | None,
@@ -183,6 +202,7 @@ def validate(
     if not isinstance(gbuf, GBuffer):
         raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
     lights = _as_light_list(lights)
+    _refuse_vmap(gbuf, lights)
     if env_strategy not in ENV_STRATEGIES:
         raise ValueError(f"shade: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
     if not _is_count(env_samples):
