@@ -507,6 +507,19 @@ def test_forward_mode_through_a_uniform_or_zero_map_keeps_its_tangent(name, valu
     torch.testing.assert_close(tangent, rev.sum((-4, -3, -2, -1)), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("brdf", [None, lambert], ids=["principled", "lambert"])
+def test_meta_gbuffer_shades_to_its_shape(brdf):
+    """Meta tensors hold no values: no decision reads them (as under torch.compile), so shade
+    gives the image's shape and dtype; environment lights, whose set-up reads the map, are refused."""
+    g = sphere_gbuffer(6, 8, batch_size=2, material={"base_color": torch.rand(2, 3, 6, 8)}).to("meta")
+    lights = [PointLight(torch.tensor([2.0, 2.0, 3.0], device="meta"), torch.ones(3, device="meta")),
+              DirectionalLight(torch.tensor([0.0, 0.0, 1.0], device="meta"), torch.ones(3, device="meta"))]
+    img = shade(g, lights, brdf)
+    assert img.device.type == "meta" and img.shape == (2, 3, 6, 8) and img.dtype == torch.float32
+    with pytest.raises(ValueError, match="environment lights on the meta device"):
+        shade(g, [EnvironmentLight(torch.ones(3, 4, 8, device="meta"))], brdf)
+
+
 def test_shader_module():
     brdf = LambertBRDF()
     s = Shader(brdf, env_strategy="split_sum")

@@ -233,6 +233,11 @@ def validate(
             "shade: env_strategy='split_sum' supports the principled and Lambert BRDFs, "
             f"not {brdf_name(brdf)}; use 'mc'"
         )
+    if has_env and gbuf.device.type == "meta":
+        raise ValueError(
+            "shade: environment lights on the meta device: their set-up reads the map's values; "
+            "point and directional lights shade meta g-buffers (shapes and dtypes only)"
+        )
     return ShadingRequest(
         gbuf, lights, brdf, kind, env_strategy, env_samples, env_sampling, seed, chunk, prune
     )
@@ -310,9 +315,10 @@ def select_pixels(req: ShadingRequest, cd: torch.dtype) -> PixelSelection:
         c4 = cam.reshape(-1, 3, 1, 1)
         facing = (gbuf.normal.detach().to(cd) * (c4 - pos_img.detach())).sum(1) > 0  # (B, H, W)
         n_total = b * h * w
-        compiling = torch.compiler.is_compiling()
-        data_prune = req.prune and not compiling
-        counted = not compiling
+        # Compiled or on the meta device, no decision reads the data (a guard, or no data).
+        data_free = torch.compiler.is_compiling() or gbuf.device.type == "meta"
+        data_prune = req.prune and not data_free
+        counted = not data_free
         if gbuf.mask is None:  # (few whole-image ops: each costs a thread wake-up on a loaded machine)
             active = facing
             n_masked = 0
