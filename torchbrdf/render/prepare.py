@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import inspect
 import numbers
+import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -88,20 +89,38 @@ def brdf_name(brdf: BRDF) -> str:
     return getattr(brdf, "__name__", type(brdf).__name__)
 
 
+def _material_names(fn) -> frozenset[str] | None:
+    """The keyword parameters ``fn`` takes besides the geometry; None when it takes ``**kwargs``
+    or its signature cannot be read.
+
+    Marked as torch.compiler.assume_constant_result marks a function: Dynamo runs it once while
+    tracing. Traced, ``inspect.signature`` would make Dynamo track the BRDF's defaults, and
+    under ``dynamic=True`` hand its float defaults to the BRDF as float64 tensors.
+    """
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind == p.VAR_KEYWORD for p in params):
+        return None
+    geometry = {"self", "l", "v", "n", "x", "y"}  # passed positionally: never a material key
+    return frozenset(p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)) - geometry
+
+
+_material_names._dynamo_marked_constant = True  # type: ignore[attr-defined]
+
+
 def _check_material_fits(brdf, material: Mapping) -> None:
     """Refuse a material whose keys ``brdf`` does not take (they are passed as keywords).
 
     A BRDF whose signature cannot be read, or that takes ``**kwargs``, is not checked.
     """
-    fn = brdf.forward if isinstance(brdf, nn.Module) else brdf
-    try:
-        params = inspect.signature(fn).parameters.values()
-    except (TypeError, ValueError):
+    fn = type(brdf).forward if isinstance(brdf, nn.Module) else brdf
+    if torch.compiler.is_compiling() and not isinstance(fn, types.FunctionType):
+        return  # Dynamo runs the marked function on plain functions only; the call itself checks
+    names = _material_names(fn)
+    if names is None:
         return
-    if any(p.kind == p.VAR_KEYWORD for p in params):
-        return
-    geometry = {"l", "v", "n", "x", "y"}  # passed positionally: never a material key
-    names = {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)} - geometry
     unknown = sorted(set(material) - names)
     if unknown:
         takes = sorted(names)
