@@ -469,3 +469,9 @@ def test_from_brdf_takes_float32_parameters():
     f32 = MERLBRDF.from_brdf(principled, base_color=torch.tensor([0.7, 0.2, 0.1]), roughness=0.35)
     f64 = MERLBRDF.from_brdf(principled, base_color=torch.tensor([0.7, 0.2, 0.1]).double(), roughness=0.35)
     assert torch.equal(f32.stored, f64.stored)
+
+
+def test_from_table_refuses_a_wrong_shape_naming_the_argument():
+    # Channel-last (90, 90, 180, 3), the natural guess: named here, not a broadcast error inside.
+    with pytest.raises(ValueError, match=r"values: expected a \(3, 90, 90, 180\) table, got \(90, 90, 180, 3\)"):
+        MERLBRDF.from_table(torch.rand(90, 90, 180, 3))

@@ -470,6 +470,56 @@ def test_torch_func_grad_and_vjp_through_shade_equal_autograd():
     torch.testing.assert_close(pullback(2 * image(rough))[0], leaf.grad, rtol=1e-12, atol=0)
 
 
+def test_vmap_over_the_gbuffer_or_a_light_is_refused_naming_it():
+    """shade selects pixels by their values, which vmap cannot carry: a clear error instead of
+    torch's about `.item()`; jacfwd (vmap over the tangents only) still runs."""
+    cam = torch.tensor([0.0, 0.0, 3.0])
+    with pytest.raises(ValueError, match=r"gbuf\.position is batched by torch\.func\.vmap.*batch dimension B"):
+        torch.func.vmap(lambda p: shade(GBuffer(position=p, normal=p, camera_position=cam,
+                                                material={"base_color": 0.5}), LIGHTS))(torch.rand(2, 1, 3, 4, 4))
+    with pytest.raises(ValueError, match=r"lights\[0\]\.position is batched by torch\.func\.vmap"):
+        torch.func.vmap(lambda q: shade(sphere_gbuffer(4, 4), [PointLight(q, [20.0, 20.0, 20.0])]))(
+            torch.rand(2, 3) + 3)
+    g = sphere_gbuffer(4, 4, material={"base_color": torch.full((1, 3, 4, 4), 0.5), "roughness": 0.3})
+    jac = torch.func.jacfwd(lambda r: shade(g.replace(material={**g.material, "roughness": r}), LIGHTS))(
+        torch.full((1, 1, 4, 4), 0.4))
+    assert jac.shape == (1, 3, 4, 4, 1, 1, 4, 4) and bool(jac.abs().sum() > 0)
+
+
+@pytest.mark.parametrize("name, value", [("roughness", 0.4), ("metallic", 0.0)], ids=["uniform", "zeros"])
+def test_forward_mode_through_a_uniform_or_zero_map_keeps_its_tangent(name, value):
+    """A map with a forward-mode tangent does not require grad; pruning it to a Python float
+    (uniform or all-zero maps) would drop the tangent and give a zero jvp."""
+    g = sphere_gbuffer(6, 6, material={"base_color": torch.full((1, 3, 6, 6), 0.5), "roughness": 0.3},
+                       dtype=torch.float64)
+
+    def image(m):
+        return shade(g.replace(material={**g.material, name: m}), LIGHTS)
+
+    m0 = torch.full((1, 1, 6, 6), value, dtype=torch.float64)
+    rev = torch.func.jacrev(image)(m0)
+    assert float(rev.abs().sum()) > 0
+    torch.testing.assert_close(torch.func.jacfwd(image)(m0), rev, rtol=1e-10, atol=1e-12)
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():
+        tangent = fwAD.unpack_dual(image(fwAD.make_dual(m0, torch.ones_like(m0)))).tangent
+    torch.testing.assert_close(tangent, rev.sum((-4, -3, -2, -1)), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("brdf", [None, lambert], ids=["principled", "lambert"])
+def test_meta_gbuffer_shades_to_its_shape(brdf):
+    """Meta tensors hold no values: no decision reads them (as under torch.compile), so shade
+    gives the image's shape and dtype; environment lights, whose set-up reads the map, are refused."""
+    g = sphere_gbuffer(6, 8, batch_size=2, material={"base_color": torch.rand(2, 3, 6, 8)}).to("meta")
+    lights = [PointLight(torch.tensor([2.0, 2.0, 3.0], device="meta"), torch.ones(3, device="meta")),
+              DirectionalLight(torch.tensor([0.0, 0.0, 1.0], device="meta"), torch.ones(3, device="meta"))]
+    img = shade(g, lights, brdf)
+    assert img.device.type == "meta" and img.shape == (2, 3, 6, 8) and img.dtype == torch.float32
+    with pytest.raises(ValueError, match="environment lights on the meta device"):
+        shade(g, [EnvironmentLight(torch.ones(3, 4, 8, device="meta"))], brdf)
+
+
 def test_shader_module():
     brdf = LambertBRDF()
     s = Shader(brdf, env_strategy="split_sum")

@@ -429,6 +429,8 @@ class MERLBRDF(nn.Module):
     def from_table(cls, values: Tensor, name: str | None = None) -> MERLBRDF:
         """Build from reflectance values ``(3, 90, 90, 180)`` (as :func:`read_merl` returns)."""
         values = torch.as_tensor(values)
+        if tuple(values.shape) != (3, *MERL_RES):
+            raise ValueError(f"values: expected a (3, 90, 90, 180) table, got {tuple(values.shape)}")
         scale = torch.tensor(MERL_SCALE, dtype=torch.float64, device=values.device)[:, None, None, None]
         return cls(values.to(torch.float64) / scale, name=name)
 

@@ -9,6 +9,7 @@ and :func:`directional_term` are the per-light terms of :mod:`torchbrdf.brdf.for
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -67,9 +68,14 @@ def checkpointed_pass(elements: int, fn: Callable[..., Tensor], *args: Any, **kw
 
     Under autograd the pass is checkpointed (non-reentrant): nothing inside it is stored, and
     it is recomputed during backward. Under ``torch.func`` transforms it is not: they refuse
-    saved-tensor hooks (hence checkpointing), so there a pass keeps its intermediates.
+    saved-tensor hooks (hence checkpointing), so there a pass keeps its intermediates. Nor
+    under ``torch.compile(..., dynamic=True)``: Dynamo fails on checkpoint's subgraph there
+    (an internal assertion), so the compiled graph's partitioner decides what the backward
+    keeps.
     """
     if not torch.is_grad_enabled() or torch._C._are_functorch_transforms_active():
+        return fn(*args, **kwargs)
+    if _compiling_dynamic():
         return fn(*args, **kwargs)
     out = checkpoint(fn, *args, use_reentrant=False, **kwargs)
     if (
@@ -84,6 +90,24 @@ def checkpointed_pass(elements: int, fn: Callable[..., Tensor], *args: Any, **kw
         _MALLOC_TRIM(0)
         out = _ReleaseFreedMemory.apply(out)
     return out
+
+
+def _dynamic_shapes_config() -> bool:
+    """Whether Dynamo's config in force makes every size symbolic (``torch.compile(..., dynamic=True)``).
+
+    Marked as torch.compiler.assume_constant_result marks a function: Dynamo runs it once while
+    tracing instead of tracing it (without importing torch._dynamo here, which is slow).
+    """
+    config = sys.modules.get("torch._dynamo.config")
+    return config is not None and not config.assume_static_by_default
+
+
+_dynamic_shapes_config._dynamo_marked_constant = True  # type: ignore[attr-defined]
+
+
+def _compiling_dynamic() -> bool:
+    """Whether this is traced by ``torch.compile(..., dynamic=True)``."""
+    return torch.compiler.is_compiling() and _dynamic_shapes_config()
 
 
 def _per_pixel(t: Tensor, bidx: Tensor) -> Tensor:

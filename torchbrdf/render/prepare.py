@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import inspect
 import numbers
+import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -28,7 +29,7 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from torchbrdf._checks import check_finite, check_nonnegative, validation_enabled
+from torchbrdf._checks import active_transforms, check_finite, check_nonnegative, validation_enabled
 from torchbrdf._math import is_zero
 from torchbrdf._types import BRDF
 from torchbrdf.brdf.principled import LOBES
@@ -88,20 +89,38 @@ def brdf_name(brdf: BRDF) -> str:
     return getattr(brdf, "__name__", type(brdf).__name__)
 
 
+def _material_names(fn) -> frozenset[str] | None:
+    """The keyword parameters ``fn`` takes besides the geometry; None when it takes ``**kwargs``
+    or its signature cannot be read.
+
+    Marked as torch.compiler.assume_constant_result marks a function: Dynamo runs it once while
+    tracing. Traced, ``inspect.signature`` would make Dynamo track the BRDF's defaults, and
+    under ``dynamic=True`` hand its float defaults to the BRDF as float64 tensors.
+    """
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind == p.VAR_KEYWORD for p in params):
+        return None
+    geometry = {"self", "l", "v", "n", "x", "y"}  # passed positionally: never a material key
+    return frozenset(p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)) - geometry
+
+
+_material_names._dynamo_marked_constant = True  # type: ignore[attr-defined]
+
+
 def _check_material_fits(brdf, material: Mapping) -> None:
     """Refuse a material whose keys ``brdf`` does not take (they are passed as keywords).
 
     A BRDF whose signature cannot be read, or that takes ``**kwargs``, is not checked.
     """
-    fn = brdf.forward if isinstance(brdf, nn.Module) else brdf
-    try:
-        params = inspect.signature(fn).parameters.values()
-    except (TypeError, ValueError):
+    fn = type(brdf).forward if isinstance(brdf, nn.Module) else brdf
+    if torch.compiler.is_compiling() and not isinstance(fn, types.FunctionType):
+        return  # Dynamo runs the marked function on plain functions only; the call itself checks
+    names = _material_names(fn)
+    if names is None:
         return
-    if any(p.kind == p.VAR_KEYWORD for p in params):
-        return
-    geometry = {"l", "v", "n", "x", "y"}  # passed positionally: never a material key
-    names = {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)} - geometry
     unknown = sorted(set(material) - names)
     if unknown:
         takes = sorted(names)
@@ -164,6 +183,25 @@ def _is_count(value: object, minimum: int = 1) -> bool:
     return not isinstance(value, bool) and isinstance(value, numbers.Integral) and int(value) >= minimum
 
 
+def _refuse_vmap(gbuf: GBuffer, lights: list[Light]) -> None:
+    """Refuse a g-buffer or light batched by ``torch.func.vmap``: the shader selects pixels and
+    prunes the material by their values, which vmap cannot carry (its own error names ``.item()``).
+    ``jacfwd`` (a vmap over the tangents only) passes."""
+    from torch._C._functorch import is_batchedtensor
+
+    tensors = [("gbuf.position", gbuf.position), ("gbuf.normal", gbuf.normal),
+               ("gbuf.camera_position", gbuf.camera_position), ("gbuf.tangent", gbuf.tangent),
+               ("gbuf.mask", gbuf.mask), *((f"gbuf.material[{k!r}]", v) for k, v in gbuf.material.items())]
+    for i, light in enumerate(lights):
+        tensors += [(f"lights[{i}].{k}", t) for k, t in (*light.named_parameters(), *light.named_buffers())]
+    for name, t in tensors:
+        if isinstance(t, Tensor) and is_batchedtensor(t):
+            raise ValueError(
+                f"shade: {name} is batched by torch.func.vmap, which shade does not support (it selects "
+                "pixels by their values); stack the images along the g-buffer's batch dimension B instead"
+            )
+
+
 def validate(
     gbuf: GBuffer,
     lights: Light | Sequence[Light] | None,
@@ -183,6 +221,7 @@ def validate(
     if not isinstance(gbuf, GBuffer):
         raise TypeError(f"shade: `gbuf` must be a torchbrdf.GBuffer, got {type(gbuf).__name__}")
     lights = _as_light_list(lights)
+    _refuse_vmap(gbuf, lights)
     if env_strategy not in ENV_STRATEGIES:
         raise ValueError(f"shade: `env_strategy` must be one of {ENV_STRATEGIES}, got {env_strategy!r}")
     if not _is_count(env_samples):
@@ -212,6 +251,11 @@ def validate(
         raise ValueError(
             "shade: env_strategy='split_sum' supports the principled and Lambert BRDFs, "
             f"not {brdf_name(brdf)}; use 'mc'"
+        )
+    if has_env and gbuf.device.type == "meta":
+        raise ValueError(
+            "shade: environment lights on the meta device: their set-up reads the map's values; "
+            "point and directional lights shade meta g-buffers (shapes and dtypes only)"
         )
     return ShadingRequest(
         gbuf, lights, brdf, kind, env_strategy, env_samples, env_sampling, seed, chunk, prune
@@ -290,9 +334,10 @@ def select_pixels(req: ShadingRequest, cd: torch.dtype) -> PixelSelection:
         c4 = cam.reshape(-1, 3, 1, 1)
         facing = (gbuf.normal.detach().to(cd) * (c4 - pos_img.detach())).sum(1) > 0  # (B, H, W)
         n_total = b * h * w
-        compiling = torch.compiler.is_compiling()
-        data_prune = req.prune and not compiling
-        counted = not compiling
+        # Compiled or on the meta device, no decision reads the data (a guard, or no data).
+        data_free = torch.compiler.is_compiling() or gbuf.device.type == "meta"
+        data_prune = req.prune and not data_free
+        counted = not data_free
         if gbuf.mask is None:  # (few whole-image ops: each costs a thread wake-up on a loaded machine)
             active = facing
             n_masked = 0
@@ -331,9 +376,19 @@ class MaterialUse:
     need_frame: bool  # tangent frames: anisotropic is not a Python 0
 
 
+def _forward_mode() -> bool:
+    """Whether forward-mode AD is active: a ``forward_ad`` dual level or a ``torch.func`` jvp."""
+    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0:
+        return True
+    return any(kind == "Jvp" for kind, _ in active_transforms())
+
+
 def _reduce_material(material: Mapping[str, Any], prune: bool, cd: torch.dtype, device: torch.device):
     values, reduction = {}, {}
     compiling = torch.compiler.is_compiling()
+    # A map carrying a forward-mode tangent does not require grad: kept as a map, else its
+    # tangent would be dropped with it (jvp / jacfwd of a uniform map would read 0).
+    prune = prune and not _forward_mode()
     for name, v in material.items():
         if isinstance(v, numbers.Real):
             # Compiled: a 0-d tensor (torch.full keeps the value symbolic, where as_tensor would
