@@ -64,12 +64,15 @@ def test_import_does_not_load_the_compiler_stack():
 
 
 def test_the_constant_result_mark_is_torchs_own():
-    """The backend resolver is marked for torch.compile the way torch.compiler marks a function."""
+    """The functions run once while tracing are marked the way torch.compiler marks a function."""
     from torchbrdf.brdf import principled as P
 
     def probe():
         return 0
 
+    from torchbrdf.render import passes, prepare
+
     marked = torch.compiler.assume_constant_result(probe)
     flags = {k for k in vars(marked) if k.startswith("_dynamo")}
-    assert flags and flags <= set(vars(P._resolve_backend)), flags
+    for fn in (P._resolve_backend, passes._dynamic_shapes_config, prepare._material_names):
+        assert flags and flags <= set(vars(fn)), (fn.__name__, flags)

@@ -7,7 +7,8 @@ With validation off nothing reads the data: what a non-finite input gives then i
 in ``docs/numerics.md`` ("Non-finite inputs").
 
 Messages show a short excerpt of a bad value (:func:`excerpt`), never a whole list or array.
-:func:`active_transforms` tells dispatch which ``torch.func`` transforms wrap a call.
+:func:`active_transforms` tells dispatch which ``torch.func`` transforms wrap a call, and
+:func:`constant_while_tracing` marks a function Dynamo should run once rather than trace.
 """
 
 from __future__ import annotations
@@ -23,6 +24,20 @@ import torch
 from torch import Tensor
 
 _VALIDATE = False
+
+_F = TypeVar("_F")
+
+
+def constant_while_tracing(fn: _F) -> _F:
+    """Mark ``fn`` as ``torch.compiler.assume_constant_result`` does: under torch.compile it is
+    run once while tracing and its result taken as a constant.
+
+    Sets the same mark without importing ``torch._dynamo`` (half of ``import torchbrdf``'s time,
+    for users who never compile); tests/test_api_surface.py checks that torch still marks
+    functions this way.
+    """
+    setattr(fn, "_dynamo_marked_constant", True)
+    return fn
 
 # check_tensor returns its argument unchanged, so callers keep their own (narrower) type.
 _T = TypeVar("_T")

@@ -263,16 +263,7 @@ def fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor
     return backend
 
 
-def _assume_constant_result(fn):
-    """``torch.compiler.assume_constant_result(fn)`` (under torch.compile: evaluated once while
-    tracing) without importing ``torch._dynamo`` — 1.6 s, half of ``import torchbrdf`` — for
-    users who never compile: it marks the function the same way (tests/test_api_surface.py
-    checks that torch still does)."""
-    setattr(fn, "_dynamo_marked_constant", True)
-    return fn
-
-
-@_assume_constant_result
+@_checks.constant_while_tracing
 def _resolve_backend(device_type: str) -> str:
     from torchbrdf.kernels import backend as _backend
 

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from torchbrdf import _checks
 from torchbrdf._types import BRDF
 from torchbrdf.brdf import formula
 
@@ -92,17 +93,15 @@ def checkpointed_pass(elements: int, fn: Callable[..., Tensor], *args: Any, **kw
     return out
 
 
+@_checks.constant_while_tracing
 def _dynamic_shapes_config() -> bool:
     """Whether Dynamo's config in force makes every size symbolic (``torch.compile(..., dynamic=True)``).
 
-    Marked as torch.compiler.assume_constant_result marks a function: Dynamo runs it once while
-    tracing instead of tracing it (without importing torch._dynamo here, which is slow).
+    Run once while tracing, not traced (:func:`~torchbrdf._checks.constant_while_tracing`).
     """
     config = sys.modules.get("torch._dynamo.config")
     return config is not None and not config.assume_static_by_default
 
-
-_dynamic_shapes_config._dynamo_marked_constant = True  # type: ignore[attr-defined]
 
 
 def _compiling_dynamic() -> bool:

@@ -29,7 +29,8 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from torchbrdf._checks import active_transforms, check_finite, check_nonnegative, validation_enabled
+from torchbrdf._checks import (active_transforms, check_finite, check_nonnegative, constant_while_tracing,
+                               validation_enabled)
 from torchbrdf._math import is_zero
 from torchbrdf._types import BRDF
 from torchbrdf.brdf.principled import LOBES
@@ -89,13 +90,14 @@ def brdf_name(brdf: BRDF) -> str:
     return getattr(brdf, "__name__", type(brdf).__name__)
 
 
+@constant_while_tracing
 def _material_names(fn) -> frozenset[str] | None:
     """The keyword parameters ``fn`` takes besides the geometry; None when it takes ``**kwargs``
     or its signature cannot be read.
 
-    Marked as torch.compiler.assume_constant_result marks a function: Dynamo runs it once while
-    tracing. Traced, ``inspect.signature`` would make Dynamo track the BRDF's defaults, and
-    under ``dynamic=True`` hand its float defaults to the BRDF as float64 tensors.
+    Run once while tracing (:func:`~torchbrdf._checks.constant_while_tracing`). Traced,
+    ``inspect.signature`` would make Dynamo track the BRDF's defaults, and under
+    ``dynamic=True`` hand its float defaults to the BRDF as float64 tensors.
     """
     try:
         params = inspect.signature(fn).parameters.values()
@@ -106,8 +108,6 @@ def _material_names(fn) -> frozenset[str] | None:
     geometry = {"self", "l", "v", "n", "x", "y"}  # passed positionally: never a material key
     return frozenset(p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)) - geometry
 
-
-_material_names._dynamo_marked_constant = True  # type: ignore[attr-defined]
 
 
 def _check_material_fits(brdf, material: Mapping) -> None:
