@@ -21,3 +21,19 @@ def test_a_bad_tree_is_one_line_naming_the_flag(tree, capsys):
     with pytest.raises(SystemExit) as e:
         fit_time.main(["--tree", tree])
     assert e.value.code == 2 and "--tree: expected NAME=DIR" in capsys.readouterr().err
+
+
+def test_table_adds_the_parts_cpu_seconds_when_the_rows_have_them():
+    rows = [{"capture": "demo", "threads": 1, "tree": t, "rep": 0, "seconds": 3.0, "cpu": 2.9, "psnr": 70.5,
+             "part_cpu": p} for t, p in (("base", 0.75), ("new", 0.5))]
+    lines = fit_time.table(rows).splitlines()
+    assert "part's CPU s" in lines[0] and lines[1].count("|") == 8
+    assert lines[3] == "| demo | 1 | new | 3.00 / 3.00 / 3.00 | 2.90 / 2.90 / 2.90 | 0.50 / 0.50 / 0.50 | 70.500000 |"
+
+
+@pytest.mark.parametrize("part", ["propagate_passes", "torchbrdf..x", "x."])
+def test_a_bad_part_is_one_line_naming_the_flag(part, tmp_path, capsys):
+    (tmp_path / "torchbrdf").mkdir()
+    with pytest.raises(SystemExit) as e:
+        fit_time.main(["--tree", f"t={tmp_path}", "--part", part])
+    assert e.value.code == 2 and "--part: expected MODULE.NAME" in capsys.readouterr().err
