@@ -181,3 +181,24 @@ def test_fill_takes_the_callers_residuals():
     assert all(torch.equal(a, b) for a, b in zip(own, given))
     doubled = priors.nonlocal_fill(data, theta, metal, cfg, info=info, residual=2 * r)
     assert not torch.allclose(doubled[1], own[1], rtol=0.5)
+
+
+@pytest.mark.parametrize("block", [1, 700, 2**20])
+def test_fill_block_changes_no_bit(monkeypatch, block):
+    """The block of candidates an estimate takes at once is a cache size only: blocks of one
+    pixel, of a pixel count that splits a draw unevenly and of all pixels give the same bits
+    as the default's. A pixel of a colour no other has (every candidate weighs 0, no member)
+    gets no prior and keeps its value; its estimate is not borrowed from its block."""
+    data, theta, metal, info = _two_class_level(size=40)
+    lone = int(torch.nonzero(metal[:, 0] < 0.5)[7])
+    theta[lone, 0:3] = torch.tensor([6.0, -6.0, 6.0])
+    cfg = Settings(fill_candidates=64)
+    want = priors.nonlocal_fill(data, theta, metal, cfg, info=info)
+    monkeypatch.setattr(priors, "FILL_BLOCK", block)
+    got = priors.nonlocal_fill(data, theta, metal, cfg, info=info)
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    assert float(got[1][lone, 3:5].abs().max()) == 0.0
+    assert torch.equal(got[0][lone, 3:5], theta[lone, 3:5])
+    ref = _reference_fill(data, theta, metal, cfg, info)
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=2e-4, atol=1e-6)

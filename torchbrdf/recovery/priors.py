@@ -288,6 +288,13 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
     return marginal_information(data, theta, metal, cfg.model, jtj + torch.diag_embed(ties))
 
 
+#: Candidates (pixels × ``fill_candidates``) per block of :func:`nonlocal_fill`'s estimate: a
+#: bound on its member tables' memory (each up to 1 MiB in float32). Each pixel's estimate is its own,
+#: so the block changes no bit of the result; with the CLI's malloc settings 2¹⁶ takes the same
+#: time (docs/recovery_measurements.md, "The fill's block").
+FILL_BLOCK = 2**18
+
+
 def _member_estimate(feat: Tensor, members: Tensor, rows: Tensor,
                      cand: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`material_estimate` of each pixel ``rows (n,)`` from its candidates ``cand (n, K)``
@@ -354,7 +361,7 @@ def nonlocal_fill(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings,
         return torch.nan_to_num(tgt), prec
     k = min(cfg.fill_candidates, pool.numel())
     draw = max(1, 2**20 // k)  # pixels per draw of candidates (the random stream's blocks)
-    block = max(1, 2**18 // k)  # ... per estimate: its tables stay in the cache
+    block = max(1, FILL_BLOCK // k)  # ... per estimate
     for s0 in range(0, pool.numel(), draw):
         rows = pool[s0:s0 + draw]
         draws = torch.randint(0, pool.numel(), (rows.numel() * k,), generator=gen)  # on the CPU
