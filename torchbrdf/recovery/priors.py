@@ -291,7 +291,7 @@ def fit_information(data: LevelData, theta: Tensor, metal: Tensor, cfg: Settings
 #: Candidates (pixels × ``fill_candidates``) per block of :func:`nonlocal_fill`'s estimate: a
 #: bound on its member tables' memory (each up to 1 MiB in float32). Each pixel's estimate is its own,
 #: so the block changes no bit of the result; with the CLI's malloc settings 2¹⁶ takes the same
-#: time (docs/recovery_measurements.md, "The fill's block").
+#: time (docs/recovery_measurements.md, "Variants measured and not kept").
 FILL_BLOCK = 2**18
 
 
