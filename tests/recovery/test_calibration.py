@@ -524,6 +524,18 @@ def test_two_unary_priors_sum_to_one():
     assert sum_unary(a, None) is a and sum_unary(None, b) is b
 
 
+def _iterations_to_the_last_stage(rec):
+    """Run ``rec`` (no gradient) until its last stage; returns stage -> iterations run."""
+    with torch.no_grad():
+        rec.init_state()
+        iterations = {}
+        while rec.state["stage"] < len(rec.plan) - 1:
+            stage = rec.state["stage"]
+            iterations[stage] = iterations.get(stage, 0) + 1
+            rec.tick()
+    return iterations
+
+
 def _recovery_with_a_brighter_light(tiny, **settings):
     """A :class:`Recovery` of ``tiny`` whose training light 3 is 6 % brighter than capture.json states."""
     import dataclasses as dc
@@ -677,13 +689,7 @@ def test_the_light_step_rests_within_a_stage_and_steps_again(tiny, monkeypatch):
 
     monkeypatch.setattr(engine, "light_joint_step", step)
     rec = _recovery_with_a_brighter_light(tiny, converge_tol=0.0)
-    with torch.no_grad():
-        rec.init_state()
-        iterations = {}
-        while rec.state["stage"] < len(rec.plan) - 1:
-            stage = rec.state["stage"]
-            iterations[stage] = iterations.get(stage, 0) + 1
-            rec.tick()
+    iterations = _iterations_to_the_last_stage(rec)
     stages = sorted({s for s, _ in steps})
     assert any(iterations[s] >= 4 for s in stages)
     for s in stages:
@@ -712,13 +718,7 @@ def test_the_light_step_rests_once_the_iterations_left_could_not_move_it_beyond_
 
     monkeypatch.setattr(engine, "light_joint_step", at_the_bound)
     rec = _recovery_with_a_brighter_light(tiny, light_rest=light_rest, converge_tol=0.0)
-    with torch.no_grad():
-        rec.init_state()
-        iterations = {}
-        while rec.state["stage"] < len(rec.plan) - 1:
-            stage = rec.state["stage"]
-            iterations[stage] = iterations.get(stage, 0) + 1
-            rec.tick()
+    iterations = _iterations_to_the_last_stage(rec)
     calibrated = [s for s, (size, kind, _) in enumerate(rec.plan[:-1])
                   if kind != "dual" or size == rec.plan[-1][0] or rec.cfg.dual_calibration_coarse]
     if light_rest:  # 2 % above, then 2 % below the bound: two steps per stage

@@ -135,20 +135,26 @@ def _no_vmap(monkeypatch):
     monkeypatch.setattr(torch.func, "vmap", refuse)
 
 
+def _light_step_args(dtype, seed):
+    """A flat 8×8 level with 6 lights and the joint light step's arguments at a perturbed state."""
+    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
+    gen = torch.Generator().manual_seed(seed)
+    n_l = data.pos_stated.shape[0]
+    data.camera = data.camera.to(dtype)
+    return (data, (theta + 0.3 * torch.randn(theta.shape, generator=gen)).to(dtype), metal.to(dtype),
+            data.points.to(dtype), data.log_obs.permute(1, 0, 2).to(dtype), data.inten_stated.to(dtype),
+            (data.pos_stated + 0.01 * torch.randn(n_l, 3, generator=gen)).to(dtype),
+            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), "principled")
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("position", [True, False])
 def test_light_step_jacobians_are_vmap_of_jvp_without_it(monkeypatch, dtype, position):
     """The joint light step's residuals and ``7 + G`` derivative columns (offsets, log scales
     away from 0 and from each other) equal ``vmap`` of ``jvp`` of the residual bit for bit,
     computed without ``torch.func.vmap``."""
-    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
-    gen = torch.Generator().manual_seed(3)
-    n_l = data.pos_stated.shape[0]
-    data.camera = data.camera.to(dtype)
-    args = (data, (theta + 0.3 * torch.randn(theta.shape, generator=gen)).to(dtype), metal.to(dtype),
-            data.points.to(dtype), data.log_obs.permute(1, 0, 2).to(dtype), data.inten_stated.to(dtype),
-            (data.pos_stated + 0.01 * torch.randn(n_l, 3, generator=gen)).to(dtype),
-            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), "principled")
+    args = _light_step_args(dtype, 3)
+    n_l = args[0].pos_stated.shape[0]
     want_r, want = _light_jacobians_by_vmap(*args, position=position)
     _no_vmap(monkeypatch)
     r, cols = calibration._pixel_and_light_jacobians(*args, position=position)
@@ -163,14 +169,7 @@ def test_light_step_jacobians_run_in_one_pass_with_the_bits_of_several(monkeypat
     not two) and give the bits of passes of 4, 4 and 3 directions."""
     from torchbrdf.kernels import c_runner
 
-    data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
-    gen = torch.Generator().manual_seed(4)
-    n_l = data.pos_stated.shape[0]
-    data.camera = data.camera.to(dtype)
-    args = (data, (theta + 0.3 * torch.randn(theta.shape, generator=gen)).to(dtype), metal.to(dtype),
-            data.points.to(dtype), data.log_obs.permute(1, 0, 2).to(dtype), data.inten_stated.to(dtype),
-            (data.pos_stated + 0.01 * torch.randn(n_l, 3, generator=gen)).to(dtype),
-            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), "principled")
+    args = _light_step_args(dtype, 4)
     passes = []
     load = c_runner.load
 
