@@ -514,6 +514,27 @@ def test_light_step_bench_alternates_the_passes_and_restores_them(tiny):
     assert torch.get_num_threads() == threads and c_runner.TANGENTS_PER_PASS == per_pass
 
 
+def test_light_step_bench_reverses_the_order_and_prints_the_pixels_used(tiny, monkeypatch, capsys):
+    """Neither pass size always runs first (a fixed order biases a loaded machine's timings), and
+    the printed count is the light step's strided pixels of this capture (32², all used)."""
+    from torchbrdf.bench.jvp import light_step_times
+    from torchbrdf.kernels import c_runner
+    from torchbrdf.recovery import calibration
+
+    import functools
+
+    order = []
+
+    @functools.wraps(calibration.light_joint_step)  # (its signature: the bench reads max_pixels)
+    def step(*args, **kwargs):
+        order.append(c_runner.TANGENTS_PER_PASS)
+
+    monkeypatch.setattr(calibration, "light_joint_step", step)
+    light_step_times(threads=1, reps=4, capture=str(tiny))
+    assert order[2:] == [8, 12, 12, 8, 8, 12, 12, 8]  # after the warm-up of each
+    assert "1024 pixels (1024 used)" in capsys.readouterr().out
+
+
 def test_blur_is_the_truncated_normalised_gaussian():
     """``blur`` is the truncated, normalised Gaussian, against a direct double sum.
 

@@ -25,6 +25,7 @@ alternated, CPU and wall seconds.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from collections.abc import Sequence
 
@@ -130,11 +131,21 @@ def _fit_jacobian_times(cap, sizes: Sequence[int], threads: int, reps: int) -> d
     return res
 
 
+def _light_step_pixels() -> int:
+    """:func:`~torchbrdf.recovery.calibration.light_joint_step`'s default ``max_pixels``."""
+    import inspect
+
+    from torchbrdf.recovery.calibration import light_joint_step
+
+    return int(inspect.signature(light_joint_step).parameters["max_pixels"].default)
+
+
 def light_step_times(threads: int = 1, reps: int = 9, capture: str | None = None) -> dict:
     """CPU and wall seconds ``{tangents per pass: {"cpu": [...], "wall": [...]}}`` of one joint
     light step (:func:`torchbrdf.recovery.calibration.light_joint_step`, positions and scales:
-    7 + 4 directions) on every pixel of ``capture`` (default: the demo capture), with the JVP
-    kernel's passes of 8 and of 12 tangents alternated. Prints min / median / max.
+    7 + 4 directions) on ``capture`` (default: the demo capture; the step's evenly strided
+    ``max_pixels`` pixels of it), with the JVP kernel's passes of 8 and of 12 tangents alternated,
+    the order reversed every other repetition. Prints min / median / max.
     """
     import statistics
 
@@ -156,8 +167,8 @@ def light_step_times(threads: int = 1, reps: int = 9, capture: str | None = None
         for per_pass in (8, 12):  # kernel build or load, warm-up
             c_runner.TANGENTS_PER_PASS = per_pass
             light_joint_step(data, theta, metal, torch.zeros(n_l), torch.zeros(n_l, 3), data.train_idx, "principled")
-        for _ in range(reps):
-            for per_pass in (8, 12):
+        for rep in range(reps):
+            for per_pass in ((8, 12) if rep % 2 == 0 else (12, 8)):  # neither always first
                 c_runner.TANGENTS_PER_PASS = per_pass
                 c0, t0 = time.process_time(), time.perf_counter()
                 light_joint_step(data, theta, metal, torch.zeros(n_l), torch.zeros(n_l, 3), data.train_idx,
@@ -168,7 +179,9 @@ def light_step_times(threads: int = 1, reps: int = 9, capture: str | None = None
     finally:
         torch.set_num_threads(before)
         c_runner.TANGENTS_PER_PASS = kept
-    print(f"joint light step, {n_l} lights, {data.points.shape[0]} pixels (8192 used), {threads} thread(s), "
+    n_px = data.points.shape[0]
+    used = len(range(0, n_px, max(1, math.ceil(n_px / _light_step_pixels()))))  # light_joint_step's rows
+    print(f"joint light step, {n_l} lights, {n_px} pixels ({used} used), {threads} thread(s), "
           f"{reps} alternated runs: ms min / median / max")
     for per_pass, row in res.items():
         cpu, wall = sorted(row["cpu"]), sorted(row["wall"])
