@@ -675,6 +675,14 @@ def test_the_light_steps_rest_has_its_ends():
         assert calibration.rest_iterations(chi2, 56.0) == 0
 
 
+@pytest.mark.parametrize("dof", [float("nan"), float("inf"), -1.0])
+def test_the_light_steps_rest_refuses_degrees_of_freedom_that_are_not_a_count(dof):
+    # A NaN K read as a rest without end (every comparison with it false), a negative one
+    # failed inside math.isqrt without naming it.
+    with pytest.raises(ValueError, match=r"rest_iterations: `dof` must be a finite number >= 0"):
+        calibration.rest_iterations(1.0, dof)
+
+
 def test_the_light_step_rests_within_a_stage_and_steps_again(tiny, monkeypatch):
     """A step whose χ² is 0.3 K rests one iteration (``4 · 0.3 K ≥ K``) and then steps again,
     within the stage: every other iteration of a long stage steps the lights (resting only

@@ -227,8 +227,11 @@ def rest_iterations(chi2: float, dof: float) -> int:
     unapplied, a cost of ``s² χ²`` noise variances; below K, what noise alone puts between the
     data's optimum and the true lights, the lights lag by less than their own uncertainty. A
     step of ``χ² ≥ K`` rests none, nor does a negative or non-finite ``χ²``; ``χ² = 0`` (or so
-    small that ``K/χ²`` passes 1e18) rests without end (``sys.maxsize``).
+    small that ``K/χ²`` passes 1e18) rests without end (``sys.maxsize``). ``dof`` must be finite
+    and ≥ 0 (a NaN would read as a rest without end).
     """
+    if not (dof >= 0 and math.isfinite(dof)):
+        raise ValueError(f"rest_iterations: `dof` must be a finite number >= 0, got {dof!r}")
     if not (chi2 >= 0 and math.isfinite(chi2)):
         return 0
     if chi2 == 0 or not dof / chi2 < 1e18:
