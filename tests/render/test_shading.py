@@ -486,6 +486,15 @@ def test_vmap_over_the_gbuffer_or_a_light_is_refused_naming_it():
     assert jac.shape == (1, 3, 4, 4, 1, 1, 4, 4) and bool(jac.abs().sum() > 0)
 
 
+@pytest.mark.parametrize("inner", [torch.func.grad, torch.func.jacrev, torch.func.jacfwd])
+def test_vmap_below_another_transform_is_refused_naming_it(inner):
+    """Per-sample derivatives, vmap over grad / jacrev / jacfwd: the batched light is found under
+    the inner transform's wrapper (a shape error from deep inside the shader otherwise)."""
+    g = sphere_gbuffer(4, 4)
+    with pytest.raises(ValueError, match=r"lights\[0\]\.position is batched by torch\.func\.vmap"):
+        torch.func.vmap(inner(lambda q: shade(g, [PointLight(q, [20.0, 20.0, 20.0])]).sum()))(torch.rand(2, 3) + 3)
+
+
 @pytest.mark.parametrize("name, value", [("roughness", 0.4), ("metallic", 0.0)], ids=["uniform", "zeros"])
 def test_forward_mode_through_a_uniform_or_zero_map_keeps_its_tangent(name, value):
     """A map with a forward-mode tangent does not require grad; pruning it to a Python float

@@ -186,8 +186,17 @@ def _is_count(value: object, minimum: int = 1) -> bool:
 def _refuse_vmap(gbuf: GBuffer, lights: list[Light]) -> None:
     """Refuse a g-buffer or light batched by ``torch.func.vmap``: the shader selects pixels and
     prunes the material by their values, which vmap cannot carry (its own error names ``.item()``).
-    ``jacfwd`` (a vmap over the tangents only) passes."""
-    from torch._C._functorch import is_batchedtensor
+    ``jacfwd`` (a vmap over the tangents only) passes. A vmap below another transform
+    (``vmap(grad(f))``, per-sample gradients) is found under that transform's wrapper."""
+    from torch._C._functorch import get_unwrapped, is_batchedtensor, is_functorch_wrapped_tensor
+
+    def batched(t: Tensor) -> bool:
+        while not is_batchedtensor(t):
+            # (Dynamo cannot trace the unwrapping; compiled, the outer wrapper alone is looked at.)
+            if torch.compiler.is_compiling() or not is_functorch_wrapped_tensor(t):
+                return False
+            t = get_unwrapped(t)
+        return True
 
     tensors = [("gbuf.position", gbuf.position), ("gbuf.normal", gbuf.normal),
                ("gbuf.camera_position", gbuf.camera_position), ("gbuf.tangent", gbuf.tangent),
@@ -195,7 +204,7 @@ def _refuse_vmap(gbuf: GBuffer, lights: list[Light]) -> None:
     for i, light in enumerate(lights):
         tensors += [(f"lights[{i}].{k}", t) for k, t in (*light.named_parameters(), *light.named_buffers())]
     for name, t in tensors:
-        if isinstance(t, Tensor) and is_batchedtensor(t):
+        if isinstance(t, Tensor) and batched(t):
             raise ValueError(
                 f"shade: {name} is batched by torch.func.vmap, which shade does not support (it selects "
                 "pixels by their values); stack the images along the g-buffer's batch dimension B instead"
