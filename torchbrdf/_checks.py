@@ -7,7 +7,8 @@ With validation off nothing reads the data: what a non-finite input gives then i
 in ``docs/numerics.md`` ("Non-finite inputs").
 
 Messages show a short excerpt of a bad value (:func:`excerpt`), never a whole list or array.
-:func:`active_transforms` tells dispatch which ``torch.func`` transforms wrap a call, and
+:func:`active_transforms` and :func:`forward_mode_active` tell dispatch which ``torch.func``
+transforms (or forward-mode AD) wrap a call, and
 :func:`constant_while_tracing` marks a function Dynamo should run once rather than trace.
 """
 
@@ -158,6 +159,24 @@ def active_transforms() -> list[tuple[str, int]]:
     size = interpreter.batch_size() if isinstance(interpreter, VmapInterpreter) else 1
     with interpreter.lower():  # the transforms below this one
         return [(interpreter.key().name, size)] + active_transforms()
+
+
+def forward_mode_active() -> bool:
+    """Whether forward-mode AD is active: a ``torch.autograd.forward_ad`` dual level, or a
+    ``torch.func`` forward transform (``jvp``, ``jacfwd``) at any depth of the transform stack.
+    Traceable by Dynamo without a graph break."""
+    from torch._C._functorch import TransformType, peek_interpreter_stack
+    from torch._functorch.pyfunctorch import coerce_cinterpreter
+
+    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0:
+        return True
+    if not torch._C._are_functorch_transforms_active():
+        return False
+    interpreter = coerce_cinterpreter(peek_interpreter_stack())
+    if interpreter.key() == TransformType.Jvp:
+        return True
+    with interpreter.lower():  # the transforms below this one
+        return forward_mode_active()
 
 
 def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:

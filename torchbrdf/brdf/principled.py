@@ -246,7 +246,7 @@ def fused_backend(device: torch.device, dtype: torch.dtype, tensors: list[Tensor
         # The traced operator has a backward rule but no forward-mode one (custom ops cannot
         # carry one): under forward mode the compiled graph would get a zero tangent, so it
         # traces the eager formula instead.
-        if _in_forward_mode():
+        if _checks.forward_mode_active():
             return None
         return backend
     if torch.jit.is_tracing() or torch.jit.is_scripting():
@@ -268,24 +268,6 @@ def _resolve_backend(device_type: str) -> str:
     from torchbrdf.kernels import backend as _backend
 
     return _backend.resolve(torch.device(device_type))
-
-
-def _in_forward_mode() -> bool:
-    """Whether forward-mode AD is active: a ``torch.autograd.forward_ad`` dual level, or a
-    ``torch.func`` forward transform (``jvp``, ``jacfwd``) at any depth of the transform stack.
-    Traceable by Dynamo without a graph break."""
-    from torch._C._functorch import TransformType, peek_interpreter_stack
-    from torch._functorch.pyfunctorch import coerce_cinterpreter
-
-    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0:
-        return True
-    if not torch._C._are_functorch_transforms_active():
-        return False
-    interpreter = coerce_cinterpreter(peek_interpreter_stack())
-    if interpreter.key() == TransformType.Jvp:
-        return True
-    with interpreter.lower():  # the transforms below this one
-        return _in_forward_mode()
 
 
 def vmap_batch_size() -> int:

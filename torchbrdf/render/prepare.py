@@ -29,7 +29,7 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from torchbrdf._checks import (active_transforms, check_finite, check_nonnegative, constant_while_tracing,
+from torchbrdf._checks import (check_finite, check_nonnegative, constant_while_tracing, forward_mode_active,
                                validation_enabled)
 from torchbrdf._math import is_zero
 from torchbrdf._types import BRDF
@@ -385,19 +385,12 @@ class MaterialUse:
     need_frame: bool  # tangent frames: anisotropic is not a Python 0
 
 
-def _forward_mode() -> bool:
-    """Whether forward-mode AD is active: a ``forward_ad`` dual level or a ``torch.func`` jvp."""
-    if getattr(torch.autograd.forward_ad, "_current_level", -1) >= 0:
-        return True
-    return any(kind == "Jvp" for kind, _ in active_transforms())
-
-
 def _reduce_material(material: Mapping[str, Any], prune: bool, cd: torch.dtype, device: torch.device):
     values, reduction = {}, {}
     compiling = torch.compiler.is_compiling()
     # A map carrying a forward-mode tangent does not require grad: kept as a map, else its
     # tangent would be dropped with it (jvp / jacfwd of a uniform map would read 0).
-    prune = prune and not _forward_mode()
+    prune = prune and not forward_mode_active()
     for name, v in material.items():
         if isinstance(v, numbers.Real):
             # Compiled: a 0-d tensor (torch.full keeps the value symbolic, where as_tensor would
