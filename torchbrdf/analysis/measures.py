@@ -88,7 +88,7 @@ ALPHA_FLOOR = 1e-3
 
 
 class Estimate(NamedTuple):
-    """A numerical estimate and its error estimate (same shape)."""
+    """A numerical estimate and its error estimate: two tensors of one shape (``(T, 3)`` for a curve)."""
 
     value: Tensor
     error: Tensor

@@ -442,7 +442,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="folder for benchmarks.md/.json and the plots (default bench_out/; 'docs' updates the committed report)")
     ap.add_argument("--sizes", type=int, nargs="*", help="log2 of the batch sizes (default 12 14 16 18 20 22)")
     ap.add_argument("--dtypes", nargs="*", choices=list(DTYPES), help="default: all four")
-    ap.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (best is kept)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (their median is reported)")
     ap.add_argument("--eager-max", type=int, default=20, help="log2 of the largest N for the eager path (default 20)")
     ap.add_argument("--head", type=int, default=22, help="log2 of N for the headline/peak-memory runs (default 22)")
     ap.add_argument("--no-mitsuba", action="store_true", help="skip the Mitsuba 3 comparison even if installed")

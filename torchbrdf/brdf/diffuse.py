@@ -28,7 +28,7 @@ def diffuse_lambert(base_color: Tensor) -> Tensor: ...
 def diffuse_lambert(base_color: float) -> float: ...
 @half_safe
 def diffuse_lambert(base_color: Color) -> Color:
-    """Lambert: ``base_color / π``."""
+    """Lambert: ``base_color / π``; ``(*, 3)`` (or a float) in, the same shape out."""
     return base_color * INV_PI
 
 
@@ -56,7 +56,11 @@ def subsurface_factor(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, roughne
 def diffuse_burley(
     n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor, base_color: Color, roughness: Scalar
 ) -> Tensor:
-    """Burley's retro-reflective diffuse: ``base_color / π · Fd`` (see :func:`burley_retro_factor`)."""
+    """Burley's retro-reflective diffuse: ``base_color / π · Fd`` (see :func:`burley_retro_factor`).
+
+    Cosines ``(*, 1)``, ``base_color`` ``(*, 3)`` or a float, ``roughness`` ``(*, 1)`` or a float;
+    returns ``(*, 3)`` (``(*, 1)`` for a float ``base_color``).
+    """
     return base_color * INV_PI * burley_retro_factor(n_dot_l, n_dot_v, l_dot_h, roughness)
 
 

@@ -170,7 +170,11 @@ def ndf_gtr(n_dot_h: Tensor, alpha: Scalar, gamma: Scalar, sin2_h: Tensor | None
 
 @half_safe
 def ndf_gtr1(n_dot_h: Tensor, alpha: Scalar, sin2_h: Tensor | None = None) -> Tensor:
-    """GTR with γ = 1 (Burley eq. 4, the clearcoat lobe): ``(α²-1) / (π ln α² (α² cos² + sin²))``."""
+    """GTR with γ = 1 (Burley eq. 4, the clearcoat lobe): ``(α²-1) / (π ln α² (α² cos² + sin²))``.
+
+    ``n_dot_h`` ``(*, 1)``, ``alpha`` a float or ``(*, 1)``, ``sin2_h`` optional ``|n × h|²``
+    ``(*, 1)``; returns the ``(*, 1)`` density.
+    """
     ops = formula.TorchOps(n_dot_h.dtype, n_dot_h.device)
     return formula.ndf_gtr1(ops, n_dot_h, alpha, _sin2(n_dot_h, sin2_h))
 
@@ -198,7 +202,11 @@ def ndf_beckmann(n_dot_h: Tensor, alpha: Scalar, sin2_h: Tensor | None = None) -
 def ndf_beckmann_aniso(
     h_dot_x: Tensor, h_dot_y: Tensor, n_dot_h: Tensor, alpha_x: Scalar, alpha_y: Scalar
 ) -> Tensor:
-    """Anisotropic Beckmann: ``exp(-((h·x/αx)² + (h·y/αy)²) / (h·n)²) / (π αx αy (h·n)⁴)``."""
+    """Anisotropic Beckmann: ``exp(-((h·x/αx)² + (h·y/αy)²) / (h·n)²) / (π αx αy (h·n)⁴)``.
+
+    Cosines ``(*, 1)``, ``alpha_x``/``alpha_y`` floats or ``(*, 1)``; returns the ``(*, 1)``
+    density, 0 for ``n_dot_h <= 0``.
+    """
     c = torch.clamp(n_dot_h, min=1e-6)
     c2 = c * c
     tx = h_dot_x / alpha_x

@@ -59,7 +59,10 @@ def smith_g1_ggx(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
 
 @half_safe
 def smith_lambda_ggx(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
-    """Smith Λ for GGX, ``(sqrt(1 + α² tan²θ) - 1) / 2``; large but finite at grazing."""
+    """Smith Λ for GGX, ``(sqrt(1 + α² tan²θ) - 1) / 2``; large but finite at grazing.
+
+    ``n_dot_w`` ``(*, 1)``, ``alpha`` a float or ``(*, 1)``; returns ``(*, 1)``.
+    """
     c = torch.clamp(n_dot_w, min=1e-7)  # Λ → ∞ at the horizon; G built from it → 0
     return 0.5 * (safe_sqrt(c * c + _tangent_alpha2(c, alpha)) / c - 1.0)
 
@@ -101,13 +104,16 @@ def smith_g1_beckmann_walter(n_dot_w: Tensor, alpha: Scalar) -> Tensor:
 
 @half_safe
 def smith_g2_separable(g1_l: Tensor, g1_v: Tensor) -> Tensor:
-    """Separable masking–shadowing ``G1(l) G1(v)``."""
+    """Separable masking–shadowing ``G1(l) G1(v)``: ``(*, 1)`` each, returns ``(*, 1)``."""
     return g1_l * g1_v
 
 
 @half_safe
 def smith_g2_height_correlated(lambda_l: Tensor, lambda_v: Tensor) -> Tensor:
-    """Height-correlated masking–shadowing ``1 / (1 + Λ(l) + Λ(v))`` (Heitz 2014)."""
+    """Height-correlated masking–shadowing ``1 / (1 + Λ(l) + Λ(v))`` (Heitz 2014).
+
+    ``lambda_l``, ``lambda_v`` ``(*, 1)``; returns ``(*, 1)``.
+    """
     return 1.0 / (1.0 + lambda_l + lambda_v)
 
 
@@ -116,6 +122,7 @@ def smith_g2_ggx_correlated(n_dot_l: Tensor, n_dot_v: Tensor, tan_a2_l: Tensor, 
     """Height-correlated GGX G2 without Λ's division: ``2 NL NV / (NV s_l + NL s_v)``.
 
     ``s_w = sqrt(cos²θ_w + tangent_alpha2_w)``; stays finite and tends to 0 at the horizon.
+    All arguments ``(*, 1)``; returns ``(*, 1)``.
     """
     nl = torch.clamp(n_dot_l, min=0.0)
     nv = torch.clamp(n_dot_v, min=0.0)
@@ -135,7 +142,10 @@ def g_cook_torrance(n_dot_l: Tensor, n_dot_v: Tensor, n_dot_h: Tensor, v_dot_h: 
 
 @half_safe
 def g_kelemen(n_dot_l: Tensor, n_dot_v: Tensor, l_dot_h: Tensor) -> Tensor:
-    """Kelemen's approximation, Hoffman eq. 31: ``G = NL NV / (l·h)²``."""
+    """Kelemen's approximation, Hoffman eq. 31: ``G = NL NV / (l·h)²``.
+
+    Cosines ``(*, 1)``; returns ``(*, 1)``.
+    """
     lh = torch.clamp(l_dot_h, min=1e-4)  # l·h >= cos(90°/2) ≈ 0.707 whenever NL, NV > 0
     return torch.clamp(n_dot_l, min=0.0) * torch.clamp(n_dot_v, min=0.0) / (lh * lh)
 

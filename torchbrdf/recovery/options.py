@@ -83,9 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prior-nonlocal-base", type=float, default=d.prior_nonlocal_base,
                    help="precision of the final non-local fusion of a metal's base colour (0: off)")
     p.add_argument("--prior", metavar="PATH|default",
-                   help="start from a learned estimator's maps and keep a pull toward them where the images "
-                        "are silent: a weights file (python -m training.train_estimator) or 'default', the "
-                        "shipped one (default: no learned prior)")
+                   help="a learned estimator as evidence: its metallic weighs the metal/dielectric choice, "
+                        "and once each pixel's class is chosen its maps pull where the images are silent (the "
+                        "fit starts as without it); a weights file (python -m training.train_estimator) or "
+                        "'default', the shipped one (default: no learned prior)")
     p.add_argument("--no-soft-metal", action="store_true",
                    help="no final continuous-metallic step: every pixel's metallic is exactly 0 or 1")
     p.add_argument("--no-light-calibration", action="store_true",

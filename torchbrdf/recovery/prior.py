@@ -566,7 +566,7 @@ def class_costs_with_prior(dielectric_cost: Tensor, metal_cost: Tensor, prior_co
 
 
 class LearnedPrior:
-    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a unary prior (and a start, :meth:`start`).
+    """A :class:`Prior`'s maps for one capture, as the recovery uses them: a unary prior and class odds.
 
     Args:
         maps: the network's maps at the working size, ``(C, S, S)`` each (:func:`prior_maps_at`).

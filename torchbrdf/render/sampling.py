@@ -303,7 +303,10 @@ def reflect(v: Tensor, h: Tensor) -> Tensor:
 
 
 def pdf_half_to_reflection(pdf_h: Tensor, l_dot_h: Tensor) -> Tensor:
-    """Half-vector density to reflected-direction density: ``pdf_h / (4 |l·h|)`` (Burley 2012 B.1)."""
+    """Half-vector density to reflected-direction density: ``pdf_h / (4 |l·h|)`` (Burley 2012 B.1).
+
+    ``pdf_h`` and ``l_dot_h`` broadcast together (``(*, 1)``); 0 where ``l·h = 0``.
+    """
     lh = l_dot_h.abs()
     return torch.where(lh > 0, pdf_h / (4.0 * torch.clamp(lh, min=1e-30)), torch.zeros_like(pdf_h))
 
