@@ -60,6 +60,7 @@ from torchbrdf.brdf.microfacet import microfacet
 from torchbrdf.capture import synthetic
 from torchbrdf.capture.families import FAMILIES, make_family_material
 from torchbrdf.capture.format import write_capture
+from torchbrdf.recovery.engine import psnr
 
 __all__ = [
     "FORWARD_MODELS", "LAYOUTS", "SPLITS", "TUNING_SEEDS", "REPORT_SEEDS", "TOLERANCES", "METRICS",
@@ -237,12 +238,6 @@ def render_case(case: PanelCase, folder: str | os.PathLike, size: int = 128,
     return maps, (pos, inten)
 
 
-def _psnr(pred: Tensor, ref: Tensor) -> float:
-    """PSNR (dB) of a linear image, peak = the reference's maximum."""
-    mse = float(((pred - ref) ** 2).mean())
-    return float("inf") if mse == 0 else 10 * math.log10(float(ref.max()) ** 2 / mse)
-
-
 def score_maps(pred: Mapping[str, Tensor], truth: Mapping[str, Tensor], model: str, seed: int = 0) -> dict:
     """Score recovered maps against the truth: the metrics of :data:`TOLERANCES` (no time).
 
@@ -263,7 +258,7 @@ def score_maps(pred: Mapping[str, Tensor], truth: Mapping[str, Tensor], model: s
     with torch.no_grad():
         ref = synthetic.render_capture(truth, lights, brdf=_brdf(model))
         est = synthetic.render_capture({k: v.float() for k, v in pred.items()}, lights)
-    per = [_psnr(est[i], ref[i]) for i in range(ref.shape[0])]
+    per = [psnr(est[i], ref[i]) for i in range(ref.shape[0])]
     out["heldout_mean_db"] = sum(per) / len(per)
     out["heldout_worst_db"] = min(per)
     return out

@@ -802,7 +802,8 @@ class Recovery:
 
 
 def psnr(pred: Tensor, ref: Tensor) -> float:
-    """PSNR in dB of linear images, peak = the reference's maximum."""
+    """PSNR in dB of linear images ``pred`` and ``ref`` (any one shape, e.g. ``(L, 3, H, W)``),
+    peak = the reference's maximum; +inf where they are equal."""
     mse = float(((pred - ref) ** 2).mean())
     peak = float(ref.max())
     return float("inf") if mse == 0 else 10 * math.log10(peak * peak / mse)

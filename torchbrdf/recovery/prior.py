@@ -584,11 +584,6 @@ class LearnedPrior:
             self._levels[size] = prior_maps_at({k: v[None] for k, v in self.maps.items()}, size)
         return self._levels[size]
 
-    def start(self, size: int) -> Tensor:
-        """The unknowns ``(size², 7)`` of the network's maps at ``size`` (:func:`~torchbrdf.recovery.params.encode`)."""
-        m = self.at(size)
-        return encode({k: _flat(m[k]) for k in ("base_color", "specular", "roughness", "normal")})
-
     def metallic(self, size: int) -> Tensor:
         """The network's metallic ``(size², 1)`` at ``size``."""
         return _flat(self.at(size)["metallic"])
