@@ -27,6 +27,7 @@ def test_measurement_and_report_run_on_any_device():
     assert srow["backend"] == "eager" and srow["lights"] == 2 and srow["fwdbwd_s"] > 0
     text = cuda_bench.report(res)
     assert "| 2^10 | eager |" in text and "| 16² | 2 | eager |" in text and "n/a" in text
+    assert text.splitlines()[0].endswith(f"; {res['date']}") and len(res["date"]) == 10  # the run's day
 
 
 def test_triton_path_of_the_benchmark_under_the_interpreter(monkeypatch):

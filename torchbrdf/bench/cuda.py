@@ -24,6 +24,7 @@ configurations are reported as such, not skipped silently.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import math
 import os
@@ -285,7 +286,8 @@ def _rate(r, key) -> str:
 
 def report(res: dict) -> str:
     """Markdown tables of a :func:`run` result."""
-    lines = [f"GPU: {res['gpu']}; torch {res['torch']}; triton {res['triton']}; Mitsuba {res['mitsuba']}", "",
+    lines = [f"GPU: {res['gpu']}; torch {res['torch']}; triton {res['triton']}; Mitsuba {res['mitsuba']}"
+             + (f"; {res['date']}" if res.get("date") else ""), "",
              "### principled, float32, every parameter per lane", "",
              "| N | path | forward (eval/s) | forward+backward (eval/s) | peak GPU memory | above inputs |",
              "|---|---|---|---|---|---|"]
@@ -343,6 +345,7 @@ def run(device: torch.device | str | int = "cuda", sizes: Iterable[int] = SIZES,
 
     res = dict(gpu=torch.cuda.get_device_name(device) if device.type == "cuda" else str(device),
                torch=torch.__version__, triton=tver,
+               date=datetime.datetime.now(datetime.timezone.utc).date().isoformat(),
                mitsuba=mitsuba_available("cuda_ad_rgb") if "mitsuba" in paths else None,
                config=dict(sizes=list(sizes), paths=list(paths), repeats=repeats, shade_size=shade_size,
                            lights=lights))

@@ -4,6 +4,7 @@ torchbrdf.bench`` (:func:`torchbrdf.bench.brdf.main`)."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import os
@@ -23,7 +24,7 @@ from torchbrdf.bench.timing import Spread, format_or_dash, spread_text
 
 
 def machine_description() -> dict:
-    """The machine the benchmark ran on: CPU, cores, load, torch and Python versions."""
+    """The machine the benchmark ran on: CPU, cores, load, torch and Python versions, and the date (UTC)."""
     cpu = platform.processor() or "unknown"
     try:
         with open("/proc/cpuinfo") as fh:
@@ -38,7 +39,8 @@ def machine_description() -> dict:
     except (OSError, IndexError):
         gcc = "none"
     return dict(cpu=cpu, cores=os.cpu_count(), torch_threads=torch.get_num_threads(), torch=torch.__version__,
-                python=platform.python_version(), gcc=gcc, load_start=os.getloadavg())
+                python=platform.python_version(), gcc=gcc, load_start=os.getloadavg(),
+                date=datetime.datetime.now(datetime.timezone.utc).date().isoformat())
 
 
 def _rate_cell(row: dict | None, kind: str) -> str:
@@ -62,6 +64,7 @@ def write_report(res: dict, out_dir: str, argv: Sequence[str]) -> None:
          "```bash", "python -m torchbrdf.bench " + " ".join(argv), "```", "",
          f"Machine: {m['cpu']}, {m['cores']} cores ({m['torch_threads']} torch threads), torch {m['torch']}, "
          f"Python {m['python']}, {m['gcc']}" + (f", Mitsuba {res['mitsuba_version']}" if res.get("mitsuba_version") else "")
+         + (f", {m['date']}" if m.get("date") else "")
          + f". Load average (1/5/15 min) at start {tuple(round(x, 2) for x in m['load_start'])}, at end "
          f"{tuple(round(x, 2) for x in m['load_end'])} — the machine is shared, so absolute numbers move with the "
          "load; the side-by-side columns were measured in the same run (the head-to-head alternates blocks "
