@@ -62,7 +62,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m torchbrdf", description=__doc__.replace("``", ""))
     parser.add_argument("--out", default="out", help="output folder (default: out)")
     args = parser.parse_args(argv)
-    os.makedirs(args.out, exist_ok=True)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        parser.error(f"--out {args.out}: exists and is not a folder")
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as e:
+        parser.error(f"--out {args.out}: cannot create the folder ({e.strerror or e})")
 
     res = 128
     img = sphere_grid(res)
