@@ -153,6 +153,17 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
         raise
 
 
+def file_in_the_way(folder: PathLike) -> Path | None:
+    """The file that stops ``folder`` from being created or used as a folder, if any.
+
+    That is ``folder`` itself, or the nearest of its parents that exists, when it is not a
+    folder (mkdir's own error names neither); None when nothing is in the way.
+    """
+    folder = Path(os.path.abspath(folder))
+    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
+    return existing if existing is not None and not existing.is_dir() else None
+
+
 def check_readable_file(path: Path, what: str) -> None:
     """Raise a message that says what is wrong with an input file path.
 

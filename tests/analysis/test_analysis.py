@@ -256,7 +256,7 @@ def test_explore_refuses_an_out_that_is_a_file(tmp_path, capsys):
     (tmp_path / "report").write_text("mine")
     with pytest.raises(SystemExit) as e:
         explore.main(["--out", str(tmp_path / "report"), "--quick", "--brdf", "lambert"])
-    assert e.value.code == 2 and "exists and is not a folder" in capsys.readouterr().err
+    assert e.value.code == 2 and "is a file, not a folder" in capsys.readouterr().err
     assert (tmp_path / "report").read_text() == "mine"
 
 

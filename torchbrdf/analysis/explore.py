@@ -44,6 +44,7 @@ import torch
 from torchbrdf._types import BRDF
 from torchbrdf.analysis import measures as A
 from torchbrdf.analysis import plots as P
+from torchbrdf.io import file_in_the_way
 
 __all__ = ["BRDFSpec", "parse_spec", "parameter_names", "write_report", "main", "DEFAULT_SPECS"]
 
@@ -398,8 +399,8 @@ def main(argv: list[str] | None = None) -> int:
             spec.brdf()(unit, unit, unit)
         except (OSError, ValueError, TypeError, KeyError, RuntimeError) as e:
             ap.error(f"--brdf {text!r}: {e}")
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        ap.error(f"--out {args.out}: exists and is not a folder")
+    if (blocked := file_in_the_way(args.out)) is not None:
+        ap.error(f"--out {args.out}: {blocked} is a file, not a folder")
     try:
         Path(args.out).mkdir(parents=True, exist_ok=True)
     except OSError as e:

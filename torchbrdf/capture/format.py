@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._checks import excerpt
-from torchbrdf.io import atomic_path, read_exr, write_exr
+from torchbrdf.io import atomic_path, file_in_the_way, read_exr, write_exr
 
 __all__ = ["CAPTURE_JSON", "Capture", "check_capture", "check_capture_destination", "default_file_names",
            "image_path", "load_capture", "pixel_points", "write_capture", "MAX_RADIANCE", "MAX_COORDINATE"]
@@ -645,9 +645,8 @@ def check_capture_destination(folder: str | os.PathLike, files: Sequence[str], o
 def _refuse_a_file_in_the_way(folder: Path) -> None:
     """``folder``, or the nearest of its parents that exists, must be a folder (mkdir's own error
     names neither)."""
-    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
-    if existing is not None and not existing.is_dir():
-        raise ValueError(f"write_capture: {existing} is a file, not a folder; cannot write a capture in {folder}")
+    if (blocked := file_in_the_way(folder)) is not None:
+        raise ValueError(f"write_capture: {blocked} is a file, not a folder; cannot write a capture in {folder}")
 
 
 def _image_stack(images: Tensor | Sequence) -> Tensor:
