@@ -124,6 +124,7 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
 
     Raises:
         FileNotFoundError: if the destination folder does not exist.
+        IsADirectoryError: if ``path`` is a folder.
 
     Example:
         >>> import json, tempfile, os
@@ -137,6 +138,8 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"cannot write '{path}': folder '{folder}' does not exist")
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot write '{path}': it is a folder; name a file inside it")
     fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
     os.close(fd)
     tmp = Path(tmp_name)
