@@ -171,3 +171,18 @@ def test_ring_lights_are_the_capture_layout_in_a_random_order():
     assert len(orders) > 1  # the order changes from sample to sample
     random_ds = MaterialDataset(length=1, size=8, seed=5, extra_lights=3)
     assert not torch.allclose(random_ds[0]["light_positions"][1:].sort(0).values, ring.sort(0).values)
+
+
+@pytest.mark.parametrize("kwargs, named", [
+    ({"size": 16.5}, "size must be an integer, got 16.5"),
+    ({"size": "64"}, "size must be an integer, got '64'"),
+    ({"seed": "a"}, "seed must be an integer, got 'a'"),
+    ({"length": 2.0}, "length must be an integer, got 2.0"),
+    ({"extra_lights": 1.5}, "extra_lights must be an integer, got 1.5"),
+])
+def test_a_count_or_seed_that_is_not_an_integer_is_refused_by_name(kwargs, named):
+    # size=16.5 was truncated to 16 silently, size='64' and seed='a' were a bare TypeError/ValueError
+    with pytest.raises(TypeError, match="MaterialDataset: " + named):
+        MaterialDataset(**{"length": 2, "size": 8, **kwargs})
+    with pytest.raises(TypeError, match="MaterialStream: " + named):
+        MaterialStream(**{"size": 8, **kwargs})

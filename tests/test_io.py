@@ -253,3 +253,14 @@ def test_read_exr_on_a_directory_or_missing_path_says_which(tmp_path):
     dangling.symlink_to(tmp_path / "gone.exr")
     with pytest.raises(FileNotFoundError, match=r"dangling\.exr' not found"):
         read_exr(dangling)
+
+
+def test_a_destination_that_is_a_folder_is_named_before_any_temporary_file(tmp_path):
+    # writing to a folder's path made a temporary file beside it, then failed in os.replace
+    # with the temporary name in the message
+    (tmp_path / "maps").mkdir()
+    with pytest.raises(IsADirectoryError, match=f"cannot write '{tmp_path / 'maps'}': it is a folder"):
+        write_png(tmp_path / "maps", torch.ones(3, 4, 4))
+    with pytest.raises(IsADirectoryError, match="it is a folder"):
+        write_exr(tmp_path / "maps", torch.ones(3, 4, 4))
+    assert [p.name for p in tmp_path.iterdir()] == ["maps"]

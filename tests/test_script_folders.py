@@ -50,7 +50,7 @@ def test_training_runs_as_a_namespace_folder():
 
 
 
-@pytest.mark.parametrize("args, words", [(["--size", "0"], "size must be >= 4, got 0"),
+@pytest.mark.parametrize("args, words", [(["--size", "0"], "generate_capture: size must be an integer >= 4, got 0"),
                                          (["--noise", "-0.5"], "add_noise: level")])
 def test_generate_refuses_a_bad_option_in_one_line(tmp_path, args, words):
     # a bad --size ended in a ValueError traceback; now argparse's one-line error, exit status 2

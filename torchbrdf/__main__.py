@@ -7,6 +7,8 @@ import os
 
 import torch
 
+from torchbrdf.io import file_in_the_way
+
 
 BACKGROUND = 0.18  # linear mid grey behind the spheres: dark sides and smooth metals stand out from it
 
@@ -62,7 +64,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m torchbrdf", description=__doc__.replace("``", ""))
     parser.add_argument("--out", default="out", help="output folder (default: out)")
     args = parser.parse_args(argv)
-    os.makedirs(args.out, exist_ok=True)
+    if (blocked := file_in_the_way(args.out)) is not None:
+        parser.error(f"--out {args.out}: {blocked} is a file, not a folder")
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as e:
+        parser.error(f"--out {args.out}: cannot create the folder ({e.strerror or e})")
 
     res = 128
     img = sphere_grid(res)

@@ -44,10 +44,21 @@ def constant_while_tracing(fn: _F) -> _F:
 _T = TypeVar("_T")
 
 
+def _switch(enabled: object) -> bool:
+    """``enabled`` as a bool; a string or None is refused (``bool("no")`` is True)."""
+    if enabled not in (True, False):
+        raise ValueError(f"set_validation: enabled must be True or False, got {enabled!r}")
+    return bool(enabled)
+
+
 def set_validation(enabled: bool) -> None:
-    """Turn value checks (NaN/inf in inputs, negative intensities) on or off globally."""
+    """Turn value checks (NaN/inf in inputs, negative intensities) on or off globally.
+
+    Raises:
+        ValueError: ``enabled`` is not True or False.
+    """
     global _VALIDATE
-    _VALIDATE = bool(enabled)
+    _VALIDATE = _switch(enabled)
 
 
 def validation_enabled() -> bool:
@@ -59,8 +70,8 @@ def validation_enabled() -> bool:
 def validation(enabled: bool = True) -> Iterator[None]:
     """Context manager form of :func:`set_validation`."""
     global _VALIDATE
-    old = _VALIDATE
-    _VALIDATE = bool(enabled)
+    old, new = _VALIDATE, _switch(enabled)
+    _VALIDATE = new
     try:
         yield
     finally:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import numbers
 from collections.abc import Iterator, Sequence
 from typing import Any, Protocol
 
@@ -169,6 +170,13 @@ def _range(name: str, value: float | tuple[float, float]) -> tuple[float, float]
     return float(lo), float(hi)
 
 
+def _check_integers(owner: str, **values: Any) -> None:
+    """Refuse a count or seed that is not an integer, naming it (``int()`` would truncate 16.5)."""
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{owner}: {name} must be an integer, got {value!r}")
+
+
 class MaterialDataset(Dataset):
     """Map-style dataset of procedural materials with their renderings (see the module docstring).
 
@@ -210,6 +218,8 @@ class MaterialDataset(Dataset):
         gamma: float | None = None,
         device: torch.device | str | None = None,
     ) -> None:
+        _check_integers("MaterialDataset", length=length, size=size, seed=seed, variants=variants,
+                        extra_lights=extra_lights)
         if length < 1 or size < 4:
             raise ValueError(f"MaterialDataset: need length >= 1 and size >= 4, got length={length}, size={size}")
         if not 1 <= variants <= SYMMETRIES:
@@ -293,6 +303,8 @@ class MaterialStream(IterableDataset):
 
     def __init__(self, length: int | None = None, start: int = 0, **kwargs: Any) -> None:
         # Any: MaterialDataset's keyword options, passed through
+        counts = {k: kwargs[k] for k in ("size", "seed", "variants", "extra_lights") if k in kwargs}
+        _check_integers("MaterialStream", **({} if length is None else {"length": length}), start=start, **counts)
         if length is not None and length < 1:
             raise ValueError(f"MaterialStream: length must be >= 1 or None, got {length}")
         self.length, self.start = length, int(start)

@@ -124,6 +124,7 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
 
     Raises:
         FileNotFoundError: if the destination folder does not exist.
+        IsADirectoryError: if ``path`` is a folder.
 
     Example:
         >>> import json, tempfile, os
@@ -137,6 +138,8 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"cannot write '{path}': folder '{folder}' does not exist")
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot write '{path}': it is a folder; name a file inside it")
     fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
     os.close(fd)
     tmp = Path(tmp_name)
@@ -151,6 +154,17 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+
+
+def file_in_the_way(folder: PathLike) -> Path | None:
+    """The file that stops ``folder`` from being created or used as a folder, if any.
+
+    That is ``folder`` itself, or the nearest of its parents that exists, when it is not a
+    folder (mkdir's own error names neither); None when nothing is in the way.
+    """
+    folder = Path(os.path.abspath(folder))
+    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
+    return existing if existing is not None and not existing.is_dir() else None
 
 
 def check_readable_file(path: Path, what: str) -> None:

@@ -2,6 +2,8 @@
 
 import math
 
+import re
+
 import pytest
 import torch
 
@@ -227,6 +229,35 @@ def test_explore_refuses_a_parameter_the_model_does_not_take(capsys):
         explore.main(["--help"])
     shown = capsys.readouterr().out  # the spec syntax and each model's keys are in --help
     assert "r/g/b" in shown and "microfacet: alpha," in shown and "lambert: base_color;" in shown
+
+
+@pytest.mark.parametrize("spec, named", [
+    ("merl:missing.binary", r"--brdf 'merl:missing.binary': MERL file 'missing.binary' not found"),
+    ("fit:missing.json", r"--brdf 'fit:missing.json': .*missing.json"),
+    ("fit:{tmp}/other.json", r"--brdf 'fit:.*other.json': .*other.json.* 'params'"),
+    ("principled:roughness=rough", r"--brdf 'principled:roughness=rough': roughness: expected a torch.Tensor or float"),
+])
+def test_explore_refuses_a_spec_that_does_not_load_before_writing(tmp_path, monkeypatch, capsys, spec, named):
+    """A missing MERL or params file, or a value the model refuses, is one line naming the spec, with
+    the output folder untouched (it was a traceback after --out was created)."""
+    from torchbrdf.analysis import explore
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "other.json").write_text('{"loss": 1}')
+    with pytest.raises(SystemExit) as e:
+        explore.main(["--out", "report", "--quick", "--brdf", spec.format(tmp=tmp_path)])
+    assert e.value.code == 2 and re.search(named, capsys.readouterr().err)
+    assert not (tmp_path / "report").exists()
+
+
+def test_explore_refuses_an_out_that_is_a_file(tmp_path, capsys):
+    from torchbrdf.analysis import explore
+
+    (tmp_path / "report").write_text("mine")
+    with pytest.raises(SystemExit) as e:
+        explore.main(["--out", str(tmp_path / "report"), "--quick", "--brdf", "lambert"])
+    assert e.value.code == 2 and "is a file, not a folder" in capsys.readouterr().err
+    assert (tmp_path / "report").read_text() == "mine"
 
 
 def test_explore_lobes_key_selects_principled_lobes():

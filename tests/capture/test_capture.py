@@ -9,6 +9,7 @@ import torch
 
 from torchbrdf.capture import CAPTURE_JSON, Capture, load_capture, pixel_points, write_capture
 from torchbrdf.capture.format import check_capture
+from torchbrdf.capture.synthetic import generate_capture
 from torchbrdf.io import write_exr
 
 H, W, L = 6, 8, 3
@@ -484,6 +485,20 @@ def test_check_capture_warns_about_too_few_lights_and_a_degenerate_layout():
     good = Capture(images[[0] * n], spread, torch.ones(n, 3), torch.tensor([0.0, 0.0, 3.0]), W, H,
                    tuple(str(k) for k in range(n)))
     assert check_capture(good) == []
+
+
+@pytest.mark.parametrize("inside", ["", "sub"])
+def test_write_capture_refuses_a_folder_that_is_a_file_by_name(tmp_path, inside):
+    # this was mkdir's FileExistsError/NotADirectoryError traceback (generate_capture's and
+    # datasets/generate.py's too), for --out naming a file or a folder under one
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    folder = taken / inside if inside else taken
+    with pytest.raises(ValueError, match=f"write_capture: {taken} is a file, not a folder"):
+        write_capture(folder, _images(1), _lights(), [0.0, 0.0, 3.0])
+    with pytest.raises(ValueError, match=f"write_capture: {taken} is a file, not a folder"):
+        generate_capture(folder, recipe="tiles", size=8, lights=2)
+    assert taken.read_text() == "mine"
 
 
 def test_write_capture_refuses_an_existing_capture_and_overwrite_replaces_it_whole(capture_dir):

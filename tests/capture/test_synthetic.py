@@ -49,6 +49,24 @@ def test_negative_or_non_finite_noise_is_refused(tmp_path, noise):
     assert not (tmp_path / "cap" / "capture.json").exists()
 
 
+@pytest.mark.parametrize("kwargs, named", [
+    ({"lights": 2.5}, "lights must be an integer >= 0, got 2.5"),
+    ({"lights": -2}, "lights must be an integer >= 0, got -2"),
+    ({"lights": 0, "near_camera": False}, "lights=0 with near_camera=False leaves no light"),
+    ({"size": 2}, "size must be an integer >= 4, got 2"),
+    ({"size": "64"}, "size must be an integer >= 4, got '64'"),
+    ({"camera_position": (0.0, 0.0)}, r"camera_position must be 3 finite numbers"),
+    ({"camera_position": (0.0, 0.0, float("nan"))}, r"camera_position must be 3 finite numbers"),
+    ({"camera_position": (0.0, 0.0, -3.0)}, r"camera_position .* above the sample"),
+])
+def test_generate_capture_refuses_bad_arguments_by_name_before_writing(tmp_path, kwargs, named):
+    # these reached torch (a size mismatch, a float shape) or refused a light the user never
+    # placed, after gt/ was already written
+    with pytest.raises(ValueError, match="generate_capture: " + named):
+        generate_capture(tmp_path / "cap", **{"recipe": "tiles", "size": 8, "lights": 2, **kwargs})
+    assert not (tmp_path / "cap").exists()
+
+
 @pytest.mark.parametrize("fast", [False, True])
 @pytest.mark.parametrize("recipe", ["metal_inlay", "tiles", "scratched_metal"])
 def test_compact_renderer_equals_principled(recipe, fast):

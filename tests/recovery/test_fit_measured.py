@@ -165,6 +165,19 @@ def test_bad_input_is_one_line_naming_the_option(tmp_path, capsys, args, says):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("inside", ["", "sub"])
+def test_an_out_that_is_a_file_is_one_line_and_left_alone(tmp_path, capsys, inside):
+    # this was mkdir's FileExistsError/NotADirectoryError traceback, after --demo had fitted
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    with pytest.raises(SystemExit) as e:
+        FM.main(["--demo", "--samples", "200", "--iters", "0", "--lbfgs", "0", "--no-figures",
+                 "--out", str(taken / inside if inside else taken)])
+    assert e.value.code == 2 and f"--out {taken / inside if inside else taken}: {taken} is a file, not a folder" in (
+        capsys.readouterr().err)
+    assert taken.read_text() == "mine"
+
+
 @pytest.mark.parametrize("name", ["roughness2", "spec2_f0"])
 def test_extra_refuses_the_second_lobes_parameters(tmp_path, capsys, name):
     """--two-lobes adds them; fitted through --extra alone they would not enter the model and

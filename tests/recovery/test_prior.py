@@ -71,8 +71,11 @@ def test_prior_file_errors(tmp_path):
     with pytest.raises(ValueError, match="'config' and 'state_dict'"):
         Prior.from_file(bad)
     bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(ValueError, match="not a readable estimator checkpoint"):
+    with pytest.raises(ValueError, match="not a readable estimator checkpoint") as err:
         Prior.from_file(bad)
+    # torch's weights-only advice (load it with weights_only=False) is wrong for a file that is
+    # not a torch.save archive at all, and unsafe to follow
+    assert "not a torch.save archive" in str(err.value) and "weights_only" not in str(err.value)
 
 
 def test_predict_on_a_capture_uses_the_light_nearest_the_camera():

@@ -211,6 +211,15 @@ def test_cli_options_and_exit_status(captures, tmp_path):
     assert main(["--captures", str(tmp_path / "nothing*"), "--out", str(tmp_path / "o2")]) == 2
 
 
+def test_an_out_that_is_a_file_is_one_line_and_left_alone(captures, tmp_path, capsys):
+    # this was mkdir's FileExistsError traceback
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    assert main(["--captures", str(captures / "cap0"), "--out", str(taken), "--no-ray", "--quiet"]) == 2
+    assert f"error: --out {taken}: {taken} is a file, not a folder" in capsys.readouterr().err
+    assert taken.read_text() == "mine"
+
+
 def test_find_captures(captures, tmp_path):
     """Folders, parents and globs; duplicates dropped; clashing names and no capture refused."""
     assert [p.name for p in find_captures([captures])] == ["broken", "cap0", "cap1", "cap2"]

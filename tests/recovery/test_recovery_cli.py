@@ -306,6 +306,11 @@ def test_corrupt_checkpoint_names_the_file(stopped, cap, tmp_path, capsys):
     assert main(["--capture", str(cap), "--out", str(out), "--resume", *FAST]) == 2
     err = _one_line_error(capsys)
     assert str(out / CHECKPOINT) in err and "corrupt" in err
+    # torch's reason, cut to its first sentence: it was cut mid-word at 160 characters
+    (out / CHECKPOINT).write_bytes(data[:100])
+    assert main(["--capture", str(cap), "--out", str(out), "--resume", *FAST]) == 2
+    err = _one_line_error(capsys)
+    assert "failed finding central directory); delete it" in err and "If you are seeing" not in err
 
 
 def test_disk_full_during_checkpoint(done, cap, tmp_path, monkeypatch, capsys):

@@ -135,3 +135,21 @@ def test_the_algorithm_is_split_into_modules_of_one_concept():
                 assert node.end_lineno - node.lineno < 120, (name, node.name)
     assert {"RecoveryConfig", "Recovery", "psnr", "CHECKPOINT"} <= set(vars(solver))
     assert Recovery.tick is Recovery.step  # the former name, kept
+
+
+@pytest.mark.parametrize("kwargs, named", [
+    ({"capture": 123}, "capture must be a capture folder (str or os.PathLike) or a torchbrdf.capture.Capture, got int"),
+    ({"config": {"lr": 0.5}}, "config must be a RecoveryConfig, got dict"),
+    ({"config": {}}, "config must be a RecoveryConfig, got dict"),
+    ({"out": 5}, "out must be a folder path (str or os.PathLike), got int"),
+    ({"gt": 5}, "gt must be a folder path (str or os.PathLike), got int"),
+])
+def test_recover_names_an_argument_of_the_wrong_type(tmp_path, kwargs, named):
+    # these were pathlib's 'expected str, bytes or os.PathLike object, not int', naming no
+    # argument, and an empty dict as config silently ran the defaults
+    from torchbrdf.recovery import recover
+
+    args = {"capture": tmp_path / "no_capture", **kwargs}
+    with pytest.raises(TypeError, match=re.escape("recover: " + named)):
+        recover(**args)
+    assert list(tmp_path.iterdir()) == []

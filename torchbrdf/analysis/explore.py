@@ -44,6 +44,7 @@ import torch
 from torchbrdf._types import BRDF
 from torchbrdf.analysis import measures as A
 from torchbrdf.analysis import plots as P
+from torchbrdf.io import file_in_the_way
 
 __all__ = ["BRDFSpec", "parse_spec", "parameter_names", "write_report", "main", "DEFAULT_SPECS"]
 
@@ -113,9 +114,20 @@ class BRDFSpec:
     params: dict[str, Any] = field(default_factory=dict)
     label: str = ""
     path: str | None = None
+    _loaded: Any = field(default=None, init=False, repr=False, compare=False)
 
     def brdf(self) -> BRDF:
-        """The parameter-free callable ``f(l, v, n, x=None, y=None) -> (*, 3)``."""
+        """The parameter-free callable ``f(l, v, n, x=None, y=None) -> (*, 3)``, loaded once.
+
+        Raises:
+            OSError: the MERL or params file does not exist or cannot be read.
+            ValueError: the file is not a MERL file or a ``torchbrdf-fit-merl`` params.json.
+        """
+        if self._loaded is None:
+            self._loaded = self._load()
+        return self._loaded
+
+    def _load(self) -> BRDF:
         if self.model == "principled":
             return A.bind_brdf(_model_function("principled"), **self.params)
         if self.model == "lambert":
@@ -147,7 +159,13 @@ def _fitted_brdf(path: str):
     from torchbrdf.brdf.microfacet import microfacet
     from torchbrdf.brdf.principled import principled
 
-    fitted = json.loads(Path(path).read_text())["params"]
+    try:
+        fitted = json.loads(Path(path).read_text())["params"]
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"params file '{path}' not found (no such file)") from e
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"'{path}' is not a params.json of torchbrdf-fit-merl (a JSON object with "
+                         f"'params'): {e!r}") from e
     lobe2 = {k: fitted.pop(k) for k in ("roughness2", "spec2_f0", "spec2_f90") if k in fitted}
     params = {k: (torch.tensor(v, dtype=torch.float64) if isinstance(v, list) else float(v)) for k, v in fitted.items()}
     base = A.bind_brdf(principled, **params)
@@ -373,6 +391,20 @@ def main(argv: list[str] | None = None) -> int:
         specs = [parse_spec(s) for s in (texts or DEFAULT_SPECS)]
     except ValueError as e:
         ap.error(str(e))
+    # Load every file and evaluate each BRDF once before --out is touched, so that a missing
+    # file or a value the model refuses is one line, not a traceback in a half-written report.
+    unit = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    for text, spec in zip(texts or DEFAULT_SPECS, specs):
+        try:
+            spec.brdf()(unit, unit, unit)
+        except (OSError, ValueError, TypeError, KeyError, RuntimeError) as e:
+            ap.error(f"--brdf {text!r}: {e}")
+    if (blocked := file_in_the_way(args.out)) is not None:
+        ap.error(f"--out {args.out}: {blocked} is a file, not a folder")
+    try:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f"--out {args.out}: cannot create the folder ({e.strerror or e})")
     t0 = time.perf_counter()
     print(f"explore: {len(specs)} BRDF(s) -> {args.out}")
     index = write_report(specs, args.out, quick=args.quick)

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from torchbrdf._checks import excerpt
-from torchbrdf.io import atomic_path, read_exr, write_exr
+from torchbrdf.io import atomic_path, file_in_the_way, read_exr, write_exr
 
 __all__ = ["CAPTURE_JSON", "Capture", "check_capture", "check_capture_destination", "default_file_names",
            "image_path", "load_capture", "pixel_points", "write_capture", "MAX_RADIANCE", "MAX_COORDINATE"]
@@ -544,7 +544,7 @@ def write_capture(
             intensities, no light above the sample plane, an all-zero image, or a file name
             that would leave ``folder`` — whatever :func:`load_capture` would refuse — and a
             ``folder`` that already holds a capture or one of the image files, without
-            ``overwrite``. Nothing is written then.
+            ``overwrite``, or that is (or lies under) a file. Nothing is written then.
     """
     images = _image_stack(images)
     count, _, height, width = images.shape
@@ -560,6 +560,7 @@ def write_capture(
         raise ValueError("write_capture: an image with no positive pixel, or a position or value beyond "
                          f"±{MAX_COORDINATE:g} / {MAX_RADIANCE:g}; the loader would reject it")
     folder = Path(folder)
+    _refuse_a_file_in_the_way(folder)
     files = _file_names(files, count, folder)
     replaced = check_capture_destination(folder, files, overwrite)
     entries = []
@@ -614,10 +615,11 @@ def check_capture_destination(folder: str | os.PathLike, files: Sequence[str], o
         is unreadable): with ``overwrite`` they belong to the capture being replaced.
 
     Raises:
-        ValueError: without ``overwrite``, when ``folder`` holds ``capture.json`` or a file of
-            ``files``, naming it.
+        ValueError: when ``folder``, or the nearest of its parents that exists, is a file; without
+            ``overwrite``, when ``folder`` holds ``capture.json`` or a file of ``files``, naming it.
     """
     folder = Path(folder)
+    _refuse_a_file_in_the_way(folder)
     json_path = folder / CAPTURE_JSON
     clash = [json_path] if json_path.exists() else []
     clash += [folder / os.fspath(f) for f in files if (folder / os.fspath(f)).exists()]
@@ -638,6 +640,13 @@ def check_capture_destination(folder: str | os.PathLike, files: Sequence[str], o
             continue
         inside.append(name)
     return inside
+
+
+def _refuse_a_file_in_the_way(folder: Path) -> None:
+    """``folder``, or the nearest of its parents that exists, must be a folder (mkdir's own error
+    names neither)."""
+    if (blocked := file_in_the_way(folder)) is not None:
+        raise ValueError(f"write_capture: {blocked} is a file, not a folder; cannot write a capture in {folder}")
 
 
 def _image_stack(images: Tensor | Sequence) -> Tensor:

@@ -24,6 +24,7 @@ named as in the recovery's output layout (docs/capture_format.md).
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeAlias, cast
@@ -826,7 +827,12 @@ def generate_capture(
 
     Returns:
         The path of ``capture.json``.
+
+    Raises:
+        ValueError: ``lights``, ``size`` or ``camera_position`` out of range (named), before
+            anything is written.
     """
+    _check_generate_arguments(lights, size, near_camera, camera_position)
     pos, inten = light_layout(lights, near_camera=near_camera, camera_position=camera_position)
     check_capture_destination(folder, default_file_names(len(pos)), overwrite)
     maps = make_material(recipe, seed, size)
@@ -835,6 +841,23 @@ def generate_capture(
     folder = Path(folder)
     write_maps(folder / "gt", maps, previews=False)
     return write_capture(folder, img, (pos, inten), camera_position, overwrite=overwrite)
+
+
+def _check_generate_arguments(lights: Any, size: Any, near_camera: bool, camera_position: Any) -> None:
+    """Refuse :func:`generate_capture`'s arguments by name before any file is written."""
+    for name, value, low in (("lights", lights, 0), ("size", size, 4)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+            raise ValueError(f"generate_capture: {name} must be an integer >= {low}, got {value!r}")
+    if lights == 0 and not near_camera:
+        raise ValueError("generate_capture: lights=0 with near_camera=False leaves no light; pass lights >= 1")
+    try:
+        cam = torch.as_tensor(camera_position, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        cam = torch.full((0,), math.nan, dtype=torch.float64)
+    if cam.shape != (3,) or not bool(torch.isfinite(cam).all()):
+        raise ValueError(f"generate_capture: camera_position must be 3 finite numbers (x, y, z), got {camera_position!r}")
+    if cam[2] <= 0:  # the sample lies in z = 0 facing +z
+        raise ValueError(f"generate_capture: camera_position {cam.tolist()} must be above the sample (z > 0)")
 
 
 def default_capture(folder: str | os.PathLike | None = None, size: int = 128) -> Path:

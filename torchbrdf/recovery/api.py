@@ -164,6 +164,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
         ``report`` (``report.json``'s contents), ``confidence`` (``(1, H, W)`` or None).
 
     Raises:
+        TypeError: ``capture``, ``config``, ``out`` or ``gt`` of the wrong type (named).
         RecoveryError: bad settings, capture, ``gt`` or ``out`` (``rc`` 2, nothing created),
             an ``out`` another run is writing (2), a checkpoint that does not match, is
             corrupt or fails its checksum, schema or finiteness check (2), a fit whose final
@@ -174,7 +175,8 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
     # (The annotations give only the current order, so the type checker sees this branch as unreachable.)
     if isinstance(config, (str, os.PathLike)) or isinstance(out, (RecoveryConfig, Settings)):
         config, out = out, config
-    cfg = settings_of(config or RecoveryConfig())
+    _check_argument_types(capture, config, out, gt)
+    cfg = settings_of(config if config is not None else RecoveryConfig())
     log = log or (lambda msg: print(msg, file=sys.stderr))
     check_config(cfg)
     out = check_out(out, allow_other_files) if out is not None else None
@@ -214,6 +216,22 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
         importlib.import_module("torch._dynamo")
         interrupted, seconds = _iterate_until_done_or_stopped(rec, cfg, progress, log)
         return _finish(rec, cap, cfg, out, gt, fingerprint, capture_warnings, interrupted, seconds, log)
+
+
+def _check_argument_types(capture: object, config: object, out: object, gt: object) -> None:
+    """Refuse an argument of the wrong type by name (pathlib's own TypeError names none).
+
+    Raises:
+        TypeError: naming the argument and what it takes.
+    """
+    if not isinstance(capture, (str, os.PathLike, Capture)):
+        raise TypeError("recover: capture must be a capture folder (str or os.PathLike) or a "
+                        f"torchbrdf.capture.Capture, got {type(capture).__name__}")
+    if config is not None and not isinstance(config, (RecoveryConfig, Settings)):
+        raise TypeError(f"recover: config must be a RecoveryConfig, got {type(config).__name__}")
+    for name, value in (("out", out), ("gt", gt)):
+        if value is not None and not isinstance(value, (str, os.PathLike)):
+            raise TypeError(f"recover: {name} must be a folder path (str or os.PathLike), got {type(value).__name__}")
 
 
 def _learned_prior(prior: Prior | PathLike, cap: Capture, size: int) -> LearnedPrior:

@@ -40,6 +40,7 @@ from typing import Any
 
 from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON
+from torchbrdf.io import file_in_the_way
 from torchbrdf.recovery.checkpoint import digest, folder_fingerprint, settings_fingerprint
 from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.outputs import OutputBusyError
@@ -564,6 +565,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         captures = find_captures(args.captures)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    if (blocked := file_in_the_way(args.out)) is not None:
+        print(f"error: --out {args.out}: {blocked} is a file, not a folder", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
     try:

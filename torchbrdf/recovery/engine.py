@@ -279,7 +279,7 @@ class Recovery:
             if not isinstance(blob, dict) or not {"state", "plan", "torch_rng"} <= blob.keys():
                 raise ValueError("not a recovery checkpoint")
         except Exception as e:  # truncated, corrupt, or another kind of file
-            why = (str(e).strip().splitlines() or [""])[0][:160]
+            why = (str(e).strip().splitlines() or [""])[0].split(". ")[0][:160]  # torch's first sentence
             raise ValueError(f"{path}: corrupt or unreadable checkpoint ({type(e).__name__}"
                              f"{': ' + why if why else ''}); delete it to start over") from e
         if check is not None:

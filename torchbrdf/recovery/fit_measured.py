@@ -58,6 +58,7 @@ from torch import Tensor, nn
 from torchbrdf.brdf.measured import MERL_RES, MERLBRDF, merl_directions, merl_grid
 from torchbrdf.brdf.microfacet import microfacet
 from torchbrdf.brdf.principled import principled
+from torchbrdf.io import file_in_the_way
 
 __all__ = ["RANGES", "DEFAULT_PARAMS", "MeasuredSamples", "PrincipledFit", "sample_merl", "fit", "fit_errors", "main"]
 
@@ -416,6 +417,8 @@ def main(argv: list[str] | None = None) -> int:
     for flag, value, least in (("--samples", args.samples, 1), ("--iters", args.iters, 0), ("--lbfgs", args.lbfgs, 0)):
         if value < least:
             ap.error(f"{flag} must be at least {least}, got {value}")
+    if (blocked := file_in_the_way(args.out)) is not None:
+        ap.error(f"--out {args.out}: {blocked} is a file, not a folder")
 
     t0 = time.perf_counter()
     if args.demo:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import zipfile
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -172,6 +173,10 @@ class Prior:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"Prior.from_file: no weights file at {path}")
+        if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; torch's own error here
+            # would advise weights_only=False, which cannot help and is unsafe to follow
+            raise ValueError(f"Prior.from_file: {path} is not a readable estimator checkpoint "
+                             "(not a torch.save archive; expected weights written by Prior.save)")
         try:
             ckpt = torch.load(path, map_location=map_location, weights_only=True)
         except Exception as err:  # a truncated or foreign file: say which, with the cause
