@@ -11,6 +11,7 @@ import math
 import sys
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -267,7 +268,7 @@ def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tens
     """
     n, m_cols = r.shape
     n_l, n_g = m_cols // 3, cols.shape[0] - N_PARAMS
-    sigma2 = float(r.abs().median()) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
+    sigma2 = abs_median(r) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
     f64 = torch.float64
     fast = None
     if fused:
@@ -287,6 +288,24 @@ def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tens
             _reduced_light_terms(r[part], cols[:, part], prior, damping, sigma2, per_light, gram)
     schur = torch.block_diag(*per_light[:, :n_g, :n_g]) - gram[:-1, :-1]
     return schur, per_light[:, :n_g, n_g].reshape(-1) - gram[:-1, -1], sigma2
+
+
+def abs_median(r: Tensor) -> float:
+    """The lower median of ``|r|`` over every element of ``r`` (any shape, every element finite):
+    ``torch.median``'s order statistic, the ``⌊(N − 1)/2⌋``-th smallest of the ``N``.
+
+    On the CPU in float32/float64 by NumPy's selection (``np.partition``, in place on the
+    absolute values' copy): the same element, at half ``torch.median``'s time on a light
+    step's 4·10⁵ residuals. Elsewhere ``torch.median``.
+    """
+    if r.numel() == 0:
+        raise ValueError("abs_median: `r` must have at least one element, got an empty tensor")
+    if r.device.type != "cpu" or r.dtype not in (torch.float32, torch.float64) or r.requires_grad:
+        return float(r.abs().median())
+    a = np.abs(r.numpy().reshape(-1))  # (a fresh array: partitioned in place)
+    k = (a.size - 1) // 2
+    a.partition(k)
+    return float(a[k])
 
 
 def _reduced_light_terms(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None,
