@@ -139,9 +139,10 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     block-Jacobi: the prior's coupling between pixels is left out): after an LM step the data
     gradient balances the prior's rather than vanishing.
 
-    One forward-mode pass with 7 + 4 tangents (7 + 1 for the scales alone) over at most
-    ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals depend only
-    on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
+    One forward-mode pass with 5 + 4 tangents (5 + 1 for the scales alone; the principled
+    model's base colour in one direction, each logit on its own channel: other models 7 + G)
+    over at most ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals
+    depend only on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
     ``Σ JgᵀWJg`` in the weak directions). Huber weights ``W`` (3 noise deviations) as in
     :func:`light_position_step`; pixels with a non-finite residual or derivative are left out.
     Gaussian priors of
