@@ -62,6 +62,24 @@ def test_light_schur_is_the_dense_elimination(G, dtype):
     assert float((_reference(r, cols, prior_g, prior_h, 1e-3, 0.15)[1] - ref_gram).abs().max()) > 1e-6
 
 
+@pytest.mark.parametrize("G", [4, 1])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_light_schur_takes_the_base_colour_in_one_row_with_the_bits_of_three(G, dtype):
+    """``base_one``: the base colour's unknowns in one row of ``cols``, each read on its own
+    channel's residuals only (the row's other entries are not theirs: random here), give the
+    bits of the full layout with those entries zero (21 pixels, chunks of 16, 5 lights)."""
+    r, cols, prior_g, prior_h = _case(21, 5, G, dtype, seed=2)
+    own = torch.arange(15) % 3 == torch.arange(3)[:, None]  # (3, M): unknown c on channel c
+    full = torch.cat((cols[:1] * own[:, None].to(dtype), cols[3:]))  # (7 + G, n, M)
+    compact = torch.cat((cols[:1], cols[3:]))  # (5 + G, n, M)
+    per, gram = schur_ops.light_schur(r, compact, prior_g, prior_h, 1e-3, 0.15, chunk=16, base_one=True)
+    want_per, want_gram = schur_ops.light_schur(r, full, prior_g, prior_h, 1e-3, 0.15, chunk=16)
+    assert per.shape == (5, G + 1, G + 1) and gram.shape == (5 * G + 1,) * 2
+    assert torch.equal(per, want_per) and torch.equal(gram, want_gram)
+    with pytest.raises(ValueError, match="cols"):
+        schur_ops.light_schur(r, compact[:4], prior_g, prior_h, 1e-3, 0.1, base_one=True)
+
+
 def test_light_schur_passes_opcheck():
     r, cols, prior_g, prior_h = _case(10, 3, 4, torch.float64, seed=1)
     torch.library.opcheck(torch.ops.torchbrdf.light_schur, (r, cols, prior_g, prior_h, 1e-3, 0.1, 8))

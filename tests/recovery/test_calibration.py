@@ -735,3 +735,22 @@ def test_the_light_step_rests_once_the_iterations_left_could_not_move_it_beyond_
     else:
         assert calls == [s for s in calibrated for _ in range(iterations[s])]
         assert len(calls) > len(calibrated)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (7, 3), (8, 6), (4096, 48)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_light_steps_noise_median_is_torchs_lower_median_of_the_absolute_residuals(shape, dtype):
+    """The light step's noise level takes ``torch.median``'s element of ``|r|``, the lower of the
+    two middle ones for an even count (not their mean, not the upper one), ties and signs
+    included."""
+    g = torch.Generator().manual_seed(sum(shape))
+    r = (torch.randn(shape, generator=g, dtype=dtype) * 0.01).round(decimals=3)  # ties among |r|
+    want = float(r.abs().median())
+    assert calibration.abs_median(r) == want
+    assert calibration.abs_median(-r) == want
+    assert calibration.abs_median(r.T) == want  # a non-contiguous view
+    if r.numel() % 2 == 0 and r.numel() > 1:  # the two middle values differ: the lower one is taken
+        s = torch.arange(1, r.numel() + 1, dtype=dtype).reshape(shape)
+        assert calibration.abs_median(s) == float(r.numel() // 2)
+    with pytest.raises(ValueError, match="`r`"):
+        calibration.abs_median(r[:0])

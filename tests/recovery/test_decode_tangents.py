@@ -188,6 +188,32 @@ def test_light_step_jacobians_run_in_one_pass_with_the_bits_of_several(monkeypat
     assert torch.equal(r, r4) and torch.equal(cols, cols4)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("position", [True, False])
+def test_light_step_jacobians_take_the_base_colour_in_one_direction_with_the_bits_of_three(dtype, position):
+    """``base_one``: the base colour's three logits in one direction (``5 + G`` rows) give each
+    logit's column on its own channel with the bits of one direction per logit, and the light
+    step's reduced system from them is the same, bit for bit, with the C elimination and without."""
+    args = _light_step_args(dtype, 3)
+    r, cols = calibration._pixel_and_light_jacobians(*args, position=position)
+    r1, cols1 = calibration._pixel_and_light_jacobians(*args, position=position, base_one=True)
+    assert cols1.shape == (cols.shape[0] - 2, *cols.shape[1:])
+    assert torch.equal(r1, r) and torch.equal(cols1[1:], cols[3:])
+    channel = torch.arange(cols.shape[-1]) % 3
+    for c in range(3):
+        assert torch.equal(cols1[0][:, channel == c], cols[c][:, channel == c])
+        assert bool((cols[c][:, channel != c] == 0).all())  # (what the one row stands for there)
+    g = torch.Generator().manual_seed(5)
+    prior = (1e-2 * torch.randn(r.shape[0], 7, generator=g, dtype=dtype), torch.rand(r.shape[0], 7, generator=g,
+                                                                                     dtype=dtype))
+    for fused in (True, False):
+        want = calibration._reduced_light_system(r, cols, prior, 1e-3, chunk=24, fused=fused)
+        got = calibration._reduced_light_system(r1, cols1, prior, 1e-3, chunk=24, fused=fused, base_one=True)
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]) and got[2] == want[2]
+    with pytest.raises(ValueError, match="principled"):
+        calibration._pixel_and_light_jacobians(*args[:-1], "exact_fresnel", position, True)
+
+
 @pytest.mark.parametrize("n_t", [7, 8])
 def test_normal_equations_without_vmap_are_those_of_the_vmapped_decode(monkeypatch, n_t):
     """``LevelData.normal_equations`` (8 columns: the continuous-metallic stage, metallic

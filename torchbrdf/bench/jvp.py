@@ -18,7 +18,7 @@ called directly (:meth:`~torchbrdf.recovery.levels.LevelData.residual_jvp`) agai
 ``torch.func.vmap`` over ``torch.func.jvp`` of the residual, side by side; medians of ``reps``.
 
 ``python -m torchbrdf.bench.jvp --light-step [--threads 1]`` times one joint light step
-(7 + 4 directions) on the demo capture with the JVP kernel's passes of 8 and of 12 tangents
+(5 + 4 directions) on the demo capture with the JVP kernel's passes of 8 and of 12 tangents
 alternated, CPU and wall seconds.
 """
 
@@ -143,7 +143,7 @@ def _light_step_pixels() -> int:
 def light_step_times(threads: int = 1, reps: int = 9, capture: str | None = None) -> dict:
     """CPU and wall seconds ``{tangents per pass: {"cpu": [...], "wall": [...]}}`` of one joint
     light step (:func:`torchbrdf.recovery.calibration.light_joint_step`, positions and scales:
-    7 + 4 directions) on ``capture`` (default: the demo capture; the step's evenly strided
+    5 + 4 directions) on ``capture`` (default: the demo capture; the step's evenly strided
     ``max_pixels`` pixels of it), with the JVP kernel's passes of 8 and of 12 tangents alternated,
     the order reversed every other repetition. Prints min / median / max.
     """

@@ -228,7 +228,7 @@ def _light_loop_applies(params: Mapping, log_obs: Tensor, values: tuple) -> bool
 
 
 def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,
-                chunk: int = 1024) -> tuple[Tensor, Tensor] | None:
+                chunk: int = 1024, base_one: bool = False) -> tuple[Tensor, Tensor] | None:
     """A joint light step's per-pixel elimination in one C pass, or None.
 
     :func:`torchbrdf.kernels.schur_ops.light_schur` (its arguments and results: the per-light
@@ -246,4 +246,4 @@ def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, dampi
 
     if not schur_ops.available(r):
         return None
-    return schur_ops.light_schur(r, cols, prior_g, prior_h, damping, huber, chunk)
+    return schur_ops.light_schur(r, cols, prior_g, prior_h, damping, huber, chunk, base_one)

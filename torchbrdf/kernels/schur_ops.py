@@ -39,10 +39,13 @@ typedef %(R)s R;
 #define BP 8
 /* One chunk of n pixels (of N in cols' pixel dimension): per block of BP pixels, A, its
    Cholesky factor, Y = L^-1 [B | gp] (written pixels innermost to y (L G + 1, 7, n)) and, per
-   pixel and light, the upper triangle of [Jg | r]^T W [Jg | r] (to pl (n, L, P)). */
+   pixel and light, the upper triangle of [Jg | r]^T W [Jg | r] (to pl (n, L, P)). base1: cols'
+   first row is the base colour's three unknowns in one direction, each on its own channel's
+   residuals (3 l + c for unknown c; the other channels' entries are zeros), then the other 4. */
 void tb_light_schur(long n, long N, long M, long G, const R* cols, const R* res, const double* pg,
-                    const double* ph, double damping, double huber, double* y, double* pl, int nthreads) {
-  const long L = M / 3, P = (G + 1) * (G + 2) / 2;
+                    const double* ph, double damping, double huber, double* y, double* pl, int nthreads,
+                    int base1) {
+  const long L = M / 3, P = (G + 1) * (G + 2) / 2, K0 = base1 ? 5 : 7;
   #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (long b0 = 0; b0 < n; b0 += BP) {
     const long nb = n - b0 < BP ? n - b0 : BP;
@@ -51,8 +54,11 @@ void tb_light_schur(long n, long N, long M, long G, const R* cols, const R* res,
     /* each pixel's rows read in memory order (a loop over the pixels inside would stride by M) */
     for (long q = 0; q < BP; ++q) {
       for (long m = 0; m < M; ++m) rt[m][q] = q < nb ? (double)res[(b0 + q) * M + m] : 0.0;
-      for (int i = 0; i < 7; ++i)
-        for (long m = 0; m < M; ++m) jp[m][i][q] = q < nb ? (double)cols[(i * N + b0 + q) * M + m] : 0.0;
+      for (int i = 0; i < 7; ++i) {
+        const long row = base1 ? (i < 3 ? 0 : i - 2) : i;
+        for (long m = 0; m < M; ++m)
+          jp[m][i][q] = q < nb && !(base1 && i < 3 && m %% 3 != i) ? (double)cols[(row * N + b0 + q) * M + m] : 0.0;
+      }
     }
     for (long m = 0; m < M; ++m) {
       _Pragma("omp simd") for (long q = 0; q < BP; ++q) {
@@ -116,7 +122,7 @@ void tb_light_schur(long n, long N, long M, long G, const R* cols, const R* res,
       for (long q = 0; q < BP; ++q)
         for (long g = 0; g < G; ++g)
           for (int c = 0; c < 3; ++c)
-            v[g][c][q] = q < nb ? (double)cols[((7 + g) * N + b0 + q) * M + 3 * l + c] : 0.0;
+            v[g][c][q] = q < nb ? (double)cols[((K0 + g) * N + b0 + q) * M + 3 * l + c] : 0.0;
       for (int c = 0; c < 3; ++c)
         _Pragma("omp simd") for (long q = 0; q < BP; ++q) v[G][c][q] = rt[3 * l + c][q];
       for (long g = 0; g < G; ++g)  /* Y's rows of light l: sum over its colours of z Jg */
@@ -158,7 +164,7 @@ def _kernel(ctype: str):
     with _lock:
         if ctype not in _kernels:
             args = [ctypes.c_long] * 4 + [ctypes.c_void_p] * 4 + [ctypes.c_double] * 2 \
-                + [ctypes.c_void_p] * 2 + [ctypes.c_int]
+                + [ctypes.c_void_p] * 2 + [ctypes.c_int] * 2
             lib = build.load_kernel(_SOURCE % {"R": ctype}, "light_schur", {"tb_light_schur": (args, None)})
             # the library stays alive with its function
             _kernels[ctype] = None if lib is None else (lib, lib.tb_light_schur)
@@ -179,11 +185,11 @@ def _ctype(dtype: torch.dtype) -> str:
 
 @torch.library.custom_op("torchbrdf::light_schur", mutates_args=())
 def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,
-                   chunk: int) -> tuple[Tensor, Tensor]:
+                   chunk: int, base_one: bool = False) -> tuple[Tensor, Tensor]:
     """``(per_light (L, G+1, G+1), gram (L G + 1, L G + 1))``, float64: see :func:`light_schur`."""
     _check_memory(r, cols, prior_g, prior_h, chunk)
     n, M = r.shape
-    G, L = cols.shape[0] - 7, M // 3
+    G, L = cols.shape[0] - _pixel_rows(base_one), M // 3
     f64 = torch.float64
     P = (G + 1) * (G + 2) // 2
     per = torch.zeros(L, P, dtype=f64)
@@ -203,7 +209,7 @@ def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, da
         yc = y if m == y.shape[-1] else torch.empty(L * G + 1, 7, m, dtype=f64)
         fn[1](m, n, M, G, cols.data_ptr() + lo * M * item, r.data_ptr() + lo * M * item,
               pg.data_ptr() + lo * 7 * 8, ph.data_ptr() + lo * 7 * 8, damping, huber, yc.data_ptr(),
-              pl.data_ptr(), nt)
+              pl.data_ptr(), nt, int(base_one))
         flat = yc.view(L * G + 1, -1)
         gram.addmm_(flat, flat.T)
         per += pl[:m].sum(0)
@@ -211,10 +217,15 @@ def light_schur_op(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, da
 
 
 @light_schur_op.register_fake
-def _(r, cols, prior_g, prior_h, damping, huber, chunk):
-    G, L = cols.shape[0] - 7, r.shape[1] // 3
+def _(r, cols, prior_g, prior_h, damping, huber, chunk, base_one=False):
+    G, L = cols.shape[0] - _pixel_rows(base_one), r.shape[1] // 3
     return (r.new_empty((L, G + 1, G + 1), dtype=torch.float64),
             r.new_empty((L * G + 1, L * G + 1), dtype=torch.float64))
+
+
+def _pixel_rows(base_one: bool) -> int:
+    """The rows of ``cols`` along a pixel's 7 unknowns: 5 with the base colour in one direction."""
+    return 5 if base_one else 7
 
 
 def _check_memory(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, chunk: int) -> None:
@@ -234,19 +245,25 @@ def _check_memory(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, chu
 
 
 def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, damping: float, huber: float,
-                chunk: int = 1024) -> tuple[Tensor, Tensor]:
+                chunk: int = 1024, base_one: bool = False) -> tuple[Tensor, Tensor]:
     """The per-pixel elimination of a joint light step, summed over the pixels.
 
     Args:
         r: ``(n, M)`` residuals, ``M = 3 L ≤`` :data:`MAX_RESIDUALS` light-major (``3 l + c``),
             every one finite; CPU, float32 or float64 (:func:`available`).
         cols: ``(7 + G, n, M)`` their derivatives along each pixel's 7 unknowns, then the ``G``
-            unknowns of each light (a light's residuals depend only on its own), ``r``'s dtype.
+            unknowns of each light (a light's residuals depend only on its own), ``r``'s dtype;
+            with ``base_one`` ``(5 + G, n, M)``: the first row along the three base-colour
+            unknowns at once (unknown ``c`` moves only the residuals ``3 l + c`` of its own
+            channel, so one direction gives all three columns; the rest of that row is not
+            read as theirs), then the other four.
         prior_g, prior_h: ``(n, 7)`` the pixels' prior gradient and Hessian diagonal (zeros:
             none), finite, any float dtype, CPU.
         damping: ``A``'s diagonal grows by ``damping`` times itself plus ``1e-9``.
         huber: the Huber threshold: a residual's weight is ``min(1, huber / |r|)``.
         chunk: pixels per ``Σ YᵀY`` product (its float64 ``Y`` stays in cache).
+        base_one: ``cols``' layout, as above; the same results, bit for bit, as the full layout
+            with the other channels' entries of the base-colour rows zero.
 
     Returns:
         ``per_light (L, G+1, G+1)``: ``Σ [Jg | r]ᵀ W [Jg | r]`` per light, and ``gram (L G + 1,
@@ -260,9 +277,10 @@ def light_schur(r: Tensor, cols: Tensor, prior_g: Tensor, prior_h: Tensor, dampi
     """
     _check_memory(r, cols, prior_g, prior_h, int(chunk))
     n, M = r.shape
-    if cols.dim() != 3 or cols.shape[0] < 7 or tuple(cols.shape[1:]) != (n, M) or M % 3:
-        raise ValueError(f"light_schur: cols must be (7 + G, {n}, {M}) with M = 3 L, got {tuple(cols.shape)}")
+    k0 = _pixel_rows(base_one)
+    if cols.dim() != 3 or cols.shape[0] < k0 or tuple(cols.shape[1:]) != (n, M) or M % 3:
+        raise ValueError(f"light_schur: cols must be ({k0} + G, {n}, {M}) with M = 3 L, got {tuple(cols.shape)}")
     if tuple(prior_g.shape) != (n, 7) or tuple(prior_h.shape) != (n, 7):
         raise ValueError(f"light_schur: the priors must have shape ({n}, 7), got {tuple(prior_g.shape)}, "
                          f"{tuple(prior_h.shape)}")
-    return light_schur_op(r, cols, prior_g, prior_h, float(damping), float(huber), int(chunk))
+    return light_schur_op(r, cols, prior_g, prior_h, float(damping), float(huber), int(chunk), bool(base_one))

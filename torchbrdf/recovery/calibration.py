@@ -11,6 +11,7 @@ import math
 import sys
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -138,9 +139,10 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     block-Jacobi: the prior's coupling between pixels is left out): after an LM step the data
     gradient balances the prior's rather than vanishing.
 
-    One forward-mode pass with 7 + 4 tangents (7 + 1 for the scales alone) over at most
-    ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals depend only
-    on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
+    One forward-mode pass with 5 + 4 tangents (5 + 1 for the scales alone; the principled
+    model's base colour in one direction, each logit on its own channel: other models 7 + G)
+    over at most ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals
+    depend only on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
     ``Σ JgᵀWJg`` in the weak directions). Huber weights ``W`` (3 noise deviations) as in
     :func:`light_position_step`; pixels with a non-finite residual or derivative are left out.
     Gaussian priors of
@@ -176,7 +178,9 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     s0 = log_scale[idx]
 
     position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
-    r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position)
+    base_one = model == "principled"  # (the base colour's 3 unknowns in one direction: 2 tangents fewer)
+    r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position,
+                                         base_one)
     # One sum per pixel carries any NaN or inf among its residuals and derivatives (a sum that
     # overflows float32 marks derivatives beyond any meaningful scale: left out as well).
     ok = torch.isfinite(r.sum(1) + cols.sum((0, 2)))  # (n,)
@@ -186,7 +190,7 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
         r, cols, rows = r[ok], cols[:, ok], rows[ok]
     keep = slice(0, 4) if position else slice(3, 4)  # the light unknowns: offset xyz, log scale
     prior_terms = None if map_prior is None else (map_prior[0][rows], map_prior[1][rows])
-    schur, rhs, sigma2 = _reduced_light_system(r, cols, prior_terms, damping)
+    schur, rhs, sigma2 = _reduced_light_system(r, cols, prior_terms, damping, base_one=base_one)
     f64 = torch.float64
     n_g = keep.stop - keep.start
     prior = torch.tensor([1 / position_sigma**2] * 3 + [1 / scale_sigma**2], dtype=f64,
@@ -245,12 +249,14 @@ def rest_iterations(chi2: float, dof: float) -> int:
 
 
 def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None, damping: float,
-                          chunk: int = 1024, fused: bool = True) -> tuple[Tensor, Tensor, float]:
+                          chunk: int = 1024, fused: bool = True, base_one: bool = False
+                          ) -> tuple[Tensor, Tensor, float]:
     """The lights' reduced normal equations, each pixel's 7 unknowns eliminated (:func:`light_joint_step`).
 
     ``r (n, M)`` residuals and ``cols (7 + G, n, M)`` derivatives (``M = 3 L``, light-major;
     every one finite) along the pixel's unknowns, then the ``G`` light unknowns stepped (offset
-    xyz and log scale, or the log scale alone), from :func:`_pixel_and_light_jacobians`;
+    xyz and log scale, or the log scale alone), from :func:`_pixel_and_light_jacobians`
+    (with ``base_one`` its ``(5 + G, n, M)`` layout, the base colour's unknowns in one row);
     ``map_prior`` the pixels' prior gradient and curvature, both ``(n, 7)``. Returns the Schur
     complement ``(L G, L G)``, the reduced gradient ``(L G,)`` (light-major, float64) and the
     residuals' robust variance σ².
@@ -266,17 +272,19 @@ def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tens
     maps almost absorb.
     """
     n, m_cols = r.shape
-    n_l, n_g = m_cols // 3, cols.shape[0] - N_PARAMS
-    sigma2 = float(r.abs().median()) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
+    n_l, n_g = m_cols // 3, cols.shape[0] - (N_PARAMS - 2 if base_one else N_PARAMS)
+    sigma2 = abs_median(r) ** 2 + 1e-12  # the median of r² is the median of |r|, squared
     f64 = torch.float64
     fast = None
     if fused:
         g, h = (r.new_zeros(n, N_PARAMS, dtype=f64),) * 2 if map_prior is None else \
             (torch.nan_to_num(map_prior[0].to(f64)), torch.nan_to_num(map_prior[1].to(f64)))
-        fast = capture_residual.light_schur(r, cols, g, h, damping, 3.0 * math.sqrt(sigma2), chunk)
+        fast = capture_residual.light_schur(r, cols, g, h, damping, 3.0 * math.sqrt(sigma2), chunk, base_one)
     if fast is not None:
         per_light, gram = fast
     else:
+        if base_one:
+            cols = _base_rows_apart(cols)
         if r.device.type != "cpu":
             chunk = n  # one launch per operation serves every pixel
         per_light = torch.zeros(n_l, n_g + 1, n_g + 1, dtype=f64, device=r.device)
@@ -287,6 +295,31 @@ def _reduced_light_system(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tens
             _reduced_light_terms(r[part], cols[:, part], prior, damping, sigma2, per_light, gram)
     schur = torch.block_diag(*per_light[:, :n_g, :n_g]) - gram[:-1, :-1]
     return schur, per_light[:, :n_g, n_g].reshape(-1) - gram[:-1, -1], sigma2
+
+
+def abs_median(r: Tensor) -> float:
+    """The lower median of ``|r|`` over every element of ``r`` (any shape, every element finite):
+    ``torch.median``'s order statistic, the ``⌊(N − 1)/2⌋``-th smallest of the ``N``.
+
+    On the CPU in float32/float64 by NumPy's selection (``np.partition``, in place on the
+    absolute values' copy): the same element, at half ``torch.median``'s time on a light
+    step's 4·10⁵ residuals. Elsewhere ``torch.median``.
+    """
+    if r.numel() == 0:
+        raise ValueError("abs_median: `r` must have at least one element, got an empty tensor")
+    if r.device.type != "cpu" or r.dtype not in (torch.float32, torch.float64) or r.requires_grad:
+        return float(r.abs().median())
+    a = np.abs(r.numpy().reshape(-1))  # (a fresh array: partitioned in place)
+    k = (a.size - 1) // 2
+    a.partition(k)
+    return float(a[k])
+
+
+def _base_rows_apart(cols: Tensor) -> Tensor:
+    """``(5 + G, n, M)`` derivatives with the base colour's unknowns in one row (``3 l + c`` of
+    its channel ``c`` each) as the ``(7 + G, n, M)`` of one row per unknown, the other channels 0."""
+    own = torch.arange(cols.shape[-1], device=cols.device) % 3 == torch.arange(3, device=cols.device)[:, None]
+    return torch.cat((cols[:1] * own[:, None].to(cols.dtype), cols[1:]))
 
 
 def _reduced_light_terms(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tensor] | None,
@@ -351,13 +384,16 @@ def _reduced_light_terms(r: Tensor, cols: Tensor, map_prior: tuple[Tensor, Tenso
 
 
 def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tensor, log_obs: Tensor,
-                               inten0: Tensor, pos0: Tensor, s0: Tensor, model: str, position: bool = True
-                               ) -> tuple[Tensor, Tensor]:
+                               inten0: Tensor, pos0: Tensor, s0: Tensor, model: str, position: bool = True,
+                               base_one: bool = False) -> tuple[Tensor, Tensor]:
     """Residuals ``(n, M)`` and their derivatives ``(7 + G, n, M)`` (``M = 3 L``, light-major)
     along each pixel's 7 unknowns and every light's offset xyz and log scale at once (``G = 4``;
     a light's residuals depend only on its own 4 numbers, so 4 shared directions cover all
     lights), or, without ``position``, its log scale alone (``G = 1``: 8 directions, one pass
-    of the fused JVP kernel rather than two).
+    of the fused JVP kernel rather than two). With ``base_one`` (the principled model only) the
+    derivatives are ``(5 + G, n, M)``: the first along the three base-colour logits at once,
+    which gives each its own channel's residuals ``3 l + c`` (a channel's residual depends on
+    its own base colour alone), the same numbers there as one direction per logit.
 
     The principled model takes the decode's tangents in closed form
     (:func:`decode_directions`) and the residual's from one call of the fused operators
@@ -371,14 +407,19 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
     for k in range(n_g - 1):
         tp[N_PARAMS + k, :, k] = 1.0
     ts[-1] = 1.0
+    if base_one and model != "principled":
+        raise ValueError(f"_pixel_and_light_jacobians: base_one needs the principled model, got {model!r}")
     if model == "principled":
         scale = torch.exp(s0)
-        p, dp = decode_directions(t0, m, [[j] for j in range(N_PARAMS)] + [[]] * n_g)
+        pixel_dirs = [[0, 1, 2], *([j] for j in range(3, N_PARAMS))] if base_one else [[j] for j in range(N_PARAMS)]
+        k = len(pixel_dirs)
+        tp, ts = tp[N_PARAMS - k:], ts[N_PARAMS - k:]  # (the light directions' rows after the pixel's k)
+        p, dp = decode_directions(t0, m, pixel_dirs + [[]] * n_g)
         # the intensity inten0 · exp(s): its tangent by the chain rule, as forward mode forms it
         dp["light_pos"], dp["light_int"] = tp, (ts * scale)[..., None] * inten0
         r, dr = log_residual_points_jvp(p["normal"], pts, cam, pos0, inten0 * scale[:, None], p, log_obs,
                                         data.eps, dp, any_size=True)
-        return r.reshape(n, -1), dr.reshape(N_PARAMS + n_g, n, -1)
+        return r.reshape(n, -1), dr.reshape(k + n_g, n, -1)
 
     def res(t, pos, s):  # (n, L * 3)
         inten = inten0 * torch.exp(s)[:, None]
