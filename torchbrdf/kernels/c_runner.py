@@ -19,8 +19,8 @@ __all__ = ["run_fwd", "run_bwd", "run_jvp", "BWD_CHUNK", "TANGENTS_PER_PASS"]
 # chunk by chunk, so the buffers stay small: 2^16 lanes × 3 × 8 B = 1.5 MiB).
 BWD_CHUNK = 1 << 16
 # Tangents per pass of the JVP kernel (jacfwd over K parameters runs ceil(K / 12) passes): the
-# generated code grows with the tangents; 12 take a joint light step's 7 + 4 directions in one
-# pass, one primal instead of two (its Jacobians 15 % less CPU time than in passes of 8 + 3).
+# generated code grows with the tangents; 12 take a joint light step's directions (5 + 4, the
+# base colour in one) in one pass, one primal instead of two (15 % less CPU than passes of 8 + 3).
 TANGENTS_PER_PASS = 12
 
 
