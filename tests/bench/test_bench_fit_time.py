@@ -37,3 +37,14 @@ def test_a_bad_part_is_one_line_naming_the_flag(part, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         fit_time.main(["--tree", f"t={tmp_path}", "--part", part])
     assert e.value.code == 2 and "--part: expected MODULE.NAME" in capsys.readouterr().err
+
+
+def test_the_fits_wait_for_threads_as_the_recovery_command_does():
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    probe = fit_time.AS_COMMAND + "import os, torchbrdf\nprint(os.environ.get('OMP_WAIT_POLICY'))\n"
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "PASSIVE"

@@ -11,6 +11,8 @@ tree took the same decisions). ``--busy`` runs everything beside one
 ``torchbrdf.recovery.engine.propagate_passes``) also records the CPU time spent in that
 function, patched on its module (a piece's time within the same alternated fits).
 
+The fits run as the ``torchbrdf-recover`` command does (its OpenMP wait included: :data:`AS_COMMAND`).
+
 Captures: ``demo`` (the CLI's ``--demo``, 128²) or a capture folder (e.g. the 256² 17-light
 ``generate_capture(folder, recipe="tiles", seed=7)``). Results: docs/recovery_measurements.md.
 """
@@ -28,9 +30,15 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+#: The child's first lines: it runs as the ``torchbrdf-recover`` command does, which chooses how
+#: OpenMP threads wait when torchbrdf is first imported (``torchbrdf/__init__.py``); a plain
+#: ``python -c`` would time libgomp's spinning wait instead, which users of the command never get.
+AS_COMMAND = """import sys
+sys.argv[0] = "torchbrdf-recover"
+"""
 #: The child: the CLI, with the fit's process CPU time written to argv[1] (only the public CLI
 #: and ``api``'s loop are used, so any tree of the project runs it).
-_CHILD = r"""
+_CHILD = AS_COMMAND + r"""
 import importlib, sys, time
 import torchbrdf.recovery.api as api
 inner = api._iterate_until_done_or_stopped
