@@ -244,6 +244,21 @@ def check_finite(named: dict) -> None:
             raise ValueError(f"{name}: expected a finite number, got {float(t)}")
 
 
+def sample_counts(name: str, value: object, default: tuple[int, int]) -> tuple[int, int]:
+    """A sample-count argument as a pair of positive ints.
+
+    ``None`` gives ``default``, an int ``k`` gives ``(k, default[1])``, a pair is taken as is.
+    """
+    pair = default if value is None else (value, default[1]) if isinstance(value, numbers.Integral) else value
+    if (
+        not isinstance(pair, Sequence)
+        or len(pair) != 2
+        or not all(isinstance(k, numbers.Integral) and not isinstance(k, bool) and int(k) >= 1 for k in pair)
+    ):
+        raise ValueError(f"{name}: expected a positive int or a pair of positive ints, got {excerpt(value)}")
+    return int(pair[0]), int(pair[1])
+
+
 def check_nonnegative(name: str, t: Tensor | float) -> None:
     """Raise if ``t`` has a negative entry (reads data)."""
     if isinstance(t, Tensor):

@@ -104,6 +104,18 @@ def test_bad_method_and_sampler():
         A.directional_albedo(lambda l, v, n, x=None, y=None: l[..., :1], 0.1, "mc", sampler="ggx")
 
 
+@pytest.mark.parametrize("samples", [0, -3, (16, 0), (16,), (2.5, 96), "many", True])
+def test_sample_counts_must_be_positive_ints(samples):
+    for call in (
+        lambda: A.directional_albedo(lambert, 0.1, samples=samples, base_color=0.5),
+        lambda: A.directional_albedo(lambert, 0.1, "mc", samples=samples, base_color=0.5),
+        lambda: A.weak_white_furnace("ggx", samples=samples),
+        lambda: A.reciprocity_error(lambert, samples, base_color=0.5),
+    ):
+        with pytest.raises(ValueError, match="samples: expected a positive int or a pair"):
+            call()
+
+
 # --------------------------------------------------------------------------------------
 # Furnace tests and reciprocity
 # --------------------------------------------------------------------------------------

@@ -192,6 +192,15 @@ def test_file_errors_name_the_file(tmp_path):
     assert not (tmp_path / "w.binary").exists()
 
 
+def test_from_table_refuses_nonfinite_values_unless_allowed():
+    table = torch.full((3, *MERL_RES), 0.2, dtype=F64)
+    table[1, 4, 5, 6] = float("nan")
+    with pytest.raises(ValueError, match=r"values: contains 1 non-finite value.*\(1, 4, 5, 6\)"):
+        MERLBRDF.from_table(table)
+    kept = MERLBRDF.from_table(table, allow_nonfinite=True)
+    assert torch.isnan(kept.table[1, 4, 5, 6]) and float(kept.table[0, 4, 5, 6]) == pytest.approx(0.2)
+
+
 # --------------------------------------------------------------------------------------
 # Coordinates
 # --------------------------------------------------------------------------------------

@@ -51,6 +51,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchbrdf._checks import sample_counts
 from torchbrdf._types import BRDF, Angles, Device
 from torchbrdf.analysis import slices as _slices
 from torchbrdf.brdf.distributions import ndf_beckmann, ndf_ggx
@@ -447,23 +448,13 @@ def directional_albedo(
         alpha_hint = lobe_alpha_hint({**getattr(brdf, "params", {}), **params})
     hint = alpha_hint
     if method == "quadrature":
-        if samples is None:
-            n_theta, n_phi = 16, 96
-        elif isinstance(samples, numbers.Integral):
-            n_theta, n_phi = int(samples), 96
-        else:  # a pair (the cast: mypy does not narrow by numbers.Integral)
-            n_theta, n_phi = (int(s) for s in cast("tuple[int, int]", samples))
+        n_theta, n_phi = sample_counts("samples", samples, (16, 96))
         a = hint if hint is not None else DEFAULT_QUADRATURE_ALPHA
         fine = _albedo_rule(f, v, a, n_theta, n_phi)
         coarse = _albedo_rule(f, v, a, max(n_theta // 2, 1), max(n_phi // 2, 4))
         est = Estimate(fine, (fine - coarse).abs())
     elif method == "mc":
-        if samples is None:
-            n = 4096
-        elif isinstance(samples, numbers.Integral):
-            n = int(samples)
-        else:
-            n = int(cast("tuple[int, int]", samples)[0])
+        n = sample_counts("samples", samples, (4096, 1))[0]
         all_params = {**getattr(brdf, "params", {}), **params}
         a_cc = clearcoat_alpha(all_params)
         ggx_alpha = hint
@@ -614,8 +605,9 @@ def weak_white_furnace(
             res.append((g1(nz, alpha) / nz).reshape(()) * (d * oh * w).sum())
         return torch.stack(res)
 
-    fine = rule(*samples)
-    coarse = rule(max(samples[0] // 2, 1), max(samples[1] // 2, 4))
+    n_theta, n_phi = sample_counts("samples", samples, (24, 128))
+    fine = rule(n_theta, n_phi)
+    coarse = rule(max(n_theta // 2, 1), max(n_phi // 2, 4))
     return Estimate(fine, (fine - coarse).abs())
 
 
@@ -654,7 +646,8 @@ def reciprocity_error(
         d = torch.nn.functional.normalize(d, dim=-1)
         return torch.cat((d[:, :2], d[:, 2:3].abs()), -1)
 
-    l, v = hemi(samples), hemi(samples)
+    count = sample_counts("samples", samples, (4096, 1))[0]
+    l, v = hemi(count), hemi(count)
     a, b = _eval(f, l, v), _eval(f, v, l)
     diff = (a - b).abs()
     rel = diff / (torch.maximum(a.abs(), b.abs()) + floor)

@@ -426,11 +426,17 @@ class MERLBRDF(nn.Module):
         return cls(torch.from_numpy(_read_stored(path, allow_nonfinite)), name=Path(path).stem)
 
     @classmethod
-    def from_table(cls, values: Tensor, name: str | None = None) -> MERLBRDF:
-        """Build from reflectance values ``(3, 90, 90, 180)`` (as :func:`read_merl` returns)."""
+    def from_table(cls, values: Tensor, name: str | None = None, *, allow_nonfinite: bool = False) -> MERLBRDF:
+        """Build from reflectance values ``(3, 90, 90, 180)`` (as :func:`read_merl` returns).
+
+        A table holding NaN or inf is refused, as :func:`read_merl` refuses such a file, unless
+        ``allow_nonfinite`` is set.
+        """
         values = torch.as_tensor(values)
         if tuple(values.shape) != (3, *MERL_RES):
             raise ValueError(f"values: expected a (3, 90, 90, 180) table, got {tuple(values.shape)}")
+        if not allow_nonfinite:
+            _checks.check_finite({"values": values})
         scale = torch.tensor(MERL_SCALE, dtype=torch.float64, device=values.device)[:, None, None, None]
         return cls(values.to(torch.float64) / scale, name=name)
 
