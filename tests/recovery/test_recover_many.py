@@ -191,6 +191,26 @@ def test_interrupted_capture_is_resumed(good, single, tmp_path):
         torch.testing.assert_close(got, single["cap0"][k], rtol=1e-5, atol=1e-6)
 
 
+def test_learned_prior_reaches_every_fit_and_a_rerun_with_another_prior_recovers_again(good, tmp_path, capsys):
+    """--prior as the single command: the same maps as recover(prior=...); skip only for the same prior."""
+    out, cfg = tmp_path / "out", RecoveryConfig(**CFG, threads=1)
+    assert main(["--captures", str(good[0]), "--out", str(out), "--no-ray", "--quiet", "--iters", "5",
+                 "--seed", "3", "--prior", "default"]) == 0
+    recover(good[0], cfg, tmp_path / "single", progress=False, prior="default")
+    for k in MAPS:
+        torch.testing.assert_close(read_exr(out / "cap0" / f"{k}.exr"), read_exr(tmp_path / "single" / f"{k}.exr"))
+    assert "learned_prior" in json.loads((out / "cap0" / "report.json").read_text())
+    rows = run_batch(good[:1], out, RecoveryConfig(**CFG), use_ray=False, progress=False, prior="default")
+    assert _status(rows) == {"cap0": "skipped"}
+    rows = run_batch(good[:1], out, RecoveryConfig(**CFG), use_ray=False, progress=False)
+    assert _status(rows) == {"cap0": "done"}  # made with a prior: not this fit
+    assert "learned_prior" not in json.loads((out / "cap0" / "report.json").read_text())
+    missing = tmp_path / "nothing.pt"
+    assert main(["--captures", str(good[0]), "--out", str(tmp_path / "o"), "--no-ray", "--quiet",
+                 "--prior", str(missing)]) == 2
+    assert f"error: --prior {missing}:" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 def test_cli_options_and_exit_status(captures, tmp_path):
     """The single CLI's recovery flags pass through; exit status 1 when a capture failed."""
     args = _parser().parse_args(["--captures", "x", "--out", "o", "--iters", "7", "--seed", "4", "--model",

@@ -61,7 +61,7 @@ from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
 from torchbrdf.recovery.engine import CHECKPOINT, Recovery, psnr
 from torchbrdf.recovery.prior import LearnedPrior, Prior, estimator_errors, prior_maps_at
 
-__all__ = ["recover", "save_checkpoint", "map_errors", "fractional_metallic_fraction"]
+__all__ = ["recover", "save_checkpoint", "map_errors", "fractional_metallic_fraction", "learned_prior_checksum"]
 
 
 def _finite_maps(maps: dict) -> dict:
@@ -196,7 +196,7 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
     if prior is not None:
         learned = _learned_prior(prior, cap, cfg.size or max(cap.width, cap.height))
         # a checkpoint made with another prior (or none) is another fit
-        fingerprint["settings"]["learned_prior"] = state_checksum(learned.maps, [], torch.zeros(0))
+        fingerprint["settings"]["learned_prior"] = _prior_checksum(learned)
     if resume and out is None:
         raise RecoveryError("--resume needs --out (the folder holding checkpoint.pt)")
     for warning in capture_warnings:
@@ -232,6 +232,33 @@ def _check_argument_types(capture: object, config: object, out: object, gt: obje
     for name, value in (("out", out), ("gt", gt)):
         if value is not None and not isinstance(value, (str, os.PathLike)):
             raise TypeError(f"recover: {name} must be a folder path (str or os.PathLike), got {type(value).__name__}")
+
+
+def learned_prior_checksum(prior: Prior | PathLike, capture: PathLike | Capture,
+                           config: RecoveryConfig | Settings | None = None) -> str:
+    """What a fit of ``capture`` with ``prior`` records as ``learned_prior`` in its settings fingerprint.
+
+    The checksum of the network's maps at the working size: a finished fit made with another
+    prior (or none) carries another value (or none), so a batch can tell it is not this fit.
+
+    Args:
+        prior, capture: as in :func:`recover`.
+        config: the fit's settings (its ``device`` and ``size``); default :class:`RecoveryConfig`.
+
+    Raises:
+        RecoveryError: an unreadable capture, or a ``prior`` :func:`recover` would refuse.
+    """
+    cfg = settings_of(config if config is not None else RecoveryConfig())
+    try:
+        cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    except (OSError, ValueError) as e:
+        raise RecoveryError(str(e)) from e
+    cap = cap.to(device=cfg.device, dtype=torch.float32)
+    return _prior_checksum(_learned_prior(prior, cap, cfg.size or max(cap.width, cap.height)))
+
+
+def _prior_checksum(learned: LearnedPrior) -> str:
+    return state_checksum(learned.maps, [], torch.zeros(0))
 
 
 def _learned_prior(prior: Prior | PathLike, cap: Capture, size: int) -> LearnedPrior:

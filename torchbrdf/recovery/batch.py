@@ -14,6 +14,8 @@ recovery) and writes ``OUT/summary.json``, ``OUT/summary.csv`` and ``OUT/overvie
   others from their checkpoints. A task whose worker dies is retried (``--retries``, Ray's
   ``max_retries``; exceptions raised by the recovery itself are not retried). A capture that
   fails on its own (a bad file) is recorded with a one-line error; the batch goes on.
+- ``--prior PATH|default`` gives every fit the learned prior (as the single command); a rerun
+  with another prior, or none, recovers again.
 - Ctrl-C cancels the outstanding tasks, writes the summary and leaves every finished capture
   intact (the interrupted ones keep their checkpoints for the next run).
 
@@ -44,6 +46,7 @@ from torchbrdf.io import file_in_the_way
 from torchbrdf.recovery.checkpoint import digest, folder_fingerprint, settings_fingerprint
 from torchbrdf.recovery.checks import RecoveryError
 from torchbrdf.recovery.outputs import OutputBusyError
+from torchbrdf.recovery.prior import Prior
 from torchbrdf.recovery.config import RecoveryConfig, Settings
 
 __all__ = ["find_captures", "is_complete", "recover_capture", "run_batch", "write_summary", "write_overview",
@@ -106,12 +109,14 @@ def _read_report(out_dir: Path) -> dict | None:
 
 
 def is_complete(out_dir: PathLike, capture: PathLike | None = None,
-                cfg: RecoveryConfig | None = None) -> bool:
+                cfg: RecoveryConfig | None = None, prior: Prior | PathLike | None = None) -> bool:
     """Whether ``out_dir`` holds a finished recovery of ``capture`` with the settings ``cfg``.
 
     That is a ``report.json`` with ``"completed": true`` whose fingerprint matches the
     capture folder's current contents and the settings' result-changing fields (when
     ``capture`` / ``cfg`` are given): a capture changed since, or other settings, are not done.
+    With ``cfg``, a fit made with another learned prior than ``prior`` (``None``: none) is not
+    done either; checking that runs the prior's network on ``capture``.
     """
     rep = _read_report(Path(out_dir))
     if not (rep and rep.get("completed") is True):
@@ -121,7 +126,18 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None,
         now = folder_fingerprint(capture)
         if now is None or fingerprint.get("capture_sha256") != digest(now):
             return False
-    return cfg is None or fingerprint.get("settings") == settings_fingerprint(cfg)
+    if cfg is None:
+        return True
+    settings = fingerprint.get("settings") or {}
+    if prior is None or "learned_prior" not in settings or capture is None:
+        return prior is None and settings == settings_fingerprint(cfg)
+    from torchbrdf.recovery.api import learned_prior_checksum
+
+    try:
+        wanted = {**settings_fingerprint(cfg), "learned_prior": learned_prior_checksum(prior, capture, cfg)}
+    except RecoveryError:  # a prior this capture cannot take: the task reports why
+        return False
+    return settings == wanted
 
 
 # --------------------------------------------------------------------------------------
@@ -129,7 +145,8 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None,
 # --------------------------------------------------------------------------------------
 
 
-def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, resume: bool) -> None:
+def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, resume: bool,
+                prior: Prior | PathLike | None) -> None:
     """The one call into the single-capture API; its outputs (``out/report.json``) are the result.
 
     ``out`` belongs to this batch, so a lock on it is a cancelled task's worker that has not
@@ -140,7 +157,7 @@ def _run_single(capture: Path, out: Path, cfg: RecoveryConfig, gt: Path | None, 
     deadline = time.monotonic() + LOCK_WAIT_SECONDS
     while True:
         try:
-            recover(capture, cfg, out, gt=gt, resume=resume, progress=False)
+            recover(capture, cfg, out, gt=gt, resume=resume, progress=False, prior=prior)
             return
         except OutputBusyError:
             if time.monotonic() > deadline:
@@ -223,7 +240,7 @@ def _gt_folder(capture: Path, gt_name: str | None) -> Path | None:
 
 
 def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, gt_name: str | None = "gt", threads: int = 1,
-                    force: bool = False) -> dict:
+                    force: bool = False, prior: Prior | PathLike | None = None) -> dict:
     """Recover one capture into ``out_root/<capture name>/``; the body of each Ray task.
 
     Skips a completed output (unless ``force``), resumes from a checkpoint when there is one,
@@ -238,7 +255,7 @@ def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, 
     _import_before_interrupts()
     capture, out_root = Path(capture), Path(out_root)
     name, out = capture.name, Path(out_root) / capture.name
-    if not force and is_complete(out, capture, cfg):
+    if not force and is_complete(out, capture, cfg, prior):
         return _row(name, capture, out, "skipped")
     _kill_hook()
     torch.set_num_threads(max(1, int(threads)))
@@ -247,7 +264,7 @@ def recover_capture(capture: PathLike, out_root: PathLike, cfg: RecoveryConfig, 
     # (recover() starts from scratch, with a log line, when there is none).
     resume = not force and out.is_dir()
     try:
-        _run_single(capture, out, cfg, _gt_folder(capture, gt_name), resume)
+        _run_single(capture, out, cfg, _gt_folder(capture, gt_name), resume, prior)
     except Exception as e:  # the capture's own failure: record it, keep the batch going
         if isinstance(e, (ValueError, OSError, RecoveryError)):  # bad input: the message says what and why
             print(f"{name}: {_one_line(e)}", file=sys.stderr)
@@ -275,7 +292,7 @@ def _import_ray():
 def run_batch(captures: Iterable[PathLike], out: PathLike, cfg: RecoveryConfig | None = None, *, address: str | None = None,
               workers: int = 1, threads_per_task: int = 1, gpus_per_task: float = 0.0, retries: int = 3,
               gt_name: str | None = "gt", force: bool = False, use_ray: bool = True, progress: bool = True,
-              log: Callable[[str], None] | None = None) -> list[dict]:
+              log: Callable[[str], None] | None = None, prior: Prior | PathLike | None = None) -> list[dict]:
     """Recover every capture into ``out/<name>/``; write the summary files and the overview.
 
     Args:
@@ -293,6 +310,8 @@ def run_batch(captures: Iterable[PathLike], out: PathLike, cfg: RecoveryConfig |
         use_ray: ``False`` runs sequentially in-process; so does a missing Ray (logged).
         progress: tqdm bar over captures, with ETA.
         log: where one-line messages go (default: stderr).
+        prior: the learned prior of every fit, as in :func:`~torchbrdf.recovery.recover`
+            (``"default"`` picks the shipped one per capture's light count); ``None``: none.
 
     Returns:
         The summary rows, in the order of ``captures``. Also written to ``out/summary.json``
@@ -320,17 +339,17 @@ def run_batch(captures: Iterable[PathLike], out: PathLike, cfg: RecoveryConfig |
     # Completed captures are skipped here, without a task.
     todo = []
     for i, c in enumerate(dirs):
-        if not force and is_complete(out / c.name, c, cfg):
+        if not force and is_complete(out / c.name, c, cfg, prior):
             rows[i] = _row(c.name, c, out / c.name, "skipped")
             bar.update(1)
         else:
             todo.append(i)
     try:
         if ray is None:
-            _run_sequential(dirs, todo, out, cfg, gt_name, threads_per_task, force, rows, bar)
+            _run_sequential(dirs, todo, out, cfg, gt_name, threads_per_task, force, rows, bar, prior)
         else:
             _run_ray(ray, dirs, todo, out, cfg, gt_name, address, workers, threads_per_task,
-                     gpus_per_task, retries, force, rows, bar, log)
+                     gpus_per_task, retries, force, rows, bar, log, prior)
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -352,18 +371,18 @@ def run_batch(captures: Iterable[PathLike], out: PathLike, cfg: RecoveryConfig |
     return result
 
 
-def _run_sequential(captures, todo, out, cfg, gt_name, threads, force, rows, bar):
+def _run_sequential(captures, todo, out, cfg, gt_name, threads, force, rows, bar, prior):
     for i in todo:
         c = captures[i]
         bar.set_postfix_str(c.name)
-        rows[i] = recover_capture(c, out, cfg, gt_name, threads, force)
+        rows[i] = recover_capture(c, out, cfg, gt_name, threads, force, prior)
         bar.update(1)
         if rows[i]["status"] == "interrupted":  # recover() turned Ctrl-C into a clean stop
             raise KeyboardInterrupt
 
 
 def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, gpus, retries, force,
-             rows, bar, log):
+             rows, bar, log, prior):
     started_here = not ray.is_initialized()
     address = address or os.environ.get("RAY_ADDRESS")  # as ray.init() itself would
     if started_here:
@@ -377,7 +396,8 @@ def _run_ray(ray, captures, todo, out, cfg, gt_name, address, workers, threads, 
     task = ray.remote(recover_capture).options(
         name="recover_capture", num_cpus=max(1, threads), num_gpus=gpus, max_retries=max(0, retries),
         retry_exceptions=False, runtime_env={"env_vars": env} if env else None)
-    pending = {task.remote(str(captures[i]), str(out), cfg, gt_name, threads, force): i for i in todo}
+    prior = str(prior) if isinstance(prior, os.PathLike) else prior
+    pending = {task.remote(str(captures[i]), str(out), cfg, gt_name, threads, force, prior): i for i in todo}
     try:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
@@ -536,7 +556,7 @@ def _parser() -> argparse.ArgumentParser:
     rec = p.add_argument_group("recovery options (as python -m training.recover_svbrdf)")
     fields = {f.name for f in dataclasses.fields(Settings)} - _NOT_PASSED
     for action in single_parser()._actions:
-        if action.dest in fields or action.dest in OFF_SWITCHES or action.dest == "schedule":
+        if action.dest in fields or action.dest in OFF_SWITCHES or action.dest in ("schedule", "prior"):
             rec._add_action(action)
     return p
 
@@ -569,12 +589,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     if (blocked := file_in_the_way(args.out)) is not None:
         print(f"error: --out {args.out}: {blocked} is a file, not a folder", file=sys.stderr)
         return 2
+    if args.prior not in (None, "default"):  # one refusal up front, not one failure per capture
+        try:
+            Prior.from_file(args.prior)
+        except (OSError, ValueError) as e:
+            print(f"error: --prior {args.prior}: {_one_line(e)}", file=sys.stderr)
+            return 2
     t0 = time.perf_counter()
     try:
         rows = run_batch(captures, args.out, config_from_args(args), address=args.address,
                          workers=args.workers, threads_per_task=args.threads_per_task,
                          gpus_per_task=args.gpus_per_task, retries=args.retries, gt_name=args.gt_name,
-                         force=args.force, use_ray=not args.no_ray, progress=not args.quiet)
+                         force=args.force, use_ray=not args.no_ray, progress=not args.quiet,
+                         prior=args.prior)
     except KeyboardInterrupt:
         print("interrupted: finished captures are intact; rerun the command to continue", file=sys.stderr)
         return 130
