@@ -91,6 +91,38 @@ def test_triton_light_loop_matches_per_light_eager(dtype, tol, light_loop_kernel
         torch.testing.assert_close(a, b, rtol=tol, atol=tol)
 
 
+def _shade_ggx(backend, dtype, size=12):
+    from torchbrdf.brdf.svbrdf_ggx import SVBRDFGGX
+    from torchbrdf.render.geometry import sphere_gbuffer
+
+    g = torch.Generator().manual_seed(6)
+    maps = {"diffuse_albedo": torch.rand(1, 3, size, size, generator=g, dtype=dtype),
+            "specular_albedo": 0.9 * torch.rand(1, 3, size, size, generator=g, dtype=dtype),
+            "roughness": 0.1 + 0.8 * torch.rand(1, 1, size, size, generator=g, dtype=dtype)}
+    for t in maps.values():
+        t.requires_grad_()
+    gb = sphere_gbuffer(size, size, dtype=dtype)
+    gb = torchbrdf.GBuffer(position=gb.position, normal=gb.normal, camera_position=gb.camera_position,
+                           material=maps)
+    old = backend_mod.get_backend()
+    torchbrdf.set_backend(backend)
+    try:
+        img = torchbrdf.shade(gb, _lights(dtype), SVBRDFGGX(roughness_floor=0.05))
+        img.backward(torch.linspace(-1.0, 2.0, img.numel(), dtype=dtype).reshape(img.shape))
+    finally:
+        torchbrdf.set_backend(old)
+    return (img.detach(), *(t.grad for t in maps.values()))
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-11), (torch.float32, 2e-5)])
+def test_triton_light_loop_of_the_svbrdf_ggx(dtype, tol, light_loop_kernels):
+    got = _shade_ggx("triton", dtype)
+    assert light_loop_kernels.count("fwd") >= 1 and light_loop_kernels.count("bwd") >= 1
+    ref = _shade_ggx("eager", dtype)
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+
+
 def test_triton_light_loop_per_image_lights(light_loop_kernels):
     # lights that differ between the images of a batch: one launch (uniform row) per image
     got = _shade("triton", torch.float64, batch=2, size=8)

@@ -209,6 +209,50 @@ def test_other_brdfs_stay_eager():
     assert not uses_fused(g, points(dtype), torchbrdf.lambert)
 
 
+def ggx_scene(dtype, uniform_specular=False):
+    """``scene``'s geometry with SVBRDF GGX maps (a 0-d specular albedo when ``uniform_specular``)."""
+    g, leaves = scene(dtype, params=())
+    b, _, h, w = g.position.shape
+    specular = (torch.tensor(0.04, dtype=dtype) if uniform_specular
+                else rand(b, 3, h, w, seed=41, dtype=dtype, lo=0.02, hi=0.9))
+    mat = {"diffuse_albedo": rand(b, 3, h, w, seed=40, dtype=dtype).requires_grad_(),
+           "specular_albedo": specular.requires_grad_(),
+           "roughness": rand(b, 1, h, w, seed=42, dtype=dtype, lo=0.05, hi=0.95).requires_grad_()}
+    leaves = {"position": leaves["position"], "normal": leaves["normal"], **mat}
+    return GBuffer(g.position, g.normal, g.camera_position, mat), leaves
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("floor", [None, ("roughness_floor", 0.3), ("alpha_floor", 0.2)])
+def test_svbrdf_ggx_takes_the_light_loop(dtype, floor):
+    """The SVBRDF GGX (function or module, each floor) shades through the light-loop kernel, as its per-light passes."""
+    from torchbrdf.brdf.svbrdf_ggx import SVBRDFGGX, svbrdf_ggx
+
+    brdf = svbrdf_ggx if floor is None else SVBRDFGGX(**dict([floor]))
+    for uniform in (False, True):
+        g, leaves = ggx_scene(dtype, uniform_specular=uniform)
+        lights = points(dtype, 2) + dirs(dtype, 1)
+        assert uses_fused(g, lights, brdf)
+        both(g, leaves, lights, brdf)
+
+
+def test_svbrdf_ggx_subclasses_and_foreign_inputs_take_per_light_passes():
+    from torchbrdf.brdf.svbrdf_ggx import SVBRDFGGX, svbrdf_ggx
+
+    class Tinted(SVBRDFGGX):
+        def forward(self, *args, **kw):
+            return 2.0 * super().forward(*args, **kw)
+
+    g, _ = ggx_scene(torch.float64)
+    lights = points(torch.float64, 2)
+    assert not uses_fused(g, lights, Tinted())
+    torchbrdf.set_fast_path(True)
+    torch.testing.assert_close(shade(g, lights, Tinted()), 2.0 * shade(g, lights, svbrdf_ggx))
+    g.material["alpha_floor"] = 0.3  # a floor in the material: the per-light passes apply it
+    assert not uses_fused(g, lights, svbrdf_ggx)
+    torch.testing.assert_close(shade(g, lights, svbrdf_ggx), shade(g, lights, SVBRDFGGX(alpha_floor=0.3)))
+
+
 def test_one_definition_changes_both_paths(monkeypatch):
     """Doubling the point-light term in brdf/formula.py doubles the eager and the fused image."""
     dtype = torch.float64

@@ -1,12 +1,12 @@
-"""Code generation for fused shading: geometry, principled BRDF and the sum over lights in one loop.
+"""Code generation for fused shading: geometry, a BRDF and the sum over lights in one loop.
 
 C (:func:`generate`) and Triton (:func:`generate_triton`) print the same light-loop schedule
 (:func:`schedule`, printed by :mod:`.light_loop`).
 
 :func:`generate` traces :func:`torchbrdf.brdf.formula.view_direction` and the per-light terms
 :func:`~torchbrdf.brdf.formula.point_light` / :func:`~torchbrdf.brdf.formula.directional_light`
-(with :func:`~torchbrdf.brdf.formula.principled` as the BRDF) into ONE graph whose inputs are
-of three kinds:
+(with :func:`~torchbrdf.brdf.formula.principled` or :func:`~torchbrdf.brdf.formula.svbrdf_ggx` as
+the BRDF, ``ShadeSpec.family``) into ONE graph whose inputs are of three kinds:
 
 * per-pixel loads (``px``): position, normal, tangent frame, material maps (and, in the
   backward, the output gradient);
@@ -62,7 +62,7 @@ from torchbrdf.kernels.light_loop import Layout, LightLoop, LoopSchedule, flags,
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, reverse
 
 __all__ = ["ShadeSpec", "LoopSchedule", "schedule", "generate", "generate_triton", "LIGHT_KINDS",
-           "LIGHT_STRIDE"]
+           "LIGHT_STRIDE", "FAMILIES"]
 
 LIGHT_KINDS = ("point", "directional")
 LIGHT_STRIDE = 6  # uniforms per light: position/direction (3), intensity/irradiance (3)
@@ -70,7 +70,9 @@ CAMERA = 3  # uniforms before the lights: the camera position
 # Pixels per block: the pre-loop's boundary values and the backward's adjoint accumulators
 # live in stack arrays of this length (~60 arrays × 128 × 8 B ≈ 60 KiB, L2-resident).
 BLOCK = 128
-_FORMULA_FUNCS = ("normalize", "view_direction", "point_light", "directional_light", "principled")
+_FORMULA_FUNCS = ("normalize", "view_direction", "point_light", "directional_light", "principled", "svbrdf_ggx")
+#: The BRDFs the light loop traces, by family name.
+FAMILIES = ("principled", "svbrdf_ggx")
 
 
 def formula_token() -> tuple:
@@ -87,7 +89,8 @@ class ShadeSpec:
     parameters passed as runtime floats; ``lights``: the light kinds present (each gets its
     loop); ``grad_mask``: backward, the inputs whose gradient is wanted; ``normalize_n``: ``n`` is the
     raw normal, normalised in the kernel; ``go_mode``: the output gradient's layout;
-    ``uniform_grad``: backward, also the gradient w.r.t. the uniform row (camera and lights).
+    ``uniform_grad``: backward, also the gradient w.r.t. the uniform row (camera and lights);
+    ``family``: the BRDF (:data:`FAMILIES`).
     """
 
     def __init__(
@@ -103,8 +106,12 @@ class ShadeSpec:
         normalize_n: bool = False,
         go_mode: str = "full",
         uniform_grad: bool = False,
+        family: str = "principled",
     ) -> None:
+        if family not in FAMILIES:
+            raise ValueError(f"family: expected one of {FAMILIES}, got {family!r}")
         self.ctype = ctype
+        self.family = family
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
         self.floats = tuple(floats)
@@ -130,6 +137,7 @@ class ShadeSpec:
             self.frame,
             self.lights,
             self.normalize_n,
+            self.family,
             formula_token(),
         )
         return base + (("bwd", self.grad_mask, self.go_mode, self.uniform_grad) if backward else ("fwd",))
@@ -170,8 +178,10 @@ def _trace(spec: ShadeSpec):
         cam = Vec3(_in("cam", grad=spec.uniform_grad, c=c) for c in range(3))
         inp["v"] = formula.view_direction(ops, cam, pos)
 
+        family = getattr(formula, spec.family)
+
         def brdf(l):
-            return formula.principled(ops, {**inp, "l": l}, spec.active, spec.need_tint, spec.frame)
+            return family(ops, {**inp, "l": l}, spec.active, spec.need_tint, spec.frame)
 
         outs = {}
         uniforms = {}

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from torchbrdf.kernels.codegen_c import CHUNK_BLOCKS, PRELUDE, Emitter, lit
+from torchbrdf.kernels.codegen_c import CHUNK_BLOCKS, EXP2_PRELUDE, PRELUDE, Emitter, lit
 from torchbrdf.kernels.trace import Graph, Node, live_order
 
 __all__ = ["LoopSchedule", "Layout", "LightLoop", "flags", "loop_nodes", "acc_input", "print_c",
@@ -269,7 +269,7 @@ def print_c(ctype: str, sch: LoopSchedule, lay: Layout, decl: Sequence[str], sig
 
     B = lay.block
     src = [
-        PRELUDE,
+        PRELUDE + (EXP2_PRELUDE if any(nd.op == "exp2" for nd in g.nodes) else ""),
         f"typedef {ctype} R;",
         "#define SQRT_R(x) " + ("__builtin_sqrtf(x)" if ctype == "float" else "__builtin_sqrt(x)"),
         sig + " {",

@@ -18,8 +18,10 @@ camera and the lights, per segment): the kernel sums each uniform's per-pixel gr
 blocks of pixels, and the blocks' partial sums (float64, one row per block) are added by torch,
 so the result is deterministic.
 
-``cfg`` = ``"tensor names|float names|lobes|tint|frame|normalize n|Lp|Ld"`` (normalize n: ``n``
-is the raw normal and the kernel normalises it, as the eager shader does). Autograd is registered on
+``cfg`` = ``"tensor names|float names|lobes|tint|frame|normalize n|Lp|Ld[|backend[|family]]"``
+(normalize n: ``n`` is the raw normal and the kernel normalises it, as the eager shader does;
+family: the BRDF, ``principled`` unless given, or ``svbrdf_ggx``, whose maps are
+``diffuse_albedo``, ``specular_albedo``, ``roughness`` and whose floor is a float). Autograd is registered on
 the forward op (what ``torch.compile`` traces). If a kernel cannot be built, the ops evaluate
 the same formula (:mod:`torchbrdf.brdf.formula`) eagerly.
 """
@@ -41,16 +43,18 @@ from torchbrdf.kernels.layout import SCALAR_NAMES, dparams, flatten, ptrs, to_sh
 
 __all__ = ["shade_lights", "make_cfg", "TENSOR_ORDER"]
 
-#: The order of the per-pixel inputs (those present).
-TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES
+#: The order of the per-pixel inputs (those present): the principled BRDF's, then the SVBRDF GGX's.
+TENSOR_ORDER = ("pos", "n", "x", "y", "base_color") + SCALAR_NAMES + (
+    "diffuse_albedo", "specular_albedo", "alpha_floor", "roughness_floor")
 
 
 def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: Iterable[str], need_tint: bool,
-             frame: bool, normalize_n: bool, n_point: int, n_dir: int, backend: str = "c") -> str:
+             frame: bool, normalize_n: bool, n_point: int, n_dir: int, backend: str = "c",
+             family: str = "principled") -> str:
     """The ``cfg`` string of the shading operators (what changes the kernel, as text).
 
     ``backend``: ``"c"`` (the C kernels, CPU tensors) or ``"triton"`` (CUDA tensors, or CPU
-    tensors under ``TRITON_INTERPRET=1``).
+    tensors under ``TRITON_INTERPRET=1``); ``family``: the BRDF (``codegen_shade.FAMILIES``).
     """
     parts = [
         ",".join(tensor_names),
@@ -62,13 +66,15 @@ def make_cfg(tensor_names: Iterable[str], float_names: Iterable[str], active: It
         str(int(n_point)),
         str(int(n_dir)),
     ]
-    return "|".join(parts + ([backend] if backend != "c" else []))
+    tail = [backend, family] if family != "principled" else [backend] if backend != "c" else []
+    return "|".join(parts + tail)
 
 
 class _Plan:
     def __init__(self, cfg: str, tensors, floats):
         tn, fn, act, tint, frame, nrm, lp, ld, *rest = cfg.split("|")
         self.backend = rest[0] if rest else "c"
+        self.family = rest[1] if len(rest) > 1 else "principled"
         self.tensor_names = tn.split(",") if tn else []
         self.float_names = fn.split(",") if fn else []
         self.active = tuple(act.split(",")) if act else ()
@@ -99,6 +105,7 @@ class _Plan:
             self.normalize_n,
             go_mode,
             uniform_grad,
+            self.family,
         )
 
     def params(self):
@@ -132,8 +139,8 @@ def _formula_eager(plan: _Plan, tensors, floats, uniforms: Tensor, seg) -> Tenso
         n = c["n"]
         c["v"] = formula.view_direction(ops, u[:CAMERA], pos)
 
-        def brdf(l, c=c):
-            return formula.principled(ops, {**c, "l": l}, plan.active, plan.need_tint, plan.frame)
+        def brdf(l, c=c, family=getattr(formula, plan.family)):
+            return family(ops, {**c, "l": l}, plan.active, plan.need_tint, plan.frame)
 
         acc = torch.zeros(e - s, 3, dtype=plan.dtype, device=pos.device)
         for j in range(plan.n_point + plan.n_dir):
@@ -456,16 +463,20 @@ def shade_lights(
     n_point: int,
     n_dir: int,
     backend: str = "c",
+    family: str = "principled",
 ) -> Tensor:
     """Fused shading of ``P`` points on compute-dtype inputs.
 
     Args:
-        c: ``pos``, ``n`` ``(P, 3)``; ``x, y`` ``(P, 3)`` when ``frame``; ``base_color`` and
-            the ten scalar parameters (tensors ``(P, C)`` / 0-d, or Python numbers).
+        c: ``pos``, ``n`` ``(P, 3)``; ``x, y`` ``(P, 3)`` when ``frame``; the BRDF's material:
+            principled, ``base_color`` and the ten scalar parameters; ``svbrdf_ggx``,
+            ``diffuse_albedo``, ``specular_albedo``, ``roughness`` and one floor (tensors
+            ``(P, C)`` / 0-d, or Python numbers; a floor is a number).
         uniforms: ``(S, 3 + 6 (n_point + n_dir))`` (see the module docstring); ``seg``: ``S + 1``
             point offsets.
         backend: ``"c"`` (CPU tensors) or ``"triton"`` (CUDA tensors; CPU tensors under
             ``TRITON_INTERPRET=1``).
+        family: the BRDF, ``"principled"`` or ``"svbrdf_ggx"``.
 
     Returns:
         ``(P, 3)`` radiance summed over the lights, on the inputs' device.
@@ -475,7 +486,8 @@ def shade_lights(
     float_names = [k for k in names if k not in tensor_names]
     tensors = [c[k] if c[k].dim() > 0 else c[k].reshape(1) for k in tensor_names]
     floats = [float(c[k]) for k in float_names]
-    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir, backend)
+    cfg = make_cfg(tensor_names, float_names, active, need_tint, frame, normalize_n, n_point, n_dir, backend,
+                   family)
     seg = [int(s) for s in seg]
     if not torch.compiler.is_compiling() and torch._C._are_functorch_transforms_active():
         return _ShadeLightsFunction.apply(uniforms, seg, cfg, floats, *tensors)

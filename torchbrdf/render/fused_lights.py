@@ -1,7 +1,7 @@
 """The fused route of the shader: every point and directional light in one kernel pass per chunk.
 
-With the principled BRDF on CPU, :func:`fused_lights_term` evaluates all point and
-directional lights through ONE fused kernel (the ``torchbrdf::shade_lights_fwd`` operator),
+With the principled BRDF or the SVBRDF GGX (:func:`light_loop_brdf`), :func:`fused_lights_term`
+evaluates all point and directional lights through ONE fused kernel (the ``torchbrdf::shade_lights_fwd`` operator),
 forward and recompute-backward, generated from the same per-light formula the eager passes
 run (:func:`torchbrdf.brdf.formula.point_light`, ``directional_light``), including the gradients
 w.r.t. the light parameters and the camera (the uniform table's gradient).
@@ -20,12 +20,39 @@ from torchbrdf.brdf.principled import PRINCIPLED_DEFAULTS
 from torchbrdf.render.gbuffer import GBuffer
 from torchbrdf.render.lights import DirectionalLight, PointLight
 
-__all__ = ["fused_lights_wanted", "uniform_table", "fused_lights_term"]
+__all__ = ["light_loop_brdf", "fused_lights_wanted", "uniform_table", "fused_lights_term"]
+
+#: Each light-loop BRDF's material inputs and the channel counts the kernel reads for each.
+_MATERIAL_CHANNELS = {
+    "principled": {"base_color": (1, 3), **{k: (1,) for k in PRINCIPLED_DEFAULTS if k != "base_color"}},
+    "svbrdf_ggx": {"diffuse_albedo": (1, 3), "specular_albedo": (1, 3), "roughness": (1,)},
+}
+
+
+def light_loop_brdf(brdf: Any, kind: str) -> tuple[str, dict[str, float]] | None:
+    """The light-loop kernel's BRDF family for ``brdf`` and its fixed floats, or None.
+
+    ``("principled", {})`` for :func:`torchbrdf.principled` and ``PrincipledBRDF`` (``kind``
+    ``"principled"``); ``("svbrdf_ggx", {floor: value})`` for :func:`torchbrdf.brdf.svbrdf_ggx.svbrdf_ggx`
+    and an ``SVBRDFGGX`` module (not a subclass, whose ``forward`` may differ), with the floor
+    it applies. Any other callable: None (per-light passes).
+    """
+    if kind == "principled":
+        return "principled", {}
+    from torchbrdf.brdf.svbrdf_ggx import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
+
+    if brdf is svbrdf_ggx:
+        return "svbrdf_ggx", {"alpha_floor": ALPHA_MIN}
+    if type(brdf) is SVBRDFGGX:
+        if brdf.roughness_floor is not None:
+            return "svbrdf_ggx", {"roughness_floor": float(brdf.roughness_floor)}
+        return "svbrdf_ggx", {"alpha_floor": ALPHA_MIN if brdf.alpha_floor is None else float(brdf.alpha_floor)}
+    return None
 
 
 def fused_lights_wanted(
     gbuf: GBuffer,
-    kind: str,
+    family: str | None,
     values: dict[str, Any],
     points: list[PointLight],
     dirs: list[DirectionalLight],
@@ -36,14 +63,17 @@ def fused_lights_wanted(
 ) -> bool:
     """Whether the point and directional lights go through the fused shading kernel.
 
-    The principled BRDF, inputs the kernel reads (4-D maps or constants), and the fused
+    A light-loop BRDF (``family``, :func:`light_loop_brdf`; None: none), its material and
+    nothing else as inputs the kernel reads (4-D maps or constants), and the fused
     kernels' dispatch rule (``principled.fused_backend``, on ``elements`` pixel-lights) picking
     the C or the Triton kernels (the shading kernel is printed in both). The lights and ``cam``
     may require grad: the kernel's backward differentiates them too.
     """
-    if kind != "principled" or not (points or dirs):
+    if family is None or not (points or dirs):
         return False
-    if "base_color" not in values or set(values) - set(PRINCIPLED_DEFAULTS) - {"base_color"}:
+    channels = _MATERIAL_CHANNELS[family]
+    required = {"base_color"} if family == "principled" else set(channels)
+    if not required <= set(values) or set(values) - set(channels):
         return False  # the eager call raises the error naming the argument
     from torchbrdf.brdf import principled as _pr
 
@@ -55,8 +85,8 @@ def fused_lights_wanted(
     for k, t in [("position", gbuf.position), ("normal", gbuf.normal), *values.items()]:
         if not isinstance(t, Tensor):
             continue
-        channels = {"position": (3,), "normal": (3,), "base_color": (1, 3)}.get(k, (1,))
-        if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in channels)):
+        allowed = (3,) if k in ("position", "normal") else channels[k]
+        if not (t.dim() == 0 or (t.dim() == 4 and t.shape[1] in allowed)):
             return False
         tensors.append(t)
     return _pr.fused_backend(dev, cd, tensors, lambda: elements) in ("c", "triton")
@@ -96,22 +126,29 @@ def fused_lights_term(
     normalize_n: bool,
     n_point: int,
     n_dir: int,
+    family: tuple[str, dict[str, float]] = ("principled", {}),
 ) -> Tensor:
     """All point and directional lights at ``(P, 3)`` points in one fused kernel pass
-    (``normalize_n``: ``n`` is the raw normal, normalised in the kernel)."""
+    (``normalize_n``: ``n`` is the raw normal, normalised in the kernel; ``family``: the BRDF
+    and its fixed floats, :func:`light_loop_brdf`)."""
     from torchbrdf.brdf.principled import needs_tint
     from torchbrdf.kernels.shade_ops import shade_lights
 
-    assert active is not None  # the fused route is the principled BRDF's: its lobes are known
-    c = {**PRINCIPLED_DEFAULTS, **mat, "pos": pos, "n": n, "x": x, "y": y}
+    name, fixed = family
+    if name == "principled":
+        assert active is not None  # the principled BRDF's lobes are known on this route
+        c = {**PRINCIPLED_DEFAULTS, **mat, "pos": pos, "n": n, "x": x, "y": y}
+        tint = needs_tint(c, active)
+    else:
+        active, frame, tint = (), False, False
+        c = {**mat, **fixed, "pos": pos, "n": n}
     if table.shape[0] == 1:
         seg = [0, pos.shape[0]]
     else:  # points are batch-major: one segment (uniform row) per image
         counts = torch.bincount(bidx, minlength=table.shape[0])
         seg = [0] + torch.cumsum(counts, 0).tolist()
     backend = "c" if pos.device.type == "cpu" and not _triton_interpreted() else "triton"
-    return shade_lights(c, table, seg, active, needs_tint(c, active), frame, normalize_n, n_point, n_dir,
-                        backend)
+    return shade_lights(c, table, seg, active, tint, frame, normalize_n, n_point, n_dir, backend, name)
 
 
 def _triton_interpreted() -> bool:

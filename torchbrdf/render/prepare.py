@@ -35,7 +35,7 @@ from torchbrdf._math import is_zero
 from torchbrdf._types import BRDF
 from torchbrdf.brdf.principled import LOBES
 from torchbrdf.render.env import MCSetup, brdf_kind, check_env_sampling
-from torchbrdf.render.fused_lights import fused_lights_wanted
+from torchbrdf.render.fused_lights import fused_lights_wanted, light_loop_brdf
 from torchbrdf.render.gbuffer import GBuffer
 from torchbrdf.render.lights import DirectionalLight, EnvironmentLight, Light, PointLight
 
@@ -451,6 +451,7 @@ class ShadingSchedule:
     envs: list[EnvironmentLight]
     chunk_px: int  # pixels per pass
     fused: bool  # point and directional lights through the fused kernel
+    loop_brdf: tuple[str, dict[str, float]] | None  # its BRDF family and fixed floats (light_loop_brdf)
     mc_setups: list[MCSetup]  # one per environment light under env_strategy="mc"
 
     @property
@@ -490,8 +491,9 @@ def schedule(req: ShadingRequest, cd: torch.dtype, sel: PixelSelection, mat: Mat
     p_count = sel.pixels.count
     chunk_px = p_count if req.chunk is None else min(int(req.chunk), max(p_count, 1))
     mc_setups = _mc_setups(req, sel.pixels, envs, cd) if envs and req.env_strategy == "mc" else []
+    loop_brdf = light_loop_brdf(req.brdf, req.kind)
     fused = fused_lights_wanted(
-        req.gbuf, req.kind, mat.values, points, dirs, sel.camera, req.gbuf.device, cd,
-        p_count * (len(points) + len(dirs)),
+        req.gbuf, loop_brdf[0] if loop_brdf else None, mat.values, points, dirs, sel.camera, req.gbuf.device,
+        cd, p_count * (len(points) + len(dirs)),
     )
-    return ShadingSchedule(req, cd, sel, mat, points, dirs, envs, chunk_px, fused, mc_setups)
+    return ShadingSchedule(req, cd, sel, mat, points, dirs, envs, chunk_px, fused, loop_brdf, mc_setups)

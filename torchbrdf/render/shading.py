@@ -214,7 +214,7 @@ def _shade_chunk(sch: ShadingSchedule, px: _PixelInputs, lights: _LightInputs) -
     if lights.table is not None:  # fused (the kernel's output is a fresh buffer: accumulate into it)
         acc = fused_lights_term(
             lights.table, px.pos, px.n, px.x, px.y, px.mat, px.bidx, sch.mat.lobes, sch.mat.need_frame,
-            sch.normal_in_kernel, len(sch.points), len(sch.dirs),
+            sch.normal_in_kernel, len(sch.points), len(sch.dirs), sch.loop_brdf or ("principled", {}),
         )
     else:
         acc = px.pos.new_zeros(px.size, 3)
