@@ -244,19 +244,28 @@ def check_finite(named: dict) -> None:
             raise ValueError(f"{name}: expected a finite number, got {float(t)}")
 
 
-def sample_counts(name: str, value: object, default: tuple[int, int]) -> tuple[int, int]:
-    """A sample-count argument as a pair of positive ints.
+def sample_counts(name: str, value: object, default: tuple[int, int], least: tuple[int, int] = (1, 1),
+                  pair: bool = True) -> tuple[int, int]:
+    """A sample-count argument as a pair of ints, each at least ``least``.
 
-    ``None`` gives ``default``, an int ``k`` gives ``(k, default[1])``, a pair is taken as is.
+    ``None`` gives ``default``, an int ``k`` gives ``(k, default[1])``, a pair (when ``pair``)
+    is taken as is.
     """
-    pair = default if value is None else (value, default[1]) if isinstance(value, numbers.Integral) else value
+    if value is None:
+        counts: object = default
+    elif isinstance(value, numbers.Integral):
+        counts = (value, default[1])
+    else:
+        counts = value if pair else None
     if (
-        not isinstance(pair, Sequence)
-        or len(pair) != 2
-        or not all(isinstance(k, numbers.Integral) and not isinstance(k, bool) and int(k) >= 1 for k in pair)
+        not isinstance(counts, Sequence)
+        or len(counts) != 2
+        or not all(isinstance(k, numbers.Integral) and not isinstance(k, bool) and int(k) >= lo
+                   for k, lo in zip(counts, least))
     ):
-        raise ValueError(f"{name}: expected a positive int or a pair of positive ints, got {excerpt(value)}")
-    return int(pair[0]), int(pair[1])
+        what = f"a pair of ints of at least {least}" if pair else f"an int of at least {least[0]}"
+        raise ValueError(f"{name}: expected {what}, got {excerpt(value)}")
+    return int(counts[0]), int(counts[1])
 
 
 def check_nonnegative(name: str, t: Tensor | float) -> None:

@@ -112,8 +112,23 @@ def test_sample_counts_must_be_positive_ints(samples):
         lambda: A.weak_white_furnace("ggx", samples=samples),
         lambda: A.reciprocity_error(lambert, samples, base_color=0.5),
     ):
-        with pytest.raises(ValueError, match="samples: expected a positive int or a pair"):
+        with pytest.raises(ValueError, match="samples: expected a"):
             call()
+
+
+def test_an_error_estimate_needs_a_rule_it_can_halve():
+    """One θ node, four φ nodes or one MC sample would report no error (or NaN): refused."""
+    for samples in (1, (1, 64), (16, 4)):
+        with pytest.raises(ValueError, match=r"samples: expected a pair of ints of at least \(2, 8\)"):
+            A.directional_albedo(principled, 0.3, samples=samples, base_color=0.5, roughness=0.5)
+        with pytest.raises(ValueError, match=r"at least \(2, 8\)"):
+            A.weak_white_furnace("ggx", samples=samples if isinstance(samples, tuple) else (samples, 128))
+    with pytest.raises(ValueError, match="samples: expected an int of at least 2"):
+        A.directional_albedo(lambert, 0.1, "mc", samples=1, base_color=0.5)
+    with pytest.raises(ValueError, match="samples: expected an int of at least 1"):
+        A.reciprocity_error(lambert, (4, 4), base_color=0.5)
+    est = A.directional_albedo(principled, 0.3, samples=(2, 8), base_color=0.5, roughness=0.5)
+    assert (est.error > 0).all()
 
 
 # --------------------------------------------------------------------------------------

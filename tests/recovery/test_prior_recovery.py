@@ -283,7 +283,7 @@ def test_a_confidently_wrong_network_does_not_outweigh_data_that_decide_dielectr
 
 
 def test_a_prior_for_more_lights_than_the_capture_is_refused(painted):
-    with pytest.raises(RecoveryError, match=r"prior: the estimator was trained on 6 images per capture.*has 5"):
+    with pytest.raises(RecoveryError, match=r"prior: the estimator takes 6 images per capture.*has 5.*trained on 5 or fewer images"):
         recover(painted, CFG, progress=False, prior=constant_prior(lights=6))
 
 

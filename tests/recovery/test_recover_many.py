@@ -200,7 +200,12 @@ def test_learned_prior_reaches_every_fit_and_a_rerun_with_another_prior_recovers
     for k in MAPS:
         torch.testing.assert_close(read_exr(out / "cap0" / f"{k}.exr"), read_exr(tmp_path / "single" / f"{k}.exr"))
     assert "learned_prior" in json.loads((out / "cap0" / "report.json").read_text())
-    rows = run_batch(good[:1], out, RecoveryConfig(**CFG), use_ray=False, progress=False, prior="default")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the check runs on other threads than the fit: the weights decide, not the maps
+    try:
+        rows = run_batch(good[:1], out, RecoveryConfig(**CFG), use_ray=False, progress=False, prior="default")
+    finally:
+        torch.set_num_threads(threads)
     assert _status(rows) == {"cap0": "skipped"}
     rows = run_batch(good[:1], out, RecoveryConfig(**CFG), use_ray=False, progress=False)
     assert _status(rows) == {"cap0": "done"}  # made with a prior: not this fit
@@ -229,6 +234,19 @@ def test_cli_options_and_exit_status(captures, tmp_path):
     assert [r["status"] for r in json.loads((tmp_path / "o" / "summary.json").read_text())] == [
         "done", "done", "failed"]
     assert main(["--captures", str(tmp_path / "nothing*"), "--out", str(tmp_path / "o2")]) == 2
+
+
+@pytest.mark.parametrize("flags,says", [
+    (["--size", "-5"], "size"), (["--levels", "0"], "levels"), (["--checkpoint-every", "0"], "checkpoint_every"),
+    (["--threads-per-task", "0"], "--threads-per-task must be at least 1"),
+    (["--workers", "-1"], "--workers must be at least 1"), (["--retries", "-1"], "--retries must be at least 0"),
+    (["--gpus-per-task", "-1"], "--gpus-per-task must be at least 0")])
+def test_impossible_options_are_refused_before_any_capture_runs(captures, tmp_path, capsys, flags, says):
+    out = tmp_path / "o"
+    assert main(["--captures", str(captures / "cap0"), "--out", str(out), "--no-ray", "--quiet", *flags]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and says in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
 
 
 def test_an_out_that_is_a_file_is_one_line_and_left_alone(captures, tmp_path, capsys):

@@ -417,7 +417,8 @@ def directional_albedo(
         method: ``"quadrature"`` (deterministic, half-vector Gauss–Legendre; see the module
             docstring) or ``"mc"`` (importance-sampled Monte Carlo).
         samples: quadrature: ``(nodes per θ panel, φ nodes)`` or an int for the first
-            (default ``(16, 96)``); MC: samples per view (default 4096).
+            (default ``(16, 96)``, at least ``(2, 8)``: the error estimate halves them); MC: an
+            int, samples per view (default 4096, at least 2).
         sampler: MC density: ``"cosine"``, ``"ggx"`` (visible normals of the primary lobe's
             width), ``"gtr1"`` (the principled clearcoat lobe, Burley 2012 appendix B), a
             tuple of these (equal shares, balance-heuristic density), ``"mix"`` (cosine +
@@ -448,13 +449,14 @@ def directional_albedo(
         alpha_hint = lobe_alpha_hint({**getattr(brdf, "params", {}), **params})
     hint = alpha_hint
     if method == "quadrature":
-        n_theta, n_phi = sample_counts("samples", samples, (16, 96))
+        # the error estimate halves both counts: a rule it cannot halve would claim no error
+        n_theta, n_phi = sample_counts("samples", samples, (16, 96), least=(2, 8))
         a = hint if hint is not None else DEFAULT_QUADRATURE_ALPHA
         fine = _albedo_rule(f, v, a, n_theta, n_phi)
         coarse = _albedo_rule(f, v, a, max(n_theta // 2, 1), max(n_phi // 2, 4))
         est = Estimate(fine, (fine - coarse).abs())
     elif method == "mc":
-        n = sample_counts("samples", samples, (4096, 1))[0]
+        n = sample_counts("samples", samples, (4096, 1), least=(2, 1), pair=False)[0]  # 2: a spread
         all_params = {**getattr(brdf, "params", {}), **params}
         a_cc = clearcoat_alpha(all_params)
         ggx_alpha = hint
@@ -571,7 +573,7 @@ def weak_white_furnace(
             mismatched pair (GGX ``D`` with Beckmann ``G1``) fails the test.
         alpha: distribution width.
         theta_o: ``(T,)`` outgoing angles in radians; default 0°, 20°, 40°, 60°, 80°, 89°.
-        samples: ``(nodes per θ panel, φ nodes)``.
+        samples: ``(nodes per θ panel, φ nodes)``, at least ``(2, 8)``.
 
     Returns:
         :class:`Estimate` of ``(T,)`` tensors: the integral (1 when the test holds) and its
@@ -605,7 +607,7 @@ def weak_white_furnace(
             res.append((g1(nz, alpha) / nz).reshape(()) * (d * oh * w).sum())
         return torch.stack(res)
 
-    n_theta, n_phi = sample_counts("samples", samples, (24, 128))
+    n_theta, n_phi = sample_counts("samples", samples, (24, 128), least=(2, 8))
     fine = rule(n_theta, n_phi)
     coarse = rule(max(n_theta // 2, 1), max(n_phi // 2, 4))
     return Estimate(fine, (fine - coarse).abs())
@@ -646,7 +648,7 @@ def reciprocity_error(
         d = torch.nn.functional.normalize(d, dim=-1)
         return torch.cat((d[:, :2], d[:, 2:3].abs()), -1)
 
-    count = sample_counts("samples", samples, (4096, 1))[0]
+    count = sample_counts("samples", samples, (4096, 1), pair=False)[0]
     l, v = hemi(count), hemi(count)
     a, b = _eval(f, l, v), _eval(f, v, l)
     diff = (a - b).abs()

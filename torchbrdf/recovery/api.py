@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import importlib
+import json
 import math
 import os
 import signal
@@ -194,9 +195,12 @@ def recover(capture: PathLike | Capture, config: RecoveryConfig | Settings | Non
     fingerprint = {"capture": capture_fingerprint(capture, cap), "settings": settings_fingerprint(cfg)}
     learned = None
     if prior is not None:
-        learned = _learned_prior(prior, cap, cfg.size or max(cap.width, cap.height))
+        if cfg.threads:  # the network's rounding follows the thread count: predict as the fit runs
+            torch.set_num_threads(cfg.threads)
+        resolved = _resolve_prior(prior, cap)
+        learned = _learned_prior(resolved, cap, cfg.size or max(cap.width, cap.height))
         # a checkpoint made with another prior (or none) is another fit
-        fingerprint["settings"]["learned_prior"] = _prior_checksum(learned)
+        fingerprint["settings"]["learned_prior"] = _prior_checksum(resolved)
     if resume and out is None:
         raise RecoveryError("--resume needs --out (the folder holding checkpoint.pt)")
     for warning in capture_warnings:
@@ -234,35 +238,41 @@ def _check_argument_types(capture: object, config: object, out: object, gt: obje
             raise TypeError(f"recover: {name} must be a folder path (str or os.PathLike), got {type(value).__name__}")
 
 
-def learned_prior_checksum(prior: Prior | PathLike, capture: PathLike | Capture,
-                           config: RecoveryConfig | Settings | None = None) -> str:
+def learned_prior_checksum(prior: Prior | PathLike, capture: PathLike | Capture) -> str:
     """What a fit of ``capture`` with ``prior`` records as ``learned_prior`` in its settings fingerprint.
 
-    The checksum of the network's maps at the working size: a finished fit made with another
-    prior (or none) carries another value (or none), so a batch can tell it is not this fit.
+    The checksum of the estimator's weights and model card (``"default"`` resolved for the
+    capture's light count): a finished fit made with another prior (or none) carries another
+    value (or none), so a batch can tell it is not this fit. No network runs.
 
     Args:
         prior, capture: as in :func:`recover`.
-        config: the fit's settings (its ``device`` and ``size``); default :class:`RecoveryConfig`.
 
     Raises:
         RecoveryError: an unreadable capture, or a ``prior`` :func:`recover` would refuse.
     """
-    cfg = settings_of(config if config is not None else RecoveryConfig())
     try:
         cap = capture if isinstance(capture, Capture) else load_capture(capture)
     except (OSError, ValueError) as e:
         raise RecoveryError(str(e)) from e
-    cap = cap.to(device=cfg.device, dtype=torch.float32)
-    return _prior_checksum(_learned_prior(prior, cap, cfg.size or max(cap.width, cap.height)))
+    return _prior_checksum(_resolve_prior(prior, cap))
 
 
-def _prior_checksum(learned: LearnedPrior) -> str:
-    return state_checksum(learned.maps, [], torch.zeros(0))
+def _prior_checksum(prior: Prior) -> str:
+    # the weights, not the maps they predict: those round differently on another thread count
+    return state_checksum(dict(prior.model.state_dict()), [json.dumps(prior.card, sort_keys=True, default=str)],
+                          torch.zeros(0))
 
 
-def _learned_prior(prior: Prior | PathLike, cap: Capture, size: int) -> LearnedPrior:
-    """The network's maps for ``cap`` at the working ``size``, with its card's errors.
+def _learned_prior(prior: Prior, cap: Capture, size: int) -> LearnedPrior:
+    """The network's maps for ``cap`` at the working ``size``, with its card's errors."""
+    with torch.no_grad():
+        maps = prior.predict(cap)
+    return LearnedPrior(prior_maps_at(maps, size), estimator_errors(prior.card))
+
+
+def _resolve_prior(prior: Prior | PathLike, cap: Capture) -> Prior:
+    """``prior`` as a :class:`Prior` for ``cap``.
 
     Raises:
         RecoveryError: ``prior`` is not a Prior, ``"default"`` or a readable weights file, or
@@ -276,12 +286,10 @@ def _learned_prior(prior: Prior | PathLike, cap: Capture, size: int) -> LearnedP
         except (OSError, ValueError) as e:
             raise RecoveryError(f"prior: {e}") from e
     if len(cap) < prior.lights:
-        raise RecoveryError(f"prior: the estimator was trained on {prior.lights} images per capture "
-                            f"(Prior.capture_lights), the capture has {len(cap)}; use a prior trained for "
-                            f"{len(cap)} or fewer lights")
-    with torch.no_grad():
-        maps = prior.predict(cap)
-    return LearnedPrior(prior_maps_at(maps, size), estimator_errors(prior.card))
+        raise RecoveryError(f"prior: the estimator takes {prior.lights} images per capture "
+                            f"(Prior.capture_lights), the capture has {len(cap)}; use a prior trained on "
+                            f"{len(cap)} or fewer images")
+    return prior
 
 
 def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint: dict, resume: bool,
@@ -289,7 +297,7 @@ def _start_or_resume(cap: Capture, cfg: Settings, out: Path | None, fingerprint:
     """A solver at its first iteration, or restored from ``out/checkpoint.pt`` once that passes its checks."""
     ck = out / CHECKPOINT if out is not None else None
     if resume and ck is not None and not ck.is_file():
-        log(f"--resume: no checkpoint in {out}; starting from scratch")
+        log(f"resume: no checkpoint in {out}; starting from scratch")
         resume = False
     torch.manual_seed(cfg.seed)
     if cfg.threads:

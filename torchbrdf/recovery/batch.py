@@ -44,7 +44,7 @@ from torchbrdf._types import PathLike
 from torchbrdf.capture.format import CAPTURE_JSON
 from torchbrdf.io import file_in_the_way
 from torchbrdf.recovery.checkpoint import digest, folder_fingerprint, settings_fingerprint
-from torchbrdf.recovery.checks import RecoveryError
+from torchbrdf.recovery.checks import RecoveryError, check_config
 from torchbrdf.recovery.outputs import OutputBusyError
 from torchbrdf.recovery.prior import Prior
 from torchbrdf.recovery.config import RecoveryConfig, Settings
@@ -116,7 +116,7 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None,
     capture folder's current contents and the settings' result-changing fields (when
     ``capture`` / ``cfg`` are given): a capture changed since, or other settings, are not done.
     With ``cfg``, a fit made with another learned prior than ``prior`` (``None``: none) is not
-    done either; checking that runs the prior's network on ``capture``.
+    done either (its weights' checksum, :func:`~torchbrdf.recovery.api.learned_prior_checksum`).
     """
     rep = _read_report(Path(out_dir))
     if not (rep and rep.get("completed") is True):
@@ -134,7 +134,7 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None,
     from torchbrdf.recovery.api import learned_prior_checksum
 
     try:
-        wanted = {**settings_fingerprint(cfg), "learned_prior": learned_prior_checksum(prior, capture, cfg)}
+        wanted = {**settings_fingerprint(cfg), "learned_prior": learned_prior_checksum(prior, capture)}
     except RecoveryError:  # a prior this capture cannot take: the task reports why
         return False
     return settings == wanted
@@ -579,6 +579,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         The exit status: 0 all done or skipped, 1 some failed, 130 Ctrl-C, 2 bad arguments.
     """
     args = _parser().parse_args(argv)
+    counts = (("--threads-per-task", args.threads_per_task, 1), ("--workers", args.workers, 1),
+              ("--retries", args.retries, 0), ("--gpus-per-task", args.gpus_per_task, 0))
+    for flag, value, least in counts:
+        if value is not None and not value >= least:
+            print(f"error: {flag} must be at least {least}, got {value}", file=sys.stderr)
+            return 2
+    try:
+        cfg = config_from_args(args)
+        check_config(cfg)
+    except RecoveryError as e:  # the single command's refusals, before any capture runs
+        print("error: " + " ".join(str(e).split()), file=sys.stderr)
+        return 2
     if args.workers is None:
         args.workers = max(1, (os.cpu_count() or 1) // max(1, args.threads_per_task))
     try:
@@ -597,7 +609,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     t0 = time.perf_counter()
     try:
-        rows = run_batch(captures, args.out, config_from_args(args), address=args.address,
+        rows = run_batch(captures, args.out, cfg, address=args.address,
                          workers=args.workers, threads_per_task=args.threads_per_task,
                          gpus_per_task=args.gpus_per_task, retries=args.retries, gt_name=args.gt_name,
                          force=args.force, use_ray=not args.no_ray, progress=not args.quiet,

@@ -85,8 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prior", metavar="PATH|default",
                    help="a learned estimator as evidence: its metallic weighs the metal/dielectric choice, "
                         "and once each pixel's class is chosen its maps pull where the images are silent (the "
-                        "fit starts as without it); a weights file (python -m training.train_estimator) or "
-                        "'default', the shipped one (default: no learned prior)")
+                        "fit starts as without it); a weights file (Prior.save; trained by training/train_estimator.py "
+                        "in a checkout) or 'default', the shipped one (default: no learned prior)")
     p.add_argument("--no-soft-metal", action="store_true",
                    help="no final continuous-metallic step: every pixel's metallic is exactly 0 or 1")
     p.add_argument("--no-light-calibration", action="store_true",
