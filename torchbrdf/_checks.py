@@ -263,7 +263,7 @@ def sample_counts(name: str, value: object, default: tuple[int, int], least: tup
         or not all(isinstance(k, numbers.Integral) and not isinstance(k, bool) and int(k) >= lo
                    for k, lo in zip(counts, least))
     ):
-        what = f"a pair of ints of at least {least}" if pair else f"an int of at least {least[0]}"
+        what = f"an int or a pair of ints, at least {least}" if pair else f"an int of at least {least[0]}"
         raise ValueError(f"{name}: expected {what}, got {excerpt(value)}")
     return int(counts[0]), int(counts[1])
 

@@ -119,12 +119,14 @@ def test_sample_counts_must_be_positive_ints(samples):
 def test_an_error_estimate_needs_a_rule_it_can_halve():
     """One θ node, four φ nodes or one MC sample would report no error (or NaN): refused."""
     for samples in (1, (1, 64), (16, 4)):
-        with pytest.raises(ValueError, match=r"samples: expected a pair of ints of at least \(2, 8\)"):
+        with pytest.raises(ValueError, match=r"samples: expected an int or a pair of ints, at least \(2, 8\)"):
             A.directional_albedo(principled, 0.3, samples=samples, base_color=0.5, roughness=0.5)
         with pytest.raises(ValueError, match=r"at least \(2, 8\)"):
             A.weak_white_furnace("ggx", samples=samples if isinstance(samples, tuple) else (samples, 128))
-    with pytest.raises(ValueError, match="samples: expected an int of at least 2"):
+    with pytest.raises(ValueError, match=r"samples: expected an int or a pair of ints, at least \(2, 1\)"):
         A.directional_albedo(lambert, 0.1, "mc", samples=1, base_color=0.5)
+    mc_pair = A.directional_albedo(lambert, 0.1, "mc", samples=(64, 3), base_color=0.5)  # the first, as before
+    torch.testing.assert_close(mc_pair.value, A.directional_albedo(lambert, 0.1, "mc", samples=64, base_color=0.5).value)
     with pytest.raises(ValueError, match="samples: expected an int of at least 1"):
         A.reciprocity_error(lambert, (4, 4), base_color=0.5)
     est = A.directional_albedo(principled, 0.3, samples=(2, 8), base_color=0.5, roughness=0.5)

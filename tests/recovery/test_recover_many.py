@@ -249,6 +249,26 @@ def test_impossible_options_are_refused_before_any_capture_runs(captures, tmp_pa
     assert not out.exists()
 
 
+def test_a_cuda_device_is_for_the_workers_to_check(captures, tmp_path, monkeypatch):
+    """A CPU-only head may send --device cuda to GPU nodes: the up-front checks leave the device alone."""
+    from torchbrdf.recovery import batch
+
+    seen = {}
+    monkeypatch.setattr(batch, "run_batch", lambda captures, out, cfg, **kw: seen.setdefault("cfg", cfg) and [])
+    assert main(["--captures", str(captures / "cap0"), "--out", str(tmp_path / "o"), "--device", "cuda",
+                 "--gpus-per-task", "1", "--quiet"]) == 0
+    assert seen["cfg"].device == "cuda"
+    assert main(["--captures", str(captures / "cap0"), "--out", str(tmp_path / "o"), "--device", "nonsense"]) == 2
+
+
+def test_is_complete_with_a_prior_needs_the_capture(tmp_path):
+    from torchbrdf.recovery.batch import is_complete
+
+    (tmp_path / "report.json").write_text(json.dumps({"completed": True, "fingerprint": {"settings": {"learned_prior": "0"}}}))
+    with pytest.raises(ValueError, match="needs its capture"):
+        is_complete(tmp_path, None, RecoveryConfig(), prior="default")
+
+
 def test_an_out_that_is_a_file_is_one_line_and_left_alone(captures, tmp_path, capsys):
     # this was mkdir's FileExistsError traceback
     taken = tmp_path / "taken"

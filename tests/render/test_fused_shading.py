@@ -253,6 +253,40 @@ def test_svbrdf_ggx_subclasses_and_foreign_inputs_take_per_light_passes():
     torch.testing.assert_close(shade(g, lights, svbrdf_ggx), shade(g, lights, SVBRDFGGX(alpha_floor=0.3)))
 
 
+def test_svbrdf_ggx_modules_changed_by_the_user_take_per_light_passes():
+    """A hook, an instance forward, or floors set afterwards: what the call does, the image shows."""
+    from torchbrdf.brdf.svbrdf_ggx import SVBRDFGGX
+
+    g, _ = ggx_scene(torch.float64)
+    lights = points(torch.float64, 2)
+    torchbrdf.set_fast_path(True)
+    plain = shade(g, lights, SVBRDFGGX()).detach()
+    hooked = SVBRDFGGX()
+    hooked.register_forward_hook(lambda module, args, out: 2.0 * out)
+    assert not uses_fused(g, lights, hooked)
+    torch.testing.assert_close(shade(g, lights, hooked).detach(), 2.0 * plain)
+    replaced = SVBRDFGGX()
+    replaced.forward = lambda *a, **k: 3.0 * SVBRDFGGX.forward(replaced, *a, **k)
+    assert not uses_fused(g, lights, replaced)
+    torch.testing.assert_close(shade(g, lights, replaced).detach(), 3.0 * plain)
+    broken = SVBRDFGGX()
+    broken.alpha_floor = 0.0
+    with pytest.raises(ValueError, match="alpha_floor"):
+        shade(g, lights, broken)
+
+
+def test_a_grey_albedo_map_is_refused_at_every_size():
+    """svbrdf_ggx takes (3,) albedos or a number; a (B, 1, H, W) map is its error, fused or not."""
+    from torchbrdf.brdf.svbrdf_ggx import svbrdf_ggx
+
+    g, _ = ggx_scene(torch.float64)
+    g.material["diffuse_albedo"] = g.material["diffuse_albedo"][:, :1].detach()
+    lights = points(torch.float64, 2)
+    assert not uses_fused(g, lights, svbrdf_ggx)
+    with pytest.raises(ValueError, match="diffuse_albedo"):
+        shade(g, lights, svbrdf_ggx)
+
+
 def test_one_definition_changes_both_paths(monkeypatch):
     """Doubling the point-light term in brdf/formula.py doubles the eager and the fused image."""
     dtype = torch.float64

@@ -417,8 +417,8 @@ def directional_albedo(
         method: ``"quadrature"`` (deterministic, half-vector Gauss–Legendre; see the module
             docstring) or ``"mc"`` (importance-sampled Monte Carlo).
         samples: quadrature: ``(nodes per θ panel, φ nodes)`` or an int for the first
-            (default ``(16, 96)``, at least ``(2, 8)``: the error estimate halves them); MC: an
-            int, samples per view (default 4096, at least 2).
+            (default ``(16, 96)``, at least ``(2, 8)``: the error estimate halves them); MC:
+            samples per view (default 4096, at least 2; of a pair, the first).
         sampler: MC density: ``"cosine"``, ``"ggx"`` (visible normals of the primary lobe's
             width), ``"gtr1"`` (the principled clearcoat lobe, Burley 2012 appendix B), a
             tuple of these (equal shares, balance-heuristic density), ``"mix"`` (cosine +
@@ -456,7 +456,7 @@ def directional_albedo(
         coarse = _albedo_rule(f, v, a, max(n_theta // 2, 1), max(n_phi // 2, 4))
         est = Estimate(fine, (fine - coarse).abs())
     elif method == "mc":
-        n = sample_counts("samples", samples, (4096, 1), least=(2, 1), pair=False)[0]  # 2: a spread
+        n = sample_counts("samples", samples, (4096, 1), least=(2, 1))[0]  # 2: a spread; a pair: its first
         all_params = {**getattr(brdf, "params", {}), **params}
         a_cc = clearcoat_alpha(all_params)
         ggx_alpha = hint

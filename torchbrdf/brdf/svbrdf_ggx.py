@@ -77,7 +77,8 @@ ROUGHNESS_FLOOR_DESCHAINTRE = 1e-3
 """Floor on ``roughness`` (not ``alpha``) in Deschaintre et al.'s renderer: ``alpha >= 1e-6``."""
 
 
-def _check_floors(alpha_floor: float | None, roughness_floor: float | None) -> None:
+def check_floors(alpha_floor: float | None, roughness_floor: float | None) -> None:
+    """Refuse both floors at once, or a floor outside (0, 1] (``ValueError`` naming it)."""
     if alpha_floor is not None and roughness_floor is not None:
         raise ValueError(
             f"alpha_floor={alpha_floor!r} and roughness_floor={roughness_floor!r}: give at most one floor"
@@ -137,7 +138,7 @@ def svbrdf_ggx(
         >>> torch.allclose(f, torch.full((3,), 1 / math.pi + 1 / (4 * math.pi) * 2 ** (-5.55473 - 6.98316)))
         True
     """
-    _check_floors(alpha_floor, roughness_floor)
+    check_floors(alpha_floor, roughness_floor)
     named = {
         "l": l,
         "v": v,
@@ -198,7 +199,7 @@ class SVBRDFGGX(nn.Module):
 
     def __init__(self, alpha_floor: float | None = None, roughness_floor: float | None = None) -> None:
         super().__init__()
-        _check_floors(alpha_floor, roughness_floor)
+        check_floors(alpha_floor, roughness_floor)
         self.alpha_floor = alpha_floor
         self.roughness_floor = roughness_floor
 

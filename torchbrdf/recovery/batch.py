@@ -116,7 +116,8 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None,
     capture folder's current contents and the settings' result-changing fields (when
     ``capture`` / ``cfg`` are given): a capture changed since, or other settings, are not done.
     With ``cfg``, a fit made with another learned prior than ``prior`` (``None``: none) is not
-    done either (its weights' checksum, :func:`~torchbrdf.recovery.api.learned_prior_checksum`).
+    done either (its weights' checksum, :func:`~torchbrdf.recovery.api.learned_prior_checksum`;
+    ``capture`` is then needed, else ``ValueError``).
     """
     rep = _read_report(Path(out_dir))
     if not (rep and rep.get("completed") is True):
@@ -129,8 +130,10 @@ def is_complete(out_dir: PathLike, capture: PathLike | None = None,
     if cfg is None:
         return True
     settings = fingerprint.get("settings") or {}
-    if prior is None or "learned_prior" not in settings or capture is None:
+    if prior is None or "learned_prior" not in settings:
         return prior is None and settings == settings_fingerprint(cfg)
+    if capture is None:
+        raise ValueError("is_complete: telling a learned prior's fit apart needs its capture")
     from torchbrdf.recovery.api import learned_prior_checksum
 
     try:
@@ -572,6 +575,15 @@ def config_from_args(args: argparse.Namespace) -> RecoveryConfig:
     return RecoveryConfig(schedule=getattr(args, "schedule", "default"), **given, **off)
 
 
+def _device_name(device: str) -> None:
+    import torch
+
+    try:
+        torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise RecoveryError(f"--device {device!r} is not a device ({e})") from e
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point.
 
@@ -587,8 +599,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     try:
         cfg = config_from_args(args)
-        check_config(cfg)
-    except RecoveryError as e:  # the single command's refusals, before any capture runs
+        # the single command's refusals, before any capture runs; whether the device exists is
+        # for the workers to say (a CPU-only head can send --device cuda to GPU nodes)
+        check_config(dataclasses.replace(cfg, device="cpu"))
+        _device_name(cfg.device)
+    except RecoveryError as e:
         print("error: " + " ".join(str(e).split()), file=sys.stderr)
         return 2
     if args.workers is None:

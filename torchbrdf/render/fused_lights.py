@@ -23,31 +23,51 @@ from torchbrdf.render.lights import DirectionalLight, PointLight
 __all__ = ["light_loop_brdf", "fused_lights_wanted", "uniform_table", "fused_lights_term"]
 
 #: Each light-loop BRDF's material inputs and the channel counts the kernel reads for each.
-_MATERIAL_CHANNELS = {
+_MATERIAL_CHANNELS: dict[str, dict[str, tuple[int, ...]]] = {
     "principled": {"base_color": (1, 3), **{k: (1,) for k in PRINCIPLED_DEFAULTS if k != "base_color"}},
-    "svbrdf_ggx": {"diffuse_albedo": (1, 3), "specular_albedo": (1, 3), "roughness": (1,)},
+    # (svbrdf_ggx refuses a grey albedo map; a number is grey)
+    "svbrdf_ggx": {"diffuse_albedo": (3,), "specular_albedo": (3,), "roughness": (1,)},
 }
 
 
 def light_loop_brdf(brdf: Any, kind: str) -> tuple[str, dict[str, float]] | None:
     """The light-loop kernel's BRDF family for ``brdf`` and its fixed floats, or None.
 
-    ``("principled", {})`` for :func:`torchbrdf.principled` and ``PrincipledBRDF`` (``kind``
-    ``"principled"``); ``("svbrdf_ggx", {floor: value})`` for :func:`torchbrdf.brdf.svbrdf_ggx.svbrdf_ggx`
-    and an ``SVBRDFGGX`` module (not a subclass, whose ``forward`` may differ), with the floor
-    it applies. Any other callable: None (per-light passes).
-    """
-    if kind == "principled":
-        return "principled", {}
-    from torchbrdf.brdf.svbrdf_ggx import ALPHA_MIN, SVBRDFGGX, svbrdf_ggx
+    ``("principled", {})`` for :func:`torchbrdf.principled` and a ``PrincipledBRDF``;
+    ``("svbrdf_ggx", {floor: value})`` for :func:`torchbrdf.brdf.svbrdf_ggx.svbrdf_ggx` and an
+    ``SVBRDFGGX``, with the floor it applies. A module counts only as itself: not a subclass,
+    nor one with hooks or its own ``forward`` (the kernel would skip what they do). Any other
+    callable: None (per-light passes).
 
+    Raises:
+        ValueError: an ``SVBRDFGGX`` whose floors were set to values it refuses.
+    """
+    from torchbrdf.brdf.principled import PrincipledBRDF, principled
+    from torchbrdf.brdf.svbrdf_ggx import ALPHA_MIN, SVBRDFGGX, check_floors, svbrdf_ggx
+
+    if brdf is principled:
+        return "principled", {}
     if brdf is svbrdf_ggx:
         return "svbrdf_ggx", {"alpha_floor": ALPHA_MIN}
-    if type(brdf) is SVBRDFGGX:
+    if kind == "principled" and _plain(brdf, PrincipledBRDF):
+        return "principled", {}
+    if _plain(brdf, SVBRDFGGX):
+        check_floors(brdf.alpha_floor, brdf.roughness_floor)
         if brdf.roughness_floor is not None:
             return "svbrdf_ggx", {"roughness_floor": float(brdf.roughness_floor)}
         return "svbrdf_ggx", {"alpha_floor": ALPHA_MIN if brdf.alpha_floor is None else float(brdf.alpha_floor)}
     return None
+
+
+def _plain(module: Any, cls: type) -> bool:
+    """``module`` is a ``cls`` exactly, calling its own ``forward`` with no hook on the way."""
+    from torch.nn.modules import module as nn_module
+
+    if type(module) is not cls or "forward" in vars(module):
+        return False
+    hooks = [getattr(module, name, None) for name in ("_forward_hooks", "_forward_pre_hooks")]
+    hooks += [getattr(nn_module, name, None) for name in ("_global_forward_hooks", "_global_forward_pre_hooks")]
+    return not any(hooks)
 
 
 def fused_lights_wanted(
