@@ -165,7 +165,7 @@ def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> 
 
 def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
                      params: Mapping, log_obs: Tensor, eps: float, tangents: Mapping[str, Tensor],
-                     pattern: Mapping[str, Any], unknowns: int
+                     pattern: Mapping[str, Any], unknowns: int, family: str = "principled"
                      ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
     """A Gauss–Newton fit's per-pixel terms of the log residual on the fused kernel, or None.
 
@@ -175,7 +175,8 @@ def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: 
     ``tangents`` (``(S, P, C)`` rows, ``pattern`` their non-zero ``(direction, channel, row)``
     entries, as :func:`torchbrdf.kernels.normal_eq_ops.normal_equations` takes them). ``JᵀJ``
     and ``Jᵀr`` count non-finite Jacobian entries and residuals as 0; ``r`` and the cost are
-    as they come (``r`` light-major, ``3 l + c``). The other arguments as for
+    as they come (``r`` light-major, ``3 l + c``). ``family``: the residual's BRDF
+    (``"svbrdf_ggx"``: the recovery's GGX model on the same maps). The other arguments as for
     :func:`residual_inputs`, in ``log_obs``'s dtype and device. None where the kernel does not
     apply (the fused path off or not available for this dtype or device, inputs that need a
     gradient, or parameters other than the isotropic untinted ones): the caller then
@@ -189,18 +190,18 @@ def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: 
 
     p = {**params, "normal": normal}
     cost, jtj, jtr, r = fused_normal_equations(p, tangents, points, camera, light_pos, light_int, log_obs, eps,
-                                               pattern, unknowns, residuals=True)
+                                               pattern, unknowns, residuals=True, family=family)
     return r, cost, unpack_jtj(jtj, unknowns), jtr
 
 
 def data_cost(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
-              params: Mapping, log_obs: Tensor, eps: float) -> Tensor | None:
+              params: Mapping, log_obs: Tensor, eps: float, family: str = "principled") -> Tensor | None:
     """Each pixel's data cost ``Σ r²`` over every light ``(P, 1)`` on the fused kernel, or None.
 
     One pass of ``torch.ops.torchbrdf.data_cost`` (the light-loop kernel's cost-only variant):
     the squared log residuals summed in float64 per pixel, a non-finite sum as +inf, in
-    ``log_obs``'s dtype and device, without the ``(P, L, 3)`` residuals in memory. The
-    arguments as for :func:`residual_inputs`. None where the kernel does not apply (as for
+    ``log_obs``'s dtype and device, without the ``(P, L, 3)`` residuals in memory. ``family``
+    as for :func:`normal_equations`, the other arguments as for :func:`residual_inputs`. None where the kernel does not apply (as for
     :func:`normal_equations`): the caller then sums :func:`log_residual`'s squares.
     """
     if not _light_loop_applies(params, log_obs, (normal, points, camera, light_pos, light_int, log_obs,
@@ -208,7 +209,8 @@ def data_cost(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor,
         return None
     from torchbrdf.kernels.normal_eq_ops import data_cost as fused_data_cost
 
-    return fused_data_cost({**params, "normal": normal}, points, camera, light_pos, light_int, log_obs, eps)
+    return fused_data_cost({**params, "normal": normal}, points, camera, light_pos, light_int, log_obs, eps,
+                           family)
 
 
 def _light_loop_applies(params: Mapping, log_obs: Tensor, values: tuple) -> bool:

@@ -440,7 +440,8 @@ def directional_light(ops: Ops, n: Value, direction: Value, irradiance: Value,
 # Capture fitting: one pixel under one point light, as a log residual (the SVBRDF recovery)
 # ---------------------------------------------------------------------------------------------
 
-def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool) -> Value:
+def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool,
+                         family: str = "principled") -> Value:
     """``log(max(L + ε, ε/2)) − log_obs`` with ``L`` the capture's radiance, ``(*, 3)``.
 
     ``L = f(l, v) I max(n·l, 0) / |q − P|²`` (:func:`point_light` with the principled BRDF,
@@ -449,12 +450,18 @@ def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, fram
     surface point ``P``), ``n``, ``camera``, ``light_pos`` ``q``, ``light_int`` ``I``,
     ``log_obs`` (``log(observed + ε)``) and ``eps`` ``ε``. The recovery's fit minimises the
     square of this; the fused kernels evaluate it, its JVPs and its backward in one pass per
-    lane, with the geometry inside.
+    lane, with the geometry inside. ``family="svbrdf_ggx"``: the recovery's GGX model, the
+    same principled unknowns rendered by :func:`svbrdf_ggx` through :func:`ggx_albedos`.
     """
     v = view_direction(ops, c["camera"], c["pos"])
+    if family == "svbrdf_ggx":
+        ggx = {**c, **ggx_albedos(c)}
 
-    def brdf(l: Value) -> Value:
-        return principled(ops, {**c, "l": l, "v": v}, active, need_tint, frame)
+        def brdf(l: Value) -> Value:
+            return svbrdf_ggx(ops, {**ggx, "l": l, "v": v})
+    else:
+        def brdf(l: Value) -> Value:
+            return principled(ops, {**c, "l": l, "v": v}, active, need_tint, frame)
 
     rad = point_light(ops, c["pos"], c["n"], c["light_pos"], c["light_int"], brdf)
     eps = c["eps"]
@@ -475,6 +482,16 @@ GGX_DEN_FLOOR = 0.5
 def fresnel_sg(ops: Ops, f0: Value, v_dot_h: Value) -> Value:
     """Unreal's spherical-Gaussian Schlick Fresnel ``f0 + (1 - f0) 2^((a c + b) c)``, ``(*, 3)``."""
     return f0 + (1.0 - f0) * ops.exp2((SG_A * v_dot_h + SG_B) * v_dot_h)
+
+
+def ggx_albedos(c: dict) -> dict:
+    """The recovery's GGX model's albedos from principled maps ``base_color``, ``metallic``, ``specular``.
+
+    ``diffuse_albedo = base (1 − m)``, ``specular_albedo = 0.08 s (1 − m) + base m``: the
+    principled model's F0 and its dielectric diffuse weight, so the fit keeps one set of unknowns.
+    """
+    base, m = c["base_color"], c["metallic"]
+    return {"diffuse_albedo": base * (1 - m), "specular_albedo": base * m + 0.08 * c["specular"] * (1 - m)}
 
 
 def svbrdf_ggx(ops: Ops, c: dict, active: tuple = (), need_tint: bool = False, frame: bool = False) -> Value:

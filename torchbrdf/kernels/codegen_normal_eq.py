@@ -46,7 +46,10 @@ from torchbrdf.brdf.formula import SCALAR_PARAMS
 from torchbrdf.kernels.light_loop import Layout, LightLoop, LoopSchedule, acc_input, print_c, print_triton
 from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, const, tangents
 
-__all__ = ["NormalEqSpec", "schedule", "generate", "generate_triton", "width", "LIGHT_STRIDE", "CAMERA"]
+__all__ = ["NormalEqSpec", "schedule", "generate", "generate_triton", "width", "LIGHT_STRIDE", "CAMERA", "FAMILIES"]
+
+#: The residual's BRDFs: the principled model, and the recovery's GGX model on the same unknowns.
+FAMILIES = ("principled", "svbrdf_ggx")
 
 CAMERA = 3  # uniforms before the lights: the camera position
 LIGHT_STRIDE = 6  # per light: position (3), intensity (3)
@@ -74,13 +77,17 @@ class NormalEqSpec:
     caller computes fewer tangents). An input with none has no tangent tensor. ``residuals``:
     each pixel's row also holds its ``3 L`` residuals (see the module docstring).
     ``cost_only``: only the cost, summed in float64, non-finite as +inf (``K`` must be 0).
+    ``family``: the residual's BRDF (``capture_log_residual``'s ``family``).
     """
 
     def __init__(self, ctype: str, tensors: Iterable[tuple[str, int]], floats: Iterable[str],
                  active: Iterable[str], need_tint: bool, K: int,
                  pattern: Iterable[Iterable[tuple[int, ...]]], residuals: bool = False,
-                 cost_only: bool = False) -> None:
+                 cost_only: bool = False, family: str = "principled") -> None:
+        if family not in FAMILIES:
+            raise ValueError(f"family: expected one of {FAMILIES}, got {family!r}")
         self.ctype = ctype
+        self.family = family
         self.hi_double = ctype == "float"
         self.tensors = tuple(tensors)
         self.floats = tuple(floats)
@@ -101,7 +108,9 @@ class NormalEqSpec:
 
     def key(self) -> tuple[Any, ...]:
         return ("normal_eq", self.ctype, self.tensors, self.floats, self.active, self.need_tint, self.K,
-                self.pattern, self.residuals, self.cost_only, tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled")))
+                self.pattern, self.residuals, self.cost_only, self.family,
+                tuple(id(getattr(formula, f)) for f in ("capture_log_residual", "principled", "svbrdf_ggx",
+                                                        "ggx_albedos")))
 
 
 def _in(role: str, grad: bool = False, **attr) -> Node:
@@ -131,7 +140,7 @@ def schedule(spec: NormalEqSpec) -> LoopSchedule:
             "log_obs": Vec3(_in("obs", c=c) for c in range(3)),
             "eps": Node("P", (), "p", len(spec.floats)),
         })
-        r = list(formula.capture_log_residual(ops, inp, spec.active, spec.need_tint, False).c)
+        r = list(formula.capture_log_residual(ops, inp, spec.active, spec.need_tint, False, spec.family).c)
         J: list[list[Any]] = []  # J[a][c]: ∂r_c/∂x_a (None: zero)
         for a in range(K):
             seeds = {}

@@ -44,25 +44,28 @@ _failed: set = set()
 
 def make_cfg(tensor_names: Sequence[str], float_names: Sequence[str], active: Sequence[str], need_tint: bool,
              K: int, pattern: Sequence[Sequence[tuple[int, ...]]], backend: str = "c",
-             residuals: bool = False, cost_only: bool = False) -> str:
+             residuals: bool = False, cost_only: bool = False, family: str = "principled") -> str:
     """The ``cfg`` string of the operators; ``pattern[k]``: input ``k``'s non-zero ``(direction,
     channel[, slot])`` tangents (:class:`~.codegen_normal_eq.NormalEqSpec`); ``backend`` ``"c"``
     or ``"triton"``; ``residuals``: the rows hold the residuals too; ``cost_only``: the
-    cost-only variant (``K`` 0, no pattern)."""
+    cost-only variant (``K`` 0, no pattern); ``family``: the residual's BRDF (a tenth field
+    when not ``"principled"``)."""
     pat = ";".join(",".join(".".join(str(int(x)) for x in e) for e in p) for p in pattern)
     return "|".join([",".join(tensor_names), ",".join(float_names), ",".join(active), str(int(need_tint)),
-                     str(int(K)), pat, backend, str(int(residuals)), str(int(cost_only))])
+                     str(int(K)), pat, backend, str(int(residuals)), str(int(cost_only))]
+                    + ([family] if family != "principled" else []))
 
 
 def _parse(cfg: str, dtype: torch.dtype) -> tuple[NormalEqSpec, str]:
-    tn, fn, act, tint, K, pat, backend, res, cost_only = cfg.split("|")
+    tn, fn, act, tint, K, pat, backend, res, cost_only, *family = cfg.split("|")
     names = tn.split(",") if tn else []
     C = [3 if k in ("pos", "n", "base_color") else 1 for k in names]
     pattern = [[tuple(int(x) for x in e.split(".")) for e in p.split(",") if e] for p in pat.split(";")]
     pattern += [[] for _ in range(len(names) - len(pattern))]
     ctype = "float" if dtype == torch.float32 else "double"
     spec = NormalEqSpec(ctype, list(zip(names, C)), fn.split(",") if fn else [],
-                        act.split(",") if act else [], tint == "1", int(K), pattern, res == "1", cost_only == "1")
+                        act.split(",") if act else [], tint == "1", int(K), pattern, res == "1", cost_only == "1",
+                        family[0] if family else "principled")
     return spec, backend
 
 
@@ -124,7 +127,7 @@ def _eager(spec: NormalEqSpec, tensors, tangents, floats, uniforms, log_obs) -> 
         c.update({"camera": uniforms[:CAMERA], "light_pos": uniforms[CAMERA:].reshape(L, 6)[None, :, :3],
                   "light_int": uniforms[CAMERA:].reshape(L, 6)[None, :, 3:], "log_obs": log_obs,
                   "eps": floats[-1]})
-        return formula.capture_log_residual(ops, c, spec.active, spec.need_tint, False).reshape(N, -1)
+        return formula.capture_log_residual(ops, c, spec.active, spec.need_tint, False, spec.family).reshape(N, -1)
 
     tan_of = dict(zip(spec.tan_inputs, tangents))
     r = res(*tensors)
@@ -246,7 +249,8 @@ def tangent_pattern(tangents: Mapping[str, Tensor]) -> dict[str, list[tuple[int,
 def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
                      camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
                      pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
-                     unknowns: int | None = None, residuals: Literal[False] = False) -> tuple[Tensor, Tensor, Tensor]:
+                     unknowns: int | None = None, residuals: Literal[False] = False,
+                     family: str = "principled") -> tuple[Tensor, Tensor, Tensor]:
     ...
 
 
@@ -254,7 +258,7 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
 def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
                      camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
                      pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
-                     unknowns: int | None = None, *, residuals: Literal[True]
+                     unknowns: int | None = None, *, residuals: Literal[True], family: str = "principled"
                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     ...
 
@@ -262,7 +266,8 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
 def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], points: Tensor,
                      camera: Tensor, light_pos: Tensor, light_int: Tensor, log_obs: Tensor, eps: float,
                      pattern: Mapping[str, Sequence[tuple[int, ...]]] | None = None,
-                     unknowns: int | None = None, residuals: bool = False) -> tuple[Tensor, ...]:
+                     unknowns: int | None = None, residuals: bool = False,
+                     family: str = "principled") -> tuple[Tensor, ...]:
     """Per-pixel Gauss–Newton terms of the capture's log residuals, in one fused pass.
 
     The residuals are :func:`torchbrdf.capture.synthetic.log_residual_points`'s
@@ -284,6 +289,8 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
             keeps the call free of host synchronisation).
         unknowns: ``K`` (default: the tangents' leading size; needed with slots).
         residuals: also return the residuals.
+        family: the residual's BRDF, ``"principled"`` or ``"svbrdf_ggx"`` (the recovery's GGX
+            model on the same maps, :func:`torchbrdf.brdf.formula.ggx_albedos`).
 
     Returns:
         ``(cost (N,), jtj (N, K (K + 1) / 2), jtr (N, K))``: ``Σ r²``, the upper triangle of
@@ -308,7 +315,7 @@ def normal_equations(params: Mapping[str, Any], tangents: Mapping[str, Tensor], 
     pat_by = {("n" if k == "normal" else k): v for k, v in pattern.items()}
     pats = [sorted(pat_by.get(k, [])) if k in tan else [] for k in names]
     tans = [tan[k].to(log_obs.dtype) for k, p in zip(names, pats) if p]
-    cfg = make_cfg(*head, K, pats, _backend(log_obs), residuals)
+    cfg = make_cfg(*head, K, pats, _backend(log_obs), residuals, family=family)
     out = normal_equations_op(tensors, tans, floats, uniforms, log_obs, cfg)
     nt = K * (K + 1) // 2
     sums = (out[:, 0], out[:, 1:1 + nt], out[:, 1 + nt:1 + nt + K])
@@ -337,11 +344,11 @@ def _(tensors, floats, uniforms, log_obs, cfg):
 
 
 def data_cost(params: Mapping[str, Any], points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
-              log_obs: Tensor, eps: float) -> Tensor:
+              log_obs: Tensor, eps: float, family: str = "principled") -> Tensor:
     """Each pixel's data cost ``Σ r²`` over every light and channel of the capture's log residuals, in one fused pass.
 
     The residuals are :func:`torchbrdf.capture.synthetic.log_residual_points`'s; the
-    arguments as for :func:`normal_equations` (no tangents). Returns ``(N, 1)`` in
+    arguments as for :func:`normal_equations` (no tangents; ``family`` too). Returns ``(N, 1)`` in
     ``log_obs``'s dtype, on its device: the squares summed in float64 in the kernels (so
     float32 sums round less than ``(r * r).sum(-1)``), a non-finite sum as +inf — as
     ``torch.nan_to_num((r * r).sum(-1, keepdim=True), nan=inf, posinf=inf)`` of the residuals,
@@ -349,7 +356,7 @@ def data_cost(params: Mapping[str, Any], points: Tensor, camera: Tensor, light_p
     """
     names, tensors, floats, uniforms, head = _operator_inputs("data_cost", params, points, camera, light_pos,
                                                               light_int, log_obs, eps)
-    cfg = make_cfg(*head, 0, [], _backend(log_obs), cost_only=True)
+    cfg = make_cfg(*head, 0, [], _backend(log_obs), cost_only=True, family=family)
     return data_cost_op(tensors, floats, uniforms, log_obs, cfg)
 
 

@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.brdf import capture_residual
+from torchbrdf.brdf.formula import ggx_albedos
 from torchbrdf.capture.format import Capture, pixel_points
 from torchbrdf.capture.synthetic import light_geometry, log_residual_points, log_residual_points_jvp
 from torchbrdf.recovery.params import decode, decode_directions, decode_jvp, decode_pattern, decode_slots
@@ -134,15 +135,13 @@ class LevelData:
         Arguments as for :meth:`residual`. The squares are summed in float64 per pixel (a float32
         sum rounds less than ``(r * r).sum(-1)``) and a non-finite sum is +inf (``pixel_cost``'s
         rule), in ``theta``'s dtype, on its device, without the ``(N, 3 len(idx))`` residuals in
-        memory (:func:`torchbrdf.brdf.capture_residual.data_cost`). None where that kernel does
-        not apply (another model, no fused path for this dtype or device).
+        memory (:func:`torchbrdf.brdf.capture_residual.data_cost`), for either model. None where
+        that kernel does not apply (no fused path for this dtype or device).
         """
-        if model != "principled":
-            return None
-        points, log_obs, _ = self._targets(idx, model, rows)
+        points, log_obs, _ = self._targets(idx, "principled", rows)  # (the kernel needs no geometry)
         p = decode(theta, metal)
         return capture_residual.data_cost(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
-                                          log_obs, self.eps)
+                                          log_obs, self.eps, model)
 
     def residual_jvp(self, x: Tensor, metal: Tensor, idx: list[int], model: str, tangents: Tensor,
                      rows: Tensor | slice | None = None) -> tuple[Tensor, Tensor]:
@@ -181,16 +180,15 @@ class LevelData:
         residuals counted as 0 in ``JᵀJ`` and ``Jᵀr``), in ``x``'s dtype, on its device: the
         decode's tangents in closed form (:func:`decode_directions`, three directions:
         :func:`decode_slots`), then one
-        light-loop kernel (:func:`torchbrdf.brdf.capture_residual.normal_equations`). None where
-        that kernel does not apply (another model, no fused path for this dtype or device).
+        light-loop kernel (:func:`torchbrdf.brdf.capture_residual.normal_equations`), for either
+        model. None where that kernel does not apply (no fused path for this dtype or device).
         """
-        if model != "principled":
-            return None
-        points, log_obs, _ = self._targets(idx, model, rows)
+        points, log_obs, _ = self._targets(idx, "principled", rows)  # (the kernel needs no geometry)
         p, dp = decode_directions(x, metal, decode_slots(n_t))
         pattern = decode_pattern(n_t)
         return capture_residual.normal_equations(p["normal"], points, self.camera, self.pos[idx], self.inten[idx],
-                                                 p, log_obs, self.eps, {k: dp[k] for k in pattern}, pattern, n_t)
+                                                 p, log_obs, self.eps, {k: dp[k] for k in pattern}, pattern, n_t,
+                                                 model)
 
     def log_targets(self, idx: list[int], rows: Tensor | None = None) -> Tensor:
         """The log targets ``(N, len(idx), 3)`` on lights ``idx`` of pixels ``rows (N,)`` (int64;
@@ -257,9 +255,7 @@ def _render_points(p, inten, model, light):
 
         l = light["l"]
         n = p["normal"][None].expand_as(l)
-        spec_alb = 0.08 * p["specular"] * (1 - p["metallic"]) + p["base_color"] * p["metallic"]
-        f = svbrdf_ggx(l, light["v"][None].expand_as(l), n, diffuse_albedo=p["base_color"] * (1 - p["metallic"]),
-                       specular_albedo=spec_alb, roughness=p["roughness"])
+        f = svbrdf_ggx(l, light["v"][None].expand_as(l), n, **ggx_albedos(p), roughness=p["roughness"])
         return f * inten[:, None] * torch.clamp((n * l).sum(-1, keepdim=True), min=0) * light["inv_d2"]
     raise ValueError(f"unknown model {model!r}")
 
