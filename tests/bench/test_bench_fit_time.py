@@ -48,3 +48,18 @@ def test_the_fits_wait_for_threads_as_the_recovery_command_does():
     probe = fit_time.AS_COMMAND + "import os, torchbrdf\nprint(os.environ.get('OMP_WAIT_POLICY'))\n"
     out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "PASSIVE"
+
+
+def test_the_model_reaches_the_fit(monkeypatch):
+    seen = []
+
+    def run(cmd, **kw):
+        seen.append(cmd)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(fit_time.subprocess, "run", run)
+    with pytest.raises(RuntimeError, match="stop"):
+        fit_time.run_fit("/tmp", "demo", 1, model="svbrdf_ggx")
+    assert seen[0][seen[0].index("--model") + 1] == "svbrdf_ggx"
+    with pytest.raises(SystemExit):
+        fit_time.main(["--tree", "t=/tmp", "--model", "lambert"])

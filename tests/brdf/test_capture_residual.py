@@ -42,7 +42,7 @@ def _case(n: int, lights: int, dtype: torch.dtype, seed: int, extra: bool = Fals
 
 
 def _per_lane(inputs):
-    c, active, need_tint, frame, backend = inputs
+    c, active, need_tint, frame, backend, _ = inputs
     return capture_fast(c, active, need_tint, frame, backend)
 
 
@@ -54,7 +54,7 @@ def test_light_loop_residual_is_bit_identical(dtype, extra, monkeypatch):
     monkeypatch.setattr(normal_eq_ops, "normal_equations", lambda *a, **k: calls.append(1) or real(*a, **k))
     for seed, (n, lights) in enumerate([(1, 1), (77, 5), (3000, 17)]):
         inputs = capture_residual.residual_inputs(*_case(n, lights, dtype, seed, extra), EPS, any_size=True)
-        assert inputs[-1] == "c"
+        assert inputs[4] == "c"
         got = capture_residual.log_residual(inputs)
         assert got.shape == (n, lights, 3) and got.dtype == dtype
         assert torch.equal(got, _per_lane(inputs))

@@ -102,3 +102,42 @@ def test_the_principled_residual_is_another_kernel():
     ggx = data_cost(p, *case[2:], EPS, family="svbrdf_ggx")
     principled = data_cost(p, *case[2:], EPS)
     assert ((ggx - principled).abs() > 1e-3 * principled.abs()).any()
+
+
+@needs_c
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_per_lane_kernels_of_the_ggx_residual_value_jvp_and_gradient(dtype, tol):
+    """``log_residual_points(family="svbrdf_ggx")`` on the per-lane kernels (``capture_ggx``):
+    the residual, its JVP along the light step's directions and its gradient, against the
+    independent residual above (float64)."""
+    from torchbrdf.capture.synthetic import log_residual_points, log_residual_points_jvp
+
+    case = capture_case(20, 4, torch.float64, seed=10)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    ref = torch.vmap(lambda th, me, pt, lo: _ggx_residual(th, me, pt, cam, lpos, lint, lo))(theta, metal, points,
+                                                                                             log_obs)
+    cast = [t.to(dtype) for t in case]
+    p = decode(cast[0], cast[1])
+    got = log_residual_points(p["normal"], *cast[2:6], p, cast[6], EPS, any_size=True, family="svbrdf_ggx")
+    torch.testing.assert_close(got.reshape(20, -1).double(), ref, rtol=tol, atol=tol)
+    # d/d(light position x of every light) and d/d(roughness), as the light step asks for them
+    tangents = {"light_pos": torch.zeros(2, 4, 3, dtype=dtype), "roughness": torch.zeros(2, 20, 1, dtype=dtype)}
+    tangents["light_pos"][0, :, 0] = 1.0
+    tangents["roughness"][1] = 1.0
+    r, dr = log_residual_points_jvp(p["normal"], *cast[2:6], p, cast[6], EPS, tangents, any_size=True,
+                                    family="svbrdf_ggx")
+
+    def by_light_x(dx):
+        moved = lpos + torch.stack((dx.expand(4), torch.zeros(4, dtype=torch.float64),
+                                    torch.zeros(4, dtype=torch.float64)), -1)
+        return torch.vmap(lambda th, me, pt, lo: _ggx_residual(th, me, pt, cam, moved, lint, lo))(
+            theta, metal, points, log_obs)
+
+    want = torch.func.jvp(by_light_x, (torch.zeros((), dtype=torch.float64),), (torch.ones((), dtype=torch.float64),))[1]
+    torch.testing.assert_close(dr[0].reshape(20, -1).double(), want, rtol=tol * 10, atol=tol * 10)
+    rough = p["roughness"].detach().clone().requires_grad_()
+    loss = log_residual_points(p["normal"], *cast[2:6], {**p, "roughness": rough}, cast[6], EPS, any_size=True,
+                               family="svbrdf_ggx").square().sum()
+    (g,) = torch.autograd.grad(loss, rough)
+    torch.testing.assert_close(g[:, 0].double(), (2 * r.reshape(20, -1) * dr[1].reshape(20, -1)).sum(-1).double(),
+                               rtol=tol * 10, atol=tol * 10)

@@ -135,7 +135,7 @@ def _no_vmap(monkeypatch):
     monkeypatch.setattr(torch.func, "vmap", refuse)
 
 
-def _light_step_args(dtype, seed):
+def _light_step_args(dtype, seed, model="principled"):
     """A flat 8×8 level with 6 lights and the joint light step's arguments at a perturbed state."""
     data, theta, metal = flat_level(size=8, lights=6, normal_tilt_deg=10.0)
     gen = torch.Generator().manual_seed(seed)
@@ -144,16 +144,17 @@ def _light_step_args(dtype, seed):
     return (data, (theta + 0.3 * torch.randn(theta.shape, generator=gen)).to(dtype), metal.to(dtype),
             data.points.to(dtype), data.log_obs.permute(1, 0, 2).to(dtype), data.inten_stated.to(dtype),
             (data.pos_stated + 0.01 * torch.randn(n_l, 3, generator=gen)).to(dtype),
-            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), "principled")
+            (0.1 * torch.randn(n_l, generator=gen)).to(dtype), model)
 
 
+@pytest.mark.parametrize("model", ["principled", "svbrdf_ggx"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("position", [True, False])
-def test_light_step_jacobians_are_vmap_of_jvp_without_it(monkeypatch, dtype, position):
+def test_light_step_jacobians_are_vmap_of_jvp_without_it(monkeypatch, dtype, position, model):
     """The joint light step's residuals and ``7 + G`` derivative columns (offsets, log scales
     away from 0 and from each other) equal ``vmap`` of ``jvp`` of the residual bit for bit,
-    computed without ``torch.func.vmap``."""
-    args = _light_step_args(dtype, 3)
+    computed without ``torch.func.vmap``, under either model."""
+    args = _light_step_args(dtype, 3, model)
     n_l = args[0].pos_stated.shape[0]
     want_r, want = _light_jacobians_by_vmap(*args, position=position)
     _no_vmap(monkeypatch)
@@ -188,13 +189,14 @@ def test_light_step_jacobians_run_in_one_pass_with_the_bits_of_several(monkeypat
     assert torch.equal(r, r4) and torch.equal(cols, cols4)
 
 
+@pytest.mark.parametrize("model", ["principled", "svbrdf_ggx"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("position", [True, False])
-def test_light_step_jacobians_take_the_base_colour_in_one_direction_with_the_bits_of_three(dtype, position):
+def test_light_step_jacobians_take_the_base_colour_in_one_direction_with_the_bits_of_three(dtype, position, model):
     """``base_one``: the base colour's three logits in one direction (``5 + G`` rows) give each
     logit's column on its own channel with the bits of one direction per logit, and the light
     step's reduced system from them is the same, bit for bit, with the C elimination and without."""
-    args = _light_step_args(dtype, 3)
+    args = _light_step_args(dtype, 3, model)
     r, cols = calibration._pixel_and_light_jacobians(*args, position=position)
     r1, cols1 = calibration._pixel_and_light_jacobians(*args, position=position, base_one=True)
     assert cols1.shape == (cols.shape[0] - 2, *cols.shape[1:])
@@ -210,7 +212,7 @@ def test_light_step_jacobians_take_the_base_colour_in_one_direction_with_the_bit
         want = calibration._reduced_light_system(r, cols, prior, 1e-3, chunk=24, fused=fused)
         got = calibration._reduced_light_system(r1, cols1, prior, 1e-3, chunk=24, fused=fused, base_one=True)
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1]) and got[2] == want[2]
-    with pytest.raises(ValueError, match="principled"):
+    with pytest.raises(ValueError, match="family: expected one of"):
         calibration._pixel_and_light_jacobians(*args[:-1], "exact_fresnel", position, True)
 
 

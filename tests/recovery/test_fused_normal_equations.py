@@ -143,11 +143,19 @@ def test_soft_lm_through_the_operator_equals_its_jacobian_path(op_calls, monkeyp
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-8)
 
 
-def test_other_models_and_dtypes_take_the_eager_path(op_calls):
+def test_the_ggx_model_takes_the_kernel_and_the_eager_path_agrees(op_calls):
     data, theta, metal = _level()
     theta[4, 5] = 0.1
-    assert data.normal_equations(theta, metal, data.train_idx, "svbrdf_ggx", 7) is None
-    r, jtj, jtr = lm.gauss_newton(data, theta, metal, data.train_idx, "svbrdf_ggx")
-    assert jtj.shape == (theta.shape[0], 7, 7) and not op_calls
+    fused = data.normal_equations(theta, metal, data.train_idx, "svbrdf_ggx", 7)
+    assert fused is not None and op_calls
+    op_calls.clear()
+    r, jtj, jtr = lm.gauss_newton(data, theta, metal, data.train_idx, "svbrdf_ggx", fused=False)
+    assert not op_calls
+    torch.testing.assert_close(fused[2], jtj, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(fused[3], jtr, rtol=1e-9, atol=1e-9)
+
+
+def test_other_dtypes_take_the_eager_path(op_calls):
+    data, theta, metal = _level()
     assert _eager(lambda: data.normal_equations(theta, metal, data.train_idx, "principled", 7)) is None
     assert not op_calls

@@ -9,7 +9,8 @@ max over the repetitions and the held-out PSNRs seen (one value per row when eve
 tree took the same decisions). ``--busy`` runs everything beside one
 ``python -c "while True: pass"``. ``--part MODULE.NAME`` (e.g.
 ``torchbrdf.recovery.engine.propagate_passes``) also records the CPU time spent in that
-function, patched on its module (a piece's time within the same alternated fits).
+function, patched on its module (a piece's time within the same alternated fits). ``--model
+svbrdf_ggx`` times the recovery's GGX model.
 
 The fits run as the ``torchbrdf-recover`` command does (its OpenMP wait included: :data:`AS_COMMAND`).
 
@@ -66,14 +67,15 @@ sys.exit(main(sys.argv[3:]))
 """
 
 
-def run_fit(tree: str, capture: str, threads: int, part: str | None = None) -> dict:
+def run_fit(tree: str, capture: str, threads: int, part: str | None = None, model: str = "principled") -> dict:
     """One fit of ``capture`` (``"demo"`` or a folder) with the sources of ``tree`` in a fresh process:
-    ``{"seconds", "cpu", "psnr"}``, and ``"part_cpu"``: the CPU s in ``part`` (``MODULE.NAME``) if given."""
+    ``{"seconds", "cpu", "psnr"}``, and ``"part_cpu"``: the CPU s in ``part`` (``MODULE.NAME``) if given.
+    ``model``: the recovery's ``--model``."""
     with tempfile.TemporaryDirectory(prefix="fit_time_") as d:
         cpu_file = os.path.join(d, "cpu")
         args = ["--demo"] if capture == "demo" else ["--capture", capture]
         subprocess.run([sys.executable, "-c", _CHILD, cpu_file, part or "", *args, "--out", os.path.join(d, "out"),
-                        "--threads", str(threads), "--quiet"], cwd=tree, check=True,
+                        "--threads", str(threads), "--model", model, "--quiet"], cwd=tree, check=True,
                        env=dict(os.environ, PYTHONPATH=tree), stdout=subprocess.DEVNULL)
         report = json.loads(Path(d, "out", "report.json").read_text())
         cpu, part_cpu = ast.literal_eval(Path(cpu_file).read_text())
@@ -124,6 +126,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts (default 1,2)")
     ap.add_argument("--reps", type=int, default=5, help="repetitions (default 5)")
     ap.add_argument("--busy", action="store_true", help="beside one busy Python process")
+    ap.add_argument("--model", default="principled", choices=("principled", "svbrdf_ggx"),
+                    help="the recovery's --model (default principled)")
     ap.add_argument("--json", default=None, help="write the fits' rows to this file")
     ap.add_argument("--part", default=None, metavar="MODULE.NAME",
                     help="also the CPU s spent in this function (e.g. torchbrdf.recovery.engine.propagate_passes)")
@@ -143,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     order = names if (rep + k) % 2 == 0 else names[::-1]
                     for name in order:
                         rows.append({"capture": cap, "threads": th, "tree": name, "rep": rep,
-                                     **run_fit(trees[name], cap, th, args.part)})
+                                     **run_fit(trees[name], cap, th, args.part, args.model)})
                         print(json.dumps(rows[-1]), flush=True)
     finally:
         if busy is not None:

@@ -98,7 +98,7 @@ def rows(n: int, lights: int, repeats: int) -> tuple[list[tuple[str, Spread]], b
     p = decode(theta, metal)
     pp, lo = pts.index_select(0, idx), log_all.index_select(0, idx)
     inputs = capture_residual.residual_inputs(p["normal"], pp, cam, lpos, lint, p, lo, EPS, any_size=True)
-    c, active, need_tint, frame, backend = inputs
+    c, active, need_tint, frame, backend, _ = inputs
 
     def level_residual() -> object:
         q, lq = pts.index_select(0, idx), log_all.index_select(0, idx)

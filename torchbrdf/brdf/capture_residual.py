@@ -25,14 +25,18 @@ from torchbrdf.brdf import principled as _p
 __all__ = ["ResidualInputs", "residual_inputs", "log_residual", "log_residual_jvp", "normal_equations",
            "data_cost", "light_schur"]
 
-#: ``(c, active lobes, need_tint, frame, backend)``: the formula's inputs ``c`` (per-pixel
-#: values as ``(P, 1, C)``, broadcast over the lights) and how to run it (backend None: eager).
-ResidualInputs = tuple[dict[str, Any], tuple, bool, bool, str | None]
+#: ``(c, active lobes, need_tint, frame, backend, family)``: the formula's inputs ``c`` (per-pixel
+#: values as ``(P, 1, C)``, broadcast over the lights), how to run it (backend None: eager) and
+#: the model (``capture_log_residual``'s ``family``).
+ResidualInputs = tuple[dict[str, Any], tuple, bool, bool, str | None, str]
+
+#: The fused per-lane kernel family of each model's residual.
+_LANE_FAMILY = {"principled": "capture", "svbrdf_ggx": "capture_ggx"}
 
 
 def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
                     params: Mapping, log_obs: Tensor, eps: float, x: Tensor | None = None,
-                    y: Tensor | None = None, any_size: bool = False) -> ResidualInputs:
+                    y: Tensor | None = None, any_size: bool = False, family: str = "principled") -> ResidualInputs:
     """The checked inputs of :func:`~torchbrdf.brdf.formula.capture_log_residual` and its backend.
 
     Args:
@@ -41,6 +45,8 @@ def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: T
             parameters ``(P, 1)`` or floats (a ``"normal"`` entry is ignored); log_obs
             ``(P, L, 3)``; eps the log's ε; x, y: the tangent frame ``(P, 3)`` or None.
         any_size: in the automatic mode, the fused kernels at every lane count.
+        family: the model, ``"principled"`` or ``"svbrdf_ggx"`` (the recovery's GGX model on
+            the same maps).
 
     Every tensor must share ``log_obs``'s dtype and device (checked).
     """
@@ -61,7 +67,9 @@ def residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: T
     lanes = log_obs.shape[0] * log_obs.shape[1]
     backend = _p.fused_backend(log_obs.device, log_obs.dtype, tensors,
                                 lambda: max(lanes, _p.FAST_PATH_MIN_LANES) if any_size else lanes)
-    return c, active, need_tint, frame, backend
+    if family not in _LANE_FAMILY:
+        raise ValueError(f"family: expected one of {sorted(_LANE_FAMILY)}, got {family!r}")
+    return c, active, need_tint, frame, backend, family
 
 
 def log_residual(inputs: ResidualInputs) -> Tensor:
@@ -70,20 +78,20 @@ def log_residual(inputs: ResidualInputs) -> Tensor:
     On the C backend with no derivative taken, from the light-loop kernel (the same bits as the
     per-lane kernel; the result is then a view of its ``(P, 1 + 3 L)`` rows, not contiguous).
     """
-    c, active, need_tint, frame, backend = inputs
+    c, active, need_tint, frame, backend, family = inputs
     if backend == "c":
-        r = _light_loop_residual(c, frame)
+        r = _light_loop_residual(c, frame, family)
         if r is not None:
             return r
     if backend is not None:
         from torchbrdf.kernels.ops import capture_fast
 
-        return capture_fast(c, active, need_tint, frame, backend)
+        return capture_fast(c, active, need_tint, frame, backend, _LANE_FAMILY[family])
     ops = formula.TorchOps(c["log_obs"].dtype, c["log_obs"].device)
-    return formula.capture_log_residual(ops, c, active, need_tint, frame)
+    return formula.capture_log_residual(ops, c, active, need_tint, frame, family)
 
 
-def _light_loop_residual(c: dict[str, Any], frame: bool) -> Tensor | None:
+def _light_loop_residual(c: dict[str, Any], frame: bool, family: str = "principled") -> Tensor | None:
     """The log residual ``(P, L, 3)`` from the light-loop kernel (C), or None where it does not apply.
 
     Its pixel-level terms are computed once per pixel, not once per pixel-light as in the
@@ -120,7 +128,7 @@ def _light_loop_residual(c: dict[str, Any], frame: bool) -> Tensor | None:
     p = {k: v[:, 0] if isinstance(v, Tensor) else v for k, v in per_pixel.items()}
     pos = p.pop("pos")
     *_, r = fused_normal_equations(p, {}, pos, camera, c["light_pos"][0], c["light_int"][0], log_obs,
-                                   c["eps"], {}, 0, residuals=True)
+                                   c["eps"], {}, 0, residuals=True, family=family)
     return r.view(P, L, 3)
 
 
@@ -151,7 +159,7 @@ def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> 
     """
     import torch
 
-    c, active, need_tint, frame, backend = inputs
+    c, active, need_tint, frame, backend, family = inputs
     needs_grad = torch.is_grad_enabled() and any(isinstance(t, Tensor) and t.requires_grad for t in c.values())
     if backend is None or needs_grad or frame:
         return None
@@ -160,7 +168,7 @@ def log_residual_jvp(inputs: ResidualInputs, tangents: Mapping[str, Tensor]) -> 
     # the inputs' layout as residual_inputs gives them: per pixel (P, 1, C), per light (1, L, 3)
     tans = {"n" if k == "normal" else k: t[:, None] if k in ("light_pos", "light_int") else t[:, :, None]
             for k, t in tangents.items()}
-    return capture_jvp(c, tans, active, need_tint, frame, backend)
+    return capture_jvp(c, tans, active, need_tint, frame, backend, _LANE_FAMILY[family])
 
 
 def normal_equations(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,

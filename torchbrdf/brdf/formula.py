@@ -537,6 +537,11 @@ def svbrdf_ggx(ops: Ops, c: dict, active: tuple = (), need_tint: bool = False, f
     return ops.mask(valid, diffuse + spec)
 
 
+def capture_log_residual_ggx(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool) -> Value:
+    """:func:`capture_log_residual` of the recovery's GGX model (``family="svbrdf_ggx"``)."""
+    return capture_log_residual(ops, c, active, need_tint, frame, "svbrdf_ggx")
+
+
 #: The formulas a fused kernel family can be built from (``_KernelSpec.family``).
 FAMILIES: dict[str, Callable[..., Value]] = {"principled": principled, "capture": capture_log_residual,
-                                             "svbrdf_ggx": svbrdf_ggx}
+                                             "capture_ggx": capture_log_residual_ggx, "svbrdf_ggx": svbrdf_ggx}

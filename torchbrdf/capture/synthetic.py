@@ -607,7 +607,7 @@ def _fit_frame(normal: Tensor, params: Mapping) -> tuple[Tensor | None, Tensor |
 
 def log_residual_points(
     normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: Mapping,
-    log_obs: Tensor, eps: float, any_size: bool = False,
+    log_obs: Tensor, eps: float, any_size: bool = False, family: str = "principled",
 ) -> Tensor:
     """Log residuals of a flat list of pixels under every light, ``(P, L, 3)``: what a fit minimises.
 
@@ -624,22 +624,24 @@ def log_residual_points(
     in that dtype, on that device. ``any_size``: in the automatic mode, the fused kernels at
     every lane count, not only from :data:`~torchbrdf.brdf.principled.FAST_PATH_MIN_LANES` — a
     fit's first full-size call compiles them, and its later calls on a few pixels (refits,
-    converged pixels left out) then cost half as much fused as eager.
+    converged pixels left out) then cost half as much fused as eager. ``family="svbrdf_ggx"``:
+    the recovery's GGX model on the same maps (:func:`torchbrdf.brdf.formula.ggx_albedos`).
     """
     return capture_residual.log_residual(_residual_inputs(normal, points, camera, light_pos, light_int, params,
-                                                          log_obs, eps, any_size))
+                                                          log_obs, eps, any_size, family))
 
 
 def log_residual_points_jvp(
     normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor, params: Mapping,
     log_obs: Tensor, eps: float, tangents: Mapping[str, Tensor], any_size: bool = False,
+    family: str = "principled",
 ) -> tuple[Tensor, Tensor]:
     """:func:`log_residual_points` and its derivatives along ``K`` directions at once.
 
     ``tangents``: ``{name: (K, P, C)}``, the directions' tangents of ``"normal"`` and of
     entries of ``params``, and ``{name: (K, L, 3)}`` of ``"light_pos"`` and ``"light_int"``
     (each the shape of its input with a leading ``K``); every other input is held. The other
-    arguments as for :func:`log_residual_points`. Returns ``(r (P, L, 3), dr (K, P, L, 3))`` in
+    arguments (``family`` too) as for :func:`log_residual_points`. Returns ``(r (P, L, 3), dr (K, P, L, 3))`` in
     ``log_obs``'s dtype, on its device, ``dr[k]`` what ``torch.func.jvp``
     of :func:`log_residual_points` along direction ``k`` gives. On the fused kernels, one
     forward and one JVP call of the operators (:func:`torchbrdf.brdf.capture_residual.log_residual_jvp`),
@@ -652,7 +654,8 @@ def log_residual_points_jvp(
         raise ValueError(f"log_residual_points_jvp: tangents for {sorted(unknown)}: expected 'normal', "
                          f"'light_pos', 'light_int' or keys of params ({sorted(params)})")
     fused = capture_residual.log_residual_jvp(
-        _residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps, any_size), tangents)
+        _residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps, any_size, family),
+        tangents)
     if fused is not None:
         return fused
     names = list(tangents)
@@ -663,7 +666,7 @@ def log_residual_points_jvp(
         given = {**held, **dict(zip(names, vals))}
         p = {k: given[k] for k in params}
         return log_residual_points(given["normal"], points, camera, given["light_pos"], given["light_int"], p,
-                                   log_obs, eps, any_size)
+                                   log_obs, eps, any_size, family)
 
     primals = tuple(held[k] for k in names)
     out_dims: Any = (None, 0)  # the residual (the primal) is not batched over the directions
@@ -673,11 +676,12 @@ def log_residual_points_jvp(
 
 
 def _residual_inputs(normal: Tensor, points: Tensor, camera: Tensor, light_pos: Tensor, light_int: Tensor,
-                     params: Mapping, log_obs: Tensor, eps: float, any_size: bool) -> capture_residual.ResidualInputs:
+                     params: Mapping, log_obs: Tensor, eps: float, any_size: bool,
+                     family: str = "principled") -> capture_residual.ResidualInputs:
     """:func:`torchbrdf.brdf.capture_residual.residual_inputs` with the capture format's frame."""
     x, y = _fit_frame(normal, params)
     return capture_residual.residual_inputs(normal, points, camera, light_pos, light_int, params, log_obs, eps,
-                                            x, y, any_size)
+                                            x, y, any_size, family)
 
 
 def render_capture(

@@ -74,17 +74,19 @@ CAPTURE_INPUTS = ("pos", "n", "camera", "light_pos", "light_int", "log_obs", "ep
 
 
 def capture_fast(c: dict[str, Any], active: Iterable[str], need_tint: bool, frame: bool,
-                 backend: str = "c") -> Tensor:
+                 backend: str = "c", family: str = "capture") -> Tensor:
     """Fused :func:`torchbrdf.brdf.formula.capture_log_residual` on compute-dtype inputs ``c``.
 
     ``c``: :data:`CAPTURE_INPUTS` and the principled material (broadcastable tensors or
-    floats). Returns ``(*, 3)``; reverse and forward mode as for :func:`principled_fast`.
+    floats). ``family``: ``"capture"`` (the principled model) or ``"capture_ggx"`` (the
+    recovery's GGX model). Returns ``(*, 3)``; reverse and forward mode as for
+    :func:`principled_fast`.
     """
-    return _fused(c, CAPTURE_INPUTS, active, need_tint, frame, backend, "capture")
+    return _fused(c, CAPTURE_INPUTS, active, need_tint, frame, backend, family)
 
 
 def capture_jvp(c: dict[str, Any], tangents: dict[str, Tensor], active: Iterable[str], need_tint: bool,
-                frame: bool, backend: str = "c") -> tuple[Tensor, Tensor]:
+                frame: bool, backend: str = "c", family: str = "capture") -> tuple[Tensor, Tensor]:
     """:func:`capture_fast` and its derivatives along ``K`` directions, from one call of each operator.
 
     ``tangents``: ``{name: (K, *c[name].shape)}`` for some tensor inputs of ``c`` (the others
@@ -94,10 +96,10 @@ def capture_jvp(c: dict[str, Any], tangents: dict[str, Tensor], active: Iterable
     ``principled_jvp`` with ``ntan = K``), called directly: without the transforms' work per
     call on the whole ``(K, *, 3)`` tangent (wrapping, batching rules, concatenations), which
     costs more than the kernels themselves at a fit's sizes. Not differentiable: for a
-    fit's Jacobian, whose inputs need no gradient.
+    fit's Jacobian, whose inputs need no gradient. ``family`` as for :func:`capture_fast`.
     """
     tensor_names, tensors, floats, cfg = _operator_args(c, CAPTURE_INPUTS, active, need_tint, frame, backend,
-                                                        "capture")
+                                                        family)
     if any(t.requires_grad for t in tensors) and torch.is_grad_enabled():
         raise RuntimeError("capture_jvp: inputs that require grad (it is not differentiable)")
     unknown = set(tangents) - set(tensor_names)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import sys
-from typing import Any
 
 import numpy as np
 import torch
@@ -139,8 +138,8 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     block-Jacobi: the prior's coupling between pixels is left out): after an LM step the data
     gradient balances the prior's rather than vanishing.
 
-    One forward-mode pass with 5 + 4 tangents (5 + 1 for the scales alone; the principled
-    model's base colour in one direction, each logit on its own channel: other models 7 + G)
+    One forward-mode pass with 5 + 4 tangents (5 + 1 for the scales alone; the base colour in
+    one direction, each logit on its own channel)
     over at most ``max_pixels`` evenly strided pixels gives both Jacobians (a light's residuals
     depend only on its own 4 numbers); the reduction runs in float64 (``Σ BᵀA⁻¹B`` nearly cancels
     ``Σ JgᵀWJg`` in the weak directions). Huber weights ``W`` (3 noise deviations) as in
@@ -178,7 +177,7 @@ def light_joint_step(data: LevelData, theta: Tensor, metal: Tensor, log_scale: T
     s0 = log_scale[idx]
 
     position = position and n_l >= 3  # two lights have no position freedom beyond the rig's
-    base_one = model == "principled"  # (the base colour's 3 unknowns in one direction: 2 tangents fewer)
+    base_one = True  # (the base colour's 3 unknowns in one direction: 2 tangents fewer)
     r, cols = _pixel_and_light_jacobians(data, t0, m, pts, log_obs, inten0, pos0, s0, model, position,
                                          base_one)
     # One sum per pixel carries any NaN or inf among its residuals and derivatives (a sum that
@@ -390,16 +389,15 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
     along each pixel's 7 unknowns and every light's offset xyz and log scale at once (``G = 4``;
     a light's residuals depend only on its own 4 numbers, so 4 shared directions cover all
     lights), or, without ``position``, its log scale alone (``G = 1``: 8 directions, one pass
-    of the fused JVP kernel rather than two). With ``base_one`` (the principled model only) the
-    derivatives are ``(5 + G, n, M)``: the first along the three base-colour logits at once,
-    which gives each its own channel's residuals ``3 l + c`` (a channel's residual depends on
+    of the fused JVP kernel rather than two). With ``base_one`` the derivatives are
+    ``(5 + G, n, M)``: the first along the three base-colour logits at once, which gives each
+    its own channel's residuals ``3 l + c`` (under either model a channel's residual depends on
     its own base colour alone), the same numbers there as one direction per logit.
 
-    The principled model takes the decode's tangents in closed form
-    (:func:`decode_directions`) and the residual's from one call of the fused operators
-    (:func:`log_residual_points_jvp`): ``torch.func``'s ``vmap`` of ``jvp`` of the same
-    function, which the other models take, gives the same numbers at several times the cost
-    per call."""
+    The decode's tangents come in closed form (:func:`decode_directions`) and the residual's
+    from one call of the fused operators (:func:`log_residual_points_jvp`, ``model`` its
+    ``family``): what ``torch.func``'s ``vmap`` of ``jvp`` gives, at a fraction of the cost per
+    call."""
     cam = data.camera
     n, n_l, n_g = t0.shape[0], s0.shape[0], 4 if position else 1
     tp = pos0.new_zeros(N_PARAMS + n_g, *pos0.shape)
@@ -407,31 +405,16 @@ def _pixel_and_light_jacobians(data: LevelData, t0: Tensor, m: Tensor, pts: Tens
     for k in range(n_g - 1):
         tp[N_PARAMS + k, :, k] = 1.0
     ts[-1] = 1.0
-    if base_one and model != "principled":
-        raise ValueError(f"_pixel_and_light_jacobians: base_one needs the principled model, got {model!r}")
-    if model == "principled":
-        scale = torch.exp(s0)
-        pixel_dirs = [[0, 1, 2], *([j] for j in range(3, N_PARAMS))] if base_one else [[j] for j in range(N_PARAMS)]
-        k = len(pixel_dirs)
-        tp, ts = tp[N_PARAMS - k:], ts[N_PARAMS - k:]  # (the light directions' rows after the pixel's k)
-        p, dp = decode_directions(t0, m, pixel_dirs + [[]] * n_g)
-        # the intensity inten0 · exp(s): its tangent by the chain rule, as forward mode forms it
-        dp["light_pos"], dp["light_int"] = tp, (ts * scale)[..., None] * inten0
-        r, dr = log_residual_points_jvp(p["normal"], pts, cam, pos0, inten0 * scale[:, None], p, log_obs,
-                                        data.eps, dp, any_size=True)
-        return r.reshape(n, -1), dr.reshape(k + n_g, n, -1)
-
-    def res(t, pos, s):  # (n, L * 3)
-        inten = inten0 * torch.exp(s)[:, None]
-        r = log_residual(decode(t, m), pts, cam, pos, inten, log_obs, data.eps, model)
-        return r.reshape(t.shape[0], -1)
-
-    eye7 = torch.eye(N_PARAMS, dtype=t0.dtype, device=t0.device)
-    tt = torch.cat((eye7[:, None, :].expand(N_PARAMS, n, N_PARAMS), t0.new_zeros(n_g, n, N_PARAMS)))
-    out_dims: Any = (None, 0)
-    pair: Any = torch.func.vmap(lambda a, b, c: torch.func.jvp(res, (t0, pos0, s0), (a, b, c)),
-                                out_dims=out_dims)(tt, tp, ts)
-    return pair  # (n, M), (7 + G, n, M)
+    scale = torch.exp(s0)
+    pixel_dirs = [[0, 1, 2], *([j] for j in range(3, N_PARAMS))] if base_one else [[j] for j in range(N_PARAMS)]
+    k = len(pixel_dirs)
+    tp, ts = tp[N_PARAMS - k:], ts[N_PARAMS - k:]  # (the light directions' rows after the pixel's k)
+    p, dp = decode_directions(t0, m, pixel_dirs + [[]] * n_g)
+    # the intensity inten0 · exp(s): its tangent by the chain rule, as forward mode forms it
+    dp["light_pos"], dp["light_int"] = tp, (ts * scale)[..., None] * inten0
+    r, dr = log_residual_points_jvp(p["normal"], pts, cam, pos0, inten0 * scale[:, None], p, log_obs,
+                                    data.eps, dp, any_size=True, family=model)
+    return r.reshape(n, -1), dr.reshape(k + n_g, n, -1)
 
 
 def _light_step_basis(data: LevelData, ref_idx: list[int], position: bool, held: Tensor | None = None

@@ -14,9 +14,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchbrdf.brdf import capture_residual
-from torchbrdf.brdf.formula import ggx_albedos
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import light_geometry, log_residual_points, log_residual_points_jvp
+from torchbrdf.capture.synthetic import log_residual_points, log_residual_points_jvp
 from torchbrdf.recovery.params import decode, decode_directions, decode_jvp, decode_pattern, decode_slots
 
 
@@ -43,7 +42,6 @@ class LevelData:
         self._log_obs: Tensor | None = torch.log(torch.clamp(self._obs + eps, min=0.5 * eps))
         self.train_idx = list(train_idx)
         self._log_targets: dict[tuple, Tensor] = {}  # light-set tuple -> log targets (P, L, 3)
-        self._light: dict[tuple, dict] = {}  # light-set tuple -> light_geometry (not the principled's)
 
     def _gathered(self, name: str) -> Tensor:
         """``obs`` or ``log_obs``: a subset's are its level's at its pixels, gathered when first asked for."""
@@ -101,7 +99,7 @@ class LevelData:
             sub._level, sub._rows = self._level, self._rows[rows]
         sub._obs = sub._log_obs = None
         sub.points = self.points[rows]
-        sub._log_targets, sub._light = {}, {}
+        sub._log_targets = {}
         return sub
 
     def set_light_scale(self, log_scale: Tensor | None) -> None:
@@ -114,7 +112,6 @@ class LevelData:
         pos = self.pos_stated if offset is None else self.pos_stated + offset
         if not torch.equal(pos, self.pos):
             self.pos = pos
-            self._light = {}  # the cached light geometry depends on the positions
 
     def residual(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
                  rows: Tensor | slice | None = None) -> Tensor:
@@ -123,9 +120,9 @@ class LevelData:
         ``theta (N, 7)`` and ``metal (N, 1)`` are every pixel's (``N = P``), or, with
         ``rows`` (pixel indices ``(N,)``, repeats allowed, or a slice), those of the listed pixels.
         """
-        points, log_obs, light = self._targets(idx, model, rows)
+        points, log_obs = self._targets(idx, rows)
         r = log_residual(decode(theta, metal), points, self.camera, self.pos[idx], self.inten[idx], log_obs,
-                         self.eps, model, light)
+                         self.eps, model)
         return r.reshape(theta.shape[0], 3 * len(idx))  # (an explicit width: N may be 0)
 
     def data_cost(self, theta: Tensor, metal: Tensor, idx: list[int], model: str = "principled",
@@ -138,7 +135,7 @@ class LevelData:
         memory (:func:`torchbrdf.brdf.capture_residual.data_cost`), for either model. None where
         that kernel does not apply (no fused path for this dtype or device).
         """
-        points, log_obs, _ = self._targets(idx, "principled", rows)  # (the kernel needs no geometry)
+        points, log_obs = self._targets(idx, rows)
         p = decode(theta, metal)
         return capture_residual.data_cost(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
                                           log_obs, self.eps, model)
@@ -151,20 +148,15 @@ class LevelData:
         unused); ``tangents (K, N, x's columns)``; ``metal``, ``idx``, ``model``, ``rows`` as for
         :meth:`residual`. Returns ``(r (N, M), dr (K, N, M))``, ``M = 3 len(idx)``, ``dr[k]``
         = ``torch.func.jvp`` of :meth:`residual` along ``tangents[k]``, in ``x``'s dtype, on its
-        device. The principled model evaluates them in one call of the fused operators
+        device. Either model evaluates them in one call of the fused operators
         (:func:`log_residual_points_jvp`, :func:`decode`'s tangents in closed form by
-        :func:`decode_jvp`); the others through ``torch.func``.
+        :func:`decode_jvp`).
         """
-        def unknowns(v: Tensor) -> tuple[Tensor, Tensor]:
-            return (v[:, :7], v[:, 7:8]) if v.shape[1] == 8 else (v, metal)
-
-        if model != "principled":
-            return vmapped_jvp(lambda v: self.residual(*unknowns(v), idx, model, rows))(x, tangents)
-        points, log_obs, _ = self._targets(idx, model, rows)
+        points, log_obs = self._targets(idx, rows)
         # (a parameter the directions do not move has a zero tangent: the kernel drops it)
         p, dp = decode_jvp(x, metal, tangents)
         r, dr = log_residual_points_jvp(p["normal"], points, self.camera, self.pos[idx], self.inten[idx], p,
-                                        log_obs, self.eps, dp, any_size=True)
+                                        log_obs, self.eps, dp, any_size=True, family=model)
         m = 3 * len(idx)
         return r.reshape(x.shape[0], m), dr.reshape(tangents.shape[0], x.shape[0], m)
 
@@ -183,7 +175,7 @@ class LevelData:
         light-loop kernel (:func:`torchbrdf.brdf.capture_residual.normal_equations`), for either
         model. None where that kernel does not apply (no fused path for this dtype or device).
         """
-        points, log_obs, _ = self._targets(idx, "principled", rows)  # (the kernel needs no geometry)
+        points, log_obs = self._targets(idx, rows)
         p, dp = decode_directions(x, metal, decode_slots(n_t))
         pattern = decode_pattern(n_t)
         return capture_residual.normal_equations(p["normal"], points, self.camera, self.pos[idx], self.inten[idx],
@@ -193,29 +185,19 @@ class LevelData:
     def log_targets(self, idx: list[int], rows: Tensor | None = None) -> Tensor:
         """The log targets ``(N, len(idx), 3)`` on lights ``idx`` of pixels ``rows (N,)`` (int64;
         None: every pixel), gathered from the light set's cached ``(P, L, 3)``."""
-        return self._targets(idx, "principled", rows)[1]
+        return self._targets(idx, rows)[1]
 
-    def _targets(self, idx: list[int], model: str, rows: Tensor | slice | None
-                 ) -> tuple[Tensor, Tensor, dict | None]:
-        """The pixels' points ``(N, 3)``, log targets ``(N, L, 3)`` and light geometry.
-
-        On lights ``idx``; the geometry only for models other than the principled (else None);
-        ``rows`` as for :meth:`residual`.
-        """
+    def _targets(self, idx: list[int], rows: Tensor | slice | None) -> tuple[Tensor, Tensor]:
+        """The pixels' points ``(N, 3)`` and log targets ``(N, L, 3)`` on lights ``idx``;
+        ``rows`` as for :meth:`residual`."""
         key = tuple(idx)
         log_obs = self._log_targets.get(key)
         if log_obs is None:  # per light set, once
             if self._log_obs is None and self._level is not None and self._rows is not None:
-                # a subset: its level's, gathered (asked for as the principled model's: no geometry)
-                log_obs = self._level._targets(idx, "principled", None)[1][self._rows]
+                log_obs = self._level._targets(idx, None)[1][self._rows]  # a subset: its level's, gathered
             else:
                 log_obs = self.log_obs[idx].permute(1, 0, 2).contiguous()  # (P, L, 3)
             self._log_targets[key] = log_obs
-        light = None
-        if model != "principled":  # the geometry the other models render with, per light set once
-            if key not in self._light:
-                self._light[key] = light_geometry(self.points, self.camera, self.pos[idx])
-            light = self._light[key]
         points = self.points
         if isinstance(rows, Tensor) and rows.dtype != torch.bool:
             # (index_select copies whole rows: a quarter of the time of indexing, 7 against 28 ms
@@ -223,41 +205,22 @@ class LevelData:
             points, log_obs = points.index_select(0, rows), log_obs.index_select(0, rows)
         elif rows is not None:
             points, log_obs = points[rows], log_obs[rows]
-        if rows is not None and light is not None:
-            light = {"v": light["v"][rows], "l": light["l"][:, rows], "inv_d2": light["inv_d2"][:, rows]}
-        return points, log_obs, light
+        return points, log_obs
 
 
 def log_residual(p: dict, points: Tensor, camera: Tensor, pos: Tensor, inten: Tensor, log_obs: Tensor,
-                 eps: float, model: str = "principled", light: dict | None = None) -> Tensor:
+                 eps: float, model: str = "principled") -> Tensor:
     """The fit's log residuals ``(N, L, 3)``: ``log(max(pred + ε, ε/2)) − log_obs``.
 
     ``p`` the decoded maps of ``N`` pixels at ``points (N, 3)``, lights at ``pos (L, 3)`` with
-    ``inten (L, 3)``, ``log_obs (N, L, 3)``, all of one dtype and device (the result's). For
-    ``"principled"`` one fused evaluation (:func:`log_residual_points`); the other models
-    render through :func:`_render_points` with ``light`` (:func:`light_geometry`, computed
-    when None). Differentiable w.r.t. every tensor input, in reverse and forward mode. The
-    principled residual runs on the fused kernels at every size (``any_size``): one engine for
-    the whole fit, whose first full-size call compiles them anyway.
+    ``inten (L, 3)``, ``log_obs (N, L, 3)``, all of one dtype and device (the result's); ``model``
+    ``"principled"`` or ``"svbrdf_ggx"`` (the same maps rendered by the GGX model,
+    :func:`torchbrdf.brdf.formula.ggx_albedos`). One fused evaluation
+    (:func:`log_residual_points`), at every size (``any_size``): one engine for the whole fit,
+    whose first full-size call compiles the kernels anyway. Differentiable w.r.t. every tensor
+    input, in reverse and forward mode.
     """
-    if model == "principled":
-        return log_residual_points(p["normal"], points, camera, pos, inten, p, log_obs, eps, any_size=True)
-    light = light_geometry(points, camera, pos) if light is None else light
-    pred = _render_points(p, inten, model, light)
-    return torch.log(torch.clamp(pred + eps, min=0.5 * eps)).permute(1, 0, 2) - log_obs
-
-
-def _render_points(p, inten, model, light):
-    """Radiance ``(L, P, 3)`` of the fit's other models (``"principled"`` goes through the fused
-    :func:`log_residual_points`); ``light`` is :func:`light_geometry` of the pixels and lights."""
-    if model == "svbrdf_ggx":  # the GGX model of torchbrdf.brdf.svbrdf_ggx (not tuned)
-        from torchbrdf.brdf.svbrdf_ggx import svbrdf_ggx
-
-        l = light["l"]
-        n = p["normal"][None].expand_as(l)
-        f = svbrdf_ggx(l, light["v"][None].expand_as(l), n, **ggx_albedos(p), roughness=p["roughness"])
-        return f * inten[:, None] * torch.clamp((n * l).sum(-1, keepdim=True), min=0) * light["inv_d2"]
-    raise ValueError(f"unknown model {model!r}")
+    return log_residual_points(p["normal"], points, camera, pos, inten, p, log_obs, eps, any_size=True, family=model)
 
 
 def photometric_stereo(data: LevelData, idx: list[int], drop: int = 3) -> tuple[Tensor, Tensor]:

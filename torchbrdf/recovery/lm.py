@@ -60,7 +60,7 @@ def gauss_newton(data: LevelData, theta: Tensor, metal: Tensor, idx: list[int], 
     Returns ``r (P, M)`` (the residuals at ``theta``, non-finite entries as they come),
     ``JᵀJ (P, 7, 7)`` and ``Jᵀr (P, 7)`` w.r.t. each pixel's 7 unknowns (non-finite Jacobian
     entries and residuals count as 0 there). Where the fused normal-equations kernel applies
-    (the principled model in float32/float64 with the fused path on:
+    (either model in float32/float64 with the fused path on:
     :meth:`LevelData.normal_equations`; ``fused=False`` skips it, to compare) one pass over
     the lights writes all three, with no Jacobian in memory. Otherwise, pixels being
     independent, forward mode (:func:`fit_jacobian`: five directions for the seven unknowns,
