@@ -50,7 +50,7 @@ def test_the_fits_wait_for_threads_as_the_recovery_command_does():
     assert out.stdout.strip() == "PASSIVE"
 
 
-def test_the_model_reaches_the_fit(monkeypatch):
+def test_the_model_reaches_the_fit(monkeypatch, tmp_path, capsys):
     seen = []
 
     def run(cmd, **kw):
@@ -61,5 +61,7 @@ def test_the_model_reaches_the_fit(monkeypatch):
     with pytest.raises(RuntimeError, match="stop"):
         fit_time.run_fit("/tmp", "demo", 1, model="svbrdf_ggx")
     assert seen[0][seen[0].index("--model") + 1] == "svbrdf_ggx"
-    with pytest.raises(SystemExit):
-        fit_time.main(["--tree", "t=/tmp", "--model", "lambert"])
+    (tmp_path / "torchbrdf").mkdir()
+    with pytest.raises(SystemExit) as e:
+        fit_time.main(["--tree", f"t={tmp_path}", "--model", "lambert"])
+    assert e.value.code == 2 and "--model: invalid choice" in capsys.readouterr().err

@@ -141,3 +141,24 @@ def test_per_lane_kernels_of_the_ggx_residual_value_jvp_and_gradient(dtype, tol)
     (g,) = torch.autograd.grad(loss, rough)
     torch.testing.assert_close(g[:, 0].double(), (2 * r.reshape(20, -1) * dr[1].reshape(20, -1)).sum(-1).double(),
                                rtol=tol * 10, atol=tol * 10)
+
+
+@pytest.mark.parametrize("fast", [False, None])
+def test_the_ggx_residual_off_the_fast_path_and_in_float16(fast):
+    """``set_fast_path(False)`` (the formula on torch tensors) and float16 inputs (evaluated in
+    float32) give the independent GGX residual too."""
+    from torchbrdf.capture.synthetic import log_residual_points
+
+    case = capture_case(10, 3, torch.float64, seed=11)
+    theta, metal, points, cam, lpos, lint, log_obs = case
+    ref = torch.vmap(lambda th, me, pt, lo: _ggx_residual(th, me, pt, cam, lpos, lint, lo))(theta, metal, points,
+                                                                                             log_obs)
+    torchbrdf.set_fast_path(fast)
+    try:
+        p = decode(theta, metal)
+        got = log_residual_points(p["normal"], points, cam, lpos, lint, p, log_obs, EPS, family="svbrdf_ggx")
+        torch.testing.assert_close(got.reshape(10, -1), ref, rtol=1e-10, atol=1e-10)
+        with pytest.raises(ValueError, match="family"):
+            log_residual_points(p["normal"], points, cam, lpos, lint, p, log_obs, EPS, family="ggx")
+    finally:
+        torchbrdf.set_fast_path(None)

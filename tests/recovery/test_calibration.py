@@ -30,7 +30,6 @@ def test_light_scale_step_recovers_per_light_calibration_error():
     true = 0.03 * torch.randn(n_l, generator=torch.Generator().manual_seed(3))
     true = true - true.mean()
     data.log_obs = data.log_obs + true[:, None, None] * data.obs / (data.obs + data.eps)  # images × e^true (bright pixels)
-    data._light = {}
     idx = list(range(n_l))
     est = torch.zeros(n_l)
     for _ in range(3):
@@ -55,7 +54,6 @@ def test_light_position_step_finds_a_moved_light():
         img = render_capture(maps, (data.pos_stated + true, data.inten_stated), backend="compact")
     obs = img.permute(0, 2, 3, 1).reshape(n_l, -1, 3)
     data.log_obs = torch.log(torch.clamp(obs + data.eps, min=0.5 * data.eps))
-    data._light = {}
     off = torch.zeros(n_l, 3)
     for _ in range(4):
         data.set_light_offset(off)
@@ -81,7 +79,6 @@ def test_light_beside_the_camera_keeps_its_stated_position():
         img = render_capture(maps, (data.pos_stated + true, data.inten_stated), backend="compact")
     data.log_obs = torch.log(torch.clamp(img.permute(0, 2, 3, 1).reshape(n_l, -1, 3) + data.eps,
                                          min=0.5 * data.eps))
-    data._light = {}
     zero, idx = torch.zeros(n_l, 3), list(range(n_l))
     held = calibration.light_position_step(data, theta, metal, zero, "principled", stride=1, at_camera=False)
     moved = calibration.light_position_step(data, theta, metal, zero, "principled", stride=1)
@@ -115,7 +112,6 @@ def test_light_position_step_is_not_moved_by_pixels_the_maps_do_not_fit():
     img = img * (1 + 0.01 * torch.randn(img.shape, generator=g, dtype=img.dtype))
     obs = img.permute(0, 2, 3, 1).reshape(n_l, -1, 3)
     data.log_obs = torch.log(torch.clamp(obs + data.eps, min=0.5 * data.eps))
-    data._light = {}
     off = torch.zeros(n_l, 3)
     for _ in range(4):
         data.set_light_offset(off)
@@ -147,7 +143,6 @@ def test_light_joint_step_finds_light_errors_the_maps_absorb():
                              backend="compact")
     obs = img.permute(0, 2, 3, 1).reshape(n_l, -1, 3)
     data.log_obs = torch.log(torch.clamp(obs + data.eps, min=0.5 * data.eps))
-    data._light = {}
     idx = list(range(n_l))
     lam = torch.full((theta.shape[0], 1), 1e-3)
     th, s, off = theta.clone(), torch.zeros(n_l), torch.zeros(n_l, 3)

@@ -453,6 +453,8 @@ def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, fram
     lane, with the geometry inside. ``family="svbrdf_ggx"``: the recovery's GGX model, the
     same principled unknowns rendered by :func:`svbrdf_ggx` through :func:`ggx_albedos`.
     """
+    if family not in ("principled", "svbrdf_ggx"):
+        raise ValueError(f"family: expected 'principled' or 'svbrdf_ggx', got {family!r}")
     v = view_direction(ops, c["camera"], c["pos"])
     if family == "svbrdf_ggx":
         ggx = {**c, **ggx_albedos(c)}

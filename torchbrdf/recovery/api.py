@@ -36,7 +36,7 @@ from torch import Tensor
 
 from torchbrdf._types import PathLike
 from torchbrdf.capture.format import Capture, check_capture, load_capture
-from torchbrdf.capture.synthetic import render_capture
+from torchbrdf.recovery.levels import render_fit
 from torchbrdf.io import read_exr
 from torchbrdf.recovery.checkpoint import (
     capture_differences,
@@ -378,7 +378,7 @@ def _finish(rec: Recovery, cap: Capture, cfg: Settings, out: Path | None, gt: Pa
         raise RecoveryError(f"the fit ended in a non-finite state (final loss {final_loss}); {kept}", rc=1)
     with torch.no_grad():
         fin = _finite_maps(_resize_maps(rec.current_params(), cap.height, cap.width))
-        pred = render_capture(fin, cap, cap.camera_position, backend="compact")
+        pred = render_fit(fin, cap, cap.camera_position, cfg.model)
         conf_fn = getattr(rec, "confidence_map", None)  # provided by newer solvers
         confidence = conf_fn() if callable(conf_fn) else None
         if confidence is not None and tuple(confidence.shape[-2:]) != (cap.height, cap.width):

@@ -94,13 +94,12 @@ import torch
 from torch import Tensor
 
 from torchbrdf.capture.format import Capture
-from torchbrdf.capture.synthetic import render_capture
 from torchbrdf.io import atomic_path
 from torchbrdf.recovery.calibration import light_joint_step, light_position_step, light_scale_step, rest_iterations
 from torchbrdf.recovery.classes import (choose_class, residual_variance, rough_basin_tie,
                                         unconverged_dielectric_rows)
 from torchbrdf.recovery.config import RecoveryConfig, Settings, settings_of
-from torchbrdf.recovery.levels import LevelData, photometric_stereo
+from torchbrdf.recovery.levels import LevelData, photometric_stereo, render_fit
 from torchbrdf.recovery.lm import (conditional_shift, gauss_newton, lm_step, map_prior_terms,
                                    marginal_information, pixel_cost, refit_pixels, sum_unary)
 from torchbrdf.recovery.map_ops import neighbour_mean, upsample
@@ -795,7 +794,7 @@ class Recovery:
         size = maps["base_color"].shape[-1]
         d = self.data(size)
         with torch.no_grad():
-            pred = render_capture(maps, (d.pos[[self.holdout]], d.inten[[self.holdout]]), d.camera, backend="compact")
+            pred = render_fit(maps, (d.pos[[self.holdout]], d.inten[[self.holdout]]), d.camera, self.cfg.model)
         assert d.images is not None  # a full level, not a pixel subset
         return {"light": self.holdout, "file": self.cap.files[self.holdout],
                 "psnr": psnr(pred[0], d.images[self.holdout])}

@@ -15,7 +15,9 @@ from torch import Tensor
 
 from torchbrdf.brdf import capture_residual
 from torchbrdf.capture.format import Capture, pixel_points
-from torchbrdf.capture.synthetic import log_residual_points, log_residual_points_jvp
+from torchbrdf.brdf.formula import ggx_albedos
+from torchbrdf.brdf.svbrdf_ggx import svbrdf_ggx
+from torchbrdf.capture.synthetic import log_residual_points, log_residual_points_jvp, render_capture
 from torchbrdf.recovery.params import decode, decode_directions, decode_jvp, decode_pattern, decode_slots
 
 
@@ -221,6 +223,21 @@ def log_residual(p: dict, points: Tensor, camera: Tensor, pos: Tensor, inten: Te
     input, in reverse and forward mode.
     """
     return log_residual_points(p["normal"], points, camera, pos, inten, p, log_obs, eps, any_size=True, family=model)
+
+
+def render_fit(maps: dict, lights: Any, camera: Tensor, model: str = "principled") -> Tensor:
+    """The images ``(L, 3, H, W)`` a fit's maps ``(C, H, W)`` predict under ``lights`` (as
+    :func:`render_capture` takes them), rendered by the fit's ``model``: what its held-out and
+    per-image PSNRs compare with the capture."""
+    if model == "principled":
+        return render_capture(maps, lights, camera, backend="compact")
+    return render_capture(maps, lights, camera, brdf=_ggx_on_maps)
+
+
+def _ggx_on_maps(l: Tensor, v: Tensor, n: Tensor, x: Tensor | None = None, y: Tensor | None = None,
+                 **maps: Tensor) -> Tensor:
+    """The recovery's GGX model on principled maps (``render_capture``'s ``brdf``)."""
+    return svbrdf_ggx(l, v, n, **ggx_albedos(maps), roughness=maps["roughness"])
 
 
 def photometric_stereo(data: LevelData, idx: list[int], drop: int = 3) -> tuple[Tensor, Tensor]:
