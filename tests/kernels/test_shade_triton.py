@@ -82,15 +82,6 @@ def _shade(backend, dtype, batch=1, size=12):
     return img.detach(), rough.grad, base.grad, metal.grad
 
 
-@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-11), (torch.float32, 2e-5)])
-def test_triton_light_loop_matches_per_light_eager(dtype, tol, light_loop_kernels):
-    got = _shade("triton", dtype)
-    assert light_loop_kernels.count("fwd") >= 1 and light_loop_kernels.count("bwd") >= 1
-    ref = _shade("eager", dtype)
-    for a, b in zip(got, ref):
-        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
-
-
 def _shade_ggx(backend, dtype, size=12):
     from torchbrdf.brdf.svbrdf_ggx import SVBRDFGGX
     from torchbrdf.render.geometry import sphere_gbuffer
@@ -114,11 +105,12 @@ def _shade_ggx(backend, dtype, size=12):
     return (img.detach(), *(t.grad for t in maps.values()))
 
 
+@pytest.mark.parametrize("render", [_shade, _shade_ggx], ids=["principled", "svbrdf_ggx"])
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-11), (torch.float32, 2e-5)])
-def test_triton_light_loop_of_the_svbrdf_ggx(dtype, tol, light_loop_kernels):
-    got = _shade_ggx("triton", dtype)
+def test_triton_light_loop_matches_per_light_eager(dtype, tol, render, light_loop_kernels):
+    got = render("triton", dtype)
     assert light_loop_kernels.count("fwd") >= 1 and light_loop_kernels.count("bwd") >= 1
-    ref = _shade_ggx("eager", dtype)
+    ref = render("eager", dtype)
     for a, b in zip(got, ref):
         torch.testing.assert_close(a, b, rtol=tol, atol=tol)
 
