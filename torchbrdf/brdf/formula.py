@@ -491,6 +491,8 @@ def ggx_albedos(c: dict) -> dict:
 
     ``diffuse_albedo = base (1 − m)``, ``specular_albedo = 0.08 s (1 − m) + base m``: the
     principled model's F0 and its dielectric diffuse weight, so the fit keeps one set of unknowns.
+    ``base_color (*, 3)``, ``metallic`` and ``specular`` ``(*, 1)`` (tensors, numbers or traced
+    values, broadcast); returns both albedos ``(*, 3)``.
     """
     base, m = c["base_color"], c["metallic"]
     return {"diffuse_albedo": base * (1 - m), "specular_albedo": base * m + 0.08 * c["specular"] * (1 - m)}
