@@ -440,6 +440,10 @@ def directional_light(ops: Ops, n: Value, direction: Value, irradiance: Value,
 # Capture fitting: one pixel under one point light, as a log residual (the SVBRDF recovery)
 # ---------------------------------------------------------------------------------------------
 
+#: The BRDFs the light-loop kernels (shading, the recovery's residual) take by name.
+LOOP_BRDFS = ("principled", "svbrdf_ggx")
+
+
 def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, frame: bool,
                          family: str = "principled") -> Value:
     """``log(max(L + ε, ε/2)) − log_obs`` with ``L`` the capture's radiance, ``(*, 3)``.
@@ -453,8 +457,8 @@ def capture_log_residual(ops: Ops, c: dict, active: tuple, need_tint: bool, fram
     lane, with the geometry inside. ``family="svbrdf_ggx"``: the recovery's GGX model, the
     same principled unknowns rendered by :func:`svbrdf_ggx` through :func:`ggx_albedos`.
     """
-    if family not in ("principled", "svbrdf_ggx"):
-        raise ValueError(f"family: expected 'principled' or 'svbrdf_ggx', got {family!r}")
+    if family not in LOOP_BRDFS:
+        raise ValueError(f"family: expected one of {LOOP_BRDFS}, got {family!r}")
     v = view_direction(ops, c["camera"], c["pos"])
     if family == "svbrdf_ggx":
         ggx = {**c, **ggx_albedos(c)}

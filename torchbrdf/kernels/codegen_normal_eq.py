@@ -48,8 +48,7 @@ from torchbrdf.kernels.trace import Graph, Node, TraceOps, Vec3, const, tangents
 
 __all__ = ["NormalEqSpec", "schedule", "generate", "generate_triton", "width", "LIGHT_STRIDE", "CAMERA", "FAMILIES"]
 
-#: The residual's BRDFs: the principled model, and the recovery's GGX model on the same unknowns.
-FAMILIES = ("principled", "svbrdf_ggx")
+FAMILIES = formula.LOOP_BRDFS  # the BRDFs it traces, by name
 
 CAMERA = 3  # uniforms before the lights: the camera position
 LIGHT_STRIDE = 6  # per light: position (3), intensity (3)

@@ -71,8 +71,7 @@ CAMERA = 3  # uniforms before the lights: the camera position
 # live in stack arrays of this length (~60 arrays × 128 × 8 B ≈ 60 KiB, L2-resident).
 BLOCK = 128
 _FORMULA_FUNCS = ("normalize", "view_direction", "point_light", "directional_light", "principled", "svbrdf_ggx")
-#: The BRDFs the light loop traces, by family name.
-FAMILIES = ("principled", "svbrdf_ggx")
+FAMILIES = formula.LOOP_BRDFS  # the BRDFs it traces, by name
 
 
 def formula_token() -> tuple:
